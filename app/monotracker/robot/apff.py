@@ -44,10 +44,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from monotracker.geometry import invert_transform
+import math
+
 from monotracker.robot.head import Corridor, HeadSphere
 from monotracker.robot.kinematics import NeedleTool
-from monotracker.robot.lie import adjoint, exp6, log6
+from monotracker.robot.lie import adjoint, exp6, inverse, log6
 
 VARIANTS = ("APF-V", "APF-A-I", "APF-A-II")
 
@@ -108,7 +109,7 @@ def dls_solve(J: np.ndarray, V: np.ndarray, sigma_min: float, lambda_max: float)
 def attractive_force(p: np.ndarray, p_goal: np.ndarray, zeta: float, d: float) -> np.ndarray:
     """Paper Eq. 17: quadratic well within ``d`` of the goal, conical (|F| = zeta d) beyond (N)."""
     e = p - p_goal
-    n = float(np.linalg.norm(e))
+    n = math.sqrt(e @ e)
     if n <= d:
         return -zeta * e
     return -d * zeta * e / n
@@ -119,7 +120,7 @@ def repulsive_force(p: np.ndarray, head: HeadSphere, eta: float, rho0: float) ->
     ``rho`` is the distance to the sphere surface, floored at 1 mm (inside the sphere the force
     keeps pushing outwards at its 1 mm value rather than becoming infinite or flipping)."""
     r = p - head.centre_m
-    dist = float(np.linalg.norm(r))
+    dist = math.sqrt(r @ r)
     rho = dist - head.radius_m
     if rho > rho0 or dist < 1e-9:
         return np.zeros(3)
@@ -129,7 +130,8 @@ def repulsive_force(p: np.ndarray, head: HeadSphere, eta: float, rho0: float) ->
 
 def point_wrench_space(r: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Paper Eq. 19: wrench ``(r x f; f)`` of a force ``f`` at point ``r`` (base frame)."""
-    return np.concatenate([np.cross(r, f), f])
+    return np.array([r[1] * f[2] - r[2] * f[1], r[2] * f[0] - r[0] * f[2], r[0] * f[1] - r[1] * f[0],
+                     f[0], f[1], f[2]])
 
 
 class APFFController:
@@ -148,11 +150,11 @@ class APFFController:
         self._Binv = np.linalg.inv(self.p.B)
         X = self.tool.T_tool0_mid
         self._T_tool0_mid = X
-        self._T_mid_tip = invert_transform(X) @ self.tool.T_tool0_tip
-        self._Ad_mid_tool0 = adjoint(invert_transform(X))
+        self._T_mid_tip = inverse(X) @ self.tool.T_tool0_tip
+        self._Ad_mid_tool0 = adjoint(inverse(X))
         half = 0.5 * self.tool.length_m
-        self._tip_in_mid = np.array([0.0, 0.0, half, 1.0])
-        self._rem_in_mid = np.array([0.0, 0.0, -half, 1.0])
+        #: tip and remote end in the mid frame, as columns (m)
+        self._seg = np.array([[0.0, 0.0], [0.0, 0.0], [half, -half]])
         self.reset()
 
     def reset(self) -> None:
@@ -163,27 +165,27 @@ class APFFController:
     # ------------------------------------------------------------------ pieces
     def target_mid(self, T_base_target: np.ndarray) -> np.ndarray:
         """Desired mid frame from the desired tip frame."""
-        return T_base_target @ invert_transform(self._T_mid_tip)
+        return T_base_target @ inverse(self._T_mid_tip)
 
     def apf_wrench_body(self, T_mid: np.ndarray, T_mid_goal: np.ndarray, T_base_target: np.ndarray) -> np.ndarray:
         """Paper Eq. 19-21: attractive + repulsive forces on tip and remote end, as wrenches in
         the base frame, mapped to the body (mid) frame with ``Ad(T_base_mid)^T`` and summed."""
         p = self.p
         F_s = np.zeros(6)
-        pts = (T_mid @ self._tip_in_mid)[:3], (T_mid @ self._rem_in_mid)[:3]
-        goals = (T_mid_goal @ self._tip_in_mid)[:3], (T_mid_goal @ self._rem_in_mid)[:3]
-        exempt = (np.zeros(2, bool) if self.head is None
-                  else self.corridor.contains(np.array(pts), T_base_target))
+        P = T_mid[:3, :3] @ self._seg + T_mid[:3, 3:4]
+        G = T_mid_goal[:3, :3] @ self._seg + T_mid_goal[:3, 3:4]
+        pts, goals = (P[:, 0], P[:, 1]), (G[:, 0], G[:, 1])
+        exempt = (None if self.head is None else self.corridor.contains(P.T, T_base_target))
         for k, (r, g) in enumerate(zip(pts, goals)):
             f = attractive_force(r, g, p.zeta, p.d)
-            if self.head is not None and not exempt[k]:
+            if exempt is not None and not exempt[k]:
                 f = f + repulsive_force(r, self.head, p.eta, p.rho0)
             F_s += point_wrench_space(r, f)
         return adjoint(T_mid).T @ F_s
 
     def _saturate(self, V: np.ndarray) -> np.ndarray:
-        w = np.linalg.norm(V[:3])
-        v = np.linalg.norm(V[3:])
+        w = math.sqrt(V[:3] @ V[:3])
+        v = math.sqrt(V[3:] @ V[3:])
         out = V.copy()
         if w > self.p.w_max:
             out[:3] *= self.p.w_max / w
@@ -202,7 +204,7 @@ class APFFController:
         T_goal = self.target_mid(T_base_target)
 
         if self.variant == "APF-V":
-            S = log6(invert_transform(T_mid) @ T_goal)
+            S = log6(inverse(T_mid) @ T_goal)
             F = self.apf_wrench_body(T_mid, T_goal, T_base_target)
             self.V = self._saturate(self._Binv @ F)
             dq, smin = dls_solve(J_mid, self.V, p.sigma_min, p.lambda_max)
@@ -212,13 +214,13 @@ class APFFController:
             self.T_ref = T_mid.copy()
             self.V = J_mid @ dq_meas
         else:
-            drift = log6(invert_transform(T_mid) @ self.T_ref)
-            if np.linalg.norm(drift[3:]) > p.resync_m or np.linalg.norm(drift[:3]) > p.resync_rad:
+            drift = log6(inverse(T_mid) @ self.T_ref)
+            if drift[3:] @ drift[3:] > p.resync_m**2 or drift[:3] @ drift[:3] > p.resync_rad**2:
                 self.T_ref = T_mid.copy()
                 self.V = J_mid @ dq_meas
 
-        S = log6(invert_transform(self.T_ref) @ T_goal)
-        nS = float(np.linalg.norm(S))
+        S = log6(inverse(self.T_ref) @ T_goal)
+        nS = math.sqrt(S @ S)
         if self.variant == "APF-A-II":
             if self.near and nS > 2.0 * p.epsilon:
                 self.near = False
@@ -234,7 +236,7 @@ class APFFController:
         self.V = self._saturate(self.V + dt * (self._Minv @ (F + K @ S - p.B @ self.V)))
         self.T_ref = self.T_ref @ exp6(self.V * dt)
         # Command: reference twist seen from the measured frame + correction towards the reference.
-        T_err = invert_transform(T_mid) @ self.T_ref
+        T_err = inverse(T_mid) @ self.T_ref
         V_cmd = adjoint(T_err) @ self.V + p.kp * log6(T_err)
         dq, smin = dls_solve(J_mid, V_cmd, p.sigma_min, p.lambda_max)
         return ControlOutput(dq, S, F, self.V.copy(), "near" if self.near else "far", smin)

@@ -30,6 +30,7 @@ Units: m, rad, s.
 from __future__ import annotations
 
 import enum
+import math
 import logging
 import threading
 from dataclasses import dataclass, field
@@ -119,6 +120,7 @@ class SafetyLayer:
         self.pending: np.ndarray | None = None  # newest rigid target not accepted (jump)
         self.last_cmd = np.zeros(6)
         self.warnings: list[str] = []
+        self._Ad_tip_tool0 = adjoint(invert_transform(self.tool.T_tool0_tip))
         ts = np.linspace(0.0, 1.0, 5)
         self._needle_pts = np.array([[0, 0, self.tool.offset_m + t * self.tool.length_m, 1.0] for t in ts])
 
@@ -244,9 +246,8 @@ class SafetyLayer:
         if s > 1.0:
             dq /= s
         # 2. tool speed at the needle tip
-        Ad = adjoint(invert_transform(self.tool.T_tool0_tip))
-        Vt = Ad @ (J_b_tool0 @ dq)
-        s = max(np.linalg.norm(Vt[3:]) / cfg.tool_speed_m_s, np.linalg.norm(Vt[:3]) / cfg.tool_angular_rad_s)
+        Vt = self._Ad_tip_tool0 @ (J_b_tool0 @ dq)
+        s = max(math.sqrt(Vt[3:] @ Vt[3:]) / cfg.tool_speed_m_s, math.sqrt(Vt[:3] @ Vt[:3]) / cfg.tool_angular_rad_s)
         if s > 1.0:
             dq /= s
         # 3. braking before joint position limits
@@ -272,9 +273,13 @@ class SafetyLayer:
         return (T_base_tool0 @ self._needle_pts.T).T[:, :3]
 
     def _keepout(self, q, dq, T_now, head: HeadSphere) -> np.ndarray:
+        p_now = self.needle_points(T_now)
+        reach = self.cfg.tool_speed_m_s * self.cfg.keepout_lookahead_s * 2.0 + self.cfg.keepout_margin_m
+        if np.min(head.distance(p_now)) > reach:
+            return dq  # nothing near the head: the prediction cannot enter it
         q_next = q + dq * self.cfg.keepout_lookahead_s
         T_next = self.kin.fk(q_next)
-        p_now, p_next = self.needle_points(T_now), self.needle_points(T_next)
+        p_next = self.needle_points(T_next)
         d_now = head.distance(p_now) - self.cfg.keepout_margin_m
         d_next = head.distance(p_next) - self.cfg.keepout_margin_m
         free = self.corridor.contains(p_next, self.target)
