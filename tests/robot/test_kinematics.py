@@ -86,7 +86,7 @@ def test_needle_tool_and_urdf():
 
 def test_fast_lie_maps_equal_reference():
     from monotracker.geometry import invert_transform as inv_ref
-    from monotracker.robot.lie import adjoint_ref, exp6_ref, inverse, log6_ref
+    from monotracker.robot.lie import adjoint_ref, exp6_ref, inverse, log6_ref, relative
 
     rng = np.random.default_rng(4)
     for _ in range(50):
@@ -96,3 +96,5 @@ def test_fast_lie_maps_equal_reference():
         assert np.allclose(log6(T), log6_ref(T), atol=1e-9)
         assert np.allclose(adjoint(T), adjoint_ref(T), atol=1e-12)
         assert np.allclose(inverse(T), inv_ref(T), atol=1e-12)
+        T2 = exp6_ref(rng.normal(size=6))
+        assert np.allclose(relative(T, T2), inv_ref(T) @ T2, atol=1e-12)

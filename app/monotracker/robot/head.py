@@ -98,7 +98,7 @@ class HeadSphere:
     def distance(self, points_m: np.ndarray) -> np.ndarray:
         """Signed distance (m) of ``(n, 3)`` points to the sphere surface (negative inside)."""
         d = np.asarray(points_m, dtype=float).reshape(-1, 3) - self.centre_m
-        return np.sqrt(np.einsum("ij,ij->i", d, d)) - self.radius_m
+        return np.sqrt((d * d).sum(axis=1)) - self.radius_m
 
 
 @dataclass(frozen=True)
@@ -115,5 +115,5 @@ class Corridor:
         """Boolean (n,): which points lie inside the corridor of ``T_base_target`` (tip pose, m)."""
         p = np.asarray(points_m, dtype=float).reshape(-1, 3) - T_base_target[:3, 3]
         s = p @ T_base_target[:3, 2]
-        radial2 = np.einsum("ij,ij->i", p, p) - s * s
+        radial2 = (p * p).sum(axis=1) - s * s
         return (radial2 <= self.radius_m**2) & (s <= self.depth_m)

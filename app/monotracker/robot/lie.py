@@ -122,9 +122,9 @@ def adjoint(T: np.ndarray) -> np.ndarray:
 
 def inverse(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform; equals ``geometry.invert_transform`` (fast path)."""
-    Ti = np.empty((4, 4))
-    R = T[:3, :3].T
-    Ti[:3, :3] = R
-    Ti[:3, 3] = -R @ T[:3, 3]
-    Ti[3] = (0.0, 0.0, 0.0, 1.0)
-    return Ti
+    return _pin.SE3(T).inverse().homogeneous
+
+
+def relative(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A^-1 @ B`` for rigid transforms (fast path)."""
+    return _pin.SE3(A).actInv(_pin.SE3(B)).homogeneous

@@ -253,9 +253,11 @@ class SafetyLayer:
         # 3. braking before joint position limits
         lo = self.limits.lower + cfg.position_margin_rad
         hi = self.limits.upper - cfg.position_margin_rad
-        vmax_up = np.sqrt(2.0 * cfg.joint_accel * np.clip(hi - q, 0.0, None))
-        vmax_dn = np.sqrt(2.0 * cfg.joint_accel * np.clip(q - lo, 0.0, None))
-        dq = np.clip(dq, -vmax_dn, vmax_up)
+        brake = float(np.max(cfg.joint_speed)) ** 2 / (2.0 * cfg.joint_accel) + 0.01
+        if np.min(hi - q) < brake or np.min(q - lo) < brake:  # near a limit: cap the speed towards it
+            vmax_up = np.sqrt(2.0 * cfg.joint_accel * np.clip(hi - q, 0.0, None))
+            vmax_dn = np.sqrt(2.0 * cfg.joint_accel * np.clip(q - lo, 0.0, None))
+            dq = np.clip(dq, -vmax_dn, vmax_up)
         # 4. keep-out: do not take needle points deeper into the head sphere outside the corridor
         if head is not None and self.target is not None:
             dq = self._keepout(q, dq, T_base_tool0, head)
