@@ -81,7 +81,8 @@ class SafetyConfig:
     jump_rad: float = np.radians(10.0)
     auto_resume: bool = True
     keepout_margin_m: float = 0.0
-    keepout_lookahead_s: float = 0.15
+    #: latency allowance added to the braking time when predicting where the needle stops (s)
+    keepout_lookahead_s: float = 0.03
     sigma_hold: float = 0.01
     standstill_rad_s: float = 1e-3
 
@@ -276,10 +277,13 @@ class SafetyLayer:
 
     def _keepout(self, q, dq, T_now, head: HeadSphere) -> np.ndarray:
         p_now = self.needle_points(T_now)
-        reach = self.cfg.tool_speed_m_s * self.cfg.keepout_lookahead_s * 2.0 + self.cfg.keepout_margin_m
+        v = self.cfg.tool_speed_m_s
+        reach = 2.0 * (v * v / (2.0 * 0.5) + v * self.cfg.keepout_lookahead_s) + self.cfg.keepout_margin_m
         if np.min(head.distance(p_now)) > reach:
             return dq  # nothing near the head: the prediction cannot enter it
-        q_next = q + dq * self.cfg.keepout_lookahead_s
+        # where the arm would come to rest if it braked now: q + dq * (t_brake / 2 + latency)
+        t_brake = float(np.max(np.abs(dq))) / self.cfg.joint_accel
+        q_next = q + dq * (0.5 * t_brake + self.cfg.keepout_lookahead_s)
         T_next = self.kin.fk(q_next)
         p_next = self.needle_points(T_next)
         d_now = head.distance(p_now) - self.cfg.keepout_margin_m
