@@ -161,6 +161,7 @@ class APFFController:
         self._T_tool0_mid = X
         self._T_mid_tip = inverse(X) @ self.tool.T_tool0_tip
         self._T_tip_mid = inverse(self._T_mid_tip)
+        self._Ad_mid_tip = adjoint(self._T_mid_tip)
         self._Ad_mid_tool0 = adjoint(inverse(X))
         half = 0.5 * self.tool.length_m
         self._half = half
@@ -214,10 +215,16 @@ class APFFController:
 
     # ------------------------------------------------------------------ step
     def step(self, T_base_tool0: np.ndarray, J_b_tool0: np.ndarray, dq_meas: np.ndarray,
-             T_base_target: np.ndarray, dt: float) -> ControlOutput:
+             T_base_target: np.ndarray, dt: float, V_target: np.ndarray | None = None) -> ControlOutput:
         """One control period: measured flange pose and body Jacobian (tool0), measured joint
-        rates, the desired tip pose, period ``dt`` (s) -> joint velocity command (rad/s)."""
+        rates, the desired tip pose, period ``dt`` (s) -> joint velocity command (rad/s).
+
+        ``V_target`` (optional, an extension beyond the paper): the target's own body twist
+        (tip frame, ``(omega, v)``), e.g. estimated from the pose stream. When given, the
+        damper acts on the velocity *relative* to the moving target, ``B (V - V_t)``, and APF-V
+        adds it to its output; without it the controller is exactly the paper's."""
         p = self.p
+        V_ff = None if V_target is None else self._Ad_mid_tip @ np.asarray(V_target, dtype=float)
         T_mid = T_base_tool0 @ self._T_tool0_mid
         J_mid = self._Ad_mid_tool0 @ J_b_tool0
         T_goal = self.target_mid(T_base_target)
@@ -225,7 +232,7 @@ class APFFController:
         if self.variant == "APF-V":
             S = log6(relative(T_mid, T_goal))
             F = self.apf_wrench_body(T_mid, T_goal, T_base_target)
-            self.V = self._saturate(F / self._b)
+            self.V = self._saturate(F / self._b if V_ff is None else F / self._b + V_ff)
             dq, smin = dls_solve(J_mid, self.V, p.sigma_min, p.lambda_max)
             return ControlOutput(dq, S, F, self.V.copy(), "far", smin)
 
@@ -252,7 +259,8 @@ class APFFController:
             F = self.apf_wrench_body(self.T_ref, T_goal, T_base_target)
             k = self._k1
         # Semi-implicit Euler (Eq. 24): velocity first, then the reference pose.
-        self.V = self._saturate(self.V + dt * (F + k * S - self._b * self.V) / self._m)
+        damp = self._b * (self.V if V_ff is None else self.V - V_ff)
+        self.V = self._saturate(self.V + dt * (F + k * S - damp) / self._m)
         self.T_ref = self.T_ref @ exp6(self.V * dt)
         # Command: reference twist seen from the measured frame + correction towards the reference.
         T_err = relative(T_mid, self.T_ref)
