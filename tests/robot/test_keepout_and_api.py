@@ -111,3 +111,13 @@ def test_realtime_thread_runs_and_stops():
     assert snap.state == "tracking"
     assert snap.tip_error_mm < 5.0  # moved most of the 10 mm in 1 s on a loaded machine
     assert tr.state.value == "armed"
+
+
+def test_disconnect_disarms():
+    rig = Rig()
+    T = ready_tip_pose()
+    rig.start(T)
+    rig.run(0.1, T)
+    rig.tracker.disconnect()
+    assert rig.tracker.state.value == "disarmed"
+    assert not rig.arm.is_connected()

@@ -181,6 +181,14 @@ class Tracker:
             return CommandResult(False, str(exc))
         return CommandResult(True, "connected")
 
+    def disconnect(self) -> None:
+        """Stop the loop thread (if running), stop the arm and close the connection."""
+        self.stop()
+        with self._lock:
+            if self.safety.state not in (State.DISARMED, State.ESTOPPED):
+                self.safety.disarm(self.clock(), "tracker disconnected")
+            self.arm_backend.disconnect()
+
     def arm(self) -> CommandResult:
         with self._lock:
             return CommandResult(*self.safety.arm(self.clock(), self.arm_backend.is_connected()))
