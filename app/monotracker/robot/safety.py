@@ -204,7 +204,9 @@ class SafetyLayer:
         if not np.isfinite(stamp) or now - stamp > self.cfg.max_latency_s:
             self.hold(now, f"target pose too old ({now - stamp:.3f} s since capture)", auto=True)
             return TargetStatus(False, "target pose too old")
-        if self.target is not None:
+        if self.target is not None and self.state in (State.TRACKING, State.HOLDING):
+            # A jump matters only while the arm follows the target; armed/disarmed, the newest
+            # pose simply becomes the reference that start_tracking will use.
             dp = float(np.linalg.norm(T[:3, 3] - self.target[:3, 3]))
             da = float(np.linalg.norm(log3(self.target[:3, :3].T @ T[:3, :3])))
             if dp > self.cfg.jump_m or da > self.cfg.jump_rad:
