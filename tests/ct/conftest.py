@@ -73,7 +73,7 @@ def write_dicom_series(image: sitk.Image, folder: Path, series_uid: str | None =
         sl.SetMetaData("0020|0032", "\\".join(f"{x:.6f}" for x in pos))
         sl.SetMetaData("0020|0013", str(k + 1))
         sl.SetMetaData("0008|0018", f"{series_uid}.{k + 1}")
-        p = folder / f"slice_{k:04d}.dcm"
+        p = folder / f"{description}_{k:04d}.dcm"
         writer.SetFileName(str(p))
         writer.Execute(sl)
         paths.append(p)
