@@ -47,11 +47,13 @@ def head_surface(volume: Volume, target_mm: float = 2.0, level_hu: float | None 
     # block (z, y, x) index -> voxel (k, j, i) continuous index: block centre minus the pad
     kji = (verts - 1.0) * np.array(f, float) + (np.array(f, float) - 1.0) / 2.0
     lps = volume.zyx_to_lps(kji)
-    mesh = trimesh.Trimesh(vertices=lps, faces=faces[:, ::-1], process=True)
+    mesh = trimesh.Trimesh(vertices=lps, faces=np.ascontiguousarray(faces[:, ::-1]), process=True)
     parts = mesh.split(only_watertight=False)
     if len(parts) > 1:
         mesh = max(parts, key=lambda m: len(m.faces))
     # marching cubes winds faces by the array's index order; make normals point outwards
-    if mesh.is_watertight and mesh.volume < 0:
-        mesh.invert()
-    return mesh
+    tri = mesh.triangles
+    signed_volume = float(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum()) / 6.0
+    faces_out = np.ascontiguousarray(mesh.faces[:, ::-1] if signed_volume < 0 else mesh.faces)
+    # a fresh mesh: no cached normals from before the winding fix
+    return trimesh.Trimesh(vertices=np.array(mesh.vertices), faces=faces_out, process=False)
