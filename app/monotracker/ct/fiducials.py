@@ -257,7 +257,7 @@ def _unit_from_angles(theta: float, phi: float) -> tuple[np.ndarray, np.ndarray,
     return n, np.array([ct * cp, ct * sp, -st]), np.array([-st * sp, st * cp, 0.0])
 
 
-def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float):
+def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None):
     """Least-squares fit of a blurred ball resting on a blurred plane surface (the scalp).
 
     The background is ``b_out`` on one side of the plane ``n . (x - c) = h`` and ``b_in`` on
@@ -265,18 +265,26 @@ def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_s
     same edge sigma ``s`` as the ball; the ball occludes it:
     ``v = bg (1 - fill) + H fill``. Without this the scalp under a ball pulls a plain sphere
     fit towards the skin by ~0.015 mm at 0.45 mm PSF and ~0.05 mm at 0.8 mm.
+    ``box_cov`` (3x3, mm^2): the voxel box's covariance in LPS, ``D diag(w**2 / 12) D^T``;
+    with it an edge with normal ``e`` is blurred by ``sqrt(s**2 + e^T box_cov e)``, so thick
+    slices blur along z more than in-plane, as in the scanner; ``s`` is then the PSF sigma.
     Parameters ``[cx, cy, cz, r, s, H, b_out, b_in, theta, phi, h]``. Returns
     (params, inlier RMS residual HU, success).
     """
+    M = np.zeros((3, 3)) if box_cov is None else np.asarray(box_cov, float)
 
     def parts(p):
-        c, r, s, H, bo, bi, th, ph, h = p[:3], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10]
+        c, r, s0, H, bo, bi, th, ph, h = p[:3], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10]
         rel = pts - c
         dist = np.sqrt(np.sum(rel * rel, axis=1))
-        u = (dist - r) / (_SQRT2 * s)
+        e = rel / np.maximum(dist, 1e-9)[:, None]
+        sF = np.sqrt(s0 * s0 + np.einsum("ij,jk,ik->i", e, M, e))
+        u = (dist - r) / (_SQRT2 * sF)
         fill = 0.5 * erfc(u)
         n, dn_dth, dn_dph = _unit_from_angles(th, ph)
-        z = (h - rel @ n) / (_SQRT2 * s)
+        sP = np.sqrt(s0 * s0 + n @ M @ n)
+        z = (h - rel @ n) / (_SQRT2 * sP)
+        s = (sF, sP, s0)
         pf = 0.5 * erfc(z)
         bg = bo + (bi - bo) * pf
         return c, r, s, H, bo, bi, rel, dist, u, fill, n, dn_dth, dn_dph, z, pf, bg
@@ -286,15 +294,17 @@ def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_s
         return bg * (1.0 - fill) + p[5] * fill - values
 
     def jac(p):
-        c, r, s, H, bo, bi, rel, dist, u, fill, n, dn_dth, dn_dph, z, pf, bg = parts(p)
-        k2 = 1.0 / (_SQRT2 * s)
+        # the blur's dependence on the normal direction is left out of the Jacobian (tiny)
+        c, r, (sF, sP, s0), H, bo, bi, rel, dist, u, fill, n, dn_dth, dn_dph, z, pf, bg = parts(p)
+        kF = 1.0 / (_SQRT2 * sF)
+        k2 = 1.0 / (_SQRT2 * sP)
         gF = -_INV_SQRT_PI * np.exp(-u * u) * (H - bg)
         gP = -_INV_SQRT_PI * np.exp(-z * z) * (1.0 - fill) * (bi - bo)
         unit = rel / np.maximum(dist, 1e-9)[:, None]
         J = np.empty((len(pts), 11))
-        J[:, :3] = -(gF * k2)[:, None] * unit + (gP * k2)[:, None] * n[None, :]
-        J[:, 3] = -gF * k2
-        J[:, 4] = -gF * u / s - gP * z / s
+        J[:, :3] = -(gF * kF)[:, None] * unit + (gP * k2)[:, None] * n[None, :]
+        J[:, 3] = -gF * kF
+        J[:, 4] = -gF * u * s0 / (sF * sF) - gP * z * s0 / (sP * sP)
         J[:, 5] = fill
         J[:, 6] = (1.0 - fill) * (1.0 - pf)
         J[:, 7] = (1.0 - fill) * pf
@@ -313,7 +323,7 @@ def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_s
     return res.x, rms, bool(res.success)
 
 
-def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_scale: float):
+def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None):
     """Second stage after :func:`fit_blurred_sphere`: when voxels outside the ball are clearly
     brighter than the ball's background on one side (the ball rests on tissue), refit with
     :func:`fit_ball_on_surface`. Returns (centre, radius, edge sigma, H, rms, used_surface)."""
@@ -332,8 +342,9 @@ def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_s
     b_in = float(np.median(values[bright]))
     dark = outside & ~bright
     b_out = float(np.median(values[dark])) if dark.any() else b
-    x0 = np.r_[c, r, s, H, b_out, b_in, th, ph, r]
-    params, rms, ok = fit_ball_on_surface(pts, values, x0, f_scale)
+    s0 = s if box_cov is None else float(np.sqrt(max(s * s - np.trace(box_cov) / 3.0, 0.01)))
+    x0 = np.r_[c, r, s0, H, b_out, b_in, th, ph, r]
+    params, rms, ok = fit_ball_on_surface(pts, values, x0, f_scale, box_cov)
     if not ok or np.linalg.norm(params[:3] - c) > 1.0:
         return None
     return params, rms
@@ -457,7 +468,8 @@ def _fit_clusters(volume, labels, pts, kji, levels, T, out, candidates) -> None:
         c, r, s_edge, H, b = params[:3], params[3], params[4], params[5], params[6]
         contrast = H - b
         if success and contrast > 0:
-            surf = refine_on_surface(wpts, vals, params, f_scale)
+            box_cov = (volume.direction * (sp**2 / 12.0)) @ volume.direction.T
+            surf = refine_on_surface(wpts, vals, params, f_scale, box_cov)
             if surf is not None and surf[1] <= rms * 1.05:
                 sp_, rms = surf
                 c, r, s_edge, H = sp_[:3], sp_[3], sp_[4], sp_[5]
