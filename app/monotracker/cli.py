@@ -19,7 +19,10 @@ from monotracker import __version__
 from monotracker.errors import MonoTrackerError
 
 #: Modules that add sub-commands, in the order they appear in ``--help``.
-COMMAND_MODULES: tuple[str, ...] = ("monotracker.robot.commands",)
+COMMAND_MODULES: tuple[str, ...] = (
+    "monotracker.ct.commands",
+    "monotracker.robot.commands",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
