@@ -49,6 +49,7 @@ class RobustOptions:
     refine_top: int = 3
     ambiguity_ratio: float = 2.0
     accept_rms_px: float = 3.0
+    miss_probability: float = 0.01
 
 
 @dataclass
@@ -68,6 +69,18 @@ def _model_triplets(n: int) -> np.ndarray:
     return np.array(list(permutations(range(n), 3)), dtype=int).reshape(-1, 3)
 
 
+def _miss_probability(k: int, m: int, tried: int) -> float:
+    """Chance that ``tried`` random image triplets all missed a solution with k inlier points
+    among m (each triplet is all-inlier with probability C(k,3) / C(m,3)). Our triplet order
+    spreads over points, so the real chance is lower: this is a conservative stopping rule."""
+    from math import comb
+
+    if k > m:
+        return 0.0
+    p = comb(k, 3) / comb(m, 3)
+    return (1.0 - p) ** tried
+
+
 def _image_triplet_order(xn: np.ndarray) -> list[tuple[int, int, int]]:
     m = len(xn)
     tris = np.array(list(combinations(range(m), 3)), dtype=int)
@@ -77,7 +90,8 @@ def _image_triplet_order(xn: np.ndarray) -> list[tuple[int, int, int]]:
     a = np.linalg.norm(P[:, 1] - P[:, 2], axis=1)
     b = np.linalg.norm(P[:, 0] - P[:, 2], axis=1)
     c = np.linalg.norm(P[:, 0] - P[:, 1], axis=1)
-    area = 0.5 * np.abs(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]))
+    e1, e2 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]
+    area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
     # smallest angle via the law of sines on the shortest side
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.sort(np.stack([a, b, c], 1), axis=1)
@@ -205,7 +219,8 @@ def robust_search(X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: flo
                 cands[pairs] = Candidate(pairs, ref, rms, {batch[tri_of[src[h]]]})
         if cands:
             best = max(cands.values(), key=lambda c: (c.count, -c.rms_px))
-            if best.rms_px <= opts.accept_rms_px and (best.count >= full or len(best.found_by) >= 2):
+            if best.rms_px <= opts.accept_rms_px and (
+                    best.count >= full or (len(best.found_by) >= 2 and _miss_probability(best.count + 1, m, tried) < opts.miss_probability)):
                 break
     stats = {"image_triplets": tried, "hypotheses": hyps, "candidates": len(cands)}
     if not cands:
