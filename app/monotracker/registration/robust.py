@@ -45,11 +45,12 @@ class RobustOptions:
     hypothesis_gate_px: float = 10.0
     final_gate_px: float = 5.0
     max_image_triplets: int = 40
-    triplets_per_batch: int = 2
+    triplets_per_batch: int = 1
     refine_top: int = 3
     ambiguity_ratio: float = 2.0
     accept_rms_px: float = 3.0
-    miss_probability: float = 0.01
+    #: With this many image points or fewer, every image triplet is tried (ambiguity safety).
+    exhaustive_below: int = 5
 
 
 @dataclass
@@ -69,16 +70,25 @@ def _model_triplets(n: int) -> np.ndarray:
     return np.array(list(permutations(range(n), 3)), dtype=int).reshape(-1, 3)
 
 
-def _miss_probability(k: int, m: int, tried: int) -> float:
-    """Chance that ``tried`` random image triplets all missed a solution with k inlier points
-    among m (each triplet is all-inlier with probability C(k,3) / C(m,3)). Our triplet order
-    spreads over points, so the real chance is lower: this is a conservative stopping rule."""
-    from math import comb
+def _no_better_possible(k: int, m: int, tried: list) -> bool:
+    """True when no solution with more than k inlier image points can have escaped the search.
 
-    if k > m:
-        return 0.0
-    p = comb(k, 3) / comb(m, 3)
-    return (1.0 - p) ** tried
+    Any all-inlier image triplet re-finds the true solution. A better solution (>= k+1 inliers
+    among m) escapes only if its m-k-1 (or fewer) outliers hit every tried triplet; we check
+    exhaustively that no set of m-k-1 image points does (a deterministic stopping rule,
+    cheaper and stricter than RANSAC's probabilistic one).
+    """
+    r = m - k - 1
+    if r < 0:
+        return True
+    if r == 0:
+        return len(tried) > 0
+    sets = [set(t) for t in tried]
+    for outl in combinations(range(m), r):
+        o = set(outl)
+        if all(s & o for s in sets):
+            return False
+    return True
 
 
 def _image_triplet_order(xn: np.ndarray) -> list[tuple[int, int, int]]:
@@ -193,34 +203,33 @@ def robust_search(X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: flo
             continue
         idx = np.nonzero(finite)[0]
         idx = idx[np.lexsort((cost[idx], -inl[idx]))]
-        # refine the best few distinct hypotheses of this batch
+        # refine the best few distinct hypotheses of this batch; a hypothesis is refined only
+        # if its rough inlier count is close to the batch's best (others cannot compete)
         done = 0
         seen_rough = set()
+        top_inl = inl[idx[0]]
         for h in idx:
-            if done >= opts.refine_top:
+            if done >= opts.refine_top or inl[h] < max(min(4, full), top_inl - 1):
                 break
             T0 = np.eye(4)
             T0[:3, :3], T0[:3, 3] = R[h], t[h]
             pairs, ref = refine_assignment(T0, X, xn, fxy, radius_mm,
-                                           (opts.hypothesis_gate_px, opts.final_gate_px, opts.final_gate_px))
+                                           (opts.hypothesis_gate_px, opts.final_gate_px))
+            trip = batch[tri_of[src[h]]]
+            if pairs in cands:
+                cands[pairs].found_by.add(trip)
             if pairs in seen_rough:
-                # same assignment again from this batch: still record which triplet found it
-                if pairs in cands:
-                    cands[pairs].found_by.add(batch[tri_of[src[h]]])
                 continue
             seen_rough.add(pairs)
             done += 1
-            if ref is None:
+            if ref is None or pairs in cands:
                 continue
             rms = float(np.sqrt(np.mean(np.sum(ref.residuals**2, axis=1))))
-            if pairs in cands:
-                cands[pairs].found_by.add(batch[tri_of[src[h]]])
-            else:
-                cands[pairs] = Candidate(pairs, ref, rms, {batch[tri_of[src[h]]]})
+            cands[pairs] = Candidate(pairs, ref, rms, {trip})
         if cands:
             best = max(cands.values(), key=lambda c: (c.count, -c.rms_px))
-            if best.rms_px <= opts.accept_rms_px and (
-                    best.count >= full or (len(best.found_by) >= 2 and _miss_probability(best.count + 1, m, tried) < opts.miss_probability)):
+            if best.rms_px <= opts.accept_rms_px and m > opts.exhaustive_below and (
+                    best.count >= full or _no_better_possible(best.count, m, order[:tried])):
                 break
     stats = {"image_triplets": tried, "hypotheses": hyps, "candidates": len(cands)}
     if not cands:
