@@ -28,8 +28,10 @@ DUPLICATE_MM = 1.0
 COPLANAR_RATIO = 0.03
 
 
-def _fail(method: str, reason: str, t0: float, **kw) -> Registration:
-    return Registration(ok=False, reason=reason, method=method, timing={"total_s": time.perf_counter() - t0}, **kw)
+def _fail(method: str, reason: str, t0: float, timing: dict | None = None, **kw) -> Registration:
+    timing = dict(timing or {})
+    timing["total_s"] = time.perf_counter() - t0
+    return Registration(ok=False, reason=reason, method=method, timing=timing, **kw)
 
 
 def _check_inputs(fiducials_ct, image_points, K, dist, radius_mm, prior):
@@ -181,7 +183,13 @@ def _finish(method, X, xn, fxy, radius, pairs, ref, runner, t0, timing, stats, u
                   f"(RMS {rms:.2f} px vs {runner.rms_px:.2f} px)")
         stats["ambiguous_pairs"] = list(runner.pairs)
     if reason:
+        # A refused result carries no pose: the rejected fit stays in ``stats`` for diagnosis.
+        stats["rejected_T_cam_ct"] = reg.T_cam_ct
+        stats["rejected_pairs"] = reg.pairs
         reg.ok = False
         reg.reason = reason
+        reg.T_cam_ct = None
+        reg.pose_covariance = None
+        reg.pairs = []
     timing["total_s"] = time.perf_counter() - t0
     return reg
