@@ -139,3 +139,17 @@ def test_report_fields_and_predicted_tre_is_calibrated():
         assert np.isclose(r.reprojection_rms_px, np.sqrt(np.mean(r.residuals_px**2)))
     rms_err = np.sqrt(np.mean(np.square(errs)))
     assert 0.6 < np.median(preds) / rms_err < 1.6
+
+
+@pytest.mark.parametrize("method", ["robust", "paper"])
+def test_residuals_follow_pair_order(method):
+    """residuals_px[k] belongs to pairs[k]: recompute each from the pose independently."""
+    from monotracker.registration.projection import project_pixels
+
+    s = make_scene(np.random.default_rng(11), noise_px=0.5, distortion=False, fiducial_ids=range(5))
+    r = register(s.fiducials_ct, s.image_points, s.K, None, method=method)
+    assert r.ok
+    Xc = s.fiducials_ct @ r.T_cam_ct[:3, :3].T + r.T_cam_ct[:3, 3]
+    pred = project_pixels(Xc, s.K)
+    for k, (i, j) in enumerate(r.pairs):
+        assert abs(np.linalg.norm(s.image_points[i] - pred[j]) - r.residuals_px[k]) < 1e-6

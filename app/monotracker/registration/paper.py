@@ -161,5 +161,8 @@ def paper_register(X, xn, fxy, radius_mm, opts, rng_seed: int = 0, depth_pairs: 
     Xc = X @ T_svd[:3, :3].T + T_svd[:3, 3]
     if np.any(Xc[:, 2] <= 0):
         return tuple(sorted(pairs)), None, stats, "paper method: SVD pose puts fiducials behind the camera"
-    ref = refine_pose(T_svd, X[mi], xn[ii], fxy, radius_mm)
-    return tuple(sorted(pairs)), ref, stats, ""
+    pairs = sorted(pairs)
+    ii = np.array([p[0] for p in pairs])
+    mi = np.array([p[1] for p in pairs])
+    ref = refine_pose(T_svd, X[mi], xn[ii], fxy, radius_mm)  # residuals in pair order
+    return tuple(pairs), ref, stats, ""

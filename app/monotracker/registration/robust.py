@@ -148,11 +148,16 @@ def refine_assignment(T0, X, xn, fxy, radius_mm, gates) -> tuple[tuple, Refineme
             return (), None
         pred = project_normalised(Xc, radius_mm) * fxy
         mi, ii = gated_assignment(pred, obs_px, gate)
+        o = np.argsort(ii)
+        mi, ii = mi[o], ii[o]  # residual order = pair order (sorted by image index)
+        new_pairs = tuple(sorted(zip(ii.tolist(), mi.tolist())))
         if len(mi) < 4:
-            return tuple(sorted(zip(ii.tolist(), mi.tolist()))), None
+            return new_pairs, None
+        if ref is not None and new_pairs == pairs:
+            continue  # same assignment as the last refinement: nothing to redo
         ref = refine_pose(T, X[mi], xn[ii], fxy, radius_mm)
         T = ref.T
-        pairs = tuple(sorted(zip(ii.tolist(), mi.tolist())))
+        pairs = new_pairs
     return pairs, ref
 
 
