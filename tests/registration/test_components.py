@@ -153,3 +153,16 @@ def test_residuals_follow_pair_order(method):
     pred = project_pixels(Xc, s.K)
     for k, (i, j) in enumerate(r.pairs):
         assert abs(np.linalg.norm(s.image_points[i] - pred[j]) - r.residuals_px[k]) < 1e-6
+
+
+def test_quartic_roots_match_numpy():
+    from monotracker.registration.quartic import quartic_roots
+
+    rng = np.random.default_rng(12)
+    co = rng.normal(size=(5, 300))
+    ours = quartic_roots(*co)
+    for k in range(co.shape[1]):
+        ref = np.roots(co[:, k])
+        # same multiset: every reference root is matched and vice versa
+        assert max(np.min(np.abs(ours[k] - x)) for x in ref) < 1e-8
+        assert max(np.min(np.abs(ref - x)) for x in ours[k]) < 1e-8
