@@ -11,7 +11,7 @@ from monotracker.errors import InputError
 from .projection import undistort_to_normalised
 from .report import fre_mm, pose_covariance, sigma_from_residuals
 from .result import Registration
-from .robust import RobustOptions, ambiguity_margin, robust_search
+from .robust import RobustOptions, is_ambiguous, robust_search
 
 METHODS = ("robust", "paper", "naive")
 
@@ -179,7 +179,7 @@ def _finish(method, X, xn, fxy, radius, pairs, ref, best, runner, opts, t0, timi
         reason = "pose puts matched fiducials behind the camera"
     elif rms > ACCEPT_RMS_PX or mags.max() > ACCEPT_MAX_PX:
         reason = f"reprojection error too large (RMS {rms:.1f} px, max {mags.max():.1f} px)"
-    elif runner is not None and best is not None and runner.cost - best.cost < ambiguity_margin(best, opts, runner):
+    elif runner is not None and best is not None and is_ambiguous(best, runner, opts):
         reason = (f"ambiguous: two different assignments of {len(pairs)} points explain the image "
                   f"(RMS {rms:.2f} px vs {runner.rms_px:.2f} px)")
         stats["ambiguous_pairs"] = list(runner.pairs)

@@ -91,13 +91,38 @@ def _sigma(c: "Candidate") -> float:
     return float(np.sqrt(r @ r / dof)) if dof > 0 else 0.0
 
 
-def ambiguity_margin(best: "Candidate", opts: RobustOptions, runner: "Candidate | None" = None) -> float:
+def ambiguity_margin(best: "Candidate", opts: RobustOptions) -> float:
     """Cost margin (px^2) under which a different assignment counts as equally good:
-    ``ambiguity_k * sigma^2`` with sigma the larger noise estimate of the two fits (a lucky
-    wrong fit under-estimates the noise, so its own sigma alone would make the test lax),
-    floored at ``sigma_floor_px``."""
-    sig = max(_sigma(best), _sigma(runner) if runner is not None else 0.0, opts.sigma_floor_px)
-    return opts.ambiguity_k * sig**2
+    ``ambiguity_k * sigma^2``, sigma the best fit's noise estimate floored at
+    ``sigma_floor_px`` (the detector noise we assume)."""
+    return opts.ambiguity_k * max(_sigma(best), opts.sigma_floor_px) ** 2
+
+
+def is_ambiguous(best: "Candidate", runner: "Candidate | None", opts: RobustOptions) -> bool:
+    """Whether ``runner`` (a different assignment) explains the image about as well as ``best``.
+
+    Two tests, either suffices:
+
+    * known-noise test: cost difference below :func:`ambiguity_margin`;
+    * scale-free test, when the runner-up has at least as many pairs and both fits have >= 4
+      residual dof: the variance ratio (S_r / dof_r) / (S_b / dof_b) is below the 95 % F
+      quantile, i.e. the data cannot tell the two fits apart whatever the noise. This catches
+      a lucky wrong fit that beats the truth at high noise (measured: 5 fiducials + 4 strays at
+      1 px). With exactly 4 pairs (2 dof) only the known-noise test applies; set
+      ``sigma_floor_px`` to the detector's noise.
+    """
+    if runner is None:
+        return False
+    if runner.cost - best.cost < ambiguity_margin(best, opts):
+        return True
+    db, dr = 2 * best.count - 6, 2 * runner.count - 6
+    if runner.count >= best.count and db >= 4 and dr >= 4:
+        from scipy.stats import f as f_dist
+
+        sb = float(np.sum(best.refinement.residuals**2)) / db
+        sr = float(np.sum(runner.refinement.residuals**2)) / dr
+        return sr < f_dist.ppf(0.95, dr, db) * max(sb, 1e-12)
+    return False
 
 
 def _no_better_possible(k: int, m: int, tried: list) -> bool:
