@@ -39,6 +39,7 @@ SCENARIOS = [
     ("9, 1 px noise", dict(noise_px=1.0), False),
     ("5 fiducials", dict(noise_px=0.3, fiducial_ids=range(5)), False),
     ("2 occl + 2 stray", dict(noise_px=0.3, n_occluded=2, n_stray=2), False),
+    ("random layout, 2+2", dict(noise_px=0.3, layout="random", n_occluded=2, n_stray=2), False),
     ("ellipse bias, corrected", dict(noise_px=0.3, ellipse_bias=True, distance_mm=(400, 500)), True),
     ("ellipse bias, ignored", dict(noise_px=0.3, ellipse_bias=True, distance_mm=(400, 500)), False),
     ("bias, 0 px noise, corr.", dict(noise_px=0.0, ellipse_bias=True, distance_mm=(400, 500)), True),
