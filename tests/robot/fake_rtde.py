@@ -15,6 +15,8 @@ class FakeUR:
         self.calls = []
         self.can_reconnect = True
         self.protective_stop = False
+        #: kickWatchdog raises (the link died between speedJ and the kick)
+        self.fail_kick = False
 
     def drop(self):
         self.connected = False
@@ -56,6 +58,9 @@ class FakeControl(_Base):
         return True
 
     def kickWatchdog(self):
+        if self.ur.fail_kick:
+            self.ur.fail_kick = False
+            raise RuntimeError("RTDE control interface: send failed")
         self.ur.calls.append(("kickWatchdog",))
         return True
 

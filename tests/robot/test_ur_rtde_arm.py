@@ -104,3 +104,34 @@ def test_real_ur_rtde_without_robot_raises_one_line_arm_error():
     assert "did not answer" in str(ei.value) and "\n" not in str(ei.value)
     assert not arm.is_connected()
     arm.stop(4.0)  # stop never raises, even unconnected
+
+
+def test_failed_command_still_ends_with_speedstop():
+    """speedJ reached the robot but the watchdog kick after it failed: the e-stop that follows
+    must send speedStop (the robot may be moving at the last speed), not skip it."""
+    ur, clock, arm, tr = _rig()
+    tr.connect(); tr.arm()
+    T = offset_target()
+    tr.set_target(to_mm(T), clock()); assert tr.start_tracking().ok
+    _run(tr, clock, T, 5)
+    # stop the stream once: the robot keeps its last speed until told otherwise
+    ur.fail_kick = True
+    _run(tr, clock, T, 1)
+    assert tr.state.value == "estopped"
+    i = max(k for k, c in enumerate(ur.calls) if c[0] == "speedJ")
+    assert "speedStop" in ur.names()[i:]
+    assert np.allclose(ur.dq, 0)
+
+
+def test_first_speedj_failing_still_ends_with_speedstop():
+    """The very first speedJ of a session raises after being sent (e.g. the socket died
+    mid-call): the e-stop must still send speedStop."""
+    ur, clock, arm, tr = _rig()
+    tr.connect(); tr.arm()
+    T = offset_target()
+    tr.set_target(to_mm(T), clock()); assert tr.start_tracking().ok
+    ur.fail_kick = True
+    _run(tr, clock, T, 1)
+    assert tr.state.value == "estopped"
+    assert "speedStop" in ur.names()
+    assert np.allclose(ur.dq, 0)

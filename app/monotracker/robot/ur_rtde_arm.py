@@ -118,6 +118,9 @@ class URRTDEArm(Arm):
             raise ArmError("joint velocity command must be 6 finite numbers")
         if not self.is_connected():
             raise ArmError(f"UR at {self.host}: connection lost")
+        # Marked before sending: once a speedJ may have reached the robot, every later stop
+        # must send speedStop, even when this call raises half-way (speedJ sent, kick failed).
+        self._speed_mode = True
         try:
             ok = self.ctrl.speedJ(dq.tolist(), float(acceleration), self.period_s)
             self.ctrl.kickWatchdog()
@@ -125,7 +128,6 @@ class URRTDEArm(Arm):
             raise ArmError(f"UR at {self.host}: speedJ failed ({exc})") from None
         if ok is False:
             raise ArmError(f"UR at {self.host}: speedJ was refused")
-        self._speed_mode = True
 
     def stop(self, deceleration: float) -> None:
         if self.ctrl is None:
