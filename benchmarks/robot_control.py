@@ -69,7 +69,7 @@ def step_cost(n, reference_maps=False, variant="APF-A-II"):
         c = APFFController(variant)
         c.head = head
         s = SafetyLayer()
-        s.state, s.target, s.target_received = State.TRACKING, Tt, 0.0
+        s.state, s.target, s.target_received, s.target_stamp = State.TRACKING, Tt, 0.0, 0.0
         dq = np.zeros(6)
         wall, cpu = [], []
         per = max(n // 20, 1)

@@ -17,12 +17,19 @@ sphere around the head (motion that takes a needle point deeper into the head sp
 planned-path corridor is cut). In every other state the arm is stopped (``stop`` with the
 configured deceleration).
 
-Target checks (:meth:`check_target`): a pose flagged invalid by the pose stream, or none fresher
-than ``stale_s`` (time since the last valid pose *arrived*; a separate ``max_latency_s`` bounds
-how old its capture stamp may be), puts ``tracking`` into ``holding``; tracking resumes by
-itself when fresh valid poses return close to the last accepted one (``auto_resume``). A NaN /
-non-rigid pose or a jump larger than ``jump_m``/``jump_rad`` also holds, but resuming then
-needs the operator (``start_tracking`` accepts the newest pose as the new reference).
+Target checks (:meth:`check_target`): a pose flagged invalid by the pose stream, or no fresh
+target, puts ``tracking`` into ``holding``; tracking resumes by itself when fresh valid poses
+return close to the last accepted one (``auto_resume``). A NaN / non-rigid pose, a capture stamp
+in the future (a clock fault in the pose source) or a jump larger than ``jump_m``/``jump_rad``
+also holds, but resuming then needs the operator (``start_tracking`` accepts the newest pose as
+the new reference).
+
+Freshness runs on the poses' *capture stamps*, checked every control cycle: the target is fresh
+while (a) a pose with a newer capture stamp than the one before arrived within ``stale_s``
+(frame gap) and (b) the newest capture is at most ``max_latency_s`` old (pipeline latency budget).
+A pose whose stamp is not newer (the same frame re-sent) may update the target but does not
+refresh (a); an older stamp (out of order) is ignored. Stale_s alone is not measured from the
+capture: the paper's pipeline takes 0.23 s from capture to pose, more than a 0.1 s frame gap.
 
 Units: m, rad, s.
 """
@@ -77,6 +84,8 @@ class SafetyConfig:
     tool_angular_rad_s: float = 0.6
     stale_s: float = 0.1
     max_latency_s: float = 0.5
+    #: capture stamps more than this ahead of the safety clock are a clock fault (s)
+    future_stamp_s: float = 0.005
     jump_m: float = 0.02
     jump_rad: float = np.radians(10.0)
     auto_resume: bool = True
@@ -119,6 +128,7 @@ class SafetyLayer:
         self.target_received = -np.inf
         self.target_stamp = -np.inf
         self.pending: np.ndarray | None = None  # newest rigid target not accepted (jump)
+        self.pending_stamp = -np.inf
         self.last_cmd = np.zeros(6)
         self.warnings: list[str] = []
         self._Ad_tip_tool0 = adjoint(invert_transform(self.tool.T_tool0_tip))
@@ -165,9 +175,10 @@ class SafetyLayer:
         if self.state not in (State.ARMED, State.HOLDING):
             return False, f"cannot start tracking from {self.state.value}" + (
                 " (arm first)" if self.state == State.DISARMED else "")
-        if self.pending is not None and now - self.target_received <= self.cfg.stale_s:
-            self.target, self.pending = self.pending, None
-        if self.target is None or now - self.target_received > self.cfg.stale_s:
+        if (self.pending is not None and now - self.target_received <= self.cfg.stale_s
+                and now - self.pending_stamp <= self.cfg.max_latency_s):
+            self.target, self.target_stamp, self.pending = self.pending, self.pending_stamp, None
+        if not self.target_fresh(now):
             return False, "no fresh valid target pose"
         self._go(State.TRACKING, "operator started tracking", now)
         return True, "tracking"
@@ -204,6 +215,14 @@ class SafetyLayer:
         if not np.isfinite(stamp) or now - stamp > self.cfg.max_latency_s:
             self.hold(now, f"target pose too old ({now - stamp:.3f} s since capture)", auto=True)
             return TargetStatus(False, "target pose too old")
+        if stamp - now > self.cfg.future_stamp_s:
+            self.hold(now, f"target capture stamp {stamp - now:.3f} s in the future (clock fault)")
+            return TargetStatus(False, "target capture stamp is in the future")
+        newest = max(self.target_stamp if self.target is not None else -np.inf,
+                     self.pending_stamp if self.pending is not None else -np.inf)
+        if stamp < newest:
+            return TargetStatus(False, f"target pose older than the current one ({newest - stamp:.3f} s): ignored")
+        new_capture = stamp > newest
         if self.target is not None and self.state in (State.TRACKING, State.HOLDING):
             # A jump matters only while the arm follows the target; armed/disarmed, the newest
             # pose simply becomes the reference that start_tracking will use.
@@ -211,20 +230,25 @@ class SafetyLayer:
             da = float(np.linalg.norm(log3(self.target[:3, :3].T @ T[:3, :3])))
             if dp > self.cfg.jump_m or da > self.cfg.jump_rad:
                 self.pending = T.copy()
-                self.target_received = now
+                self.pending_stamp = float(stamp)
+                if new_capture:
+                    self.target_received = now
                 if self.state == State.TRACKING or (self.state == State.HOLDING and self._hold_auto):
                     self._go(State.HOLDING, f"target jumped {dp*1000:.1f} mm / {np.degrees(da):.1f} deg", now)
                 return TargetStatus(False, f"target jump {dp*1000:.1f} mm / {np.degrees(da):.1f} deg")
         self.target = T.copy()
         self.pending = None
-        self.target_received = now
+        if new_capture:
+            self.target_received = now
         self.target_stamp = float(stamp)
-        if self.state == State.HOLDING and self._hold_auto and self.cfg.auto_resume:
+        if self.state == State.HOLDING and self._hold_auto and self.cfg.auto_resume and self.target_fresh(now):
             self._go(State.TRACKING, "fresh valid target again", now)
         return TargetStatus(True, "accepted")
 
     def target_fresh(self, now: float) -> bool:
-        return self.target is not None and now - self.target_received <= self.cfg.stale_s
+        """A newer capture arrived within ``stale_s`` and the newest is at most ``max_latency_s`` old."""
+        return (self.target is not None and now - self.target_received <= self.cfg.stale_s
+                and now - self.target_stamp <= self.cfg.max_latency_s)
 
     # ------------------------------------------------------------------ command filter
     def filter_command(self, now: float, q: np.ndarray, dq_des: np.ndarray, dt: float,
@@ -235,7 +259,8 @@ class SafetyLayer:
         cfg = self.cfg
         if self.state == State.TRACKING:
             if not self.target_fresh(now):
-                self.hold(now, f"no fresh valid target for {cfg.stale_s:.3f} s", auto=True)
+                self.hold(now, f"no fresh valid target (newest capture {now - self.target_stamp:.3f} s old, "
+                               f"arrived {now - self.target_received:.3f} s ago)", auto=True)
             elif not np.all(np.isfinite(dq_des)):
                 self.hold(now, "controller produced a non-finite command")
             elif sigma_min < cfg.sigma_hold:
