@@ -143,12 +143,15 @@ class Tracker:
         self._run = threading.Event()
         self._n_warn = 0
         self._snap: TrackerSnapshot | None = None
+        self._controller_reset_due = False
         self.predictor = TargetPredictor(prediction_horizon_s) if predict_target else None
 
     # ------------------------------------------------------------------ events
     def _on_transition(self, tr: Transition) -> None:
         if tr.to_state != State.TRACKING:
-            self.controller.reset()
+            # Reset in the control thread (next step), not here: an e-stop can transition from
+            # another thread while the controller is mid-step.
+            self._controller_reset_due = True
         if self.on_event:
             try:
                 self.on_event("transition", tr)
@@ -205,12 +208,25 @@ class Tracker:
         with self._lock:
             return CommandResult(*self.safety.stop_tracking(self.clock()))
 
+    #: How long :meth:`estop` waits for a control cycle in progress before giving up on sending
+    #: the stop itself (s). The e-stop is latched before waiting either way.
+    ESTOP_LOCK_WAIT_S = 0.05
+
     def estop(self, reason: str = "operator e-stop") -> CommandResult:
-        """Latched stop, effective immediately (the arm is told to stop now, not next cycle)."""
-        with self._lock:
-            self.safety.estop(self.clock(), reason)
-            self._stop_arm(self.safety.cfg.estop_decel)
-            return CommandResult(True, "e-stopped")
+        """Latched stop, effective immediately: the state latches at once (without waiting for
+        the control loop), then the arm is told to stop. If a control cycle is stuck in an arm
+        call, the stop is left to that cycle (it re-checks the state after sending a command)
+        and, should the call never return, to the arm's own watchdog. Never blocks for long."""
+        self.safety.estop(self.clock(), reason)
+        if self._lock.acquire(timeout=self.ESTOP_LOCK_WAIT_S):
+            try:
+                self._stop_arm(self.safety.cfg.estop_decel)
+            finally:
+                self._lock.release()
+        else:
+            log.error("e-stop latched while the control loop is busy in an arm call; "
+                      "the loop stops the arm when the call returns (the arm watchdog if it never does)")
+        return CommandResult(True, "e-stopped")
 
     def reset(self) -> CommandResult:
         with self._lock:
@@ -296,6 +312,9 @@ class Tracker:
                         raise ArmError("arm reported non-finite joint state")
                     T, Jb = self.kin.fk_and_jacobian_body(q)
                     head = self.head_sphere_base()
+                    if self._controller_reset_due:
+                        self._controller_reset_due = False
+                        self.controller.reset()
                     self.controller.head = head
                     if self.safety.state == State.TRACKING and self.safety.target is not None:
                         T_goal, V_goal = self.safety.target, None
@@ -314,6 +333,10 @@ class Tracker:
                         cmd = np.zeros(6)
                     else:
                         self.arm_backend.command_velocity(cmd, self.safety.cfg.joint_accel)
+                        if self.safety.state != State.TRACKING:
+                            # latched (e-stop) from another thread while the command was sent
+                            self._stop_arm(self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED
+                                           else self.safety.cfg.joint_accel)
             except ArmError as exc:
                 self.safety.estop(now, f"arm error: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
@@ -348,9 +371,9 @@ class Tracker:
         )
 
     def snapshot(self) -> TrackerSnapshot | None:
-        """Latest snapshot (thread-safe; None before the first step)."""
-        with self._lock:
-            return self._snap
+        """Latest snapshot (thread-safe without the loop's lock: the snapshot is immutable and
+        replaced whole, so a UI never waits behind a control cycle; None before the first step)."""
+        return self._snap
 
     # ------------------------------------------------------------------ real-time thread
     def start(self) -> None:

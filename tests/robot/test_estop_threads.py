@@ -1,0 +1,64 @@
+"""E-stop from another thread while the control loop is inside a slow arm call."""
+
+import threading
+import time
+
+import numpy as np
+
+from monotracker.robot.sim_arm import ManualClock, SimulatedArm
+from monotracker.robot.tracker import Tracker
+from robot_rig import RATE, offset_target, to_mm
+
+
+class StallingArm(SimulatedArm):
+    """Simulated arm whose next ``command_velocity`` stalls until released (a TCP send that
+    hangs); records the order of commands and stops."""
+
+    def __init__(self, **kw):
+        super().__init__(**kw)
+        self.log = []
+        self.stall = False
+        self.entered = threading.Event()
+        self.release = threading.Event()
+
+    def command_velocity(self, dq, acceleration):
+        if self.stall:
+            self.stall = False
+            self.entered.set()
+            self.release.wait(3.0)
+        super().command_velocity(dq, acceleration)
+        self.log.append(("cmd", np.array(dq)))
+
+    def stop(self, deceleration):
+        super().stop(deceleration)
+        self.log.append(("stop", deceleration))
+
+
+def test_estop_latches_at_once_while_the_loop_is_stuck_in_a_send():
+    clock = ManualClock()
+    arm = StallingArm(clock=clock)
+    tr = Tracker(arm=arm, clock=clock, rate_hz=RATE)
+    T = offset_target()
+    assert tr.connect().ok and tr.arm().ok
+    tr.set_target(to_mm(T), clock())
+    assert tr.start_tracking().ok
+    for _ in range(10):
+        tr.set_target(to_mm(T), clock())
+        tr.step()
+        clock.advance(1 / RATE)
+    arm.stall = True
+    loop = threading.Thread(target=tr.step)
+    loop.start()
+    assert arm.entered.wait(2.0)
+    t0 = time.monotonic()
+    r = tr.estop("operator e-stop")
+    waited = time.monotonic() - t0
+    assert r.ok
+    assert tr.state.value == "estopped"  # latched before the stuck call returns
+    assert waited < 0.5, f"e-stop blocked {waited:.2f} s behind the control loop"
+    arm.release.set()
+    loop.join(3.0)
+    assert not loop.is_alive()
+    # the command that was in flight when the e-stop latched is followed by a stop
+    assert arm.log[-1][0] == "stop"
+    assert arm.log[-1][1] == tr.safety.cfg.estop_decel
