@@ -131,3 +131,34 @@ def test_jump_while_armed_is_just_the_new_reference():
     assert rig.tracker.set_target(to_mm(J), rig.clock()).ok
     assert rig.tracker.start_tracking().ok
     assert np.allclose(rig.tracker.safety.target, J)
+
+
+def _stale_hold(rig):
+    T = offset_target()
+    rig.start(T)
+    rig.run(0.2, T)
+    rig.run(0.2, T, feed=False)
+    assert rig.tracker.state.value == "holding"  # stale: would resume by itself
+    return T
+
+
+def test_nan_pose_during_a_stale_hold_needs_the_operator():
+    rig = Rig()
+    T = _stale_hold(rig)
+    bad = to_mm(T)
+    bad[0, 3] = np.nan
+    assert not rig.tracker.set_target(bad, rig.clock()).ok
+    rig.run(0.2, T)  # good poses again
+    assert rig.tracker.state.value == "holding"
+    assert rig.tracker.start_tracking().ok
+
+
+def test_jump_during_a_stale_hold_needs_the_operator():
+    rig = Rig()
+    T = _stale_hold(rig)
+    J = T.copy()
+    J[:3, 3] += [0.05, 0, 0]
+    assert not rig.tracker.set_target(to_mm(J), rig.clock()).ok
+    rig.clock.advance(1.0 / RATE)
+    rig.run(0.2, T)  # the stream comes back to the old pose
+    assert rig.tracker.state.value == "holding"

@@ -190,8 +190,17 @@ class SafetyLayer:
         return True, "armed"
 
     def hold(self, now: float, reason: str, auto: bool = False) -> None:
+        """tracking -> holding. A fault that needs the operator (``auto=False``) arriving during
+        a hold that would resume by itself (stale/invalid stream) turns that hold into one that
+        needs the operator: a fault's severity must not depend on the stream being stale first."""
         if self.state == State.TRACKING:
             self._go(State.HOLDING, reason, now, auto=auto)
+        elif self.state == State.HOLDING and self._hold_auto and not auto:
+            with self._lock:
+                self._hold_auto = False
+            msg = f"holding until the operator resumes: {reason}"
+            self.warnings.append(msg)
+            log.warning("robot safety at %.3f: %s", now, msg)
 
     def estop(self, now: float, reason: str) -> None:
         self._go(State.ESTOPPED, reason, now)
@@ -233,8 +242,7 @@ class SafetyLayer:
                 self.pending_stamp = float(stamp)
                 if new_capture:
                     self.target_received = now
-                if self.state == State.TRACKING or (self.state == State.HOLDING and self._hold_auto):
-                    self._go(State.HOLDING, f"target jumped {dp*1000:.1f} mm / {np.degrees(da):.1f} deg", now)
+                self.hold(now, f"target jumped {dp*1000:.1f} mm / {np.degrees(da):.1f} deg")
                 return TargetStatus(False, f"target jump {dp*1000:.1f} mm / {np.degrees(da):.1f} deg")
         self.target = T.copy()
         self.pending = None
