@@ -162,3 +162,23 @@ def test_jump_during_a_stale_hold_needs_the_operator():
     rig.clock.advance(1.0 / RATE)
     rig.run(0.2, T)  # the stream comes back to the old pose
     assert rig.tracker.state.value == "holding"
+
+
+def test_arm_status_check_raising_stops_instead_of_escaping():
+    """A backend whose is_connected() raises (driver bug, dead socket) must not make step()
+    raise (the simulated-clock callers have no last-guard): latched e-stop and a stop."""
+    rig = Rig()
+    T = offset_target()
+    rig.start(T)
+    rig.run(0.2, T)
+
+    def broken():
+        raise OSError("socket is dead")
+
+    rig.arm.is_connected = broken
+    stops = rig.arm.stops
+    snap = rig.tracker.step()
+    assert rig.tracker.state.value == "estopped"
+    assert "socket is dead" in rig.tracker.safety.history[-1].reason
+    assert rig.arm.stops > stops
+    assert snap.connected is False

@@ -299,8 +299,9 @@ class Tracker:
             q = dq = cmd = np.full(6, np.nan)
             T = np.full((4, 4), np.nan)
             stage, smin = "-", float("nan")
-            connected = self.arm_backend.is_connected()
+            connected = False
             try:
+                connected = bool(self.arm_backend.is_connected())
                 if not connected:
                     if self.safety.state not in (State.DISARMED, State.ESTOPPED):
                         self.safety.estop(now, "arm connection lost")
@@ -340,16 +341,20 @@ class Tracker:
             except ArmError as exc:
                 self.safety.estop(now, f"arm error: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
+                try:  # the error may have been the link dropping: report it in the snapshot
+                    connected = bool(self.arm_backend.is_connected())
+                except Exception:  # noqa: BLE001
+                    connected = False
             except Exception as exc:  # noqa: BLE001 - any fault in the loop stops the arm
                 log.exception("control loop error")
                 self.safety.estop(now, f"internal error in control loop: {type(exc).__name__}: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
             self._emit_warnings()
-            snap = self._make_snapshot(now, q, dq, cmd, T, stage, smin, (time.perf_counter() - t0) * 1e3)
+            snap = self._make_snapshot(now, connected, q, dq, cmd, T, stage, smin, (time.perf_counter() - t0) * 1e3)
             self._snap = snap
             return snap
 
-    def _make_snapshot(self, now, q, dq, cmd, T, stage, smin, cost_ms) -> TrackerSnapshot:
+    def _make_snapshot(self, now, connected, q, dq, cmd, T, stage, smin, cost_ms) -> TrackerSnapshot:
         tgt = self.safety.target
         T_tip = T @ self.tool.T_tool0_tip
         if tgt is not None and np.all(np.isfinite(T)):
@@ -360,7 +365,7 @@ class Tracker:
             err = ang = float("nan")
         hist = self.safety.history
         return TrackerSnapshot(
-            t=now, state=self.safety.state.value, connected=self.arm_backend.is_connected(),
+            t=now, state=self.safety.state.value, connected=connected,
             variant=self.controller.variant, q=np.array(q), dq=np.array(dq), dq_cmd=np.array(cmd),
             T_base_tool0_mm=transform_m_to_mm(T), T_base_tip_mm=transform_m_to_mm(T_tip),
             T_base_target_mm=None if tgt is None else transform_m_to_mm(tgt),
