@@ -182,3 +182,29 @@ def test_arm_status_check_raising_stops_instead_of_escaping():
     assert "socket is dead" in rig.tracker.safety.history[-1].reason
     assert rig.arm.stops > stops
     assert snap.connected is False
+
+
+def test_reconnect_before_the_loop_noticed_the_drop_does_not_resume_motion():
+    """The link drops and the operator (or a retry) reconnects before the next control cycle:
+    the drop must still latch an e-stop; motion never resumes by itself."""
+    rig = Rig()
+    T = offset_target((0.08, 0.0, 0.0), 0.0)
+    rig.start(T)
+    rig.run(0.2, T)
+    rig.arm.drop_connection()
+    r = rig.tracker.connect()
+    assert r.ok
+    assert rig.tracker.state.value == "estopped"
+    n_cmd = rig.arm.commands
+    rig.run(0.5, T)
+    assert rig.arm.commands == n_cmd  # no velocity command after the drop
+    assert np.linalg.norm(rig.arm.true_dq) < 1e-3
+
+
+def test_connect_while_tracking_and_connected_is_a_no_op():
+    rig = Rig()
+    T = offset_target()
+    rig.start(T)
+    rig.run(0.1, T)
+    assert rig.tracker.connect().ok
+    assert rig.tracker.state.value == "tracking"

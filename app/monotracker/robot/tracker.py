@@ -178,6 +178,19 @@ class Tracker:
 
     # ------------------------------------------------------------------ connection / operator
     def connect(self) -> CommandResult:
+        """Open (or re-open) the arm connection. Never resumes motion: if the link is down
+        while armed/tracking/holding (a drop the control loop may not have seen yet), the e-stop
+        latches first; if it is up, there is nothing to do."""
+        with self._lock:
+            if self.safety.state in (State.ARMED, State.TRACKING, State.HOLDING):
+                try:
+                    up = bool(self.arm_backend.is_connected())
+                except Exception:  # noqa: BLE001
+                    up = False
+                if up:
+                    return CommandResult(True, "already connected")
+                self.safety.estop(self.clock(), "arm connection lost (reconnect requested)")
+                self._stop_arm(self.safety.cfg.estop_decel)
         try:
             self.arm_backend.connect()
         except ArmError as exc:
