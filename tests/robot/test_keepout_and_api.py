@@ -121,3 +121,14 @@ def test_disconnect_disarms():
     rig.tracker.disconnect()
     assert rig.tracker.state.value == "disarmed"
     assert not rig.arm.is_connected()
+
+
+def test_bad_stamps_never_raise_and_hold():
+    rig = Rig()
+    T = ready_tip_pose()
+    rig.start(T)
+    rig.run(0.1, T)
+    for bad in (None, "now", [1.0, 2.0], float("nan"), float("inf")):
+        r = rig.tracker.set_target(to_mm(T), bad)
+        assert not r.ok and r.reason and "\n" not in r.reason
+    assert rig.tracker.state.value == "holding"

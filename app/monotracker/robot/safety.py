@@ -221,7 +221,10 @@ class SafetyLayer:
         if not _rigid_ok(T):
             self.hold(now, "invalid target pose (NaN or not a rigid transform)")
             return TargetStatus(False, "target is not a finite rigid 4x4 transform")
-        if not np.isfinite(stamp) or now - stamp > self.cfg.max_latency_s:
+        if not np.isfinite(stamp):
+            self.hold(now, "target pose has no finite capture stamp", auto=True)
+            return TargetStatus(False, "target capture stamp must be a finite time (s)")
+        if now - stamp > self.cfg.max_latency_s:
             self.hold(now, f"target pose too old ({now - stamp:.3f} s since capture)", auto=True)
             return TargetStatus(False, "target pose too old")
         if stamp - now > self.cfg.future_stamp_s:

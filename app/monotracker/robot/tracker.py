@@ -259,10 +259,14 @@ class Tracker:
                 T = np.full((4, 4), np.nan)
             if T.shape != (4, 4):
                 T = np.full((4, 4), np.nan)
-            st = self.safety.check_target(T, float(stamp), bool(valid), now)
+            try:
+                stamp = float(stamp)
+            except (TypeError, ValueError):
+                stamp = float("nan")  # refused (and held) by the safety layer
+            st = self.safety.check_target(T, stamp, bool(valid), now)
             if self.predictor is not None:
                 if st.accepted:
-                    self.predictor.update(T, float(stamp))
+                    self.predictor.update(T, stamp)
                 else:
                     self.predictor.reset()
             return CommandResult(st.accepted, st.reason)
