@@ -132,3 +132,23 @@ def test_bad_stamps_never_raise_and_hold():
         r = rig.tracker.set_target(to_mm(T), bad)
         assert not r.ok and r.reason and "\n" not in r.reason
     assert rig.tracker.state.value == "holding"
+
+
+def test_realtime_loop_reports_overruns():
+    """A control cycle slower than the period is counted and reported as a warning."""
+    events = []
+    tr = Tracker(rate_hz=200.0, on_event=lambda k, p: events.append((k, p)))
+    assert tr.connect().ok
+    slow_step = tr.step
+
+    def step(now=None):
+        time.sleep(0.012)  # 12 ms > the 5 ms period
+        return slow_step(now)
+
+    tr.step = step
+    tr.start()
+    time.sleep(0.3)
+    tr.stop()
+    assert tr.overruns >= 5
+    assert any(k == "warning" and "overran" in p for k, p in events)
+    assert tr.snapshot().overruns >= 1

@@ -111,6 +111,8 @@ class TrackerSnapshot:
     last_transition: Transition | None
     warnings: tuple = field(default_factory=tuple)
     step_cost_ms: float = float("nan")
+    #: control cycles of the real-time thread that ended after their deadline (so far)
+    overruns: int = 0
 
 
 class Tracker:
@@ -144,6 +146,9 @@ class Tracker:
         self._n_warn = 0
         self._snap: TrackerSnapshot | None = None
         self._controller_reset_due = False
+        #: real-time thread: cycles that ended after the next deadline, and the slowest cycle (ms)
+        self.overruns = 0
+        self.worst_cycle_ms = 0.0
         self.predictor = TargetPredictor(prediction_horizon_s) if predict_target else None
 
     # ------------------------------------------------------------------ events
@@ -389,7 +394,7 @@ class Tracker:
             tip_error_mm=err, angle_error_deg=ang,
             target_age_s=float(now - self.safety.target_received) if tgt is not None else float("inf"),
             stage=stage, sigma_min=smin, last_transition=hist[-1] if hist else None,
-            warnings=tuple(self.safety.warnings[-5:]), step_cost_ms=cost_ms,
+            warnings=tuple(self.safety.warnings[-5:]), step_cost_ms=cost_ms, overruns=self.overruns,
         )
 
     def snapshot(self) -> TrackerSnapshot | None:
@@ -406,9 +411,23 @@ class Tracker:
         self._thread = threading.Thread(target=self._loop, name="robot-tracker", daemon=True)
         self._thread.start()
 
+    def _report_overrun(self, late_s: float) -> None:
+        """Count a cycle that ended ``late_s`` after its deadline; warn on the first and every
+        100th (the warning goes through the safety layer's list, so snapshots show it too)."""
+        self.overruns += 1
+        if self.overruns == 1 or self.overruns % 100 == 0:
+            msg = (f"control loop overran its {self.period * 1e3:.1f} ms period "
+                   f"({self.overruns} cycles so far, this one {late_s * 1e3:.1f} ms late, "
+                   f"slowest {self.worst_cycle_ms:.1f} ms)")
+            log.warning(msg)
+            with self._lock:
+                self.safety.warnings.append(msg)
+                self._emit_warnings()
+
     def _loop(self) -> None:
         nxt = self.clock()
         while self._run.is_set():
+            t_start = self.clock()
             try:
                 self.step()
             except Exception as exc:  # noqa: BLE001 - step() catches loop errors; this is the last guard
@@ -417,7 +436,11 @@ class Tracker:
                     self.safety.estop(self.clock(), f"internal error in tracker thread: {type(exc).__name__}: {exc}")
                     self._stop_arm(self.safety.cfg.estop_decel)
             nxt += self.period
-            delay = nxt - self.clock()
+            t_end = self.clock()
+            self.worst_cycle_ms = max(self.worst_cycle_ms, (t_end - t_start) * 1e3)
+            delay = nxt - t_end
+            if delay < 0:
+                self._report_overrun(-delay)
             if delay < -self.period:  # overrun: re-phase rather than bursting
                 nxt = self.clock()
             elif delay > 0:
