@@ -135,3 +135,89 @@ def test_first_speedj_failing_still_ends_with_speedstop():
     assert tr.state.value == "estopped"
     assert "speedStop" in ur.names()
     assert np.allclose(ur.dq, 0)
+
+
+def test_non_finite_or_short_joint_state_from_the_robot_estops():
+    for field, value in (("q", np.nan), ("dq", np.inf), ("q", None)):
+        ur, clock, arm, tr = _rig()
+        tr.connect(); tr.arm()
+        T = offset_target()
+        tr.set_target(to_mm(T), clock()); assert tr.start_tracking().ok
+        _run(tr, clock, T, 5)
+        n_speed = ur.names().count("speedJ")
+        if value is None:
+            ur.q = ur.q[:5]
+        elif field == "q":
+            ur.q[2] = value
+        else:
+            ur.dq[1] = value
+        _run(tr, clock, T, 3)
+        assert tr.state.value == "estopped", (field, value)
+        assert ur.names().count("speedJ") == n_speed
+        assert "speedStop" in ur.names()[-6:]
+
+
+def test_random_operator_and_stream_faults_never_command_motion_outside_tracking():
+    """Fuzz: random operator actions, link drops/reconnects and pose-stream faults. Every
+    speedJ that reaches the robot is sent while the safety state is 'tracking', and after an
+    e-stop none is sent until reset, arm and start_tracking were all done by the operator."""
+    rng = np.random.default_rng(7)
+    ur, clock, arm, tr = _rig()
+    states_at_speedj = []
+    real_control = ur.control
+
+    def control(host, freq):
+        c = real_control(host, freq)
+        orig = c.speedJ
+
+        def speedJ(qd, acceleration=0.5, time=0.0):
+            states_at_speedj.append((tr.safety.state.value, ops_since_estop[0]))
+            return orig(qd, acceleration, time)
+
+        c.speedJ = speedJ
+        return c
+
+    ur_control_patch = control
+    arm._control_factory = ur_control_patch
+    ops_since_estop = [set(["reset", "arm", "start"])]
+    tr.connect()
+    T0 = offset_target((0.02, 0.0, 0.0), 0.0)
+    for i in range(1500):
+        r = rng.random()
+        T = T0.copy()
+        T[:3, 3] += 0.002 * np.sin(0.01 * i)
+        stamp = clock()
+        if r < 0.02:
+            tr.estop("fuzz"); ops_since_estop[0] = set()
+        elif r < 0.05:
+            if tr.reset().ok:
+                ops_since_estop[0].add("reset")
+        elif r < 0.09:
+            if tr.arm().ok:
+                ops_since_estop[0].add("arm")
+        elif r < 0.14:
+            if tr.start_tracking().ok:
+                ops_since_estop[0].add("start")
+        elif r < 0.15:
+            tr.stop_tracking()
+        elif r < 0.16:
+            tr.disarm()
+        elif r < 0.17:
+            ur.drop()
+        elif r < 0.19:
+            tr.connect()
+        elif r < 0.22:
+            T[0, 3] = np.nan
+        elif r < 0.25:
+            T[:3, 3] += 0.05  # jump
+        elif r < 0.27:
+            stamp = clock() + 1.0  # clock fault
+        elif r < 0.35:
+            T = None  # camera silent
+        if T is not None:
+            tr.set_target(to_mm(T), stamp)
+        tr.step()
+        clock.advance(1 / 125)
+    assert len(states_at_speedj) > 50  # it did track for a good part of the run
+    assert {s for s, _ in states_at_speedj} == {"tracking"}
+    assert all(ops >= {"reset", "arm", "start"} for _, ops in states_at_speedj)
