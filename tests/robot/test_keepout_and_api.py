@@ -152,3 +152,19 @@ def test_realtime_loop_reports_overruns():
     assert tr.overruns >= 5
     assert any(k == "warning" and "overran" in p for k, p in events)
     assert tr.snapshot().overruns >= 1
+
+
+def test_tracking_without_a_head_sphere_is_reported():
+    """No head sphere: the keep-out and repulsion cannot act. That must not be silent."""
+    rig = Rig()
+    T = ready_tip_pose()
+    rig.start(T)
+    s = rig.run(0.05, T)[-1]
+    assert any(k == "warning" and "no head sphere" in p for k, p in rig.events)
+    assert s.keepout_active is False
+    rig2 = Rig()
+    rig2.tracker.set_head_sphere(m_to_mm(T[:3, 3] + [0, 0, -0.2]), 90.0, frame="base")
+    rig2.start(T)
+    s2 = rig2.run(0.05, T)[-1]
+    assert not any(k == "warning" and "no head sphere" in p for k, p in rig2.events)
+    assert s2.keepout_active is True

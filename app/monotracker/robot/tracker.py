@@ -113,6 +113,8 @@ class TrackerSnapshot:
     step_cost_ms: float = float("nan")
     #: control cycles of the real-time thread that ended after their deadline (so far)
     overruns: int = 0
+    #: a head sphere is known: the keep-out (and APF repulsion) can act this cycle
+    keepout_active: bool = False
 
 
 class Tracker:
@@ -219,8 +221,17 @@ class Tracker:
             return CommandResult(*self.safety.disarm(self.clock()))
 
     def start_tracking(self) -> CommandResult:
+        """Operator action. Tracking without a head sphere is allowed (the sphere may be
+        unknown, e.g. too few fiducials for the fit) but warned about: then neither the keep-out
+        nor the APF repulsion can act."""
         with self._lock:
-            return CommandResult(*self.safety.start_tracking(self.clock()))
+            res = CommandResult(*self.safety.start_tracking(self.clock()))
+            if res.ok and self._head_local is None:
+                msg = "tracking with no head sphere: keep-out and head repulsion are off"
+                log.warning(msg)
+                self.safety.warnings.append(msg)
+                self._emit_warnings()
+            return res
 
     def stop_tracking(self) -> CommandResult:
         with self._lock:
@@ -322,6 +333,7 @@ class Tracker:
             T = np.full((4, 4), np.nan)
             stage, smin = "-", float("nan")
             connected = False
+            head = None
             try:
                 connected = bool(self.arm_backend.is_connected())
                 if not connected:
@@ -372,11 +384,11 @@ class Tracker:
                 self.safety.estop(now, f"internal error in control loop: {type(exc).__name__}: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
             self._emit_warnings()
-            snap = self._make_snapshot(now, connected, q, dq, cmd, T, stage, smin, (time.perf_counter() - t0) * 1e3)
+            snap = self._make_snapshot(now, connected, q, dq, cmd, T, stage, smin, (time.perf_counter() - t0) * 1e3, head)
             self._snap = snap
             return snap
 
-    def _make_snapshot(self, now, connected, q, dq, cmd, T, stage, smin, cost_ms) -> TrackerSnapshot:
+    def _make_snapshot(self, now, connected, q, dq, cmd, T, stage, smin, cost_ms, head=None) -> TrackerSnapshot:
         tgt = self.safety.target
         T_tip = T @ self.tool.T_tool0_tip
         if tgt is not None and np.all(np.isfinite(T)):
@@ -395,6 +407,7 @@ class Tracker:
             target_age_s=float(now - self.safety.target_received) if tgt is not None else float("inf"),
             stage=stage, sigma_min=smin, last_transition=hist[-1] if hist else None,
             warnings=tuple(self.safety.warnings[-5:]), step_cost_ms=cost_ms, overruns=self.overruns,
+            keepout_active=head is not None,
         )
 
     def snapshot(self) -> TrackerSnapshot | None:
