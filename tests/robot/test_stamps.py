@@ -84,3 +84,34 @@ def test_start_tracking_refuses_an_old_capture():
     assert rig.tracker.set_target(to_mm(T), rig.clock() - 0.45).ok
     rig.clock.advance(0.08)  # arrived 80 ms ago (within stale_s) but captured 0.53 s ago
     assert not rig.tracker.start_tracking().ok
+
+
+def test_control_clock_going_backwards_estops():
+    """A control clock that runs backwards makes every age negative (stale targets would look
+    fresh): latch an e-stop rather than keep moving on it."""
+    rig, T = _tracking_rig()
+    now = rig.clock()
+    rig.tracker.step(now)
+    stops = rig.arm.stops
+    rig.tracker.step(now - 0.5)
+    assert rig.tracker.state.value == "estopped"
+    assert "backwards" in rig.tracker.safety.history[-1].reason
+    assert rig.arm.stops > stops
+
+
+def test_control_clock_jumping_forward_holds_on_the_stale_target():
+    rig, T = _tracking_rig()
+    rig.tracker.step(rig.clock() + 1.0)
+    assert rig.tracker.state.value == "holding"
+
+
+def test_reset_forgets_the_old_target():
+    """After an e-stop reset, tracking needs a pose received after the reset, not one that was
+    fresh before it (here: the clock went backwards, so the old pose's stamps lie ahead)."""
+    rig, T = _tracking_rig()
+    now = rig.clock()
+    rig.tracker.step(now - 0.5)
+    assert rig.tracker.reset().ok and rig.tracker.arm().ok
+    assert not rig.tracker.start_tracking().ok  # the pre-reset pose does not count
+    assert rig.tracker.set_target(to_mm(T), now - 0.5).ok  # new poses on the new clock are taken
+    assert rig.tracker.start_tracking().ok

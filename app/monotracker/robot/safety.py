@@ -208,6 +208,10 @@ class SafetyLayer:
     def reset(self, now: float) -> tuple[bool, str]:
         if self.state != State.ESTOPPED:
             return False, f"not e-stopped ({self.state.value})"
+        # Start clean: tracking again needs a pose received after the reset (the e-stop may
+        # have been a clock or pose-stream fault that makes the old stamps meaningless).
+        self.target, self.pending = None, None
+        self.target_received = self.target_stamp = self.pending_stamp = -np.inf
         self._go(State.DISARMED, "operator reset the e-stop", now)
         return True, "disarmed"
 

@@ -328,6 +328,9 @@ class Tracker:
         with self._lock:
             now = self.clock() if now is None else float(now)
             dt = self.period if self._last_t is None else float(np.clip(now - self._last_t, 0.25 * self.period, 4 * self.period))
+            backwards = self._last_t is not None and now < self._last_t - self.period
+            if backwards:  # every age would be negative: stale targets would look fresh
+                self.safety.estop(now, f"control clock went backwards by {self._last_t - now:.3f} s")
             self._last_t = now
             q = dq = cmd = np.full(6, np.nan)
             T = np.full((4, 4), np.nan)
