@@ -219,3 +219,40 @@ def test_connect_while_tracking_and_connected_is_a_no_op():
     rig.run(0.1, T)
     assert rig.tracker.connect().ok
     assert rig.tracker.state.value == "tracking"
+
+
+def test_joint_limit_braking_stops_a_lagging_arm_before_the_hard_limit():
+    """Push wrist 3 / wrist 1 / elbow into their limits through the safety filter alone, on the
+    simulated arm (8 ms delay, 12 ms lag): the true joint never passes the UR10's hard limit
+    (URDF: +-2 pi, elbow +-pi), the command decelerates within joint_accel, and the joint
+    ends up close to (not far before) the margin."""
+    from monotracker.robot.safety import SafetyLayer, State
+    from monotracker.robot.sim_arm import ManualClock, SimulatedArm
+
+    hard = np.array([2 * np.pi] * 2 + [np.pi] + [2 * np.pi] * 3)
+    k = kin.Kinematics()
+    for j, sign in ((5, 1), (5, -1), (3, 1), (2, -1)):
+        s = SafetyLayer()
+        s.state, s.target, s.target_received, s.target_stamp = State.TRACKING, np.eye(4), 0.0, 0.0
+        q0 = kin.Q_READY.copy()
+        q0[j] = sign * (hard[j] - s.cfg.position_margin_rad - 0.3)
+        clock = ManualClock()
+        arm = SimulatedArm(q0=q0, clock=clock)
+        arm.connect()
+        cmds, qs = [], []
+        for _ in range(int(2.0 * RATE)):
+            q = arm.read().q
+            T, J = k.fk_and_jacobian_body(q)
+            want = np.zeros(6)
+            want[j] = sign * 5.0
+            c = s.filter_command(0.0, q, want, 1 / RATE, T, J, 1.0, None)
+            arm.command_velocity(c, s.cfg.joint_accel)
+            cmds.append(c[j])
+            clock.advance(1 / RATE)
+            arm.advance_to(clock())
+            qs.append(arm.true_q[j])
+        qs = np.array(qs)
+        assert np.abs(qs).max() < hard[j], (j, sign)
+        assert (np.abs(np.diff(cmds)) * RATE).max() <= s.cfg.joint_accel + 1e-9
+        assert hard[j] - np.abs(qs[-1]) < s.cfg.position_margin_rad + 0.01  # not stopped early
+        assert abs(cmds[-1]) < 1e-6
