@@ -62,3 +62,35 @@ def test_estop_latches_at_once_while_the_loop_is_stuck_in_a_send():
     # the command that was in flight when the e-stop latched is followed by a stop
     assert arm.log[-1][0] == "stop"
     assert arm.log[-1][1] == tr.safety.cfg.estop_decel
+
+
+def test_estop_racing_an_auto_resume_stays_latched():
+    """The e-stop latches without the tracker lock, so it can land between a check and a
+    transition made by another thread. Simulate it at the worst instant: inside the auto-resume
+    of a hold (state checked 'holding', about to go to 'tracking'). The e-stop must win."""
+    from robot_rig import Rig
+
+    rig = Rig()
+    T = offset_target()
+    rig.start(T)
+    rig.run(0.1, T)
+    rig.run(0.2, T, feed=False)
+    assert rig.tracker.state.value == "holding"
+    safety = rig.tracker.safety
+    real_fresh = safety.target_fresh
+    fired = []
+
+    def fresh_with_concurrent_estop(now):
+        if not fired:
+            fired.append(True)
+            rig.tracker.estop("e-stop from the UI thread")
+        return real_fresh(now)
+
+    safety.target_fresh = fresh_with_concurrent_estop
+    rig.tracker.set_target(to_mm(T), rig.clock())
+    assert fired
+    assert rig.tracker.state.value == "estopped"
+    safety.target_fresh = real_fresh
+    n = arm_cmds = rig.arm.commands
+    rig.run(0.2, T)
+    assert rig.tracker.state.value == "estopped" and rig.arm.commands == n

@@ -136,9 +136,14 @@ class SafetyLayer:
         self._needle_pts = np.array([[0, 0, self.tool.offset_m + t * self.tool.length_m, 1.0] for t in ts])
 
     # ------------------------------------------------------------------ state machine
-    def _go(self, to: State, reason: str, now: float, auto: bool = False) -> Transition | None:
+    def _go(self, to: State, reason: str, now: float, auto: bool = False, reset: bool = False) -> Transition | None:
+        """Change state (atomically). The e-stop is latched here, at the lowest level: out of
+        ``estopped`` only :meth:`reset` may go (``reset=True``), so a transition decided by
+        another thread just before an e-stop landed can never overwrite it."""
         with self._lock:
             if to == self.state:
+                return None
+            if self.state == State.ESTOPPED and not reset:
                 return None
             tr = Transition(float(now), self.state, to, reason)
             self.state = to
@@ -161,12 +166,16 @@ class SafetyLayer:
         if not connected:
             return False, "arm not connected"
         self._go(State.ARMED, "operator armed", now)
+        if self.state != State.ARMED:  # an e-stop landed meanwhile (another thread)
+            return False, "e-stop is latched: reset first"
         return True, "armed"
 
     def disarm(self, now: float, reason: str = "operator disarmed") -> tuple[bool, str]:
         if self.state == State.ESTOPPED:
             return False, "e-stop is latched: reset first"
         self._go(State.DISARMED, reason, now)
+        if self.state != State.DISARMED:  # an e-stop landed meanwhile (another thread)
+            return False, "e-stop is latched: reset first"
         return True, "disarmed"
 
     def start_tracking(self, now: float) -> tuple[bool, str]:
@@ -181,12 +190,16 @@ class SafetyLayer:
         if not self.target_fresh(now):
             return False, "no fresh valid target pose"
         self._go(State.TRACKING, "operator started tracking", now)
+        if self.state != State.TRACKING:  # an e-stop landed meanwhile (another thread)
+            return False, "e-stop is latched: reset first"
         return True, "tracking"
 
     def stop_tracking(self, now: float, reason: str = "operator stopped tracking") -> tuple[bool, str]:
         if self.state not in (State.TRACKING, State.HOLDING):
             return False, f"not tracking ({self.state.value})"
         self._go(State.ARMED, reason, now)
+        if self.state != State.ARMED:  # an e-stop landed meanwhile (another thread)
+            return False, "e-stop is latched: reset first"
         return True, "armed"
 
     def hold(self, now: float, reason: str, auto: bool = False) -> None:
@@ -212,7 +225,7 @@ class SafetyLayer:
         # have been a clock or pose-stream fault that makes the old stamps meaningless).
         self.target, self.pending = None, None
         self.target_received = self.target_stamp = self.pending_stamp = -np.inf
-        self._go(State.DISARMED, "operator reset the e-stop", now)
+        self._go(State.DISARMED, "operator reset the e-stop", now, reset=True)
         return True, "disarmed"
 
     # ------------------------------------------------------------------ targets
