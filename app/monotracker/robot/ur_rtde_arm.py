@@ -139,3 +139,27 @@ class URRTDEArm(Arm):
             self.ctrl.kickWatchdog()
         except Exception:  # noqa: BLE001 - the robot's watchdog stops it if we cannot
             log.warning("UR stop command failed (connection down?); the RTDE watchdog will stop the arm")
+
+
+def read_joint_state(host: str, rate_hz: float = 125.0, receive_factory=None, clock=time.monotonic) -> ArmState:
+    """Read a UR's joint state through the RTDE *receive* interface only (rad, rad/s).
+
+    Never opens the control interface: constructing one uploads ur_rtde's control script,
+    which stops whatever program the robot runs. Raises :class:`ArmError` (one line)."""
+    factory = receive_factory or _default_receive
+    recv = None
+    try:
+        recv = factory(host, float(rate_hz))
+        q = np.array(recv.getActualQ(), dtype=float)
+        dq = np.array(recv.getActualQd(), dtype=float)
+    except Exception as exc:  # noqa: BLE001 - ur_rtde raises RuntimeError for "no robot"
+        raise ArmError(f"UR at {host} did not answer ({exc}); check the cable and IP") from None
+    finally:
+        if recv is not None:
+            try:
+                recv.disconnect()
+            except Exception:  # noqa: BLE001
+                log.exception("UR receive disconnect failed")
+    if q.shape != (6,) or dq.shape != (6,) or not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
+        raise ArmError(f"UR at {host}: unexpected joint state {q}")
+    return ArmState(q, dq, clock())
