@@ -20,12 +20,13 @@ class StallingArm(SimulatedArm):
         self.stall = False
         self.entered = threading.Event()
         self.release = threading.Event()
+        self.release_after = 3.0
 
     def command_velocity(self, dq, acceleration):
         if self.stall:
             self.stall = False
             self.entered.set()
-            self.release.wait(3.0)
+            self.release.wait(self.release_after)
         super().command_velocity(dq, acceleration)
         self.log.append(("cmd", np.array(dq)))
 
@@ -94,3 +95,27 @@ def test_estop_racing_an_auto_resume_stays_latched():
     n = arm_cmds = rig.arm.commands
     rig.run(0.2, T)
     assert rig.tracker.state.value == "estopped" and rig.arm.commands == n
+
+
+def test_stopping_a_hung_loop_thread_returns_and_estops():
+    """Tracker.stop() while the loop thread is stuck in an arm call: it must return (not wait
+    for the call) and latch an e-stop, since the loop is no longer in control."""
+    arm = StallingArm()
+    arm.release_after = 6.0
+    tr = Tracker(arm=arm, rate_hz=RATE)
+    T = offset_target()
+    assert tr.connect().ok and tr.arm().ok
+    tr.set_target(to_mm(T), time.monotonic())
+    assert tr.start_tracking().ok
+    arm.stall = True
+    tr.start()
+    try:
+        assert arm.entered.wait(2.0)
+        t0 = time.monotonic()
+        tr.stop()
+        took = time.monotonic() - t0
+        assert took < 4.0, f"stop() waited {took:.1f} s for the hung arm call"
+        assert tr.state.value == "estopped"
+        assert "thread" in tr.safety.history[-1].reason
+    finally:
+        arm.release.set()

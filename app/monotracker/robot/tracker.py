@@ -468,6 +468,13 @@ class Tracker:
         self._run.clear()
         if self._thread:
             self._thread.join(timeout=2.0)
+            if self._thread.is_alive():
+                # Stuck in an arm call: the loop is no longer in control. Latch an e-stop
+                # (lock-free) and do not wait behind the call; the arm's watchdog stops it
+                # if the call never returns, the loop's own re-check if it does.
+                log.error("tracker thread did not stop within 2 s (stuck in an arm call)")
+                self.estop("tracker thread stuck in an arm call")
+                return
         with self._lock:
             if self.safety.state in (State.TRACKING, State.HOLDING):
                 self.safety.stop_tracking(self.clock(), "tracker thread stopped")
