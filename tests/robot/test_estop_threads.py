@@ -21,6 +21,14 @@ class StallingArm(SimulatedArm):
         self.entered = threading.Event()
         self.release = threading.Event()
         self.release_after = 3.0
+        self.stall_read = False
+
+    def read(self):
+        if self.stall_read:
+            self.stall_read = False
+            self.entered.set()
+            self.release.wait(self.release_after)
+        return super().read()
 
     def command_velocity(self, dq, acceleration):
         if self.stall:
@@ -107,7 +115,7 @@ def test_stopping_a_hung_loop_thread_returns_and_estops():
     assert tr.connect().ok and tr.arm().ok
     tr.set_target(to_mm(T), time.monotonic())
     assert tr.start_tracking().ok
-    arm.stall = True
+    arm.stall_read = True  # read() runs every cycle, whatever the state (no timing needed)
     tr.start()
     try:
         assert arm.entered.wait(2.0)
