@@ -118,9 +118,11 @@ def test_failed_command_still_ends_with_speedstop():
     ur.fail_kick = True
     _run(tr, clock, T, 1)
     assert tr.state.value == "estopped"
-    i = max(k for k, c in enumerate(ur.calls) if c[0] == "speedJ")
-    assert "speedStop" in ur.names()[i:]
-    assert np.allclose(ur.dq, 0)
+    i = max(k for k, c in enumerate(ur.calls) if c[0] == "speedJ" and np.any(c[1]))
+    assert np.allclose(ur.dq, 0)  # speed 0 commanded at once (the robot ramps down)
+    _run(tr, clock, T, 3)
+    assert "speedStop" in ur.names()[i:]  # and the speed mode ended once at rest
+    assert not any(c[0] == "speedJ" and np.any(c[1]) for c in ur.calls[i + 1:])
 
 
 def test_first_speedj_failing_still_ends_with_speedstop():
@@ -133,8 +135,9 @@ def test_first_speedj_failing_still_ends_with_speedstop():
     ur.fail_kick = True
     _run(tr, clock, T, 1)
     assert tr.state.value == "estopped"
-    assert "speedStop" in ur.names()
     assert np.allclose(ur.dq, 0)
+    _run(tr, clock, T, 3)
+    assert "speedStop" in ur.names()
 
 
 def test_non_finite_or_short_joint_state_from_the_robot_estops():
@@ -144,7 +147,7 @@ def test_non_finite_or_short_joint_state_from_the_robot_estops():
         T = offset_target()
         tr.set_target(to_mm(T), clock()); assert tr.start_tracking().ok
         _run(tr, clock, T, 5)
-        n_speed = ur.names().count("speedJ")
+        n_speed = sum(1 for c in ur.calls if c[0] == "speedJ" and np.any(c[1]))
         if value is None:
             ur.q = ur.q[:5]
         elif field == "q":
@@ -153,13 +156,13 @@ def test_non_finite_or_short_joint_state_from_the_robot_estops():
             ur.dq[1] = value
         _run(tr, clock, T, 3)
         assert tr.state.value == "estopped", (field, value)
-        assert ur.names().count("speedJ") == n_speed
-        assert "speedStop" in ur.names()[-6:]
+        assert sum(1 for c in ur.calls if c[0] == "speedJ" and np.any(c[1])) == n_speed
+        assert "speedStop" in ur.names()[-8:] and np.allclose(ur.dq, 0)
 
 
 def test_random_operator_and_stream_faults_never_command_motion_outside_tracking():
     """Fuzz: random operator actions, link drops/reconnects and pose-stream faults. Every
-    speedJ that reaches the robot is sent while the safety state is 'tracking', and after an
+    non-zero speedJ that reaches the robot is sent while the safety state is 'tracking', and after an
     e-stop none is sent until reset, arm and start_tracking were all done by the operator."""
     rng = np.random.default_rng(7)
     ur, clock, arm, tr = _rig()
@@ -171,7 +174,8 @@ def test_random_operator_and_stream_faults_never_command_motion_outside_tracking
         orig = c.speedJ
 
         def speedJ(qd, acceleration=0.5, time=0.0):
-            states_at_speedj.append((tr.safety.state.value, ops_since_estop[0]))
+            if np.any(qd):  # speed 0 is how a stop decelerates: not motion
+                states_at_speedj.append((tr.safety.state.value, ops_since_estop[0]))
             return orig(qd, acceleration, time)
 
         c.speedJ = speedJ
@@ -221,3 +225,32 @@ def test_random_operator_and_stream_faults_never_command_motion_outside_tracking
     assert len(states_at_speedj) > 50  # it did track for a good part of the run
     assert {s for s, _ in states_at_speedj} == {"tracking"}
     assert all(ops >= {"reset", "arm", "start"} for _, ops in states_at_speedj)
+
+
+def test_hold_on_a_moving_ur_does_not_block_or_starve_the_watchdog():
+    """A stale hold while the arm moves: the stop must not be a blocking speedStop from speed
+    (ur_rtde waits for stopj to finish, no watchdog update meanwhile: the 20 Hz watchdog would
+    stop the program and every later command would fail). The arm decelerates within the
+    acceleration limit, speedStop still ends the speed mode once it is at rest, and tracking
+    resumes by itself when poses return."""
+    ur, clock, arm, tr = _rig()
+    tr.connect(); tr.arm()
+    T = offset_target((0.08, 0.0, 0.0), 0.0)
+    tr.set_target(to_mm(T), clock()); assert tr.start_tracking().ok
+    _run(tr, clock, T, 40)
+    assert np.abs(ur.dq).max() > 0.1  # moving fast
+    _run(tr, clock, T, 40, feed=False)  # camera silent: hold
+    assert tr.state.value == "holding"
+    assert ur.program_running, "a blocking speedStop starved the RTDE watchdog"
+    assert max(ur.blocked_s) <= 1.0 / ur.watchdog_hz
+    assert np.allclose(ur.dq, 0)
+    names = ur.names()
+    assert "speedStop" in names
+    # the deceleration went out as speed 0 at the hold deceleration (the robot ramps at a)
+    i_hold = max(i for i, c in enumerate(ur.calls) if c[0] == "speedJ" and np.any(c[1]))
+    zero = [c for c in ur.calls[i_hold + 1:] if c[0] == "speedJ"]
+    assert zero and all(not np.any(c[1]) and c[2] == tr.safety.cfg.joint_accel for c in zero)
+    cmds = [c for c in ur.calls if c[0] == "speedJ"]
+    _run(tr, clock, T, 20)
+    assert tr.state.value == "tracking"
+    assert ur.names().count("speedJ") > len(cmds)
