@@ -1,6 +1,12 @@
 """A recording stand-in for ur_rtde's RTDEControlInterface / RTDEReceiveInterface (same method
 names). One :class:`FakeUR` holds the joint state; ``speedJ`` sets the joint velocity and each
-``getActualQ`` integrates it over one period. ``drop()`` kills the connection."""
+``getActualQ`` integrates it over one period. ``drop()`` kills the connection.
+
+Modelled from ur_rtde 1.6's source: ``speedStop`` is *not* one of the streaming commands, so
+``sendCommand`` blocks until the script's ``stopj`` has brought the arm to rest (``max|qd| / a``
+seconds) without writing the watchdog register meanwhile; the script's
+``rtde_set_watchdog(..., "stop")`` then stops the program if that exceeds ``1 / min_frequency``,
+after which every command is refused (returns False). ``blocked_s`` records each blocking time."""
 
 import numpy as np
 
@@ -15,6 +21,11 @@ class FakeUR:
         self.calls = []
         self.can_reconnect = True
         self.protective_stop = False
+        #: kickWatchdog raises (the link died between speedJ and the kick)
+        self.fail_kick = False
+        self.watchdog_hz = None
+        self.program_running = True
+        self.blocked_s = []
 
     def drop(self):
         self.connected = False
@@ -53,9 +64,13 @@ class _Base:
 class FakeControl(_Base):
     def setWatchdog(self, min_frequency=10.0):
         self.ur.calls.append(("setWatchdog", min_frequency))
+        self.ur.watchdog_hz = min_frequency
         return True
 
     def kickWatchdog(self):
+        if self.ur.fail_kick:
+            self.ur.fail_kick = False
+            raise RuntimeError("RTDE control interface: send failed")
         self.ur.calls.append(("kickWatchdog",))
         return True
 
@@ -63,11 +78,19 @@ class FakeControl(_Base):
         if not self.ur.connected:
             raise RuntimeError("RTDE control interface is not connected")
         self.ur.calls.append(("speedJ", list(qd), acceleration, time))
+        if not self.ur.program_running:
+            return False
         self.ur.dq = np.array(qd, dtype=float)
         return True
 
     def speedStop(self, a=10.0):
         self.ur.calls.append(("speedStop", a))
+        if not self.ur.program_running:
+            return False
+        blocked = float(np.abs(self.ur.dq).max()) / a
+        self.ur.blocked_s.append(blocked)
+        if self.ur.watchdog_hz and blocked > 1.0 / self.ur.watchdog_hz:
+            self.ur.program_running = False  # watchdog: no register update while blocked
         self.ur.dq = np.zeros(6)
         return True
 

@@ -121,3 +121,52 @@ def test_disconnect_disarms():
     rig.tracker.disconnect()
     assert rig.tracker.state.value == "disarmed"
     assert not rig.arm.is_connected()
+
+
+def test_bad_stamps_never_raise_and_hold():
+    rig = Rig()
+    T = ready_tip_pose()
+    rig.start(T)
+    rig.run(0.1, T)
+    for bad in (None, "now", [1.0, 2.0], float("nan"), float("inf")):
+        r = rig.tracker.set_target(to_mm(T), bad)
+        assert not r.ok and r.reason and "\n" not in r.reason
+    assert rig.tracker.state.value == "holding"
+
+
+def test_realtime_loop_reports_overruns():
+    """A control cycle slower than the period is counted and reported as a warning."""
+    events = []
+    tr = Tracker(rate_hz=200.0, on_event=lambda k, p: events.append((k, p)))
+    assert tr.connect().ok
+    slow_step = tr.step
+
+    def step(now=None):
+        time.sleep(0.012)  # 12 ms > the 5 ms period
+        return slow_step(now)
+
+    tr.step = step
+    tr.start()
+    deadline = time.monotonic() + 10.0  # a loaded machine may give the thread few slices
+    while tr.overruns < 5 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    tr.stop()
+    assert tr.overruns >= 5
+    assert any(k == "warning" and "overran" in p for k, p in events)
+    assert tr.snapshot().overruns >= 1
+
+
+def test_tracking_without_a_head_sphere_is_reported():
+    """No head sphere: the keep-out and repulsion cannot act. That must not be silent."""
+    rig = Rig()
+    T = ready_tip_pose()
+    rig.start(T)
+    s = rig.run(0.05, T)[-1]
+    assert any(k == "warning" and "no head sphere" in p for k, p in rig.events)
+    assert s.keepout_active is False
+    rig2 = Rig()
+    rig2.tracker.set_head_sphere(m_to_mm(T[:3, 3] + [0, 0, -0.2]), 90.0, frame="base")
+    rig2.start(T)
+    s2 = rig2.run(0.05, T)[-1]
+    assert not any(k == "warning" and "no head sphere" in p for k, p in rig2.events)
+    assert s2.keepout_active is True

@@ -34,6 +34,9 @@ def test_reachable_in_mm():
     T = transform_m_to_mm(kin.fk(kin.Q_READY + 0.1) @ kin.NeedleTool().T_tool0_tip)
     r = reachable(T)
     assert r.ok
+    # the joint solution reproduces the pose under the independent POE model (not IK's own FK)
+    T_got = transform_m_to_mm(kin.poe_fk(r.q) @ kin.NeedleTool().T_tool0_tip)
+    assert np.abs(T_got[:3, 3] - T[:3, 3]).max() < 1e-3 and np.allclose(T_got[:3, :3], T[:3, :3], atol=1e-6)
     far = T.copy()
     far[:3, 3] = [2500.0, 0, 0]
     assert not reachable(far).ok

@@ -62,15 +62,11 @@ def _calibrate(args) -> int:
 
 def _check(args) -> int:
     from monotracker.robot.arm import ArmError
-    from monotracker.robot.ur_rtde_arm import URRTDEArm
+    from monotracker.robot.ur_rtde_arm import read_joint_state
 
-    arm = URRTDEArm(args.host, rate_hz=args.rate)
-    try:
-        arm.connect()
-        st = arm.read()
+    try:  # receive interface only: opening the control interface would stop the robot's program
+        st = read_joint_state(args.host, rate_hz=args.rate)
     except ArmError as exc:
         raise MonoTrackerError(str(exc)) from None
-    finally:
-        arm.disconnect()
     print("q (deg):", np.array2string(np.degrees(st.q), precision=2))
     return 0

@@ -17,12 +17,19 @@ sphere around the head (motion that takes a needle point deeper into the head sp
 planned-path corridor is cut). In every other state the arm is stopped (``stop`` with the
 configured deceleration).
 
-Target checks (:meth:`check_target`): a pose flagged invalid by the pose stream, or none fresher
-than ``stale_s`` (time since the last valid pose *arrived*; a separate ``max_latency_s`` bounds
-how old its capture stamp may be), puts ``tracking`` into ``holding``; tracking resumes by
-itself when fresh valid poses return close to the last accepted one (``auto_resume``). A NaN /
-non-rigid pose or a jump larger than ``jump_m``/``jump_rad`` also holds, but resuming then
-needs the operator (``start_tracking`` accepts the newest pose as the new reference).
+Target checks (:meth:`check_target`): a pose flagged invalid by the pose stream, or no fresh
+target, puts ``tracking`` into ``holding``; tracking resumes by itself when fresh valid poses
+return close to the last accepted one (``auto_resume``). A NaN / non-rigid pose, a capture stamp
+in the future (a clock fault in the pose source) or a jump larger than ``jump_m``/``jump_rad``
+also holds, but resuming then needs the operator (``start_tracking`` accepts the newest pose as
+the new reference).
+
+Freshness runs on the poses' *capture stamps*, checked every control cycle: the target is fresh
+while (a) a pose with a newer capture stamp than the one before arrived within ``stale_s``
+(frame gap) and (b) the newest capture is at most ``max_latency_s`` old (pipeline latency budget).
+A pose whose stamp is not newer (the same frame re-sent) may update the target but does not
+refresh (a); an older stamp (out of order) is ignored. Stale_s alone is not measured from the
+capture: the paper's pipeline takes 0.23 s from capture to pose, more than a 0.1 s frame gap.
 
 Units: m, rad, s.
 """
@@ -77,6 +84,8 @@ class SafetyConfig:
     tool_angular_rad_s: float = 0.6
     stale_s: float = 0.1
     max_latency_s: float = 0.5
+    #: capture stamps more than this ahead of the safety clock are a clock fault (s)
+    future_stamp_s: float = 0.005
     jump_m: float = 0.02
     jump_rad: float = np.radians(10.0)
     auto_resume: bool = True
@@ -119,6 +128,7 @@ class SafetyLayer:
         self.target_received = -np.inf
         self.target_stamp = -np.inf
         self.pending: np.ndarray | None = None  # newest rigid target not accepted (jump)
+        self.pending_stamp = -np.inf
         self.last_cmd = np.zeros(6)
         self.warnings: list[str] = []
         self._Ad_tip_tool0 = adjoint(invert_transform(self.tool.T_tool0_tip))
@@ -126,9 +136,14 @@ class SafetyLayer:
         self._needle_pts = np.array([[0, 0, self.tool.offset_m + t * self.tool.length_m, 1.0] for t in ts])
 
     # ------------------------------------------------------------------ state machine
-    def _go(self, to: State, reason: str, now: float, auto: bool = False) -> Transition | None:
+    def _go(self, to: State, reason: str, now: float, auto: bool = False, reset: bool = False) -> Transition | None:
+        """Change state (atomically). The e-stop is latched here, at the lowest level: out of
+        ``estopped`` only :meth:`reset` may go (``reset=True``), so a transition decided by
+        another thread just before an e-stop landed can never overwrite it."""
         with self._lock:
             if to == self.state:
+                return None
+            if self.state == State.ESTOPPED and not reset:
                 return None
             tr = Transition(float(now), self.state, to, reason)
             self.state = to
@@ -151,12 +166,16 @@ class SafetyLayer:
         if not connected:
             return False, "arm not connected"
         self._go(State.ARMED, "operator armed", now)
+        if self.state != State.ARMED:  # an e-stop landed meanwhile (another thread)
+            return False, "e-stop is latched: reset first"
         return True, "armed"
 
     def disarm(self, now: float, reason: str = "operator disarmed") -> tuple[bool, str]:
         if self.state == State.ESTOPPED:
             return False, "e-stop is latched: reset first"
         self._go(State.DISARMED, reason, now)
+        if self.state != State.DISARMED:  # an e-stop landed meanwhile (another thread)
+            return False, "e-stop is latched: reset first"
         return True, "disarmed"
 
     def start_tracking(self, now: float) -> tuple[bool, str]:
@@ -165,22 +184,36 @@ class SafetyLayer:
         if self.state not in (State.ARMED, State.HOLDING):
             return False, f"cannot start tracking from {self.state.value}" + (
                 " (arm first)" if self.state == State.DISARMED else "")
-        if self.pending is not None and now - self.target_received <= self.cfg.stale_s:
-            self.target, self.pending = self.pending, None
-        if self.target is None or now - self.target_received > self.cfg.stale_s:
+        if (self.pending is not None and now - self.target_received <= self.cfg.stale_s
+                and now - self.pending_stamp <= self.cfg.max_latency_s):
+            self.target, self.target_stamp, self.pending = self.pending, self.pending_stamp, None
+        if not self.target_fresh(now):
             return False, "no fresh valid target pose"
         self._go(State.TRACKING, "operator started tracking", now)
+        if self.state != State.TRACKING:  # an e-stop landed meanwhile (another thread)
+            return False, "e-stop is latched: reset first"
         return True, "tracking"
 
     def stop_tracking(self, now: float, reason: str = "operator stopped tracking") -> tuple[bool, str]:
         if self.state not in (State.TRACKING, State.HOLDING):
             return False, f"not tracking ({self.state.value})"
         self._go(State.ARMED, reason, now)
+        if self.state != State.ARMED:  # an e-stop landed meanwhile (another thread)
+            return False, "e-stop is latched: reset first"
         return True, "armed"
 
     def hold(self, now: float, reason: str, auto: bool = False) -> None:
+        """tracking -> holding. A fault that needs the operator (``auto=False``) arriving during
+        a hold that would resume by itself (stale/invalid stream) turns that hold into one that
+        needs the operator: a fault's severity must not depend on the stream being stale first."""
         if self.state == State.TRACKING:
             self._go(State.HOLDING, reason, now, auto=auto)
+        elif self.state == State.HOLDING and self._hold_auto and not auto:
+            with self._lock:
+                self._hold_auto = False
+            msg = f"holding until the operator resumes: {reason}"
+            self.warnings.append(msg)
+            log.warning("robot safety at %.3f: %s", now, msg)
 
     def estop(self, now: float, reason: str) -> None:
         self._go(State.ESTOPPED, reason, now)
@@ -188,7 +221,11 @@ class SafetyLayer:
     def reset(self, now: float) -> tuple[bool, str]:
         if self.state != State.ESTOPPED:
             return False, f"not e-stopped ({self.state.value})"
-        self._go(State.DISARMED, "operator reset the e-stop", now)
+        # Start clean: tracking again needs a pose received after the reset (the e-stop may
+        # have been a clock or pose-stream fault that makes the old stamps meaningless).
+        self.target, self.pending = None, None
+        self.target_received = self.target_stamp = self.pending_stamp = -np.inf
+        self._go(State.DISARMED, "operator reset the e-stop", now, reset=True)
         return True, "disarmed"
 
     # ------------------------------------------------------------------ targets
@@ -201,9 +238,20 @@ class SafetyLayer:
         if not _rigid_ok(T):
             self.hold(now, "invalid target pose (NaN or not a rigid transform)")
             return TargetStatus(False, "target is not a finite rigid 4x4 transform")
-        if not np.isfinite(stamp) or now - stamp > self.cfg.max_latency_s:
+        if not np.isfinite(stamp):
+            self.hold(now, "target pose has no finite capture stamp", auto=True)
+            return TargetStatus(False, "target capture stamp must be a finite time (s)")
+        if now - stamp > self.cfg.max_latency_s:
             self.hold(now, f"target pose too old ({now - stamp:.3f} s since capture)", auto=True)
             return TargetStatus(False, "target pose too old")
+        if stamp - now > self.cfg.future_stamp_s:
+            self.hold(now, f"target capture stamp {stamp - now:.3f} s in the future (clock fault)")
+            return TargetStatus(False, "target capture stamp is in the future")
+        newest = max(self.target_stamp if self.target is not None else -np.inf,
+                     self.pending_stamp if self.pending is not None else -np.inf)
+        if stamp < newest:
+            return TargetStatus(False, f"target pose older than the current one ({newest - stamp:.3f} s): ignored")
+        new_capture = stamp > newest
         if self.target is not None and self.state in (State.TRACKING, State.HOLDING):
             # A jump matters only while the arm follows the target; armed/disarmed, the newest
             # pose simply becomes the reference that start_tracking will use.
@@ -211,20 +259,24 @@ class SafetyLayer:
             da = float(np.linalg.norm(log3(self.target[:3, :3].T @ T[:3, :3])))
             if dp > self.cfg.jump_m or da > self.cfg.jump_rad:
                 self.pending = T.copy()
-                self.target_received = now
-                if self.state == State.TRACKING or (self.state == State.HOLDING and self._hold_auto):
-                    self._go(State.HOLDING, f"target jumped {dp*1000:.1f} mm / {np.degrees(da):.1f} deg", now)
+                self.pending_stamp = float(stamp)
+                if new_capture:
+                    self.target_received = now
+                self.hold(now, f"target jumped {dp*1000:.1f} mm / {np.degrees(da):.1f} deg")
                 return TargetStatus(False, f"target jump {dp*1000:.1f} mm / {np.degrees(da):.1f} deg")
         self.target = T.copy()
         self.pending = None
-        self.target_received = now
+        if new_capture:
+            self.target_received = now
         self.target_stamp = float(stamp)
-        if self.state == State.HOLDING and self._hold_auto and self.cfg.auto_resume:
+        if self.state == State.HOLDING and self._hold_auto and self.cfg.auto_resume and self.target_fresh(now):
             self._go(State.TRACKING, "fresh valid target again", now)
         return TargetStatus(True, "accepted")
 
     def target_fresh(self, now: float) -> bool:
-        return self.target is not None and now - self.target_received <= self.cfg.stale_s
+        """A newer capture arrived within ``stale_s`` and the newest is at most ``max_latency_s`` old."""
+        return (self.target is not None and now - self.target_received <= self.cfg.stale_s
+                and now - self.target_stamp <= self.cfg.max_latency_s)
 
     # ------------------------------------------------------------------ command filter
     def filter_command(self, now: float, q: np.ndarray, dq_des: np.ndarray, dt: float,
@@ -235,7 +287,8 @@ class SafetyLayer:
         cfg = self.cfg
         if self.state == State.TRACKING:
             if not self.target_fresh(now):
-                self.hold(now, f"no fresh valid target for {cfg.stale_s:.3f} s", auto=True)
+                self.hold(now, f"no fresh valid target (newest capture {now - self.target_stamp:.3f} s old, "
+                               f"arrived {now - self.target_received:.3f} s ago)", auto=True)
             elif not np.all(np.isfinite(dq_des)):
                 self.hold(now, "controller produced a non-finite command")
             elif sigma_min < cfg.sigma_hold:

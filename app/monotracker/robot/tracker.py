@@ -111,6 +111,10 @@ class TrackerSnapshot:
     last_transition: Transition | None
     warnings: tuple = field(default_factory=tuple)
     step_cost_ms: float = float("nan")
+    #: control cycles of the real-time thread that ended after their deadline (so far)
+    overruns: int = 0
+    #: a head sphere is known: the keep-out (and APF repulsion) can act this cycle
+    keepout_active: bool = False
 
 
 class Tracker:
@@ -143,12 +147,18 @@ class Tracker:
         self._run = threading.Event()
         self._n_warn = 0
         self._snap: TrackerSnapshot | None = None
+        self._controller_reset_due = False
+        #: real-time thread: cycles that ended after the next deadline, and the slowest cycle (ms)
+        self.overruns = 0
+        self.worst_cycle_ms = 0.0
         self.predictor = TargetPredictor(prediction_horizon_s) if predict_target else None
 
     # ------------------------------------------------------------------ events
     def _on_transition(self, tr: Transition) -> None:
         if tr.to_state != State.TRACKING:
-            self.controller.reset()
+            # Reset in the control thread (next step), not here: an e-stop can transition from
+            # another thread while the controller is mid-step.
+            self._controller_reset_due = True
         if self.on_event:
             try:
                 self.on_event("transition", tr)
@@ -175,6 +185,19 @@ class Tracker:
 
     # ------------------------------------------------------------------ connection / operator
     def connect(self) -> CommandResult:
+        """Open (or re-open) the arm connection. Never resumes motion: if the link is down
+        while armed/tracking/holding (a drop the control loop may not have seen yet), the e-stop
+        latches first; if it is up, there is nothing to do."""
+        with self._lock:
+            if self.safety.state in (State.ARMED, State.TRACKING, State.HOLDING):
+                try:
+                    up = bool(self.arm_backend.is_connected())
+                except Exception:  # noqa: BLE001
+                    up = False
+                if up:
+                    return CommandResult(True, "already connected")
+                self.safety.estop(self.clock(), "arm connection lost (reconnect requested)")
+                self._stop_arm(self.safety.cfg.estop_decel)
         try:
             self.arm_backend.connect()
         except ArmError as exc:
@@ -198,19 +221,41 @@ class Tracker:
             return CommandResult(*self.safety.disarm(self.clock()))
 
     def start_tracking(self) -> CommandResult:
+        """Operator action. Tracking without a head sphere is allowed (the sphere may be
+        unknown, e.g. too few fiducials for the fit) but warned about: then neither the keep-out
+        nor the APF repulsion can act."""
         with self._lock:
-            return CommandResult(*self.safety.start_tracking(self.clock()))
+            res = CommandResult(*self.safety.start_tracking(self.clock()))
+            if res.ok and self._head_local is None:
+                msg = "tracking with no head sphere: keep-out and head repulsion are off"
+                log.warning(msg)
+                self.safety.warnings.append(msg)
+                self._emit_warnings()
+            return res
 
     def stop_tracking(self) -> CommandResult:
         with self._lock:
             return CommandResult(*self.safety.stop_tracking(self.clock()))
 
+    #: How long :meth:`estop` waits for a control cycle in progress before giving up on sending
+    #: the stop itself (s). The e-stop is latched before waiting either way.
+    ESTOP_LOCK_WAIT_S = 0.05
+
     def estop(self, reason: str = "operator e-stop") -> CommandResult:
-        """Latched stop, effective immediately (the arm is told to stop now, not next cycle)."""
-        with self._lock:
-            self.safety.estop(self.clock(), reason)
-            self._stop_arm(self.safety.cfg.estop_decel)
-            return CommandResult(True, "e-stopped")
+        """Latched stop, effective immediately: the state latches at once (without waiting for
+        the control loop), then the arm is told to stop. If a control cycle is stuck in an arm
+        call, the stop is left to that cycle (it re-checks the state after sending a command)
+        and, should the call never return, to the arm's own watchdog. Never blocks for long."""
+        self.safety.estop(self.clock(), reason)
+        if self._lock.acquire(timeout=self.ESTOP_LOCK_WAIT_S):
+            try:
+                self._stop_arm(self.safety.cfg.estop_decel)
+            finally:
+                self._lock.release()
+        else:
+            log.error("e-stop latched while the control loop is busy in an arm call; "
+                      "the loop stops the arm when the call returns (the arm watchdog if it never does)")
+        return CommandResult(True, "e-stopped")
 
     def reset(self) -> CommandResult:
         with self._lock:
@@ -230,10 +275,14 @@ class Tracker:
                 T = np.full((4, 4), np.nan)
             if T.shape != (4, 4):
                 T = np.full((4, 4), np.nan)
-            st = self.safety.check_target(T, float(stamp), bool(valid), now)
+            try:
+                stamp = float(stamp)
+            except (TypeError, ValueError):
+                stamp = float("nan")  # refused (and held) by the safety layer
+            st = self.safety.check_target(T, stamp, bool(valid), now)
             if self.predictor is not None:
                 if st.accepted:
-                    self.predictor.update(T, float(stamp))
+                    self.predictor.update(T, stamp)
                 else:
                     self.predictor.reset()
             return CommandResult(st.accepted, st.reason)
@@ -279,12 +328,17 @@ class Tracker:
         with self._lock:
             now = self.clock() if now is None else float(now)
             dt = self.period if self._last_t is None else float(np.clip(now - self._last_t, 0.25 * self.period, 4 * self.period))
+            backwards = self._last_t is not None and now < self._last_t - self.period
+            if backwards:  # every age would be negative: stale targets would look fresh
+                self.safety.estop(now, f"control clock went backwards by {self._last_t - now:.3f} s")
             self._last_t = now
             q = dq = cmd = np.full(6, np.nan)
             T = np.full((4, 4), np.nan)
             stage, smin = "-", float("nan")
-            connected = self.arm_backend.is_connected()
+            connected = False
+            head = None
             try:
+                connected = bool(self.arm_backend.is_connected())
                 if not connected:
                     if self.safety.state not in (State.DISARMED, State.ESTOPPED):
                         self.safety.estop(now, "arm connection lost")
@@ -296,6 +350,9 @@ class Tracker:
                         raise ArmError("arm reported non-finite joint state")
                     T, Jb = self.kin.fk_and_jacobian_body(q)
                     head = self.head_sphere_base()
+                    if self._controller_reset_due:
+                        self._controller_reset_due = False
+                        self.controller.reset()
                     self.controller.head = head
                     if self.safety.state == State.TRACKING and self.safety.target is not None:
                         T_goal, V_goal = self.safety.target, None
@@ -314,19 +371,27 @@ class Tracker:
                         cmd = np.zeros(6)
                     else:
                         self.arm_backend.command_velocity(cmd, self.safety.cfg.joint_accel)
+                        if self.safety.state != State.TRACKING:
+                            # latched (e-stop) from another thread while the command was sent
+                            self._stop_arm(self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED
+                                           else self.safety.cfg.joint_accel)
             except ArmError as exc:
                 self.safety.estop(now, f"arm error: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
+                try:  # the error may have been the link dropping: report it in the snapshot
+                    connected = bool(self.arm_backend.is_connected())
+                except Exception:  # noqa: BLE001
+                    connected = False
             except Exception as exc:  # noqa: BLE001 - any fault in the loop stops the arm
                 log.exception("control loop error")
                 self.safety.estop(now, f"internal error in control loop: {type(exc).__name__}: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
             self._emit_warnings()
-            snap = self._make_snapshot(now, q, dq, cmd, T, stage, smin, (time.perf_counter() - t0) * 1e3)
+            snap = self._make_snapshot(now, connected, q, dq, cmd, T, stage, smin, (time.perf_counter() - t0) * 1e3, head)
             self._snap = snap
             return snap
 
-    def _make_snapshot(self, now, q, dq, cmd, T, stage, smin, cost_ms) -> TrackerSnapshot:
+    def _make_snapshot(self, now, connected, q, dq, cmd, T, stage, smin, cost_ms, head=None) -> TrackerSnapshot:
         tgt = self.safety.target
         T_tip = T @ self.tool.T_tool0_tip
         if tgt is not None and np.all(np.isfinite(T)):
@@ -337,20 +402,21 @@ class Tracker:
             err = ang = float("nan")
         hist = self.safety.history
         return TrackerSnapshot(
-            t=now, state=self.safety.state.value, connected=self.arm_backend.is_connected(),
+            t=now, state=self.safety.state.value, connected=connected,
             variant=self.controller.variant, q=np.array(q), dq=np.array(dq), dq_cmd=np.array(cmd),
             T_base_tool0_mm=transform_m_to_mm(T), T_base_tip_mm=transform_m_to_mm(T_tip),
             T_base_target_mm=None if tgt is None else transform_m_to_mm(tgt),
             tip_error_mm=err, angle_error_deg=ang,
             target_age_s=float(now - self.safety.target_received) if tgt is not None else float("inf"),
             stage=stage, sigma_min=smin, last_transition=hist[-1] if hist else None,
-            warnings=tuple(self.safety.warnings[-5:]), step_cost_ms=cost_ms,
+            warnings=tuple(self.safety.warnings[-5:]), step_cost_ms=cost_ms, overruns=self.overruns,
+            keepout_active=head is not None,
         )
 
     def snapshot(self) -> TrackerSnapshot | None:
-        """Latest snapshot (thread-safe; None before the first step)."""
-        with self._lock:
-            return self._snap
+        """Latest snapshot (thread-safe without the loop's lock: the snapshot is immutable and
+        replaced whole, so a UI never waits behind a control cycle; None before the first step)."""
+        return self._snap
 
     # ------------------------------------------------------------------ real-time thread
     def start(self) -> None:
@@ -361,9 +427,23 @@ class Tracker:
         self._thread = threading.Thread(target=self._loop, name="robot-tracker", daemon=True)
         self._thread.start()
 
+    def _report_overrun(self, late_s: float) -> None:
+        """Count a cycle that ended ``late_s`` after its deadline; warn on the first and every
+        100th (the warning goes through the safety layer's list, so snapshots show it too)."""
+        self.overruns += 1
+        if self.overruns == 1 or self.overruns % 100 == 0:
+            msg = (f"control loop overran its {self.period * 1e3:.1f} ms period "
+                   f"({self.overruns} cycles so far, this one {late_s * 1e3:.1f} ms late, "
+                   f"slowest {self.worst_cycle_ms:.1f} ms)")
+            log.warning(msg)
+            with self._lock:
+                self.safety.warnings.append(msg)
+                self._emit_warnings()
+
     def _loop(self) -> None:
         nxt = self.clock()
         while self._run.is_set():
+            t_start = self.clock()
             try:
                 self.step()
             except Exception as exc:  # noqa: BLE001 - step() catches loop errors; this is the last guard
@@ -372,7 +452,11 @@ class Tracker:
                     self.safety.estop(self.clock(), f"internal error in tracker thread: {type(exc).__name__}: {exc}")
                     self._stop_arm(self.safety.cfg.estop_decel)
             nxt += self.period
-            delay = nxt - self.clock()
+            t_end = self.clock()
+            self.worst_cycle_ms = max(self.worst_cycle_ms, (t_end - t_start) * 1e3)
+            delay = nxt - t_end
+            if delay < 0:
+                self._report_overrun(-delay)
             if delay < -self.period:  # overrun: re-phase rather than bursting
                 nxt = self.clock()
             elif delay > 0:
@@ -384,6 +468,13 @@ class Tracker:
         self._run.clear()
         if self._thread:
             self._thread.join(timeout=2.0)
+            if self._thread.is_alive():
+                # Stuck in an arm call: the loop is no longer in control. Latch an e-stop
+                # (lock-free) and do not wait behind the call; the arm's watchdog stops it
+                # if the call never returns, the loop's own re-check if it does.
+                log.error("tracker thread did not stop within 2 s (stuck in an arm call)")
+                self.estop("tracker thread stuck in an arm call")
+                return
         with self._lock:
             if self.safety.state in (State.TRACKING, State.HOLDING):
                 self.safety.stop_tracking(self.clock(), "tracker thread stopped")

@@ -5,8 +5,13 @@
   by ``kickWatchdog()``. The RTDE watchdog (``setWatchdog(min_frequency)``) makes the robot
   program stop when Python stalls, because ur_rtde would otherwise keep repeating the last
   speed; our own stale-target timeout in the safety layer is the second line.
-* Stops: ``speedStop(a)`` whenever the tracker stops (holding, armed, disarmed, e-stop);
-  ``disconnect()`` also ends the script. Stop never raises.
+* Stops (holding, armed, disarmed, e-stop): while the arm still moves, ``speedJ(0, a)`` is
+  streamed (with the watchdog kick) each cycle, so it decelerates at ``a``; once it is at rest,
+  ``speedStop(a)`` ends the speed mode. Not ``speedStop`` from speed: in ur_rtde it is not a
+  streaming command, so it blocks the control thread until ``stopj`` has finished (up to
+  ``v / a`` = 0.33 s at 1 rad/s and 3 rad/s^2) without updating the watchdog register, and a
+  20 Hz watchdog then stops the robot program (every later command fails). ``disconnect()``
+  uses a blocking ``speedStop`` (nothing follows) and ends the script. Stop never raises.
 * Connection loss: ``read``/``command_velocity`` raise :class:`ArmError` when either interface
   is down (the tracker then latches an e-stop). ``connect()`` after that tries ``reconnect()``
   on the existing interfaces first, then builds new ones. A robot in protective or emergency
@@ -75,7 +80,12 @@ class URRTDEArm(Arm):
         log.info("connected to UR at %s (%.0f Hz, watchdog %.0f Hz)", self.host, self.rate_hz, self.watchdog_hz)
 
     def disconnect(self) -> None:
-        self.stop(4.0)
+        if self.ctrl is not None and self._speed_mode:
+            try:  # final stop: blocking is fine here, nothing else follows
+                if self.ctrl.speedStop(4.0) is not False:
+                    self._speed_mode = False
+            except Exception:  # noqa: BLE001
+                log.warning("UR stop command failed (connection down?); the RTDE watchdog will stop the arm")
         for name, obj in (("control", self.ctrl), ("receive", self.recv)):
             if obj is None:
                 continue
@@ -118,6 +128,9 @@ class URRTDEArm(Arm):
             raise ArmError("joint velocity command must be 6 finite numbers")
         if not self.is_connected():
             raise ArmError(f"UR at {self.host}: connection lost")
+        # Marked before sending: once a speedJ may have reached the robot, every later stop
+        # must send speedStop, even when this call raises half-way (speedJ sent, kick failed).
+        self._speed_mode = True
         try:
             ok = self.ctrl.speedJ(dq.tolist(), float(acceleration), self.period_s)
             self.ctrl.kickWatchdog()
@@ -125,15 +138,53 @@ class URRTDEArm(Arm):
             raise ArmError(f"UR at {self.host}: speedJ failed ({exc})") from None
         if ok is False:
             raise ArmError(f"UR at {self.host}: speedJ was refused")
-        self._speed_mode = True
+
+    #: joint speed (rad/s) below which the arm counts as at rest for ``speedStop``
+    STANDSTILL_RAD_S = 1e-3
 
     def stop(self, deceleration: float) -> None:
         if self.ctrl is None:
             return
         try:
             if self._speed_mode:
-                self.ctrl.speedStop(float(deceleration))
-                self._speed_mode = False
+                try:
+                    qd = np.abs(np.asarray(self.recv.getActualQd(), dtype=float))
+                    # unknown (non-finite) speed: the plain, blocking stop, which surely stops
+                    moving = bool(np.all(np.isfinite(qd)) and qd.max() > self.STANDSTILL_RAD_S)
+                except Exception:  # noqa: BLE001 - unknown speed: the plain (blocking) stop
+                    moving = False
+                if moving:  # decelerate without blocking; the watchdog stays fed
+                    ok = self.ctrl.speedJ([0.0] * 6, float(deceleration), self.period_s)
+                else:  # at rest: returns at once
+                    ok = self.ctrl.speedStop(float(deceleration))
+                    if ok is not False:
+                        self._speed_mode = False
+                if ok is False:
+                    log.warning("UR refused the stop command (program stopped?)")
             self.ctrl.kickWatchdog()
         except Exception:  # noqa: BLE001 - the robot's watchdog stops it if we cannot
             log.warning("UR stop command failed (connection down?); the RTDE watchdog will stop the arm")
+
+
+def read_joint_state(host: str, rate_hz: float = 125.0, receive_factory=None, clock=time.monotonic) -> ArmState:
+    """Read a UR's joint state through the RTDE *receive* interface only (rad, rad/s).
+
+    Never opens the control interface: constructing one uploads ur_rtde's control script,
+    which stops whatever program the robot runs. Raises :class:`ArmError` (one line)."""
+    factory = receive_factory or _default_receive
+    recv = None
+    try:
+        recv = factory(host, float(rate_hz))
+        q = np.array(recv.getActualQ(), dtype=float)
+        dq = np.array(recv.getActualQd(), dtype=float)
+    except Exception as exc:  # noqa: BLE001 - ur_rtde raises RuntimeError for "no robot"
+        raise ArmError(f"UR at {host} did not answer ({exc}); check the cable and IP") from None
+    finally:
+        if recv is not None:
+            try:
+                recv.disconnect()
+            except Exception:  # noqa: BLE001
+                log.exception("UR receive disconnect failed")
+    if q.shape != (6,) or dq.shape != (6,) or not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
+        raise ArmError(f"UR at {host}: unexpected joint state {q}")
+    return ArmState(q, dq, clock())
