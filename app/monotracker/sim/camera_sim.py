@@ -172,7 +172,8 @@ class SimulatedCamera(FrameSource):
     Parameters: ``camera`` (:class:`CameraModel`, default 1280x720 f=1100 px with distortion),
     ``phantom``, ``trajectory``, ``events`` (:class:`SceneEvents`), ``distance_mm`` (camera to
     fiducial patch), ``noise_sigma`` (grey levels), ``exposure_s`` (motion blur window; 0 = off),
-    ``max_frames`` (None = endless), ``freeze_at_frame`` / ``disconnect_at_frame`` (faults),
+    ``max_frames`` (None = endless), ``freeze_at_frame`` / ``disconnect_at_frame`` /
+    ``stall_at_frame`` (faults: repeated image, ``read()`` raises, ``read()`` blocks),
     ``seed``.
     """
 
@@ -183,7 +184,7 @@ class SimulatedCamera(FrameSource):
                  fps: float = 30.0, distance_mm: float = 520.0, noise_sigma: float = 2.0,
                  exposure_s: float = 1 / 60, realtime: bool = False, max_frames: int | None = None,
                  freeze_at_frame: int | None = None, disconnect_at_frame: int | None = None,
-                 seed: int = 0, start_index: int = 0):
+                 stall_at_frame: int | None = None, seed: int = 0, start_index: int = 0):
         super().__init__()
         self.camera = camera or default_camera()
         self.phantom = phantom or default_phantom()
@@ -196,6 +197,7 @@ class SimulatedCamera(FrameSource):
         self.max_frames = max_frames
         self.freeze_at_frame = freeze_at_frame
         self.disconnect_at_frame = disconnect_at_frame
+        self.stall_at_frame = stall_at_frame
         self.seed = seed
         self._index = start_index
         self._frozen_image = None
@@ -255,17 +257,24 @@ class SimulatedCamera(FrameSource):
 
             raise MonoTrackerError("simulated camera: read() after close()")
         i = self._index
-        if self.max_frames is not None and i >= self.max_frames:
-            return None
-        if self.disconnect_at_frame is not None and i >= self.disconnect_at_frame:
-            raise CameraDisconnected("simulated camera disconnected (fault injected)")
         if self.realtime:
             now = time.monotonic()
             if self._t0 is None:
                 self._t0 = now - i / self.fps
+            due = int(np.floor((now - self._t0) * self.fps))
+            if due > i:          # the consumer fell behind: like a camera, deliver the newest frame
+                i = self._index = due
             wait = self._t0 + i / self.fps - now
             if wait > 0:
                 time.sleep(wait)
+        if self.max_frames is not None and i >= self.max_frames:
+            return None
+        if self.disconnect_at_frame is not None and i >= self.disconnect_at_frame:
+            raise CameraDisconnected("simulated camera disconnected (fault injected)")
+        if self.stall_at_frame is not None and i >= self.stall_at_frame:
+            while not self._closed:          # a driver that blocks forever, until closed
+                time.sleep(0.005)
+            raise CameraDisconnected("simulated camera closed while stalled")
         if self.freeze_at_frame is not None and i >= self.freeze_at_frame and self._frozen_image is not None:
             img, truth = self._frozen_image
         else:
