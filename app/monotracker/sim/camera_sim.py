@@ -67,6 +67,8 @@ class FrameTruth:
     radius_px: np.ndarray                 # (9,) approximate image radius of each sphere
     stray_centres_px: np.ndarray          # (k, 2) stray blobs present in this frame
     occluders: list = field(default_factory=list)  # polygons (n, 2) px drawn in this frame
+    #: (h, w) float32 visible-ball coverage in [0, 1] (occluders removed); only when asked for
+    fiducial_mask: np.ndarray | None = None
 
 
 @dataclass
@@ -285,8 +287,9 @@ class SimulatedCamera(FrameSource):
         return Frame(img, time.monotonic(), i, truth)
 
     # ------------------------------------------------------------------ rendering
-    def render(self, t: float) -> tuple[np.ndarray, FrameTruth]:
-        """Render the scene at simulated time ``t`` (s): (BGR uint8 image, FrameTruth)."""
+    def render(self, t: float, with_mask: bool = False) -> tuple[np.ndarray, FrameTruth]:
+        """Render the scene at simulated time ``t`` (s): (BGR uint8 image, FrameTruth).
+        ``with_mask`` also fills ``truth.fiducial_mask`` (training labels for the segmenter)."""
         T = self.T_cam_ct_at(t)
         R, tr = T[:3, :3], T[:3, 3]
         ph = self.phantom
@@ -345,6 +348,15 @@ class SimulatedCamera(FrameSource):
                 cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], colour, cv2.LINE_AA, shift=4)
                 polys.append(poly)
 
+        label = None
+        if with_mask:
+            label = np.zeros((h, w), np.float32)
+            for k, (roi, cov) in cov_store.items():
+                y0, y1, x0, x1 = roi
+                label[y0:y1, x0:x1] = np.maximum(label[y0:y1, x0:x1], cov)
+            for poly in polys:
+                cv2.fillPoly(label, [np.round(poly * 16).astype(np.int32)], 0.0, cv2.LINE_AA, shift=4)
+
         # --- visibility truth
         vis = np.zeros(nfid)
         for k, (roi, cov) in cov_store.items():
@@ -377,7 +389,7 @@ class SimulatedCamera(FrameSource):
         truth = FrameTruth(
             t_s=t, T_cam_ct=T, ellipse_centres_px=ell, projected_centres_px=proj,
             visible_fraction=vis, visible=vis >= FULLY_VISIBLE, radius_px=radius_px,
-            stray_centres_px=np.array(strays, float).reshape(-1, 2), occluders=polys)
+            stray_centres_px=np.array(strays, float).reshape(-1, 2), occluders=polys, fiducial_mask=label)
         return out, truth
 
     def _skin(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray):
