@@ -74,3 +74,26 @@ def test_cli_calibrate_camera(tmp_path, board_images):
                        env={"PYTHONPATH": str(__import__("monotracker").__path__[0].rsplit("/", 1)[0]),
                             "MONOTRACKER_HOME": str(tmp_path)})
     assert r.returncode == 2 and r.stderr.startswith("error:") and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_charuco_calibration():
+    from monotracker.vision.calibration import calibrate_charuco, render_board_texture
+
+    squares, sq, mk = (7, 5), 30.0, 22.0
+    board = cv2.aruco.CharucoBoard(squares, sq, mk, cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_5X5_100))
+    ppm = 6  # texture px per mm
+    tex = board.generateImage((int(squares[0] * sq * ppm), int(squares[1] * sq * ppm)), marginSize=0)
+    tex = cv2.copyMakeBorder(tex, 60, 60, 60, 60, cv2.BORDER_CONSTANT, value=255)
+    rays = TRUE.pixel_rays(2)
+    rng = np.random.default_rng(3)
+    imgs = []
+    for i in range(8):
+        R = rotation_about_axis(rng.normal(size=3), np.radians(rng.uniform(10, 30)))
+        centre = np.array([squares[0] * sq / 2 + 10, squares[1] * sq / 2 + 10, 0])
+        t = np.array([rng.uniform(-40, 40), rng.uniform(-30, 30), rng.uniform(380, 480)]) - R @ centre
+        imgs.append(render_board_texture(TRUE, make_transform(R, t), tex, 1.0 / ppm, rays=rays))
+    res = calibrate_charuco(imgs, squares, sq, mk)
+    assert res.rms_px < 0.5 and len(res.per_view_rms_px) >= 6
+    assert abs(res.camera.K[0, 0] - 610) / 610 < 0.02 and abs(res.camera.K[1, 1] - 608) / 608 < 0.02
+    with pytest.raises(InputError, match="smaller than the square"):
+        calibrate_charuco(imgs, squares, sq, 40.0)

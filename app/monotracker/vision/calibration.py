@@ -155,3 +155,20 @@ def render_chessboard(camera: CameraModel, T_cam_board: np.ndarray, pattern: tup
     img = np.where(inside, np.where(black, 30.0, 220.0), 110.0).astype(np.float32)
     h, w = camera.height, camera.width
     return cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA).round().astype(np.uint8)
+
+
+def render_board_texture(camera: CameraModel, T_cam_board: np.ndarray, texture: np.ndarray, mm_per_px: float,
+                         supersample: int = 2, rays: np.ndarray | None = None) -> np.ndarray:
+    """Synthetic grey image of a flat printed board (``texture``: grey uint8, its pixel (0, 0)
+    corner at the board origin, x along columns, ``mm_per_px`` print scale) seen by ``camera``:
+    ray-plane intersection, bilinear texture lookup, area downsampling. Used to test ChArUco."""
+    d = camera.pixel_rays(supersample) if rays is None else rays
+    R, t = T_cam_board[:3, :3], T_cam_board[:3, 3]
+    n = R[:, 2]
+    s = (n @ t) / (d @ n)
+    B = (d * s[..., None] - t) @ R
+    mx = (B[..., 0] / mm_per_px - 0.5).astype(np.float32)   # texture pixel centres at (i + 0.5) * mm_per_px
+    my = (B[..., 1] / mm_per_px - 0.5).astype(np.float32)
+    img = cv2.remap(texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=110)
+    img = np.where(s > 0, img, 110).astype(np.uint8)
+    return cv2.resize(img, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
