@@ -294,8 +294,21 @@ class PoseStream:
         self._monitor.start()
         return self
 
+    def set_target(self, target_ct: np.ndarray | None) -> None:
+        """Planned target (CT mm) for ``predicted_tre_mm``; takes effect from the next frame."""
+        self.tracker.set_target(target_ct)
+
     def stop(self, timeout: float = 2.0) -> None:
+        """Stop the threads and close the source (if ``close_source``). A ``read()`` that blocks
+        (stalled camera) is unblocked by closing the source after a short grace period."""
         self._stop.set()
+        if self._thread is not None:
+            self._thread.join(0.2)
+            if self._thread.is_alive() and self.close_source:
+                try:
+                    self.source.close()
+                except Exception:  # noqa: BLE001
+                    log.exception("closing the frame source failed")
         for t in (self._thread, self._monitor):
             if t is not None:
                 t.join(timeout)
