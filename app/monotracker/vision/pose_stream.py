@@ -352,10 +352,12 @@ class PoseStream:
             try:
                 frame = self.source.read()
             except CameraDisconnected as exc:
-                self._fault_estimate("disconnected", f"camera disconnected: {exc}")
+                if not self._stop.is_set():     # closing the source on stop() is not a fault
+                    self._fault_estimate("disconnected", f"camera disconnected: {exc}")
                 return
             except MonoTrackerError as exc:
-                self._fault_estimate("disconnected", f"camera error: {exc}")
+                if not self._stop.is_set():
+                    self._fault_estimate("disconnected", f"camera error: {exc}")
                 return
             finally:
                 self._read_since = None
