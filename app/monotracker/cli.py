@@ -22,6 +22,7 @@ from monotracker.errors import MonoTrackerError
 COMMAND_MODULES: tuple[str, ...] = (
     "monotracker.ct.commands",
     "monotracker.robot.commands",
+    "monotracker.vision.commands",
 )
 
 
