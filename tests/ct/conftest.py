@@ -2,20 +2,11 @@
 
 from __future__ import annotations
 
-import time
-from pathlib import Path
-
-import numpy as np
 import pytest
-import SimpleITK as sitk
+from ct_test_helpers import patch_params
 
-from monotracker.sim.ct_phantom import ScanParams, generate_ct, patch_scan_params
+from monotracker.sim.ct_phantom import generate_ct
 from monotracker.sim.phantom import default_phantom
-
-
-def patch_params(phantom=None, margin_mm: float = 7.0, **kw) -> ScanParams:
-    """A scan of only the fiducial patch (fast): 0.5 x 0.5 x 1.0 mm, oblique, noisy."""
-    return patch_scan_params(phantom, margin_mm, **kw)
 
 
 @pytest.fixture(scope="session")
@@ -29,41 +20,3 @@ def patch_volume(patch_ct):
     from monotracker.ct.volume import Volume
 
     return Volume.from_image(patch_ct.to_sitk(), source="patch")
-
-
-def write_dicom_series(image: sitk.Image, folder: Path, series_uid: str | None = None, description: str = "phantom") -> list[Path]:
-    """Write a 3D int16 HU image as a CT DICOM series (one file per slice) with the tags that
-    SimpleITK/GDCM need to read origin, spacing and direction back."""
-    folder.mkdir(parents=True, exist_ok=True)
-    writer = sitk.ImageFileWriter()
-    writer.KeepOriginalImageUIDOn()
-    d = image.GetDirection()
-    uid_root = "1.2.826.0.1.3680043.2.1125"
-    series_uid = series_uid or f"{uid_root}.1.{int(time.time() * 1e3) % 10**9}.{np.random.randint(10**6)}"
-    study_uid = f"{uid_root}.2.1"
-    common = [
-        ("0008|0060", "CT"),
-        ("0008|0008", "ORIGINAL\\PRIMARY\\AXIAL"),
-        ("0020|000d", study_uid),
-        ("0020|000e", series_uid),
-        ("0020|0037", "\\".join(f"{x:.10f}" for x in (d[0], d[3], d[6], d[1], d[4], d[7]))),
-        ("0008|103e", description),
-        ("0028|1052", "0"),
-        ("0028|1053", "1"),
-        ("0018|0050", f"{image.GetSpacing()[2]:.6f}"),
-        ("0010|0010", "PHANTOM^HEAD"),
-    ]
-    paths = []
-    for k in range(image.GetDepth()):
-        sl = image[:, :, k]
-        for tag, val in common:
-            sl.SetMetaData(tag, val)
-        pos = image.TransformIndexToPhysicalPoint((0, 0, k))
-        sl.SetMetaData("0020|0032", "\\".join(f"{x:.6f}" for x in pos))
-        sl.SetMetaData("0020|0013", str(k + 1))
-        sl.SetMetaData("0008|0018", f"{series_uid}.{k + 1}")
-        p = folder / f"{description}_{k:04d}.dcm"
-        writer.SetFileName(str(p))
-        writer.Execute(sl)
-        paths.append(p)
-    return paths

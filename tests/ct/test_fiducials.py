@@ -44,7 +44,7 @@ def test_patch_05x05x10_oblique_noisy(patch_volume, patch_ct):
 @pytest.fixture(scope="module")
 def distracted_ct():
     """Patch with a dense bone nodule, a small bead and metal streaks from the clip."""
-    from conftest import patch_params
+    from ct_test_helpers import patch_params
 
     from monotracker.sim.ct_phantom import default_distractors, generate_ct
 
@@ -100,7 +100,7 @@ def test_wrong_nominal_radius_rejects_with_reason(patch_volume):
 
 
 def test_estimated_radius_for_other_ball_sizes():
-    from conftest import patch_params
+    from ct_test_helpers import patch_params
 
     from monotracker.ct.volume import Volume
     from monotracker.sim.ct_phantom import generate_ct, with_radius

@@ -9,7 +9,7 @@ import numpy as np
 import pydicom
 import pytest
 import SimpleITK as sitk
-from conftest import write_dicom_series
+from ct_test_helpers import write_dicom_series
 from pydicom.data import get_testdata_file
 from pydicom.uid import generate_uid
 
