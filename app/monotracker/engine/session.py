@@ -148,9 +148,14 @@ def _point3(p) -> np.ndarray:
 class Session:
     """One surgical session (see the module docstring for the whole API)."""
 
-    def __init__(self, config: SessionConfig | None = None):
+    def __init__(self, config: SessionConfig | None = None, *, camera_factory=None, robot_factory=None):
+        """``camera_factory(source, calibration_path, plan, cfg, session) -> CameraRig`` and
+        ``robot_factory(cfg, session) -> RobotRig`` replace the default vision/robot wiring
+        (``monotracker.engine.components``), e.g. for tests on doubles."""
         from monotracker.paths import data_dir
 
+        self.camera_factory = camera_factory
+        self.robot_factory = robot_factory
         self.config = config or SessionConfig()
         self.config.validate()
         self.home = Path(self.config.home) if self.config.home is not None else data_dir()
