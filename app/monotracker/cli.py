@@ -19,7 +19,9 @@ from monotracker import __version__
 from monotracker.errors import MonoTrackerError
 
 #: Modules that add sub-commands, in the order they appear in ``--help``.
-COMMAND_MODULES: tuple[str, ...] = ()
+COMMAND_MODULES: tuple[str, ...] = (
+    "monotracker.ct.commands",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,1 +1,22 @@
-"""ct"""
+"""CT: loading volumes, detecting the sphere fiducials, the head's skin surface (LPS mm)."""
+
+from monotracker.ct.fiducials import (
+    Fiducial,
+    FiducialDetection,
+    RejectedBlob,
+    detect_fiducials,
+    detect_fiducials_paper,
+    estimate_levels,
+)
+from monotracker.ct.volume import Volume, load_volume
+
+__all__ = [
+    "Fiducial",
+    "FiducialDetection",
+    "RejectedBlob",
+    "Volume",
+    "detect_fiducials",
+    "detect_fiducials_paper",
+    "estimate_levels",
+    "load_volume",
+]

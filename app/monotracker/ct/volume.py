@@ -1,0 +1,223 @@
+"""Loading a CT volume (DICOM series folder, NIfTI, NRRD, MHA/MHD) with SimpleITK.
+
+Everything downstream works in physical LPS millimetres: a :class:`Volume` keeps the image's
+spacing, origin and direction and converts voxel indices to LPS points and back. Indices are
+SimpleITK's ``(i, j, k)`` order (i along x / columns, fastest); the NumPy ``array`` is indexed
+``[k, j, i]`` (z, y, x).
+
+Every bad input raises :class:`~monotracker.errors.InputError` with one line saying what is
+wrong: missing path, empty folder, unknown series, a 2D image, a truncated or unreadable file,
+intensities that are not CT Hounsfield units, absurd spacing or a non-orthonormal direction.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+
+from monotracker.errors import InputError
+
+log = logging.getLogger(__name__)
+
+#: File name endings SimpleITK reads for us (besides DICOM folders / single DICOM files).
+VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm")
+#: Plausible voxel spacing for a CT, mm.
+MIN_SPACING_MM = 0.05
+MAX_SPACING_MM = 10.0
+
+
+@dataclass
+class Volume:
+    """A CT volume in Hounsfield units with its physical geometry.
+
+    ``array`` is (z, y, x) = [k, j, i], native dtype of the file (usually int16 HU).
+    ``spacing_mm`` is (i, j, k); ``origin_mm`` the LPS position of voxel (0, 0, 0);
+    ``direction`` the 3x3 matrix whose columns are the i, j, k axes in LPS.
+    ``notes`` lists things the operator should know (e.g. which series was picked).
+    """
+
+    image: sitk.Image
+    array: np.ndarray
+    spacing_mm: np.ndarray
+    origin_mm: np.ndarray
+    direction: np.ndarray
+    source: str = ""
+    notes: list[str] = field(default_factory=list)
+
+    @classmethod
+    def from_image(cls, image: sitk.Image, source: str = "", notes: list[str] | None = None) -> "Volume":
+        return cls(
+            image=image,
+            array=sitk.GetArrayFromImage(image),
+            spacing_mm=np.array(image.GetSpacing(), float),
+            origin_mm=np.array(image.GetOrigin(), float),
+            direction=np.array(image.GetDirection(), float).reshape(3, 3),
+            source=source,
+            notes=list(notes or []),
+        )
+
+    @property
+    def size_ijk(self) -> tuple[int, int, int]:
+        return tuple(int(s) for s in self.array.shape[::-1])
+
+    @property
+    def index_to_lps_matrix(self) -> np.ndarray:
+        """4x4 ``T_lps_index``: homogeneous (i, j, k, 1) -> LPS mm."""
+        T = np.eye(4)
+        T[:3, :3] = self.direction * self.spacing_mm[None, :]
+        T[:3, 3] = self.origin_mm
+        return T
+
+    def index_to_lps(self, ijk: np.ndarray) -> np.ndarray:
+        """Continuous voxel indices (n, 3) in (i, j, k) order -> LPS points (n, 3), mm."""
+        ijk = np.asarray(ijk, float)
+        return ijk @ (self.direction * self.spacing_mm[None, :]).T + self.origin_mm
+
+    def lps_to_index(self, lps: np.ndarray) -> np.ndarray:
+        """LPS points (n, 3), mm -> continuous voxel indices (n, 3) in (i, j, k) order."""
+        lps = np.asarray(lps, float)
+        return ((lps - self.origin_mm) @ self.direction) / self.spacing_mm
+
+    def zyx_to_lps(self, kji: np.ndarray) -> np.ndarray:
+        """Array-order indices (n, 3) as (k, j, i) -> LPS points (n, 3), mm."""
+        return self.index_to_lps(np.asarray(kji, float)[..., ::-1])
+
+    def describe(self) -> str:
+        s = self.spacing_mm
+        return (
+            f"{self.size_ijk[0]}x{self.size_ijk[1]}x{self.size_ijk[2]} voxels, "
+            f"spacing {s[0]:.3g} x {s[1]:.3g} x {s[2]:.3g} mm"
+        )
+
+
+# ---------------------------------------------------------------------------- reading
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    # ITK messages are long and multi-line; keep the part after the last "): " if any
+    if "Description:" in text:
+        text = text.split("Description:")[-1].strip()
+    return text[:200]
+
+
+def _read_file(path: Path) -> sitk.Image:
+    try:
+        return sitk.ReadImage(str(path))
+    except RuntimeError as exc:
+        raise InputError(f"cannot read {path.name}: not a readable CT volume or the file is truncated ({_one_line(exc)})") from None
+
+
+def _series_in(folder: Path) -> list[tuple[str, list[str]]]:
+    reader = sitk.ImageSeriesReader()
+    out = []
+    for uid in reader.GetGDCMSeriesIDs(str(folder)) or ():
+        files = reader.GetGDCMSeriesFileNames(str(folder), uid)
+        out.append((uid, list(files)))
+    return out
+
+
+def _read_dicom_folder(folder: Path, series: str | None, notes: list[str]) -> sitk.Image:
+    entries = [p for p in folder.iterdir() if not p.name.startswith(".")]
+    if not entries:
+        raise InputError(f"folder {folder} is empty: point to a DICOM series folder or a volume file")
+    found = _series_in(folder)
+    if not found:
+        vols = [p.name for p in entries if p.name.lower().endswith(VOLUME_SUFFIXES[:-1])]
+        hint = f" (it holds {vols[0]}: pass that file instead)" if vols else ""
+        raise InputError(f"no DICOM series found in folder {folder}{hint}")
+    if series is not None:
+        match = [f for f in found if f[0] == series]
+        if not match:
+            ids = ", ".join(uid for uid, _ in found)
+            raise InputError(f"series {series} is not in {folder}; it holds: {ids}")
+        uid, files = match[0]
+    else:
+        uid, files = max(found, key=lambda f: len(f[1]))
+        if len(found) > 1:
+            others = ", ".join(f"{u} ({len(fs)} files)" for u, fs in found if u != uid)
+            notes.append(
+                f"folder holds {len(found)} DICOM series; picked the largest, {uid} ({len(files)} files); "
+                f"others: {others}; choose with series=UID (CLI: --series UID)"
+            )
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(files)
+    reader.MetaDataDictionaryArrayUpdateOn()
+    try:
+        img = reader.Execute()
+    except RuntimeError as exc:
+        raise InputError(f"cannot read DICOM series {uid} in {folder}: {_one_line(exc)}") from None
+    notes.append(f"DICOM series {uid}, {len(files)} slices")
+    return img
+
+
+def _check_image(img: sitk.Image, name: str) -> sitk.Image:
+    if img.GetNumberOfComponentsPerPixel() != 1:
+        raise InputError(f"{name} has {img.GetNumberOfComponentsPerPixel()} values per voxel (colour or vector image); a CT has one")
+    dim = img.GetDimension()
+    size = img.GetSize()
+    if dim == 4 and size[3] == 1:
+        img = img[:, :, :, 0]
+        dim, size = 3, img.GetSize()
+    if dim == 2 or (dim == 3 and min(size) < 2):
+        raise InputError(f"{name} is a 2D image ({' x '.join(map(str, size))} voxels); a CT volume with several slices is needed")
+    if dim != 3:
+        raise InputError(f"{name} is a {dim}D image; a 3D CT volume is needed")
+    sp = np.array(img.GetSpacing(), float)
+    if not np.all(np.isfinite(sp)) or sp.min() < MIN_SPACING_MM or sp.max() > MAX_SPACING_MM:
+        raise InputError(
+            f"{name} has implausible voxel spacing {tuple(round(float(s), 4) for s in sp)} mm "
+            f"(a CT has {MIN_SPACING_MM}-{MAX_SPACING_MM} mm); check the file's header"
+        )
+    D = np.array(img.GetDirection(), float).reshape(3, 3)
+    if not np.allclose(D.T @ D, np.eye(3), atol=1e-3):
+        raise InputError(f"{name} has a non-orthonormal direction matrix; its geometry cannot be trusted")
+    return img
+
+
+def _check_hounsfield(arr: np.ndarray, name: str) -> None:
+    """Reject volumes whose values are not Hounsfield units (no air, 8-bit, unscaled 12-bit)."""
+    sample = arr[:: max(1, arr.shape[0] // 32), ::4, ::4]
+    if sample.size == 0:
+        sample = arr
+    lo, hi = np.percentile(sample, [0.5, 99.9])
+    if arr.dtype == np.uint8 or (lo >= 0 and hi <= 255):
+        raise InputError(f"{name} holds 0..255 values (an 8-bit picture or mask), not CT Hounsfield units")
+    if lo > -500:
+        raise InputError(
+            f"{name} does not look like a CT in Hounsfield units: no air around the head "
+            f"(lowest values ~{lo:.0f}, air is -1000 HU); is the rescale slope/intercept missing?"
+        )
+    if hi < 200:
+        raise InputError(f"{name} does not look like a head CT: no bone or denser values (highest ~{hi:.0f} HU)")
+
+
+def load_volume(path: str | Path, series: str | None = None) -> Volume:
+    """Load a CT from a DICOM series folder, ``.nii``/``.nii.gz``, ``.nrrd``, ``.mha``/``.mhd``
+    (or one multi-frame DICOM file). ``series`` picks a DICOM series by its Series Instance UID;
+    without it the largest series of a folder is used and ``notes`` says so.
+
+    Raises :class:`InputError` (one line) for every input that cannot be used.
+    """
+    p = Path(path).expanduser()
+    notes: list[str] = []
+    if not p.exists():
+        raise InputError(f"no such file or folder: {p}")
+    if p.is_dir():
+        img = _read_dicom_folder(p, series, notes)
+    else:
+        if p.stat().st_size == 0:
+            raise InputError(f"{p.name} is empty (0 bytes)")
+        img = _read_file(p)
+        if series is not None:
+            notes.append("series= ignored: the input is a single file")
+    name = p.name or str(p)
+    img = _check_image(img, name)
+    vol = Volume.from_image(img, source=str(p), notes=notes)
+    if vol.array.dtype.kind == "f" and not np.all(np.isfinite(vol.array[:: max(1, vol.array.shape[0] // 16)])):
+        raise InputError(f"{name} contains NaN or infinite values")
+    _check_hounsfield(vol.array, name)
+    log.info("loaded %s: %s", p, vol.describe())
+    return vol

@@ -1,0 +1,80 @@
+"""Shared fixtures for the CT tests: small synthetic scans generated once per session."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from monotracker.sim.ct_phantom import ScanParams, generate_ct
+from monotracker.sim.phantom import default_phantom
+
+
+def patch_params(phantom=None, margin_mm: float = 7.0, **kw) -> ScanParams:
+    """A scan of only the fiducial patch (fast): by default 0.5 x 0.5 x 1.0 mm, the default
+    oblique direction and noise. The grid covers the balls and the clip plus ``margin_mm``."""
+    ph = phantom or default_phantom()
+    base = ScanParams(spacing_mm=(0.5, 0.5, 1.0), fov_circle=False)
+    D = np.asarray(kw.get("direction", base.direction), float)
+    sp = np.asarray(kw.get("spacing_mm", base.spacing_mm), float)
+    pts = np.vstack([ph.fiducial_centres_lps, *ph.clip_segment_lps])
+    g = pts @ D
+    lo, hi = g.min(axis=0) - margin_mm, g.max(axis=0) + margin_mm
+    size = tuple(int(np.ceil((h - l) / s)) + 1 for l, h, s in zip(lo, hi, sp))
+    args = dict(spacing_mm=tuple(sp), size=size, grid_centre_lps=D @ ((lo + hi) / 2.0), fov_circle=False)
+    args.update(kw)
+    return ScanParams(**args)
+
+
+@pytest.fixture(scope="session")
+def patch_ct():
+    """Fiducial patch at 0.5 x 0.5 x 1.0 mm with the default oblique direction and noise."""
+    return generate_ct(default_phantom(), patch_params())
+
+
+@pytest.fixture(scope="session")
+def patch_volume(patch_ct):
+    from monotracker.ct.volume import Volume
+
+    return Volume.from_image(patch_ct.to_sitk(), source="patch")
+
+
+def write_dicom_series(image: sitk.Image, folder: Path, series_uid: str | None = None, description: str = "phantom") -> list[Path]:
+    """Write a 3D int16 HU image as a CT DICOM series (one file per slice) with the tags that
+    SimpleITK/GDCM need to read origin, spacing and direction back."""
+    folder.mkdir(parents=True, exist_ok=True)
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    d = image.GetDirection()
+    uid_root = "1.2.826.0.1.3680043.2.1125"
+    series_uid = series_uid or f"{uid_root}.1.{int(time.time() * 1e3) % 10**9}.{np.random.randint(10**6)}"
+    study_uid = f"{uid_root}.2.1"
+    common = [
+        ("0008|0060", "CT"),
+        ("0008|0008", "ORIGINAL\\PRIMARY\\AXIAL"),
+        ("0020|000d", study_uid),
+        ("0020|000e", series_uid),
+        ("0020|0037", "\\".join(f"{x:.10f}" for x in (d[0], d[3], d[6], d[1], d[4], d[7]))),
+        ("0008|103e", description),
+        ("0028|1052", "0"),
+        ("0028|1053", "1"),
+        ("0018|0050", f"{image.GetSpacing()[2]:.6f}"),
+        ("0010|0010", "PHANTOM^HEAD"),
+    ]
+    paths = []
+    for k in range(image.GetDepth()):
+        sl = image[:, :, k]
+        for tag, val in common:
+            sl.SetMetaData(tag, val)
+        pos = image.TransformIndexToPhysicalPoint((0, 0, k))
+        sl.SetMetaData("0020|0032", "\\".join(f"{x:.6f}" for x in pos))
+        sl.SetMetaData("0020|0013", str(k + 1))
+        sl.SetMetaData("0008|0018", f"{series_uid}.{k + 1}")
+        p = folder / f"slice_{k:04d}.dcm"
+        writer.SetFileName(str(p))
+        writer.Execute(sl)
+        paths.append(p)
+    return paths
