@@ -43,6 +43,9 @@ class TruthCameraRig(CameraRig):
     def truth_T_cam_ct(self, t):
         return self.layout.T_cam_ct(self.motion, t)
 
+    def truth_T_base_ct(self, t):
+        return self.layout.T_base_ct(self.motion, t)
+
     def capture(self, t):
         if self.fault == "camera-freeze" and self._last is not None:
             return self._last

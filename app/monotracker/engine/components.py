@@ -110,6 +110,10 @@ class CameraRig:
         """Simulator truth at time t (None for real cameras)."""
         return None
 
+    def truth_T_base_ct(self, t: float) -> np.ndarray | None:
+        """Simulator truth: the head (CT) pose in the robot base at time t, mm (None if real)."""
+        return None
+
 
 class RobotRig:
     """Base class; see the module docstring."""

@@ -336,7 +336,7 @@ class Session:
 
     def _ct_job(self, path: str) -> None:
         try:
-            from monotracker.ct import detect_fiducials, head_surface, load_volume
+            from monotracker.ct import detect_fiducials, load_volume
         except ImportError as exc:
             self._set_job(1.0, "CT tools unavailable", f"CT tools are not installed: {exc}", True)
             self._bus.alert("alarm", "ct_failed", f"CT tools are not available: {exc}")
@@ -346,7 +346,11 @@ class Session:
             self._set_job(0.3, "detecting fiducials")
             det = detect_fiducials(vol)
             self._set_job(0.6, "extracting the head surface")
-            mesh = head_surface(vol)
+            try:
+                from monotracker.ct import head_surface
+            except ImportError:  # older ct package: no surface, the plan still works
+                head_surface = None
+            mesh = head_surface(vol) if head_surface is not None else None
         except MonoTrackerError as exc:
             self._set_job(1.0, "CT failed", str(exc), True)
             self._bus.alert("alarm", "ct_failed", f"CT could not be used: {exc}", {"path": path})
@@ -356,16 +360,17 @@ class Session:
             self._set_job(1.0, "CT failed", f"internal error: {type(exc).__name__}: {exc}", True)
             self._bus.alert("alarm", "ct_failed", f"CT job failed: {type(exc).__name__}: {exc}", {"path": path})
             return
-        vertices = np.asarray(mesh.vertices, dtype=float)
-        faces = np.asarray(mesh.faces, dtype=np.int64)
-        normals = np.asarray(mesh.vertex_normals, dtype=float)
         with self._lock:
             self._volume = vol
             self._ct = CTSummary(path=path, shape=tuple(int(v) for v in vol.array.shape),
                                  spacing_mm=tuple(float(v) for v in vol.spacing_mm),
                                  notes=tuple(getattr(vol, "notes", ()) or ()))
-            self._head_mesh = HeadMesh(frozen_array(vertices), frozen_array(faces, np.int64))
-            self._head_normals = normals
+            if mesh is not None:
+                self._head_mesh = HeadMesh(frozen_array(np.asarray(mesh.vertices, float)),
+                                           frozen_array(np.asarray(mesh.faces), np.int64))
+                self._head_normals = np.asarray(mesh.vertex_normals, dtype=float)
+            else:
+                self._head_mesh = self._head_normals = None
             restored = self._plan.fiducials_locked and self._plan.ct_path == path
             if not restored:
                 self._plan.ct_path = path
