@@ -1,0 +1,52 @@
+"""The :class:`Registration` result."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .report import predicted_tre
+
+
+@dataclass
+class Registration:
+    """Outcome of :func:`monotracker.registration.register`.
+
+    ``T_cam_ct`` (4x4, mm) maps CT points into the OpenCV camera frame; it is ``None`` when
+    ``ok`` is False (``reason`` says why). ``pairs`` lists (image index, fiducial index);
+    ``residuals_px`` holds the per-pair reprojection error magnitude (equivalent pinhole px)
+    in the order of ``pairs`` and ``residual_vectors_px`` the (k, 2) vectors (observed minus
+    predicted). ``fre_mm`` is the monocular FRE (RMS point-to-ray distance, see
+    :mod:`.report`). ``timing`` holds seconds per stage (``total_s`` always).
+    """
+
+    ok: bool
+    reason: str
+    method: str
+    T_cam_ct: np.ndarray | None = None
+    pairs: list = field(default_factory=list)
+    fre_mm: float = float("nan")
+    reprojection_rms_px: float = float("nan")
+    residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    residual_vectors_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    unmatched_image_indices: list = field(default_factory=list)
+    unmatched_fiducial_indices: list = field(default_factory=list)
+    sigma_px: float = float("nan")
+    pose_covariance: np.ndarray | None = None   # (6, 6): rotation vector (rad) then translation (mm), camera frame
+    timing: dict = field(default_factory=dict)
+    stats: dict = field(default_factory=dict)
+    used_prior: bool = False
+
+    def predicted_tre_mm(self, target_ct: np.ndarray) -> float | np.ndarray:
+        """Predicted RMS 3D error (mm) at target(s) given in CT mm; NaN if not ok."""
+        if not self.ok or self.pose_covariance is None:
+            return float("nan") if np.ndim(target_ct) == 1 else np.full(len(target_ct), np.nan)
+        return predicted_tre(self.T_cam_ct, self.pose_covariance, target_ct)
+
+    def __repr__(self) -> str:  # short, for logs
+        if not self.ok:
+            return f"Registration(ok=False, method={self.method!r}, reason={self.reason!r})"
+        return (f"Registration(ok=True, method={self.method!r}, pairs={len(self.pairs)}, "
+                f"rms={self.reprojection_rms_px:.2f}px, fre={self.fre_mm:.2f}mm, "
+                f"t={1000 * self.timing.get('total_s', float('nan')):.1f}ms)")
