@@ -8,7 +8,7 @@ from pathlib import Path
 from monotracker.errors import InputError
 
 TRAJECTORIES = ("still", "drift", "breathing", "jumps")
-FAULTS = ("none", "camera-freeze", "occlude-all", "robot-disconnect", "bad-pose")
+from monotracker.sim.faults import FAULTS  # noqa: E402  (one list, owned by the twin)
 
 
 @dataclass
