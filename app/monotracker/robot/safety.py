@@ -1,0 +1,288 @@
+"""Safety layer: always on, independent of the controller (it never calls APFF code).
+
+State machine (every transition is logged with a timestamp and reason, and reported through
+the ``on_transition`` callback)::
+
+    disarmed --arm (operator)--> armed --start_tracking (operator)--> tracking
+    tracking --stop_tracking--> armed           tracking --fault--> holding
+    holding --start_tracking (operator)--> tracking
+    holding --fresh target after a stale/invalid spell (auto_resume)--> tracking
+    any --estop / arm lost / exception--> estopped (latched) --reset (operator)--> disarmed
+    armed/holding/tracking --disarm--> disarmed
+
+Only ``tracking`` lets controller commands through, and then only after :meth:`filter_command`
+has limited them: joint speed, joint acceleration (relative to the last command), braking
+before joint position limits, tool (needle tip) linear and angular speed, and the keep-out
+sphere around the head (motion that takes a needle point deeper into the head sphere outside the
+planned-path corridor is cut). In every other state the arm is stopped (``stop`` with the
+configured deceleration).
+
+Target checks (:meth:`check_target`): a pose flagged invalid by the pose stream, or none fresher
+than ``stale_s`` (time since the last valid pose *arrived*; a separate ``max_latency_s`` bounds
+how old its capture stamp may be), puts ``tracking`` into ``holding``; tracking resumes by
+itself when fresh valid poses return close to the last accepted one (``auto_resume``). A NaN /
+non-rigid pose or a jump larger than ``jump_m``/``jump_rad`` also holds, but resuming then
+needs the operator (``start_tracking`` accepts the newest pose as the new reference).
+
+Units: m, rad, s.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import threading
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from monotracker.geometry import invert_transform
+from monotracker.robot.head import Corridor, HeadSphere
+from monotracker.robot.kinematics import Kinematics, NeedleTool, joint_limits
+from monotracker.robot.lie import adjoint, log3
+
+log = logging.getLogger(__name__)
+
+
+class State(str, enum.Enum):
+    DISARMED = "disarmed"
+    ARMED = "armed"
+    TRACKING = "tracking"
+    HOLDING = "holding"
+    ESTOPPED = "estopped"
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One state change: time ``t`` (s, the safety clock), from/to state, and why."""
+
+    t: float
+    from_state: State
+    to_state: State
+    reason: str
+
+
+@dataclass
+class SafetyConfig:
+    """Limits (SI). Joint speed 1.0 rad/s and acceleration 3 rad/s^2 are well inside the UR10's
+    (2.16-3.2 rad/s) because the tool works next to a head; tool tip 0.15 m/s, 0.6 rad/s."""
+
+    joint_speed: np.ndarray = field(default_factory=lambda: np.full(6, 1.0))
+    joint_accel: float = 3.0
+    estop_decel: float = 8.0
+    position_margin_rad: float = 0.05
+    tool_speed_m_s: float = 0.15
+    tool_angular_rad_s: float = 0.6
+    stale_s: float = 0.1
+    max_latency_s: float = 0.5
+    jump_m: float = 0.02
+    jump_rad: float = np.radians(10.0)
+    auto_resume: bool = True
+    keepout_margin_m: float = 0.0
+    keepout_lookahead_s: float = 0.15
+    sigma_hold: float = 0.01
+    standstill_rad_s: float = 1e-3
+
+
+@dataclass
+class TargetStatus:
+    accepted: bool
+    reason: str
+
+
+def _rigid_ok(T: np.ndarray) -> bool:
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return (np.allclose(R.T @ R, np.eye(3), atol=1e-3) and abs(np.linalg.det(R) - 1.0) < 1e-3
+            and np.allclose(T[3], [0, 0, 0, 1]))
+
+
+class SafetyLayer:
+    def __init__(self, config: SafetyConfig | None = None, tool: NeedleTool | None = None,
+                 corridor: Corridor | None = None,
+                 on_transition: Callable[[Transition], None] | None = None):
+        self.cfg = config or SafetyConfig()
+        self.tool = tool or NeedleTool()
+        self.corridor = corridor or Corridor()
+        self.on_transition = on_transition
+        self.kin = Kinematics()
+        self.limits = joint_limits()
+        self.state = State.DISARMED
+        self.history: list[Transition] = []
+        self._lock = threading.RLock()
+        self._hold_auto = False
+        self.target: np.ndarray | None = None  # last accepted target (m)
+        self.target_received = -np.inf
+        self.target_stamp = -np.inf
+        self.pending: np.ndarray | None = None  # newest rigid target not accepted (jump)
+        self.last_cmd = np.zeros(6)
+        self.warnings: list[str] = []
+        ts = np.linspace(0.0, 1.0, 5)
+        self._needle_pts = np.array([[0, 0, self.tool.offset_m + t * self.tool.length_m, 1.0] for t in ts])
+
+    # ------------------------------------------------------------------ state machine
+    def _go(self, to: State, reason: str, now: float, auto: bool = False) -> Transition | None:
+        with self._lock:
+            if to == self.state:
+                return None
+            tr = Transition(float(now), self.state, to, reason)
+            self.state = to
+            self._hold_auto = auto
+            self.history.append(tr)
+            log.info("robot safety %s -> %s at %.3f: %s", tr.from_state.value, to.value, now, reason)
+        if self.on_transition:
+            try:
+                self.on_transition(tr)
+            except Exception:  # noqa: BLE001 - a broken listener must not break safety
+                log.exception("transition callback failed")
+        return tr
+
+    def arm(self, now: float, connected: bool) -> tuple[bool, str]:
+        """Operator action: disarmed -> armed."""
+        if self.state == State.ESTOPPED:
+            return False, "e-stop is latched: reset first"
+        if self.state != State.DISARMED:
+            return False, f"cannot arm from {self.state.value}"
+        if not connected:
+            return False, "arm not connected"
+        self._go(State.ARMED, "operator armed", now)
+        return True, "armed"
+
+    def disarm(self, now: float, reason: str = "operator disarmed") -> tuple[bool, str]:
+        if self.state == State.ESTOPPED:
+            return False, "e-stop is latched: reset first"
+        self._go(State.DISARMED, reason, now)
+        return True, "disarmed"
+
+    def start_tracking(self, now: float) -> tuple[bool, str]:
+        """Operator action: armed/holding -> tracking; needs a fresh valid target. From a
+        jump-hold the newest pose becomes the accepted reference (the operator confirms it)."""
+        if self.state not in (State.ARMED, State.HOLDING):
+            return False, f"cannot start tracking from {self.state.value}" + (
+                " (arm first)" if self.state == State.DISARMED else "")
+        if self.pending is not None and now - self.target_received <= self.cfg.stale_s:
+            self.target, self.pending = self.pending, None
+        if self.target is None or now - self.target_received > self.cfg.stale_s:
+            return False, "no fresh valid target pose"
+        self._go(State.TRACKING, "operator started tracking", now)
+        return True, "tracking"
+
+    def stop_tracking(self, now: float, reason: str = "operator stopped tracking") -> tuple[bool, str]:
+        if self.state not in (State.TRACKING, State.HOLDING):
+            return False, f"not tracking ({self.state.value})"
+        self._go(State.ARMED, reason, now)
+        return True, "armed"
+
+    def hold(self, now: float, reason: str, auto: bool = False) -> None:
+        if self.state == State.TRACKING:
+            self._go(State.HOLDING, reason, now, auto=auto)
+
+    def estop(self, now: float, reason: str) -> None:
+        self._go(State.ESTOPPED, reason, now)
+
+    def reset(self, now: float) -> tuple[bool, str]:
+        if self.state != State.ESTOPPED:
+            return False, f"not e-stopped ({self.state.value})"
+        self._go(State.DISARMED, "operator reset the e-stop", now)
+        return True, "disarmed"
+
+    # ------------------------------------------------------------------ targets
+    def check_target(self, T_base_target: np.ndarray, stamp: float, valid: bool, now: float) -> TargetStatus:
+        """Validate a new target pose (m). Accepted targets become :attr:`target`."""
+        T = np.asarray(T_base_target, dtype=float)
+        if not valid:
+            self.hold(now, "pose stream reports no valid pose", auto=True)
+            return TargetStatus(False, "pose flagged invalid")
+        if not _rigid_ok(T):
+            self.hold(now, "invalid target pose (NaN or not a rigid transform)")
+            return TargetStatus(False, "target is not a finite rigid 4x4 transform")
+        if not np.isfinite(stamp) or now - stamp > self.cfg.max_latency_s:
+            self.hold(now, f"target pose too old ({now - stamp:.3f} s since capture)", auto=True)
+            return TargetStatus(False, "target pose too old")
+        if self.target is not None:
+            dp = float(np.linalg.norm(T[:3, 3] - self.target[:3, 3]))
+            da = float(np.linalg.norm(log3(self.target[:3, :3].T @ T[:3, :3])))
+            if dp > self.cfg.jump_m or da > self.cfg.jump_rad:
+                self.pending = T.copy()
+                self.target_received = now
+                if self.state == State.TRACKING or (self.state == State.HOLDING and self._hold_auto):
+                    self._go(State.HOLDING, f"target jumped {dp*1000:.1f} mm / {np.degrees(da):.1f} deg", now)
+                return TargetStatus(False, f"target jump {dp*1000:.1f} mm / {np.degrees(da):.1f} deg")
+        self.target = T.copy()
+        self.pending = None
+        self.target_received = now
+        self.target_stamp = float(stamp)
+        if self.state == State.HOLDING and self._hold_auto and self.cfg.auto_resume:
+            self._go(State.TRACKING, "fresh valid target again", now)
+        return TargetStatus(True, "accepted")
+
+    def target_fresh(self, now: float) -> bool:
+        return self.target is not None and now - self.target_received <= self.cfg.stale_s
+
+    # ------------------------------------------------------------------ command filter
+    def filter_command(self, now: float, q: np.ndarray, dq_des: np.ndarray, dt: float,
+                       T_base_tool0: np.ndarray, J_b_tool0: np.ndarray, sigma_min: float,
+                       head: HeadSphere | None) -> np.ndarray | None:
+        """Limit a tracking command; returns the joint velocity to send (rad/s), or ``None``
+        when the arm must be stopped (not tracking, or a fault was found this cycle)."""
+        cfg = self.cfg
+        if self.state == State.TRACKING:
+            if not self.target_fresh(now):
+                self.hold(now, f"no fresh valid target for {cfg.stale_s:.3f} s", auto=True)
+            elif not np.all(np.isfinite(dq_des)):
+                self.hold(now, "controller produced a non-finite command")
+            elif sigma_min < cfg.sigma_hold:
+                self.hold(now, f"near a singular configuration (sigma_min {sigma_min:.4f})")
+        if self.state != State.TRACKING:
+            self.last_cmd = np.zeros(6)
+            return None
+        dq = np.asarray(dq_des, dtype=float).copy()
+        # 1. joint speed (uniform scale keeps the direction)
+        s = np.max(np.abs(dq) / cfg.joint_speed)
+        if s > 1.0:
+            dq /= s
+        # 2. tool speed at the needle tip
+        Ad = adjoint(invert_transform(self.tool.T_tool0_tip))
+        Vt = Ad @ (J_b_tool0 @ dq)
+        s = max(np.linalg.norm(Vt[3:]) / cfg.tool_speed_m_s, np.linalg.norm(Vt[:3]) / cfg.tool_angular_rad_s)
+        if s > 1.0:
+            dq /= s
+        # 3. braking before joint position limits
+        lo = self.limits.lower + cfg.position_margin_rad
+        hi = self.limits.upper - cfg.position_margin_rad
+        vmax_up = np.sqrt(2.0 * cfg.joint_accel * np.clip(hi - q, 0.0, None))
+        vmax_dn = np.sqrt(2.0 * cfg.joint_accel * np.clip(q - lo, 0.0, None))
+        dq = np.clip(dq, -vmax_dn, vmax_up)
+        # 4. keep-out: do not take needle points deeper into the head sphere outside the corridor
+        if head is not None and self.target is not None:
+            dq = self._keepout(q, dq, T_base_tool0, head)
+        # 5. acceleration relative to the last command
+        delta = dq - self.last_cmd
+        m = np.max(np.abs(delta))
+        lim = cfg.joint_accel * dt
+        if m > lim:
+            dq = self.last_cmd + delta * (lim / m)
+        self.last_cmd = dq
+        return dq
+
+    def needle_points(self, T_base_tool0: np.ndarray) -> np.ndarray:
+        """Five points along the needle (flange .. tip) in the base frame (m)."""
+        return (T_base_tool0 @ self._needle_pts.T).T[:, :3]
+
+    def _keepout(self, q, dq, T_now, head: HeadSphere) -> np.ndarray:
+        q_next = q + dq * self.cfg.keepout_lookahead_s
+        T_next = self.kin.fk(q_next)
+        p_now, p_next = self.needle_points(T_now), self.needle_points(T_next)
+        d_now = head.distance(p_now) - self.cfg.keepout_margin_m
+        d_next = head.distance(p_next) - self.cfg.keepout_margin_m
+        free = self.corridor.contains(p_next, self.target)
+        bad = (d_next < 0) & ~free & (d_next < d_now)
+        if np.any(bad):
+            msg = "keep-out: motion towards the head outside the planned path was blocked"
+            if not self.warnings or self.warnings[-1] != msg:
+                self.warnings.append(msg)
+                log.warning(msg)
+            return np.zeros(6)
+        return dq

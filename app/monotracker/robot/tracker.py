@@ -1,0 +1,323 @@
+"""The robot tracker the engine uses: APFF controller + safety layer + arm backend.
+
+Public units are millimetres (poses ``T_base_target_mm``: 4x4 with translation in mm, base =
+UR10 ``base_link``); inside, metres (see :mod:`monotracker.robot.units`). The target is the
+desired pose of the *needle tip* frame (z axis = needle direction, pointing into the head).
+
+Two ways to run it:
+
+* ``step(now)``: one control cycle at time ``now`` (s). Tests, benchmarks and the demo drive it
+  with a simulated clock (:class:`~monotracker.robot.sim_arm.ManualClock`) shared with the
+  :class:`~monotracker.robot.sim_arm.SimulatedArm`, deterministic and faster than real time.
+* ``start()`` / ``stop()``: a real-time thread calling ``step`` at ``rate_hz`` (125 Hz for a
+  CB3, 500 Hz for an e-Series).
+
+Operator actions (``arm``, ``disarm``, ``start_tracking``, ``stop_tracking``, ``estop``,
+``reset``) return a :class:`CommandResult` (``ok``, ``reason``) and never raise for expected
+refusals. ``snapshot()`` is thread-safe. ``on_event(kind, payload)`` is called for
+``"transition"`` (a :class:`~monotracker.robot.safety.Transition`) and ``"warning"`` (str); keep
+it short, it runs in the control thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from monotracker.geometry import apply_transform
+from monotracker.robot.apff import APFFController, APFFParams
+from monotracker.robot.arm import Arm, ArmError
+from monotracker.robot.head import Corridor, HeadSphere
+from monotracker.robot.kinematics import Kinematics, NeedleTool, manipulability
+from monotracker.robot.safety import SafetyConfig, SafetyLayer, State, Transition
+from monotracker.robot.units import m_to_mm, mm_to_m, transform_m_to_mm, transform_mm_to_m
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    ok: bool
+    reason: str
+
+
+@dataclass(frozen=True)
+class TrackerSnapshot:
+    """State at the end of the last control step. Poses in mm (base frame), angles in deg."""
+
+    t: float
+    state: str
+    connected: bool
+    variant: str
+    q: np.ndarray
+    dq: np.ndarray
+    dq_cmd: np.ndarray
+    T_base_tool0_mm: np.ndarray
+    T_base_tip_mm: np.ndarray
+    T_base_target_mm: np.ndarray | None
+    tip_error_mm: float
+    angle_error_deg: float
+    target_age_s: float
+    stage: str
+    sigma_min: float
+    last_transition: Transition | None
+    warnings: tuple = field(default_factory=tuple)
+    step_cost_ms: float = float("nan")
+
+
+class Tracker:
+    def __init__(self, arm: Arm | None = None, variant: str = "APF-A-II",
+                 params: APFFParams | None = None, safety_config: SafetyConfig | None = None,
+                 tool: NeedleTool | None = None, corridor: Corridor | None = None,
+                 rate_hz: float = 125.0, clock: Callable[[], float] = time.monotonic,
+                 on_event: Callable[[str, object], None] | None = None):
+        if arm is None:
+            from monotracker.robot.sim_arm import SimulatedArm
+
+            arm = SimulatedArm(clock=clock, period_s=1.0 / rate_hz)
+        if not (rate_hz > 0):
+            raise ValueError("rate_hz must be > 0")
+        self.arm_backend = arm
+        self.clock = clock
+        self.period = 1.0 / rate_hz
+        self.tool = tool or NeedleTool()
+        self.corridor = corridor or Corridor()
+        self.on_event = on_event
+        self.controller = APFFController(variant, params, self.tool, self.corridor)
+        self.safety = SafetyLayer(safety_config, self.tool, self.corridor, on_transition=self._on_transition)
+        self.kin = Kinematics()
+        self._lock = threading.RLock()
+        self._head_local: tuple[str, np.ndarray, float] | None = None
+        self._last_t: float | None = None
+        self._stopping_sent = False
+        self._thread: threading.Thread | None = None
+        self._run = threading.Event()
+        self._n_warn = 0
+        self._snap: TrackerSnapshot | None = None
+
+    # ------------------------------------------------------------------ events
+    def _on_transition(self, tr: Transition) -> None:
+        if tr.to_state != State.TRACKING:
+            self.controller.reset()
+        if self.on_event:
+            try:
+                self.on_event("transition", tr)
+            except Exception:  # noqa: BLE001
+                log.exception("tracker event callback failed")
+
+    def _emit_warnings(self) -> None:
+        while self._n_warn < len(self.safety.warnings):
+            w = self.safety.warnings[self._n_warn]
+            self._n_warn += 1
+            if self.on_event:
+                try:
+                    self.on_event("warning", w)
+                except Exception:  # noqa: BLE001
+                    log.exception("tracker event callback failed")
+
+    @property
+    def state(self) -> State:
+        return self.safety.state
+
+    @property
+    def variant(self) -> str:
+        return self.controller.variant
+
+    # ------------------------------------------------------------------ connection / operator
+    def connect(self) -> CommandResult:
+        try:
+            self.arm_backend.connect()
+        except ArmError as exc:
+            return CommandResult(False, str(exc))
+        return CommandResult(True, "connected")
+
+    def arm(self) -> CommandResult:
+        with self._lock:
+            return CommandResult(*self.safety.arm(self.clock(), self.arm_backend.is_connected()))
+
+    def disarm(self) -> CommandResult:
+        with self._lock:
+            return CommandResult(*self.safety.disarm(self.clock()))
+
+    def start_tracking(self) -> CommandResult:
+        with self._lock:
+            return CommandResult(*self.safety.start_tracking(self.clock()))
+
+    def stop_tracking(self) -> CommandResult:
+        with self._lock:
+            return CommandResult(*self.safety.stop_tracking(self.clock()))
+
+    def estop(self, reason: str = "operator e-stop") -> CommandResult:
+        """Latched stop, effective immediately (the arm is told to stop now, not next cycle)."""
+        with self._lock:
+            self.safety.estop(self.clock(), reason)
+            self._stop_arm(self.safety.cfg.estop_decel)
+            return CommandResult(True, "e-stopped")
+
+    def reset(self) -> CommandResult:
+        with self._lock:
+            return CommandResult(*self.safety.reset(self.clock()))
+
+    # ------------------------------------------------------------------ inputs
+    def set_target(self, T_base_target_mm: np.ndarray, stamp: float, valid: bool = True,
+                   now: float | None = None) -> CommandResult:
+        """New desired needle-tip pose (4x4, mm, base frame) measured from a camera frame
+        captured at ``stamp`` (monotonic s). ``valid=False`` tells the tracker the pose stream has
+        no pose (e.g. fiducials occluded). ``now`` defaults to the tracker clock."""
+        with self._lock:
+            now = self.clock() if now is None else now
+            try:
+                T = transform_mm_to_m(np.asarray(T_base_target_mm, dtype=float))
+            except (ValueError, TypeError, IndexError):
+                T = np.full((4, 4), np.nan)
+            if T.shape != (4, 4):
+                T = np.full((4, 4), np.nan)
+            st = self.safety.check_target(T, float(stamp), bool(valid), now)
+            return CommandResult(st.accepted, st.reason)
+
+    def set_head_sphere(self, centre_mm: np.ndarray, radius_mm: float, frame: str = "target") -> CommandResult:
+        """Head obstacle (e.g. from :func:`~monotracker.robot.head.fit_head_sphere`).
+        ``frame="target"``: centre given in the target (needle tip) frame, so the sphere moves with
+        the head; ``frame="base"``: fixed in the robot base frame. mm."""
+        c = np.asarray(centre_mm, dtype=float).reshape(-1)
+        if c.shape != (3,) or not np.all(np.isfinite(c)) or not (np.isfinite(radius_mm) and radius_mm > 0):
+            return CommandResult(False, "head sphere needs a finite centre (3 values, mm) and radius > 0 mm")
+        if frame not in ("target", "base"):
+            return CommandResult(False, f"head sphere frame must be 'target' or 'base', not {frame!r}")
+        with self._lock:
+            self._head_local = (frame, mm_to_m(c), float(mm_to_m(radius_mm)))
+        return CommandResult(True, "head sphere set")
+
+    def clear_head_sphere(self) -> None:
+        with self._lock:
+            self._head_local = None
+
+    def head_sphere_base(self) -> HeadSphere | None:
+        """Current head sphere in the base frame (m), or None."""
+        if self._head_local is None:
+            return None
+        frame, c, r = self._head_local
+        if frame == "target":
+            if self.safety.target is None:
+                return None
+            c = apply_transform(self.safety.target, c)
+        return HeadSphere(np.asarray(c), r)
+
+    # ------------------------------------------------------------------ control cycle
+    def _stop_arm(self, decel: float) -> None:
+        try:
+            self.arm_backend.stop(decel)
+        except Exception:  # noqa: BLE001 - stopping must never raise
+            log.exception("arm stop failed")
+
+    def step(self, now: float | None = None) -> TrackerSnapshot:
+        """One control cycle at time ``now`` (s; default: the tracker clock)."""
+        t0 = time.perf_counter()
+        with self._lock:
+            now = self.clock() if now is None else float(now)
+            dt = self.period if self._last_t is None else float(np.clip(now - self._last_t, 0.25 * self.period, 4 * self.period))
+            self._last_t = now
+            q = dq = cmd = np.full(6, np.nan)
+            T = np.full((4, 4), np.nan)
+            stage, smin = "-", float("nan")
+            connected = self.arm_backend.is_connected()
+            try:
+                if not connected:
+                    if self.safety.state not in (State.DISARMED, State.ESTOPPED):
+                        self.safety.estop(now, "arm connection lost")
+                        self._stop_arm(self.safety.cfg.estop_decel)
+                else:
+                    st = self.arm_backend.read()
+                    q, dq = st.q, st.dq
+                    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
+                        raise ArmError("arm reported non-finite joint state")
+                    T, Jb = self.kin.fk_and_jacobian_body(q)
+                    head = self.head_sphere_base()
+                    self.controller.head = head
+                    if self.safety.state == State.TRACKING and self.safety.target is not None:
+                        out = self.controller.step(T, Jb, dq, self.safety.target, dt)
+                        dq_des, smin, stage = out.dq, out.sigma_min, out.stage
+                    else:
+                        dq_des = np.zeros(6)
+                        smin = manipulability(Jb)
+                    cmd = self.safety.filter_command(now, q, dq_des, dt, T, Jb, smin, head)
+                    if cmd is None:
+                        decel = (self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED
+                                 else self.safety.cfg.joint_accel)
+                        self.arm_backend.stop(decel)
+                        cmd = np.zeros(6)
+                    else:
+                        self.arm_backend.command_velocity(cmd, self.safety.cfg.joint_accel)
+            except ArmError as exc:
+                self.safety.estop(now, f"arm error: {exc}")
+                self._stop_arm(self.safety.cfg.estop_decel)
+            except Exception as exc:  # noqa: BLE001 - any fault in the loop stops the arm
+                log.exception("control loop error")
+                self.safety.estop(now, f"internal error in control loop: {type(exc).__name__}: {exc}")
+                self._stop_arm(self.safety.cfg.estop_decel)
+            self._emit_warnings()
+            snap = self._make_snapshot(now, q, dq, cmd, T, stage, smin, (time.perf_counter() - t0) * 1e3)
+            self._snap = snap
+            return snap
+
+    def _make_snapshot(self, now, q, dq, cmd, T, stage, smin, cost_ms) -> TrackerSnapshot:
+        tgt = self.safety.target
+        T_tip = T @ self.tool.T_tool0_tip
+        if tgt is not None and np.all(np.isfinite(T)):
+            err = float(m_to_mm(np.linalg.norm(T_tip[:3, 3] - tgt[:3, 3])))
+            c = float(np.clip(T_tip[:3, 2] @ tgt[:3, 2], -1.0, 1.0))
+            ang = float(np.degrees(np.arccos(c)))
+        else:
+            err = ang = float("nan")
+        hist = self.safety.history
+        return TrackerSnapshot(
+            t=now, state=self.safety.state.value, connected=self.arm_backend.is_connected(),
+            variant=self.controller.variant, q=np.array(q), dq=np.array(dq), dq_cmd=np.array(cmd),
+            T_base_tool0_mm=transform_m_to_mm(T), T_base_tip_mm=transform_m_to_mm(T_tip),
+            T_base_target_mm=None if tgt is None else transform_m_to_mm(tgt),
+            tip_error_mm=err, angle_error_deg=ang,
+            target_age_s=float(now - self.safety.target_received) if tgt is not None else float("inf"),
+            stage=stage, sigma_min=smin, last_transition=hist[-1] if hist else None,
+            warnings=tuple(self.safety.warnings[-5:]), step_cost_ms=cost_ms,
+        )
+
+    def snapshot(self) -> TrackerSnapshot | None:
+        """Latest snapshot (thread-safe; None before the first step)."""
+        with self._lock:
+            return self._snap
+
+    # ------------------------------------------------------------------ real-time thread
+    def start(self) -> None:
+        """Run :meth:`step` at ``rate_hz`` in a daemon thread (real clock)."""
+        if self._thread and self._thread.is_alive():
+            return
+        self._run.set()
+        self._thread = threading.Thread(target=self._loop, name="robot-tracker", daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        nxt = self.clock()
+        while self._run.is_set():
+            self.step()
+            nxt += self.period
+            delay = nxt - self.clock()
+            if delay < -self.period:  # overrun: re-phase rather than bursting
+                nxt = self.clock()
+            elif delay > 0:
+                time.sleep(delay)
+
+    def stop(self) -> None:
+        """Stop the thread; the arm is left stopped (tracking ends, the state machine keeps
+        its latched states)."""
+        self._run.clear()
+        if self._thread:
+            self._thread.join(timeout=2.0)
+        with self._lock:
+            if self.safety.state in (State.TRACKING, State.HOLDING):
+                self.safety.stop_tracking(self.clock(), "tracker thread stopped")
+            self._stop_arm(self.safety.cfg.joint_accel)
