@@ -145,7 +145,8 @@ class TrackingLoop:
             self._robot_message = st.message
         if not st.connected and was_conn:
             self._alert_once("robot_disconnected", "alarm", "robot_disconnected",
-                             f"robot connection lost: {st.message}", {"state": st.state})
+                             "robot connection lost; the arm controller stops the arm, tracking ended",
+                             {"state": st.state})
         elif st.connected and not was_conn:
             self._clear_alert("robot_disconnected")
             self.s.alert("info", "robot_connected", "robot connection restored")

@@ -69,7 +69,7 @@ class TrackerRobotRig(RobotRig):
         else:
             ip = cfg.robot.split(":", 1)[1]
             try:
-                from monotracker.robot.ur_arm import URRTDEArm
+                from monotracker.robot.ur_rtde_arm import URRTDEArm
             except ImportError as exc:
                 raise MonoTrackerError(f"the ur_rtde backend is not available: {exc}") from exc
             arm = URRTDEArm(ip)
@@ -81,6 +81,7 @@ class TrackerRobotRig(RobotRig):
         self._prev_t: float | None = None
         self._speed = 0.0
         self._head_set = False
+        self._status_cache = None
         self.tracker.step(self.clock())
 
     # ------------------------------------------------------------------ events from the tracker
@@ -142,8 +143,8 @@ class TrackerRobotRig(RobotRig):
                 return
             # target frame expressed in CT: identity pose of the CT (T_cam_ct = I, T_base_cam = I)
             T_ct_target = needle_target(np.eye(4), np.eye(4), plan.entry_lps_mm, plan.target_lps_mm)
-            c_target = apply_transform(invert_transform(T_ct_target), fit.centre)
-            r = self.tracker.set_head_sphere(c_target, float(fit.radius), frame="target")
+            c_target = apply_transform(invert_transform(T_ct_target), fit.centre_mm)
+            r = self.tracker.set_head_sphere(c_target, float(fit.radius_mm), frame="target")
             self._head_set = bool(r.ok)
         except Exception:  # noqa: BLE001 - the obstacle is an aid, not a precondition
             log.exception("head sphere setup failed")
@@ -151,6 +152,9 @@ class TrackerRobotRig(RobotRig):
     # ------------------------------------------------------------------ control
     def step(self, now: float) -> None:
         self.tracker.step(now)
+        if self.sim_arm is not None:
+            self.sim_arm.advance_to(now)  # the arm's physics runs on, also when disconnected
+        self._status_cache = None
 
     def start_thread(self) -> None:
         self.tracker.start()
@@ -170,20 +174,37 @@ class TrackerRobotRig(RobotRig):
                 log.exception("arm disconnect failed")
 
     def status(self) -> RobotStatus:
+        """Robot state; for the simulated arm, q/qd/tip are the arm's TRUE state (the twin's truth,
+        also after a disconnect, when the tracker can no longer read the arm)."""
         snap = self.tracker.snapshot()
         if snap is None:
             return RobotStatus("disarmed", False, "not started")
-        T_tip = snap.T_base_tip_mm if np.all(np.isfinite(snap.T_base_tip_mm)) else None
-        if T_tip is not None and self._prev_t is not None and snap.t > self._prev_t:
-            self._speed = float(np.linalg.norm(T_tip[:3, 3] - self._prev_tip[:3, 3]) / (snap.t - self._prev_t))
-        if T_tip is not None and (self._prev_t is None or snap.t > self._prev_t):
-            self._prev_tip, self._prev_t = T_tip, snap.t
-        qd = self.sim_arm.true_dq.copy() if self.sim_arm is not None else snap.dq
+        now = float(self.clock())
+        if self._status_cache is not None and self._status_cache[0] == now:
+            return self._status_cache[1]
+        if self.sim_arm is not None:
+            from monotracker.robot.units import transform_m_to_mm
+
+            q, qd = self.sim_arm.true_q.copy(), self.sim_arm.true_dq.copy()
+            T_tip = transform_m_to_mm(self.tracker.kin.fk(q) @ self.tracker.tool.T_tool0_tip)
+            t_state = now
+        else:
+            q, qd = snap.q, snap.dq
+            T_tip = snap.T_base_tip_mm if np.all(np.isfinite(snap.T_base_tip_mm)) else None
+            t_state = snap.t
+        if T_tip is not None and self._prev_t is not None and t_state > self._prev_t:
+            self._speed = float(np.linalg.norm(T_tip[:3, 3] - self._prev_tip[:3, 3]) / (t_state - self._prev_t))
+        if T_tip is not None and (self._prev_t is None or t_state > self._prev_t):
+            self._prev_tip, self._prev_t = T_tip, t_state
         msg = snap.last_transition.reason if snap.last_transition is not None else ""
         safety = self.tracker.safety
         stamp = safety.target_stamp if np.isfinite(safety.target_stamp) else None
-        return RobotStatus(state=snap.state, connected=bool(snap.connected), message=msg, q=snap.q, qd=qd,
-                           T_base_tip=T_tip, speed_mm_s=self._speed, command_stamp=stamp, t_command=snap.t)
+        # the state machine's live state (the snapshot is from the last control step)
+        st = RobotStatus(state=self.tracker.state.value, connected=bool(self.tracker.arm_backend.is_connected()),
+                         message=msg, q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=self._speed, command_stamp=stamp,
+                         t_command=snap.t)
+        self._status_cache = (now, st)
+        return st
 
 
 def make_tracker_rig(cfg, session) -> RobotRig:

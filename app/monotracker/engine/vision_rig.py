@@ -55,6 +55,7 @@ class ProjectedFiducialRig(CameraRig):
 
         self.layout = layout or default_layout()
         self.phantom = self.layout.phantom
+        self.true_fiducials_ct = self.phantom.fiducial_centres_lps  # truth (the phantom), computed once
         self.motion = self.layout.motion(trajectory, seed)
         self.rng = np.random.default_rng(seed)
         self.noise_px = float(noise_px)
@@ -95,7 +96,7 @@ class ProjectedFiducialRig(CameraRig):
         if self.fault == "camera-freeze" and self._last_frame is not None:
             return self._last_frame
         T = self.truth_T_cam_ct(t)
-        Xc = apply_transform(T, self.phantom.fiducial_centres_lps)
+        Xc = apply_transform(T, self.true_fiducials_ct)
         ids = np.arange(len(Xc))
         keep = Xc[:, 2] > 50.0
         if self.fault == "occlude-all":

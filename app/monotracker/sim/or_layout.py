@@ -26,6 +26,7 @@ Layout choices (the paper shows a UR10 beside the head and a camera on a stand; 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -50,14 +51,15 @@ def _rotation_taking(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ORLayout:
-    """The twin's room (see the module docstring). All lengths mm."""
+    """The twin's room (see the module docstring). All lengths mm. Derived transforms are
+    computed once (``cached_property``); treat the returned arrays as read-only."""
 
     phantom: HeadPhantom = field(default_factory=default_phantom)
     entry_base_mm: np.ndarray = field(default_factory=lambda: np.array([550.0, 350.0, 150.0]))
     camera_distance_mm: float = 450.0
     camera_tilt_deg: float = 30.0
 
-    @property
+    @cached_property
     def T_base_ct0(self) -> np.ndarray:
         """Head (CT frame) pose in the robot base at rest."""
         ph = self.phantom
@@ -65,12 +67,12 @@ class ORLayout:
         t = self.entry_base_mm - R @ ph.sample_entry_lps
         return make_transform(R, t)
 
-    @property
+    @cached_property
     def patch_centre_ct(self) -> np.ndarray:
         """Centroid of the fiducial centres (CT LPS mm): what the camera looks at."""
         return self.phantom.fiducial_centres_lps.mean(axis=0)
 
-    @property
+    @cached_property
     def T_base_cam(self) -> np.ndarray:
         """Camera pose in the robot base (the hand-eye transform the engine is given)."""
         look = apply_transform(self.T_base_ct0, self.patch_centre_ct)
@@ -78,7 +80,7 @@ class ORLayout:
         eye = look + tilt @ np.array([0.0, 0.0, self.camera_distance_mm])
         return look_at(eye, look, up=np.array([0.0, 1.0, 0.0]))
 
-    @property
+    @cached_property
     def head_centre_base(self) -> np.ndarray:
         return apply_transform(self.T_base_ct0, self.phantom.centre_lps)
 
@@ -94,7 +96,7 @@ class ORLayout:
         """True registration (CT -> camera) at time ``t`` (s)."""
         return invert_transform(self.T_base_cam) @ self.T_base_ct(motion, t)
 
-    @property
+    @cached_property
     def T_cam_ct0(self) -> np.ndarray:
         return invert_transform(self.T_base_cam) @ self.T_base_ct0
 
