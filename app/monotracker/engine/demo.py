@@ -226,6 +226,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
     # ---------------------------------------------------------------- summarise
     settle_from = t_track + opts.settle_s
     until = fault_at if fault_at is not None else float("inf")
+    until = min(until, t_end + 1e-9)
     trk = [r for r in rec.rows if r[1] == "tracking" and settle_from <= r[0] < until and r[2] is not None]
     alerts = [e for e in s.audit_entries() if e.kind == "alert" and e.session_id == s.session_id]
     frames = snap.camera.frames
@@ -251,7 +252,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         "registration_tre_mm": _stats(rec.tre),
         "tip_error_mm": _stats([r[2] for r in trk]),
         "axis_error_deg": _stats([r[3] for r in trk]),
-        "tracking_fraction": (len(trk) / max(1, len([r for r in rec.rows if settle_from <= r[0] < min(until, t_end)]))),
+        "tracking_fraction": len(trk) / max(1, len([r for r in rec.rows if settle_from <= r[0] < until])),
         "latency_ms": _stats(lat),
         "final_state": snap.robot.state,
         "alerts": [{"t": round(a.t_session, 3), "level": a.level, "code": a.code, "message": a.message}

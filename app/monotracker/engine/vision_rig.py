@@ -69,6 +69,7 @@ class ProjectedFiducialRig(CameraRig):
         self.fiducial_ids = [f.id for f in plan.usable_fiducials()]
         self.radius_mm = float(np.median([f.radius_mm for f in plan.usable_fiducials()]))
         self.target_ct = plan.target_lps_mm
+        self.entry_ct = plan.entry_lps_mm
         self.occluded_ids: set[int] = set()
         self._index = 0
         self._last_frame: SimFrame | None = None
@@ -132,7 +133,7 @@ class ProjectedFiducialRig(CameraRig):
         if reg.ok and self.fault == "bad-pose":
             from monotracker.sim.faults import corrupt_pose
 
-            T = corrupt_pose(T, self.rng)
+            T = corrupt_pose(T, self.rng, self.entry_ct)
         tre = None
         if T is not None and self.target_ct is not None:
             tre = float(np.linalg.norm(apply_transform(T, self.target_ct)

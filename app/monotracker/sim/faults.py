@@ -8,8 +8,9 @@
   arrive; a real UR stops on its own (RTDE watchdog / protective stop), the simulated arm does the
   same (``monotracker.robot``'s SimulatedArm).
 * ``bad-pose``: the pose pipeline returns confident but wrong poses (as after a wrong fiducial
-  assignment): ``ok=True``, plausible FRE, but ``T_cam_ct`` off by 10-30 mm and 4-15 deg,
-  different every frame. Only the engine's consistency gate can catch it.
+  assignment): ``ok=True``, plausible FRE, but the head placed 8-15 mm and 3-8 deg off (rotation
+  about the planned entry), different every frame. That is inside the robot safety layer's own
+  jump limits (20 mm / 10 deg), so only the engine's consistency gate can catch it.
 
 Partial occlusion (not a fault: the loop must keep tracking with >= 4 fiducials) is set on the
 camera rig with ``occluded_ids``.
@@ -24,10 +25,13 @@ from monotracker.geometry import make_transform, rotation_about_axis
 FAULTS = ("none", "camera-freeze", "occlude-all", "robot-disconnect", "bad-pose")
 
 
-def corrupt_pose(T_cam_ct: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A wrong but plausible pose: ``T_cam_ct`` moved 10-30 mm per axis and rotated 4-15 deg
-    about a random axis through the CT origin's image (camera frame)."""
-    axis = rng.normal(size=3)
-    R = rotation_about_axis(axis, np.radians(rng.uniform(4.0, 15.0)))
-    t = rng.uniform(10.0, 30.0, size=3) * rng.choice([-1.0, 1.0], size=3)
-    return make_transform(R, t) @ np.asarray(T_cam_ct, float)
+def corrupt_pose(T_cam_ct: np.ndarray, rng: np.random.Generator, about_ct: np.ndarray | None = None) -> np.ndarray:
+    """A wrong but plausible pose: ``T_cam_ct`` followed by a rotation of 3-8 deg about a random
+    axis through the CT point ``about_ct`` (default the CT origin) and a shift of 8-15 mm in a
+    random direction (camera frame)."""
+    T = np.asarray(T_cam_ct, float)
+    p = T[:3, :3] @ (np.zeros(3) if about_ct is None else np.asarray(about_ct, float)) + T[:3, 3]
+    R = rotation_about_axis(rng.normal(size=3), np.radians(rng.uniform(3.0, 8.0)))
+    d = rng.normal(size=3)
+    d *= rng.uniform(8.0, 15.0) / np.linalg.norm(d)
+    return make_transform(R, p - R @ p + d) @ T
