@@ -75,6 +75,8 @@ class CameraRig:
     dist: np.ndarray | None = None
     image_size: tuple | None = None
     default_T_base_cam: np.ndarray | None = None
+    #: seconds from the instant a frame is exposed to the moment it reaches the software
+    transport_delay_s: float = 0.0
 
     def __init__(self):
         self.running = False

@@ -11,8 +11,9 @@ Rates and threads (clock="real", the web app):
 
 clock="sim" (demo, tests, benchmark): no threads. :meth:`TrackingLoop.advance` steps a simulated
 clock at the control period; a frame is captured every camera period when the estimator is free,
-estimated synchronously, and its result becomes available ``w`` seconds after capture, where ``w``
-is the *measured wall time* of detection + registration (so slow registration shows up honestly
+estimated synchronously, and its result becomes available ``d + w`` seconds after capture, where
+``d`` is the camera's transport delay (exposure + readout + USB transfer; ``rig.transport_delay_s``,
+30 ms for the simulated camera) and ``w`` is the *measured wall time* of detection + registration (so slow registration shows up honestly
 as pose age and latency, and frames arriving while it is busy are dropped as in the threaded
 pose stream). The same gate/target/watchdog code runs in both modes.
 
@@ -86,6 +87,7 @@ class TrackingLoop:
         self._target_T: np.ndarray | None = None
         self._target_stamp: float | None = None
         self._pending_latency_stamp: float | None = None
+        self._pending_latency_set_at = 0.0
         self.latencies_s: deque[float] = deque(maxlen=5000)
         self._robot_state = "disarmed"
         self._robot_connected = True
@@ -337,6 +339,7 @@ class TrackingLoop:
         with self._lock:
             self._target_T, self._target_stamp = T, sample.t_capture
             self._pending_latency_stamp = sample.t_capture
+            self._pending_latency_set_at = now
         self.robot.set_target(T, sample.t_capture, True)
 
     def _hold(self, code: str, reason: str, level: str = "warning") -> None:
@@ -423,16 +426,18 @@ class TrackingLoop:
             rig = self.rig
             if rig is not None and rig.running and t + 1e-9 >= self._next_frame_t:
                 self._next_frame_t += frame_period
-                if t >= self._busy_until:
+                # frames travel in a pipeline; the estimator takes a frame when it arrives, if free
+                if t + rig.transport_delay_s >= self._busy_until - 1e-12:
                     frame = rig.capture(t)
                     # A frozen camera hands back the same frame: nothing new to estimate.
                     if frame is not None and self.note_frame(frame.t_capture, t):
                         w0 = time.perf_counter()
                         sample = rig.estimate(frame)
                         w = time.perf_counter() - w0
-                        sample.t_ready = t + w
-                        self._busy_until = t + w
-                        self._in_flight.append((t + w, sample))
+                        ready = t + rig.transport_delay_s + w
+                        sample.t_ready = ready
+                        self._busy_until = ready
+                        self._in_flight.append((ready, sample))
             while self._in_flight and self._in_flight[0][0] <= t + 1e-12:
                 _, sample = self._in_flight.popleft()
                 self.on_pose(sample, t)
@@ -470,11 +475,11 @@ class TrackingLoop:
                         last_seen = sample
                         self.on_pose(sample, now)
                 self.watchdogs(now)
-                if self.robot is not None:
-                    stamp = self.robot.status().command_stamp
-                    if stamp is not None and self._pending_latency_stamp is not None \
-                            and stamp >= self._pending_latency_stamp:
-                        self.after_command(self.robot.status().t_command or now)
+                if self.robot is not None and self._pending_latency_stamp is not None:
+                    st = self.robot.status()
+                    # the first control step after the target was handed over used it
+                    if st.t_command is not None and st.t_command >= self._pending_latency_set_at:
+                        self.after_command(st.t_command)
             except Exception:  # noqa: BLE001 - the loop must survive; hold the arm and report
                 log.exception("engine loop iteration failed")
                 self._hold("engine_error", "internal engine error; arm holding (see log)")

@@ -9,7 +9,8 @@ noise (``noise_px``, 0.3 px: a good sub-pixel detector), drops fiducials that ar
 outside the image, shuffles the points and runs the real registration
 (``monotracker.registration.register``, robust method, previous pose as prior). It does not
 render images or run an image detector; its ``latest_frame()`` draws a schematic image (grey
-background, the fiducial ellipses in green) for the overlay.
+background, the fiducial ellipses in green) for the overlay. A frame reaches the software
+``transport_delay_s`` (30 ms) after it was exposed, as with a USB camera.
 
 The registration uses the CT fiducials *confirmed in the plan* (from the CT detector), not the
 phantom's true centres, so CT detection error is part of the measured TRE.
@@ -30,6 +31,9 @@ from monotracker.geometry import apply_transform
 SIM_IMAGE_SIZE = (1280, 720)
 SIM_FOCAL_PX = 1100.0
 SIM_DIST = np.array([-0.06, 0.02, 0.0, 0.0, 0.0])
+#: exposure midpoint -> frame in memory for a 30 fps USB camera (half an exposure + readout +
+#: transfer), our modelling choice; it is part of every measured capture -> command latency
+SIM_TRANSPORT_DELAY_S = 0.030
 
 
 @dataclass
@@ -63,6 +67,7 @@ class ProjectedFiducialRig(CameraRig):
         self.K = default_K(SIM_FOCAL_PX, SIM_IMAGE_SIZE)
         self.dist = SIM_DIST.copy()
         self.image_size = SIM_IMAGE_SIZE
+        self.transport_delay_s = SIM_TRANSPORT_DELAY_S
         self.default_T_base_cam = self.layout.T_base_cam
         self.true_T_base_cam = self.layout.T_base_cam
         self.fiducials_ct = plan.fiducial_centres()
@@ -200,7 +205,7 @@ class ProjectedFiducialRig(CameraRig):
                 self._stop.wait(t_next - now)
                 continue
             t_next = max(t_next + period, now)  # drop frames rather than queue them
-            frame = self.capture(now)
+            frame = self.capture(now - self.transport_delay_s)  # exposed d seconds ago
             if frame.t_capture == last_t:
                 continue  # frozen: nothing new
             last_t = frame.t_capture
