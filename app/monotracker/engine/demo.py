@@ -46,7 +46,7 @@ FAULT_CODES = {
     "camera-freeze": ("camera_freeze", "pose_stale"),
     "occlude-all": ("occlusion", "pose_lost", "pose_stale"),
     "robot-disconnect": ("robot_disconnected",),
-    "bad-pose": ("bad_pose",),
+    "bad-pose": ("pose_jump", "bad_pose"),
 }
 
 

@@ -87,7 +87,8 @@ class PoseGate:
         if len(self._candidates) >= self.confirm_frames:
             self._accept(T, t_capture)
             return GateVerdict(True, "ok", f"pose confirmed by {self.confirm_frames} consistent frames")
-        return GateVerdict(False, code, f"{why} ({len(self._candidates)}/{self.confirm_frames})")
+        return GateVerdict(False, code, f"{why}; confirming ({len(self._candidates)} of {self.confirm_frames} "
+                                        "consistent frames)")
 
     def _accept(self, T: np.ndarray, t: float) -> None:
         self._ref_T, self._ref_t, self._candidates = T, t, []

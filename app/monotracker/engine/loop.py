@@ -320,7 +320,7 @@ class TrackingLoop:
             if self._holding_reason is not None:
                 self._resume(f"pose trusted again ({sample.n_matched} fiducials)")
         else:
-            code = {"occlusion": "occlusion", "fre": "bad_pose", "jump": "bad_pose", "estimator": "pose_lost",
+            code = {"occlusion": "occlusion", "fre": "bad_pose", "jump": "pose_jump", "estimator": "pose_lost",
                     "acquiring": "acquiring"}[v.code]
             level = "info" if code == "acquiring" else "warning"
             self._hold(code, v.reason, level)
