@@ -120,7 +120,7 @@ class FollowerRobotRig(RobotRig):
             self.state = "disarmed"
         return self._r(True)
 
-    def set_target(self, T, stamp, valid):
+    def set_target(self, T, stamp, valid, T_base_ct=None):
         self.valid = bool(valid) and T is not None
         if T is not None:
             self.target = np.array(T, float)

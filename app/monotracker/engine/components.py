@@ -140,7 +140,9 @@ class RobotRig:
     def reset(self) -> CommandResult:
         raise NotImplementedError
 
-    def set_target(self, T_base_target_mm, stamp: float, valid: bool) -> None:
+    def set_target(self, T_base_target_mm, stamp: float, valid: bool, T_base_ct=None) -> None:
+        """New needle target (4x4 mm); ``T_base_ct`` (mm) is the head pose it came from (for
+        obstacles that move with the head)."""
         raise NotImplementedError
 
     def step(self, now: float) -> None:

@@ -340,7 +340,7 @@ class TrackingLoop:
             self._target_T, self._target_stamp = T, sample.t_capture
             self._pending_latency_stamp = sample.t_capture
             self._pending_latency_set_at = now
-        self.robot.set_target(T, sample.t_capture, True)
+        self.robot.set_target(T, sample.t_capture, True, plan.T_base_cam @ sample.T_cam_ct)
 
     def _hold(self, code: str, reason: str, level: str = "warning") -> None:
         """Make the tracker hold still (valid=False) and raise the alert once per episode.

@@ -80,7 +80,7 @@ class TrackerRobotRig(RobotRig):
         self._prev_tip: np.ndarray | None = None
         self._prev_t: float | None = None
         self._speed = 0.0
-        self._head_set = False
+        self._head_ct: tuple[np.ndarray, float] | None = None
         self._status_cache = None
         self.tracker.step(self.clock())
 
@@ -121,17 +121,22 @@ class TrackerRobotRig(RobotRig):
     def reset(self) -> CommandResult:
         return self._r(self.tracker.reset())
 
-    def set_target(self, T_base_target_mm, stamp: float, valid: bool) -> None:
+    def set_target(self, T_base_target_mm, stamp: float, valid: bool, T_base_ct=None) -> None:
         if T_base_target_mm is None:
             T_base_target_mm = np.full((4, 4), np.nan)
+        if valid and T_base_ct is not None and self._head_ct is not None:
+            # the head sphere in the needle-target frame of THIS target (roll included)
+            c_ct, r = self._head_ct
+            c_target = apply_transform(invert_transform(np.asarray(T_base_target_mm, float)),
+                                       apply_transform(np.asarray(T_base_ct, float), c_ct))
+            self.tracker.set_head_sphere(c_target, r, frame="target")
         self.tracker.set_target(np.asarray(T_base_target_mm, float), float(stamp), bool(valid))
 
     def _set_head_sphere(self) -> None:
-        """Head obstacle from the plan's fiducials, in the needle-target frame (moves with the head)."""
-        if self._head_set:
+        """Fit the head sphere (CT mm) to the plan's fiducials; placed with each target."""
+        if self._head_ct is not None:
             return
         try:
-            from monotracker.engine.target import needle_target
             from monotracker.robot.head import fit_head_sphere
 
             plan = self.s.plan_copy()
@@ -141,11 +146,9 @@ class TrackerRobotRig(RobotRig):
             if not fit.ok:
                 self.s.alert("warning", "head_sphere", f"{fit.reason}; APFF head repulsion off")
                 return
-            # target frame expressed in CT: identity pose of the CT (T_cam_ct = I, T_base_cam = I)
-            T_ct_target = needle_target(np.eye(4), np.eye(4), plan.entry_lps_mm, plan.target_lps_mm)
-            c_target = apply_transform(invert_transform(T_ct_target), fit.centre_mm)
-            r = self.tracker.set_head_sphere(c_target, float(fit.radius_mm), frame="target")
-            self._head_set = bool(r.ok)
+            self._head_ct = (np.asarray(fit.centre_mm, float), float(fit.radius_mm))
+            self.s.record("head_sphere", f"head obstacle: sphere of radius {fit.radius_mm:.0f} mm fitted to "
+                          f"the fiducials ({fit.reason})", {"centre_ct_mm": fit.centre_mm, "radius_mm": fit.radius_mm})
         except Exception:  # noqa: BLE001 - the obstacle is an aid, not a precondition
             log.exception("head sphere setup failed")
 
