@@ -82,3 +82,19 @@ def test_needle_tool_and_urdf():
     T = kin.fk(kin.Q_READY) @ t.T_tool0_tip
     assert T[2, 2] < -0.99
     assert 0.5 < np.linalg.norm(T[:3, 3]) < 0.8
+
+
+def test_fast_lie_maps_equal_reference():
+    from monotracker.geometry import invert_transform as inv_ref
+    from monotracker.robot.lie import adjoint_ref, exp6_ref, inverse, log6_ref, relative
+
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        xi = rng.normal(size=6)
+        T = exp6_ref(xi)
+        assert np.allclose(exp6(xi), T, atol=1e-12)
+        assert np.allclose(log6(T), log6_ref(T), atol=1e-9)
+        assert np.allclose(adjoint(T), adjoint_ref(T), atol=1e-12)
+        assert np.allclose(inverse(T), inv_ref(T), atol=1e-12)
+        T2 = exp6_ref(rng.normal(size=6))
+        assert np.allclose(relative(T, T2), inv_ref(T) @ T2, atol=1e-12)

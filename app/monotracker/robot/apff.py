@@ -44,10 +44,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from monotracker.geometry import invert_transform
+import math
+
 from monotracker.robot.head import Corridor, HeadSphere
 from monotracker.robot.kinematics import NeedleTool
-from monotracker.robot.lie import adjoint, exp6, log6
+from monotracker.robot.lie import adjoint, exp6, inverse, log6, relative
 
 VARIANTS = ("APF-V", "APF-A-I", "APF-A-II")
 
@@ -108,7 +109,7 @@ def dls_solve(J: np.ndarray, V: np.ndarray, sigma_min: float, lambda_max: float)
 def attractive_force(p: np.ndarray, p_goal: np.ndarray, zeta: float, d: float) -> np.ndarray:
     """Paper Eq. 17: quadratic well within ``d`` of the goal, conical (|F| = zeta d) beyond (N)."""
     e = p - p_goal
-    n = float(np.linalg.norm(e))
+    n = math.sqrt(e @ e)
     if n <= d:
         return -zeta * e
     return -d * zeta * e / n
@@ -119,7 +120,7 @@ def repulsive_force(p: np.ndarray, head: HeadSphere, eta: float, rho0: float) ->
     ``rho`` is the distance to the sphere surface, floored at 1 mm (inside the sphere the force
     keeps pushing outwards at its 1 mm value rather than becoming infinite or flipping)."""
     r = p - head.centre_m
-    dist = float(np.linalg.norm(r))
+    dist = math.sqrt(r @ r)
     rho = dist - head.radius_m
     if rho > rho0 or dist < 1e-9:
         return np.zeros(3)
@@ -129,7 +130,8 @@ def repulsive_force(p: np.ndarray, head: HeadSphere, eta: float, rho0: float) ->
 
 def point_wrench_space(r: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Paper Eq. 19: wrench ``(r x f; f)`` of a force ``f`` at point ``r`` (base frame)."""
-    return np.concatenate([np.cross(r, f), f])
+    return np.array([r[1] * f[2] - r[2] * f[1], r[2] * f[0] - r[0] * f[2], r[0] * f[1] - r[1] * f[0],
+                     f[0], f[1], f[2]])
 
 
 class APFFController:
@@ -144,15 +146,25 @@ class APFFController:
         self.tool = tool or NeedleTool()
         self.corridor = corridor or Corridor()
         self.head: HeadSphere | None = None
-        self._Minv = np.linalg.inv(self.p.M)
-        self._Binv = np.linalg.inv(self.p.B)
+        for name in ("M", "B", "K1", "K2"):
+            m = np.asarray(getattr(self.p, name), dtype=float)
+            if m.shape != (6, 6) or not np.allclose(m, np.diag(np.diag(m))) or np.any(np.diag(m) < 0):
+                raise ValueError(f"APFF {name} must be a non-negative diagonal 6x6 matrix")
+        if np.any(np.diag(self.p.M) <= 0) or np.any(np.diag(self.p.B) <= 0):
+            raise ValueError("APFF M and B must be positive")
+        # Diagonal parameters as vectors: element-wise products in the hot path.
+        self._m = np.diag(self.p.M).copy()
+        self._b = np.diag(self.p.B).copy()
+        self._k1 = np.diag(self.p.K1).copy()
+        self._k2 = np.diag(self.p.K2).copy()
         X = self.tool.T_tool0_mid
         self._T_tool0_mid = X
-        self._T_mid_tip = invert_transform(X) @ self.tool.T_tool0_tip
-        self._Ad_mid_tool0 = adjoint(invert_transform(X))
+        self._T_mid_tip = inverse(X) @ self.tool.T_tool0_tip
+        self._T_tip_mid = inverse(self._T_mid_tip)
+        self._Ad_mid_tip = adjoint(self._T_mid_tip)
+        self._Ad_mid_tool0 = adjoint(inverse(X))
         half = 0.5 * self.tool.length_m
-        self._tip_in_mid = np.array([0.0, 0.0, half, 1.0])
-        self._rem_in_mid = np.array([0.0, 0.0, -half, 1.0])
+        self._half = half
         self.reset()
 
     def reset(self) -> None:
@@ -163,27 +175,37 @@ class APFFController:
     # ------------------------------------------------------------------ pieces
     def target_mid(self, T_base_target: np.ndarray) -> np.ndarray:
         """Desired mid frame from the desired tip frame."""
-        return T_base_target @ invert_transform(self._T_mid_tip)
+        return T_base_target @ self._T_tip_mid
 
     def apf_wrench_body(self, T_mid: np.ndarray, T_mid_goal: np.ndarray, T_base_target: np.ndarray) -> np.ndarray:
-        """Paper Eq. 19-21: attractive + repulsive forces on tip and remote end, as wrenches in
-        the base frame, mapped to the body (mid) frame with ``Ad(T_base_mid)^T`` and summed."""
+        """Paper Eq. 19-21: attractive + repulsive forces on tip and remote end, as wrenches
+        ``(r x f; f)`` in the base frame, mapped to the body (mid) frame with ``Ad(T_base_mid)^T``
+        and summed. Evaluated directly in the mid frame (``Ad^T (r x f; f) = (r_b x f_b; f_b)``
+        with ``r_b``, ``f_b`` the point and force in mid coordinates), which is the same number
+        with fewer operations; the test suite checks it against the written-out Eq. 19-21."""
         p = self.p
-        F_s = np.zeros(6)
-        pts = (T_mid @ self._tip_in_mid)[:3], (T_mid @ self._rem_in_mid)[:3]
-        goals = (T_mid_goal @ self._tip_in_mid)[:3], (T_mid_goal @ self._rem_in_mid)[:3]
-        exempt = (np.zeros(2, bool) if self.head is None
-                  else self.corridor.contains(np.array(pts), T_base_target))
-        for k, (r, g) in enumerate(zip(pts, goals)):
-            f = attractive_force(r, g, p.zeta, p.d)
-            if self.head is not None and not exempt[k]:
-                f = f + repulsive_force(r, self.head, p.eta, p.rho0)
-            F_s += point_wrench_space(r, f)
-        return adjoint(T_mid).T @ F_s
+        R = T_mid[:3, :3]
+        z = R[:, 2]
+        h = self._half
+        P = np.stack([T_mid[:3, 3] + h * z, T_mid[:3, 3] - h * z])
+        zg = T_mid_goal[:3, 2]
+        G = (T_mid_goal[:3, 3] + h * zg, T_mid_goal[:3, 3] - h * zg)
+        exempt = None if self.head is None else self.corridor.contains(P, T_base_target)
+        F = np.zeros(6)
+        for k, sign in ((0, 1.0), (1, -1.0)):
+            f = attractive_force(P[k], G[k], p.zeta, p.d)
+            if exempt is not None and not exempt[k]:
+                f = f + repulsive_force(P[k], self.head, p.eta, p.rho0)
+            fb = R.T @ f
+            # r_b = (0, 0, sign*h): r_b x f_b = sign*h*(-fb_y, fb_x, 0)
+            F[0] -= sign * h * fb[1]
+            F[1] += sign * h * fb[0]
+            F[3:] += fb
+        return F
 
     def _saturate(self, V: np.ndarray) -> np.ndarray:
-        w = np.linalg.norm(V[:3])
-        v = np.linalg.norm(V[3:])
+        w = math.sqrt(V[:3] @ V[:3])
+        v = math.sqrt(V[3:] @ V[3:])
         out = V.copy()
         if w > self.p.w_max:
             out[:3] *= self.p.w_max / w
@@ -193,18 +215,24 @@ class APFFController:
 
     # ------------------------------------------------------------------ step
     def step(self, T_base_tool0: np.ndarray, J_b_tool0: np.ndarray, dq_meas: np.ndarray,
-             T_base_target: np.ndarray, dt: float) -> ControlOutput:
+             T_base_target: np.ndarray, dt: float, V_target: np.ndarray | None = None) -> ControlOutput:
         """One control period: measured flange pose and body Jacobian (tool0), measured joint
-        rates, the desired tip pose, period ``dt`` (s) -> joint velocity command (rad/s)."""
+        rates, the desired tip pose, period ``dt`` (s) -> joint velocity command (rad/s).
+
+        ``V_target`` (optional, an extension beyond the paper): the target's own body twist
+        (tip frame, ``(omega, v)``), e.g. estimated from the pose stream. When given, the
+        damper acts on the velocity *relative* to the moving target, ``B (V - V_t)``, and APF-V
+        adds it to its output; without it the controller is exactly the paper's."""
         p = self.p
+        V_ff = None if V_target is None else self._Ad_mid_tip @ np.asarray(V_target, dtype=float)
         T_mid = T_base_tool0 @ self._T_tool0_mid
         J_mid = self._Ad_mid_tool0 @ J_b_tool0
         T_goal = self.target_mid(T_base_target)
 
         if self.variant == "APF-V":
-            S = log6(invert_transform(T_mid) @ T_goal)
+            S = log6(relative(T_mid, T_goal))
             F = self.apf_wrench_body(T_mid, T_goal, T_base_target)
-            self.V = self._saturate(self._Binv @ F)
+            self.V = self._saturate(F / self._b if V_ff is None else F / self._b + V_ff)
             dq, smin = dls_solve(J_mid, self.V, p.sigma_min, p.lambda_max)
             return ControlOutput(dq, S, F, self.V.copy(), "far", smin)
 
@@ -212,13 +240,13 @@ class APFFController:
             self.T_ref = T_mid.copy()
             self.V = J_mid @ dq_meas
         else:
-            drift = log6(invert_transform(T_mid) @ self.T_ref)
-            if np.linalg.norm(drift[3:]) > p.resync_m or np.linalg.norm(drift[:3]) > p.resync_rad:
+            drift = log6(relative(T_mid, self.T_ref))
+            if drift[3:] @ drift[3:] > p.resync_m**2 or drift[:3] @ drift[:3] > p.resync_rad**2:
                 self.T_ref = T_mid.copy()
                 self.V = J_mid @ dq_meas
 
-        S = log6(invert_transform(self.T_ref) @ T_goal)
-        nS = float(np.linalg.norm(S))
+        S = log6(relative(self.T_ref, T_goal))
+        nS = math.sqrt(S @ S)
         if self.variant == "APF-A-II":
             if self.near and nS > 2.0 * p.epsilon:
                 self.near = False
@@ -226,15 +254,16 @@ class APFFController:
                 self.near = True
         if self.near:
             F = np.zeros(6)
-            K = p.K2
+            k = self._k2
         else:
             F = self.apf_wrench_body(self.T_ref, T_goal, T_base_target)
-            K = p.K1
+            k = self._k1
         # Semi-implicit Euler (Eq. 24): velocity first, then the reference pose.
-        self.V = self._saturate(self.V + dt * (self._Minv @ (F + K @ S - p.B @ self.V)))
+        damp = self._b * (self.V if V_ff is None else self.V - V_ff)
+        self.V = self._saturate(self.V + dt * (F + k * S - damp) / self._m)
         self.T_ref = self.T_ref @ exp6(self.V * dt)
         # Command: reference twist seen from the measured frame + correction towards the reference.
-        T_err = invert_transform(T_mid) @ self.T_ref
+        T_err = relative(T_mid, self.T_ref)
         V_cmd = adjoint(T_err) @ self.V + p.kp * log6(T_err)
         dq, smin = dls_solve(J_mid, V_cmd, p.sigma_min, p.lambda_max)
         return ControlOutput(dq, S, F, self.V.copy(), "near" if self.near else "far", smin)

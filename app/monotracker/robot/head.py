@@ -97,7 +97,8 @@ class HeadSphere:
 
     def distance(self, points_m: np.ndarray) -> np.ndarray:
         """Signed distance (m) of ``(n, 3)`` points to the sphere surface (negative inside)."""
-        return np.linalg.norm(np.atleast_2d(points_m) - self.centre_m, axis=1) - self.radius_m
+        d = np.asarray(points_m, dtype=float).reshape(-1, 3) - self.centre_m
+        return np.sqrt((d * d).sum(axis=1)) - self.radius_m
 
 
 @dataclass(frozen=True)
@@ -112,8 +113,7 @@ class Corridor:
 
     def contains(self, points_m: np.ndarray, T_base_target: np.ndarray) -> np.ndarray:
         """Boolean (n,): which points lie inside the corridor of ``T_base_target`` (tip pose, m)."""
-        p = np.atleast_2d(points_m) - T_base_target[:3, 3]
-        z = T_base_target[:3, 2]
-        s = p @ z
-        radial = np.linalg.norm(p - np.outer(s, z), axis=1)
-        return (radial <= self.radius_m) & (s <= self.depth_m)
+        p = np.asarray(points_m, dtype=float).reshape(-1, 3) - T_base_target[:3, 3]
+        s = p @ T_base_target[:3, 2]
+        radial2 = (p * p).sum(axis=1) - s * s
+        return (radial2 <= self.radius_m**2) & (s <= self.depth_m)

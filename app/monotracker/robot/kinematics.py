@@ -27,7 +27,7 @@ import numpy as np
 
 from monotracker.errors import MonoTrackerError
 from monotracker.geometry import invert_transform
-from monotracker.robot.lie import adjoint, exp6, hat, log6
+from monotracker.robot.lie import adjoint, adjoint_ref, exp6_ref, hat, log6
 
 URDF_RELATIVE = pathlib.Path("cmeel.prefix/share/example-robot-data/robots/ur_description/urdf/ur10_robot.urdf")
 TOOL_FRAME = "tool0"
@@ -172,7 +172,7 @@ def poe_fk(q: np.ndarray) -> np.ndarray:
     """Paper Eq. 14: ``T = exp([S1]q1) ... exp([S6]q6) M`` (base -> tool0, m)."""
     T = np.eye(4)
     for S, qi in zip(POE_SCREWS, q):
-        T = T @ exp6(S * qi)
+        T = T @ exp6_ref(S * qi)
     return T @ POE_HOME
 
 
@@ -181,14 +181,14 @@ def poe_jacobian_space(q: np.ndarray) -> np.ndarray:
     J = np.zeros((6, 6))
     T = np.eye(4)
     for i, (S, qi) in enumerate(zip(POE_SCREWS, q)):
-        J[:, i] = adjoint(T) @ S
-        T = T @ exp6(S * qi)
+        J[:, i] = adjoint_ref(T) @ S
+        T = T @ exp6_ref(S * qi)
     return J
 
 
 def poe_jacobian_body(q: np.ndarray) -> np.ndarray:
     """``J_b = Ad(T_base_tool0^-1) J_s``."""
-    return adjoint(invert_transform(poe_fk(q))) @ poe_jacobian_space(q)
+    return adjoint_ref(invert_transform(poe_fk(q))) @ poe_jacobian_space(q)
 
 
 # ------------------------------------------------------------------------- needle tool

@@ -7,6 +7,11 @@ Conventions (Lynch & Park, "Modern Robotics", the paper's POE formulation):
 * ``adjoint(T)`` maps twists expressed in frame b to frame a for ``T = T_a_b``;
   wrenches map with the transpose: ``F_b = adjoint(T_a_b).T @ F_a``.
 * ``exp6(xi)`` is the matrix exponential of a twist (4,4); ``log6(T)`` its inverse.
+
+Two implementations of the same maps: ``exp6_ref``/``log6_ref``/``adjoint_ref`` write the
+formulas out in numpy (used by the paper's POE model and as the reference in the tests);
+``exp6``/``log6``/``adjoint``/``inverse`` call pinocchio's C++ (about 20x faster, the control
+loop's hot path) and reorder pinocchio's ``(v, omega)`` to our ``(omega, v)``.
 """
 
 from __future__ import annotations
@@ -46,8 +51,8 @@ def log3(R: np.ndarray) -> np.ndarray:
     return th / (2.0 * np.sin(th)) * v
 
 
-def exp6(xi: np.ndarray) -> np.ndarray:
-    """4x4 transform ``exp([xi])`` of a twist ``xi = (omega, v)`` (unit-time displacement)."""
+def exp6_ref(xi: np.ndarray) -> np.ndarray:
+    """4x4 transform ``exp([xi])`` (numpy reference) of a twist ``xi = (omega, v)`` (unit-time displacement)."""
     w = np.asarray(xi[:3], dtype=float)
     v = np.asarray(xi[3:], dtype=float)
     th = float(np.linalg.norm(w))
@@ -63,8 +68,8 @@ def exp6(xi: np.ndarray) -> np.ndarray:
     return T
 
 
-def log6(T: np.ndarray) -> np.ndarray:
-    """Twist ``xi = (omega, v)`` (6,) with ``exp6(xi) == T``."""
+def log6_ref(T: np.ndarray) -> np.ndarray:
+    """Twist ``xi = (omega, v)`` (6,) with ``exp6_ref(xi) == T``."""
     R = T[:3, :3]
     p = T[:3, 3]
     w = log3(R)
@@ -77,7 +82,7 @@ def log6(T: np.ndarray) -> np.ndarray:
     return np.concatenate([w, Ginv @ p])
 
 
-def adjoint(T: np.ndarray) -> np.ndarray:
+def adjoint_ref(T: np.ndarray) -> np.ndarray:
     """6x6 adjoint of ``T = T_a_b``: twists in b -> twists in a (``(omega, v)`` order)."""
     R = T[:3, :3]
     A = np.zeros((6, 6))
@@ -86,3 +91,40 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     A[3:, :3] = hat(T[:3, 3]) @ R
     return A
 
+
+
+# ----------------------------------------------------------------------------- fast path
+import pinocchio as _pin  # noqa: E402
+
+_P = np.array([3, 4, 5, 0, 1, 2])
+
+
+def exp6(xi: np.ndarray) -> np.ndarray:
+    """Same as :func:`exp6_ref` (pinocchio)."""
+    return _pin.exp6(np.asarray(xi, dtype=float)[_P]).homogeneous
+
+
+def log6(T: np.ndarray) -> np.ndarray:
+    """Same as :func:`log6_ref` (pinocchio)."""
+    return _pin.log6(np.asarray(T, dtype=float)).vector[_P]
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """Same as :func:`adjoint_ref` (pinocchio)."""
+    A = _pin.SE3(np.asarray(T, dtype=float)).toActionMatrix()
+    out = np.empty((6, 6))
+    out[:3, :3] = A[3:, 3:]
+    out[:3, 3:] = A[3:, :3]
+    out[3:, :3] = A[:3, 3:]
+    out[3:, 3:] = A[:3, :3]
+    return out
+
+
+def inverse(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform; equals ``geometry.invert_transform`` (fast path)."""
+    return _pin.SE3(T).inverse().homogeneous
+
+
+def relative(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``A^-1 @ B`` for rigid transforms (fast path)."""
+    return _pin.SE3(A).actInv(_pin.SE3(B)).homogeneous

@@ -30,6 +30,7 @@ Units: m, rad, s.
 from __future__ import annotations
 
 import enum
+import math
 import logging
 import threading
 from dataclasses import dataclass, field
@@ -80,7 +81,8 @@ class SafetyConfig:
     jump_rad: float = np.radians(10.0)
     auto_resume: bool = True
     keepout_margin_m: float = 0.0
-    keepout_lookahead_s: float = 0.15
+    #: latency allowance added to the braking time when predicting where the needle stops (s)
+    keepout_lookahead_s: float = 0.03
     sigma_hold: float = 0.01
     standstill_rad_s: float = 1e-3
 
@@ -119,6 +121,7 @@ class SafetyLayer:
         self.pending: np.ndarray | None = None  # newest rigid target not accepted (jump)
         self.last_cmd = np.zeros(6)
         self.warnings: list[str] = []
+        self._Ad_tip_tool0 = adjoint(invert_transform(self.tool.T_tool0_tip))
         ts = np.linspace(0.0, 1.0, 5)
         self._needle_pts = np.array([[0, 0, self.tool.offset_m + t * self.tool.length_m, 1.0] for t in ts])
 
@@ -244,17 +247,18 @@ class SafetyLayer:
         if s > 1.0:
             dq /= s
         # 2. tool speed at the needle tip
-        Ad = adjoint(invert_transform(self.tool.T_tool0_tip))
-        Vt = Ad @ (J_b_tool0 @ dq)
-        s = max(np.linalg.norm(Vt[3:]) / cfg.tool_speed_m_s, np.linalg.norm(Vt[:3]) / cfg.tool_angular_rad_s)
+        Vt = self._Ad_tip_tool0 @ (J_b_tool0 @ dq)
+        s = max(math.sqrt(Vt[3:] @ Vt[3:]) / cfg.tool_speed_m_s, math.sqrt(Vt[:3] @ Vt[:3]) / cfg.tool_angular_rad_s)
         if s > 1.0:
             dq /= s
         # 3. braking before joint position limits
         lo = self.limits.lower + cfg.position_margin_rad
         hi = self.limits.upper - cfg.position_margin_rad
-        vmax_up = np.sqrt(2.0 * cfg.joint_accel * np.clip(hi - q, 0.0, None))
-        vmax_dn = np.sqrt(2.0 * cfg.joint_accel * np.clip(q - lo, 0.0, None))
-        dq = np.clip(dq, -vmax_dn, vmax_up)
+        brake = float(np.max(cfg.joint_speed)) ** 2 / (2.0 * cfg.joint_accel) + 0.01
+        if np.min(hi - q) < brake or np.min(q - lo) < brake:  # near a limit: cap the speed towards it
+            vmax_up = np.sqrt(2.0 * cfg.joint_accel * np.clip(hi - q, 0.0, None))
+            vmax_dn = np.sqrt(2.0 * cfg.joint_accel * np.clip(q - lo, 0.0, None))
+            dq = np.clip(dq, -vmax_dn, vmax_up)
         # 4. keep-out: do not take needle points deeper into the head sphere outside the corridor
         if head is not None and self.target is not None:
             dq = self._keepout(q, dq, T_base_tool0, head)
@@ -272,9 +276,16 @@ class SafetyLayer:
         return (T_base_tool0 @ self._needle_pts.T).T[:, :3]
 
     def _keepout(self, q, dq, T_now, head: HeadSphere) -> np.ndarray:
-        q_next = q + dq * self.cfg.keepout_lookahead_s
+        p_now = self.needle_points(T_now)
+        v = self.cfg.tool_speed_m_s
+        reach = 2.0 * (v * v / (2.0 * 0.5) + v * self.cfg.keepout_lookahead_s) + self.cfg.keepout_margin_m
+        if np.min(head.distance(p_now)) > reach:
+            return dq  # nothing near the head: the prediction cannot enter it
+        # where the arm would come to rest if it braked now: q + dq * (t_brake / 2 + latency)
+        t_brake = float(np.max(np.abs(dq))) / self.cfg.joint_accel
+        q_next = q + dq * (0.5 * t_brake + self.cfg.keepout_lookahead_s)
         T_next = self.kin.fk(q_next)
-        p_now, p_next = self.needle_points(T_now), self.needle_points(T_next)
+        p_next = self.needle_points(T_next)
         d_now = head.distance(p_now) - self.cfg.keepout_margin_m
         d_next = head.distance(p_next) - self.cfg.keepout_margin_m
         free = self.corridor.contains(p_next, self.target)

@@ -12,6 +12,10 @@ Two ways to run it:
 * ``start()`` / ``stop()``: a real-time thread calling ``step`` at ``rate_hz`` (125 Hz for a
   CB3, 500 Hz for an e-Series).
 
+``predict_target=True`` turns on :class:`TargetPredictor` (latency compensation and velocity
+feed-forward from the pose stream; not in the paper, see ``benchmarks/robot_control.py`` for
+what it buys).
+
 Operator actions (``arm``, ``disarm``, ``start_tracking``, ``stop_tracking``, ``estop``,
 ``reset``) return a :class:`CommandResult` (``ok``, ``reason``) and never raise for expected
 refusals. ``snapshot()`` is thread-safe. ``on_event(kind, payload)`` is called for
@@ -38,6 +42,45 @@ from monotracker.robot.safety import SafetyConfig, SafetyLayer, State, Transitio
 from monotracker.robot.units import m_to_mm, mm_to_m, transform_m_to_mm, transform_mm_to_m
 
 log = logging.getLogger(__name__)
+
+
+class TargetPredictor:
+    """Latency compensation (an extension beyond the paper; off by default).
+
+    The pose stream's targets are ``latency`` old when they arrive (capture stamp). From the
+    last two accepted targets the target's body twist is estimated (finite difference over
+    their capture stamps, then low-passed), and the controller gets the target extrapolated to
+    now, ``T @ exp(V (now - stamp))`` (at most ``horizon_s`` ahead), plus that twist as a
+    velocity feed-forward. Reset whenever a target is rejected."""
+
+    def __init__(self, horizon_s: float = 0.25, alpha: float = 0.5):
+        self.horizon_s = horizon_s
+        self.alpha = alpha
+        self.reset()
+
+    def reset(self) -> None:
+        self._last: tuple[np.ndarray, float] | None = None
+        self.V = np.zeros(6)
+
+    def update(self, T: np.ndarray, stamp: float) -> None:
+        from monotracker.robot.lie import log6, relative
+
+        if self._last is not None:
+            T0, s0 = self._last
+            dt = stamp - s0
+            if 1e-3 < dt < 0.5:
+                self.V = (1 - self.alpha) * self.V + self.alpha * log6(relative(T0, T)) / dt
+            elif dt >= 0.5:
+                self.V = np.zeros(6)
+        self._last = (T.copy(), stamp)
+
+    def predict(self, T: np.ndarray, now: float) -> tuple[np.ndarray, np.ndarray]:
+        from monotracker.robot.lie import exp6
+
+        if self._last is None:
+            return T, np.zeros(6)
+        h = float(np.clip(now - self._last[1], 0.0, self.horizon_s))
+        return T @ exp6(self.V * h), self.V.copy()
 
 
 @dataclass(frozen=True)
@@ -75,7 +118,8 @@ class Tracker:
                  params: APFFParams | None = None, safety_config: SafetyConfig | None = None,
                  tool: NeedleTool | None = None, corridor: Corridor | None = None,
                  rate_hz: float = 125.0, clock: Callable[[], float] = time.monotonic,
-                 on_event: Callable[[str, object], None] | None = None):
+                 on_event: Callable[[str, object], None] | None = None,
+                 predict_target: bool = False, prediction_horizon_s: float = 0.25):
         if arm is None:
             from monotracker.robot.sim_arm import SimulatedArm
 
@@ -99,6 +143,7 @@ class Tracker:
         self._run = threading.Event()
         self._n_warn = 0
         self._snap: TrackerSnapshot | None = None
+        self.predictor = TargetPredictor(prediction_horizon_s) if predict_target else None
 
     # ------------------------------------------------------------------ events
     def _on_transition(self, tr: Transition) -> None:
@@ -135,6 +180,14 @@ class Tracker:
         except ArmError as exc:
             return CommandResult(False, str(exc))
         return CommandResult(True, "connected")
+
+    def disconnect(self) -> None:
+        """Stop the loop thread (if running), stop the arm and close the connection."""
+        self.stop()
+        with self._lock:
+            if self.safety.state not in (State.DISARMED, State.ESTOPPED):
+                self.safety.disarm(self.clock(), "tracker disconnected")
+            self.arm_backend.disconnect()
 
     def arm(self) -> CommandResult:
         with self._lock:
@@ -178,6 +231,11 @@ class Tracker:
             if T.shape != (4, 4):
                 T = np.full((4, 4), np.nan)
             st = self.safety.check_target(T, float(stamp), bool(valid), now)
+            if self.predictor is not None:
+                if st.accepted:
+                    self.predictor.update(T, float(stamp))
+                else:
+                    self.predictor.reset()
             return CommandResult(st.accepted, st.reason)
 
     def set_head_sphere(self, centre_mm: np.ndarray, radius_mm: float, frame: str = "target") -> CommandResult:
@@ -240,7 +298,10 @@ class Tracker:
                     head = self.head_sphere_base()
                     self.controller.head = head
                     if self.safety.state == State.TRACKING and self.safety.target is not None:
-                        out = self.controller.step(T, Jb, dq, self.safety.target, dt)
+                        T_goal, V_goal = self.safety.target, None
+                        if self.predictor is not None:
+                            T_goal, V_goal = self.predictor.predict(T_goal, now)
+                        out = self.controller.step(T, Jb, dq, T_goal, dt, V_goal)
                         dq_des, smin, stage = out.dq, out.sigma_min, out.stage
                     else:
                         dq_des = np.zeros(6)
