@@ -7,8 +7,9 @@ from pathlib import Path
 
 from monotracker.errors import InputError
 
+from monotracker.sim.faults import FAULTS  # noqa: F401  (one list, owned by the twin)
+
 TRAJECTORIES = ("still", "drift", "breathing", "jumps")
-from monotracker.sim.faults import FAULTS  # noqa: E402  (one list, owned by the twin)
 
 
 @dataclass
@@ -33,6 +34,12 @@ class SessionConfig:
     (3.0): a pose that moved more than this from the last trusted one (per frame) is not trusted
     until ``confirm_frames`` (3) consecutive estimates agree with each other (a real head jump is
     followed after a short hold; a single wrong pose never moves the arm).
+    ``controller``: the APFF variant (``"APF-V" | "APF-A-I" | "APF-A-II"``, paper section 2.3).
+    ``predict_target``: the robot tracker's latency compensation (target velocity estimated from
+    the pose stream, extrapolated over the measured latency; not in the paper). Off by default:
+    on the twin it helps a breathing head a little and hurts drift and jumps a little (the tip error
+    is dominated by registration noise, which extrapolation amplifies); ``benchmarks/closed_loop.py``
+    measures both.
     """
 
     home: Path | None = None
@@ -51,6 +58,8 @@ class SessionConfig:
     max_jump_mm: float = 5.0
     max_jump_deg: float = 3.0
     confirm_frames: int = 3
+    controller: str = "APF-A-II"
+    predict_target: bool = False
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -67,5 +76,7 @@ class SessionConfig:
             raise InputError("camera_fps and control_hz must be positive")
         if self.min_fiducials < 3:
             raise InputError("min_fiducials must be at least 3 (a rigid pose needs 3 points)")
+        if self.controller not in ("APF-V", "APF-A-I", "APF-A-II"):
+            raise InputError(f"controller must be APF-V, APF-A-I or APF-A-II, not {self.controller!r}")
         if not str(self.arm_pin):
             raise InputError("arm_pin must not be empty")

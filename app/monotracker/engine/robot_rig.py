@@ -35,13 +35,12 @@ STANDBY_MM = 60.0
 
 def standby_configuration(layout, standby_mm: float = STANDBY_MM):
     """Joint angles (rad) with the needle tip ``standby_mm`` back from the planned entry on the
-    path's axis (true head at rest), or None if the IK fails."""
-    from monotracker.robot.kinematics import NeedleTool, ik
-    from monotracker.robot.units import transform_mm_to_m
+    path's axis (true head at rest), or None if the UR10 cannot reach it."""
+    from monotracker.robot.targets import reachable
 
     T = layout.planned_needle_pose().copy()
     T[:3, 3] -= standby_mm * T[:3, 2]
-    res = ik(transform_mm_to_m(T), T_tool0_tool=NeedleTool().T_tool0_tip)
+    res = reachable(T)
     return res.q if res.ok else None
 
 
@@ -73,7 +72,8 @@ class TrackerRobotRig(RobotRig):
             except ImportError as exc:
                 raise MonoTrackerError(f"the ur_rtde backend is not available: {exc}") from exc
             arm = URRTDEArm(ip)
-        self.tracker = Tracker(arm, clock=self.clock, rate_hz=cfg.control_hz, on_event=self._on_event)
+        self.tracker = Tracker(arm, variant=cfg.controller, clock=self.clock, rate_hz=cfg.control_hz,
+                               on_event=self._on_event, predict_target=cfg.predict_target)
         r = self.tracker.connect()
         if not r.ok:
             raise MonoTrackerError(f"robot did not connect: {r.reason}")

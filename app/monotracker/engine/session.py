@@ -55,6 +55,24 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.subscribe(callback) # callback(Event) on every alert/event (engine thread); returns unsubscribe()
     s.audit_entries(limit=None) -> list[AuditEntry]
 
+Alert codes (``Event.kind == "alert"``; level in brackets) the UI can rely on:
+``occlusion`` [warning] fewer than ``min_fiducials`` matched, arm holds; ``pose_jump`` [warning] the
+pose disagrees with the last trusted one (a wrong pose or a real jump; followed after
+``confirm_frames`` consistent frames), arm holds; ``bad_pose`` [warning] FRE too large; ``pose_lost``
+[warning] the estimator failed; ``pose_stale`` [warning] freshest trusted pose older than
+``max_pose_age_s``; ``camera_freeze`` [alarm] no new frame for ``freeze_after_s``; ``resumed`` [info]
+the pose is trusted again (tracking resumes by itself); ``robot_disconnected`` [alarm] /
+``robot_connected`` [info]; ``robot_warning`` [warning] from the robot's safety layer; ``estop``
+[alarm]; ``arm_refused`` [warning] wrong PIN; ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
+/ ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
+state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
+``arm``, ``tracking_started``, ``robot_state``, ``fault_injected``, ...); all of them are in the audit log.
+
+Camera sources: ``"sim"`` is the digital-twin camera at the level of detected fiducial points
+(``engine/vision_rig.py``: exact sphere-ellipse centres + noise -> the real registration). Device,
+file and folder sources need the vision package's frame sources and detector, which are not wired
+in this build yet (``set_camera`` accepts them; ``start_camera`` says so in its message).
+
 Differences from SESSION_API.md (refinements, same shape): ``clock``/``advance`` for the
 simulated-clock demo; ``unlock_fiducials``, ``new_plan``, ``use_sample_plan``, ``set_hand_eye``,
 ``inject_fault``, ``audit_entries``; ``snap.scene`` carries the geometry for the 3D views; alerts

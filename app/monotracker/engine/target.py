@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from monotracker.geometry import apply_transform, make_transform
+from monotracker.geometry import apply_transform
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -30,32 +30,20 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return np.asarray(v, float) / n
 
 
-def needle_axis_frame(z: np.ndarray, x_hint: np.ndarray | None = None) -> np.ndarray:
-    """3x3 rotation with third column ``z`` (unit) and first column closest to ``x_hint``."""
-    z = _unit(z)
-    hint = np.array([1.0, 0.0, 0.0]) if x_hint is None else np.asarray(x_hint, float)
-    x = hint - (hint @ z) * z
-    if np.linalg.norm(x) < 1e-6:  # hint parallel to the axis: fall back to another base axis
-        for alt in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])):
-            x = alt - (alt @ z) * z
-            if np.linalg.norm(x) > 1e-6:
-                break
-    x = _unit(x)
-    y = np.cross(z, x)
-    return np.column_stack([x, y, z])
-
-
 def needle_target(T_base_cam: np.ndarray, T_cam_ct: np.ndarray, entry_ct: np.ndarray, target_ct: np.ndarray,
                   reference_R: np.ndarray | None = None, standoff_mm: float = 0.0) -> np.ndarray:
     """``T_base_needle`` (4x4, mm): tip at the entry (minus ``standoff_mm`` along the path), +z from
-    entry to target, roll closest to ``reference_R`` (3x3 rotation in base, e.g. the current tip)."""
+    entry to target, roll closest to ``reference_R`` (3x3 rotation in base, e.g. the current tip).
+
+    The path is mapped into the base frame (``T_base_cam @ T_cam_ct``) and turned into a pose by
+    the robot package's ``needle_pose_from_path`` (one definition of the needle frame)."""
+    from monotracker.robot.targets import needle_pose_from_path
+
     T_base_ct = np.asarray(T_base_cam, float) @ np.asarray(T_cam_ct, float)
     e = apply_transform(T_base_ct, np.asarray(entry_ct, float))
     g = apply_transform(T_base_ct, np.asarray(target_ct, float))
-    z = _unit(g - e)
     x_hint = None if reference_R is None else np.asarray(reference_R, float)[:, 0]
-    R = needle_axis_frame(z, x_hint)
-    return make_transform(R, e - standoff_mm * z)
+    return needle_pose_from_path(e, g, standoff_mm=standoff_mm, x_hint=x_hint)
 
 
 def tip_and_axis_error(T_base_tip: np.ndarray, T_base_ct: np.ndarray, entry_ct: np.ndarray,
