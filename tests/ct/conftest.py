@@ -9,24 +9,13 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 
-from monotracker.sim.ct_phantom import ScanParams, generate_ct
+from monotracker.sim.ct_phantom import ScanParams, generate_ct, patch_scan_params
 from monotracker.sim.phantom import default_phantom
 
 
 def patch_params(phantom=None, margin_mm: float = 7.0, **kw) -> ScanParams:
-    """A scan of only the fiducial patch (fast): by default 0.5 x 0.5 x 1.0 mm, the default
-    oblique direction and noise. The grid covers the balls and the clip plus ``margin_mm``."""
-    ph = phantom or default_phantom()
-    base = ScanParams(spacing_mm=(0.5, 0.5, 1.0), fov_circle=False)
-    D = np.asarray(kw.get("direction", base.direction), float)
-    sp = np.asarray(kw.get("spacing_mm", base.spacing_mm), float)
-    pts = np.vstack([ph.fiducial_centres_lps, *ph.clip_segment_lps])
-    g = pts @ D
-    lo, hi = g.min(axis=0) - margin_mm, g.max(axis=0) + margin_mm
-    size = tuple(int(np.ceil((h - l) / s)) + 1 for l, h, s in zip(lo, hi, sp))
-    args = dict(spacing_mm=tuple(sp), size=size, grid_centre_lps=D @ ((lo + hi) / 2.0), fov_circle=False)
-    args.update(kw)
-    return ScanParams(**args)
+    """A scan of only the fiducial patch (fast): 0.5 x 0.5 x 1.0 mm, oblique, noisy."""
+    return patch_scan_params(phantom, margin_mm, **kw)
 
 
 @pytest.fixture(scope="session")
@@ -73,7 +62,7 @@ def write_dicom_series(image: sitk.Image, folder: Path, series_uid: str | None =
         sl.SetMetaData("0020|0032", "\\".join(f"{x:.6f}" for x in pos))
         sl.SetMetaData("0020|0013", str(k + 1))
         sl.SetMetaData("0008|0018", f"{series_uid}.{k + 1}")
-        p = folder / f"slice_{k:04d}.dcm"
+        p = folder / f"{description}_{k:04d}.dcm"
         writer.SetFileName(str(p))
         writer.Execute(sl)
         paths.append(p)

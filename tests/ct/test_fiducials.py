@@ -79,3 +79,46 @@ def test_paper_baseline_runs_and_is_less_accurate(patch_volume, patch_ct):
     e_ours, _, _ = match(ours.centres, truth)
     assert base.ok and len(e_base) == 9
     assert e_ours.mean() < e_base.mean()
+
+
+def test_no_fiducials_is_not_an_error():
+    from monotracker.ct.volume import Volume
+    from monotracker.sim.ct_phantom import ScanParams, generate_ct
+
+    ph = default_phantom()
+    # the left-posterior side of the head: scalp, skull, brain, air; no balls, no clip
+    ct = generate_ct(ph, ScanParams(spacing_mm=(0.8, 0.8, 1.5), size=(70, 70, 30), grid_centre_lps=ph.centre_lps + [60.0, 45.0, -10.0]))
+    det = detect_fiducials(Volume.from_image(ct.to_sitk()))
+    assert not det.ok and det.fiducials == [] and det.centres.shape == (0, 3)
+    assert "no objects denser than bone" in det.reason
+
+
+def test_wrong_nominal_radius_rejects_with_reason(patch_volume):
+    det = detect_fiducials(patch_volume, radius_mm=2.0)
+    assert not det.ok and "none is a sphere of the expected size" in det.reason
+    assert sum("wrong size" in r.reason for r in det.rejected) == 9
+
+
+def test_estimated_radius_for_other_ball_sizes():
+    from conftest import patch_params
+
+    from monotracker.ct.volume import Volume
+    from monotracker.sim.ct_phantom import generate_ct, with_radius
+
+    ph = with_radius(default_phantom(), 2.5)
+    ct = generate_ct(ph, patch_params(ph, spacing_mm=(0.6, 0.6, 1.2), noise_hu=25.0))
+    det = detect_fiducials(Volume.from_image(ct.to_sitk()))
+    err, missed, false = match(det.centres, ct.fiducial_centres_lps)
+    assert (missed, false) == (0, 0)
+    assert err.mean() < 0.05
+    assert np.allclose(det.radii_mm, 2.5, atol=0.1)
+
+
+def test_result_json_and_order(patch_volume):
+    import json
+
+    det = detect_fiducials(patch_volume)
+    d = json.loads(json.dumps(det.to_dict()))
+    assert d["frame"] == "LPS" and d["units"] == "mm" and len(d["fiducials"]) == 9
+    s = det.centres[:, 2]
+    assert np.all(np.diff(s) <= 0)  # superior first

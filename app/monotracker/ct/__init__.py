@@ -8,6 +8,7 @@ from monotracker.ct.fiducials import (
     detect_fiducials_paper,
     estimate_levels,
 )
+from monotracker.ct.surface import head_surface
 from monotracker.ct.volume import Volume, load_volume
 
 __all__ = [
@@ -18,5 +19,6 @@ __all__ = [
     "detect_fiducials",
     "detect_fiducials_paper",
     "estimate_levels",
+    "head_surface",
     "load_volume",
 ]

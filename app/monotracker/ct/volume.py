@@ -22,6 +22,8 @@ import SimpleITK as sitk
 from monotracker.errors import InputError
 
 log = logging.getLogger(__name__)
+# ITK's own warnings go to stderr and would look like errors to the operator; we report ours.
+sitk.ProcessObject.SetGlobalWarningDisplay(False)
 
 #: File name endings SimpleITK reads for us (besides DICOM folders / single DICOM files).
 VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd", ".dcm")
@@ -103,11 +105,51 @@ def _one_line(exc: BaseException) -> str:
     return text[:200]
 
 
+def _check_nifti_complete(path: Path) -> None:
+    """ITK reads a truncated NIfTI without complaint (the missing voxels come back as zeros),
+    so check the data length against the NIfTI-1 header ourselves."""
+    import gzip
+    import struct
+
+    opener = gzip.open if path.name.lower().endswith(".gz") else open
+    try:
+        with opener(path, "rb") as fh:
+            hdr = fh.read(348)
+            if len(hdr) < 348:
+                raise InputError(f"{path.name} is truncated (incomplete NIfTI header)")
+            endian = "<" if struct.unpack("<i", hdr[:4])[0] == 348 else ">"
+            if struct.unpack(endian + "i", hdr[:4])[0] != 348:
+                return  # NIfTI-2 or not NIfTI: leave it to ITK
+            dims = struct.unpack(endian + "8h", hdr[40:56])
+            bitpix = struct.unpack(endian + "h", hdr[72:74])[0]
+            vox_offset = int(struct.unpack(endian + "f", hdr[108:112])[0])
+            n = int(np.prod([max(1, d) for d in dims[1 : 1 + max(1, min(dims[0], 7))]], dtype=np.int64))
+            need = vox_offset + n * bitpix // 8
+            have = 348
+            while True:
+                chunk = fh.read(1 << 22)
+                if not chunk:
+                    break
+                have += len(chunk)
+    except (EOFError, OSError, struct.error) as exc:
+        raise InputError(f"{path.name} is truncated or corrupt ({_one_line(exc)})") from None
+    if have < need:
+        raise InputError(f"{path.name} is truncated: {have} of {need} bytes of image data")
+
+
 def _read_file(path: Path) -> sitk.Image:
+    if path.name.lower().endswith((".nii", ".nii.gz")):
+        _check_nifti_complete(path)
     try:
         return sitk.ReadImage(str(path))
     except RuntimeError as exc:
-        raise InputError(f"cannot read {path.name}: not a readable CT volume or the file is truncated ({_one_line(exc)})") from None
+        text = str(exc)
+        if "Unable to determine ImageIO reader" in text:
+            raise InputError(
+                f"cannot read {path.name}: not a recognised volume (use a DICOM folder, .nii/.nii.gz, .nrrd, .mha/.mhd) or a damaged file"
+            ) from None
+        log.debug("ITK could not read %s: %s", path, text)
+        raise InputError(f"cannot read {path.name}: the file is truncated or corrupt") from None
 
 
 def _series_in(folder: Path) -> list[tuple[str, list[str]]]:

@@ -327,6 +327,23 @@ def _streaks(pts, centre, axis_vec, D, amplitude, rng) -> np.ndarray:
     return amplitude * pattern * fall * inside
 
 
+def patch_scan_params(phantom: HeadPhantom | None = None, margin_mm: float = 7.0, **kw) -> ScanParams:
+    """ScanParams for a grid that covers only the fiducials and the clip (plus ``margin_mm``),
+    with the same spacing/direction conventions: quick to generate for tests and sweeps.
+    Defaults: 0.5 x 0.5 x 1.0 mm, the default oblique direction; ``kw`` overrides any field."""
+    ph = phantom or default_phantom()
+    base = ScanParams(spacing_mm=(0.5, 0.5, 1.0), fov_circle=False)
+    D = np.asarray(kw.get("direction", base.direction), float)
+    sp = np.asarray(kw.get("spacing_mm", base.spacing_mm), float)
+    pts = np.vstack([ph.fiducial_centres_lps, *ph.clip_segment_lps])
+    g = pts @ D
+    lo, hi = g.min(axis=0) - margin_mm, g.max(axis=0) + margin_mm
+    size = tuple(int(np.ceil((h - l) / s)) + 1 for l, h, s in zip(lo, hi, sp))
+    args = dict(spacing_mm=tuple(float(x) for x in sp), size=size, grid_centre_lps=D @ ((lo + hi) / 2.0), fov_circle=False)
+    args.update(kw)
+    return ScanParams(**args)
+
+
 # ---------------------------------------------------------------------------- sample data
 #: Scan parameters of the bundled sample CT (see the module docstring for why).
 SAMPLE_PARAMS = ScanParams()
