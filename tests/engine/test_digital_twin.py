@@ -177,3 +177,22 @@ def test_real_clock_threads_track_and_snapshots_are_safe_from_other_threads(plan
     finally:
         s.shutdown()
     assert not [t for t in threading.enumerate() if t.name.startswith(("monotracker", "robot-tracker"))]
+
+
+def test_restart_reloads_the_ct_for_the_views_and_keeps_the_confirmed_fiducials(planned_home, tmp_path):
+    home = _home_with_plan(planned_home, tmp_path)
+    (home / "plan.json").write_text((home / "plan.json").read_text())
+    s = Session(SessionConfig(home=home, clock="real"))
+    try:
+        before = s.plan_copy().to_dict()
+        s.start()
+        job = s.wait_for_job(60)
+        assert job is not None and job.error is None
+        snap = s.snapshot()
+        assert snap.ct is not None and snap.head_mesh is not None and len(snap.head_mesh.faces) > 100
+        assert snap.plan.angle_to_skin_normal_deg is not None and snap.plan.angle_to_skin_normal_deg < 60
+        after = s.plan_copy().to_dict()
+        assert after["fiducials"] == before["fiducials"] and after["entry_lps_mm"] == before["entry_lps_mm"]
+        assert snap.robot.state == "disarmed"
+    finally:
+        s.shutdown()

@@ -106,17 +106,24 @@ class TrackingLoop:
     def now(self) -> float:
         return float(self.s.clock())
 
+    def _mark(self, key: str) -> bool:
+        """True the first time ``key`` is raised in this episode (thread-safe)."""
+        with self._lock:
+            if key in self._alerted:
+                return False
+            self._alerted.add(key)
+            return True
+
     def _alert_once(self, key: str, level: str, code: str, message: str, data: dict | None = None) -> None:
-        if key in self._alerted:
-            return
-        self._alerted.add(key)
-        self.s.alert(level, code, message, data)
+        if self._mark(key):
+            self.s.alert(level, code, message, data)
 
     def _clear_alert(self, key: str) -> bool:
-        if key in self._alerted:
-            self._alerted.discard(key)
-            return True
-        return False
+        with self._lock:
+            if key in self._alerted:
+                self._alerted.discard(key)
+                return True
+            return False
 
     def add_tick_hook(self, fn) -> None:
         """``fn(loop, t)`` after every control tick (clock="sim"): metrics for demo/benchmark."""
@@ -354,9 +361,8 @@ class TrackingLoop:
             if code == "acquiring" and self._holding_code not in (None, "acquiring"):
                 return  # re-acquiring after an occlusion/fault: keep the cause for the resume alert
             self._holding_code = code
-        if code in self._alerted:
+        if not self._mark(code):
             return
-        self._alerted.add(code)
         tracking = self.robot_state() in ("tracking", "holding")
         if code == "acquiring":
             self.s.record("pose_acquiring", reason)
@@ -369,8 +375,7 @@ class TrackingLoop:
         with self._lock:
             was, code = self._holding_reason, self._holding_code
             self._holding_reason = self._holding_code = None
-        for k in [k for k in self._alerted if k != "robot_disconnected"]:
-            self._alerted.discard(k)
+            self._alerted &= {"robot_disconnected"}
         if was is None:
             return
         if code == "acquiring":

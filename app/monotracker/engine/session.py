@@ -213,6 +213,12 @@ class Session:
             self._started = True
         self._bus.start()
         self._loop.start_threads()
+        # After a restart the plan is back but the CT volume and surface are not: reload them in
+        # the background for the views (the saved fiducials are kept, see load_ct).
+        with self._lock:
+            ct_path = self._plan.ct_path if self._ct is None else None
+        if ct_path and Path(ct_path).exists():
+            self.load_ct(ct_path)
         return _ok("started")
 
     def shutdown(self) -> None:
