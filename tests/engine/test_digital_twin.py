@@ -92,8 +92,12 @@ def test_partial_occlusion_keeps_tracking_with_four_and_holds_with_three(planned
         s.advance(0.5)
         snap = s.snapshot()
         assert snap.robot.state == "tracking" and snap.alerts[-1].code == "resumed"
-        codes = [e.code for e in s.audit_entries()]
+        rows = s.audit_entries()
+        codes = [e.code for e in rows]
         assert "occlusion" in codes and "resumed" in codes
+        reg = next(e for e in rows if e.code == "registration")  # the first lock is audited with its pose
+        assert reg.data["n_matched"] == 9 and np.asarray(reg.data["T_cam_ct_mm"]).shape == (4, 4)
+        assert next(e for e in rows if e.code == "tracking_started").data["registration"]["fre_mm"] < 1.0
     finally:
         s.shutdown()
 

@@ -241,7 +241,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         "cpu_s": cpu,
         "loop_wall_s": wall_loop,
         "realtime_factor": (sim_s - t_loop0) / wall_loop if wall_loop > 0 else None,
-        "clock": "simulated (lock-step; pose available after its measured compute time)",
+        "clock": "simulated, lock-step; a pose is available 30 ms (camera) + its measured compute time after capture",
         "cpus_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "frames": frames,
         "fps": frames / sim_s if sim_s > 0 else 0.0,

@@ -199,7 +199,9 @@ class TrackingLoop:
         r = self.robot.start_tracking()
         self._refresh_robot_state()
         if r.ok:
-            self.s.record("tracking_started", "tracking started")
+            self.s.record("tracking_started", "tracking started",
+                          {"registration": self._registration_data(rec.sample), "T_base_target_mm":
+                           None if self._target_T is None else self._target_T.tolist()})
         else:
             self.s.record("tracking_refused", f"tracking refused: {r.message}", level="warning")
         return r
@@ -325,7 +327,7 @@ class TrackingLoop:
         if v.trusted:
             self._push_target(sample, now)
             if self._holding_reason is not None:
-                self._resume(f"pose trusted again ({sample.n_matched} fiducials)")
+                self._resume(f"pose trusted again ({sample.n_matched} fiducials)", self._registration_data(sample))
         else:
             code = {"occlusion": "occlusion", "fre": "bad_pose", "jump": "pose_jump", "estimator": "pose_lost",
                     "acquiring": "acquiring"}[v.code]
@@ -371,7 +373,14 @@ class TrackingLoop:
         lvl = "alarm" if code in ("camera_freeze", "robot_disconnected", "engine_error") else level
         self.s.alert(lvl, code, msg, {"reason": reason, "tracking": tracking})
 
-    def _resume(self, why: str) -> None:
+    @staticmethod
+    def _registration_data(smp: components.PoseSample) -> dict:
+        """What the audit log keeps about a registration (JSON-ready)."""
+        return {"t_capture": smp.t_capture, "frame": smp.frame_index, "n_matched": smp.n_matched,
+                "fre_mm": smp.fre_mm, "predicted_tre_mm": smp.predicted_tre_mm,
+                "T_cam_ct_mm": None if smp.T_cam_ct is None else np.asarray(smp.T_cam_ct).tolist()}
+
+    def _resume(self, why: str, data: dict | None = None) -> None:
         with self._lock:
             was, code = self._holding_reason, self._holding_code
             self._holding_reason = self._holding_code = None
@@ -379,10 +388,11 @@ class TrackingLoop:
         if was is None:
             return
         if code == "acquiring":
-            self.s.record("pose_acquired", why)
+            self.s.record("registration", f"registration acquired: {why}", data)
             return
         tracking = self.robot_state() in ("tracking", "holding")
-        self.s.alert("info", "resumed", why + ("; tracking resumed" if tracking else ""), {"after": was, "cause": code})
+        self.s.alert("info", "resumed", why + ("; tracking resumed" if tracking else ""),
+                     {"after": was, "cause": code, "registration": data})
 
     def watchdogs(self, now: float) -> None:
         """Camera freeze, stale pose, robot state (every engine tick)."""
