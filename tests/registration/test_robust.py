@@ -36,3 +36,28 @@ def test_random_layouts(seed):
     s = make_scene(np.random.default_rng(200 + seed), layout="random", n_occluded=1, n_stray=1)
     r = register(s.fiducials_ct, s.image_points, s.K, s.dist)
     _check(s, r)
+
+
+@pytest.mark.parametrize("cfg", [dict(n_occluded=5), dict(n_occluded=4, n_stray=2, noise_px=1.0),
+                                 dict(fiducial_ids=range(5), noise_px=1.0)])
+def test_few_fiducials_right_or_refused(cfg):
+    """Down to 4 seen: each result is either entirely right or refused with a reason."""
+    right = 0
+    for seed in range(8):
+        s = make_scene(np.random.default_rng(300 + seed), **cfg)
+        r = register(s.fiducials_ct, s.image_points, s.K, s.dist)
+        if r.ok:
+            assert sorted(r.pairs) == sorted(s.truth_pairs)
+            right += 1
+        else:
+            assert r.reason and r.T_cam_ct is None
+    assert right >= 3
+
+
+def test_predicted_tre_and_fre_are_reported():
+    s = make_scene(np.random.default_rng(400))
+    r = register(s.fiducials_ct, s.image_points, s.K, s.dist)
+    p = r.predicted_tre_mm(s.targets_ct)
+    assert p.shape == (len(s.targets_ct),) and np.all(p > 0) and np.all(p < 10)
+    assert np.isfinite(r.fre_mm) and r.fre_mm >= 0
+    assert r.timing["total_s"] > 0 and r.method == "robust"

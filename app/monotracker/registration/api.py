@@ -11,7 +11,7 @@ from monotracker.errors import InputError
 from .projection import undistort_to_normalised
 from .report import fre_mm, pose_covariance, sigma_from_residuals
 from .result import Registration
-from .robust import RobustOptions, robust_search
+from .robust import RobustOptions, is_ambiguous, robust_search
 
 METHODS = ("robust", "paper", "naive")
 
@@ -28,8 +28,10 @@ DUPLICATE_MM = 1.0
 COPLANAR_RATIO = 0.03
 
 
-def _fail(method: str, reason: str, t0: float, **kw) -> Registration:
-    return Registration(ok=False, reason=reason, method=method, timing={"total_s": time.perf_counter() - t0}, **kw)
+def _fail(method: str, reason: str, t0: float, timing: dict | None = None, **kw) -> Registration:
+    timing = dict(timing or {})
+    timing["total_s"] = time.perf_counter() - t0
+    return Registration(ok=False, reason=reason, method=method, timing=timing, **kw)
 
 
 def _check_inputs(fiducials_ct, image_points, K, dist, radius_mm, prior):
@@ -113,7 +115,7 @@ def register(fiducials_ct, image_points, K, dist=None, radius_mm=None, method="r
     fxy = np.array([K[0, 0], K[1, 1]])
     timing = {"undistort_s": time.perf_counter() - t0}
     stats: dict = {}
-    runner = None
+    runner = best = None
     used_prior = False
     ref = None
     pairs: tuple = ()
@@ -144,10 +146,12 @@ def register(fiducials_ct, image_points, K, dist=None, radius_mm=None, method="r
             pairs, ref, stats2 = naive_search(X, xn, K, fxy, radius, opts, rng_seed=rng_seed)
         stats.update(stats2)
         timing["search_s"] = time.perf_counter() - t1
-    return _finish(method, X, xn, fxy, radius, pairs, ref, runner, t0, timing, stats, used_prior, len(pts))
+    return _finish(method, X, xn, fxy, radius, pairs, ref, best, runner, opts, t0, timing, stats, used_prior,
+                   len(pts))
 
 
-def _finish(method, X, xn, fxy, radius, pairs, ref, runner, t0, timing, stats, used_prior, m) -> Registration:
+def _finish(method, X, xn, fxy, radius, pairs, ref, best, runner, opts, t0, timing, stats, used_prior,
+            m) -> Registration:
     kw = dict(timing=timing, stats=stats)
     if ref is None or len(pairs) < 4:
         timing["total_s"] = time.perf_counter() - t0
@@ -175,13 +179,18 @@ def _finish(method, X, xn, fxy, radius, pairs, ref, runner, t0, timing, stats, u
         reason = "pose puts matched fiducials behind the camera"
     elif rms > ACCEPT_RMS_PX or mags.max() > ACCEPT_MAX_PX:
         reason = f"reprojection error too large (RMS {rms:.1f} px, max {mags.max():.1f} px)"
-    elif runner is not None and runner.count >= len(pairs) and runner.rms_px <= min(
-            ACCEPT_RMS_PX, max(rms, 0.5) * 2.0):
+    elif runner is not None and best is not None and is_ambiguous(best, runner, opts):
         reason = (f"ambiguous: two different assignments of {len(pairs)} points explain the image "
                   f"(RMS {rms:.2f} px vs {runner.rms_px:.2f} px)")
         stats["ambiguous_pairs"] = list(runner.pairs)
     if reason:
+        # A refused result carries no pose: the rejected fit stays in ``stats`` for diagnosis.
+        stats["rejected_T_cam_ct"] = reg.T_cam_ct
+        stats["rejected_pairs"] = reg.pairs
         reg.ok = False
         reg.reason = reason
+        reg.T_cam_ct = None
+        reg.pose_covariance = None
+        reg.pairs = []
     timing["total_s"] = time.perf_counter() - t0
     return reg

@@ -2,10 +2,9 @@
 
 Parametrisation: a left perturbation of ``T_cam_ct``: ``R <- exp([w]x) R``, ``t <- t + dt``
 (w in rad, dt in mm, both in the camera frame). Residuals are normalised-plane residuals
-times (fx, fy), i.e. equivalent pinhole pixels. The Jacobian is taken by central-free forward
-differences evaluated in one batched projection (7 poses at once), which keeps the exact
-sphere-bias model (``radius_mm``) without hand-derived derivatives; for 4-12 points an
-iteration costs tens of microseconds. Our own LM rather than ``cv2.solvePnPRefineLM`` because
+times (fx, fy), i.e. equivalent pinhole pixels. The Jacobian is
+analytic, including the exact sphere-bias model (``radius_mm``): for a centre (a, b, c)
+the prediction is (a, b) s(c) with s = c / (c^2 - R^2), ds/dc = -(c^2 + R^2) / (c^2 - R^2)^2. Our own LM rather than ``cv2.solvePnPRefineLM`` because
 the latter knows nothing of the ellipse-centre model.
 """
 
@@ -47,28 +46,53 @@ def _residuals(R, t, X, obs, fxy, radius_mm):
     return (project_normalised(Xc, radius_mm) - obs) * fxy
 
 
+def _residuals_and_jacobian(R, t, X, obs, fxy, radius_mm):
+    """Residuals r (2k,) and analytic Jacobian (2k, 6) w.r.t. the left perturbation (w, dt)."""
+    q = X @ R.T                      # R X (k, 3)
+    Xc = q + t
+    a, b, c = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+    if radius_mm:
+        den = c * c - radius_mm * radius_mm
+        s = c / den
+        ds = -(c * c + radius_mm * radius_mm) / (den * den)   # d s / d c
+    else:
+        s = 1.0 / c
+        ds = -1.0 / (c * c)
+    r = (np.stack([a * s, b * s], axis=1) - obs) * fxy
+    k = len(X)
+    # d proj / d Xc  (k, 2, 3)
+    Dp = np.zeros((k, 2, 3))
+    Dp[:, 0, 0] = s
+    Dp[:, 1, 1] = s
+    Dp[:, 0, 2] = a * ds
+    Dp[:, 1, 2] = b * ds
+    Dp *= fxy[None, :, None]
+    # d Xc / d w = -[q]x ; d Xc / d dt = I
+    Qx = np.zeros((k, 3, 3))
+    Qx[:, 0, 1], Qx[:, 0, 2] = q[:, 2], -q[:, 1]
+    Qx[:, 1, 0], Qx[:, 1, 2] = -q[:, 2], q[:, 0]
+    Qx[:, 2, 0], Qx[:, 2, 1] = q[:, 1], -q[:, 0]
+    J = np.concatenate([Dp @ Qx, Dp], axis=2).reshape(2 * k, 6)
+    return r.ravel(), J
+
+
 def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
-                radius_mm: float | None = None, max_iter: int = 20, tol: float = 1e-10) -> Refinement:
+                radius_mm: float | None = None, max_iter: int = 20, tol: float = 1e-9) -> Refinement:
     """LM refinement of ``T0`` (4x4) for model points X (k, 3) mm and normalised observations
     obs (k, 2); ``fxy`` = (fx, fy) converts residuals to pixels."""
     R = T0[:3, :3].copy()
     t = T0[:3, 3].copy()
-    eps = np.array([1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4])
-    steps = np.diag(eps)
     lam = 1e-3
-    r = _residuals(R, t, X, obs, fxy, radius_mm).ravel()
+    r, J = _residuals_and_jacobian(R, t, X, obs, fxy, radius_mm)
     cost = r @ r
     converged = False
     it = 0
-    J = None
     for it in range(1, max_iter + 1):
-        Rp = so3_exp(steps[:, :3]) @ R
-        tp = t + steps[:, 3:]
-        rp = _residuals(Rp, tp, X, obs, fxy, radius_mm).reshape(6, -1)
-        J = ((rp - r) / eps[:, None]).T
         JtJ = J.T @ J
         g = J.T @ r
         improved = False
+        rel = 0.0
+        dx = np.zeros(6)
         for _ in range(8):
             A = JtJ + lam * np.diag(np.diag(JtJ) + 1e-12)
             try:
@@ -78,12 +102,11 @@ def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
                 continue
             Rn = so3_exp(dx[:3]) @ R
             tn = t + dx[3:]
-            rn = _residuals(Rn, tn, X, obs, fxy, radius_mm).ravel()
+            rn, Jn = _residuals_and_jacobian(Rn, tn, X, obs, fxy, radius_mm)
             cn = rn @ rn
             if np.isfinite(cn) and cn <= cost:
-                R, t, r = Rn, tn, rn
                 rel = (cost - cn) / max(cost, 1e-30)
-                cost = cn
+                R, t, r, J, cost = Rn, tn, rn, Jn, cn
                 lam = max(lam * 0.3, 1e-9)
                 improved = True
                 break
@@ -91,10 +114,6 @@ def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
         if not improved or rel < tol or np.linalg.norm(dx) < 1e-12:
             converged = True
             break
-    Rp = so3_exp(steps[:, :3]) @ R
-    tp = t + steps[:, 3:]
-    rp = _residuals(Rp, tp, X, obs, fxy, radius_mm).reshape(6, -1)
-    J = ((rp - r) / eps[:, None]).T
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = t

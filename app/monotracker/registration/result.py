@@ -14,7 +14,8 @@ class Registration:
     """Outcome of :func:`monotracker.registration.register`.
 
     ``T_cam_ct`` (4x4, mm) maps CT points into the OpenCV camera frame; it is ``None`` when
-    ``ok`` is False (``reason`` says why). ``pairs`` lists (image index, fiducial index);
+    ``ok`` is False (``reason`` says why; a fit that was refused, e.g. as ambiguous, is kept in
+    ``stats["rejected_T_cam_ct"]`` / ``stats["rejected_pairs"]`` for diagnosis only). ``pairs`` lists (image index, fiducial index);
     ``residuals_px`` holds the per-pair reprojection error magnitude (equivalent pinhole px)
     in the order of ``pairs`` and ``residual_vectors_px`` the (k, 2) vectors (observed minus
     predicted). ``fre_mm`` is the monocular FRE (RMS point-to-ray distance, see
