@@ -13,6 +13,7 @@ target frame so that it moves with the head.
 from __future__ import annotations
 
 import logging
+import threading
 
 import numpy as np
 
@@ -82,6 +83,7 @@ class TrackerRobotRig(RobotRig):
         self._speed = 0.0
         self._head_ct: tuple[np.ndarray, float] | None = None
         self._status_cache = None
+        self._status_lock = threading.Lock()
         self.tracker.step(self.clock())
 
     # ------------------------------------------------------------------ events from the tracker
@@ -178,7 +180,11 @@ class TrackerRobotRig(RobotRig):
 
     def status(self) -> RobotStatus:
         """Robot state; for the simulated arm, q/qd/tip are the arm's TRUE state (the twin's truth,
-        also after a disconnect, when the tracker can no longer read the arm)."""
+        also after a disconnect, when the tracker can no longer read the arm). Thread-safe."""
+        with self._status_lock:
+            return self._status()
+
+    def _status(self) -> RobotStatus:
         snap = self.tracker.snapshot()
         if snap is None:
             return RobotStatus("disarmed", False, "not started")
