@@ -1,1 +1,19 @@
-"""vision"""
+"""vision: frame sources, camera model and calibration, fiducial detectors, pose stream.
+
+Public API (see docs/vision.md):
+* :mod:`.frames`: ``Frame``, ``FrameSource``, ``OpenCVCamera``, ``VideoFileSource``,
+  ``ImageFolderSource``, ``open_source``, ``FrameWatchdog``, ``CameraDisconnected``;
+  the simulator is :class:`monotracker.sim.camera_sim.SimulatedCamera`.
+* :mod:`.camera_model`: ``CameraModel`` (K, dist, image_size; load/save OpenCV YAML / JSON).
+* :mod:`.detect_classical`: ``ClassicalDetector``; :mod:`.detect_learned`: ``LearnedDetector``;
+  both return :class:`.detection.Detection` (centres px, axes px, angle, score).
+* :mod:`.pose_stream`: ``PoseStream`` and ``PoseEstimate``.
+"""
+
+from .camera_model import CameraModel, default_camera
+from .detection import Detection, ImageFiducial
+from .frames import (CameraDisconnected, Frame, FrameSource, FrameWatchdog, ImageFolderSource, OpenCVCamera,
+                     VideoFileSource, open_source)
+
+__all__ = ["CameraModel", "default_camera", "Detection", "ImageFiducial", "CameraDisconnected", "Frame",
+           "FrameSource", "FrameWatchdog", "ImageFolderSource", "OpenCVCamera", "VideoFileSource", "open_source"]

@@ -1,0 +1,516 @@
+"""Simulated camera: renders the analytic head phantom as a calibrated camera would see it.
+
+Geometry is exact where it matters:
+
+* Fiducials: an exact ray-sphere rasteriser. Each pixel centre's ray comes from the camera
+  model with distortion (undistorted once at start-up), so every sphere's silhouette is the
+  true cone of rays tangent to the sphere, distorted as the lens would. Edges are
+  anti-aliased with the angular signed distance to the silhouette cone; each sphere is
+  rendered only in its own region of interest. Depth is tested against the skin ellipsoid
+  per pixel, so the head hides a sphere behind its own silhouette.
+* Skin: exact ray-ellipsoid intersection (Lambert shading, neck cut honoured) at a quarter
+  of the resolution, composited on the drape background and upsampled: the silhouette is the
+  true conic, slightly soft (like mild defocus); fine texture is irrelevant to the detectors.
+* Skin clip: an anti-aliased grey bar along the projected clip axis (metal, not green).
+
+Scene effects (all deterministic for a given seed and frame index): head trajectory
+(:mod:`monotracker.sim.trajectories`), occluders (hand / instrument polygons sweeping over
+fiducials), stray green blobs (round and irregular), global lighting changes, motion blur from
+the head's image motion during the exposure, sensor noise (a bank of precomputed Gaussian
+noise images, never the same one twice in a row). Faults for tests: ``freeze_at_frame``
+(the same image again and again) and ``disconnect_at_frame`` (``read()`` raises
+:class:`CameraDisconnected`).
+
+Ground truth per frame (:class:`FrameTruth`): ``T_cam_ct``; for each fiducial the exact
+ellipse centre (the centre of the sphere's image ellipse, distorted), the projection of the
+sphere centre, the visible fraction of its silhouette and whether it is fully visible.
+
+Camera placement (a choice; the paper says "about half a metre"): 520 mm from the mean of the
+fiducial centres along the phantom's view direction, looking at it, image top towards anterior.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from monotracker.geometry import apply_transform, invert_transform, look_at
+from monotracker.sim.phantom import HeadPhantom, default_phantom
+from monotracker.sim.trajectories import Still, Trajectory
+from monotracker.vision.camera_model import CameraModel, default_camera, distort_normalised
+from monotracker.vision.frames import CameraDisconnected, Frame, FrameSource
+
+#: A fiducial is "fully visible" when at least this fraction of its silhouette is unoccluded.
+FULLY_VISIBLE = 0.98
+
+FIDUCIAL_BGR = np.array([45.0, 160.0, 40.0])     # matte green dye
+SKIN_BGR = np.array([140.0, 165.0, 205.0])
+CLIP_BGR = (150, 150, 155)
+GLOVE_BGR = (175, 195, 215)                        # latex glove
+INSTRUMENT_BGR = (120, 118, 115)                   # steel
+STRAY_BGR = (90, 250, 120)                         # bright green (an LED, a marker pen cap)
+
+
+@dataclass
+class FrameTruth:
+    """Simulator ground truth for one frame (px are distorted image pixels)."""
+
+    t_s: float
+    T_cam_ct: np.ndarray
+    ellipse_centres_px: np.ndarray        # (9, 2) exact centres of the sphere image ellipses
+    projected_centres_px: np.ndarray      # (9, 2) projections of the sphere centres
+    visible_fraction: np.ndarray          # (9,) unoccluded fraction of each silhouette, 0 if off image
+    visible: np.ndarray                   # (9,) bool, visible_fraction >= FULLY_VISIBLE
+    radius_px: np.ndarray                 # (9,) approximate image radius of each sphere
+    stray_centres_px: np.ndarray          # (k, 2) stray blobs present in this frame
+    occluders: list = field(default_factory=list)  # polygons (n, 2) px drawn in this frame
+
+
+@dataclass
+class Occluder:
+    """A polygon (px, relative to its tip at (0, 0)) whose tip moves from ``start_px`` to
+    ``end_px`` during [t_start, t_start + sweep_s], stays, and leaves at ``t_end``."""
+
+    t_start: float
+    t_end: float
+    polygon: np.ndarray
+    start_px: np.ndarray
+    end_px: np.ndarray
+    sweep_s: float = 0.5
+    kind: str = "hand"
+
+    def at(self, t: float) -> np.ndarray | None:
+        if not (self.t_start <= t < self.t_end):
+            return None
+        f = np.clip((t - self.t_start) / self.sweep_s, 0.0, 1.0) if self.sweep_s > 0 else 1.0
+        tip = (1 - f) * np.asarray(self.start_px) + f * np.asarray(self.end_px)
+        return self.polygon + tip
+
+
+@dataclass
+class Stray:
+    """A bright green blob at a fixed image position during [t_start, t_end)."""
+
+    t_start: float
+    t_end: float
+    centre_px: tuple
+    size_px: float
+    shape: str = "round"      # "round" | "irregular" | "streak"
+    seed: int = 0
+
+
+@dataclass
+class SceneEvents:
+    occluders: list = field(default_factory=list)
+    strays: list = field(default_factory=list)
+    #: (t_s, gain) knots of the global lighting gain, linear in between (1.0 = nominal).
+    lighting: list = field(default_factory=list)
+
+    def gain(self, t: float) -> float:
+        if not self.lighting:
+            return 1.0
+        ts, gs = zip(*self.lighting)
+        return float(np.interp(t, ts, gs))
+
+
+def _finger(width: float, length: float, angle: float) -> np.ndarray:
+    """A finger/instrument polygon with its rounded tip at (0, 0) pointing along ``angle``."""
+    a = np.linspace(-np.pi / 2, np.pi / 2, 9)
+    tip = np.column_stack([-(width / 2) * np.cos(a) + width / 2, (width / 2) * np.sin(a)])
+    body = np.array([[length, width / 2 + 8], [length, -width / 2 - 8]])
+    poly = np.vstack([tip, body])
+    c, s = np.cos(angle), np.sin(angle)
+    # local +x points back along the finger; the finger enters from direction ``angle``
+    return poly @ np.array([[c, s], [-s, c]])
+
+
+def random_events(duration_s: float, fiducial_px: np.ndarray, image_size=(1280, 720), seed: int = 0,
+                  occlusions: int = 3, strays: int = 3, lighting: bool = True) -> SceneEvents:
+    """A reproducible mix of events over ``duration_s``: ``occlusions`` hand/instrument sweeps,
+    each covering 1-2 fiducials for 1.5-3 s; ``strays`` green blobs (one round and fiducial-sized,
+    the hardest case) for 2-6 s; a few lighting changes of +-25 %."""
+    rng = np.random.default_rng(seed)
+    ev = SceneEvents()
+    w, h = image_size
+    centre = fiducial_px.mean(axis=0)
+    slots = np.linspace(0.15, 0.85, occlusions + 2)[1:-1] * duration_s if occlusions else []
+    for k, ts in enumerate(slots):
+        f = fiducial_px[rng.integers(len(fiducial_px))]
+        out = f - centre
+        out = out / (np.linalg.norm(out) + 1e-9)
+        ang = np.arctan2(out[1], out[0]) + rng.uniform(-0.4, 0.4)
+        direction = np.array([np.cos(ang), np.sin(ang)])
+        kind = "hand" if k % 2 == 0 else "instrument"
+        width = rng.uniform(55, 80) if kind == "hand" else rng.uniform(14, 22)
+        poly = _finger(width, 900.0, ang)
+        ev.occluders.append(Occluder(ts, ts + rng.uniform(1.5, 3.0), poly, f + 260 * direction,
+                                     f - rng.uniform(5, 25) * direction, sweep_s=0.4, kind=kind))
+    for k in range(strays):
+        t0 = rng.uniform(0.05, 0.8) * duration_s
+        shape = ("round", "irregular", "streak")[k % 3]
+        if shape == "round":
+            c = centre + rng.uniform(-1, 1, 2) * [250, 150]
+        else:
+            c = rng.uniform([80, 60], [w - 80, h - 60])
+        ev.strays.append(Stray(t0, t0 + rng.uniform(2.0, 6.0), tuple(c), rng.uniform(7, 18), shape, seed + k))
+    if lighting and duration_s > 4:
+        knots = [(0.0, 1.0)]
+        for t in np.sort(rng.uniform(2, duration_s, 3)):
+            g = knots[-1][1]
+            knots += [(t, g), (t + 0.5, float(rng.uniform(0.75, 1.25)))]
+        ev.lighting = knots
+    return ev
+
+
+class SimulatedCamera(FrameSource):
+    """The default frame source. ``read()`` renders frame ``index`` at simulated time
+    ``index / fps``; with ``realtime=True`` it also paces itself to ``fps``.
+
+    Parameters: ``camera`` (:class:`CameraModel`, default 1280x720 f=1100 px with distortion),
+    ``phantom``, ``trajectory``, ``events`` (:class:`SceneEvents`), ``distance_mm`` (camera to
+    fiducial patch), ``noise_sigma`` (grey levels), ``exposure_s`` (motion blur window; 0 = off),
+    ``max_frames`` (None = endless), ``freeze_at_frame`` / ``disconnect_at_frame`` /
+    ``stall_at_frame`` (faults: repeated image, ``read()`` raises, ``read()`` blocks),
+    ``seed``.
+    """
+
+    name = "simulated camera"
+
+    def __init__(self, camera: CameraModel | None = None, phantom: HeadPhantom | None = None,
+                 trajectory: Trajectory | None = None, events: SceneEvents | None = None,
+                 fps: float = 30.0, distance_mm: float = 520.0, noise_sigma: float = 2.0,
+                 exposure_s: float = 1 / 60, realtime: bool = False, max_frames: int | None = None,
+                 freeze_at_frame: int | None = None, disconnect_at_frame: int | None = None,
+                 stall_at_frame: int | None = None, seed: int = 0, start_index: int = 0):
+        super().__init__()
+        self.camera = camera or default_camera()
+        self.phantom = phantom or default_phantom()
+        self.trajectory = trajectory or Still()
+        self.events = events or SceneEvents()
+        self.fps = float(fps)
+        self.noise_sigma = float(noise_sigma)
+        self.exposure_s = float(exposure_s)
+        self.realtime = realtime
+        self.max_frames = max_frames
+        self.freeze_at_frame = freeze_at_frame
+        self.disconnect_at_frame = disconnect_at_frame
+        self.stall_at_frame = stall_at_frame
+        self.seed = seed
+        self._index = start_index
+        self._frozen_image = None
+        self._t0 = None
+
+        ph = self.phantom
+        self.fiducials_ct = ph.fiducial_centres_lps
+        patch = self.fiducials_ct.mean(axis=0)
+        eye = patch + distance_mm * ph.view_direction_lps
+        self.T_cam_world = invert_transform(look_at(eye, patch, up=np.array([0.0, -1.0, 0.0])))
+        self.K = self.camera.K
+        self.dist = self.camera.dist
+        w, h = self.camera.image_size
+        self._rays = self.camera.pixel_rays(1.0)                  # (h, w, 3) float32
+        self._low_scale = 0.25
+        self._rays_low = self.camera.pixel_rays(self._low_scale).reshape(-1, 3).astype(np.float64)
+        self._low_shape = (int(round(h * self._low_scale)), int(round(w * self._low_scale)))
+        rng = np.random.default_rng(seed + 12345)
+        self._background_low = self._make_background(rng)
+        self._noise_pos, self._noise_neg = self._make_noise(rng, 6)
+        self._noise_rng = np.random.default_rng(seed + 999)
+        self._last_noise = -1
+        self._light_cam = np.array([-0.3, -0.5, -1.0]) / np.linalg.norm([-0.3, -0.5, -1.0])  # towards light
+
+    # ------------------------------------------------------------------ set-up helpers
+    def _make_background(self, rng) -> np.ndarray:
+        h, w = self._low_shape
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        base = np.array([120.0, 95.0, 60.0], np.float32)  # blue surgical drape (BGR)
+        shade = 0.75 + 0.25 * (xx / w) * (1 - 0.4 * yy / h)
+        folds = 1 + 0.06 * np.sin(xx / 9.0 + 0.7 * np.sin(yy / 13.0))
+        tex = cv2.GaussianBlur(rng.normal(0, 1, (h, w)).astype(np.float32), (0, 0), 2.0) * 0.05
+        return (base[None, None, :] * (shade * folds + tex)[..., None]).astype(np.float32)
+
+    def _make_noise(self, rng, n: int):
+        w, h = self.camera.image_size
+        pos, neg = [], []
+        for _ in range(n):
+            z = rng.normal(0, max(self.noise_sigma, 1e-6), (h, w, 3))
+            pos.append(np.clip(np.rint(z), 0, 255).astype(np.uint8))
+            neg.append(np.clip(np.rint(-z), 0, 255).astype(np.uint8))
+        return pos, neg
+
+    # ------------------------------------------------------------------ geometry helpers
+    def T_cam_ct_at(self, t: float) -> np.ndarray:
+        """True CT-to-camera transform at simulated time ``t`` (s)."""
+        return self.T_cam_world @ self.trajectory.pose(t)
+
+    def rest_projection(self) -> np.ndarray:
+        """(9, 2) projected fiducial centres at t = 0 (for placing scripted events)."""
+        return self.camera.project(apply_transform(self.T_cam_ct_at(0.0), self.fiducials_ct))
+
+    # ------------------------------------------------------------------ FrameSource
+    def read(self) -> Frame | None:
+        if self._closed:
+            from monotracker.errors import MonoTrackerError
+
+            raise MonoTrackerError("simulated camera: read() after close()")
+        i = self._index
+        if self.realtime:
+            now = time.monotonic()
+            if self._t0 is None:
+                self._t0 = now - i / self.fps
+            due = int(np.floor((now - self._t0) * self.fps))
+            if due > i:          # the consumer fell behind: like a camera, deliver the newest frame
+                i = self._index = due
+            wait = self._t0 + i / self.fps - now
+            if wait > 0:
+                time.sleep(wait)
+        if self.max_frames is not None and i >= self.max_frames:
+            return None
+        if self.disconnect_at_frame is not None and i >= self.disconnect_at_frame:
+            raise CameraDisconnected("simulated camera disconnected (fault injected)")
+        if self.stall_at_frame is not None and i >= self.stall_at_frame:
+            while not self._closed:          # a driver that blocks forever, until closed
+                time.sleep(0.005)
+            raise CameraDisconnected("simulated camera closed while stalled")
+        if self.freeze_at_frame is not None and i >= self.freeze_at_frame and self._frozen_image is not None:
+            img, truth = self._frozen_image
+        else:
+            img, truth = self.render(i / self.fps)
+            if self.freeze_at_frame is not None and i >= self.freeze_at_frame - 1:
+                self._frozen_image = (img, truth)
+        self._index += 1
+        return Frame(img, time.monotonic(), i, truth)
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, t: float) -> tuple[np.ndarray, FrameTruth]:
+        """Render the scene at simulated time ``t`` (s): (BGR uint8 image, FrameTruth)."""
+        T = self.T_cam_ct_at(t)
+        R, tr = T[:3, :3], T[:3, 3]
+        ph = self.phantom
+        gain = self.events.gain(t)
+        h, w = self.camera.image_size[1], self.camera.image_size[0]
+
+        # --- skin at low resolution, composited on the background, then upsampled
+        low = self._background_low.copy()
+        hit, shade = self._skin(self._rays_low, R, tr)
+        lowf = low.reshape(-1, 3)
+        lowf[hit] = SKIN_BGR[None, :] * shade[:, None]
+        img = cv2.resize(low, (w, h), interpolation=cv2.INTER_LINEAR)
+
+        # --- skin clip (grey bar)
+        a, b = ph.clip_segment_lps
+        ends = apply_transform(T, np.array([a, b]))
+        normal = ph.skin_point(0.5 * (a + b) - ph.centre_lps)[1]
+        if np.all(ends[:, 2] > 10) and (R @ normal) @ (0.5 * (ends[0] + ends[1])) < 0:
+            px = self.camera.project(ends)
+            thick = max(1, int(round(2 * ph.clip_radius_mm * self.K[0, 0] / ends[:, 2].mean())))
+            p0, p1 = (np.round(px * 16).astype(int))
+            cv2.line(img, tuple(p0), tuple(p1), CLIP_BGR, thick, cv2.LINE_AA, shift=4)
+
+        # --- fiducial spheres (exact, per ROI)
+        C_all = apply_transform(T, self.fiducials_ct)
+        rad = ph.fiducial_radius_mm
+        nfid = len(C_all)
+        proj = self.camera.project(C_all)
+        ell = self._ellipse_centres(C_all, rad)
+        radius_px = self.K[0, 0] * rad / np.sqrt(np.maximum(np.sum(C_all**2, 1) - rad**2, 1e-9))
+        cov_store = {}
+        for k in range(nfid):
+            roi = self._sphere_roi(proj[k], radius_px[k], w, h)
+            if roi is None or C_all[k, 2] <= rad:
+                continue
+            cov, col = self._render_sphere(C_all[k], rad, roi, R, tr)
+            y0, y1, x0, x1 = roi
+            patch = img[y0:y1, x0:x1]
+            patch *= (1.0 - cov)[..., None]
+            patch += (cov[..., None] * col)
+            cov_store[k] = (roi, cov)
+
+        # --- strays
+        strays = []
+        for s in self.events.strays:
+            if s.t_start <= t < s.t_end:
+                self._draw_stray(img, s)
+                strays.append(s.centre_px)
+
+        # --- occluders (in front of everything)
+        polys = []
+        for oc in self.events.occluders:
+            poly = oc.at(t)
+            if poly is not None:
+                colour = GLOVE_BGR if oc.kind == "hand" else INSTRUMENT_BGR
+                cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], colour, cv2.LINE_AA, shift=4)
+                polys.append(poly)
+
+        # --- visibility truth
+        vis = np.zeros(nfid)
+        for k, (roi, cov) in cov_store.items():
+            total = self._full_coverage(C_all[k], rad, roi)
+            if total <= 0:
+                continue
+            y0, y1, x0, x1 = roi
+            if polys:
+                m = np.zeros((y1 - y0, x1 - x0), np.uint8)
+                for poly in polys:
+                    cv2.fillPoly(m, [np.round((poly - [x0, y0]) * 16).astype(np.int32)], 255, cv2.LINE_AA, shift=4)
+                seen = float(np.sum(cov * (1.0 - m / 255.0)))
+            else:
+                seen = float(cov.sum())
+            vis[k] = seen / total
+
+        # --- motion blur over the exposure
+        if self.exposure_s > 0:
+            img = self._motion_blur(img, t, C_all, proj)
+
+        # --- lighting gain, quantise, noise
+        out = cv2.convertScaleAbs(img, alpha=gain)
+        if self.noise_sigma > 0:
+            n = len(self._noise_pos)
+            k = (self._last_noise + 1 + int(self._noise_rng.integers(n - 1))) % n
+            self._last_noise = k
+            cv2.add(out, self._noise_pos[k], dst=out)
+            cv2.subtract(out, self._noise_neg[k], dst=out)
+
+        truth = FrameTruth(
+            t_s=t, T_cam_ct=T, ellipse_centres_px=ell, projected_centres_px=proj,
+            visible_fraction=vis, visible=vis >= FULLY_VISIBLE, radius_px=radius_px,
+            stray_centres_px=np.array(strays, float).reshape(-1, 2), occluders=polys)
+        return out, truth
+
+    def _skin(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray):
+        """Ray-ellipsoid hits for (n, 3) unit rays from the camera centre. Returns (hit mask (n,),
+        Lambert shade of the hit pixels (k,)) honouring the neck cut."""
+        ph = self.phantom
+        axes = ph.skin_semi_axes_mm
+        c_cam = R @ ph.centre_lps + tr
+        o = (R.T @ (-c_cam)) / axes                     # origin in unit-sphere coords
+        d = (rays @ R) / axes                           # (n, 3): R^T d per row
+        A = np.einsum("ij,ij->i", d, d)
+        B = 2.0 * (d @ o)
+        Cq = o @ o - 1.0
+        disc = B * B - 4 * A * Cq
+        hit = disc > 0
+        sq = np.sqrt(np.where(hit, disc, 0.0))
+        t = (-B - sq) / (2 * A)
+        hit &= t > 0
+        local = (o[None, :] + t[:, None] * d) * axes    # hit in CT-aligned coords about centre
+        hit &= local[:, 2] + ph.centre_lps[2] >= ph.neck_cut_z_mm
+        n_local = local[hit] / axes**2
+        n_cam = n_local @ R.T
+        n_cam /= np.linalg.norm(n_cam, axis=1, keepdims=True)
+        lam = np.clip(n_cam @ self._light_cam, 0, 1)
+        facing = np.clip(-np.einsum("ij,ij->i", n_cam, rays[hit]), 0, 1)
+        shade = 0.35 + 0.5 * lam + 0.15 * facing
+        return hit, shade
+
+    def _skin_depth(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray) -> np.ndarray:
+        """Distance along each unit ray (n, 3) to the skin (inf where it misses)."""
+        ph = self.phantom
+        axes = ph.skin_semi_axes_mm
+        c_cam = R @ ph.centre_lps + tr
+        o = (R.T @ (-c_cam)) / axes
+        d = (rays @ R) / axes
+        A = np.einsum("ij,ij->i", d, d)
+        B = 2.0 * (d @ o)
+        Cq = o @ o - 1.0
+        disc = B * B - 4 * A * Cq
+        t = np.full(len(rays), np.inf)
+        ok = disc > 0
+        t[ok] = (-B[ok] - np.sqrt(disc[ok])) / (2 * A[ok])
+        t[t <= 0] = np.inf
+        return t
+
+    @staticmethod
+    def _sphere_roi(c_px, r_px, w, h):
+        m = 1.35 * r_px + 3
+        x0, x1 = int(np.floor(c_px[0] - m)), int(np.ceil(c_px[0] + m)) + 1
+        y0, y1 = int(np.floor(c_px[1] - m)), int(np.ceil(c_px[1] + m)) + 1
+        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+            return None  # touching the image border: not rendered as visible (documented)
+        return y0, y1, x0, x1
+
+    def _render_sphere(self, C, rad, roi, R, tr):
+        y0, y1, x0, x1 = roi
+        d = self._rays[y0:y1, x0:x1].astype(np.float64)          # (hh, ww, 3) unit rays
+        Cn = np.linalg.norm(C)
+        cos_t = d @ (C / Cn)
+        theta = np.arccos(np.clip(cos_t, -1, 1))
+        alpha = np.arcsin(rad / Cn)
+        px_per_rad = self.K[0, 0] / max(C[2] / Cn, 0.3)
+        cov = np.clip(0.5 - (theta - alpha) * px_per_rad, 0.0, 1.0)
+        # hit distance (closest approach where the ray misses: only used in the AA band)
+        along = Cn * cos_t
+        perp2 = np.maximum(Cn**2 - along**2, 0.0)
+        t_hit = along - np.sqrt(np.maximum(rad**2 - perp2, 0.0))
+        # the head may hide part of the sphere
+        flat = d.reshape(-1, 3)
+        skin_t = self._skin_depth(flat, R, tr).reshape(cov.shape)
+        cov = np.where(skin_t < t_hit - 1e-6, 0.0, cov)
+        nrm = (t_hit[..., None] * d - C) / rad
+        lam = np.clip(nrm @ self._light_cam, 0, 1)
+        shade = 0.3 + 0.6 * lam + 0.1 * np.clip(-(nrm * d).sum(-1), 0, 1)
+        col = shade[..., None] * FIDUCIAL_BGR
+        return cov.astype(np.float32), col.astype(np.float32)
+
+    def _full_coverage(self, C, rad, roi) -> float:
+        """Silhouette area (px) without any occlusion, on the same ROI grid."""
+        y0, y1, x0, x1 = roi
+        d = self._rays[y0:y1, x0:x1].astype(np.float64)
+        Cn = np.linalg.norm(C)
+        theta = np.arccos(np.clip(d @ (C / Cn), -1, 1))
+        px_per_rad = self.K[0, 0] / max(C[2] / Cn, 0.3)
+        return float(np.clip(0.5 - (theta - np.arcsin(rad / Cn)) * px_per_rad, 0, 1).sum())
+
+    def _ellipse_centres(self, C: np.ndarray, rad: float) -> np.ndarray:
+        """Exact centres of the spheres' image ellipses on the normalised plane,
+        (a c, b c) / (c^2 - R^2), then distorted into pixels."""
+        c = C[:, 2]
+        xn = C[:, :2] * (c / (c**2 - rad**2))[:, None]
+        return distort_normalised(xn, self.K, self.dist)
+
+    def _draw_stray(self, img, s: Stray):
+        c = np.asarray(s.centre_px, float)
+        rng = np.random.default_rng(s.seed)
+        if s.shape == "round":
+            cv2.circle(img, tuple(np.round(c * 16).astype(int)), int(round(s.size_px * 16)), STRAY_BGR,
+                       -1, cv2.LINE_AA, shift=4)
+        elif s.shape == "streak":
+            d = rng.normal(size=2)
+            d = d / np.linalg.norm(d) * s.size_px * 2.5
+            p0, p1 = np.round((c - d) * 16).astype(int), np.round((c + d) * 16).astype(int)
+            cv2.line(img, tuple(p0), tuple(p1), STRAY_BGR, max(2, int(s.size_px / 3)), cv2.LINE_AA, shift=4)
+        else:
+            ang = np.sort(rng.uniform(0, 2 * np.pi, 9))
+            r = s.size_px * rng.uniform(0.4, 1.4, 9)
+            poly = c + np.column_stack([r * np.cos(ang), r * np.sin(ang)])
+            cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], STRAY_BGR, cv2.LINE_AA, shift=4)
+
+    def _motion_blur(self, img, t, C_all, proj):
+        """Blur along the image motion of the fiducial patch during the exposure (centred on t)."""
+        e = self.exposure_s
+        Ta = self.T_cam_ct_at(t - e / 2)
+        Tb = self.T_cam_ct_at(t + e / 2)
+        pa = self.camera.project(apply_transform(Ta, self.fiducials_ct)).mean(0)
+        pb = self.camera.project(apply_transform(Tb, self.fiducials_ct)).mean(0)
+        d = pb - pa
+        L = float(np.linalg.norm(d))
+        if L < 0.75:
+            return img
+        n = int(np.ceil(L)) | 1
+        ksz = n + 2
+        k = np.zeros((ksz, ksz), np.float32)
+        c = (ksz - 1) / 2
+        u = d / L
+        for s in np.linspace(-L / 2, L / 2, 2 * n + 1):
+            x, y = c + s * u[0], c + s * u[1]
+            xi, yi = int(np.floor(x)), int(np.floor(y))
+            fx, fy = x - xi, y - yi
+            for dx, dy, wgt in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
+                                (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+                if 0 <= yi + dy < ksz and 0 <= xi + dx < ksz:
+                    k[yi + dy, xi + dx] += wgt
+        k /= k.sum()
+        return cv2.filter2D(img, -1, k, borderType=cv2.BORDER_REPLICATE)

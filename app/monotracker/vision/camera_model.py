@@ -1,0 +1,205 @@
+"""Pinhole camera model with OpenCV distortion, and its files.
+
+``CameraModel`` holds the intrinsics ``K`` (3x3, px), the OpenCV distortion coefficients
+``dist`` (k1, k2, p1, p2[, k3, ...]) and the image size (width, height) in px. Points in the
+camera frame are OpenCV's (x right, y down, z forward), in mm.
+
+Files: OpenCV YAML as written by ``cv2.FileStorage`` (``camera_matrix``,
+``distortion_coefficients``, ``image_width``, ``image_height``; the keys of OpenCV's own
+calibration sample) and JSON with the same keys (``camera_matrix`` a 3x3 nested list,
+``distortion_coefficients`` a flat list). Every bad file raises :class:`InputError` with one
+line saying what is wrong.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from monotracker.errors import InputError
+
+
+@dataclass
+class CameraModel:
+    """Intrinsics ``K`` (3x3 px), distortion ``dist`` (OpenCV order) and ``image_size`` (w, h px)."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    image_size: tuple[int, int]
+
+    def __post_init__(self):
+        self.K = np.asarray(self.K, dtype=float)
+        self.dist = np.asarray(self.dist, dtype=float).reshape(-1)
+        self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+        problem = validate_intrinsics(self.K, self.dist, self.image_size)
+        if problem:
+            raise InputError(f"invalid camera model: {problem}")
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def width(self) -> int:
+        return self.image_size[0]
+
+    @property
+    def height(self) -> int:
+        return self.image_size[1]
+
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """(n, 3) camera-frame points (mm, z > 0) -> (n, 2) distorted pixel coordinates."""
+        p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
+        return distort_normalised(p[:, :2] / p[:, 2:3], self.K, self.dist)
+
+    def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
+        """(n, 2) distorted pixels -> (n, 2) normalised undistorted coordinates (x/z, y/z)."""
+        p = np.asarray(pixels, dtype=float).reshape(-1, 1, 2)
+        if len(p) == 0:
+            return np.zeros((0, 2))
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+        return cv2.undistortPointsIter(p, self.K, self.dist, None, None, crit).reshape(-1, 2)
+
+    def pixel_rays(self, scale: float = 1.0) -> np.ndarray:
+        """Unit ray directions (camera frame) through every pixel centre of the image rendered
+        at ``scale`` (1.0 = full size): array (h, w, 3) float32. Pixel centres are at integer
+        coordinates (OpenCV convention)."""
+        w = int(round(self.width * scale))
+        h = int(round(self.height * scale))
+        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        # pixel (u, v) at this scale covers full-size coordinate (u + 0.5) / scale - 0.5
+        uf = (u + 0.5) / scale - 0.5
+        vf = (v + 0.5) / scale - 0.5
+        xn = self.undistort_points(np.column_stack([uf.ravel(), vf.ravel()]))
+        d = np.column_stack([xn, np.ones(len(xn))])
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return d.reshape(h, w, 3).astype(np.float32)
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> Path:
+        """Write OpenCV YAML (``.yml``/``.yaml``/``.xml``) or JSON (``.json``)."""
+        path = Path(path)
+        if path.suffix.lower() == ".json":
+            path.write_text(json.dumps(self.to_dict(), indent=2))
+        elif path.suffix.lower() in (".yml", ".yaml", ".xml"):
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+            fs.write("image_width", self.width)
+            fs.write("image_height", self.height)
+            fs.write("camera_matrix", self.K)
+            fs.write("distortion_coefficients", self.dist.reshape(1, -1))
+            fs.release()
+        else:
+            raise InputError(f"camera file {path.name}: use a .yml/.yaml/.xml (OpenCV) or .json name")
+        return path
+
+    def to_dict(self) -> dict:
+        return {
+            "image_width": self.width,
+            "image_height": self.height,
+            "camera_matrix": self.K.tolist(),
+            "distortion_coefficients": self.dist.tolist(),
+        }
+
+    @classmethod
+    def load(cls, path: str | Path) -> "CameraModel":
+        """Read OpenCV YAML/XML or JSON intrinsics; raises :class:`InputError` on any problem."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"camera calibration file not found: {path}")
+        if path.suffix.lower() == ".json":
+            try:
+                data = json.loads(path.read_text())
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+                raise InputError(f"camera file {path.name} is not valid JSON ({exc})") from None
+            if not isinstance(data, dict):
+                raise InputError(f"camera file {path.name}: expected a JSON object with camera_matrix")
+            return cls._from_mapping(data, path.name)
+        return cls._from_opencv(path)
+
+    @classmethod
+    def _from_opencv(cls, path: Path) -> "CameraModel":
+        try:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        except (cv2.error, SystemError):  # OpenCV's parser raises SystemError on binary garbage
+            raise InputError(f"camera file {path.name} is not an OpenCV YAML/XML file") from None
+        if not fs.isOpened():
+            raise InputError(f"camera file {path.name} is not an OpenCV YAML/XML file")
+        try:
+            data = {}
+            for key in ("camera_matrix", "distortion_coefficients"):
+                node = fs.getNode(key)
+                if node.empty():
+                    continue
+                try:
+                    m = node.mat()
+                except (cv2.error, SystemError):
+                    m = None
+                data[key] = None if m is None else m.tolist()
+            for key in ("image_width", "image_height"):
+                node = fs.getNode(key)
+                if not node.empty():
+                    data[key] = node.real()
+        finally:
+            fs.release()
+        return cls._from_mapping(data, path.name)
+
+    @classmethod
+    def _from_mapping(cls, data: dict, name: str) -> "CameraModel":
+        missing = [k for k in ("camera_matrix", "distortion_coefficients", "image_width", "image_height")
+                   if data.get(k) is None]
+        if missing:
+            raise InputError(f"camera file {name} lacks {', '.join(missing)} (is it a calibration file?)")
+        try:
+            K = np.asarray(data["camera_matrix"], dtype=float)
+            dist = np.asarray(data["distortion_coefficients"], dtype=float).reshape(-1)
+            size = (int(data["image_width"]), int(data["image_height"]))
+        except (TypeError, ValueError):
+            raise InputError(f"camera file {name}: camera_matrix/distortion_coefficients are not numbers") from None
+        problem = validate_intrinsics(K, dist, size)
+        if problem:
+            raise InputError(f"camera file {name}: {problem}")
+        return cls(K, dist, size)
+
+
+def validate_intrinsics(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, int]) -> str:
+    """Return '' when the intrinsics are usable, else a one-line reason."""
+    K = np.asarray(K, dtype=float)
+    dist = np.asarray(dist, dtype=float).reshape(-1)
+    if K.shape != (3, 3):
+        return f"camera_matrix must be 3x3, got shape {K.shape}"
+    if not np.all(np.isfinite(K)) or not np.all(np.isfinite(dist)):
+        return "camera_matrix/distortion_coefficients contain NaN or infinity"
+    w, h = image_size
+    if w <= 0 or h <= 0:
+        return f"image size {w}x{h} is not positive"
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    if fx <= 0 or fy <= 0:
+        return f"focal lengths must be positive (fx={fx:g}, fy={fy:g})"
+    if abs(K[1, 0]) > 1e-9 or abs(K[2, 0]) > 1e-9 or abs(K[2, 1]) > 1e-9 or abs(K[2, 2] - 1) > 1e-9:
+        return "camera_matrix must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]]"
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        return f"principal point ({cx:g}, {cy:g}) lies outside the {w}x{h} image (wrong image size?)"
+    if max(fx, fy) / min(fx, fy) > 3:
+        return f"fx={fx:g} and fy={fy:g} differ more than 3x (wrong units or a swapped matrix?)"
+    if len(dist) not in (0, 4, 5, 8, 12, 14):
+        return f"distortion_coefficients must have 4, 5, 8, 12 or 14 values, got {len(dist)}"
+    return ""
+
+
+def distort_normalised(xn: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(n, 2) normalised undistorted coordinates -> (n, 2) distorted pixels (OpenCV model)."""
+    xn = np.asarray(xn, dtype=float).reshape(-1, 2)
+    if len(xn) == 0:
+        return np.zeros((0, 2))
+    pts = np.column_stack([xn, np.ones(len(xn))])
+    out, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), np.asarray(K, float),
+                               np.asarray(dist, float))
+    return out.reshape(-1, 2)
+
+
+def default_camera() -> CameraModel:
+    """The simulated camera's intrinsics: 1280x720, f = 1100 px, mild barrel distortion."""
+    K = np.array([[1100.0, 0.0, 641.3], [0.0, 1100.0, 358.2], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.12, 0.09, 0.0004, -0.0003, 0.0])
+    return CameraModel(K, dist, (1280, 720))

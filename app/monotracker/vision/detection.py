@@ -1,0 +1,206 @@
+"""Image fiducials and the shared blob analysis of both detectors.
+
+A detector returns a :class:`Detection`: the accepted :class:`ImageFiducial` list (centre px
+in the distorted image, semi-axes px, angle deg, score in [0, 1]) and the rejected candidates
+with the reason. ``centres`` ((n, 2) float64 px) is what goes to the registration, together
+with the sphere radius so that the ellipse-centre bias is corrected there.
+
+Sub-pixel centre (:func:`refine_blob`): the centroid of a soft mask. The weight of a pixel is
+its green chromaticity ``(G - R) / (B + G + R)`` mapped linearly from the local background level
+(median of a ring around the blob) to the blob's interior level (median of its eroded core)
+and clipped to [0, 1]. Chromaticity does not depend on shading, so the lit and the shadowed
+side of a ball weigh the same, and anti-aliased edge pixels get fractional weight: the
+centroid is that of the silhouette, i.e. the ellipse centre (an ellipse's area centroid is its
+centre), to ~0.1 px.
+
+Shape score (:func:`score_blob`): product of four factors, each 1 for a clean sphere image:
+* boundary fit: RMS radial deviation (px) of the blob contour from the ellipse fitted by
+  ``cv2.fitEllipse`` after removing the mean offset, ``exp(-(rms / 0.6)^2)``; a ball cut by a
+  finger or an instrument has a straight chord and scores low;
+* roundness: spheres within the field of view make ellipses with axis ratio >= 0.8;
+* fill: blob area / fitted ellipse area close to 1 (a cut ball or an irregular blob is not);
+* size: the minor semi-axis must lie in the range a ball of ``radius_mm`` makes between
+  ``min_distance_mm`` and ``max_distance_mm``, and near the median of the other candidates
+  (all balls sit at about the same depth); outliers beyond +-25 % are down-weighted.
+Candidates scoring below ``min_score`` are rejected with their reason.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+
+@dataclass
+class ImageFiducial:
+    """One detected ball: ``centre_px`` (2,), ``axes_px`` (semi-major, semi-minor), ``angle_deg``
+    of the major axis (OpenCV's fitEllipse convention), ``score`` in [0, 1], ``area_px``,
+    ``reason`` (why it was rejected; '' if accepted), ``features`` (the score's factors)."""
+
+    centre_px: np.ndarray
+    axes_px: tuple
+    angle_deg: float
+    score: float
+    area_px: float
+    reason: str = ""
+    features: dict = field(default_factory=dict)
+
+
+@dataclass
+class Detection:
+    """Detector output for one frame; ``time_s`` is the detector's wall time."""
+
+    fiducials: list
+    rejected: list
+    time_s: float = 0.0
+    detector: str = ""
+
+    @property
+    def centres(self) -> np.ndarray:
+        return np.array([f.centre_px for f in self.fiducials], float).reshape(-1, 2)
+
+    @property
+    def scores(self) -> np.ndarray:
+        return np.array([f.score for f in self.fiducials], float)
+
+
+@dataclass
+class BlobRules:
+    """Plausibility limits of a ball's image. Units: mm, px."""
+
+    radius_mm: float = 4.0
+    focal_px: float = 1100.0
+    min_distance_mm: float = 250.0
+    max_distance_mm: float = 1000.0
+    min_score: float = 0.5
+    min_area_px: float = 12.0
+
+    @property
+    def radius_range_px(self) -> tuple[float, float]:
+        return (self.focal_px * self.radius_mm / self.max_distance_mm,
+                self.focal_px * self.radius_mm / self.min_distance_mm)
+
+
+def green_chroma(bgr: np.ndarray) -> np.ndarray:
+    """(G - R) / (B + G + R) per pixel, float32 in [-1, 1]."""
+    f = bgr.astype(np.float32)
+    return (f[..., 1] - f[..., 2]) / (f.sum(axis=2) + 1.0)
+
+
+def refine_blob(image: np.ndarray, contour: np.ndarray, pad: int = 3) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """Sub-pixel centre of the blob outlined by ``contour``: (centre (2,), soft area px,
+    2x2 covariance of the soft mask). None when the blob is degenerate."""
+    h, w = image.shape[:2]
+    x, y, bw, bh = cv2.boundingRect(contour)
+    x0, y0 = max(x - pad, 0), max(y - pad, 0)
+    x1, y1 = min(x + bw + pad, w), min(y + bh + pad, h)
+    roi = image[y0:y1, x0:x1]
+    chroma = green_chroma(roi)
+    inside = np.zeros(roi.shape[:2], np.uint8)
+    cv2.drawContours(inside, [contour - [x0, y0]], -1, 255, -1)
+    grown = cv2.dilate(inside, np.ones((3, 3), np.uint8), iterations=2)
+    core = cv2.erode(inside, np.ones((3, 3), np.uint8), iterations=1)
+    ring = (grown == 0)
+    if not ring.any():
+        ring = inside == 0
+    fg = float(np.median(chroma[core > 0])) if core.any() else float(np.median(chroma[inside > 0]))
+    bg = float(np.median(chroma[ring])) if ring.any() else 0.0
+    if fg - bg < 0.05:
+        return None
+    wgt = np.clip((chroma - bg) / (fg - bg), 0.0, 1.0) * (grown > 0)
+    m = cv2.moments(wgt.astype(np.float32))
+    if m["m00"] <= 1e-6:
+        return None
+    cx, cy = m["m10"] / m["m00"], m["m01"] / m["m00"]
+    cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
+    return np.array([cx + x0, cy + y0]), float(m["m00"]), cov
+
+
+def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[float, dict, tuple]:
+    """Shape score of one blob (see the module docstring): (score, factors, fitted ellipse)."""
+    pts = contour.reshape(-1, 2).astype(np.float64)
+    if len(pts) < 5:
+        return 0.0, {"why": "too few contour points"}, None
+    (ex, ey), (d1, d2), ang = cv2.fitEllipse(contour)
+    a, b = max(d1, d2) / 2, min(d1, d2) / 2
+    if b <= 0.5:
+        return 0.0, {"why": "degenerate ellipse"}, None
+    # radial deviation of the contour from the fitted ellipse
+    th = np.radians(ang)
+    c, s = np.cos(th), np.sin(th)
+    q = pts - [ex, ey]
+    u = q[:, 0] * c + q[:, 1] * s
+    v = -q[:, 0] * s + q[:, 1] * c
+    ax_u, ax_v = d1 / 2, d2 / 2
+    rho = np.sqrt((u / ax_u) ** 2 + (v / ax_v) ** 2)
+    dev = (rho - 1.0) * np.sqrt(ax_u * ax_v)
+    rms = float(np.sqrt(np.mean((dev - dev.mean()) ** 2)))
+    ratio = b / a
+    fill = area / (np.pi * a * b)
+    lo, hi = rules.radius_range_px
+    f_fit = float(np.exp(-(rms / 0.6) ** 2))
+    f_round = float(np.clip((ratio - 0.6) / 0.2, 0.0, 1.0))
+    f_fill = float(np.exp(-((fill - 1.0) / 0.12) ** 2))
+    f_range = 1.0 if lo * 0.8 <= b + 0.5 <= hi * 1.2 else 0.0
+    factors = {"fit_rms_px": rms, "axis_ratio": ratio, "fill": fill, "f_fit": f_fit, "f_round": f_round,
+               "f_fill": f_fill, "f_range": f_range}
+    return f_fit * f_round * f_fill * f_range, factors, ((ex, ey), (a, b), ang)
+
+
+def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detector: str,
+                  refine_image: np.ndarray | None = None) -> tuple[list, list]:
+    """Contours of a binary ``mask`` -> (accepted, rejected) :class:`ImageFiducial` lists.
+    ``refine_image`` (default ``image``) is the full-resolution BGR image for sub-pixel centres."""
+    refine_image = image if refine_image is None else refine_image
+    h, w = mask.shape[:2]
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    cands, rejected = [], []
+    for cnt in contours:
+        inner_area = cv2.contourArea(cnt)              # area inside the pixel-centre contour
+        area = inner_area + 0.5 * len(cnt)             # + half a pixel border: the blob's pixel area
+        x, y, bw, bh = cv2.boundingRect(cnt)
+        if area < rules.min_area_px:
+            continue  # speckle: not worth a rejection record
+        if x <= 0 or y <= 0 or x + bw >= w or y + bh >= h:
+            rejected.append(ImageFiducial(np.array([x + bw / 2, y + bh / 2]), (bw / 2, bh / 2), 0.0, 0.0, area,
+                                          "touches the image border"))
+            continue
+        _, hi = rules.radius_range_px
+        if bw > 3 * hi or bh > 3 * hi:
+            rejected.append(ImageFiducial(np.array([x + bw / 2, y + bh / 2]), (bw / 2, bh / 2), 0.0, 0.0, area,
+                                          "too large for a fiducial"))
+            continue
+        score, feats, ell = score_blob(cnt, inner_area, rules)
+        ref = refine_blob(refine_image, cnt)
+        if ell is None or ref is None:
+            rejected.append(ImageFiducial(np.array([x + bw / 2, y + bh / 2]), (bw / 2, bh / 2), 0.0, 0.0, area,
+                                          feats.get("why", "no contrast")))
+            continue
+        centre, soft_area, _ = ref
+        cands.append(ImageFiducial(centre, ell[1], float(ell[2]), score, soft_area, "", feats))
+    # size consensus: balls lie at similar depths, so their minor axes agree
+    good = [c.axes_px[1] for c in cands if c.score >= rules.min_score]
+    if len(good) >= 3:
+        med = float(np.median(good))
+        for c in cands:
+            rel = abs(c.axes_px[1] - med) / med
+            f_size = float(np.exp(-(max(rel - 0.12, 0.0) / 0.12) ** 2))
+            c.features["f_size"] = f_size
+            c.score *= f_size
+    accepted = []
+    for c in cands:
+        if c.score >= rules.min_score:
+            accepted.append(c)
+        else:
+            f = c.features
+            worst = min(("f_fit", "boundary not elliptic (cut by an occluder?)"),
+                        ("f_round", "not round"), ("f_fill", "not a filled ellipse"),
+                        ("f_range", "implausible size for the ball radius"),
+                        ("f_size", "size differs from the other balls"),
+                        key=lambda kv: f.get(kv[0], 1.0))
+            c.reason = f"score {c.score:.2f}: {worst[1]}"
+            rejected.append(c)
+    accepted.sort(key=lambda c: (c.centre_px[1], c.centre_px[0]))
+    return accepted, rejected

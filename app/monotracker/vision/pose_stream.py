@@ -1,0 +1,371 @@
+"""The live pose stream: frames -> detected balls -> registration -> timestamped PoseEstimate.
+
+Two layers, so that the logic is testable without threads:
+
+* :class:`PoseTracker` -- ``process(frame) -> PoseEstimate`` for one frame: detect the balls,
+  register them to the CT fiducials (previous valid pose as prior; the registration falls back
+  to its full correspondence search by itself when the prior no longer explains the image),
+  gate the result, assign each CT fiducial a status and raise alerts.
+* :class:`PoseStream` -- runs a tracker on a :class:`~monotracker.vision.frames.FrameSource`
+  in its own daemon thread (never the UI thread). ``start()``, ``stop()``, ``subscribe(cb)``
+  (``cb(estimate)`` called from the stream thread; keep it short, post to your own queue),
+  ``latest()``. A monitor thread checks the :class:`~monotracker.vision.frames.FrameWatchdog`
+  every 20 ms, so a camera that freezes (identical frames) or stops delivering (``read()``
+  blocks for longer than ``watchdog.max_age_s`` = 0.1 s, or raises) is published as an invalid
+  estimate within 0.1 s (+ one 20 ms monitor tick). Time spent processing a frame does not
+  count as a stall: only time spent waiting inside ``read()`` does.
+
+Validity rules (the downstream controller holds whenever ``ok`` is False):
+* fewer than ``min_fiducials`` (4) matched balls -> "no valid pose";
+* reprojection RMS over ``max_rms_px`` (1.5 px) or any matched ball's residual over
+  ``max_residual_px`` (3 px) -> "no valid pose" (the match is suspect);
+* camera frozen / stalled / disconnected -> "no valid pose".
+
+Per-fiducial status (one entry per CT fiducial): ``"seen"`` (matched in this frame),
+``"newly_lost"`` (matched in the previous frame, not now: an alert is raised in this same
+frame), ``"occluded"`` (not matched now nor in the previous frame), ``"unknown"`` (no frame
+has matched it yet). When the registration fails, a ball counts as seen if a detection lies
+within ``status_gate_px`` of its projection under the last valid pose.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from monotracker.errors import MonoTrackerError
+from monotracker.geometry import apply_transform
+
+from .camera_model import CameraModel
+from .frames import CameraDisconnected, Frame, FrameSource, FrameWatchdog
+
+log = logging.getLogger(__name__)
+
+SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN = "seen", "newly_lost", "occluded", "unknown"
+
+
+@dataclass
+class PoseEstimate:
+    """One published result. Times are ``time.monotonic()`` seconds; ``latency_s`` is
+    publication time minus capture time. ``T_cam_ct`` (4x4, mm) is None when ``ok`` is False.
+    ``status`` has one entry per CT fiducial (see module docstring); ``image_points_px`` holds
+    the matched detection per CT fiducial (NaN where none) and ``residuals_px`` its
+    reprojection error (NaN where none). ``predicted_tre_mm`` is at the planned target (NaN if
+    no target was given or no pose). ``alerts`` are one-line operator messages for this frame.
+    ``camera`` is "ok", "frozen", "stalled", "disconnected" or "ended"."""
+
+    ok: bool
+    reason: str
+    frame_index: int
+    t_capture: float
+    t_published: float
+    T_cam_ct: np.ndarray | None = None
+    status: list = field(default_factory=list)
+    image_points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    fre_mm: float = float("nan")
+    reprojection_rms_px: float = float("nan")
+    predicted_tre_mm: float = float("nan")
+    n_detected: int = 0
+    n_matched: int = 0
+    alerts: list = field(default_factory=list)
+    camera: str = "ok"
+    used_prior: bool = False
+    detect_s: float = float("nan")
+    register_s: float = float("nan")
+    truth: object = None
+
+    @property
+    def latency_s(self) -> float:
+        return self.t_published - self.t_capture
+
+    @property
+    def newly_lost(self) -> list[int]:
+        return [i for i, s in enumerate(self.status) if s == NEWLY_LOST]
+
+
+@dataclass
+class TrackerConfig:
+    """Gates of the pose stream (px, mm). See the module docstring."""
+
+    min_fiducials: int = 4
+    max_rms_px: float = 1.5
+    max_residual_px: float = 3.0
+    status_gate_px: float = 6.0
+    #: a previous pose older than this (s) is not used as the registration prior
+    prior_max_age_s: float = 0.5
+    method: str = "robust"
+
+
+class PoseTracker:
+    """Per-frame detect + register + status logic (no threads). ``fiducials_ct`` (n, 3) CT mm,
+    ``camera`` the calibrated :class:`CameraModel`, ``detector`` any object with
+    ``detect(image) -> Detection``, ``radius_mm`` the ball radius (ellipse-centre bias is
+    corrected by the registration), ``target_ct`` (3,) planned target for the predicted TRE."""
+
+    def __init__(self, fiducials_ct: np.ndarray, camera: CameraModel, detector=None, radius_mm: float = 4.0,
+                 target_ct: np.ndarray | None = None, config: TrackerConfig | None = None):
+        from .detect_classical import ClassicalDetector
+        from .detection import BlobRules
+
+        self.fiducials_ct = np.asarray(fiducials_ct, float).reshape(-1, 3)
+        self.camera = camera
+        self.radius_mm = float(radius_mm)
+        self.detector = detector or ClassicalDetector(BlobRules(radius_mm=radius_mm, focal_px=float(camera.K[0, 0])))
+        self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
+        self.config = config or TrackerConfig()
+        n = len(self.fiducials_ct)
+        self._prev_seen = np.zeros(n, bool)
+        self._ever_seen = np.zeros(n, bool)
+        self._last_T = None
+        self._last_T_time = -np.inf
+        self._last_ok = None
+
+    def reset(self) -> None:
+        """Forget the previous frame (next frame does a full search)."""
+        self.__init__(self.fiducials_ct, self.camera, self.detector, self.radius_mm, self.target_ct, self.config)
+
+    def set_target(self, target_ct: np.ndarray | None) -> None:
+        self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
+
+    def process(self, frame: Frame) -> PoseEstimate:
+        from monotracker.registration import register
+
+        cfg = self.config
+        n = len(self.fiducials_ct)
+        det = self.detector.detect(frame.image)
+        pts = det.centres
+        prior = self._last_T if frame.t_capture - self._last_T_time <= cfg.prior_max_age_s else None
+        t0 = time.perf_counter()
+        reg = register(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
+                       method=cfg.method, prior=prior)
+        t_reg = time.perf_counter() - t0
+
+        img_pts = np.full((n, 2), np.nan)
+        res = np.full(n, np.nan)
+        seen = np.zeros(n, bool)
+        ok, reason = reg.ok, reg.reason
+        if reg.ok:
+            for k, (i, j) in enumerate(reg.pairs):
+                img_pts[j] = pts[i]
+                res[j] = reg.residuals_px[k] if k < len(reg.residuals_px) else np.nan
+                seen[j] = True
+            if len(reg.pairs) < cfg.min_fiducials:
+                ok, reason = False, f"only {len(reg.pairs)} fiducials matched (need {cfg.min_fiducials})"
+            elif reg.reprojection_rms_px > cfg.max_rms_px:
+                ok, reason = False, (f"reprojection RMS {reg.reprojection_rms_px:.2f} px over the "
+                                     f"{cfg.max_rms_px:g} px gate")
+            elif np.nanmax(res) > cfg.max_residual_px:
+                j = int(np.nanargmax(res))
+                ok, reason = False, f"fiducial {j} residual {res[j]:.2f} px over the {cfg.max_residual_px:g} px gate"
+        else:
+            if len(pts) < cfg.min_fiducials:
+                reason = f"{len(pts)} fiducials detected (need {cfg.min_fiducials}): {reason}"
+            # best-effort status from the last valid pose
+            if self._last_T is not None and len(pts):
+                proj = self.camera.project(apply_transform(self._last_T, self.fiducials_ct))
+                d = np.linalg.norm(proj[:, None] - pts[None], axis=2)
+                for j in range(n):
+                    i = int(np.argmin(d[j]))
+                    if d[j, i] <= cfg.status_gate_px:
+                        seen[j] = True
+                        img_pts[j] = pts[i]
+        status = []
+        alerts = []
+        for j in range(n):
+            if seen[j]:
+                status.append(SEEN)
+            elif self._prev_seen[j]:
+                status.append(NEWLY_LOST)
+            elif self._ever_seen[j]:
+                status.append(OCCLUDED)
+            else:
+                status.append(UNKNOWN)
+        lost = [j for j, s in enumerate(status) if s == NEWLY_LOST]
+        if lost:
+            alerts.append(f"fiducial{'s' if len(lost) > 1 else ''} {', '.join(map(str, lost))} lost "
+                          f"(occluded?) in frame {frame.index}")
+        if not ok and (self._last_ok or self._last_ok is None):
+            alerts.append(f"no valid pose: {reason}")
+        self._prev_seen = seen
+        self._ever_seen |= seen
+        self._last_ok = ok
+
+        tre = float("nan")
+        T = reg.T_cam_ct if ok else None
+        if ok:
+            self._last_T = reg.T_cam_ct
+            self._last_T_time = frame.t_capture
+            if self.target_ct is not None:
+                tre = float(reg.predicted_tre_mm(self.target_ct))
+        return PoseEstimate(
+            ok=ok, reason="" if ok else reason, frame_index=frame.index, t_capture=frame.t_capture,
+            t_published=time.monotonic(), T_cam_ct=T, status=status, image_points_px=img_pts, residuals_px=res,
+            fre_mm=float(reg.fre_mm) if ok else float("nan"),
+            reprojection_rms_px=float(reg.reprojection_rms_px) if reg.ok else float("nan"),
+            predicted_tre_mm=tre, n_detected=len(pts), n_matched=int(seen.sum()) if reg.ok else 0,
+            alerts=alerts, used_prior=bool(reg.used_prior), detect_s=det.time_s, register_s=t_reg,
+            truth=frame.truth)
+
+    def camera_fault(self, frame_index: int, t_capture: float, camera: str, reason: str) -> PoseEstimate:
+        """An invalid estimate for a camera fault; the next good frame starts from a full search."""
+        n = len(self.fiducials_ct)
+        status = [NEWLY_LOST if s else (OCCLUDED if e else UNKNOWN) for s, e in zip(self._prev_seen, self._ever_seen)]
+        self._prev_seen = np.zeros(n, bool)
+        self._last_T_time = -np.inf
+        self._last_ok = False
+        return PoseEstimate(ok=False, reason=reason, frame_index=frame_index, t_capture=t_capture,
+                            t_published=time.monotonic(), status=status, image_points_px=np.full((n, 2), np.nan),
+                            residuals_px=np.full(n, np.nan), alerts=[reason], camera=camera)
+
+
+class PoseStream:
+    """Runs a :class:`PoseTracker` on a frame source in a background thread.
+
+    ``source`` any :class:`FrameSource` (default: a realtime :class:`SimulatedCamera`), ``tracker``
+    a :class:`PoseTracker` (default: for the default phantom and the source's camera).
+    ``latest()`` returns the newest :class:`PoseEstimate` (or None); ``subscribe(cb)`` adds a
+    callback run in the stream thread for every estimate; ``stop()`` joins the threads and
+    closes the source. ``estimates`` counts published estimates.
+    """
+
+    def __init__(self, source: FrameSource | None = None, tracker: PoseTracker | None = None,
+                 watchdog: FrameWatchdog | None = None, close_source: bool = True):
+        if source is None:
+            from monotracker.sim.camera_sim import SimulatedCamera
+
+            source = SimulatedCamera(realtime=True)
+        if tracker is None:
+            from monotracker.sim.phantom import default_phantom
+
+            cam = getattr(source, "camera", None)
+            if cam is None:
+                raise MonoTrackerError("PoseStream needs a tracker with the camera calibration for a real camera")
+            ph = default_phantom()
+            tracker = PoseTracker(ph.fiducial_centres_lps, cam, radius_mm=ph.fiducial_radius_mm,
+                                  target_ct=ph.sample_target_lps)
+        self.source = source
+        self.tracker = tracker
+        self.watchdog = watchdog or FrameWatchdog()
+        self.close_source = close_source
+        self._subs: list[Callable[[PoseEstimate], None]] = []
+        self._latest: PoseEstimate | None = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._monitor: threading.Thread | None = None
+        self._fault = ""           # camera fault already published (avoid repeats)
+        self._fault_lock = threading.Lock()
+        self._read_since: float | None = None   # monotonic time the pending read() began
+        self._last_index = -1
+        self.estimates = 0
+        self.camera_state = "ok"
+
+    # ------------------------------------------------------------------ API
+    def subscribe(self, callback: Callable[[PoseEstimate], None]) -> None:
+        with self._lock:
+            self._subs.append(callback)
+
+    def latest(self) -> PoseEstimate | None:
+        with self._lock:
+            return self._latest
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self) -> "PoseStream":
+        if self.running:
+            return self
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="pose-stream", daemon=True)
+        self._monitor = threading.Thread(target=self._watch, name="pose-stream-watchdog", daemon=True)
+        self._thread.start()
+        self._monitor.start()
+        return self
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        for t in (self._thread, self._monitor):
+            if t is not None:
+                t.join(timeout)
+        if self.close_source:
+            try:
+                self.source.close()
+            except Exception:  # noqa: BLE001 - closing a dead camera must not raise at shutdown
+                log.exception("closing the frame source failed")
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+        return False
+
+    # ------------------------------------------------------------------ threads
+    def _publish(self, est: PoseEstimate) -> None:
+        with self._lock:
+            self._latest = est
+            self.estimates += 1
+            subs = list(self._subs)
+        for cb in subs:
+            try:
+                cb(est)
+            except Exception:  # noqa: BLE001 - a broken subscriber must not kill tracking
+                log.exception("pose stream subscriber failed")
+
+    def _fault_estimate(self, camera: str, reason: str) -> None:
+        with self._fault_lock:
+            if self._fault == camera:
+                return
+            self._fault = camera
+            self.camera_state = camera
+            est = self.tracker.camera_fault(self._last_index, time.monotonic(), camera, reason)
+        self._publish(est)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._read_since = time.monotonic()
+            try:
+                frame = self.source.read()
+            except CameraDisconnected as exc:
+                self._fault_estimate("disconnected", f"camera disconnected: {exc}")
+                return
+            except MonoTrackerError as exc:
+                self._fault_estimate("disconnected", f"camera error: {exc}")
+                return
+            finally:
+                self._read_since = None
+            if frame is None:
+                self._fault_estimate("ended", "camera stream ended")
+                return
+            self._last_index = frame.index
+            frozen = self.watchdog.feed(frame)
+            if frozen:
+                self._fault_estimate("frozen", frozen)
+                continue
+            with self._fault_lock:
+                self._fault = ""
+                self.camera_state = "ok"
+            try:
+                est = self.tracker.process(frame)
+            except Exception as exc:  # noqa: BLE001 - report, keep the stream alive
+                log.exception("pose tracking failed on frame %d", frame.index)
+                est = PoseEstimate(False, f"internal error: {type(exc).__name__}: {exc}", frame.index,
+                                   frame.t_capture, time.monotonic(), alerts=[f"internal error: {exc}"])
+            self._publish(est)
+
+    def _watch(self) -> None:
+        while not self._stop.wait(0.02):
+            if not self._thread.is_alive():
+                return
+            since = self._read_since
+            if since is not None:
+                age = time.monotonic() - since
+                if age > self.watchdog.max_age_s:
+                    self._fault_estimate("stalled", f"camera stalled: no new frame for {1000 * age:.0f} ms")

@@ -1,0 +1,77 @@
+"""Classical detector vs the simulator's truth."""
+
+import numpy as np
+
+from monotracker.sim.camera_sim import Occluder, SceneEvents, SimulatedCamera, Stray, _finger
+from monotracker.sim.trajectories import make_trajectory
+from monotracker.vision.detect_classical import ClassicalDetector
+
+
+def _match(centres, truth, tol=2.0):
+    d = np.linalg.norm(centres[:, None] - truth[None], axis=2)
+    return d.argmin(1), d.min(1)
+
+
+def test_all_balls_found_to_subpixel(sim_still):
+    det = ClassicalDetector()
+    for t in (0.0, 1.0):
+        img, tr = sim_still.render(t)
+        d = det.detect(img)
+        assert len(d.fiducials) == 9
+        j, err = _match(d.centres, tr.ellipse_centres_px)
+        assert sorted(j) == list(range(9))
+        assert err.max() < 0.3, err
+        for f in d.fiducials:
+            assert 0.5 <= f.score <= 1.0
+            assert 6 < f.axes_px[1] <= f.axes_px[0] < 11
+
+
+def test_clip_is_not_a_fiducial(sim_still):
+    img, tr = sim_still.render(0.0)
+    d = ClassicalDetector().detect(img)
+    a, b = sim_still.phantom.clip_segment_lps
+    from monotracker.geometry import apply_transform
+    clip_px = sim_still.camera.project(apply_transform(tr.T_cam_ct, 0.5 * (a + b)[None]))[0]
+    assert np.linalg.norm(d.centres - clip_px, axis=1).min() > 10
+
+
+def test_partially_occluded_ball_is_rejected(sim_still):
+    px = sim_still.rest_projection()
+    k = 3
+    # a finger whose tip stops at the ball's centre: about half of it hidden
+    oc = Occluder(0.0, 10.0, _finger(60, 900, 0.0), px[k] + [300, 0], px[k] + [0.0, 0], sweep_s=0.0)
+    cam = SimulatedCamera(events=SceneEvents(occluders=[oc]), seed=0)
+    img, tr = cam.render(1.0)
+    assert 0.2 < tr.visible_fraction[k] < 0.8
+    d = ClassicalDetector().detect(img)
+    near = np.linalg.norm(d.centres - tr.ellipse_centres_px[k], axis=1) if len(d.centres) else np.array([99.0])
+    assert near.min() > 3, "a half-hidden ball (biased centre) must not be accepted"
+    assert len(d.fiducials) == int(tr.visible.sum())
+    # it is reported among the rejected candidates, with a reason
+    rej = [r for r in d.rejected if np.linalg.norm(r.centre_px - tr.ellipse_centres_px[k]) < 8]
+    assert rej and rej[0].reason.startswith("score")
+
+
+def test_irregular_strays_rejected_round_ones_may_pass():
+    strays = [Stray(0, 5, (200.0, 150.0), 12.0, "irregular", 1), Stray(0, 5, (1000.0, 500.0), 12.0, "streak", 2)]
+    cam = SimulatedCamera(events=SceneEvents(strays=strays), seed=0)
+    img, tr = cam.render(1.0)
+    d = ClassicalDetector().detect(img)
+    assert len(d.fiducials) == 9
+    j, err = _match(d.centres, tr.ellipse_centres_px)
+    assert err.max() < 0.3
+
+
+def test_detection_under_motion_blur_dim_light_and_noise():
+    from monotracker.sim.camera_sim import SceneEvents
+    cam = SimulatedCamera(trajectory=make_trajectory("drift"), noise_sigma=4.0,
+                          events=SceneEvents(lighting=[(0, 0.6), (100, 0.6)]), seed=2)
+    img, tr = cam.render(7.0)
+    d = ClassicalDetector().detect(img)
+    j, err = _match(d.centres, tr.ellipse_centres_px)
+    assert len(d.fiducials) == 9 and err.max() < 0.5
+
+
+def test_no_fiducials_in_a_blank_image():
+    d = ClassicalDetector().detect(np.full((720, 1280, 3), 90, np.uint8))
+    assert d.fiducials == [] and d.centres.shape == (0, 2)
