@@ -29,7 +29,7 @@ class TruthCameraRig(CameraRig):
     def __init__(self, motion="still", noise_mm=0.1, visible=lambda t: 9, seed=0):
         super().__init__()
         self.layout = default_layout()
-        self.motion = self.layout.motion(motion, seed)
+        self.motion = self.layout.motion(motion)
         self.noise_mm = noise_mm
         self.visible = visible
         self.rng = np.random.default_rng(seed)

@@ -144,7 +144,9 @@ def test_real_clock_threads_track_and_snapshots_are_safe_from_other_threads(plan
     s = Session(SessionConfig(home=_home_with_plan(planned_home, tmp_path), clock="real", trajectory="breathing"))
     errors = []
     try:
-        assert s.start().ok and s.start_camera().ok
+        assert s.start().ok
+        s.wait_for_job(60)  # the restart reloads the CT surface in the background; let it finish
+        assert s.start_camera().ok
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline and not (s.snapshot().pose and s.snapshot().pose.trusted):
             time.sleep(0.05)

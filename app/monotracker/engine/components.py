@@ -29,7 +29,7 @@ class PoseSample:
 
     ``t_capture`` session clock (s) of the frame; ``t_ready`` when the estimate became available;
     ``T_cam_ct`` 4x4 mm (None when not ok); ``n_matched`` fiducials used; ``fiducial_status``
-    id -> "visible"|"occluded"|"outlier"; ``residuals_px`` id -> px; ``fre_mm``;
+    id -> "seen"|"newly_lost"|"occluded"|"unknown"; ``residuals_px`` id -> px; ``fre_mm``;
     ``predicted_tre_mm`` at the planned target. Simulator only: ``truth_T_cam_ct`` and
     ``truth_tre_mm`` (error at the planned target vs truth, mm). ``raw``: the package's own
     estimate object (for the UI overlay)."""

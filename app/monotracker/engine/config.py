@@ -17,7 +17,8 @@ class SessionConfig:
     """How a session is set up.
 
     ``home``: folder for ``plan.json``, ``audit.sqlite`` and logs (None = ``paths.data_dir()``).
-    ``camera``: ``"sim" | "device:0" | "file:/path/video.mp4" | "folder:/path"``.
+    ``camera``: ``"sim"`` (rendered digital-twin camera) ``| "sim-points"`` (twin at the level of
+    detected points) ``| "device:0" | "file:/path/video.mp4" | "folder:/path"``.
     ``trajectory``: simulated head motion (``"still" | "drift" | "breathing" | "jumps"``; sim only).
     ``robot``: ``"sim" | "ur:<ip>"``. ``arm_pin``: the operator PIN that ``arm(pin)`` checks.
     ``clock``: ``"real"`` (threads, wall time; the web app) or ``"sim"`` (no threads: a driver
@@ -28,8 +29,9 @@ class SessionConfig:
 
     Loop gates (choices the paper leaves open, written down here):
     ``min_fiducials`` (4): fewer visible fiducials -> hold. ``max_fre_mm`` (1.5): a registration
-    whose fiducial residual exceeds this is not trusted. ``max_pose_age_s`` (0.1): the controller
-    holds when the freshest trusted pose is older than this. ``freeze_after_s`` (0.1): no new
+    whose fiducial residual exceeds this is not trusted. ``max_pose_age_s`` (0.15): the controller
+    holds when the freshest trusted pose is older than this (capture time to now: 30 ms camera
+    transport + up to one 33 ms frame period + registration, with margin for a loaded machine). ``freeze_after_s`` (0.1): no new
     camera frame for this long -> camera-freeze alarm. ``max_jump_mm`` (5.0) / ``max_jump_deg``
     (3.0): a pose that moved more than this from the last trusted one (per frame) is not trusted
     until ``confirm_frames`` (3) consecutive estimates agree with each other (a real head jump is
@@ -53,7 +55,7 @@ class SessionConfig:
     seed: int = 0
     min_fiducials: int = 4
     max_fre_mm: float = 1.5
-    max_pose_age_s: float = 0.1
+    max_pose_age_s: float = 0.15
     freeze_after_s: float = 0.1
     max_jump_mm: float = 5.0
     max_jump_deg: float = 3.0
@@ -68,8 +70,9 @@ class SessionConfig:
             raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
         if self.clock not in ("real", "sim"):
             raise InputError(f"clock must be 'real' or 'sim', not {self.clock!r}")
-        if not (self.camera == "sim" or self.camera.split(":", 1)[0] in ("device", "file", "folder")):
-            raise InputError(f"camera must be 'sim', 'device:N', 'file:PATH' or 'folder:PATH', not {self.camera!r}")
+        if not (self.camera in ("sim", "sim-points") or self.camera.split(":", 1)[0] in ("device", "file", "folder")):
+            raise InputError("camera must be 'sim', 'sim-points', 'device:N', 'file:PATH' or 'folder:PATH', "
+                             f"not {self.camera!r}")
         if not (self.robot == "sim" or self.robot.startswith("ur:")):
             raise InputError(f"robot must be 'sim' or 'ur:<ip>', not {self.robot!r}")
         if self.camera_fps <= 0 or self.control_hz <= 0:

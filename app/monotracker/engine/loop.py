@@ -238,8 +238,8 @@ class TrackingLoop:
     # ================================================================== camera
     def set_camera(self, source: str, calibration_path: str | None) -> CommandResult:
         source = str(source)
-        if not (source == "sim" or source.split(":", 1)[0] in ("device", "file", "folder")):
-            return CommandResult(False, "camera must be 'sim', 'device:N', 'file:PATH' or 'folder:PATH'")
+        if not (source in ("sim", "sim-points") or source.split(":", 1)[0] in ("device", "file", "folder")):
+            return CommandResult(False, "camera must be 'sim', 'sim-points', 'device:N', 'file:PATH' or 'folder:PATH'")
         if self.rig is not None and self.rig.running:
             return CommandResult(False, "stop the camera first")
         if self.robot_state() == "tracking":
@@ -300,7 +300,7 @@ class TrackingLoop:
                 self.rig.set_fault("none")
             self.s.record("fault_cleared", "fault injection cleared")
             return CommandResult(True, "fault cleared")
-        if self.camera_source != "sim" or self.cfg.robot != "sim":
+        if not self.camera_source.startswith("sim") or self.cfg.robot != "sim":
             return CommandResult(False, "fault injection is for the simulated camera and arm only")
         if name == "robot-disconnect":
             if self.robot is None:

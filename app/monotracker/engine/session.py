@@ -5,7 +5,7 @@ Public API (the engine <-> UI contract; /work/wt/SESSION_API.md, refined here)::
     from monotracker.engine import Session, SessionConfig
 
     cfg = SessionConfig(home=Path(...),        # plan.json, audit.sqlite, logs (default paths.data_dir())
-                        camera="sim",            # "sim" | "device:0" | "file:/path/video.mp4" | "folder:/path"
+                        camera="sim",            # "sim" | "sim-points" | "device:0" | "file:/path/video.mp4" | "folder:/path"
                         trajectory="breathing",  # simulated head motion: still|drift|breathing|jumps (sim only)
                         robot="sim",             # "sim" | "ur:192.168.1.10"
                         arm_pin="1234",          # operator PIN checked by arm(pin)
@@ -68,10 +68,12 @@ the pose is trusted again (tracking resumes by itself); ``robot_disconnected`` [
 state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
 ``arm``, ``tracking_started``, ``robot_state``, ``fault_injected``, ...); all of them are in the audit log.
 
-Camera sources: ``"sim"`` is the digital-twin camera at the level of detected fiducial points
-(``engine/vision_rig.py``: exact sphere-ellipse centres + noise -> the real registration). Device,
-file and folder sources need the vision package's frame sources and detector, which are not wired
-in this build yet (``set_camera`` accepts them; ``start_camera`` says so in its message).
+Camera sources (``engine/vision_rig.py``): ``"sim"`` the rendered digital-twin camera (vision's
+SimulatedCamera + classical detector + PoseTracker), ``"sim-points"`` the twin at the level of
+detected points (no rendering), ``"device:N" | "file:PATH" | "folder:PATH"`` real sources through
+vision's PoseStream (clock="real"; pass the calibration file to ``set_camera``). Per-fiducial
+statuses in ``snap.pose.fiducial_status`` use vision's words: ``"seen" | "newly_lost" |
+"occluded" | "unknown"``, keyed by fiducial id.
 
 Differences from SESSION_API.md (refinements, same shape): ``clock``/``advance`` for the
 simulated-clock demo; ``unlock_fiducials``, ``new_plan``, ``use_sample_plan``, ``set_hand_eye``,

@@ -111,7 +111,7 @@ class CameraSummary:
 @dataclass(frozen=True)
 class PoseSummary:
     """The latest pose estimate. ``t`` capture time (session clock, s); ``age_s`` now - t;
-    ``T_cam_ct`` 4x4 mm or None; ``fiducial_status`` dict id -> "visible"|"occluded"|"outlier";
+    ``T_cam_ct`` 4x4 mm or None; ``fiducial_status`` dict id -> "seen"|"newly_lost"|"occluded"|"unknown";
     ``residuals_px`` dict id -> px; ``fre_mm``, ``predicted_tre_mm`` at the planned target;
     ``latency_ms`` capture -> estimate; ``trusted``: the engine's verdict (ok, >= 4 fiducials,
     passes the plausibility gates) that decides tracking vs holding; ``reason`` one line."""

@@ -19,8 +19,9 @@ Layout choices (the paper shows a UR10 beside the head and a camera on a stand; 
   fiducials are in view and the robot coming from above does not stand in the line of sight.
 
 ``T_base_cam`` (the hand-eye result the engine uses) follows: ``T_base_cam = T_base_ct0 @ T_ct_cam``.
-:meth:`ORLayout.T_cam_ct` gives the true registration at time t for a head motion
-(``monotracker.sim.head_motion``): ``T_cam_ct(t) = inv(T_base_cam) @ D(t) @ T_base_ct0``.
+Head motion is one of vision's trajectories (``monotracker.sim.trajectories``: ``pose(t) ->
+T_world_ct`` with world = the CT frame at rest), so the true head pose in the room is
+``T_base_ct(t) = T_base_ct0 @ pose(t)`` and the true registration ``T_cam_ct(t) = T_cam_ct0 @ pose(t)``.
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ from functools import cached_property
 import numpy as np
 
 from monotracker.geometry import apply_transform, invert_transform, look_at, make_transform, rotation_about_axis
-from monotracker.sim.head_motion import Motion, head_motion
 from monotracker.sim.phantom import HeadPhantom, default_phantom
 
 
@@ -84,23 +84,26 @@ class ORLayout:
     def head_centre_base(self) -> np.ndarray:
         return apply_transform(self.T_base_ct0, self.phantom.centre_lps)
 
-    def motion(self, name: str, seed: int = 0) -> Motion:
-        """Head motion ``name`` about the head centre, in this room."""
-        return head_motion(name, self.head_centre_base, seed)
+    def motion(self, name: str, seed: int = 1):
+        """The head trajectory ``name`` (``monotracker.sim.trajectories``)."""
+        from monotracker.sim.trajectories import make_trajectory
 
-    def T_base_ct(self, motion: Motion, t: float) -> np.ndarray:
-        """True head pose in the base at time ``t`` (s)."""
-        return motion(t) @ self.T_base_ct0
+        return make_trajectory(name, seed=seed)
 
-    def T_cam_ct(self, motion: Motion, t: float) -> np.ndarray:
+    def T_base_ct(self, motion, t: float) -> np.ndarray:
+        """True head pose in the base at time ``t`` (s) for a trajectory (``pose(t) -> T_world_ct``)."""
+        return self.T_base_ct0 @ motion.pose(t)
+
+    def T_cam_ct(self, motion, t: float) -> np.ndarray:
         """True registration (CT -> camera) at time ``t`` (s)."""
-        return invert_transform(self.T_base_cam) @ self.T_base_ct(motion, t)
+        return self.T_cam_ct0 @ motion.pose(t)
 
     @cached_property
     def T_cam_ct0(self) -> np.ndarray:
+        """True registration with the head at rest."""
         return invert_transform(self.T_base_cam) @ self.T_base_ct0
 
-    def planned_needle_pose(self, t_motion: Motion | None = None, t: float = 0.0) -> np.ndarray:
+    def planned_needle_pose(self, t_motion=None, t: float = 0.0) -> np.ndarray:
         """The needle target (tip at entry, +z along the path) in the base for the true head pose."""
         from monotracker.engine.target import needle_target
 
