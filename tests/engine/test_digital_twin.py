@@ -109,18 +109,24 @@ def test_partial_occlusion_keeps_tracking_with_four_and_holds_with_three(planned
     ("bad-pose", ("pose_jump",), "holding"),
 ])
 def test_fault_stops_the_arm_raises_the_alert_and_keeps_the_plan(planned_home, tmp_path, fault, codes, state):
-    r = run_demo(DemoOptions(seconds=4.5, trajectory="breathing", fault=fault, fault_at_s=3.0,
+    from monotracker.sim.trajectories import Breathing
+
+    # a head oscillating 4 mm at 0.5 Hz (12.6 mm/s peak): the arm is really moving when the fault hits
+    fast = Breathing(amplitude_mm=4.0, period_s=2.0)
+    r = run_demo(DemoOptions(seconds=4.0, trajectory=fast, fault=fault, fault_at_s=2.5,
                              home=_home_with_plan(planned_home, tmp_path)))
     fr = r["fault_report"]
     assert fr["engine_reported"] is not None and fr["engine_reported"].split("]")[1].split(":")[0].strip() in codes
     assert fr["detection_delay_s"] <= 0.15
     assert fr["standstill_at_s"] is not None
     if fault in ("camera-freeze", "robot-disconnect"):
+        assert fr["tip_speed_before_fault_mm_s"] > 3.0  # it was moving: stopping is a real test
         assert fr["standstill_after_detection_s"] <= 0.1
     assert fr["state_after"] == state
     assert fr["plan_intact"]
-    # the needle stopped where it was: wrong poses never pulled it anywhere
-    assert fr["arm_travel_after_fault_mm"] < 1.0
+    # the needle stopped near where it was (it follows the head until the fault is detected);
+    # wrong poses never pulled it anywhere
+    assert fr["arm_travel_after_fault_mm"] < 2.0
 
 
 def test_cli_headless_demo_json_and_bad_input(tmp_path):

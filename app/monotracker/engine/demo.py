@@ -17,8 +17,8 @@ Measured against the simulator's truth:
   after the first ``settle_s`` seconds of tracking (the initial approach is excluded);
 * capture -> command latency (ms);
 * for a fault injected at ``fault_at_s``: when the engine detected it (first alert after the
-  fault), when the arm came to a standstill (tip speed < 1 mm/s and all joints < 0.1 deg/s, and
-  staying so for 0.2 s), how far the needle tip travelled after the fault, what the engine
+  fault), when the arm came to a standstill (tip speed < 0.5 mm/s and all joints < 1e-3 rad/s,
+  and staying so for 0.2 s), how far the needle tip travelled after the fault, what the engine
   reported, and whether the saved plan is unchanged.
 """
 
@@ -38,8 +38,8 @@ from monotracker.engine.session import Session
 from monotracker.errors import InputError, MonoTrackerError
 from monotracker.geometry import apply_transform
 
-STANDSTILL_TIP_MM_S = 1.0
-STANDSTILL_JOINT_RAD_S = np.radians(0.1)
+STANDSTILL_TIP_MM_S = 0.5
+STANDSTILL_JOINT_RAD_S = 1e-3
 STANDSTILL_HOLD_S = 0.2
 #: alert codes that count as "the engine noticed" each fault
 FAULT_CODES = {
@@ -68,7 +68,7 @@ class DemoOptions:
     def validate(self) -> None:
         if not (self.seconds > 0):
             raise InputError("--seconds must be positive")
-        if self.trajectory not in TRAJECTORIES:
+        if not (self.trajectory in TRAJECTORIES or hasattr(self.trajectory, "pose")):
             raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
         if self.fault not in FAULTS:
             raise InputError(f"unknown fault {self.fault!r}; use one of {', '.join(FAULTS)}")
@@ -233,7 +233,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
     sim_s = snap.t
     lat = np.array(s._loop.latencies_s) * 1000
     out = {
-        "trajectory": opts.trajectory,
+        "trajectory": opts.trajectory if isinstance(opts.trajectory, str) else repr(opts.trajectory),
         "fault": opts.fault,
         "seconds_tracking": opts.seconds,
         "simulated_s": sim_s,
@@ -274,6 +274,8 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
             "standstill_after_detection_s": None if (t_still is None or t_det is None) else max(0.0, t_still - t_det),
             "engine_reported": None if det is None else f"[{det.level}] {det.code}: {det.message}",
             "arm_travel_after_fault_mm": travel,
+            "tip_speed_before_fault_mm_s": max((r[4] for r in rec.rows if fault_at - 0.1 <= r[0] <= fault_at),
+                                               default=None),
             "state_after": snap.robot.state,
             "plan_intact": s.plan_copy().to_dict() == plan_before,
         }
