@@ -208,3 +208,27 @@ def test_restart_reloads_the_ct_for_the_views_and_keeps_the_confirmed_fiducials(
         assert snap.robot.state == "disarmed"
     finally:
         s.shutdown()
+
+
+def test_camera_calibration_is_saved_in_the_plan_and_events_reach_subscribers_on_their_thread(planned_home, tmp_path):
+    import threading
+    import time
+
+    from monotracker.engine.plan import Plan
+
+    home = _home_with_plan(planned_home, tmp_path)
+    s = Session(SessionConfig(home=home, clock="real"))
+    got = []
+    s.subscribe(lambda e: got.append((e.code, threading.current_thread().name)))
+    try:
+        s.start()
+        s.wait_for_job(60)
+        assert s.start_camera().ok
+        time.sleep(0.3)
+        rig = s._loop.rig
+        saved = Plan.load(home / "plan.json")
+        assert saved.camera_source == "sim" and np.allclose(saved.K, rig.K) and saved.image_size == rig.image_size
+        assert np.allclose(saved.dist, np.ravel(rig.dist))
+    finally:
+        s.shutdown()
+    assert ("camera_calibration", "monotracker-events") in got  # delivered on the bus thread, not the caller's

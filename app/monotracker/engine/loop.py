@@ -71,6 +71,9 @@ class TrackingLoop:
                              cfg.confirm_frames)
         self.camera_source = cfg.camera
         self.calibration_path: str | None = None
+        saved = session.plan_copy()
+        if saved.camera_source and saved.camera_source == cfg.camera:
+            self.calibration_path = saved.calibration_path  # the calibration used last time
         self.rig: components.CameraRig | None = None
         self.robot: components.RobotRig | None = None
         self.camera_error: str | None = None
@@ -269,6 +272,7 @@ class TrackingLoop:
             self.gate.reset()
             anchor = plan.entry_lps_mm if plan.entry_lps_mm is not None else plan.fiducial_centres().mean(axis=0)
             self.gate.set_anchor(anchor)
+        self.s._store_camera(self.camera_source, self.calibration_path, rig.K, rig.dist, rig.image_size)
         if rig.default_T_base_cam is not None and plan.T_base_cam is None:
             self.s.set_hand_eye(rig.default_T_base_cam)
         if self.cfg.clock == "real":

@@ -554,6 +554,25 @@ class Session:
         self._bus.event("hand_eye_set", "hand-eye calibration T_base_cam set", {"T_base_cam_mm": T.tolist()})
         return _ok("hand-eye set")
 
+    def _store_camera(self, source: str, calibration_path, K, dist, image_size) -> None:
+        """Save the camera in use and its calibration in the plan (called by the loop)."""
+        with self._lock:
+            p = self._plan
+            same = (p.camera_source == source and p.calibration_path == calibration_path and p.K is not None
+                    and K is not None and np.array_equal(p.K, K))
+            if same:
+                return
+            p.camera_source, p.calibration_path = source, calibration_path
+            p.K = None if K is None else np.asarray(K, float).copy()
+            p.dist = None if dist is None else np.asarray(dist, float).ravel().copy()
+            p.image_size = None if image_size is None else tuple(int(v) for v in image_size)
+            self._save_plan_locked("camera calibration")
+        self._bus.event("camera_calibration", f"camera {source}: calibration stored in the plan",
+                        {"source": source, "calibration_path": calibration_path,
+                         "K": None if K is None else np.asarray(K).tolist(),
+                         "dist": None if dist is None else np.asarray(dist).ravel().tolist(),
+                         "image_size": None if image_size is None else list(image_size)})
+
     # ================================================================== robot
     def arm(self, pin) -> CommandResult:
         if str(pin) != str(self.config.arm_pin):
