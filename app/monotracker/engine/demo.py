@@ -28,7 +28,7 @@ import json
 import os
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -329,4 +329,4 @@ def report_json(r: dict) -> str:
     return json.dumps(r, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
 
 
-__all__ = ["DemoOptions", "run_demo", "format_report", "report_json", "asdict"]
+__all__ = ["DemoOptions", "run_demo", "format_report", "report_json"]
