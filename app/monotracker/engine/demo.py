@@ -4,8 +4,9 @@
 the web app does (load the sample CT, confirm the detected fiducials, the sample plan, start the
 camera, arm with the PIN, start tracking), on a **simulated clock** (``clock="sim"``): camera,
 registration and control run in lock-step at their own rates, and every pose becomes available
-only after the *measured* wall time of its detection + registration, so accuracy, pose age and
-latency are what this machine can deliver, independent of how loaded it is. Whether the run
+only after the camera's 30 ms transport delay plus the *measured* compute time (CPU time of the
+thread) of its detection + registration, so accuracy, pose age and latency are what this machine's
+code delivers, independent of how loaded the machine is. Whether the run
 kept up with real time is reported separately (``realtime_factor`` = simulated s / wall s).
 
 Measured against the simulator's truth:
@@ -241,7 +242,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         "cpu_s": cpu,
         "loop_wall_s": wall_loop,
         "realtime_factor": (sim_s - t_loop0) / wall_loop if wall_loop > 0 else None,
-        "clock": "simulated, lock-step; a pose is available 30 ms (camera) + its measured compute time after capture",
+        "clock": "simulated, lock-step; a pose is available 30 ms (camera) + its measured CPU time after capture",
         "cpus_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "frames": frames,
         "fps": frames / sim_s if sim_s > 0 else 0.0,

@@ -13,7 +13,9 @@ clock="sim" (demo, tests, benchmark): no threads. :meth:`TrackingLoop.advance` s
 clock at the control period; a frame is captured every camera period when the estimator is free,
 estimated synchronously, and its result becomes available ``d + w`` seconds after capture, where
 ``d`` is the camera's transport delay (exposure + readout + USB transfer; ``rig.transport_delay_s``,
-30 ms for the simulated camera) and ``w`` is the *measured wall time* of detection + registration (so slow registration shows up honestly
+30 ms for the simulated camera) and ``w`` is the *measured compute time* of detection + registration
+(CPU time of the engine thread, ``time.thread_time()``: on a shared, overloaded machine wall time
+would mostly measure the other processes) (so slow registration shows up honestly
 as pose age and latency, and frames arriving while it is busy are dropped as in the threaded
 pose stream). The same gate/target/watchdog code runs in both modes.
 
@@ -450,9 +452,11 @@ class TrackingLoop:
                     frame = rig.capture(t)
                     # A frozen camera hands back the same frame: nothing new to estimate.
                     if frame is not None and self.note_frame(frame.t_capture, t):
-                        w0 = time.perf_counter()
+                        # compute time of detection + registration: this thread's CPU time, so
+                        # the model does not depend on what else the machine runs meanwhile
+                        w0 = time.thread_time()
                         sample = rig.estimate(frame)
-                        w = time.perf_counter() - w0
+                        w = time.thread_time() - w0
                         ready = t + rig.transport_delay_s + w
                         sample.t_ready = ready
                         self._busy_until = ready
