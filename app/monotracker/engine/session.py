@@ -51,7 +51,9 @@ on engine threads. Commands never raise for operator mistakes (the message says 
                           #   tip_error_mm, angle_error_deg, speed_mm_s, connected, message, latency_ms)
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
     snap.alerts           # recent alerts (Event: t, t_session, kind, level "info"|"warning"|"alarm", code, message, data)
-    s.latest_frame()      # (image BGR uint8, frame_index, PoseEstimate) for the overlay, or None
+    s.latest_frame()      # (image BGR uint8, frame_index, estimate) for the overlay, or None; estimate is
+                          #   vision's PoseEstimate (image_points_px per fiducial, status, residuals) for
+                          #   "sim" and real cameras, the engine's PoseSample for "sim-points"
     s.subscribe(callback) # callback(Event) on every alert/event (engine thread); returns unsubscribe()
     s.audit_entries(limit=None) -> list[AuditEntry]
 
@@ -81,8 +83,9 @@ simulated-clock demo; ``unlock_fiducials``, ``new_plan``, ``use_sample_plan``, `
 are :class:`~monotracker.engine.events.Event` objects (with ``kind == "alert"``).
 
 Threading: every public method may be called from any thread (viser callbacks). State lives
-behind one re-entrant lock; methods hold it only for bookkeeping, never across I/O or heavy
-work. Snapshots are deep copies with read-only arrays.
+behind one re-entrant lock; methods hold it only for bookkeeping and for the plan's atomic save
+(a few ms, so the file and the in-memory plan never disagree), never across CT loading,
+registration or robot motion. Snapshots are copies with read-only arrays.
 
 Safety choices: the session always starts disarmed, also after a crash; arming needs the PIN;
 tracking needs a trusted pose (>= ``min_fiducials`` visible, FRE below ``max_fre_mm``, passes the
