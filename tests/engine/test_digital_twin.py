@@ -82,6 +82,8 @@ def test_partial_occlusion_keeps_tracking_with_four_and_holds_with_three(planned
         tip, ang = tip_and_axis_error(rob.status().T_base_tip, rig.truth_T_base_ct(snap.t), plan.entry_lps_mm,
                                       plan.target_lps_mm)
         assert tip < 2.0 and ang < 1.5
+        lost = [a for a in snap.alerts if a.code == "fiducials_lost"]
+        assert lost and "4 of 9 seen; tracking continues" in lost[-1].message
         rig.occluded_ids = {0, 1, 2, 3, 4, 5}  # 3 remain
         s.advance(0.5)
         snap = s.snapshot()
@@ -92,6 +94,7 @@ def test_partial_occlusion_keeps_tracking_with_four_and_holds_with_three(planned
         s.advance(0.5)
         snap = s.snapshot()
         assert snap.robot.state == "tracking" and snap.alerts[-1].code == "resumed"
+        assert "fiducials_back" in [a.code for a in snap.alerts]
         rows = s.audit_entries()
         codes = [e.code for e in rows]
         assert "occlusion" in codes and "resumed" in codes

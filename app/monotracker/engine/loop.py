@@ -88,6 +88,7 @@ class TrackingLoop:
         self._frame_times: deque[float] = deque(maxlen=90)
         self._holding_reason: str | None = None  # why the loop currently holds (None = not holding)
         self._holding_code: str | None = None
+        self._seen_ids: set | None = None  # fiducial ids seen in the previous estimate
         self._alerted: set[str] = set()
         self._target_T: np.ndarray | None = None
         self._target_stamp: float | None = None
@@ -321,8 +322,30 @@ class TrackingLoop:
         return CommandResult(True, f"fault {name} injected")
 
     # ================================================================== the loop proper
+    def _fiducial_changes(self, sample: components.PoseSample) -> None:
+        """Info alerts when fiducials vanish from / come back into the camera's view."""
+        if not sample.fiducial_status:
+            return
+        seen = {fid for fid, st in sample.fiducial_status.items() if st == "seen"}
+        prev, self._seen_ids = self._seen_ids, seen
+        if prev is None:
+            return
+        lost, back = sorted(prev - seen), sorted(seen - prev)
+        n, total = len(seen), len(sample.fiducial_status)
+        verdict = ("tracking continues" if n >= self.cfg.min_fiducials
+                   else f"fewer than {self.cfg.min_fiducials}: arm holds")
+        if lost:
+            self.s.alert("info", "fiducials_lost", f"fiducial{'s' if len(lost) > 1 else ''} "
+                         f"{', '.join(map(str, lost))} out of view ({n} of {total} seen; {verdict})",
+                         {"lost": lost, "seen": sorted(seen)})
+        if back:
+            self.s.alert("info", "fiducials_back", f"fiducial{'s' if len(back) > 1 else ''} "
+                         f"{', '.join(map(str, back))} back in view ({n} of {total} seen)",
+                         {"back": back, "seen": sorted(seen)})
+
     def on_pose(self, sample: components.PoseSample, now: float) -> None:
         """A new estimate is available (engine thread / sim tick)."""
+        self._fiducial_changes(sample)
         v = self.gate.check(sample.ok, sample.reason, sample.T_cam_ct, sample.n_matched, sample.fre_mm,
                             sample.t_capture)
         rec = _PoseRecord(sample, v.trusted, v.code, v.reason)

@@ -63,7 +63,10 @@ pose disagrees with the last trusted one (a wrong pose or a real jump; followed 
 ``confirm_frames`` consistent frames), arm holds; ``bad_pose`` [warning] FRE too large; ``pose_lost``
 [warning] the estimator failed; ``pose_stale`` [warning] freshest trusted pose older than
 ``max_pose_age_s``; ``camera_freeze`` [alarm] no new frame for ``freeze_after_s``; ``resumed`` [info]
-the pose is trusted again (tracking resumes by itself); ``robot_disconnected`` [alarm] /
+the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``fiducials_back``
+[info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
+[warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
+``robot_disconnected`` [alarm] /
 ``robot_connected`` [info]; ``robot_warning`` [warning] from the robot's safety layer; ``estop``
 [alarm]; ``arm_refused`` [warning] wrong PIN; ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
 / ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
