@@ -58,8 +58,8 @@ class BaselineDetector:
 
 def make_camera(seconds: float, seed: int) -> SimulatedCamera:
     cam = SimulatedCamera(trajectory=make_trajectory("mixed", seed=seed), seed=seed)
-    occl = max(2, int(seconds / 8))
-    cam.events = random_events(seconds, cam.rest_projection(), seed=seed, occlusions=occl, strays=occl)
+    occl = max(3, int(seconds / 4))
+    cam.events = random_events(seconds, cam.rest_projection(), seed=seed, occlusions=occl, strays=occl // 2)
     # the hardest stray: a round ball-sized green blob on the skin next to the fiducials
     c = cam.rest_projection().mean(0) + [60.0, 95.0]
     cam.events.strays.append(Stray(0.25 * seconds, 0.6 * seconds, tuple(c), 8.5, "round", 99))

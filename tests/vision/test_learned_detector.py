@@ -47,3 +47,12 @@ def test_missing_model_is_a_clear_error(tmp_path):
     bad.write_bytes(b"not a model")
     with pytest.raises(InputError, match="cannot load"):
         LearnedDetector(model_path=bad)
+
+
+def test_lone_weak_cell_does_not_crash(learned, monkeypatch):
+    """A single output cell just over the threshold vanishes when upsampled (regression)."""
+    prob = np.zeros((180, 320), np.float32)
+    prob[90, 160] = 0.51
+    monkeypatch.setattr(learned, "probability", lambda image: prob)
+    d = learned.detect(np.full((720, 1280, 3), 100, np.uint8))
+    assert d.fiducials == []

@@ -334,11 +334,12 @@ class SimulatedCamera(FrameSource):
             cov_store[k] = (roi, cov)
 
         # --- strays
-        strays = []
+        strays, active = [], []
         for s in self.events.strays:
             if s.t_start <= t < s.t_end:
                 self._draw_stray(img, s)
                 strays.append(s.centre_px)
+                active.append(s)
 
         # --- occluders (in front of everything)
         polys = []
@@ -355,6 +356,8 @@ class SimulatedCamera(FrameSource):
             for k, (roi, cov) in cov_store.items():
                 y0, y1, x0, x1 = roi
                 label[y0:y1, x0:x1] = np.maximum(label[y0:y1, x0:x1], cov)
+            for st in active:
+                self._draw_stray(label, st, colour=0.0)
             for poly in polys:
                 cv2.fillPoly(label, [np.round(poly * 16).astype(np.int32)], 0.0, cv2.LINE_AA, shift=4)
 
@@ -365,8 +368,10 @@ class SimulatedCamera(FrameSource):
             if total <= 0:
                 continue
             y0, y1, x0, x1 = roi
-            if polys:
+            if polys or active:     # hands, instruments and stray blobs are all in front of the balls
                 m = np.zeros((y1 - y0, x1 - x0), np.uint8)
+                for st in active:
+                    self._draw_stray(m, st, offset=(x0, y0), colour=255)
                 for poly in polys:
                     cv2.fillPoly(m, [np.round((poly - [x0, y0]) * 16).astype(np.int32)], 255, cv2.LINE_AA, shift=4)
                 seen = float(np.sum(cov * (1.0 - m / 255.0)))
@@ -490,22 +495,23 @@ class SimulatedCamera(FrameSource):
         xn = C[:, :2] * (c / (c**2 - rad**2))[:, None]
         return distort_normalised(xn, self.K, self.dist)
 
-    def _draw_stray(self, img, s: Stray):
-        c = np.asarray(s.centre_px, float)
+    def _draw_stray(self, img, s: Stray, offset=(0.0, 0.0), colour=STRAY_BGR):
+        """Draw stray ``s`` (px) into ``img`` whose pixel (0, 0) is image pixel ``offset``."""
+        c = np.asarray(s.centre_px, float) - np.asarray(offset, float)
         rng = np.random.default_rng(s.seed)
         if s.shape == "round":
-            cv2.circle(img, tuple(np.round(c * 16).astype(int)), int(round(s.size_px * 16)), STRAY_BGR,
+            cv2.circle(img, tuple(np.round(c * 16).astype(int)), int(round(s.size_px * 16)), colour,
                        -1, cv2.LINE_AA, shift=4)
         elif s.shape == "streak":
             d = rng.normal(size=2)
             d = d / np.linalg.norm(d) * s.size_px * 2.5
             p0, p1 = np.round((c - d) * 16).astype(int), np.round((c + d) * 16).astype(int)
-            cv2.line(img, tuple(p0), tuple(p1), STRAY_BGR, max(2, int(s.size_px / 3)), cv2.LINE_AA, shift=4)
+            cv2.line(img, tuple(p0), tuple(p1), colour, max(2, int(s.size_px / 3)), cv2.LINE_AA, shift=4)
         else:
             ang = np.sort(rng.uniform(0, 2 * np.pi, 9))
             r = s.size_px * rng.uniform(0.4, 1.4, 9)
             poly = c + np.column_stack([r * np.cos(ang), r * np.sin(ang)])
-            cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], STRAY_BGR, cv2.LINE_AA, shift=4)
+            cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], colour, cv2.LINE_AA, shift=4)
 
     def _motion_blur(self, img, t, C_all, proj):
         """Blur along the image motion of the fiducial patch during the exposure (centred on t)."""

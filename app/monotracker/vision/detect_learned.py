@@ -89,6 +89,8 @@ class LearnedDetector:
             sub = cv2.resize(prob[qy0:qy1, qx0:qx1], None, fx=f, fy=f, interpolation=cv2.INTER_LINEAR)
             x1, y1 = min(x0 + sub.shape[1], w), min(y0 + sub.shape[0], h)
             sel = (sub[: y1 - y0, : x1 - x0] > self.threshold).astype(np.uint8)
+            if not sel.any():      # a lone cell just over the threshold fades below it when upsampled
+                continue
             grown = cv2.dilate(sel, np.ones((7, 7), np.uint8))
             if grown.all():
                 continue

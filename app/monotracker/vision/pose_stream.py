@@ -57,7 +57,9 @@ class PoseEstimate:
     the matched detection per CT fiducial (NaN where none) and ``residuals_px`` its
     reprojection error (NaN where none). ``predicted_tre_mm`` is at the planned target (NaN if
     no target was given or no pose). ``alerts`` are one-line operator messages for this frame.
-    ``camera`` is "ok", "frozen", "stalled", "disconnected" or "ended"."""
+    ``camera`` is "ok", "frozen", "stalled", "disconnected" or "ended". ``detect_s`` /
+    ``register_s`` are the stage times (s); ``truth`` is the simulator's ground truth of the
+    frame (None for real cameras), carried for overlays and benchmarks."""
 
     ok: bool
     reason: str
