@@ -1,0 +1,180 @@
+"""Adapters between the engine loop and the other packages (vision + registration, robot).
+
+The loop talks to two small interfaces, so that what vision and robot export can evolve without
+touching the loop's logic:
+
+* :class:`CameraRig`: a frame source plus the pose pipeline (detect fiducials, register).
+  clock="sim": ``capture(t)`` and ``estimate(frame)`` are called in lock-step by the loop.
+  clock="real": ``start()`` runs vision's ``PoseStream`` thread; the loop polls ``poll_frames()``
+  and ``latest_sample()``.
+* :class:`RobotRig`: the robot ``Tracker`` (safety state machine + APFF controller) and its arm.
+
+Every estimate is normalised into a :class:`PoseSample`, every robot state into a
+:class:`RobotStatus` (mm on this side; the robot package converts to metres inside).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from monotracker.engine.snapshot import CommandResult
+from monotracker.errors import MonoTrackerError
+
+
+@dataclass
+class PoseSample:
+    """One pose estimate as the loop sees it.
+
+    ``t_capture`` session clock (s) of the frame; ``t_ready`` when the estimate became available;
+    ``T_cam_ct`` 4x4 mm (None when not ok); ``n_matched`` fiducials used; ``fiducial_status``
+    id -> "seen"|"newly_lost"|"occluded"|"unknown"; ``residuals_px`` id -> px; ``fre_mm``;
+    ``predicted_tre_mm`` at the planned target. Simulator only: ``truth_T_cam_ct`` and
+    ``truth_tre_mm`` (error at the planned target vs truth, mm). ``raw``: the package's own
+    estimate object (for the UI overlay)."""
+
+    t_capture: float
+    frame_index: int
+    ok: bool
+    reason: str
+    T_cam_ct: np.ndarray | None
+    n_matched: int
+    fiducial_status: dict = field(default_factory=dict)
+    residuals_px: dict = field(default_factory=dict)
+    fre_mm: float | None = None
+    predicted_tre_mm: float | None = None
+    t_ready: float | None = None
+    truth_T_cam_ct: np.ndarray | None = None
+    truth_tre_mm: float | None = None
+    raw: object = None
+
+
+@dataclass
+class RobotStatus:
+    """``state`` disarmed|armed|tracking|holding|estopped; ``q`` (6,) rad; ``qd`` (6,) rad/s;
+    ``T_base_tip`` needle tip pose (4x4, mm, +z along the needle); ``speed_mm_s`` tip speed;
+    ``command_stamp`` capture stamp of the target used by the last command and ``t_command``
+    when it was sent (session clock s)."""
+
+    state: str
+    connected: bool
+    message: str = ""
+    q: np.ndarray | None = None
+    qd: np.ndarray | None = None
+    T_base_tip: np.ndarray | None = None
+    speed_mm_s: float = 0.0
+    command_stamp: float | None = None
+    t_command: float | None = None
+
+
+class CameraRig:
+    """Base class; see the module docstring."""
+
+    K: np.ndarray | None = None
+    dist: np.ndarray | None = None
+    image_size: tuple | None = None
+    default_T_base_cam: np.ndarray | None = None
+    #: seconds from the instant a frame is exposed to the moment it reaches the software
+    transport_delay_s: float = 0.0
+
+    def __init__(self):
+        self.running = False
+        self.fault = "none"
+
+    # sim clock
+    def capture(self, t: float):
+        raise NotImplementedError
+
+    def estimate(self, frame) -> PoseSample:
+        raise NotImplementedError
+
+    # real clock
+    def start(self) -> None:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        pass
+
+    def poll_frames(self) -> list[float]:
+        return []
+
+    def latest_sample(self) -> PoseSample | None:
+        return None
+
+    def latest_frame(self):
+        return None
+
+    def set_fault(self, name: str) -> None:
+        self.fault = name
+
+    def truth_T_cam_ct(self, t: float) -> np.ndarray | None:
+        """Simulator truth at time t (None for real cameras)."""
+        return None
+
+    def truth_T_base_ct(self, t: float) -> np.ndarray | None:
+        """Simulator truth: the head (CT) pose in the robot base at time t, mm (None if real)."""
+        return None
+
+
+class RobotRig:
+    """Base class; see the module docstring."""
+
+    default_T_base_cam: np.ndarray | None = None
+
+    def arm(self) -> CommandResult:
+        raise NotImplementedError
+
+    def disarm(self) -> CommandResult:
+        raise NotImplementedError
+
+    def start_tracking(self) -> CommandResult:
+        raise NotImplementedError
+
+    def stop_tracking(self) -> CommandResult:
+        raise NotImplementedError
+
+    def estop(self) -> CommandResult:
+        raise NotImplementedError
+
+    def reset(self) -> CommandResult:
+        raise NotImplementedError
+
+    def set_target(self, T_base_target_mm, stamp: float, valid: bool, T_base_ct=None) -> None:
+        """New needle target (4x4 mm); ``T_base_ct`` (mm) is the head pose it came from (for
+        obstacles that move with the head)."""
+        raise NotImplementedError
+
+    def step(self, now: float) -> None:
+        raise NotImplementedError
+
+    def start_thread(self) -> None:
+        pass
+
+    def status(self) -> RobotStatus:
+        raise NotImplementedError
+
+    def inject_disconnect(self) -> None:
+        raise MonoTrackerError("this robot cannot simulate a disconnect")
+
+    def close(self) -> None:
+        pass
+
+
+# ---------------------------------------------------------------------- factories
+def make_camera_rig(source: str, calibration_path, plan, cfg, session) -> CameraRig:
+    """The vision-backed rig (``engine/vision_rig.py``) unless the session was given a factory."""
+    if session.camera_factory is not None:
+        return session.camera_factory(source, calibration_path, plan, cfg, session)
+    from monotracker.engine.vision_rig import make_vision_rig
+
+    return make_vision_rig(source, calibration_path, plan, cfg, session)
+
+
+def make_robot_rig(cfg, session) -> RobotRig:
+    """The robot-backed rig (``engine/robot_rig.py``) unless the session was given a factory."""
+    if session.robot_factory is not None:
+        return session.robot_factory(cfg, session)
+    from monotracker.engine.robot_rig import make_tracker_rig
+
+    return make_tracker_rig(cfg, session)

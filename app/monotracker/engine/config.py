@@ -1,0 +1,86 @@
+"""Session configuration (see ``session.py``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from monotracker.errors import InputError
+
+from monotracker.sim.faults import FAULTS  # noqa: F401  (one list, owned by the twin)
+
+TRAJECTORIES = ("still", "drift", "breathing", "jumps")
+
+
+@dataclass
+class SessionConfig:
+    """How a session is set up.
+
+    ``home``: folder for ``plan.json``, ``audit.sqlite`` and logs (None = ``paths.data_dir()``).
+    ``camera``: ``"sim"`` (rendered digital-twin camera) ``| "sim-points"`` (twin at the level of
+    detected points) ``| "device:0" | "file:/path/video.mp4" | "folder:/path"``.
+    ``trajectory``: simulated head motion (``"still" | "drift" | "breathing" | "jumps"``, see
+    ``monotracker.sim.trajectories``, or a trajectory object with ``pose(t)``; sim only).
+    ``robot``: ``"sim" | "ur:<ip>"``. ``arm_pin``: the operator PIN that ``arm(pin)`` checks.
+    ``clock``: ``"real"`` (threads, wall time; the web app) or ``"sim"`` (no threads: a driver
+    calls ``Session.advance(dt)``, camera, registration and control run in lock-step on a
+    simulated clock; the headless demo, tests and benchmark).
+    ``camera_fps``: simulated camera frame rate (Hz). ``control_hz``: tracker rate (Hz; 125 Hz as
+    a UR CB3). ``seed``: simulator noise seed.
+
+    Loop gates (choices the paper leaves open, written down here):
+    ``min_fiducials`` (4): fewer visible fiducials -> hold. ``max_fre_mm`` (1.5): a registration
+    whose fiducial residual exceeds this is not trusted. ``max_pose_age_s`` (0.15): the controller
+    holds when the freshest trusted pose is older than this (capture time to now: 30 ms camera
+    transport + up to one 33 ms frame period + registration, with margin for a loaded machine). ``freeze_after_s`` (0.1): no new
+    camera frame for this long -> camera-freeze alarm. ``max_jump_mm`` (5.0) / ``max_jump_deg``
+    (3.0): a pose that moved more than this from the last trusted one (per frame) is not trusted
+    until ``confirm_frames`` (3) consecutive estimates agree with each other (a real head jump is
+    followed after a short hold; a single wrong pose never moves the arm).
+    ``controller``: the APFF variant (``"APF-V" | "APF-A-I" | "APF-A-II"``, paper section 2.3).
+    ``predict_target``: the robot tracker's latency compensation (target velocity estimated from
+    the pose stream, extrapolated over the measured latency; not in the paper). Off by default:
+    on the twin it helps a breathing head a little and hurts drift and jumps a little (the tip error
+    is dominated by registration noise, which extrapolation amplifies); ``benchmarks/closed_loop.py``
+    measures both.
+    """
+
+    home: Path | None = None
+    camera: str = "sim"
+    trajectory: str = "breathing"
+    robot: str = "sim"
+    arm_pin: str = "1234"
+    clock: str = "real"
+    camera_fps: float = 30.0
+    control_hz: float = 125.0
+    seed: int = 0
+    min_fiducials: int = 4
+    max_fre_mm: float = 1.5
+    max_pose_age_s: float = 0.15
+    freeze_after_s: float = 0.1
+    max_jump_mm: float = 5.0
+    max_jump_deg: float = 3.0
+    confirm_frames: int = 3
+    controller: str = "APF-A-II"
+    predict_target: bool = False
+    extra: dict = field(default_factory=dict)
+
+    def validate(self) -> None:
+        """Raise :class:`InputError` with one line for a bad setting."""
+        if not (self.trajectory in TRAJECTORIES or hasattr(self.trajectory, "pose")):
+            raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
+        if self.clock not in ("real", "sim"):
+            raise InputError(f"clock must be 'real' or 'sim', not {self.clock!r}")
+        if not (self.camera in ("sim", "sim-points") or self.camera.split(":", 1)[0] in ("device", "file", "folder")):
+            raise InputError("camera must be 'sim', 'sim-points', 'device:N', 'file:PATH' or 'folder:PATH', "
+                             f"not {self.camera!r}")
+        if not (self.robot == "sim" or self.robot.startswith("ur:")):
+            raise InputError(f"robot must be 'sim' or 'ur:<ip>', not {self.robot!r}")
+        if self.camera_fps <= 0 or self.control_hz <= 0:
+            raise InputError("camera_fps and control_hz must be positive")
+        if self.min_fiducials < 3:
+            raise InputError("min_fiducials must be at least 3 (a rigid pose needs 3 points)")
+        if self.controller not in ("APF-V", "APF-A-I", "APF-A-II"):
+            raise InputError(f"controller must be APF-V, APF-A-I or APF-A-II, not {self.controller!r}")
+        if not str(self.arm_pin):
+            raise InputError("arm_pin must not be empty")

@@ -1,0 +1,333 @@
+"""The headless digital-twin demo: the whole loop on the sample CT, simulated camera and arm.
+
+``run_demo(DemoOptions(...)) -> dict`` drives a :class:`~monotracker.engine.Session` exactly as
+the web app does (load the sample CT, confirm the detected fiducials, the sample plan, start the
+camera, arm with the PIN, start tracking), on a **simulated clock** (``clock="sim"``): camera,
+registration and control run in lock-step at their own rates, and every pose becomes available
+only after the camera's 30 ms transport delay plus the *measured* compute time (CPU time of the
+thread) of its detection + registration, so accuracy, pose age and latency are what this machine's
+code delivers, independent of how loaded the machine is. Whether the run
+kept up with real time is reported separately (``realtime_factor`` = simulated s / wall s).
+
+Measured against the simulator's truth:
+
+* registration TRE at the planned target (mm): ``|T_cam_ct_est @ target - T_cam_ct_true @ target|``
+  for every trusted pose;
+* needle tip error to the planned entry (mm) and axis angle error (deg) on every control tick
+  while the robot state is ``tracking``, from the arm's true tip pose and the head's TRUE pose,
+  after the first ``settle_s`` seconds of tracking (the initial approach is excluded);
+* capture -> command latency (ms);
+* for a fault injected at ``fault_at_s``: when the engine detected it (first alert after the
+  fault), when the arm came to a standstill (tip speed < 0.5 mm/s and all joints < 1e-3 rad/s,
+  and staying so for 0.2 s), how far the needle tip travelled after the fault, what the engine
+  reported, and whether the saved plan is unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from monotracker.engine.config import FAULTS, TRAJECTORIES, SessionConfig
+from monotracker.engine.session import Session
+from monotracker.errors import InputError, MonoTrackerError
+from monotracker.geometry import apply_transform
+
+STANDSTILL_TIP_MM_S = 0.5
+STANDSTILL_JOINT_RAD_S = 1e-3
+STANDSTILL_HOLD_S = 0.2
+#: alert codes that count as "the engine noticed" each fault
+FAULT_CODES = {
+    "camera-freeze": ("camera_freeze", "pose_stale"),
+    "occlude-all": ("occlusion", "pose_lost", "pose_stale"),
+    "robot-disconnect": ("robot_disconnected",),
+    "bad-pose": ("pose_jump", "bad_pose"),
+}
+
+
+@dataclass
+class DemoOptions:
+    seconds: float = 10.0
+    trajectory: str = "breathing"
+    fault: str = "none"
+    fault_at_s: float | None = None  # default: half-way through the tracking time
+    seed: int = 0
+    camera_fps: float = 30.0
+    control_hz: float = 125.0
+    settle_s: float = 2.0
+    home: Path | None = None
+    pin: str = "1234"
+    #: SessionConfig fields to override (e.g. the benchmark's "no gate" baseline)
+    config_overrides: dict = field(default_factory=dict)
+
+    def validate(self) -> None:
+        if not (self.seconds > 0):
+            raise InputError("--seconds must be positive")
+        if not (self.trajectory in TRAJECTORIES or hasattr(self.trajectory, "pose")):
+            raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
+        if self.fault not in FAULTS:
+            raise InputError(f"unknown fault {self.fault!r}; use one of {', '.join(FAULTS)}")
+
+
+def _stats(x) -> dict | None:
+    a = np.asarray(x, float)
+    if a.size == 0:
+        return None
+    return {"mean": float(a.mean()), "p95": float(np.percentile(a, 95)), "max": float(a.max()), "n": int(a.size)}
+
+
+class _Recorder:
+    """Per-tick truth metrics (a tick hook on the loop)."""
+
+    def __init__(self, session: Session):
+        self.s = session
+        plan = session.plan_copy()
+        self.entry, self.target = plan.entry_lps_mm, plan.target_lps_mm
+        self.rows = []  # (t, state, tip_err, ang_err, tip_speed, max_joint_speed)
+        self.tip_positions = []  # (t, tip position in base mm) 
+        self.tre = []
+        self._seen_pose = None
+        self.tracking_since = None
+
+    def __call__(self, loop, t: float) -> None:
+        from monotracker.engine.target import tip_and_axis_error
+
+        rig, rob = loop.rig, loop.robot
+        T_base_ct = rig.truth_T_base_ct(t) if rig is not None else None
+        st = rob.status() if rob is not None else None
+        tip = ang = None
+        if st is not None and st.T_base_tip is not None and T_base_ct is not None:
+            tip, ang = tip_and_axis_error(st.T_base_tip, T_base_ct, self.entry, self.target)
+        state = st.state if st is not None else "disarmed"
+        if state == "tracking" and self.tracking_since is None:
+            self.tracking_since = t
+        qd = 0.0 if st is None or st.qd is None else float(np.max(np.abs(st.qd)))
+        self.rows.append((t, state, tip, ang, 0.0 if st is None else float(st.speed_mm_s), qd))
+        if st is not None and st.T_base_tip is not None:
+            self.tip_positions.append((t, st.T_base_tip[:3, 3].copy()))
+        rec = loop._latest
+        if rec is not None and rec.sample is not self._seen_pose:
+            self._seen_pose = rec.sample
+            smp = rec.sample
+            if rec.trusted and smp.T_cam_ct is not None and smp.truth_T_cam_ct is not None:
+                d = apply_transform(smp.T_cam_ct, self.target) - apply_transform(smp.truth_T_cam_ct, self.target)
+                self.tre.append(float(np.linalg.norm(d)))
+
+
+def _standstill_after(rows, t0: float) -> float | None:
+    """First time >= t0 from which the arm stays still for STANDSTILL_HOLD_S."""
+    start = None
+    for t, _state, _tip, _ang, v, qd in rows:
+        if t < t0:
+            continue
+        still = v < STANDSTILL_TIP_MM_S and qd < STANDSTILL_JOINT_RAD_S
+        if still:
+            if start is None:
+                start = t
+            if t - start >= STANDSTILL_HOLD_S:
+                return start
+        else:
+            start = None
+    return None
+
+
+def run_demo(opts: DemoOptions, camera_factory=None, robot_factory=None, on_tracking=None) -> dict:
+    """Run the twin and return the summary dict (see the module docstring).
+
+    ``on_tracking(session)`` is called once tracking has started (used by the crash test)."""
+    opts.validate()
+    wall0 = time.perf_counter()
+    cpu0 = time.process_time()
+    tmp = None
+    home = opts.home
+    if home is None:
+        tmp = tempfile.TemporaryDirectory(prefix="monotracker-demo-")
+        home = Path(tmp.name)
+    cfg = SessionConfig(home=Path(home), camera="sim", trajectory=opts.trajectory, robot="sim", arm_pin=opts.pin,
+                        clock="sim", camera_fps=opts.camera_fps, control_hz=opts.control_hz, seed=opts.seed,
+                        **opts.config_overrides)
+    s = Session(cfg, camera_factory=camera_factory, robot_factory=robot_factory)
+    try:
+        return _run(s, opts, wall0, cpu0, on_tracking)
+    finally:
+        s.shutdown()
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) -> dict:
+    setup_steps = []
+    plan = s.plan_copy()
+    if not (plan.fiducials_locked and plan.path_complete):
+        r = s.load_sample_ct()
+        if not r.ok:
+            raise MonoTrackerError(r.message)
+        job = s.wait_for_job(120)
+        if job is None or job.error:
+            raise MonoTrackerError(f"sample CT failed: {None if job is None else job.error}")
+        for f in s.snapshot().fiducials:
+            s.set_fiducial_status(f.id, "confirmed")
+        r = s.confirm_fiducials()
+        if not r.ok:
+            raise MonoTrackerError(f"fiducials: {r.message}")
+        r = s.use_sample_plan()
+        if not r.ok:
+            raise MonoTrackerError(f"plan: {r.message}")
+        setup_steps.append("sample CT loaded, detected fiducials confirmed, sample plan set")
+    else:
+        setup_steps.append("saved plan restored")
+    r = s.start_camera()
+    if not r.ok:
+        raise MonoTrackerError(f"camera: {r.message}")
+    wall_loop0, t_loop0 = time.perf_counter(), s.snapshot().t
+    rec = _Recorder(s)
+    s._loop.add_tick_hook(rec)
+    # acquire a trusted pose (at most 5 s of simulated time)
+    t_acq = None
+    for _ in range(100):
+        s.advance(0.05)
+        p = s.snapshot().pose
+        if p is not None and p.trusted:
+            t_acq = s.snapshot().t
+            break
+    if t_acq is None:
+        p = s.snapshot().pose
+        raise MonoTrackerError(f"no trusted pose within 5 s ({'no estimate' if p is None else p.reason})")
+    r = s.arm(opts.pin)
+    if not r.ok:
+        raise MonoTrackerError(f"arm: {r.message}")
+    r = s.start_tracking()
+    if not r.ok:
+        raise MonoTrackerError(f"start tracking: {r.message}")
+    t_track = s.snapshot().t
+    if on_tracking is not None:
+        on_tracking(s)
+    plan_before = s.plan_copy().to_dict()
+    t_end = t_track + opts.seconds
+    fault_at = None
+    if opts.fault != "none":
+        fault_at = t_track + (opts.fault_at_s if opts.fault_at_s is not None else max(opts.settle_s + 1.0, 0.5 * opts.seconds))
+        fault_at = min(fault_at, t_end - 0.5)
+        s.advance(max(0.0, fault_at - s.snapshot().t))
+        fault_at = s.snapshot().t
+        r = s.inject_fault(opts.fault)
+        if not r.ok:
+            raise MonoTrackerError(f"fault injection: {r.message}")
+    s.advance(max(0.0, t_end - s.snapshot().t))
+    wall = time.perf_counter() - wall0
+    wall_loop = time.perf_counter() - wall_loop0
+    cpu = time.process_time() - cpu0
+    snap = s.snapshot()
+    # ---------------------------------------------------------------- summarise
+    settle_from = t_track + opts.settle_s
+    until = fault_at if fault_at is not None else float("inf")
+    until = min(until, t_end + 1e-9)
+    trk = [r for r in rec.rows if r[1] == "tracking" and settle_from <= r[0] < until and r[2] is not None]
+    alerts = [e for e in s.audit_entries() if e.kind == "alert" and e.session_id == s.session_id]
+    frames = snap.camera.frames
+    sim_s = snap.t
+    lat = np.array(s._loop.latencies_s) * 1000
+    out = {
+        "trajectory": opts.trajectory if isinstance(opts.trajectory, str) else repr(opts.trajectory),
+        "fault": opts.fault,
+        "seconds_tracking": opts.seconds,
+        "simulated_s": sim_s,
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "loop_wall_s": wall_loop,
+        "realtime_factor": (sim_s - t_loop0) / wall_loop if wall_loop > 0 else None,
+        "clock": "simulated, lock-step; a pose is available 30 ms (camera) + its measured CPU time after capture",
+        "cpus_available": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "frames": frames,
+        "fps": frames / sim_s if sim_s > 0 else 0.0,
+        "fps_wall": frames / wall_loop if wall_loop > 0 else 0.0,
+        "setup": setup_steps,
+        "time_to_first_pose_s": t_acq,
+        "tracking_started_at_s": t_track,
+        "registration_tre_mm": _stats(rec.tre),
+        "tip_error_mm": _stats([r[2] for r in trk]),
+        "axis_error_deg": _stats([r[3] for r in trk]),
+        "tracking_fraction": len(trk) / max(1, len([r for r in rec.rows if settle_from <= r[0] < until])),
+        "latency_ms": _stats(lat),
+        "final_state": snap.robot.state,
+        "alerts": [{"t": round(a.t_session, 3), "level": a.level, "code": a.code, "message": a.message}
+                   for a in alerts],
+    }
+    if fault_at is not None:
+        codes = FAULT_CODES[opts.fault]
+        det = next((a for a in alerts if a.t_session >= fault_at - 1e-9 and a.code in codes), None)
+        t_det = det.t_session if det is not None else None
+        t_still = _standstill_after(rec.rows, fault_at)
+        after = [p for t, p in rec.tip_positions if t >= fault_at]
+        travel = max(float(np.linalg.norm(p - after[0])) for p in after) if after else None
+        out["fault_report"] = {
+            "injected_at_s": fault_at,
+            "detected_at_s": t_det,
+            "detection_delay_s": None if t_det is None else t_det - fault_at,
+            "standstill_at_s": t_still,
+            "standstill_after_fault_s": None if t_still is None else t_still - fault_at,
+            "standstill_after_detection_s": None if (t_still is None or t_det is None) else max(0.0, t_still - t_det),
+            "engine_reported": None if det is None else f"[{det.level}] {det.code}: {det.message}",
+            "arm_travel_after_fault_mm": travel,
+            "tip_speed_before_fault_mm_s": max((r[4] for r in rec.rows if fault_at - 0.1 <= r[0] <= fault_at),
+                                               default=None),
+            "state_after": snap.robot.state,
+            "plan_intact": s.plan_copy().to_dict() == plan_before,
+        }
+    return out
+
+
+def format_report(r: dict) -> str:
+    """Human-readable summary of :func:`run_demo`'s result."""
+
+    def st(d, unit, nd=2):
+        if not d:
+            return "n/a"
+        return f"mean {d['mean']:.{nd}f} / p95 {d['p95']:.{nd}f} / max {d['max']:.{nd}f} {unit}"
+
+    lines = [
+        f"MonoTracker headless demo: trajectory={r['trajectory']} fault={r['fault']} "
+        f"tracking {r['seconds_tracking']:.1f} s",
+        f"  clock               : {r['clock']}",
+        f"  simulated / wall    : loop {r['simulated_s']:.2f} s in {r['loop_wall_s']:.2f} s (real-time factor "
+        f"{r['realtime_factor']:.2f}x on {r['cpus_available']} CPU(s); "
+        + ("kept up with real time)" if r['realtime_factor'] >= 1 else "SLOWER than real time)")
+        + f"; whole run incl. CT load {r['wall_s']:.2f} s",
+        f"  frames              : {r['frames']}  ({r['fps']:.1f} fps simulated, {r['fps_wall']:.1f} fps wall)",
+        f"  registration TRE    : {st(r['registration_tre_mm'], 'mm')} at the target vs truth",
+        f"  needle tip error    : {st(r['tip_error_mm'], 'mm')} to the planned entry (tracking, after settling)",
+        f"  needle axis error   : {st(r['axis_error_deg'], 'deg')}",
+        f"  latency             : {st(r['latency_ms'], 'ms', 1)} capture -> command",
+        f"  final robot state   : {r['final_state']}",
+        f"  alerts ({len(r['alerts'])})" + (":" if r["alerts"] else ""),
+    ]
+    for a in r["alerts"][:20]:
+        lines.append(f"    t={a['t']:7.3f}s [{a['level']}] {a['code']}: {a['message']}")
+    if len(r["alerts"]) > 20:
+        lines.append(f"    ... {len(r['alerts']) - 20} more")
+    fr = r.get("fault_report")
+    if fr:
+        def ms(v):
+            return "never" if v is None else f"{1000 * v:.0f} ms"
+        lines += [
+            f"  fault {r['fault']} at t={fr['injected_at_s']:.3f}s:",
+            f"    detected after    : {ms(fr['detection_delay_s'])}",
+            f"    arm standstill    : {ms(fr['standstill_after_detection_s'])} after detection, "
+            f"{ms(fr['standstill_after_fault_s'])} after the fault",
+            f"    engine reported   : {fr['engine_reported']}",
+            f"    state after       : {fr['state_after']}; plan intact: {fr['plan_intact']}",
+        ]
+    return "\n".join(lines)
+
+
+def report_json(r: dict) -> str:
+    return json.dumps(r, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o))
+
+
+__all__ = ["DemoOptions", "run_demo", "format_report", "report_json"]

@@ -1,0 +1,189 @@
+"""Immutable state snapshots the engine hands to the UI and the demo (see ``session.py``).
+
+Every array inside a snapshot is a private, read-only copy: a snapshot can be read from any thread
+while the engine keeps running. Units: CT/camera/plan side in millimetres, LPS for CT points,
+pixels for images, joint angles in radians. Transforms are 4x4 ``T_to_from``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from monotracker.engine.events import Event
+
+
+def frozen_array(a, dtype=float) -> np.ndarray | None:
+    """A read-only copy of ``a`` (or None)."""
+    if a is None:
+        return None
+    out = np.array(a, dtype=dtype, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True)
+class CommandResult:
+    """What a command returns at once: ``ok`` and a one-line ``message`` for the operator."""
+
+    ok: bool
+    message: str = ""
+
+    def __bool__(self) -> bool:  # `if s.arm(pin): ...`
+        return self.ok
+
+
+@dataclass(frozen=True)
+class Job:
+    """A background job (CT loading). ``progress`` 0..1; ``error`` is a one-line message or None."""
+
+    name: str
+    progress: float
+    message: str
+    error: str | None = None
+    done: bool = False
+
+
+@dataclass(frozen=True)
+class CTSummary:
+    """The loaded CT: ``path``, ``shape`` (z, y, x voxels), ``spacing_mm`` (x, y, z), ``notes``."""
+
+    path: str
+    shape: tuple
+    spacing_mm: tuple
+    notes: tuple = ()
+
+
+@dataclass(frozen=True)
+class HeadMesh:
+    """Skin surface for the 3D view: ``vertices`` (n, 3) LPS mm, ``faces`` (m, 3) int."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+
+
+@dataclass(frozen=True)
+class Fiducial:
+    """One CT fiducial. ``status``: ``"detected" | "confirmed" | "rejected" | "added"``.
+
+    ``"added"`` fiducials (operator clicks) count as confirmed. ``centre_lps_mm`` (3,) LPS mm.
+    """
+
+    id: int
+    centre_lps_mm: np.ndarray
+    radius_mm: float
+    score: float
+    status: str
+
+
+@dataclass(frozen=True)
+class PlanSummary:
+    """The planned path. Points LPS mm (None until set). ``angle_to_skin_normal_deg``: angle
+    between the path (entry -> target) reversed and the outward skin normal at the entry (0 =
+    perpendicular to the skin; None without a head surface). ``distance_to_fiducials_mm``: the
+    smallest distance from the path segment to a confirmed fiducial centre."""
+
+    entry_lps_mm: np.ndarray | None
+    target_lps_mm: np.ndarray | None
+    path_length_mm: float | None
+    angle_to_skin_normal_deg: float | None
+    distance_to_fiducials_mm: float | None
+    complete: bool
+
+
+@dataclass(frozen=True)
+class CameraSummary:
+    """Camera state. ``K`` 3x3 px, ``dist`` OpenCV distortion, ``image_size`` (w, h) px,
+    ``fps`` achieved frames per second, ``error`` one line or None."""
+
+    source: str
+    running: bool
+    fps: float
+    K: np.ndarray | None
+    dist: np.ndarray | None
+    image_size: tuple | None
+    calibration_path: str | None
+    error: str | None
+    frames: int = 0
+
+
+@dataclass(frozen=True)
+class PoseSummary:
+    """The latest pose estimate. ``t`` capture time (session clock, s); ``age_s`` now - t;
+    ``T_cam_ct`` 4x4 mm or None; ``fiducial_status`` dict id -> "seen"|"newly_lost"|"occluded"|"unknown";
+    ``residuals_px`` dict id -> px; ``fre_mm``, ``predicted_tre_mm`` at the planned target;
+    ``latency_ms`` capture -> estimate; ``trusted``: the engine's verdict (ok, >= 4 fiducials,
+    passes the plausibility gates) that decides tracking vs holding; ``reason`` one line."""
+
+    t: float
+    age_s: float
+    ok: bool
+    trusted: bool
+    reason: str
+    T_cam_ct: np.ndarray | None
+    n_visible: int
+    fiducial_status: dict
+    residuals_px: dict
+    fre_mm: float | None
+    predicted_tre_mm: float | None
+    latency_ms: float | None
+    truth_tre_mm: float | None = None  # simulator only: TRE at the planned target vs truth
+
+
+@dataclass(frozen=True)
+class RobotSummary:
+    """Robot state. ``state``: ``"disarmed" | "armed" | "tracking" | "holding" | "estopped"``.
+    ``q`` (6,) rad; ``tip_error_mm`` needle tip to planned entry; ``angle_error_deg`` needle axis
+    to planned path; ``speed_mm_s`` tip speed; ``connected``; ``message`` one line."""
+
+    state: str
+    q: np.ndarray | None
+    tip_error_mm: float | None
+    angle_error_deg: float | None
+    speed_mm_s: float
+    connected: bool
+    message: str
+    latency_ms: float | None = None  # frame capture -> robot command, last command
+
+
+@dataclass(frozen=True)
+class SceneGeometry:
+    """Everything to place head, camera, path and robot in one frame (robot base, mm).
+
+    ``T_base_cam`` hand-eye (mm); ``T_cam_ct`` latest trusted pose (mm); ``T_base_ct`` their
+    product; ``T_base_tip`` current needle tip pose (z axis = needle direction, mm);
+    ``T_base_target`` the commanded needle pose; ``q`` UR10 joints (rad). Any may be None.
+    """
+
+    T_base_cam: np.ndarray | None
+    T_cam_ct: np.ndarray | None
+    T_base_ct: np.ndarray | None
+    T_base_tip: np.ndarray | None
+    T_base_target: np.ndarray | None
+    q: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """One consistent, immutable view of the session (see ``session.py`` for each field)."""
+
+    t: float
+    step: str
+    job: Job | None
+    ct: CTSummary | None
+    head_mesh: HeadMesh | None
+    fiducials: tuple
+    fiducials_locked: bool
+    plan: PlanSummary
+    camera: CameraSummary
+    pose: PoseSummary | None
+    robot: RobotSummary
+    scene: SceneGeometry
+    alerts: tuple = field(default_factory=tuple)  # tuple[Event], newest last
+    plan_path: str = ""
+    audit_path: str = ""
+
+    @property
+    def latest_alert(self) -> Event | None:
+        return self.alerts[-1] if self.alerts else None
