@@ -23,6 +23,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "monotracker.ct.commands",
     "monotracker.robot.commands",
     "monotracker.engine.commands",
+    "monotracker.ui.commands",
 )
 
 
