@@ -444,7 +444,8 @@ class MonoTrackerApp:
             if snap.step != self._last_session_step:
                 # the session went back (e.g. fiducials unlocked, new plan): show the step that now
                 # needs work. Forward moves are the operator's (the "go to" buttons, the step bar).
-                if VIEW_STEPS.index(snap.step) < VIEW_STEPS.index(self._view_step or "ct"):
+                # (register <-> robot flickers with the pose's trust: not a reason to move the view)
+                if snap.step in ("ct", "plan") and VIEW_STEPS.index(snap.step) < VIEW_STEPS.index(self._view_step or "ct"):
                     self._view_step = snap.step
                     self._auto_step = True
                     self._scene_keys.clear()
