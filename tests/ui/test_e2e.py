@@ -58,7 +58,8 @@ def _state(page):
 
 def test_whole_workflow_in_browser(served, browser, artifacts):
     s, app = served
-    page = browser.new_page(viewport={"width": 1500, "height": 1000})
+    t_start = time.monotonic()
+    page = browser.new_page(viewport={"width": 1600, "height": 1000})
     page.goto(app.url)
     page.get_by_role("button", name="Load sample CT").wait_for(timeout=30000)
     assert _state(page) == "disarmed"
@@ -155,4 +156,5 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     page.wait_for_function("document.querySelector('#mt-robot-state').dataset.state === 'estopped'")
     page.screenshot(path=str(artifacts / "6_estop.png"))
     assert "Traceback" not in page.content()
+    print(f"e2e workflow took {time.monotonic() - t_start:.0f} s")
     page.close()

@@ -60,6 +60,14 @@ def _wxyz(R: np.ndarray) -> np.ndarray:
     return np.array([w, x, y, z])
 
 
+class _nullcontext:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
 def _fmt(v, unit="", nd=1) -> str:
     return "-" if v is None else f"{v:.{nd}f}{unit}"
 
@@ -163,10 +171,27 @@ class MonoTrackerApp:
         scene.world_axes.visible = False
         gui.add_html(st.CSS)
         snap = self.session.snapshot()
-        self.h_status = gui.add_html(st.status_html(snap))
-        self.h_stop = gui.add_button("STOP", color="red", hint="Emergency stop: the arm stops and stays stopped")
-        self._on(self.h_stop, "STOP", lambda: self._run("STOP", self.session.estop))
-        self.h_msg = gui.add_html(st.message_html(True, self._notice or "Ready. Start with step 1: load a CT."))
+        # State, STOP and the last command's result live in their own docked panel so they stay
+        # on screen however far the step's controls are scrolled.
+        self.status_panel = None
+        try:
+            self.status_panel = gui.add_panel()
+            tab = self.status_panel.add_tab("Status")
+        except Exception:  # noqa: BLE001 - older viser: top of the control panel instead
+            tab = None
+            log.debug("no panels in this viser", exc_info=True)
+        ctx = tab if tab is not None else _nullcontext()
+        with ctx:
+            self.h_status = gui.add_html(st.status_html(snap))
+            self.h_stop = gui.add_button("STOP", color="red", hint="Emergency stop: the arm stops and stays stopped")
+            self._on(self.h_stop, "STOP", lambda: self._run("STOP", self.session.estop))
+            self.h_msg = gui.add_html(st.message_html(True, self._notice or "Ready. Start with step 1: load a CT."))
+        if self.status_panel is not None:
+            try:
+                self.status_panel.dock_left()
+                self.status_panel.set_width(430)
+            except Exception:  # noqa: BLE001
+                log.debug("status panel placement failed", exc_info=True)
         self.h_steps = gui.add_button_group("Step", [STEP_LABELS[s] for s in VIEW_STEPS])
 
         def on_step(event):
@@ -188,7 +213,7 @@ class MonoTrackerApp:
         self._show_step()
         try:
             gui.main_panel.dock_right()
-            gui.main_panel.set_width(600)
+            gui.main_panel.set_width(560)
         except Exception:  # noqa: BLE001 - older viser: floating panel
             log.debug("panel placement failed", exc_info=True)
         self.server.on_client_connect(lambda client: self._aim(client, self._view_step, self.session.snapshot()))
