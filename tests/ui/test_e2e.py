@@ -97,8 +97,17 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     _click(page, "Use the sample plan")
     _wait(lambda: s.snapshot().plan.complete, 10, "plan")
     page.locator("#mt-plan-metrics").wait_for(timeout=10000)
+    # type a target 3 mm further right (-x) and set it: the page shows the new length
+    new_target = np.asarray(s.snapshot().plan.target_lps_mm) + [-3.0, 0.0, 0.0]
+    boxes = page.locator("xpath=//label[normalize-space()='Target (LPS mm)']/../../following-sibling::div[1]//input")
+    for k in range(3):
+        boxes.nth(k).fill(f"{new_target[k]:.2f}")
+        boxes.nth(k).press("Tab")
+    page.wait_for_timeout(500)
+    _click(page, "Set target")
+    _wait(lambda: np.allclose(s.snapshot().plan.target_lps_mm, np.round(new_target, 2), atol=0.01), 10, "typed target")
     length = s.snapshot().plan.path_length_mm
-    assert f"{length:.1f} mm" in page.locator("#mt-plan-metrics").inner_text()
+    page.wait_for_function(f"document.querySelector('#mt-plan-metrics').innerText.includes('Length {length:.1f} mm')")
     time.sleep(1.0)
     page.screenshot(path=str(artifacts / "2_plan.png"))
     _click(page, "Path is good: go to Register")

@@ -552,6 +552,13 @@ class MonoTrackerApp:
 
     def _render_plan_panel(self, snap) -> None:
         self.h_plan_info.content = self._plan_info(snap)
+        # show the plan's points in the typed fields whenever the plan changes (not while typing)
+        for key, handle, p in (("entry_sync", self.h_entry, snap.plan.entry_lps_mm),
+                               ("target_sync", self.h_target, snap.plan.target_lps_mm)):
+            val = None if p is None else tuple(round(float(v), 2) for v in p)
+            if val is not None and self._scene_keys.get(key) != val:
+                self._scene_keys[key] = val
+                handle.value = val
         self._render_slices(snap, self.h_slices_plan, "plan")
 
     def _render_register_panel(self, snap) -> None:
@@ -704,7 +711,7 @@ class MonoTrackerApp:
                 ext = np.asarray(e) + 60.0 * d / np.linalg.norm(d)  # the needle's way out, 60 mm
                 pts = np.array([[t, e], [e, ext]]) * MM
                 cols = np.array([[[255, 0, 255], [0, 200, 255]], [[0, 200, 255], [0, 200, 255]]], np.uint8)
-                scene.add_line_segments("/ct/path/line", pts, cols, line_width=4.0)
+                scene.add_line_segments("/ct/path/line", pts, cols, thickness=4.0, thickness_units="screen")
         # --- camera
         if view in ("register", "robot"):
             T_w_cam = np.eye(4) if view == "register" else (None if snap.scene.T_base_cam is None else np.asarray(snap.scene.T_base_cam))
@@ -730,13 +737,13 @@ class MonoTrackerApp:
 
                 pts = joint_chain_mm(q) * MM
                 segs = np.stack([pts[:-1], pts[1:]], axis=1)
-                scene.add_line_segments("/robot/links", segs, (90, 110, 140), line_width=14.0)
-                scene.add_point_cloud("/robot/joints", pts, colors=(40, 60, 90), point_size=0.03, point_shape="circle")
+                scene.add_line_segments("/robot/links", segs, (90, 110, 140), thickness=0.07)  # UR10 links ~ 7 cm across
+                scene.add_point_cloud("/robot/joints", pts, colors=(40, 60, 90), point_size=0.1, point_shape="circle")
             if snap.scene.T_base_tip is not None:
                 tip = np.asarray(snap.scene.T_base_tip)
                 a = tip[:3, 3]
                 b = a - 120.0 * tip[:3, 2]  # needle axis back along -z, 120 mm
-                scene.add_line_segments("/robot/needle", np.array([[b, a]]) * MM, (250, 250, 250), line_width=5.0)
+                scene.add_line_segments("/robot/needle", np.array([[b, a]]) * MM, (250, 250, 250), thickness=5.0, thickness_units="screen")
 
     def _on_head_click(self, event) -> None:
         """A click on the head surface: add a fiducial / set the entry, per the selector."""
@@ -754,7 +761,8 @@ class MonoTrackerApp:
                 self._say(False, "Click: no skin under the pointer")
                 return
             if mode == "add fiducial":
-                # a ball rests on the skin: its centre is one radius outside along the normal
+                # the picked surface point goes to the typed field: the operator checks it on the
+                # slices and corrects it (a ball's centre lies one radius inside its surface)
                 self.h_new_fid.value = tuple(float(v) for v in p)
                 self._say(True, f"Picked ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm: check and press 'Add fiducial here'")
             elif mode == "set entry":
