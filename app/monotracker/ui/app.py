@@ -738,7 +738,7 @@ class MonoTrackerApp:
                 pts = joint_chain_mm(q) * MM
                 segs = np.stack([pts[:-1], pts[1:]], axis=1)
                 scene.add_line_segments("/robot/links", segs, (90, 110, 140), thickness=0.07)  # UR10 links ~ 7 cm across
-                scene.add_point_cloud("/robot/joints", pts, colors=(40, 60, 90), point_size=0.1, point_shape="circle")
+                scene.add_point_cloud("/robot/joints", pts, colors=(40, 60, 90), point_size=0.05, point_shape="circle")
             if snap.scene.T_base_tip is not None:
                 tip = np.asarray(snap.scene.T_base_tip)
                 a = tip[:3, 3]

@@ -76,7 +76,7 @@ def pose_line(snap) -> str:
     return f"Pose: <b style='color:#c81e1e'>NOT VALID</b>: {_esc(p.reason)}"
 
 
-def recent_alert(snap, now_wall: float | None = None, within_s: float = 15.0):
+def recent_alert(snap, now_wall: float | None = None, within_s: float = 6.0):
     """The newest warning/alarm raised in the last ``within_s`` seconds (wall clock), or None."""
     now_wall = time.time() if now_wall is None else now_wall
     for ev in reversed(snap.alerts):
