@@ -92,6 +92,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     _click(page, "Lock fiducials and go to Plan")
     _wait(lambda: s.snapshot().fiducials_locked, 10, "lock")
 
+    print(f"[{time.monotonic() - t_start:5.1f} s] ---- step 2")
     # ---- step 2: plan (typed target + sample entry)
     page.get_by_role("button", name="Set entry").wait_for(timeout=10000)
     _click(page, "Use the sample plan")
@@ -112,6 +113,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     page.screenshot(path=str(artifacts / "2_plan.png"))
     _click(page, "Path is good: go to Register")
 
+    print(f"[{time.monotonic() - t_start:5.1f} s] ---- step 3")
     # ---- step 3: register with the simulated camera
     _click(page, "Start camera")
     _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, 60, "trusted pose")
@@ -120,6 +122,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     time.sleep(1.5)
     page.screenshot(path=str(artifacts / "3_register.png"))
 
+    print(f"[{time.monotonic() - t_start:5.1f} s] ---- step 4")
     # ---- step 4: robot. Wrong PIN refused, right PIN arms.
     _click(page, "4 Robot")
     _input(page, "Operator PIN").fill("0000")
@@ -144,6 +147,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     time.sleep(3.0)
     page.screenshot(path=str(artifacts / "4_robot_tracking.png"))
 
+    print(f"[{time.monotonic() - t_start:5.1f} s] occlusion:")
     # occlusion: hide the fiducials (simulated fault) -> alert in the page, arm holds
     _click(page, "3 Register")
     _input(page, "Simulate a fault (sim only)").click()
@@ -156,6 +160,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     time.sleep(1.0)
     page.screenshot(path=str(artifacts / "5_occlusion.png"))
 
+    print(f"[{time.monotonic() - t_start:5.1f} s] stop tracking,")
     # stop tracking, then the big STOP button latches the e-stop
     _click(page, "4 Robot")
     _click(page, "Stop tracking")
