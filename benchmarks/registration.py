@@ -39,11 +39,17 @@ SCENARIOS = [
     ("9, 1 px noise", dict(noise_px=1.0), False),
     ("5 fiducials", dict(noise_px=0.3, fiducial_ids=range(5)), False),
     ("2 occl + 2 stray", dict(noise_px=0.3, n_occluded=2, n_stray=2), False),
+    ("random layout, 2+2", dict(noise_px=0.3, layout="random", n_occluded=2, n_stray=2), False),
     ("ellipse bias, corrected", dict(noise_px=0.3, ellipse_bias=True, distance_mm=(400, 500)), True),
     ("ellipse bias, ignored", dict(noise_px=0.3, ellipse_bias=True, distance_mm=(400, 500)), False),
     ("bias, 0 px noise, corr.", dict(noise_px=0.0, ellipse_bias=True, distance_mm=(400, 500)), True),
     ("bias, 0 px noise, ignored", dict(noise_px=0.0, ellipse_bias=True, distance_mm=(400, 500)), False),
 ]
+
+
+def _ratio(tre, floor):
+    """Mean TRE over the floor's mean TRE; undefined ('-') when the floor is ~0 (noise-free)."""
+    return np.mean(tre) / np.mean(floor) if np.mean(floor) > 1e-3 else np.nan
 
 
 def true_pairs_pose(s, radius):
@@ -105,12 +111,12 @@ def run(args):
             tre = np.concatenate(tres) if tres else np.array([np.nan])
             ftre = np.concatenate(floor_tres) if floor_tres else tre
             rows.append((name, method, n, 100 * right / n, 100 * refused / n, 100 * wrong / n,
-                         np.mean(tre), np.max(tre), np.mean(tre) / np.mean(ftre), 1000 * np.median(times),
+                         np.mean(tre), np.max(tre), _ratio(tre, ftre), 1000 * np.median(times),
                          1000 * np.median(cpus)))
             if method == "paper":
                 st = np.concatenate(svd_tres) if svd_tres else np.array([np.nan])
                 rows.append((name, "paper (SVD)", n, np.nan, np.nan, np.nan, np.mean(st), np.max(st),
-                             np.mean(st) / np.mean(ftre) if svd_tres else np.nan, np.nan, np.nan))
+                             _ratio(st, ftre) if svd_tres else np.nan, np.nan, np.nan))
         if cfg.get("ellipse_bias") and np.isnan(bias_px[0]):
             from monotracker.registration.projection import project_pixels
             bias = []

@@ -285,6 +285,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="shorter runs (smoke test)")
     ap.add_argument("--rate", type=float, default=125.0, help="control rate, Hz (125 CB3, 500 e-Series)")
     a = ap.parse_args(argv)
+    t_start = time.perf_counter()
     n_cost = 2000 if a.quick else 10000
     t_step = 3.0 if a.quick else 5.0
     t_track = 8.0 if a.quick else 20.0
@@ -333,6 +334,7 @@ def main(argv=None) -> int:
     table("4. Fault injection while tracking a head moving at 15 mm/s (APF-A-II): time from the fault to "
           "standstill (< 1e-3 rad/s) and needle-tip distance travelled meanwhile",
           ["fault", "final state", "to standstill s", "travelled mm", "reason logged"], rows)
+    print(f"\ntotal wall time {time.perf_counter() - t_start:.1f} s")
     return 0
 
 

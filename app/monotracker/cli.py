@@ -21,6 +21,7 @@ from monotracker.errors import MonoTrackerError
 #: Modules that add sub-commands, in the order they appear in ``--help``.
 COMMAND_MODULES: tuple[str, ...] = (
     "monotracker.ct.commands",
+    "monotracker.vision.commands",
     "monotracker.robot.commands",
     "monotracker.engine.commands",
     "monotracker.ui.commands",

@@ -47,3 +47,17 @@ def test_make_sample_data_is_deterministic(tmp_path, capsys):
     new = sitk.GetArrayFromImage(sitk.ReadImage(str(tmp_path / "phantom_ct.nii.gz")))
     old = sitk.GetArrayFromImage(sitk.ReadImage(str(sample_ct_path())))
     assert np.array_equal(new, old)
+
+
+def test_truncated_file_gives_only_our_line(tmp_path, capfd):
+    data = sample_ct_path().read_bytes()
+    import SimpleITK as sitk
+
+    img = sitk.ReadImage(str(sample_ct_path()))
+    sitk.WriteImage(img[:, :, :20], str(tmp_path / "full.mha"))
+    raw = (tmp_path / "full.mha").read_bytes()
+    (tmp_path / "cut.mha").write_bytes(raw[: len(raw) // 2])
+    assert main(["detect-ct", str(tmp_path / "cut.mha")]) == 2
+    err = capfd.readouterr().err.strip()
+    assert err == "error: cannot read cut.mha: the file is truncated or corrupt"
+    assert data  # the sample itself is untouched

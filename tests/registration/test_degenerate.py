@@ -98,3 +98,12 @@ def test_pose_never_wrong_when_ok_under_heavy_clutter():
         if r.ok and sorted(r.pairs) != sorted(s.truth_pairs):
             wrong += 1
     assert wrong == 0
+
+
+def test_non_numeric_radius_and_json_summary(scene):
+    import json
+
+    _fails(register(scene.fiducials_ct, scene.image_points, scene.K, radius_mm="big"), "radius")
+    r = register(scene.fiducials_ct, scene.image_points, scene.K, scene.dist, radius_mm=4.0)
+    d = json.loads(json.dumps(r.to_dict()))
+    assert d["ok"] and len(d["pairs"]) == 9 and len(d["T_cam_ct"]) == 4

@@ -118,3 +118,16 @@ def test_limits_respected_on_a_large_step():
     tips = np.array([s.T_base_tip_mm[:3, 3] for s in snaps]) / 1000.0
     speed = np.linalg.norm(np.diff(tips, axis=0), axis=1) * RATE
     assert speed.max() <= cfg.tool_speed_m_s * 1.05  # measured, includes arm lag
+
+
+def test_jump_while_armed_is_just_the_new_reference():
+    rig = Rig()
+    rig.tracker.connect()
+    rig.tracker.arm()
+    T = ready_tip_pose()
+    rig.tracker.set_target(to_mm(T), rig.clock())
+    J = T.copy()
+    J[:3, 3] += [0.05, 0, 0]
+    assert rig.tracker.set_target(to_mm(J), rig.clock()).ok
+    assert rig.tracker.start_tracking().ok
+    assert np.allclose(rig.tracker.safety.target, J)

@@ -90,3 +90,17 @@ def test_protective_stop_is_an_arm_error():
     _run(tr, clock, offset_target(), 2)
     assert tr.state.value == "estopped"
     assert "protective" in tr.safety.history[-1].reason
+
+
+def test_real_ur_rtde_without_robot_raises_one_line_arm_error():
+    """The genuine ur_rtde classes, no robot at 127.0.0.1: a clean ArmError, no traceback."""
+    import pytest
+
+    from monotracker.robot.arm import ArmError
+
+    arm = URRTDEArm("127.0.0.1")
+    with pytest.raises(ArmError) as ei:
+        arm.connect()
+    assert "did not answer" in str(ei.value) and "\n" not in str(ei.value)
+    assert not arm.is_connected()
+    arm.stop(4.0)  # stop never raises, even unconnected

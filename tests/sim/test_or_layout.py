@@ -1,7 +1,6 @@
 """The digital-twin room and head motions: geometry checked against independent computations."""
 
 import numpy as np
-import pytest
 
 from monotracker.geometry import apply_transform, invert_transform
 from monotracker.sim.or_layout import default_layout

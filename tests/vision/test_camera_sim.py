@@ -101,3 +101,11 @@ def test_stray_listed_in_truth():
     img, tr = cam.render(1.0)
     assert np.allclose(tr.stray_centres_px, [[200, 150]])
     assert img[150, 200, 1] > 200
+
+
+def test_stray_over_a_ball_hides_it_in_truth(sim_still):
+    px = sim_still.rest_projection()
+    cam = SimulatedCamera(events=SceneEvents(strays=[Stray(0, 5, tuple(px[2] + [4.0, 0.0]), 12.0, "round")]), seed=0)
+    img, tr = cam.render(1.0)
+    assert tr.visible_fraction[2] < 0.2 and not tr.visible[2]
+    assert tr.visible.sum() == 8

@@ -126,3 +126,16 @@ def test_stalled_camera_reported_within_100_ms():
     assert bad.camera == "stalled" and not bad.ok
     # the read of frame 8 starts ~33 ms after frame 7's capture; the stall is flagged 0.1 s later
     assert bad.t_published - last_ok.t_capture < 0.033 + 0.1 + 0.05
+
+
+def test_residual_gate_invalidates_the_pose():
+    from monotracker.vision.pose_stream import TrackerConfig
+
+    cam = SimulatedCamera(seed=0, max_frames=2)
+    tr = PoseTracker(PH.fiducial_centres_lps, cam.camera, radius_mm=4.0,
+                     config=TrackerConfig(max_rms_px=1e-4))
+    e = tr.process(cam.read())
+    assert not e.ok and "over the" in e.reason and e.T_cam_ct is None
+    assert e.status == [SEEN] * 9          # the balls were matched; the fit is just not trusted
+    assert any("no valid pose" in a for a in e.alerts)
+

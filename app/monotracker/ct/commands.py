@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -38,7 +40,8 @@ def _detect_ct(args: argparse.Namespace) -> int:
 
     if args.radius is not None and not (0.5 <= args.radius <= 20.0):
         raise InputError(f"--radius {args.radius} mm is implausible (0.5-20 mm)")
-    vol = load_volume(args.path, series=args.series)
+    with _native_stderr_silenced():
+        vol = load_volume(args.path, series=args.series)
     if args.baseline:
         det = detect_fiducials_paper(vol)
     else:
@@ -56,6 +59,26 @@ def _detect_ct(args: argparse.Namespace) -> int:
     else:
         print(format_detection(det, vol))
     return 0 if det.ok else 1
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced():
+    """ITK's MetaIO prints its own lines on a damaged file straight to the C stderr; the
+    operator should see only our one-line error. CLI only (single-threaded), never the app."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def format_detection(det, vol) -> str:

@@ -17,15 +17,19 @@ Two methods, measured side by side by ``benchmarks/ct_detection.py``:
      components with an ``eps`` just above the largest voxel spacing) on the LPS positions of
      the voxels above the threshold.
   3. **Shape and size gate** per cluster: too few voxels (noise, streak specks), elongated
-     (clips, wires, streaks, dense bony ridges: ratio of principal axes), then a sub-voxel
+     (clips, wires, streaks, dense bony ridges: ratio of the principal axes of the voxel
+     boxes, > 1.35), then a sub-voxel
      least-squares fit of a blurred sphere ``b + (H - b) * erfc((|x - c| - r) / (sqrt(2) s)) / 2``
      to the raw voxel values in LPS mm (robust ``soft_l1`` loss, so the scalp the ball rests on
      does not pull it), then, where the ball rests on tissue, a refit that models the scalp
      under it as a blurred plane (:func:`fit_ball_on_surface`; removes a ~0.015-0.05 mm pull
-     towards the skin). The fit gives the centre, the radius and the residual; balls whose
+     towards the skin; the edge blur follows the voxel box, so thick slices blur along z
+     more than in-plane). The fit gives the centre, the radius and the residual; balls whose
      radius disagrees with ``radius_mm`` (or, when not given, with the other balls' median) or
      whose residual says "not a sphere" are rejected, with the reason kept.
-  4. **Score** in [0, 1] per fiducial: roundness x fit quality x size agreement.
+  4. **Score** in [0, 1] per fiducial: ``exp(-residual / 0.04)`` (residual = inlier RMS /
+     contrast) x ``exp(-(radius deviation / 10 %)^2)`` x ``1 / elongation^2``; a clean ball
+     in 18 HU noise scores ~0.75-0.8, anything below ~0.3 deserves a look.
 
 Detection never raises for an empty result: ``ok=False`` with a ``reason``.
 Fiducials are returned sorted from superior to inferior (descending S), for a stable order.

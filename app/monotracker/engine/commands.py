@@ -36,7 +36,7 @@ def register(subparsers) -> None:
 
 def _demo(args) -> int:
     if not args.headless:
-        raise InputError("the interactive demo runs in the web app (monotracker serve); use --headless here")
+        raise InputError("the interactive demo runs in the web app; use --headless here for the terminal summary")
     from monotracker.engine.demo import DemoOptions, format_report, report_json, run_demo
 
     opts = DemoOptions(seconds=args.seconds, trajectory=args.trajectory, fault=args.fault, fault_at_s=args.fault_at,

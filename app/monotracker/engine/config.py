@@ -19,7 +19,8 @@ class SessionConfig:
     ``home``: folder for ``plan.json``, ``audit.sqlite`` and logs (None = ``paths.data_dir()``).
     ``camera``: ``"sim"`` (rendered digital-twin camera) ``| "sim-points"`` (twin at the level of
     detected points) ``| "device:0" | "file:/path/video.mp4" | "folder:/path"``.
-    ``trajectory``: simulated head motion (``"still" | "drift" | "breathing" | "jumps"``; sim only).
+    ``trajectory``: simulated head motion (``"still" | "drift" | "breathing" | "jumps"``, see
+    ``monotracker.sim.trajectories``, or a trajectory object with ``pose(t)``; sim only).
     ``robot``: ``"sim" | "ur:<ip>"``. ``arm_pin``: the operator PIN that ``arm(pin)`` checks.
     ``clock``: ``"real"`` (threads, wall time; the web app) or ``"sim"`` (no threads: a driver
     calls ``Session.advance(dt)``, camera, registration and control run in lock-step on a
@@ -66,7 +67,7 @@ class SessionConfig:
 
     def validate(self) -> None:
         """Raise :class:`InputError` with one line for a bad setting."""
-        if self.trajectory not in TRAJECTORIES:
+        if not (self.trajectory in TRAJECTORIES or hasattr(self.trajectory, "pose")):
             raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
         if self.clock not in ("real", "sim"):
             raise InputError(f"clock must be 'real' or 'sim', not {self.clock!r}")

@@ -13,7 +13,9 @@ clock="sim" (demo, tests, benchmark): no threads. :meth:`TrackingLoop.advance` s
 clock at the control period; a frame is captured every camera period when the estimator is free,
 estimated synchronously, and its result becomes available ``d + w`` seconds after capture, where
 ``d`` is the camera's transport delay (exposure + readout + USB transfer; ``rig.transport_delay_s``,
-30 ms for the simulated camera) and ``w`` is the *measured wall time* of detection + registration (so slow registration shows up honestly
+30 ms for the simulated camera) and ``w`` is the *measured compute time* of detection + registration
+(CPU time of the engine thread, ``time.thread_time()``: on a shared, overloaded machine wall time
+would mostly measure the other processes) (so slow registration shows up honestly
 as pose age and latency, and frames arriving while it is busy are dropped as in the threaded
 pose stream). The same gate/target/watchdog code runs in both modes.
 
@@ -71,6 +73,9 @@ class TrackingLoop:
                              cfg.confirm_frames)
         self.camera_source = cfg.camera
         self.calibration_path: str | None = None
+        saved = session.plan_copy()
+        if saved.camera_source and saved.camera_source == cfg.camera:
+            self.calibration_path = saved.calibration_path  # the calibration used last time
         self.rig: components.CameraRig | None = None
         self.robot: components.RobotRig | None = None
         self.camera_error: str | None = None
@@ -83,6 +88,7 @@ class TrackingLoop:
         self._frame_times: deque[float] = deque(maxlen=90)
         self._holding_reason: str | None = None  # why the loop currently holds (None = not holding)
         self._holding_code: str | None = None
+        self._seen_ids: set | None = None  # fiducial ids seen in the previous estimate
         self._alerted: set[str] = set()
         self._target_T: np.ndarray | None = None
         self._target_stamp: float | None = None
@@ -269,6 +275,7 @@ class TrackingLoop:
             self.gate.reset()
             anchor = plan.entry_lps_mm if plan.entry_lps_mm is not None else plan.fiducial_centres().mean(axis=0)
             self.gate.set_anchor(anchor)
+        self.s._store_camera(self.camera_source, self.calibration_path, rig.K, rig.dist, rig.image_size)
         if rig.default_T_base_cam is not None and plan.T_base_cam is None:
             self.s.set_hand_eye(rig.default_T_base_cam)
         if self.cfg.clock == "real":
@@ -315,8 +322,30 @@ class TrackingLoop:
         return CommandResult(True, f"fault {name} injected")
 
     # ================================================================== the loop proper
+    def _fiducial_changes(self, sample: components.PoseSample) -> None:
+        """Info alerts when fiducials vanish from / come back into the camera's view."""
+        if not sample.fiducial_status:
+            return
+        seen = {fid for fid, st in sample.fiducial_status.items() if st == "seen"}
+        prev, self._seen_ids = self._seen_ids, seen
+        if prev is None:
+            return
+        lost, back = sorted(prev - seen), sorted(seen - prev)
+        n, total = len(seen), len(sample.fiducial_status)
+        verdict = ("tracking continues" if n >= self.cfg.min_fiducials
+                   else f"fewer than {self.cfg.min_fiducials}: arm holds")
+        if lost:
+            self.s.alert("info", "fiducials_lost", f"fiducial{'s' if len(lost) > 1 else ''} "
+                         f"{', '.join(map(str, lost))} out of view ({n} of {total} seen; {verdict})",
+                         {"lost": lost, "seen": sorted(seen)})
+        if back:
+            self.s.alert("info", "fiducials_back", f"fiducial{'s' if len(back) > 1 else ''} "
+                         f"{', '.join(map(str, back))} back in view ({n} of {total} seen)",
+                         {"back": back, "seen": sorted(seen)})
+
     def on_pose(self, sample: components.PoseSample, now: float) -> None:
         """A new estimate is available (engine thread / sim tick)."""
+        self._fiducial_changes(sample)
         v = self.gate.check(sample.ok, sample.reason, sample.T_cam_ct, sample.n_matched, sample.fre_mm,
                             sample.t_capture)
         rec = _PoseRecord(sample, v.trusted, v.code, v.reason)
@@ -446,9 +475,11 @@ class TrackingLoop:
                     frame = rig.capture(t)
                     # A frozen camera hands back the same frame: nothing new to estimate.
                     if frame is not None and self.note_frame(frame.t_capture, t):
-                        w0 = time.perf_counter()
+                        # compute time of detection + registration: this thread's CPU time, so
+                        # the model does not depend on what else the machine runs meanwhile
+                        w0 = time.thread_time()
                         sample = rig.estimate(frame)
-                        w = time.perf_counter() - w0
+                        w = time.thread_time() - w0
                         ready = t + rig.transport_delay_s + w
                         sample.t_ready = ready
                         self._busy_until = ready

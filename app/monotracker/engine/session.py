@@ -51,7 +51,9 @@ on engine threads. Commands never raise for operator mistakes (the message says 
                           #   tip_error_mm, angle_error_deg, speed_mm_s, connected, message, latency_ms)
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
     snap.alerts           # recent alerts (Event: t, t_session, kind, level "info"|"warning"|"alarm", code, message, data)
-    s.latest_frame()      # (image BGR uint8, frame_index, PoseEstimate) for the overlay, or None
+    s.latest_frame()      # (image BGR uint8, frame_index, estimate) for the overlay, or None; estimate is
+                          #   vision's PoseEstimate (image_points_px per fiducial, status, residuals) for
+                          #   "sim" and real cameras, the engine's PoseSample for "sim-points"
     s.subscribe(callback) # callback(Event) on every alert/event (engine thread); returns unsubscribe()
     s.audit_entries(limit=None) -> list[AuditEntry]
 
@@ -61,7 +63,10 @@ pose disagrees with the last trusted one (a wrong pose or a real jump; followed 
 ``confirm_frames`` consistent frames), arm holds; ``bad_pose`` [warning] FRE too large; ``pose_lost``
 [warning] the estimator failed; ``pose_stale`` [warning] freshest trusted pose older than
 ``max_pose_age_s``; ``camera_freeze`` [alarm] no new frame for ``freeze_after_s``; ``resumed`` [info]
-the pose is trusted again (tracking resumes by itself); ``robot_disconnected`` [alarm] /
+the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``fiducials_back``
+[info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
+[warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
+``robot_disconnected`` [alarm] /
 ``robot_connected`` [info]; ``robot_warning`` [warning] from the robot's safety layer; ``estop``
 [alarm]; ``arm_refused`` [warning] wrong PIN; ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
 / ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
@@ -81,8 +86,9 @@ simulated-clock demo; ``unlock_fiducials``, ``new_plan``, ``use_sample_plan``, `
 are :class:`~monotracker.engine.events.Event` objects (with ``kind == "alert"``).
 
 Threading: every public method may be called from any thread (viser callbacks). State lives
-behind one re-entrant lock; methods hold it only for bookkeeping, never across I/O or heavy
-work. Snapshots are deep copies with read-only arrays.
+behind one re-entrant lock; methods hold it only for bookkeeping and for the plan's atomic save
+(a few ms, so the file and the in-memory plan never disagree), never across CT loading,
+registration or robot motion. Snapshots are copies with read-only arrays.
 
 Safety choices: the session always starts disarmed, also after a crash; arming needs the PIN;
 tracking needs a trusted pose (>= ``min_fiducials`` visible, FRE below ``max_fre_mm``, passes the
@@ -553,6 +559,25 @@ class Session:
             self._save_plan_locked("hand-eye")
         self._bus.event("hand_eye_set", "hand-eye calibration T_base_cam set", {"T_base_cam_mm": T.tolist()})
         return _ok("hand-eye set")
+
+    def _store_camera(self, source: str, calibration_path, K, dist, image_size) -> None:
+        """Save the camera in use and its calibration in the plan (called by the loop)."""
+        with self._lock:
+            p = self._plan
+            same = (p.camera_source == source and p.calibration_path == calibration_path and p.K is not None
+                    and K is not None and np.array_equal(p.K, K))
+            if same:
+                return
+            p.camera_source, p.calibration_path = source, calibration_path
+            p.K = None if K is None else np.asarray(K, float).copy()
+            p.dist = None if dist is None else np.asarray(dist, float).ravel().copy()
+            p.image_size = None if image_size is None else tuple(int(v) for v in image_size)
+            self._save_plan_locked("camera calibration")
+        self._bus.event("camera_calibration", f"camera {source}: calibration stored in the plan",
+                        {"source": source, "calibration_path": calibration_path,
+                         "K": None if K is None else np.asarray(K).tolist(),
+                         "dist": None if dist is None else np.asarray(dist).ravel().tolist(),
+                         "image_size": None if image_size is None else list(image_size)})
 
     # ================================================================== robot
     def arm(self, pin) -> CommandResult:

@@ -57,6 +57,11 @@ def _check_inputs(fiducials_ct, image_points, K, dist, radius_mm, prior):
             return None, None, None, None, None, "dist is not numeric"
         if dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
             return None, None, None, None, None, "dist must hold 4, 5, 8, 12 or 14 finite OpenCV coefficients"
+    if radius_mm is not None:
+        try:
+            radius_mm = float(radius_mm)
+        except (TypeError, ValueError):
+            radius_mm = float("nan")
     if radius_mm is not None and not (np.isfinite(radius_mm) and radius_mm > 0):
         return None, None, None, None, None, "radius_mm must be a positive number of mm or None"
     if prior is not None:

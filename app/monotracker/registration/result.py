@@ -45,6 +45,23 @@ class Registration:
             return float("nan") if np.ndim(target_ct) == 1 else np.full(len(target_ct), np.nan)
         return predicted_tre(self.T_cam_ct, self.pose_covariance, target_ct)
 
+    def to_dict(self) -> dict:
+        """JSON-ready summary (lists and floats; no numpy) for logs and persistence."""
+        def f(x):
+            return None if x is None or not np.isfinite(x) else float(x)
+
+        return {
+            "ok": self.ok, "reason": self.reason, "method": self.method,
+            "T_cam_ct": None if self.T_cam_ct is None else np.asarray(self.T_cam_ct).tolist(),
+            "pairs": [list(p) for p in self.pairs], "fre_mm": f(self.fre_mm),
+            "reprojection_rms_px": f(self.reprojection_rms_px),
+            "residuals_px": np.asarray(self.residuals_px, float).tolist(),
+            "unmatched_image_indices": list(self.unmatched_image_indices),
+            "unmatched_fiducial_indices": list(self.unmatched_fiducial_indices),
+            "sigma_px": f(self.sigma_px), "used_prior": self.used_prior,
+            "timing": {k: float(v) for k, v in self.timing.items()},
+        }
+
     def __repr__(self) -> str:  # short, for logs
         if not self.ok:
             return f"Registration(ok=False, method={self.method!r}, reason={self.reason!r})"

@@ -187,7 +187,7 @@ class APFFController:
         R = T_mid[:3, :3]
         z = R[:, 2]
         h = self._half
-        P = np.stack([T_mid[:3, 3] + h * z, T_mid[:3, 3] - h * z])
+        P = np.array([T_mid[:3, 3] + h * z, T_mid[:3, 3] - h * z])
         zg = T_mid_goal[:3, 2]
         G = (T_mid_goal[:3, 3] + h * zg, T_mid_goal[:3, 3] - h * zg)
         exempt = None if self.head is None else self.corridor.contains(P, T_base_target)

@@ -204,7 +204,9 @@ class SafetyLayer:
         if not np.isfinite(stamp) or now - stamp > self.cfg.max_latency_s:
             self.hold(now, f"target pose too old ({now - stamp:.3f} s since capture)", auto=True)
             return TargetStatus(False, "target pose too old")
-        if self.target is not None:
+        if self.target is not None and self.state in (State.TRACKING, State.HOLDING):
+            # A jump matters only while the arm follows the target; armed/disarmed, the newest
+            # pose simply becomes the reference that start_tracking will use.
             dp = float(np.linalg.norm(T[:3, 3] - self.target[:3, 3]))
             da = float(np.linalg.norm(log3(self.target[:3, :3].T @ T[:3, :3])))
             if dp > self.cfg.jump_m or da > self.cfg.jump_rad:
@@ -243,7 +245,7 @@ class SafetyLayer:
             return None
         dq = np.asarray(dq_des, dtype=float).copy()
         # 1. joint speed (uniform scale keeps the direction)
-        s = np.max(np.abs(dq) / cfg.joint_speed)
+        s = (np.abs(dq) / cfg.joint_speed).max()
         if s > 1.0:
             dq /= s
         # 2. tool speed at the needle tip
@@ -255,7 +257,7 @@ class SafetyLayer:
         lo = self.limits.lower + cfg.position_margin_rad
         hi = self.limits.upper - cfg.position_margin_rad
         brake = float(np.max(cfg.joint_speed)) ** 2 / (2.0 * cfg.joint_accel) + 0.01
-        if np.min(hi - q) < brake or np.min(q - lo) < brake:  # near a limit: cap the speed towards it
+        if (hi - q).min() < brake or (q - lo).min() < brake:  # near a limit: cap the speed towards it
             vmax_up = np.sqrt(2.0 * cfg.joint_accel * np.clip(hi - q, 0.0, None))
             vmax_dn = np.sqrt(2.0 * cfg.joint_accel * np.clip(q - lo, 0.0, None))
             dq = np.clip(dq, -vmax_dn, vmax_up)
@@ -264,7 +266,7 @@ class SafetyLayer:
             dq = self._keepout(q, dq, T_base_tool0, head)
         # 5. acceleration relative to the last command
         delta = dq - self.last_cmd
-        m = np.max(np.abs(delta))
+        m = np.abs(delta).max()
         lim = cfg.joint_accel * dt
         if m > lim:
             dq = self.last_cmd + delta * (lim / m)
@@ -279,10 +281,10 @@ class SafetyLayer:
         p_now = self.needle_points(T_now)
         v = self.cfg.tool_speed_m_s
         reach = 2.0 * (v * v / (2.0 * 0.5) + v * self.cfg.keepout_lookahead_s) + self.cfg.keepout_margin_m
-        if np.min(head.distance(p_now)) > reach:
+        if head.distance(p_now).min() > reach:
             return dq  # nothing near the head: the prediction cannot enter it
         # where the arm would come to rest if it braked now: q + dq * (t_brake / 2 + latency)
-        t_brake = float(np.max(np.abs(dq))) / self.cfg.joint_accel
+        t_brake = float(np.abs(dq).max()) / self.cfg.joint_accel
         q_next = q + dq * (0.5 * t_brake + self.cfg.keepout_lookahead_s)
         T_next = self.kin.fk(q_next)
         p_next = self.needle_points(T_next)
@@ -290,7 +292,7 @@ class SafetyLayer:
         d_next = head.distance(p_next) - self.cfg.keepout_margin_m
         free = self.corridor.contains(p_next, self.target)
         bad = (d_next < 0) & ~free & (d_next < d_now)
-        if np.any(bad):
+        if bad.any():
             msg = "keep-out: motion towards the head outside the planned path was blocked"
             if not self.warnings or self.warnings[-1] != msg:
                 self.warnings.append(msg)

@@ -364,7 +364,13 @@ class Tracker:
     def _loop(self) -> None:
         nxt = self.clock()
         while self._run.is_set():
-            self.step()
+            try:
+                self.step()
+            except Exception as exc:  # noqa: BLE001 - step() catches loop errors; this is the last guard
+                log.exception("tracker thread error")
+                with self._lock:
+                    self.safety.estop(self.clock(), f"internal error in tracker thread: {type(exc).__name__}: {exc}")
+                    self._stop_arm(self.safety.cfg.estop_decel)
             nxt += self.period
             delay = nxt - self.clock()
             if delay < -self.period:  # overrun: re-phase rather than bursting

@@ -67,6 +67,8 @@ class FrameTruth:
     radius_px: np.ndarray                 # (9,) approximate image radius of each sphere
     stray_centres_px: np.ndarray          # (k, 2) stray blobs present in this frame
     occluders: list = field(default_factory=list)  # polygons (n, 2) px drawn in this frame
+    #: (h, w) float32 visible-ball coverage in [0, 1] (occluders removed); only when asked for
+    fiducial_mask: np.ndarray | None = None
 
 
 @dataclass
@@ -285,8 +287,9 @@ class SimulatedCamera(FrameSource):
         return Frame(img, time.monotonic(), i, truth)
 
     # ------------------------------------------------------------------ rendering
-    def render(self, t: float) -> tuple[np.ndarray, FrameTruth]:
-        """Render the scene at simulated time ``t`` (s): (BGR uint8 image, FrameTruth)."""
+    def render(self, t: float, with_mask: bool = False) -> tuple[np.ndarray, FrameTruth]:
+        """Render the scene at simulated time ``t`` (s): (BGR uint8 image, FrameTruth).
+        ``with_mask`` also fills ``truth.fiducial_mask`` (training labels for the segmenter)."""
         T = self.T_cam_ct_at(t)
         R, tr = T[:3, :3], T[:3, 3]
         ph = self.phantom
@@ -295,9 +298,10 @@ class SimulatedCamera(FrameSource):
 
         # --- skin at low resolution, composited on the background, then upsampled
         low = self._background_low.copy()
-        hit, shade = self._skin(self._rays_low, R, tr)
+        cov, shade = self._skin(self._rays_low, R, tr, self.K[0, 0] * self._low_scale)
         lowf = low.reshape(-1, 3)
-        lowf[hit] = SKIN_BGR[None, :] * shade[:, None]
+        m = cov > 0
+        lowf[m] = lowf[m] * (1.0 - cov[m, None]) + (SKIN_BGR[None, :] * shade[m, None]) * cov[m, None]
         img = cv2.resize(low, (w, h), interpolation=cv2.INTER_LINEAR)
 
         # --- skin clip (grey bar)
@@ -330,11 +334,12 @@ class SimulatedCamera(FrameSource):
             cov_store[k] = (roi, cov)
 
         # --- strays
-        strays = []
+        strays, active = [], []
         for s in self.events.strays:
             if s.t_start <= t < s.t_end:
                 self._draw_stray(img, s)
                 strays.append(s.centre_px)
+                active.append(s)
 
         # --- occluders (in front of everything)
         polys = []
@@ -345,6 +350,17 @@ class SimulatedCamera(FrameSource):
                 cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], colour, cv2.LINE_AA, shift=4)
                 polys.append(poly)
 
+        label = None
+        if with_mask:
+            label = np.zeros((h, w), np.float32)
+            for k, (roi, cov) in cov_store.items():
+                y0, y1, x0, x1 = roi
+                label[y0:y1, x0:x1] = np.maximum(label[y0:y1, x0:x1], cov)
+            for st in active:
+                self._draw_stray(label, st, colour=0.0)
+            for poly in polys:
+                cv2.fillPoly(label, [np.round(poly * 16).astype(np.int32)], 0.0, cv2.LINE_AA, shift=4)
+
         # --- visibility truth
         vis = np.zeros(nfid)
         for k, (roi, cov) in cov_store.items():
@@ -352,8 +368,10 @@ class SimulatedCamera(FrameSource):
             if total <= 0:
                 continue
             y0, y1, x0, x1 = roi
-            if polys:
+            if polys or active:     # hands, instruments and stray blobs are all in front of the balls
                 m = np.zeros((y1 - y0, x1 - x0), np.uint8)
+                for st in active:
+                    self._draw_stray(m, st, offset=(x0, y0), colour=255)
                 for poly in polys:
                     cv2.fillPoly(m, [np.round((poly - [x0, y0]) * 16).astype(np.int32)], 255, cv2.LINE_AA, shift=4)
                 seen = float(np.sum(cov * (1.0 - m / 255.0)))
@@ -377,12 +395,14 @@ class SimulatedCamera(FrameSource):
         truth = FrameTruth(
             t_s=t, T_cam_ct=T, ellipse_centres_px=ell, projected_centres_px=proj,
             visible_fraction=vis, visible=vis >= FULLY_VISIBLE, radius_px=radius_px,
-            stray_centres_px=np.array(strays, float).reshape(-1, 2), occluders=polys)
+            stray_centres_px=np.array(strays, float).reshape(-1, 2), occluders=polys, fiducial_mask=label)
         return out, truth
 
-    def _skin(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray):
-        """Ray-ellipsoid hits for (n, 3) unit rays from the camera centre. Returns (hit mask (n,),
-        Lambert shade of the hit pixels (k,)) honouring the neck cut."""
+    def _skin(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray, px_per_rad: float):
+        """Skin coverage and shade for (n, 3) unit rays from the camera centre (low-res grid).
+        Returns (coverage (n,) in [0, 1], Lambert shade (n,)). Coverage is anti-aliased with the
+        ray's closest approach to the ellipsoid in its unit-sphere coordinates (silhouette at
+        distance 1), converted to pixels; the neck cut is honoured (hard edge there)."""
         ph = self.phantom
         axes = ph.skin_semi_axes_mm
         c_cam = R @ ph.centre_lps + tr
@@ -394,17 +414,21 @@ class SimulatedCamera(FrameSource):
         disc = B * B - 4 * A * Cq
         hit = disc > 0
         sq = np.sqrt(np.where(hit, disc, 0.0))
-        t = (-B - sq) / (2 * A)
-        hit &= t > 0
-        local = (o[None, :] + t[:, None] * d) * axes    # hit in CT-aligned coords about centre
-        hit &= local[:, 2] + ph.centre_lps[2] >= ph.neck_cut_z_mm
-        n_local = local[hit] / axes**2
+        t_ca = -B / (2 * A)                             # closest approach
+        t = np.where(hit, (-B - sq) / (2 * A), t_ca)
+        local = (o[None, :] + t[:, None] * d)           # unit-sphere coords of the hit / approach
+        dmin = np.sqrt(np.maximum(Cq + 1.0 - B * B / (4 * A), 0.0))
+        # unit-sphere distance -> mm (mean semi-axis) -> rad (depth) -> px
+        scale = float(np.mean(axes)) / float(np.linalg.norm(c_cam)) * px_per_rad
+        cov = np.clip(0.5 - (dmin - 1.0) * scale, 0.0, 1.0)
+        cov[(t <= 0) | (local[:, 2] * axes[2] + ph.centre_lps[2] < ph.neck_cut_z_mm)] = 0.0
+        n_local = local / axes
         n_cam = n_local @ R.T
-        n_cam /= np.linalg.norm(n_cam, axis=1, keepdims=True)
+        n_cam /= np.linalg.norm(n_cam, axis=1, keepdims=True) + 1e-12
         lam = np.clip(n_cam @ self._light_cam, 0, 1)
-        facing = np.clip(-np.einsum("ij,ij->i", n_cam, rays[hit]), 0, 1)
+        facing = np.clip(-np.einsum("ij,ij->i", n_cam, rays), 0, 1)
         shade = 0.35 + 0.5 * lam + 0.15 * facing
-        return hit, shade
+        return cov, shade
 
     def _skin_depth(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray) -> np.ndarray:
         """Distance along each unit ray (n, 3) to the skin (inf where it misses)."""
@@ -471,22 +495,23 @@ class SimulatedCamera(FrameSource):
         xn = C[:, :2] * (c / (c**2 - rad**2))[:, None]
         return distort_normalised(xn, self.K, self.dist)
 
-    def _draw_stray(self, img, s: Stray):
-        c = np.asarray(s.centre_px, float)
+    def _draw_stray(self, img, s: Stray, offset=(0.0, 0.0), colour=STRAY_BGR):
+        """Draw stray ``s`` (px) into ``img`` whose pixel (0, 0) is image pixel ``offset``."""
+        c = np.asarray(s.centre_px, float) - np.asarray(offset, float)
         rng = np.random.default_rng(s.seed)
         if s.shape == "round":
-            cv2.circle(img, tuple(np.round(c * 16).astype(int)), int(round(s.size_px * 16)), STRAY_BGR,
+            cv2.circle(img, tuple(np.round(c * 16).astype(int)), int(round(s.size_px * 16)), colour,
                        -1, cv2.LINE_AA, shift=4)
         elif s.shape == "streak":
             d = rng.normal(size=2)
             d = d / np.linalg.norm(d) * s.size_px * 2.5
             p0, p1 = np.round((c - d) * 16).astype(int), np.round((c + d) * 16).astype(int)
-            cv2.line(img, tuple(p0), tuple(p1), STRAY_BGR, max(2, int(s.size_px / 3)), cv2.LINE_AA, shift=4)
+            cv2.line(img, tuple(p0), tuple(p1), colour, max(2, int(s.size_px / 3)), cv2.LINE_AA, shift=4)
         else:
             ang = np.sort(rng.uniform(0, 2 * np.pi, 9))
             r = s.size_px * rng.uniform(0.4, 1.4, 9)
             poly = c + np.column_stack([r * np.cos(ang), r * np.sin(ang)])
-            cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], STRAY_BGR, cv2.LINE_AA, shift=4)
+            cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], colour, cv2.LINE_AA, shift=4)
 
     def _motion_blur(self, img, t, C_all, proj):
         """Blur along the image motion of the fiducial patch during the exposure (centred on t)."""

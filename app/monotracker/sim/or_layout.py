@@ -84,10 +84,13 @@ class ORLayout:
     def head_centre_base(self) -> np.ndarray:
         return apply_transform(self.T_base_ct0, self.phantom.centre_lps)
 
-    def motion(self, name: str, seed: int = 1):
-        """The head trajectory ``name`` (``monotracker.sim.trajectories``)."""
+    def motion(self, name, seed: int = 1):
+        """The head trajectory ``name`` (``monotracker.sim.trajectories``); a trajectory object
+        (anything with ``pose(t)``) is returned as it is."""
         from monotracker.sim.trajectories import make_trajectory
 
+        if hasattr(name, "pose"):
+            return name
         return make_trajectory(name, seed=seed)
 
     def T_base_ct(self, motion, t: float) -> np.ndarray:

@@ -79,10 +79,15 @@ def ellipse_centre_normalised(X_cam: np.ndarray, radius_mm: float) -> np.ndarray
     return np.array(out)
 
 
-def _distort(xy, dist):
-    from monotracker.registration.projection import distort_normalised
+def _to_pixels(xy: np.ndarray, K: np.ndarray, dist) -> np.ndarray:
+    """Normalised points -> distorted pixels through OpenCV's own model (cv2.projectPoints),
+    independent of the registration package's implementation."""
+    import cv2
 
-    return distort_normalised(xy, dist)
+    P = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    d = np.zeros(5) if dist is None else np.asarray(dist, float)
+    px, _ = cv2.projectPoints(P, np.zeros(3), np.zeros(3), K, d)
+    return px.reshape(-1, 2)
 
 
 def make_scene(rng: np.random.Generator, layout: str | np.ndarray = "phantom", n_occluded: int = 0,
@@ -127,7 +132,7 @@ def make_scene(rng: np.random.Generator, layout: str | np.ndarray = "phantom", n
         Xc = X @ T[:3, :3].T + T[:3, 3]
         dist = np.array([-0.12, 0.08, 0.0005, -0.0004, -0.02]) * rng.uniform(0.5, 1.5) if distortion else None
         xy = ellipse_centre_normalised(Xc, R) if ellipse_bias else Xc[:, :2] / Xc[:, 2:3]
-        px = _distort(xy, dist) * [K[0, 0], K[1, 1]] + K[:2, 2]
+        px = _to_pixels(xy, K, dist)
         inside = (px[:, 0] > 10) & (px[:, 0] < W - 10) & (px[:, 1] > 10) & (px[:, 1] < H - 10)
         if inside.all():
             break

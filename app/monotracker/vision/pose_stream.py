@@ -57,7 +57,9 @@ class PoseEstimate:
     the matched detection per CT fiducial (NaN where none) and ``residuals_px`` its
     reprojection error (NaN where none). ``predicted_tre_mm`` is at the planned target (NaN if
     no target was given or no pose). ``alerts`` are one-line operator messages for this frame.
-    ``camera`` is "ok", "frozen", "stalled", "disconnected" or "ended"."""
+    ``camera`` is "ok", "frozen", "stalled", "disconnected" or "ended". ``detect_s`` /
+    ``register_s`` are the stage times (s); ``truth`` is the simulator's ground truth of the
+    frame (None for real cameras), carried for overlays and benchmarks."""
 
     ok: bool
     reason: str
@@ -97,7 +99,8 @@ class TrackerConfig:
     max_rms_px: float = 1.5
     max_residual_px: float = 3.0
     status_gate_px: float = 6.0
-    #: a previous pose older than this (s) is not used as the registration prior
+    #: the previous valid pose is the registration prior when it came from the previous frame
+    #: or is younger than this (s)
     prior_max_age_s: float = 0.5
     method: str = "robust"
 
@@ -124,6 +127,7 @@ class PoseTracker:
         self._ever_seen = np.zeros(n, bool)
         self._last_T = None
         self._last_T_time = -np.inf
+        self._last_T_index = -10
         self._last_ok = None
 
     def reset(self) -> None:
@@ -140,7 +144,8 @@ class PoseTracker:
         n = len(self.fiducials_ct)
         det = self.detector.detect(frame.image)
         pts = det.centres
-        prior = self._last_T if frame.t_capture - self._last_T_time <= cfg.prior_max_age_s else None
+        fresh = (frame.index == self._last_T_index + 1 or frame.t_capture - self._last_T_time <= cfg.prior_max_age_s)
+        prior = self._last_T if fresh else None
         t0 = time.perf_counter()
         reg = register(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
                        method=cfg.method, prior=prior)
@@ -201,6 +206,7 @@ class PoseTracker:
         if ok:
             self._last_T = reg.T_cam_ct
             self._last_T_time = frame.t_capture
+            self._last_T_index = frame.index
             if self.target_ct is not None:
                 tre = float(reg.predicted_tre_mm(self.target_ct))
         return PoseEstimate(
@@ -218,6 +224,7 @@ class PoseTracker:
         status = [NEWLY_LOST if s else (OCCLUDED if e else UNKNOWN) for s, e in zip(self._prev_seen, self._ever_seen)]
         self._prev_seen = np.zeros(n, bool)
         self._last_T_time = -np.inf
+        self._last_T_index = -10
         self._last_ok = False
         return PoseEstimate(ok=False, reason=reason, frame_index=frame_index, t_capture=t_capture,
                             t_published=time.monotonic(), status=status, image_points_px=np.full((n, 2), np.nan),
@@ -289,8 +296,21 @@ class PoseStream:
         self._monitor.start()
         return self
 
+    def set_target(self, target_ct: np.ndarray | None) -> None:
+        """Planned target (CT mm) for ``predicted_tre_mm``; takes effect from the next frame."""
+        self.tracker.set_target(target_ct)
+
     def stop(self, timeout: float = 2.0) -> None:
+        """Stop the threads and close the source (if ``close_source``). A ``read()`` that blocks
+        (stalled camera) is unblocked by closing the source after a short grace period."""
         self._stop.set()
+        if self._thread is not None:
+            self._thread.join(0.2)
+            if self._thread.is_alive() and self.close_source:
+                try:
+                    self.source.close()
+                except Exception:  # noqa: BLE001
+                    log.exception("closing the frame source failed")
         for t in (self._thread, self._monitor):
             if t is not None:
                 t.join(timeout)
@@ -334,10 +354,12 @@ class PoseStream:
             try:
                 frame = self.source.read()
             except CameraDisconnected as exc:
-                self._fault_estimate("disconnected", f"camera disconnected: {exc}")
+                if not self._stop.is_set():     # closing the source on stop() is not a fault
+                    self._fault_estimate("disconnected", f"camera disconnected: {exc}")
                 return
             except MonoTrackerError as exc:
-                self._fault_estimate("disconnected", f"camera error: {exc}")
+                if not self._stop.is_set():
+                    self._fault_estimate("disconnected", f"camera error: {exc}")
                 return
             finally:
                 self._read_since = None
