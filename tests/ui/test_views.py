@@ -78,3 +78,33 @@ def test_serve_cli_bad_input_is_one_line(tmp_path):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert r.stderr.strip().startswith("error:") and "Traceback" not in r.stderr
+
+
+def test_overlay_draws_for_both_estimate_kinds_and_flags_hidden_fiducials():
+    """The overlay is drawn from vision's PoseEstimate (arrays) and the engine's PoseSample
+    (dicts); a hidden fiducial gets a red ring at its reprojected place, the banner says why."""
+    from types import SimpleNamespace as NS
+
+    from monotracker.ui.overlay import RED, draw_overlay, project_points
+
+    K = np.array([[900.0, 0, 640], [0, 900.0, 360], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, 3] = [0, 0, 400.0]
+    centres = np.array([[0.0, 0, 0], [40, 0, 0], [0, 40, 0], [-40, -20, 0]])
+    fids = tuple(NS(id=i, centre_lps_mm=c, radius_mm=4.0, status="confirmed") for i, c in enumerate(centres))
+    status = {0: "seen", 1: "seen", 2: "seen", 3: "occluded"}
+    pose = NS(trusted=False, reason="only 3 fiducials", T_cam_ct=T, fiducial_status=status,
+              residuals_px={0: 0.1, 1: 0.2, 2: 0.3}, fre_mm=0.1, predicted_tre_mm=0.5)
+    snap = NS(pose=pose, camera=NS(K=K, dist=None), fiducials=fids,
+              plan=NS(entry_lps_mm=None, target_lps_mm=None))
+    uv = project_points(centres, T, K)
+    img = np.zeros((720, 1280, 3), np.uint8)
+    est_arrays = NS(T_cam_ct=T, status=list(status.values()), image_points_px=uv,
+                    residuals_px=np.array([0.1, 0.2, 0.3, np.nan]))
+    est_dicts = NS(T_cam_ct=T, fiducial_status=status, residuals_px=pose.residuals_px)
+    for est in (est_arrays, est_dicts, None):
+        out = draw_overlay(img, est, snap)
+        u, v = np.round(uv[3]).astype(int)
+        ring = out[v - 16:v + 17, u - 16:u + 17].reshape(-1, 3)
+        assert np.any(np.all(ring == RED, axis=1))  # red ring around the hidden fiducial
+        assert out[5:35, :].reshape(-1, 3)[:, 2].mean() > 100  # red-ish banner: pose not valid

@@ -76,8 +76,16 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False) -
         status_by_id = dict(zip(ids, status))
     else:
         status_by_id = dict(pose.fiducial_status) if pose is not None else {}
+    # vision's PoseEstimate: arrays in fiducial order; the engine's PoseSample ("sim-points"):
+    # dicts keyed by fiducial id and no image points
     img_pts = np.asarray(getattr(estimate, "image_points_px", np.zeros((0, 2))), float).reshape(-1, 2)
-    residuals = np.asarray(getattr(estimate, "residuals_px", np.zeros(0)), float).ravel()
+    res_raw = getattr(estimate, "residuals_px", None)
+    if isinstance(res_raw, dict):
+        residuals = np.array([res_raw.get(i, np.nan) for i in ids], float)
+    elif res_raw is None:
+        residuals = np.array([(pose.residuals_px.get(i, np.nan) if pose is not None else np.nan) for i in ids], float)
+    else:
+        residuals = np.asarray(res_raw, float).ravel()
     scale = max(0.5, w / 1280.0)
 
     proj = {}
