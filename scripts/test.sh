@@ -1,6 +1,18 @@
 #!/usr/bin/env bash
 # Installs what the tests need, then runs the whole suite. Extra arguments go to pytest.
+# The web app's end-to-end tests drive Debian's chromium (never a downloaded browser).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+if [ -z "${MONOTRACKER_CHROMIUM:-}" ] && ! [ -x /usr/bin/chromium ] && ! command -v chromium >/dev/null 2>&1; then
+  if [ "$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then
+    echo "installing Debian's chromium for the browser tests..." >&2
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null
+  else
+    echo "error: the browser tests need chromium: run 'sudo apt-get install -y chromium' (Debian/Ubuntu)" \
+         "or set MONOTRACKER_CHROMIUM to a Chromium binary" >&2
+    exit 1
+  fi
+fi
 bash scripts/setup.sh
 exec .venv/bin/python -m pytest "$@"

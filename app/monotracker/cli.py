@@ -24,6 +24,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "monotracker.vision.commands",
     "monotracker.robot.commands",
     "monotracker.engine.commands",
+    "monotracker.ui.commands",
 )
 
 

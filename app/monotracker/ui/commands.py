@@ -1,0 +1,117 @@
+"""``monotracker serve``: the web app for the operating room.
+
+    monotracker serve [--host 127.0.0.1] [--port 8080] [--allow-remote] [--sample]
+        [--camera sim|device:N|file:PATH|folder:PATH] [--calibration FILE]
+        [--robot sim|ur:IP] [--pin PIN] [--trajectory still|drift|breathing|jumps] [--home DIR]
+
+Serves on 127.0.0.1 unless ``--allow-remote`` is given (any other ``--host`` is refused
+without it: the page can move a robot). Arming needs the operator PIN: ``--pin`` or
+``$MONOTRACKER_PIN``; without either a random 6-digit PIN is made and printed here, on the
+console, only. ``--sample`` loads the bundled sample CT at start (its fiducials still need the
+operator's confirmation). Restarting restores the saved plan from the session folder (``--home``
+or ``$MONOTRACKER_HOME``) and always starts disarmed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import secrets
+import signal
+import socket
+import threading
+from pathlib import Path
+
+from monotracker.errors import InputError
+
+LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("serve", help="the web app (viser): CT, plan, register, robot",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--allow-remote", action="store_true",
+                   help="allow a --host other than this machine (the page can move the robot)")
+    p.add_argument("--sample", action="store_true", help="load the bundled sample CT at start")
+    p.add_argument("--camera", default="sim", help="sim | sim-points | device:N | file:PATH | folder:PATH (default sim)")
+    p.add_argument("--calibration", default=None, help="camera calibration file (OpenCV YAML/JSON) for a real camera")
+    p.add_argument("--robot", default="sim", help="sim | ur:IP (default sim)")
+    p.add_argument("--pin", default=None, help="operator PIN for arming (default $MONOTRACKER_PIN, else a random one)")
+    p.add_argument("--trajectory", default="breathing", help="simulated head motion (sim camera only)")
+    p.add_argument("--home", type=Path, default=None, help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
+    p.set_defaults(func=_serve)
+
+
+def check_host(host: str, allow_remote: bool) -> None:
+    if host not in LOCAL_HOSTS and not allow_remote:
+        raise InputError(f"--host {host} would expose the robot's web page to the network; "
+                         "add --allow-remote if that is intended")
+
+
+def check_port_free(host: str, port: int) -> None:
+    if not (0 < port < 65536):
+        raise InputError(f"--port must be between 1 and 65535, not {port}")
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise InputError(f"cannot listen on {host}:{port}: {exc.strerror or exc}; choose another --port") from None
+
+
+def resolve_pin(pin: str | None) -> tuple[str, bool]:
+    """(PIN, generated?)."""
+    pin = pin if pin is not None else os.environ.get("MONOTRACKER_PIN")
+    if pin is None:
+        return f"{secrets.randbelow(10**6):06d}", True
+    pin = str(pin).strip()
+    if len(pin) < 4 or not pin.isdigit():
+        raise InputError("--pin must be at least 4 digits")
+    return pin, False
+
+
+def _serve(args) -> int:
+    from monotracker.engine import Session, SessionConfig
+
+    check_host(args.host, args.allow_remote)
+    check_port_free(args.host, args.port)
+    pin, generated = resolve_pin(args.pin)
+    cfg = SessionConfig(home=args.home, camera=args.camera, robot=args.robot, arm_pin=pin,
+                        trajectory=args.trajectory, clock="real")
+    cfg.validate()
+    session = Session(cfg)
+    app = None
+    try:
+        if args.calibration is not None:
+            if not Path(args.calibration).exists():
+                raise InputError(f"calibration file not found: {args.calibration}")
+            r = session.set_camera(args.camera, args.calibration)
+            if not r.ok:
+                raise InputError(r.message)
+        session.start()
+        if args.sample:
+            snap = session.snapshot()
+            if not snap.fiducials_locked:
+                session.load_sample_ct()
+        from monotracker.ui.app import MonoTrackerApp
+
+        app = MonoTrackerApp(session, args.host, args.port)
+        app.start()
+        print(f"MonoTracker is running: open {app.url} in a browser (Ctrl-C to stop)", flush=True)
+        if generated:
+            print(f"operator PIN for arming: {pin}  (set your own with --pin or MONOTRACKER_PIN)", flush=True)
+        done = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                signal.signal(sig, lambda *_: done.set())
+            except ValueError:  # not the main thread (tests)
+                pass
+        done.wait()
+        print("stopping: robot disarmed, threads stopped", flush=True)
+        return 0
+    finally:
+        if app is not None:
+            app.stop()
+        session.shutdown()

@@ -1,0 +1,155 @@
+"""CT slice views for the web app: axial, coronal and sagittal planes through an LPS point.
+
+The planes are aligned with the patient axes (LPS), not with the voxel grid, so an oblique
+scan still shows true axial/coronal/sagittal anatomy: each pixel is an LPS point (``pixel_mm``
+apart) sampled from the volume by trilinear interpolation (outside the scan = air).
+
+Display conventions (radiological, as CT viewers show them):
+
+* axial (z = const): image right = patient left (+x), image down = posterior (+y);
+* coronal (y = const): image right = patient left (+x), image down = inferior (-z);
+* sagittal (x = const): image right = posterior (+y), image down = inferior (-z).
+
+Fiducials within ``near_mm`` of a plane are drawn as numbered circles (green confirmed/added,
+yellow detected, red rejected); the planned path is drawn projected onto each plane (entry
+cyan, target magenta), solid where it is within ``near_mm`` of the plane.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+PLANES = ("axial", "coronal", "sagittal")
+
+#: (image-column axis, image-row axis, row direction sign) in LPS index 0=x 1=y 2=z per plane.
+_AXES = {"axial": (0, 1, +1, 2), "coronal": (0, 2, -1, 1), "sagittal": (1, 2, -1, 0)}
+
+STATUS_BGR = {
+    "confirmed": (80, 220, 80),
+    "added": (80, 220, 80),
+    "detected": (0, 215, 255),
+    "rejected": (60, 60, 255),
+}
+
+
+@dataclass(frozen=True)
+class SliceGeometry:
+    """Where a slice image lies: ``plane``, the LPS point it passes through, the LPS bounds
+    (min, max) of the volume, and ``pixel_mm``. ``to_pixel(p)`` maps LPS points to (col, row)."""
+
+    plane: str
+    point_lps: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    pixel_mm: float
+
+    def size(self) -> tuple[int, int]:
+        """(width, height) px."""
+        c, r, _, _ = _AXES[self.plane]
+        w = int(np.ceil((self.hi[c] - self.lo[c]) / self.pixel_mm)) + 1
+        h = int(np.ceil((self.hi[r] - self.lo[r]) / self.pixel_mm)) + 1
+        return w, h
+
+    def to_pixel(self, p_lps: np.ndarray) -> np.ndarray:
+        """LPS points (n, 3) mm -> pixel (col, row) (n, 2) float."""
+        p = np.atleast_2d(np.asarray(p_lps, float))
+        c, r, sign, _ = _AXES[self.plane]
+        col = (p[:, c] - self.lo[c]) / self.pixel_mm
+        row = (p[:, r] - self.lo[r]) / self.pixel_mm if sign > 0 else (self.hi[r] - p[:, r]) / self.pixel_mm
+        return np.column_stack([col, row])
+
+    def to_lps(self, col: float, row: float) -> np.ndarray:
+        """Pixel (col, row) -> the LPS point (mm) on this plane."""
+        c, r, sign, n = _AXES[self.plane]
+        p = np.array(self.point_lps, float).copy()
+        p[c] = self.lo[c] + col * self.pixel_mm
+        p[r] = self.lo[r] + row * self.pixel_mm if sign > 0 else self.hi[r] - row * self.pixel_mm
+        return p
+
+    def distance_to_plane(self, p_lps: np.ndarray) -> np.ndarray:
+        n = _AXES[self.plane][3]
+        return np.abs(np.atleast_2d(np.asarray(p_lps, float))[:, n] - self.point_lps[n])
+
+
+def volume_bounds_lps(volume) -> tuple[np.ndarray, np.ndarray]:
+    """LPS bounding box (min, max) mm of the volume's voxel centres."""
+    nz, ny, nx = volume.array.shape
+    corners = np.array([[i, j, k] for i in (0, nx - 1) for j in (0, ny - 1) for k in (0, nz - 1)], float)
+    lps = volume.index_to_lps(corners)
+    return lps.min(axis=0), lps.max(axis=0)
+
+
+def slice_geometry(volume, plane: str, point_lps, pixel_mm: float = 1.0) -> SliceGeometry:
+    if plane not in PLANES:
+        raise ValueError(f"plane must be one of {PLANES}")
+    lo, hi = volume_bounds_lps(volume)
+    p = np.clip(np.asarray(point_lps, float).reshape(3), lo, hi)
+    return SliceGeometry(plane, p, lo, hi, float(pixel_mm))
+
+
+def sample_slice(volume, geom: SliceGeometry) -> np.ndarray:
+    """HU values (h, w) float32 of the plane (air, -1000 HU, outside the scan)."""
+    w, h = geom.size()
+    cols, rows = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    c, r, sign, n = _AXES[geom.plane]
+    pts = np.empty((h * w, 3))
+    pts[:, n] = geom.point_lps[n]
+    pts[:, c] = geom.lo[c] + cols.ravel() * geom.pixel_mm
+    pts[:, r] = (geom.lo[r] + rows.ravel() * geom.pixel_mm) if sign > 0 else (geom.hi[r] - rows.ravel() * geom.pixel_mm)
+    ijk = volume.lps_to_index(pts)
+    vals = map_coordinates(volume.array, [ijk[:, 2], ijk[:, 1], ijk[:, 0]], order=1, mode="constant", cval=-1000.0)
+    return vals.reshape(h, w).astype(np.float32)
+
+
+def window_hu(hu: np.ndarray, level: float = 300.0, width: float = 2000.0) -> np.ndarray:
+    """HU -> uint8 grey with a window (defaults show skin, bone and the ceramic balls)."""
+    g = (hu - (level - width / 2.0)) / width * 255.0
+    return np.clip(g, 0, 255).astype(np.uint8)
+
+
+def render_slice(volume, plane: str, point_lps, fiducials=(), entry=None, target=None, *,
+                 pixel_mm: float = 1.0, near_mm: float = 6.0, scale: int = 2) -> tuple[np.ndarray, SliceGeometry]:
+    """RGB uint8 image of one plane with fiducials and path drawn, and its geometry.
+
+    ``fiducials``: objects with ``id``, ``centre_lps_mm``, ``radius_mm``, ``status`` (the
+    engine's snapshot ``Fiducial``). ``entry``/``target``: LPS mm or None. ``scale``: the grey
+    image is upscaled by this integer factor before drawing so labels stay legible.
+    """
+    geom = slice_geometry(volume, plane, point_lps, pixel_mm)
+    grey = window_hu(sample_slice(volume, geom))
+    img = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    if scale != 1:
+        img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_LINEAR)
+    s = float(scale)
+
+    def px(p):
+        return tuple(int(round(v)) for v in (geom.to_pixel(p)[0] + 0.5) * s)
+
+    for f in fiducials:
+        d = float(geom.distance_to_plane(f.centre_lps_mm)[0])
+        if d > near_mm:
+            continue
+        col = STATUS_BGR.get(f.status, (255, 255, 255))
+        rad = max(4, int(round((f.radius_mm + 2.0) / geom.pixel_mm * s)))
+        c = px(f.centre_lps_mm)
+        cv2.circle(img, c, rad, col, 2, cv2.LINE_AA)
+        cv2.putText(img, str(f.id), (c[0] + rad + 2, c[1] - rad), cv2.FONT_HERSHEY_SIMPLEX, 0.6, col, 2, cv2.LINE_AA)
+    if entry is not None and target is not None:
+        e, t = px(entry), px(target)
+        cv2.line(img, e, t, (255, 255, 0), 2, cv2.LINE_AA)
+    if entry is not None:
+        cv2.drawMarker(img, px(entry), (255, 255, 0), cv2.MARKER_CROSS, 18, 2)
+    if target is not None:
+        cv2.drawMarker(img, px(target), (255, 0, 255), cv2.MARKER_TILTED_CROSS, 18, 2)
+    # crosshair of the slice point (thin, dim)
+    cx, cy = px(geom.point_lps)
+    cv2.line(img, (cx, 0), (cx, img.shape[0] - 1), (90, 90, 160), 1)
+    cv2.line(img, (0, cy), (img.shape[1] - 1, cy), (90, 90, 160), 1)
+    n = _AXES[plane][3]
+    cv2.putText(img, f"{plane} {'LPS'[n]}={geom.point_lps[n]:.1f} mm", (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55,
+                (230, 230, 230), 1, cv2.LINE_AA)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB), geom
