@@ -88,3 +88,19 @@ def test_slicer_export(make_session, tmp_path):
     pts = np.array([p["position"] for p in d["markups"][0]["controlPoints"]])
     assert d["markups"][0]["coordinateSystem"] == "LPS"
     assert np.allclose(pts, default_phantom().fiducial_centres_lps)
+
+
+def test_volume_accessor_gives_the_loaded_ct_for_display(tmp_path):
+    """The web app's slice views read the CT through Session.volume(), never a private field."""
+    from monotracker.engine import Session, SessionConfig
+    from monotracker.paths import sample_ct_path
+
+    s = Session(SessionConfig(home=tmp_path, clock="sim"))
+    try:
+        assert s.volume() is None
+        assert s.load_ct(str(sample_ct_path())).ok
+        s.wait_for_job(60)
+        vol = s.volume()
+        assert vol is not None and vol.array.shape == (150, 269, 207)
+    finally:
+        s.shutdown()

@@ -51,6 +51,7 @@ on engine threads. Commands never raise for operator mistakes (the message says 
                           #   tip_error_mm, angle_error_deg, speed_mm_s, connected, message, latency_ms)
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
     snap.alerts           # recent alerts (Event: t, t_session, kind, level "info"|"warning"|"alarm", code, message, data)
+    s.volume()            # the loaded CT Volume (LPS mm) for read-only display, or None
     s.latest_frame()      # (image BGR uint8, frame_index, estimate) for the overlay, or None; estimate is
                           #   vision's PoseEstimate (image_points_px per fiducial, status, residuals) for
                           #   "sim" and real cameras, the engine's PoseSample for "sim-points"
@@ -543,6 +544,12 @@ class Session:
     def latest_frame(self):
         """``(image BGR uint8, frame_index, PoseEstimate)`` of the newest processed frame, or None."""
         return self._loop.latest_frame()
+
+    def volume(self):
+        """The loaded CT :class:`~monotracker.ct.Volume` (LPS mm) for read-only display (slice
+        views), or None while no CT is loaded. Never modify it: the engine owns it."""
+        with self._lock:
+            return self._volume
 
     def set_hand_eye(self, T_base_cam_mm) -> CommandResult:
         """Set the hand-eye transform (camera -> robot base, 4x4, mm) and save it in the plan."""

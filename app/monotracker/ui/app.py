@@ -609,10 +609,7 @@ class MonoTrackerApp:
     # ------------------------------------------------------------------ slices
     def _volume(self):
         """The session's CT volume for the slice views (read-only use)."""
-        vol = getattr(self.session, "volume", None)
-        if callable(vol):
-            return vol()
-        return getattr(self.session, "_volume", None)
+        return self.session.volume()
 
     def _render_slices(self, snap, handles, view) -> None:
         vol = self._volume()
