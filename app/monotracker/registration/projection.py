@@ -52,19 +52,19 @@ def project_normalised(X_cam: np.ndarray, radius_mm: float | None = None) -> np.
 
 
 def distort_normalised(xy: np.ndarray, dist: np.ndarray | None) -> np.ndarray:
-    """Apply OpenCV's (k1, k2, p1, p2[, k3]) distortion to normalised points (..., 2)."""
-    if dist is None:
-        return np.asarray(xy, dtype=float)
-    d = np.zeros(5)
-    dd = np.asarray(dist, dtype=float).ravel()
-    d[: min(5, len(dd))] = dd[:5]
-    k1, k2, p1, p2, k3 = d
-    x, y = xy[..., 0], xy[..., 1]
-    r2 = x * x + y * y
-    radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.stack([xd, yd], axis=-1)
+    """Apply OpenCV's lens distortion to normalised points (..., 2) -> distorted normalised
+    points (..., 2). Every model OpenCV calibrates is honoured (4, 5, 8, 12 or 14 coefficients:
+    radial, tangential, rational, thin-prism, tilt), through ``cv2.projectPoints`` with identity
+    intrinsics, so that projection and ``undistort_to_normalised`` are exact inverses."""
+    xy = np.asarray(xy, dtype=float)
+    if dist is None or not np.any(np.asarray(dist, dtype=float)):
+        return xy
+    flat = xy.reshape(-1, 2)
+    if len(flat) == 0:
+        return xy.copy()
+    pts = np.column_stack([flat, np.ones(len(flat))]).reshape(-1, 1, 3)
+    out, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), np.eye(3), np.asarray(dist, dtype=float).ravel())
+    return out.reshape(xy.shape)
 
 
 def normalised_to_pixels(xy: np.ndarray, K: np.ndarray) -> np.ndarray:

@@ -18,6 +18,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from monotracker.geometry import apply_transform
+from monotracker.registration.projection import project_pixels
+
 GREEN = (60, 200, 60)
 CYAN = (255, 220, 0)
 RED = (40, 40, 235)
@@ -27,19 +30,17 @@ WHITE = (255, 255, 255)
 HIDDEN = ("occluded", "newly_lost")
 
 
-def project_points(points_cam_or_ct: np.ndarray, T_cam_ct: np.ndarray, K: np.ndarray, dist=None) -> np.ndarray:
-    """CT points (n, 3) mm -> pixels (n, 2) through ``T_cam_ct`` and the camera model.
-    Points behind the camera come back as NaN."""
-    p = np.atleast_2d(np.asarray(points_cam_or_ct, float))
-    if len(p) == 0:
+def project_points(points_ct: np.ndarray, T_cam_ct: np.ndarray, K: np.ndarray, dist=None) -> np.ndarray:
+    """CT points (n, 3) mm -> pixels (n, 2) through ``T_cam_ct`` and the camera model (the
+    registration's projection, full OpenCV distortion model). Points behind the camera come
+    back as NaN."""
+    p_cam = apply_transform(T_cam_ct, np.atleast_2d(np.asarray(points_ct, float)))
+    if len(p_cam) == 0:
         return np.zeros((0, 2))
-    R, t = T_cam_ct[:3, :3], T_cam_ct[:3, 3]
-    rvec, _ = cv2.Rodrigues(np.ascontiguousarray(R))
-    d = np.zeros(5) if dist is None else np.asarray(dist, float).ravel()
-    uv, _ = cv2.projectPoints(p.reshape(-1, 1, 3), rvec, t.astype(float), np.asarray(K, float), d)
-    uv = uv.reshape(-1, 2)
-    z = p @ R.T[:, 2] + t[2]
-    uv[z <= 0] = np.nan
+    uv = np.full((len(p_cam), 2), np.nan)
+    front = p_cam[:, 2] > 0
+    if front.any():
+        uv[front] = project_pixels(p_cam[front], np.asarray(K, float), dist)
     return uv
 
 

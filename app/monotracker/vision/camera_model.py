@@ -21,6 +21,8 @@ import cv2
 import numpy as np
 
 from monotracker.errors import InputError
+from monotracker.registration.projection import distort_normalised as registration_distort
+from monotracker.registration.projection import normalised_to_pixels
 
 
 _RAY_CACHE: dict = {}
@@ -202,14 +204,10 @@ def validate_intrinsics(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, 
 
 
 def distort_normalised(xn: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """(n, 2) normalised undistorted coordinates -> (n, 2) distorted pixels (OpenCV model)."""
+    """(n, 2) normalised undistorted coordinates -> (n, 2) distorted pixels (OpenCV model; the
+    registration's projection is the one implementation)."""
     xn = np.asarray(xn, dtype=float).reshape(-1, 2)
-    if len(xn) == 0:
-        return np.zeros((0, 2))
-    pts = np.column_stack([xn, np.ones(len(xn))])
-    out, _ = cv2.projectPoints(pts.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), np.asarray(K, float),
-                               np.asarray(dist, float))
-    return out.reshape(-1, 2)
+    return normalised_to_pixels(registration_distort(xn, dist), np.asarray(K, float))
 
 
 def default_camera() -> CameraModel:
