@@ -528,8 +528,22 @@ class TrackingLoop:
                         self.after_command(st.t_command)
             except Exception:  # noqa: BLE001 - the loop must survive; hold the arm and report
                 log.exception("engine loop iteration failed")
-                self._hold("engine_error", "internal engine error; arm holding (see log)")
+                self._on_iteration_error()
             self._stop.wait(period)
+
+    def _on_iteration_error(self) -> None:
+        """After a failed loop iteration: hold the arm and raise the alarm. If holding itself fails
+        (e.g. the robot call that failed is the one the hold needs), stop tracking outright so an
+        exception can never leave the arm following the last target; the loop thread survives."""
+        try:
+            self._hold("engine_error", "internal engine error; arm holding (see log)")
+        except Exception:  # noqa: BLE001 - last resort, must not kill the engine thread
+            log.exception("holding after an engine error failed; stopping tracking")
+            try:
+                if self.robot is not None:
+                    self.robot.stop_tracking()
+            except Exception:  # noqa: BLE001
+                log.exception("stop_tracking after an engine error failed")
 
     def shutdown(self) -> None:
         self._stop.set()

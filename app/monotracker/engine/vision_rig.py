@@ -159,9 +159,8 @@ class SimImageRig(_SimRig):
         from monotracker.sim.camera_sim import SimulatedCamera
         from monotracker.vision.pose_stream import PoseTracker
 
-        self.cam = SimulatedCamera(trajectory=self.motion, fps=fps, seed=seed)
         # the camera stands where the OR layout puts it (vision's default is straight above the patch)
-        self.cam.T_cam_world = self.layout.T_cam_ct0.copy()
+        self.cam = SimulatedCamera(trajectory=self.motion, fps=fps, seed=seed, T_cam_world=self.layout.T_cam_ct0)
         self.camera_model = self.cam.camera
         self.K = self.camera_model.K
         self.dist = self.camera_model.dist

@@ -173,7 +173,9 @@ class SimulatedCamera(FrameSource):
 
     Parameters: ``camera`` (:class:`CameraModel`, default 1280x720 f=1100 px with distortion),
     ``phantom``, ``trajectory``, ``events`` (:class:`SceneEvents`), ``distance_mm`` (camera to
-    fiducial patch), ``noise_sigma`` (grey levels), ``exposure_s`` (motion blur window; 0 = off),
+    fiducial patch), ``noise_sigma`` (grey levels), ``exposure_s`` (motion blur window; 0 = off), ``T_cam_world`` (4x4, maps the
+    trajectory's world frame (CT at rest) into the camera; None = ``distance_mm`` straight along the
+    phantom's view direction, looking at the fiducial patch),
     ``max_frames`` (None = endless), ``freeze_at_frame`` / ``disconnect_at_frame`` /
     ``stall_at_frame`` (faults: repeated image, ``read()`` raises, ``read()`` blocks),
     ``seed``.
@@ -186,7 +188,8 @@ class SimulatedCamera(FrameSource):
                  fps: float = 30.0, distance_mm: float = 520.0, noise_sigma: float = 2.0,
                  exposure_s: float = 1 / 60, realtime: bool = False, max_frames: int | None = None,
                  freeze_at_frame: int | None = None, disconnect_at_frame: int | None = None,
-                 stall_at_frame: int | None = None, seed: int = 0, start_index: int = 0):
+                 stall_at_frame: int | None = None, seed: int = 0, start_index: int = 0,
+                 T_cam_world: np.ndarray | None = None):
         super().__init__()
         self.camera = camera or default_camera()
         self.phantom = phantom or default_phantom()
@@ -208,8 +211,10 @@ class SimulatedCamera(FrameSource):
         ph = self.phantom
         self.fiducials_ct = ph.fiducial_centres_lps
         patch = self.fiducials_ct.mean(axis=0)
-        eye = patch + distance_mm * ph.view_direction_lps
-        self.T_cam_world = invert_transform(look_at(eye, patch, up=np.array([0.0, -1.0, 0.0])))
+        if T_cam_world is None:
+            eye = patch + distance_mm * ph.view_direction_lps
+            T_cam_world = invert_transform(look_at(eye, patch, up=np.array([0.0, -1.0, 0.0])))
+        self.T_cam_world = np.array(T_cam_world, float).reshape(4, 4)
         self.K = self.camera.K
         self.dist = self.camera.dist
         w, h = self.camera.image_size
