@@ -243,3 +243,33 @@ def test_camera_calibration_is_saved_in_the_plan_and_events_reach_subscribers_on
     finally:
         s.shutdown()
     assert ("camera_calibration", "monotracker-events") in got  # delivered on the bus thread, not the caller's
+
+
+def test_simulated_camera_thread_survives_a_failing_frame(planned_home):
+    """An exception while capturing one frame must not kill the camera thread for good."""
+    import time as _time
+
+    from monotracker.engine.plan import Plan
+    from monotracker.engine.vision_rig import ProjectedFiducialRig
+
+    rig = ProjectedFiducialRig(Plan.load(planned_home / "plan.json"), trajectory="still")
+    real_capture, calls = rig.capture, []
+
+    def flaky_capture(t):
+        calls.append(t)
+        if len(calls) == 1:
+            raise RuntimeError("sensor glitch")
+        return real_capture(t)
+
+    rig.capture = flaky_capture
+    rig.start()
+    try:
+        deadline = _time.monotonic() + 10.0
+        frames = []
+        while not frames and _time.monotonic() < deadline:
+            _time.sleep(0.05)
+            frames = rig.poll_frames()
+        assert frames, "no frame after the failing one: the camera thread died"
+        assert rig.last_error == "RuntimeError: sensor glitch"
+    finally:
+        rig.stop()

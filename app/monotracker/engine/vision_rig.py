@@ -22,6 +22,7 @@ are applied to the simulated hardware here.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -31,6 +32,8 @@ import numpy as np
 from monotracker.engine.components import CameraRig, PoseSample
 from monotracker.errors import MonoTrackerError
 from monotracker.geometry import apply_transform
+
+log = logging.getLogger(__name__)
 
 SIM_IMAGE_SIZE = (1280, 720)
 SIM_FOCAL_PX = 1100.0
@@ -75,6 +78,7 @@ class _SimRig(CameraRig):
         self._lock = threading.Lock()
         self._new_frame_times: list[float] = []
         self._published: PoseSample | None = None
+        self.last_error: str | None = None  # newest frame failure (camera thread), for diagnosis
 
     # truth
     def truth_T_cam_ct(self, t: float) -> np.ndarray:
@@ -121,13 +125,20 @@ class _SimRig(CameraRig):
                 self._stop.wait(t_next - now)
                 continue
             t_next = max(t_next + period, now)  # drop frames rather than queue them
-            frame = self.capture(now - self.transport_delay_s)  # exposed d seconds ago
-            if frame.t_capture == last_t:
-                continue  # frozen: nothing new
-            last_t = frame.t_capture
-            with self._lock:
-                self._new_frame_times.append(frame.t_capture)
-            smp = self.estimate(frame)
+            try:
+                frame = self.capture(now - self.transport_delay_s)  # exposed d seconds ago
+                if frame.t_capture == last_t:
+                    continue  # frozen: nothing new
+                last_t = frame.t_capture
+                with self._lock:
+                    self._new_frame_times.append(frame.t_capture)
+                smp = self.estimate(frame)
+            except Exception as exc:  # noqa: BLE001 - the camera thread must outlive a bad frame
+                # No frame is published, so the engine's freeze watchdog holds the arm; the
+                # thread keeps capturing so that the camera comes back by itself.
+                log.exception("simulated camera: frame failed")
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                continue
             smp.t_ready = self.clock()
             with self._lock:
                 self._published = smp
@@ -185,7 +196,7 @@ class SimImageRig(_SimRig):
                                       for a in np.linspace(0, 2 * np.pi, 16, endpoint=False)])
                 hull = cv2.convexHull(np.round(pts).astype(np.int32))
                 cv2.fillConvexPoly(img, hull, DRAPE_BGR, cv2.LINE_AA)
-        for i in self.occluded_ids:
+        for i in tuple(self.occluded_ids):  # another thread may swap the set
             if np.all(np.isfinite(centres[i])):
                 c = tuple(int(round(v)) for v in centres[i])
                 cv2.circle(img, c, int(np.ceil(1.6 * radii[i])) + 2, SKIN_BGR, -1, cv2.LINE_AA)
@@ -258,7 +269,7 @@ class ProjectedFiducialRig(_SimRig):
         keep = Xc[:, 2] > 50.0
         if self.fault == "occlude-all":
             keep[:] = False
-        for i in self.occluded_ids:
+        for i in tuple(self.occluded_ids):  # another thread may swap the set
             keep[i] = False
         xy = ellipse_centre_normalised(Xc[keep], self.phantom.fiducial_radius_mm) if keep.any() else np.zeros((0, 2))
         px = normalised_to_pixels(distort_normalised(xy, self.dist), self.K)
