@@ -210,6 +210,19 @@ _SQRT2 = np.sqrt(2.0)
 _INV_SQRT_PI = 1.0 / np.sqrt(np.pi)
 
 
+def _bounded_robust_fit(resid, jac, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, f_scale: float,
+                        max_nfev: int) -> tuple[np.ndarray, float, bool]:
+    """Soft-L1 least squares of ``resid`` (HU) within bounds ``lo``..``hi``, started at ``x0``
+    (clipped inside). Returns ``(params, rms of the inlier residuals (|r| < 3 f_scale), success)``."""
+    x0 = np.clip(x0, lo + 1e-6, hi - 1e-6)
+    res = least_squares(resid, x0, jac=jac, loss="soft_l1", f_scale=f_scale, bounds=(lo, hi), x_scale="jac",
+                        max_nfev=max_nfev)
+    r = res.fun
+    inl = np.abs(r) < 3.0 * f_scale
+    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
+    return res.x, rms, bool(res.success)
+
+
 def _sphere_model(params: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     c, r, s, H, b = params[:3], params[3], params[4], params[5], params[6]
     rel = pts - c
@@ -247,12 +260,7 @@ def fit_blurred_sphere(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_sc
 
     lo = np.r_[x0[:3] - 3.0, 0.3, 0.05, -np.inf, -np.inf]
     hi = np.r_[x0[:3] + 3.0, 30.0, 5.0, np.inf, np.inf]
-    x0 = np.clip(x0, lo + 1e-6, hi - 1e-6)
-    res = least_squares(resid, x0, jac=jac, loss="soft_l1", f_scale=f_scale, bounds=(lo, hi), x_scale="jac", max_nfev=60)
-    r = res.fun
-    inl = np.abs(r) < 3.0 * f_scale
-    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
-    return res.x, rms, bool(res.success)
+    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=60)
 
 
 def _unit_from_angles(theta: float, phi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -319,12 +327,7 @@ def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_s
 
     lo = np.r_[x0[:3] - 3.0, 0.3, 0.05, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf]
     hi = np.r_[x0[:3] + 3.0, 30.0, 5.0, np.inf, np.inf, np.inf, np.inf, np.inf, np.inf]
-    x0 = np.clip(x0, lo + 1e-6, hi - 1e-6)
-    res = least_squares(resid, x0, jac=jac, loss="soft_l1", f_scale=f_scale, bounds=(lo, hi), x_scale="jac", max_nfev=80)
-    r = res.fun
-    inl = np.abs(r) < 3.0 * f_scale
-    rms = float(np.sqrt(np.mean(r[inl] ** 2))) if inl.any() else float("inf")
-    return res.x, rms, bool(res.success)
+    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=80)
 
 
 def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None):
