@@ -679,11 +679,7 @@ class MonoTrackerApp:
         fkey = tuple((f.id, f.status, tuple(np.round(f.centre_lps_mm, 2))) for f in snap.fiducials)
         if keys.get("fids") != fkey:
             keys["fids"] = fkey
-            try:
-                scene.remove_by_name("/ct/fids")
-            except Exception:  # noqa: BLE001
-                pass
-            scene.add_frame("/ct/fids", show_axes=False)
+            _reset_group(scene, "/ct/fids")
             for f in snap.fiducials:
                 c = np.asarray(f.centre_lps_mm) * MM
                 scene.add_icosphere(f"/ct/fids/f{f.id}", radius=f.radius_mm * MM, color=FID_RGB.get(f.status, (200, 200, 200)),
@@ -693,11 +689,7 @@ class MonoTrackerApp:
                 None if snap.plan.target_lps_mm is None else tuple(snap.plan.target_lps_mm))
         if keys.get("path") != pkey:
             keys["path"] = pkey
-            try:
-                scene.remove_by_name("/ct/path")
-            except Exception:  # noqa: BLE001
-                pass
-            scene.add_frame("/ct/path", show_axes=False)
+            _reset_group(scene, "/ct/path")
             e, t = snap.plan.entry_lps_mm, snap.plan.target_lps_mm
             if e is not None:
                 scene.add_icosphere("/ct/path/entry", radius=2.5 * MM, color=(0, 200, 255), position=np.asarray(e) * MM)
@@ -817,3 +809,12 @@ class MonoTrackerApp:
             img[-strip.shape[0]:, :strip.shape[1]] = strip
             self._pushed[self._push_count] = time.time()
         self.h_live.image = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def _reset_group(scene, name: str) -> None:
+    """Empty the scene group ``name`` (remove it if present) and create it again, hidden axes."""
+    try:
+        scene.remove_by_name(name)
+    except Exception:  # noqa: BLE001 - viser raises when the group does not exist yet
+        pass
+    scene.add_frame(name, show_axes=False)
