@@ -8,6 +8,7 @@ from monotracker.ct.fiducials import (
     detect_fiducials_paper,
     estimate_levels,
 )
+from monotracker.ct.dicom_series import SeriesInfo, list_series
 from monotracker.ct.surface import head_surface
 from monotracker.ct.volume import Volume, load_volume
 
@@ -15,10 +16,12 @@ __all__ = [
     "Fiducial",
     "FiducialDetection",
     "RejectedBlob",
+    "SeriesInfo",
     "Volume",
     "detect_fiducials",
     "detect_fiducials_paper",
     "estimate_levels",
     "head_surface",
+    "list_series",
     "load_volume",
 ]

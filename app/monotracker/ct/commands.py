@@ -22,6 +22,7 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--radius", type=float, default=None, metavar="MM", help="nominal ball radius in mm (default: estimate it)")
     p.add_argument("--series", default=None, metavar="UID", help="DICOM Series Instance UID to use when the folder holds several")
+    p.add_argument("--list-series", action="store_true", help="list the DICOM series of the folder (uid, description, slices, spacing, tilt) and stop")
     p.add_argument("--baseline", action="store_true", help="use the paper's recipe (threshold + DBSCAN + centroid) instead")
     p.set_defaults(func=_detect_ct)
 
@@ -40,6 +41,8 @@ def _detect_ct(args: argparse.Namespace) -> int:
 
     if args.radius is not None and not (0.5 <= args.radius <= 20.0):
         raise InputError(f"--radius {args.radius} mm is implausible (0.5-20 mm)")
+    if args.list_series:
+        return _list_series(args)
     with _native_stderr_silenced():
         vol = load_volume(args.path, series=args.series)
     if args.baseline:
@@ -59,6 +62,26 @@ def _detect_ct(args: argparse.Namespace) -> int:
     else:
         print(format_detection(det, vol))
     return 0 if det.ok else 1
+
+
+def _list_series(args: argparse.Namespace) -> int:
+    from monotracker.ct.dicom_series import list_series
+
+    infos = list_series(args.path)
+    if args.json:
+        json.dump({"series": [i.to_dict() for i in infos]}, sys.stdout, indent=2)
+        sys.stdout.write("\n")
+        return 0 if infos else 1
+    if not infos:
+        print(f"no DICOM series in {args.path}")
+        return 1
+    for i in infos:
+        sp = " x ".join(f"{s:.3g}" for s in i.spacing_mm)
+        print(f"{i.uid}  {i.description or '-'!s}  {i.slices} slices  spacing {sp} mm  tilt {i.tilt_deg:.1f} deg"
+              + ("" if i.ok else "  REFUSED"))
+        for n in i.notes:
+            print(f"    {n}")
+    return 0
 
 
 @contextlib.contextmanager

@@ -125,16 +125,33 @@ def _check_nifti_complete(path: Path) -> None:
             vox_offset = int(struct.unpack(endian + "f", hdr[108:112])[0])
             n = int(np.prod([max(1, d) for d in dims[1 : 1 + max(1, min(dims[0], 7))]], dtype=np.int64))
             need = vox_offset + n * bitpix // 8
+            datatype = struct.unpack(endian + "h", hdr[70:72])[0]
+            # ITK reads NaN/inf float voxels as 0 without a word: scan every float voxel here
+            ftype = {16: np.dtype(endian + "f4"), 64: np.dtype(endian + "f8")}.get(datatype)
             have = 348
+            skip = max(0, vox_offset - 348)
+            bad = 0
+            rest = b""
             while True:
                 chunk = fh.read(1 << 22)
                 if not chunk:
                     break
                 have += len(chunk)
+                if ftype is None:
+                    continue
+                if skip:
+                    cut = min(skip, len(chunk))
+                    chunk, skip = chunk[cut:], skip - cut
+                buf = rest + chunk
+                usable = len(buf) - len(buf) % ftype.itemsize
+                bad += int(np.count_nonzero(~np.isfinite(np.frombuffer(buf[:usable], ftype))))
+                rest = buf[usable:]
     except (EOFError, OSError, struct.error) as exc:
         raise InputError(f"{path.name} is truncated or corrupt ({_one_line(exc)})") from None
     if have < need:
         raise InputError(f"{path.name} is truncated: {have} of {need} bytes of image data")
+    if bad:
+        raise InputError(f"{path.name} contains {bad} NaN or infinite voxels; its values cannot be trusted")
 
 
 def _read_file(path: Path) -> sitk.Image:
@@ -152,46 +169,18 @@ def _read_file(path: Path) -> sitk.Image:
         raise InputError(f"cannot read {path.name}: the file is truncated or corrupt") from None
 
 
-def _series_in(folder: Path) -> list[tuple[str, list[str]]]:
-    reader = sitk.ImageSeriesReader()
-    out = []
-    for uid in reader.GetGDCMSeriesIDs(str(folder)) or ():
-        files = reader.GetGDCMSeriesFileNames(str(folder), uid)
-        out.append((uid, list(files)))
-    return out
-
-
 def _read_dicom_folder(folder: Path, series: str | None, notes: list[str]) -> sitk.Image:
-    entries = [p for p in folder.iterdir() if not p.name.startswith(".")]
+    """Every slice's own geometry read and checked with pydicom (see :mod:`.dicom_series`)."""
+    from monotracker.ct.dicom_series import _files, read_dicom
+
+    entries = _files(folder)
     if not entries:
         raise InputError(f"folder {folder} is empty: point to a DICOM series folder or a volume file")
-    found = _series_in(folder)
-    if not found:
+    img = read_dicom(folder, series, notes)
+    if img is None:
         vols = [p.name for p in entries if p.name.lower().endswith(VOLUME_SUFFIXES[:-1])]
         hint = f" (it holds {vols[0]}: pass that file instead)" if vols else ""
         raise InputError(f"no DICOM series found in folder {folder}{hint}")
-    if series is not None:
-        match = [f for f in found if f[0] == series]
-        if not match:
-            ids = ", ".join(uid for uid, _ in found)
-            raise InputError(f"series {series} is not in {folder}; it holds: {ids}")
-        uid, files = match[0]
-    else:
-        uid, files = max(found, key=lambda f: len(f[1]))
-        if len(found) > 1:
-            others = ", ".join(f"{u} ({len(fs)} files)" for u, fs in found if u != uid)
-            notes.append(
-                f"folder holds {len(found)} DICOM series; picked the largest, {uid} ({len(files)} files); "
-                f"others: {others}; choose with series=UID (CLI: --series UID)"
-            )
-    reader = sitk.ImageSeriesReader()
-    reader.SetFileNames(files)
-    reader.MetaDataDictionaryArrayUpdateOn()
-    try:
-        img = reader.Execute()
-    except RuntimeError as exc:
-        raise InputError(f"cannot read DICOM series {uid} in {folder}: {_one_line(exc)}") from None
-    notes.append(f"DICOM series {uid}, {len(files)} slices")
     return img
 
 
@@ -244,6 +233,13 @@ def load_volume(path: str | Path, series: str | None = None) -> Volume:
     Raises :class:`InputError` (one line) for every input that cannot be used.
     """
     p = Path(path).expanduser()
+    try:
+        return _load_volume(p, series)
+    except PermissionError as exc:
+        raise InputError(f"cannot read {exc.filename or p}: permission denied") from None
+
+
+def _load_volume(p: Path, series: str | None) -> Volume:
     notes: list[str] = []
     if not p.exists():
         raise InputError(f"no such file or folder: {p}")
@@ -252,14 +248,22 @@ def load_volume(path: str | Path, series: str | None = None) -> Volume:
     else:
         if p.stat().st_size == 0:
             raise InputError(f"{p.name} is empty (0 bytes)")
-        img = _read_file(p)
-        if series is not None:
+        img = None
+        if not p.name.lower().endswith(VOLUME_SUFFIXES[:-1]):
+            from monotracker.ct.dicom_series import read_dicom
+
+            img = read_dicom(p, series, notes)  # multi-frame (enhanced) CT; None for other files
+        if img is None:
+            img = _read_file(p)
+        if series is not None and not notes:
             notes.append("series= ignored: the input is a single file")
     name = p.name or str(p)
     img = _check_image(img, name)
     vol = Volume.from_image(img, source=str(p), notes=notes)
-    if vol.array.dtype.kind == "f" and not np.all(np.isfinite(vol.array[:: max(1, vol.array.shape[0] // 16)])):
-        raise InputError(f"{name} contains NaN or infinite values")
+    if vol.array.dtype.kind == "f":
+        bad = int(np.count_nonzero(~np.isfinite(vol.array)))  # every voxel, not a sample
+        if bad:
+            raise InputError(f"{name} contains {bad} NaN or infinite voxels; its values cannot be trusted")
     _check_hounsfield(vol.array, name)
     log.info("loaded %s: %s", p, vol.describe())
     return vol

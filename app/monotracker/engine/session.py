@@ -334,8 +334,10 @@ class Session:
 
         return self.load_ct(sample_ct_path())
 
-    def load_ct(self, path) -> CommandResult:
+    def load_ct(self, path, series: str | None = None) -> CommandResult:
         """Start the CT job (load, detect fiducials, head surface). Progress in ``snap.job``.
+        ``series``: the DICOM Series Instance UID to load from a folder holding several
+        (``monotracker.ct.list_series(path)`` lists them); None picks the largest (noted).
 
         If the plan's fiducials are locked, the CT must be the one the plan was made on: its volume
         and surface are reloaded and the saved fiducials are kept (restart after a crash)."""
@@ -348,7 +350,7 @@ class Session:
             if not Path(path).exists():
                 return _fail(f"no such file or folder: {path}")
             self._job = Job("load_ct", 0.0, f"loading {Path(path).name}")
-            th = threading.Thread(target=self._ct_job, args=(path,), name="monotracker-ct", daemon=True)
+            th = threading.Thread(target=self._ct_job, args=(path, series), name="monotracker-ct", daemon=True)
             self._job_thread = th
         self._bus.event("ct_load_started", f"loading CT {path}", {"path": path})
         th.start()
@@ -367,7 +369,7 @@ class Session:
             name = self._job.name if self._job else "job"
             self._job = Job(name, progress, message, error, done)
 
-    def _ct_job(self, path: str) -> None:
+    def _ct_job(self, path: str, series: str | None = None) -> None:
         try:
             from monotracker.ct import detect_fiducials, load_volume
         except ImportError as exc:
@@ -375,7 +377,7 @@ class Session:
             self._bus.alert("alarm", "ct_failed", f"CT tools are not available: {exc}")
             return
         try:
-            vol = load_volume(path)
+            vol = load_volume(path, series=series)
             self._set_job(0.3, "detecting fiducials")
             det = detect_fiducials(vol)
             self._set_job(0.6, "extracting the head surface")
