@@ -142,6 +142,28 @@ PLAN_FILE = "plan.json"
 AUDIT_FILE = "audit.sqlite"
 
 
+def _prepare_home(home: Path) -> None:
+    """Create the session folder; :class:`InputError` (one line) when ``home`` cannot be one."""
+    if home.exists() and not home.is_dir():
+        raise InputError(f"session folder {home} is not a folder")
+    try:
+        home.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the session folder {home}: {exc.strerror or exc}") from None
+
+
+def _home_write_problem(home: Path) -> str | None:
+    """None when a file can be created in ``home``; else the reason (one line)."""
+    import tempfile
+
+    try:
+        with tempfile.NamedTemporaryFile(dir=home, prefix=".write-check-"):
+            pass
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return None
+
+
 class SimClock:
     """A settable clock (s) for clock="sim" sessions."""
 
@@ -187,12 +209,13 @@ class Session:
         self.config = config or SessionConfig()
         self.config.validate()
         self.home = Path(self.config.home) if self.config.home is not None else data_dir()
-        self.home.mkdir(parents=True, exist_ok=True)
+        _prepare_home(self.home)
         self.session_id = uuid.uuid4().hex[:12]
         self.clock = SimClock() if self.config.clock == "sim" else time.monotonic
         self._lock = threading.RLock()
         self._plan_path = self.home / PLAN_FILE
-        self._audit = AuditLog(self.home / AUDIT_FILE, self.session_id)
+        self._audit = AuditLog(self.home / AUDIT_FILE, self.session_id,
+                               on_problem=lambda level, code, msg, data: self._bus.alert(level, code, msg, data))
         self._bus = EventBus(sink=self._audit.record_event, clock=self.clock)
         self._job: Job | None = None
         self._job_thread: threading.Thread | None = None
@@ -207,6 +230,14 @@ class Session:
         self._started = False
         self._closed = False
         self._plan = Plan()
+        unwritable = _home_write_problem(self.home)
+        if unwritable:
+            self._home_unwritable = unwritable
+            self._bus.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: {unwritable}; "
+                            "the plan cannot be changed and the audit log goes to a spill file until it is writable")
+        if self._audit.open_error:
+            self._bus.alert("alarm", "audit_unavailable", f"audit database {self._audit.path} cannot be opened "
+                            f"({self._audit.open_error}); events go to {self._audit.spill_path}")
         self._restore_plan()
         # camera + loop + robot wiring (monotracker.engine.loop); created lazily
         from monotracker.engine.loop import TrackingLoop
