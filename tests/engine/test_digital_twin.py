@@ -71,6 +71,8 @@ def test_tracks_the_breathing_head(planned_home, tmp_path):
 def test_partial_occlusion_keeps_tracking_with_four_and_holds_with_three(planned_home, tmp_path):
     s = Session(SessionConfig(home=_home_with_plan(planned_home, tmp_path), clock="sim", trajectory="breathing"))
     try:
+        assert s.load_ct(s.plan_copy().ct_path).ok  # arming checks the path against the plan's CT
+        assert s.wait_for_job(120).error is None
         assert s.start_camera().ok
         s.advance(0.5)
         assert s.arm("1234").ok and s.start_tracking().ok

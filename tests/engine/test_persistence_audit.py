@@ -31,8 +31,10 @@ def test_atomic_write_keeps_old_file_when_the_rename_fails(tmp_path, monkeypatch
 
 def test_audit_log_is_append_only(tmp_path):
     log = AuditLog(tmp_path / "a.sqlite", "s1")
-    i = log.record("event", "info", "x", "first", {"v": np.float64(1.5), "arr": np.arange(3)})
+    log.record("event", "info", "x", "first", {"v": np.float64(1.5), "arr": np.arange(3)})
     log.record("alert", "alarm", "y", "second")
+    assert log.flush(30)
+    i = log.entries()[0].id
     db = sqlite3.connect(tmp_path / "a.sqlite")
     with pytest.raises(sqlite3.DatabaseError, match="append-only"):
         db.execute("UPDATE audit SET message='forged' WHERE id=?", (i,))

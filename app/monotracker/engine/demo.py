@@ -182,6 +182,11 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         setup_steps.append("sample CT loaded, detected fiducials confirmed, sample plan set")
     else:
         setup_steps.append("saved plan restored")
+        if plan.ct_path:  # arming checks the path against the plan's CT: reload it
+            r = s.load_ct(plan.ct_path)
+            job = s.wait_for_job(120) if r.ok else None
+            if not r.ok or job is None or job.error:
+                raise MonoTrackerError(f"the plan's CT: {r.message if not r.ok else (job.error if job else 'no job')}")
     r = s.start_camera()
     if not r.ok:
         raise MonoTrackerError(f"camera: {r.message}")

@@ -3,8 +3,9 @@
 Every decision (fiducial confirmed, arm armed, tracking started) and every condition the loop
 notices (occlusion, stale pose, camera freeze, robot fault) becomes an :class:`Event`. Events whose
 ``kind`` is ``"alert"`` are what the operator must see; ``"event"`` records are decisions and
-state changes. All of them go to the append-only audit log (synchronously, on the publishing
-thread, so that a crash loses at most the event being written) and to every subscriber.
+state changes. All of them go to the append-only audit log (its sink only queues them: the audit
+log writes on its own thread, so a stop, hold or alarm never waits on the database) and to every
+subscriber.
 
 Subscribers are called on the bus's own dispatcher thread once :meth:`EventBus.start` ran (so a
 slow UI callback never delays the control loop), or synchronously on the publishing thread before
@@ -65,7 +66,8 @@ Subscriber = Callable[[Event], Any]
 class EventBus:
     """Publish events to a ring buffer, an optional sink (the audit log) and subscribers.
 
-    ``sink(event)`` is called synchronously inside :meth:`publish` (the audit log write).
+    ``sink(event)`` is called inside :meth:`publish`; it must not block (the audit log's sink
+    only puts the event on its queue).
     ``clock()`` gives the session time stamped on each event.
     """
 

@@ -170,6 +170,9 @@ class TrackingLoop:
                           {"from": old, "to": st.state})
 
     def arm(self) -> CommandResult:
+        why = self.s.plan_not_ready()
+        if why:
+            return self._refuse("arm", f"the plan is not ready: {why}")
         try:
             rob = self._ensure_robot()
         except MonoTrackerError as exc:
@@ -191,9 +194,10 @@ class TrackingLoop:
     def start_tracking(self) -> CommandResult:
         if self.robot is None or self.robot_state() not in ("armed", "holding", "tracking"):
             return self._refuse("start_tracking", "arm the robot first")
+        why = self.s.plan_not_ready()
+        if why:
+            return self._refuse("start_tracking", f"the plan is not ready: {why}")
         plan = self.s.plan_copy()
-        if not plan.path_complete:
-            return self._refuse("start_tracking", "plan the entry and the target first")
         if plan.T_base_cam is None:
             return self._refuse("start_tracking", "no hand-eye calibration (T_base_cam)")
         rec = self._latest
@@ -275,7 +279,13 @@ class TrackingLoop:
             self.gate.reset()
             anchor = plan.entry_lps_mm if plan.entry_lps_mm is not None else plan.fiducial_centres().mean(axis=0)
             self.gate.set_anchor(anchor)
-        self.s._store_camera(self.camera_source, self.calibration_path, rig.K, rig.dist, rig.image_size)
+        why = self.s._store_camera(self.camera_source, self.calibration_path, rig.K, rig.dist, rig.image_size)
+        if why:
+            rig.stop()
+            with self._lock:
+                self.rig = None
+                self.camera_error = why
+            return CommandResult(False, f"camera not started: {why}")
         if rig.default_T_base_cam is not None and plan.T_base_cam is None:
             self.s.set_hand_eye(rig.default_T_base_cam)
         if self.cfg.clock == "real":

@@ -6,7 +6,14 @@ calibration (K px, distortion, image size) and the hand-eye transform ``T_base_c
 saved as JSON with :func:`monotracker.engine.persistence.atomic_write_json` after every change, and
 loaded at start-up. It is plain data: the session validates changes, the plan only stores them.
 
-Format: ``{"format": "monotracker-plan", "version": 1, ...}``; arrays as nested lists.
+Format: ``{"format": "monotracker-plan", "version": 1, ...}``; arrays as nested lists. The
+``"integrity"`` object records SHA-256 hashes of the CT and calibration the plan was made with and
+of the plan's own content (:mod:`monotracker.engine.integrity`), so an edit made outside the app
+or a changed CT is noticed at restore.
+
+Restoring runs the same checks as the commands (:mod:`monotracker.engine.plan_checks`), field by
+field (:func:`monotracker.engine.plan_restore.restore_plan`); :meth:`Plan.from_dict` is the strict
+form that refuses the first invalid field.
 """
 
 from __future__ import annotations
@@ -21,19 +28,22 @@ from monotracker.engine.persistence import atomic_write_json, read_json
 
 FORMAT = "monotracker-plan"
 VERSION = 1
-STATUSES = ("detected", "confirmed", "rejected", "added")
+STATUSES = ("detected", "confirmed", "rejected", "added")  # same tuple as plan_checks.STATUSES
 
 
 @dataclass
 class PlanFiducial:
     """A CT fiducial: ``centre_lps_mm`` (3,) LPS mm, ``radius_mm``, detector ``score`` (0..1,
-    1.0 for operator-added), ``status`` one of :data:`STATUSES`."""
+    1.0 for operator-added), ``status`` one of :data:`STATUSES`. ``verified``: for an operator-added
+    fiducial, True when the CT shows a dense ball of its radius there, False when it was added
+    manually without that ("manual, unverified"), None for detected ones."""
 
     id: int
     centre_lps_mm: np.ndarray
     radius_mm: float
     score: float
     status: str = "detected"
+    verified: bool | None = None
 
     @property
     def usable(self) -> bool:
@@ -55,6 +65,8 @@ class Plan:
     image_size: tuple | None = None
     T_base_cam: np.ndarray | None = None
     revision: int = 0
+    #: hashes recorded with the plan: ``ct_sha256``, ``calibration_sha256`` (None: not known)
+    integrity: dict = field(default_factory=dict)
 
     # ------------------------------------------------------------------ queries
     def usable_fiducials(self) -> list[PlanFiducial]:
@@ -80,7 +92,9 @@ class Plan:
         def arr(a):
             return None if a is None else np.asarray(a, dtype=float).tolist()
 
-        return {
+        from monotracker.engine.integrity import stamp_plan_dict
+
+        return stamp_plan_dict({
             "format": FORMAT,
             "version": VERSION,
             "revision": self.revision,
@@ -89,7 +103,7 @@ class Plan:
             "ct_path": self.ct_path,
             "fiducials": [
                 {"id": f.id, "centre_lps_mm": arr(f.centre_lps_mm), "radius_mm": float(f.radius_mm),
-                 "score": float(f.score), "status": f.status}
+                 "score": float(f.score), "status": f.status, "verified": f.verified}
                 for f in self.fiducials
             ],
             "fiducials_locked": bool(self.fiducials_locked),
@@ -103,47 +117,19 @@ class Plan:
                 "image_size": None if self.image_size is None else list(self.image_size),
             },
             "T_base_cam_mm": arr(self.T_base_cam),
-        }
+            "integrity": {k: v for k, v in sorted(self.integrity.items()) if k != "plan_sha256"},
+        })
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Plan":
-        """Parse a saved plan; raises ``ValueError`` with a one-line reason if it is not one."""
-        if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise ValueError("not a MonoTracker plan file")
-        if int(d.get("version", -1)) > VERSION:
-            raise ValueError(f"plan version {d.get('version')} is newer than this program ({VERSION})")
+    def from_dict(cls, d: dict, min_usable: int = 3) -> "Plan":
+        """Parse a saved plan strictly: raises ``ValueError`` with a one-line reason naming the
+        first field that fails its check (the session restores field by field instead)."""
+        from monotracker.engine.plan_restore import restore_plan
 
-        def arr(v, shape):
-            if v is None:
-                return None
-            a = np.asarray(v, dtype=float)
-            if a.shape != shape or not np.all(np.isfinite(a)):
-                raise ValueError(f"plan field has shape {a.shape}, expected {shape}")
-            return a
-
-        fids = []
-        for f in d.get("fiducials", []):
-            status = f.get("status", "detected")
-            if status not in STATUSES:
-                raise ValueError(f"unknown fiducial status {status!r}")
-            fids.append(PlanFiducial(int(f["id"]), arr(f["centre_lps_mm"], (3,)), float(f["radius_mm"]),
-                                     float(f.get("score", 0.0)), status))
-        cam = d.get("camera") or {}
-        dist = cam.get("dist")
-        return cls(
-            ct_path=d.get("ct_path"),
-            fiducials=fids,
-            fiducials_locked=bool(d.get("fiducials_locked", False)),
-            entry_lps_mm=arr(d.get("entry_lps_mm"), (3,)),
-            target_lps_mm=arr(d.get("target_lps_mm"), (3,)),
-            camera_source=cam.get("source"),
-            calibration_path=cam.get("calibration_path"),
-            K=arr(cam.get("K"), (3, 3)),
-            dist=None if dist is None else np.asarray(dist, dtype=float).ravel(),
-            image_size=None if cam.get("image_size") is None else tuple(int(v) for v in cam["image_size"]),
-            T_base_cam=arr(d.get("T_base_cam_mm"), (4, 4)),
-            revision=int(d.get("revision", 0)),
-        )
+        plan, rejected = restore_plan(d, min_usable)
+        if rejected:
+            raise ValueError(str(rejected[0]))
+        return plan
 
     def save(self, path: Path) -> None:
         """Atomic, durable save (temp file, fsync, rename)."""

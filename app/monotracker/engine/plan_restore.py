@@ -1,0 +1,234 @@
+"""Restore a saved plan field by field, with the same checks the commands use.
+
+:func:`restore_plan` never raises for a file that is a MonoTracker plan: each field that fails its
+check (:mod:`monotracker.engine.plan_checks`) is left out and named in the returned rejections,
+and the plan holds what is valid. Fields depend on each other the way the commands make them:
+a dropped fiducial or a locked set that is not valid unlocks the set (the operator re-confirms);
+entry == target drops both points; a bad hand-eye or camera drops that calibration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from monotracker.engine import plan_checks as pc
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """One field that was not restored: ``field`` (e.g. ``"fiducials[2]"``), ``reason`` (one line)."""
+
+    field: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.field}: {self.reason}"
+
+
+def restore_plan(d, min_usable: int = 4):
+    """``(Plan, [Rejection])`` from a parsed plan file. Raises ``ValueError`` only when ``d`` is
+    not a MonoTracker plan at all (wrong format marker, newer version)."""
+    from monotracker.engine.plan import FORMAT, VERSION, Plan, PlanFiducial
+
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        raise ValueError("not a MonoTracker plan file")
+    ver = d.get("version", -1)
+    if isinstance(ver, bool) or not isinstance(ver, int):
+        raise ValueError(f"plan version must be an integer, not {ver!r}")
+    if ver > VERSION:
+        raise ValueError(f"plan version {ver} is newer than this program ({VERSION})")
+    rej: list[Rejection] = []
+    plan = Plan()
+
+    rev = d.get("revision", 0)
+    if isinstance(rev, bool) or not isinstance(rev, int) or rev < 0:
+        rej.append(Rejection("revision", f"must be a non-negative integer, not {rev!r}"))
+    else:
+        plan.revision = rev
+
+    ct = d.get("ct_path")
+    if ct is not None and not isinstance(ct, str):
+        rej.append(Rejection("ct_path", f"must be a path string, not {type(ct).__name__}"))
+    else:
+        plan.ct_path = ct
+
+    # ------------------------------------------------------------ fiducials
+    fids_raw = d.get("fiducials", [])
+    fids_ok = True
+    if not isinstance(fids_raw, list):
+        rej.append(Rejection("fiducials", f"must be a list, not {type(fids_raw).__name__}"))
+        fids_raw, fids_ok = [], False
+    for i, f in enumerate(fids_raw):
+        if not isinstance(f, dict):
+            rej.append(Rejection(f"fiducials[{i}]", f"must be an object, not {type(f).__name__}"))
+            fids_ok = False
+            continue
+        why = pc.check_fiducial(f.get("id"), f.get("centre_lps_mm"), f.get("radius_mm"), f.get("score", 0.0),
+                                f.get("status", "detected"))
+        verified = f.get("verified")
+        if why is None and verified is not None and not isinstance(verified, bool):
+            why = f"fiducial {f.get('id')} verified must be true, false or null, not {verified!r}"
+        if why:
+            rej.append(Rejection(f"fiducials[{i}]", why))
+            fids_ok = False
+            continue
+        plan.fiducials.append(PlanFiducial(int(f["id"]), np.asarray(f["centre_lps_mm"], float),
+                                           float(f["radius_mm"]), float(f.get("score", 0.0)),
+                                           f.get("status", "detected"), verified))
+    why = pc.check_fiducial_set(plan.fiducials)
+    if why:
+        rej.append(Rejection("fiducials", why))
+        plan.fiducials, fids_ok = [], False
+
+    locked = d.get("fiducials_locked", False)
+    if not isinstance(locked, bool):
+        rej.append(Rejection("fiducials_locked", f"must be true or false, not {locked!r}"))
+        locked = False
+    elif locked and not fids_ok:
+        rej.append(Rejection("fiducials_locked", "the locked fiducial set was not restored whole; confirm it again"))
+        locked = False
+    plan.fiducials_locked = locked
+    if locked:
+        why = pc.check_locked(plan, min_usable)
+        if why:
+            rej.append(Rejection("fiducials_locked", why))
+            plan.fiducials_locked = False
+
+    # ------------------------------------------------------------ path
+    pts = {}
+    for name in ("entry_lps_mm", "target_lps_mm"):
+        v = d.get(name)
+        if v is None:
+            continue
+        a, why = pc.check_point(v, name.split("_")[0])
+        if why:
+            rej.append(Rejection(name, why))
+        else:
+            pts[name] = a
+    why = pc.check_entry_target_pair(pts.get("entry_lps_mm"), pts.get("target_lps_mm"))
+    if why:
+        rej.append(Rejection("entry_lps_mm/target_lps_mm", why))
+        pts = {}
+    plan.entry_lps_mm, plan.target_lps_mm = pts.get("entry_lps_mm"), pts.get("target_lps_mm")
+    if plan.path_complete:
+        why = pc.check_path(plan.entry_lps_mm, plan.target_lps_mm, plan.fiducials, None)
+        if why:
+            rej.append(Rejection("entry_lps_mm/target_lps_mm", why))
+            plan.entry_lps_mm = plan.target_lps_mm = None
+
+    # ------------------------------------------------------------ camera
+    cam = d.get("camera")
+    if cam is None:
+        cam = {}
+    if not isinstance(cam, dict):
+        rej.append(Rejection("camera", f"must be an object, not {type(cam).__name__}"))
+        cam = {}
+    src, calib = cam.get("source"), cam.get("calibration_path")
+    if src is not None and not isinstance(src, str):
+        rej.append(Rejection("camera.source", f"must be a string, not {type(src).__name__}"))
+        src = None
+    if calib is not None and not isinstance(calib, str):
+        rej.append(Rejection("camera.calibration_path", f"must be a path string, not {type(calib).__name__}"))
+        calib = None
+    K, dist, size = cam.get("K"), cam.get("dist"), cam.get("image_size")
+    if isinstance(size, list):
+        size = tuple(size)
+    why = pc.check_camera(K, dist, size)
+    if why:
+        rej.append(Rejection("camera", why))
+    else:
+        plan.camera_source, plan.calibration_path = src, calib
+        plan.K = None if K is None else np.asarray(K, float)
+        plan.dist = None if dist is None else np.asarray(dist, float).ravel()
+        plan.image_size = None if size is None else tuple(int(v) for v in size)
+
+    # ------------------------------------------------------------ hand-eye
+    T = d.get("T_base_cam_mm")
+    if T is not None:
+        why = pc.check_hand_eye(T)
+        if why:
+            rej.append(Rejection("T_base_cam_mm", why))
+        else:
+            plan.T_base_cam = np.asarray(T, float)
+
+    # ------------------------------------------------------------ integrity record (checked by the session)
+    integ = d.get("integrity")
+    if integ is not None:
+        if isinstance(integ, dict) and all(isinstance(v, (str, type(None))) for v in integ.values()):
+            plan.integrity = dict(integ)
+        else:
+            rej.append(Rejection("integrity", "must be an object of hash strings"))
+    return plan, rej
+
+
+@dataclass
+class SavedPlan:
+    """What :func:`load_saved_plan` found: the ``plan`` to start from, ``alarms`` as
+    ``(code, message, data)`` to raise, ``reconfirm`` reasons the operator must re-confirm the
+    plan for before arming, and ``kept_aside`` (the copy of the original file, or None)."""
+
+    plan: object
+    alarms: list
+    reconfirm: list
+    kept_aside: object = None
+    rejected: tuple = ()
+
+
+def _keep_aside(path, kind: str):
+    """Copy ``path`` to ``plan.<kind>-<UTC timestamp>.json`` beside it; the copy's path or None."""
+    import shutil
+    import time
+    from pathlib import Path
+
+    path = Path(path)
+    stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+    keep = path.with_name(f"plan.{kind}-{stamp}.json")
+    n = 1
+    while keep.exists():
+        keep = path.with_name(f"plan.{kind}-{stamp}-{n}.json")
+        n += 1
+    try:
+        shutil.copy2(path, keep)
+    except OSError:
+        return None
+    return keep
+
+
+def load_saved_plan(path, min_usable: int) -> SavedPlan:
+    """Read ``plan.json`` at start-up; never raises. An unreadable file, or one with invalid
+    fields, is copied aside (``plan.unreadable-*`` / ``plan.rejected-*``) and named in an alarm;
+    the plan holds what is valid (or is empty). A content hash that does not match (an edit made
+    outside the app) asks for re-confirmation."""
+    from monotracker.engine.integrity import plan_stamp_problem
+    from monotracker.engine.persistence import read_json
+    from monotracker.engine.plan import Plan
+
+    try:
+        raw = read_json(path)
+        plan, rejected = restore_plan(raw, min_usable)
+    except (OSError, ValueError, RecursionError) as exc:
+        keep = _keep_aside(path, "unreadable")
+        where = f"kept as {keep.name}" if keep else "could not be copied aside"
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        return SavedPlan(Plan(), [("plan_unreadable", f"saved plan could not be read ({msg}); {where}, starting empty",
+                                   {"kept_as": None if keep is None else str(keep)})], [], keep)
+    alarms, reconfirm, keep = [], [], None
+    if rejected:
+        keep = _keep_aside(path, "rejected")
+        where = f"original kept as {keep.name}" if keep else "original could not be copied aside"
+        names = ", ".join(r.field for r in rejected)
+        alarms.append(("plan_field_rejected",
+                       f"saved plan: {names} not restored ({rejected[0].reason}); {where}",
+                       {"rejected": [{"field": r.field, "reason": r.reason} for r in rejected],
+                        "kept_as": None if keep is None else str(keep)}))
+    stamp = plan_stamp_problem(raw)
+    if stamp is not None and (plan.fiducials or plan.path_complete or plan.T_base_cam is not None):
+        alarms.append(("plan_changed_outside", f"{stamp}; re-confirm the plan before arming", {}))
+        reconfirm.append(stamp)
+    pending = plan.integrity.get("reconfirm_pending")
+    if pending and stamp is None:
+        alarms.append(("plan_reconfirm_pending", f"{pending}; re-confirm the plan before arming", {}))
+        reconfirm.append(pending)
+    return SavedPlan(plan, alarms, reconfirm, keep, tuple(rejected))
