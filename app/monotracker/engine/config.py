@@ -37,6 +37,11 @@ class SessionConfig:
     (3.0): a pose that moved more than this from the last trusted one (per frame) is not trusted
     until ``confirm_frames`` (3) consecutive estimates agree with each other (a real head jump is
     followed after a short hold; a single wrong pose never moves the arm).
+    ``max_predicted_tre_mm`` (1.0): a pose whose predicted error at the planned target (image
+    noise estimated online from the residuals, propagated through the pose covariance) exceeds
+    this is not trusted. ``camera_adapt``: "" or the user's explicit statement that a real camera
+    runs the calibrated sensor binned or cropped (``"bin:2"``, ``"scale:0.5"``,
+    ``"crop:X,Y,W,H"``); without it a frame whose size differs from the calibration is refused.
     ``controller``: the APFF variant (``"APF-V" | "APF-A-I" | "APF-A-II"``, paper section 2.3).
     ``predict_target``: the robot tracker's latency compensation (target velocity estimated from
     the pose stream, extrapolated over the measured latency; not in the paper). Off by default:
@@ -63,6 +68,8 @@ class SessionConfig:
     confirm_frames: int = 3
     controller: str = "APF-A-II"
     predict_target: bool = False
+    max_predicted_tre_mm: float = 1.0
+    camera_adapt: str = ""
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -82,5 +89,11 @@ class SessionConfig:
             raise InputError("min_fiducials must be at least 3 (a rigid pose needs 3 points)")
         if self.controller not in ("APF-V", "APF-A-I", "APF-A-II"):
             raise InputError(f"controller must be APF-V, APF-A-I or APF-A-II, not {self.controller!r}")
+        if not (self.max_predicted_tre_mm > 0):
+            raise InputError("max_predicted_tre_mm must be a positive number of mm")
+        if self.camera_adapt:
+            kind = str(self.camera_adapt).partition(":")[0]
+            if kind not in ("bin", "scale", "crop"):
+                raise InputError(f"camera_adapt {self.camera_adapt!r} not understood: use bin:N, scale:F or crop:X,Y,W,H")
         if not str(self.arm_pin):
             raise InputError("arm_pin must not be empty")

@@ -5,13 +5,19 @@ The pose stream says what it saw; the gate decides what the robot may do with it
 
 1. the estimator says ``ok``;
 2. at least ``min_fiducials`` fiducials were matched (the paper needs >= 4 for < 1 mm);
-3. its FRE is at most ``max_fre_mm``;
+3. its FRE is at most ``max_fre_mm``, and its predicted error at the planned target at most
+   ``max_predicted_tre_mm`` (1 mm; FRE does not predict TRE, the propagated covariance does);
 4. it is consistent with the recent past: within ``max_jump_mm`` (at the planned entry) and
    ``max_jump_deg`` of the last trusted pose, if that is younger than ``reference_max_age_s``.
    Otherwise (a jump, or no recent reference: first lock, or after an occlusion) the pose is only
    trusted once ``confirm_frames`` consecutive estimates agree with each other within the same
    bounds. A single wrong estimate (a mismatched fiducial, a reflection) therefore never moves
    the arm, while a real head movement is followed after ``confirm_frames`` frames.
+
+An invalid estimate keeps the alert code its estimator gave (``code``: ``camera_ended``,
+``frame_size``, ``frame_unreadable``, ``tre_limit``, ...), so the operator reads what happened;
+without one, fewer than ``min_fiducials`` matched is ``occlusion`` and anything else
+``estimator``.
 
 The gate is pure bookkeeping (no threads, no clock of its own): the loop feeds it each estimate
 with its capture time and reads a :class:`GateVerdict`.
@@ -29,14 +35,16 @@ from monotracker.engine.target import pose_jump
 @dataclass(frozen=True)
 class GateVerdict:
     trusted: bool
-    code: str  # "ok" | "estimator" | "occlusion" | "fre" | "jump" | "acquiring"
+    code: str  # "ok" | "estimator" | "occlusion" | "fre" | "tre_limit" | "jump" | "acquiring" | an estimator's code
     reason: str
 
 
 class PoseGate:
     def __init__(self, min_fiducials: int = 4, max_fre_mm: float = 1.5, max_jump_mm: float = 5.0,
-                 max_jump_deg: float = 3.0, confirm_frames: int = 3, reference_max_age_s: float = 0.5):
+                 max_jump_deg: float = 3.0, confirm_frames: int = 3, reference_max_age_s: float = 0.5,
+                 max_predicted_tre_mm: float = 1.0):
         self.min_fiducials = int(min_fiducials)
+        self.max_predicted_tre_mm = float(max_predicted_tre_mm)
         self.max_fre_mm = float(max_fre_mm)
         self.max_jump_mm = float(max_jump_mm)
         self.max_jump_deg = float(max_jump_deg)
@@ -58,10 +66,14 @@ class PoseGate:
         d_mm, d_deg = pose_jump(A, B, self.about_ct)
         return (d_mm <= self.max_jump_mm and d_deg <= self.max_jump_deg), d_mm, d_deg
 
-    def check(self, ok: bool, reason: str, T_cam_ct, n_matched: int, fre_mm, t_capture: float) -> GateVerdict:
+    def check(self, ok: bool, reason: str, T_cam_ct, n_matched: int, fre_mm, t_capture: float,
+              code: str = "", predicted_tre_mm=None) -> GateVerdict:
+        """``code``: the estimator's alert code for an invalid estimate ('' if none);
+        ``predicted_tre_mm``: predicted error at the planned target (None = not available)."""
         if not ok or T_cam_ct is None:
             self._candidates = []
-            code = "occlusion" if n_matched < self.min_fiducials else "estimator"
+            if not code:
+                code = "occlusion" if n_matched < self.min_fiducials else "estimator"
             return GateVerdict(False, code, reason or "no pose")
         if n_matched < self.min_fiducials:
             self._candidates = []
@@ -69,6 +81,10 @@ class PoseGate:
         if fre_mm is not None and np.isfinite(fre_mm) and fre_mm > self.max_fre_mm:
             self._candidates = []
             return GateVerdict(False, "fre", f"FRE {fre_mm:.2f} mm exceeds {self.max_fre_mm:.2f} mm")
+        if predicted_tre_mm is not None and not (predicted_tre_mm <= self.max_predicted_tre_mm):
+            self._candidates = []
+            return GateVerdict(False, "tre_limit", f"predicted error at the target {predicted_tre_mm:.2f} mm "
+                                                   f"exceeds {self.max_predicted_tre_mm:.2f} mm")
         T = np.asarray(T_cam_ct, float)
         if self._ref_T is not None and t_capture - self._ref_t <= self.reference_max_age_s:
             close, d_mm, d_deg = self._close(self._ref_T, T)

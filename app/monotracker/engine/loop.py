@@ -70,7 +70,7 @@ class TrackingLoop:
         self.cfg = cfg
         self._lock = threading.RLock()
         self.gate = PoseGate(cfg.min_fiducials, cfg.max_fre_mm, cfg.max_jump_mm, cfg.max_jump_deg,
-                             cfg.confirm_frames)
+                             cfg.confirm_frames, max_predicted_tre_mm=cfg.max_predicted_tre_mm)
         self.camera_source = cfg.camera
         self.calibration_path: str | None = None
         saved = session.plan_copy()
@@ -356,8 +356,13 @@ class TrackingLoop:
     def on_pose(self, sample: components.PoseSample, now: float) -> None:
         """A new estimate is available (engine thread / sim tick)."""
         self._fiducial_changes(sample)
+        for fid, shift in getattr(sample, "moved", {}).items():
+            self.s.alert("warning", "fiducial_moved", f"fiducial {fid} moved about {shift:.1f} mm relative to the "
+                         "others since the CT: excluded from registration (check it is firmly attached)",
+                         {"fiducial": fid, "shift_mm": shift})
         v = self.gate.check(sample.ok, sample.reason, sample.T_cam_ct, sample.n_matched, sample.fre_mm,
-                            sample.t_capture)
+                            sample.t_capture, code=getattr(sample, "code", ""),
+                            predicted_tre_mm=sample.predicted_tre_mm)
         rec = _PoseRecord(sample, v.trusted, v.code, v.reason)
         with self._lock:
             self._latest = rec
@@ -369,7 +374,7 @@ class TrackingLoop:
                 self._resume(f"pose trusted again ({sample.n_matched} fiducials)", self._registration_data(sample))
         else:
             code = {"occlusion": "occlusion", "fre": "bad_pose", "jump": "pose_jump", "estimator": "pose_lost",
-                    "acquiring": "acquiring"}[v.code]
+                    "acquiring": "acquiring"}.get(v.code, v.code)
             level = "info" if code == "acquiring" else "warning"
             self._hold(code, v.reason, level)
 
@@ -409,7 +414,8 @@ class TrackingLoop:
             self.s.record("pose_acquiring", reason)
             return
         msg = reason + ("; arm holding still" if tracking else "")
-        lvl = "alarm" if code in ("camera_freeze", "robot_disconnected", "engine_error") else level
+        lvl = "alarm" if code in ("camera_freeze", "camera_disconnected", "robot_disconnected", "engine_error") \
+            else level
         self.s.alert(lvl, code, msg, {"reason": reason, "tracking": tracking})
 
     @staticmethod
@@ -436,7 +442,8 @@ class TrackingLoop:
     def watchdogs(self, now: float) -> None:
         """Camera freeze, stale pose, robot state (every engine tick)."""
         rig = self.rig
-        if rig is not None and rig.running:
+        # a rig that watches its own camera (StreamRig) reports freezes as estimates with a code
+        if rig is not None and rig.running and not getattr(rig, "watches_itself", False):
             seen = self._last_frame_seen_at
             if seen is not None and now - seen > self.cfg.freeze_after_s:
                 self._hold("camera_freeze", f"camera frozen: no new frame for {1000 * (now - seen):.0f} ms")

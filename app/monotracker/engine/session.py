@@ -68,7 +68,12 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 [info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
 [warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
 ``robot_disconnected`` [alarm] /
-``robot_connected`` [info]; ``robot_warning`` [warning] from the robot's safety layer; ``estop``
+``robot_connected`` [info]; real cameras: ``camera_ended`` [warning] the video/folder ended,
+``frame_unreadable`` [warning] a corrupt frame (skipped), ``camera_disconnected`` [alarm],
+``frame_size`` [warning] frame size differs from the calibration; poses: ``tre_limit``
+[warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
+``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
+with its shift in mm; excluded from then on); ``robot_warning`` [warning] from the robot's safety layer; ``estop``
 [alarm]; ``arm_refused`` [warning] wrong PIN; ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
 / ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
 state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,

@@ -227,7 +227,8 @@ def estimate_to_sample(est, fiducial_ids: list[int]) -> PoseSample:
         t_capture=float(est.t_capture), frame_index=int(est.frame_index), ok=bool(est.ok), reason=reason,
         T_cam_ct=None if est.T_cam_ct is None else np.array(est.T_cam_ct, float), n_matched=int(est.n_matched),
         fiducial_status=status, residuals_px=res, fre_mm=_nan_to_none(est.fre_mm),
-        predicted_tre_mm=_nan_to_none(est.predicted_tre_mm), raw=est)
+        predicted_tre_mm=_nan_to_none(est.predicted_tre_mm), raw=est, code=getattr(est, "code", ""),
+        moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)})
 
 
 # ====================================================================== projected points
@@ -346,9 +347,20 @@ class _KeepLatest:
 
 
 class StreamRig(CameraRig):
-    """A real frame source through vision's PoseStream (clock="real" only)."""
+    """A real frame source through vision's PoseStream (clock="real" only).
 
-    def __init__(self, source: str, calibration_path: str | None, plan, session):
+    ``camera_adapt``: the user's explicit statement that the camera runs the calibrated sensor
+    binned or cropped (``"bin:2"``, ``"crop:X,Y,W,H"``; :meth:`CameraModel.adapted`); frames
+    whose size still differs from the calibration are refused by the tracker (``frame_size``).
+    The stream watches its own camera (identical frames, a blocked ``read()``, disconnection,
+    the end of a file, unreadable frames: each published with its alert code), so the engine's
+    frame-interval watchdog is not applied to it (``watches_itself``): a file or folder source
+    is read only as fast as frames are processed, which is no freeze."""
+
+    watches_itself = True
+
+    def __init__(self, source: str, calibration_path: str | None, plan, session, camera_adapt: str = "",
+                 max_predicted_tre_mm: float | None = None):
         super().__init__()
         from monotracker.vision.camera_model import CameraModel, default_camera
         from monotracker.vision.frames import open_source
@@ -363,6 +375,7 @@ class StreamRig(CameraRig):
             model = default_camera()
             session.alert("warning", "camera_uncalibrated",
                           "no camera calibration given: using nominal intrinsics; registration accuracy is not assured")
+        model = model.adapted(camera_adapt)
         self.K, self.dist, self.image_size = model.K, model.dist, tuple(model.image_size)
         self.fiducial_ids = [f.id for f in plan.usable_fiducials()]
         radius = float(np.median([f.radius_mm for f in plan.usable_fiducials()]))
@@ -373,6 +386,8 @@ class StreamRig(CameraRig):
         except Exception as exc:  # noqa: BLE001 - a camera that will not open is an operator problem
             raise MonoTrackerError(f"cannot open camera {source}: {exc}") from exc
         tracker = PoseTracker(plan.fiducial_centres(), model, radius_mm=radius, target_ct=plan.target_lps_mm)
+        if max_predicted_tre_mm is not None:
+            tracker.config.max_predicted_tre_mm = float(max_predicted_tre_mm)
         self.source = _KeepLatest(src)
         self.stream = PoseStream(source=self.source, tracker=tracker)
         self._lock = threading.Lock()
@@ -417,7 +432,10 @@ def make_vision_rig(source, calibration_path, plan, cfg, session) -> CameraRig:
         cls = SimImageRig if source == "sim" else ProjectedFiducialRig
         rig = cls(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps)
         rig.clock = session.clock
+        if getattr(rig, "tracker", None) is not None:
+            rig.tracker.config.max_predicted_tre_mm = float(getattr(cfg, "max_predicted_tre_mm", 1.0))
         return rig
     if cfg.clock != "real":
         raise MonoTrackerError("real cameras need a real-clock session (clock='real')")
-    return StreamRig(source, calibration_path, plan, session)
+    return StreamRig(source, calibration_path, plan, session, camera_adapt=getattr(cfg, "camera_adapt", ""),
+                     max_predicted_tre_mm=getattr(cfg, "max_predicted_tre_mm", None))

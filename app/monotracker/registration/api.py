@@ -175,7 +175,8 @@ def _finish(method, X, xn, fxy, radius, pairs, ref, best, runner, opts, t0, timi
         fre_mm=fre_mm(T, X[mi], xn[ii], radius), reprojection_rms_px=rms, residuals_px=mags,
         residual_vectors_px=-res, unmatched_image_indices=sorted(set(range(m)) - set(ii.tolist())),
         unmatched_fiducial_indices=sorted(set(range(len(X))) - set(mi.tolist())),
-        sigma_px=sigma, pose_covariance=pose_covariance(ref.JtJ, sigma), used_prior=used_prior, **kw)
+        sigma_px=sigma, pose_covariance=pose_covariance(ref.JtJ, sigma), used_prior=used_prior,
+        sigma_dof=2 * len(res) - 6, **kw)
     Xc = X @ T[:3, :3].T + T[:3, 3]
     reason = ""
     if not np.all(np.isfinite(T)):

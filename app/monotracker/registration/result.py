@@ -38,12 +38,19 @@ class Registration:
     timing: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
     used_prior: bool = False
+    #: residual degrees of freedom behind ``sigma_px`` (2k - 6 for k pairs)
+    sigma_dof: int = 0
 
-    def predicted_tre_mm(self, target_ct: np.ndarray) -> float | np.ndarray:
-        """Predicted RMS 3D error (mm) at target(s) given in CT mm; NaN if not ok."""
+    def predicted_tre_mm(self, target_ct: np.ndarray, sigma_px: float | None = None) -> float | np.ndarray:
+        """Predicted RMS 3D error (mm) at target(s) given in CT mm; NaN if not ok. ``sigma_px``:
+        use this image noise (px, e.g. the pose stream's pooled estimate) instead of this fit's
+        own ``sigma_px``."""
         if not self.ok or self.pose_covariance is None:
             return float("nan") if np.ndim(target_ct) == 1 else np.full(len(target_ct), np.nan)
-        return predicted_tre(self.T_cam_ct, self.pose_covariance, target_ct)
+        cov = self.pose_covariance
+        if sigma_px is not None and np.isfinite(sigma_px) and self.sigma_px > 0:
+            cov = cov * (float(sigma_px) / self.sigma_px) ** 2
+        return predicted_tre(self.T_cam_ct, cov, target_ct)
 
     def to_dict(self) -> dict:
         """JSON-ready summary (lists and floats; no numpy) for logs and persistence."""

@@ -3,8 +3,10 @@
 * ``calibrate-camera IMAGES... --chessboard 9x6 --square-mm 25 [--out camera.yml]`` (or
   ``--charuco 7x5 --square-mm 30 --marker-mm 22 [--dictionary DICT_5X5_100]``): prints the RMS
   reprojection error and writes OpenCV YAML or JSON intrinsics.
-* ``detect-image IMAGE [--detector classical|learned] [--radius-mm 4] [--focal-px F | --camera FILE]
-  [--annotate out.png] [--json]``: detects the fiducial balls in one image.
+* ``detect-image IMAGE [--detector classical|learned] [--radius-mm 4] [--focal-px F | --camera FILE
+  [--adapt bin:N|crop:X,Y,W,H]] [--annotate out.png] [--json]``: detects the fiducial balls in one
+  image; with ``--camera`` an image whose size differs from the calibration is refused (one line)
+  unless ``--adapt`` says the sensor was binned or cropped.
 * ``simulate-camera --out DIR [--frames 30] [--trajectory mixed] [--events]``: writes simulated
   frames (PNG) and their ground truth (JSON), e.g. to try ``detect-image`` or a folder source.
 """
@@ -34,7 +36,10 @@ def register(subparsers) -> None:
     d.add_argument("--detector", choices=("classical", "learned"), default="classical")
     d.add_argument("--radius-mm", type=float, default=4.0, help="ball radius (mm)")
     d.add_argument("--focal-px", type=float, default=None, help="focal length (px) for the size check")
-    d.add_argument("--camera", default=None, help="camera calibration file (gives the focal length)")
+    d.add_argument("--camera", default=None, help="camera calibration file (gives the focal length); the image "
+                   "must have the calibrated size")
+    d.add_argument("--adapt", default="", metavar="bin:N|scale:F|crop:X,Y,W,H",
+                   help="the image comes from the calibrated sensor binned or cropped: adapt the calibration")
     d.add_argument("--annotate", default=None, help="write an annotated copy of the image here")
     d.add_argument("--json", action="store_true", help="print JSON instead of a table")
     d.set_defaults(func=_detect)
@@ -82,7 +87,13 @@ def _detect(args) -> int:
     if args.camera:
         from .camera_model import CameraModel
 
-        focal = float(CameraModel.load(args.camera).K[0, 0])
+        model = CameraModel.load(args.camera).adapted(args.adapt)
+        problem = model.frame_size_problem(img.shape)
+        if problem:
+            raise InputError(f"{path.name}: {problem}")
+        focal = float(model.K[0, 0])
+    elif args.adapt:
+        raise InputError("--adapt needs --camera (the calibration to adapt)")
     if focal is None:
         focal = 1100.0 * img.shape[1] / 1280.0
     rules = BlobRules(radius_mm=args.radius_mm, focal_px=focal)

@@ -7,7 +7,8 @@ end of a video; a camera that stops answering raises :class:`CameraDisconnected`
 ``truth`` is set only by the simulator (:class:`monotracker.sim.camera_sim.FrameTruth`).
 
 Opening problems (no such camera, unreadable video, empty folder) raise :class:`InputError`
-with one line. :class:`FrameWatchdog` turns "frames stopped coming" or "the same frame again
+with one line; one bad frame later on raises :class:`FrameUnreadable` (an ``InputError``) and
+the source continues with the next frame. :class:`FrameWatchdog` turns "frames stopped coming" or "the same frame again
 and again" into a clear status within 0.1 s (see its docstring).
 """
 
@@ -28,6 +29,12 @@ class CameraDisconnected(MonoTrackerError):
     """The camera stopped delivering frames (unplugged, driver crashed)."""
 
 
+class FrameUnreadable(InputError):
+    """One frame could not be read (corrupt image file, undecodable video frame, wrong pixel
+    type); the source itself goes on: the next ``read()`` returns the next frame. The pose
+    stream reports it under the alert code ``frame_unreadable``."""
+
+
 @dataclass
 class Frame:
     """One image: ``image`` BGR uint8 (h, w, 3); ``t_capture`` monotonic s; ``index`` from 0;
@@ -43,6 +50,9 @@ class FrameSource:
     """Base class: subclasses implement ``_read_image() -> np.ndarray | None`` and ``_release()``."""
 
     name = "frames"
+    #: a live source delivers frames in real time (a camera): reading it may stall. A file or a
+    #: folder is read as fast as the reader asks, so a slow read is no camera fault.
+    live = True
 
     def __init__(self):
         self._index = 0
@@ -87,7 +97,7 @@ class FrameSource:
 
 def _as_bgr(img: np.ndarray) -> np.ndarray:
     if img.dtype != np.uint8:
-        raise MonoTrackerError(f"frame has dtype {img.dtype}, expected 8-bit images")
+        raise FrameUnreadable(f"frame has dtype {img.dtype}, expected 8-bit images")
     if img.ndim == 2:
         return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     if img.shape[2] == 4:
@@ -126,6 +136,8 @@ class VideoFileSource(FrameSource):
     """Frames of a video file; ``read()`` returns ``None`` at the end. A file OpenCV cannot decode
     raises :class:`InputError` at open (or at the first frame)."""
 
+    live = False
+
     def __init__(self, path: str | Path, loop: bool = False):
         super().__init__()
         path = Path(path)
@@ -149,6 +161,13 @@ class VideoFileSource(FrameSource):
             img, self._pending = self._pending, None
             return img
         ok, img = self._cap.read()
+        if not ok:
+            # a frame that fails to decode before the end of the stream is unreadable, not the end
+            pos = int(self._cap.get(cv2.CAP_PROP_POS_FRAMES) or 0)
+            count = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+            if 0 < pos + 1 < count:
+                self._cap.set(cv2.CAP_PROP_POS_FRAMES, pos + 1)
+                raise FrameUnreadable(f"{self.name}: frame {pos} cannot be decoded")
         if not ok and self._loop:
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
             ok, img = self._cap.read()
@@ -163,7 +182,9 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 class ImageFolderSource(FrameSource):
     """Images of a folder in name order (png/jpg/bmp/tif); an unreadable image raises
-    :class:`InputError` naming it."""
+    :class:`FrameUnreadable` naming it, and the next ``read()`` goes on with the next image."""
+
+    live = False
 
     def __init__(self, folder: str | Path):
         super().__init__()
@@ -183,7 +204,7 @@ class ImageFolderSource(FrameSource):
         self._next += 1
         img = cv2.imread(str(p), cv2.IMREAD_COLOR)
         if img is None:
-            raise InputError(f"cannot read image {p.name} (corrupt or not an image)")
+            raise FrameUnreadable(f"cannot read image {p.name} (corrupt or not an image)")
         return img
 
 

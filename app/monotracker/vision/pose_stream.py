@@ -12,20 +12,39 @@ Two layers, so that the logic is testable without threads:
   ``latest()``. A monitor thread checks the :class:`~monotracker.vision.frames.FrameWatchdog`
   every 20 ms, so a camera that freezes (identical frames) or stops delivering (``read()``
   blocks for longer than ``watchdog.max_age_s`` = 0.1 s, or raises) is published as an invalid
-  estimate within 0.1 s (+ one 20 ms monitor tick). Time spent processing a frame does not
+  estimate within 0.1 s (+ one 20 ms monitor tick). The stall check applies to live sources
+  after their first frame (not to files and folders, which are read on demand). Time spent processing a frame does not
   count as a stall: only time spent waiting inside ``read()`` does.
 
 Validity rules (the downstream controller holds whenever ``ok`` is False):
 * fewer than ``min_fiducials`` (4) matched balls -> "no valid pose";
 * reprojection RMS over ``max_rms_px`` (1.5 px) or any matched ball's residual over
   ``max_residual_px`` (3 px) -> "no valid pose" (the match is suspect);
-* camera frozen / stalled / disconnected -> "no valid pose".
+* camera frozen / stalled / disconnected / ended, an unreadable frame -> "no valid pose";
+* a frame whose size differs from the calibration's ``image_size`` -> refused (``frame_size``;
+  adapt the calibration explicitly with ``CameraModel.adapted("bin:2")`` etc. when the camera
+  is the same sensor binned or cropped);
+* a pose that is not physical (head distance, fiducials behind the camera, ball size vs
+  distance; :mod:`.pose_checks`) -> ``pose_implausible``; matched balls too few, collinear or
+  coplanar -> ``weak_geometry``;
+* predicted TRE at the planned target over ``max_predicted_tre_mm`` (1 mm) -> ``tre_limit``.
+  The image noise behind it is estimated online from the residuals
+  (:class:`~monotracker.registration.noise.OnlineNoise`: pooled over frames, no floor);
+* a fiducial whose position disagrees with the others (leave-one-out,
+  :mod:`monotracker.registration.consistency`) is excluded with a ``fiducial_moved`` alert
+  naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
+
+Every invalid estimate carries ``code``: the alert code that says what happened
+(``frame_size``, ``frame_unreadable``, ``camera_ended``, ``camera_freeze``,
+``camera_disconnected``, ``occlusion``, ``pose_lost``, ``pose_implausible``,
+``weak_geometry``, ``tre_limit``).
 
 Per-fiducial status (one entry per CT fiducial): ``"seen"`` (matched in this frame),
 ``"newly_lost"`` (matched in the previous frame, not now: an alert is raised in this same
 frame), ``"occluded"`` (not matched now nor in the previous frame), ``"unknown"`` (no frame
 has matched it yet). When the registration fails, a ball counts as seen if a detection lies
-within ``status_gate_px`` of its projection under the last valid pose.
+within ``status_gate_px`` of its projection under the last valid pose. ``"moved"``: the
+fiducial was found displaced relative to the others and is excluded.
 """
 
 from __future__ import annotations
@@ -42,11 +61,15 @@ from monotracker.errors import MonoTrackerError
 from monotracker.geometry import apply_transform
 
 from .camera_model import CameraModel
-from .frames import CameraDisconnected, Frame, FrameSource, FrameWatchdog
+from .frames import CameraDisconnected, Frame, FrameSource, FrameUnreadable, FrameWatchdog
 
 log = logging.getLogger(__name__)
 
-SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN = "seen", "newly_lost", "occluded", "unknown"
+SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "unknown", "moved"
+
+#: camera state -> alert code of the invalid estimate it causes
+CAMERA_CODES = {"frozen": "camera_freeze", "stalled": "camera_freeze", "disconnected": "camera_disconnected",
+                "ended": "camera_ended", "unreadable": "frame_unreadable"}
 
 
 @dataclass
@@ -81,6 +104,15 @@ class PoseEstimate:
     detect_s: float = float("nan")
     register_s: float = float("nan")
     truth: object = None
+    #: alert code when not ok (see the module docstring); "" when ok
+    code: str = ""
+    #: image noise (px) behind ``predicted_tre_mm`` and where it came from (OnlineNoise.source)
+    sigma_px: float = float("nan")
+    sigma_source: str = ""
+    #: fiducials found moved in this frame: [(fiducial index, shift mm)]
+    moved: list = field(default_factory=list)
+    #: all fiducials excluded so far (moved), by index
+    excluded: list = field(default_factory=list)
 
     @property
     def latency_s(self) -> float:
@@ -103,6 +135,18 @@ class TrackerConfig:
     #: or is younger than this (s)
     prior_max_age_s: float = 0.5
     method: str = "robust"
+    #: refuse a pose whose predicted TRE at the planned target exceeds this (mm)
+    max_predicted_tre_mm: float = 1.0
+    #: moved-fiducial test: smallest shift (mm) that counts as moved; off with check_moved=False
+    check_moved: bool = True
+    moved_min_shift_mm: float = 1.0
+    #: physical plausibility (mm; see pose_checks.PhysicalLimits)
+    min_distance_mm: float = 150.0
+    max_distance_mm: float = 1500.0
+    #: online noise estimate: frames pooled, dof needed before the prior is dropped, prior (px)
+    noise_window: int = 30
+    noise_min_dof: int = 10
+    noise_prior_px: float = 0.3
 
 
 class PoseTracker:
@@ -122,6 +166,8 @@ class PoseTracker:
         self.detector = detector or ClassicalDetector(BlobRules(radius_mm=radius_mm, focal_px=float(camera.K[0, 0])))
         self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
         self.config = config or TrackerConfig()
+        from monotracker.registration.noise import OnlineNoise
+
         n = len(self.fiducials_ct)
         self._prev_seen = np.zeros(n, bool)
         self._ever_seen = np.zeros(n, bool)
@@ -129,61 +175,116 @@ class PoseTracker:
         self._last_T_time = -np.inf
         self._last_T_index = -10
         self._last_ok = None
+        self._last_code = ""
+        #: fiducial index -> estimated shift (mm) of the balls excluded as moved (persistent)
+        self.excluded: dict[int, float] = {}
+        c = self.config
+        self.noise = OnlineNoise(window=c.noise_window, min_dof=c.noise_min_dof, prior_px=c.noise_prior_px)
 
     def reset(self) -> None:
-        """Forget the previous frame (next frame does a full search)."""
+        """Forget the previous frames, the noise estimate and the excluded (moved) fiducials:
+        for a new registration after the operator re-checked the fiducials."""
         self.__init__(self.fiducials_ct, self.camera, self.detector, self.radius_mm, self.target_ct, self.config)
 
     def set_target(self, target_ct: np.ndarray | None) -> None:
         self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
 
     def process(self, frame: Frame) -> PoseEstimate:
-        from monotracker.registration import register
+        from monotracker.registration.consistency import register_screened
+
+        from .pose_checks import PhysicalLimits, physical_problem, weak_geometry
 
         cfg = self.config
         n = len(self.fiducials_ct)
+        size_problem = self.camera.frame_size_problem(frame.image.shape)
+        if size_problem:
+            return self._invalid(frame.index, frame.t_capture, "frame_size", size_problem, truth=frame.truth)
         det = self.detector.detect(frame.image)
         pts = det.centres
         fresh = (frame.index == self._last_T_index + 1 or frame.t_capture - self._last_T_time <= cfg.prior_max_age_s)
         prior = self._last_T if fresh else None
+        known_sigma = self.noise.peek(0.0, 0)
         t0 = time.perf_counter()
-        reg = register(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
-                       method=cfg.method, prior=prior)
+        scr = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
+                                method=cfg.method, prior=prior, excluded=tuple(self.excluded),
+                                sigma_px=known_sigma.sigma_px if known_sigma.source == "pooled" else None,
+                                min_shift_mm=cfg.moved_min_shift_mm,
+                                max_exclusions=2 if cfg.check_moved else 0)
+        reg = scr.registration
         t_reg = time.perf_counter() - t0
+        alerts = []
+        new_moved = [(m.fiducial_index, round(m.shift_mm, 2)) for m in scr.moved]
+        for m in scr.moved:
+            self.excluded[m.fiducial_index] = m.shift_mm
+            alerts.append(f"fiducial {m.fiducial_index} moved about {m.shift_mm:.1f} mm relative to the others "
+                          "since the CT: excluded from registration (check that it is still firmly attached)")
 
         img_pts = np.full((n, 2), np.nan)
         res = np.full(n, np.nan)
         seen = np.zeros(n, bool)
-        ok, reason = reg.ok, reg.reason
+        ok, reason, code = reg.ok, reg.reason, ("" if reg.ok else "pose_lost")
+        sigma = float("nan")
+        sigma_src = ""
+        tre = float("nan")
         if reg.ok:
             for k, (i, j) in enumerate(reg.pairs):
                 img_pts[j] = pts[i]
                 res[j] = reg.residuals_px[k] if k < len(reg.residuals_px) else np.nan
                 seen[j] = True
+            matched = [j for _, j in reg.pairs]
+            minor = [min(det.fiducials[i].axes_px) for i, _ in reg.pairs]
             if len(reg.pairs) < cfg.min_fiducials:
-                ok, reason = False, f"only {len(reg.pairs)} fiducials matched (need {cfg.min_fiducials})"
+                ok, reason, code = False, f"only {len(reg.pairs)} fiducials matched (need {cfg.min_fiducials})", \
+                    "occlusion"
             elif reg.reprojection_rms_px > cfg.max_rms_px:
-                ok, reason = False, (f"reprojection RMS {reg.reprojection_rms_px:.2f} px over the "
-                                     f"{cfg.max_rms_px:g} px gate")
+                ok, reason, code = False, (f"reprojection RMS {reg.reprojection_rms_px:.2f} px over the "
+                                           f"{cfg.max_rms_px:g} px gate"), "pose_lost"
             elif np.nanmax(res) > cfg.max_residual_px:
                 j = int(np.nanargmax(res))
-                ok, reason = False, f"fiducial {j} residual {res[j]:.2f} px over the {cfg.max_residual_px:g} px gate"
+                ok, reason, code = False, (f"fiducial {j} residual {res[j]:.2f} px over the "
+                                           f"{cfg.max_residual_px:g} px gate"), "pose_lost"
+            else:
+                why = physical_problem(reg.T_cam_ct, self.fiducials_ct, self.radius_mm, float(self.camera.K[0, 0]),
+                                       matched, np.array(minor),
+                                       PhysicalLimits(cfg.min_distance_mm, cfg.max_distance_mm))
+                if why:
+                    ok, reason, code = False, why, "pose_implausible"
+                else:
+                    why = weak_geometry(self.fiducials_ct, matched, cfg.min_fiducials)
+                    if why:
+                        ok, reason, code = False, why, "weak_geometry"
+            if code not in ("pose_implausible",):
+                # the fit passed the residual gates: its residuals are a noise sample
+                rss = float(np.sum(np.asarray(reg.residuals_px) ** 2))
+                ne = self.noise.update(rss, reg.sigma_dof) if code in ("", "weak_geometry") else \
+                    self.noise.peek(rss, reg.sigma_dof)
+                sigma, sigma_src = ne.sigma_px, ne.source
+                if self.target_ct is not None:
+                    tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
+                if ok and self.target_ct is not None and not (tre <= cfg.max_predicted_tre_mm):
+                    ok, code = False, "tre_limit"
+                    reason = (f"predicted error at the target {tre:.2f} mm over the {cfg.max_predicted_tre_mm:g} mm "
+                              f"limit (image noise {sigma:.2f} px, {len(reg.pairs)} fiducials)")
         else:
             if len(pts) < cfg.min_fiducials:
                 reason = f"{len(pts)} fiducials detected (need {cfg.min_fiducials}): {reason}"
+                code = "occlusion"
             # best-effort status from the last valid pose
             if self._last_T is not None and len(pts):
                 proj = self.camera.project(apply_transform(self._last_T, self.fiducials_ct))
                 d = np.linalg.norm(proj[:, None] - pts[None], axis=2)
                 for j in range(n):
+                    if j in self.excluded:
+                        continue
                     i = int(np.argmin(d[j]))
                     if d[j, i] <= cfg.status_gate_px:
                         seen[j] = True
                         img_pts[j] = pts[i]
         status = []
-        alerts = []
         for j in range(n):
-            if seen[j]:
+            if j in self.excluded:
+                status.append(MOVED)
+            elif seen[j]:
                 status.append(SEEN)
             elif self._prev_seen[j]:
                 status.append(NEWLY_LOST)
@@ -195,20 +296,18 @@ class PoseTracker:
         if lost:
             alerts.append(f"fiducial{'s' if len(lost) > 1 else ''} {', '.join(map(str, lost))} lost "
                           f"(occluded?) in frame {frame.index}")
-        if not ok and (self._last_ok or self._last_ok is None):
+        if not ok and (self._last_ok or self._last_ok is None or code != self._last_code):
             alerts.append(f"no valid pose: {reason}")
         self._prev_seen = seen
         self._ever_seen |= seen
         self._last_ok = ok
+        self._last_code = code if not ok else ""
 
-        tre = float("nan")
         T = reg.T_cam_ct if ok else None
         if ok:
             self._last_T = reg.T_cam_ct
             self._last_T_time = frame.t_capture
             self._last_T_index = frame.index
-            if self.target_ct is not None:
-                tre = float(reg.predicted_tre_mm(self.target_ct))
         return PoseEstimate(
             ok=ok, reason="" if ok else reason, frame_index=frame.index, t_capture=frame.t_capture,
             t_published=time.monotonic(), T_cam_ct=T, status=status, image_points_px=img_pts, residuals_px=res,
@@ -216,19 +315,34 @@ class PoseTracker:
             reprojection_rms_px=float(reg.reprojection_rms_px) if reg.ok else float("nan"),
             predicted_tre_mm=tre, n_detected=len(pts), n_matched=int(seen.sum()) if reg.ok else 0,
             alerts=alerts, used_prior=bool(reg.used_prior), detect_s=det.time_s, register_s=t_reg,
-            truth=frame.truth)
+            truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
+            moved=new_moved, excluded=sorted(self.excluded))
 
-    def camera_fault(self, frame_index: int, t_capture: float, camera: str, reason: str) -> PoseEstimate:
-        """An invalid estimate for a camera fault; the next good frame starts from a full search."""
+    def _invalid(self, frame_index: int, t_capture: float, code: str, reason: str, camera: str = "ok",
+                 truth=None) -> PoseEstimate:
+        """An invalid estimate that saw nothing (camera fault, unusable frame); the alert is
+        raised once per episode (per code); the next good frame starts from a full search."""
         n = len(self.fiducials_ct)
-        status = [NEWLY_LOST if s else (OCCLUDED if e else UNKNOWN) for s, e in zip(self._prev_seen, self._ever_seen)]
+        status = [MOVED if j in self.excluded else NEWLY_LOST if s else (OCCLUDED if e else UNKNOWN)
+                  for j, (s, e) in enumerate(zip(self._prev_seen, self._ever_seen))]
+        repeat = self._last_ok is False and self._last_code == code
         self._prev_seen = np.zeros(n, bool)
         self._last_T_time = -np.inf
         self._last_T_index = -10
         self._last_ok = False
+        self._last_code = code
         return PoseEstimate(ok=False, reason=reason, frame_index=frame_index, t_capture=t_capture,
                             t_published=time.monotonic(), status=status, image_points_px=np.full((n, 2), np.nan),
-                            residuals_px=np.full(n, np.nan), alerts=[reason], camera=camera)
+                            residuals_px=np.full(n, np.nan), alerts=[] if repeat else [reason], camera=camera,
+                            code=code, truth=truth, excluded=sorted(self.excluded))
+
+    def camera_fault(self, frame_index: int, t_capture: float, camera: str, reason: str) -> PoseEstimate:
+        """An invalid estimate for a camera fault (``camera``: frozen, stalled, disconnected,
+        ended, unreadable; its alert code from ``CAMERA_CODES``); the next good frame starts
+        from a full search."""
+        est = self._invalid(frame_index, t_capture, CAMERA_CODES.get(camera, "camera_freeze"), reason, camera)
+        est.alerts = [reason]
+        return est
 
 
 class PoseStream:
@@ -353,6 +467,13 @@ class PoseStream:
             self._read_since = time.monotonic()
             try:
                 frame = self.source.read()
+            except FrameUnreadable as exc:
+                # one bad frame (corrupt image, decode error): report it, go on with the next
+                if not self._stop.is_set():
+                    self._fault_estimate("unreadable", f"frame unreadable: {exc}")
+                    with self._fault_lock:
+                        self._fault = ""   # each unreadable frame is its own event
+                continue
             except CameraDisconnected as exc:
                 if not self._stop.is_set():     # closing the source on stop() is not a fault
                     self._fault_estimate("disconnected", f"camera disconnected: {exc}")
@@ -379,7 +500,8 @@ class PoseStream:
             except Exception as exc:  # noqa: BLE001 - report, keep the stream alive
                 log.exception("pose tracking failed on frame %d", frame.index)
                 est = PoseEstimate(False, f"internal error: {type(exc).__name__}: {exc}", frame.index,
-                                   frame.t_capture, time.monotonic(), alerts=[f"internal error: {exc}"])
+                                   frame.t_capture, time.monotonic(), alerts=[f"internal error: {exc}"],
+                                   code="pose_lost")
             self._publish(est)
 
     def _watch(self) -> None:
@@ -387,7 +509,10 @@ class PoseStream:
             if not self._thread.is_alive():
                 return
             since = self._read_since
-            if since is not None:
+            # a stall is a live camera that stopped delivering: not the start-up before its first
+            # frame (opening, auto-exposure; nothing to trust yet), and never a file or a folder
+            # (read as fast as frames are processed)
+            if since is not None and self._last_index >= 0 and getattr(self.source, "live", True):
                 age = time.monotonic() - since
                 if age > self.watchdog.max_age_s:
                     self._fault_estimate("stalled", f"camera stalled: no new frame for {1000 * age:.0f} ms")

@@ -1,0 +1,248 @@
+"""Moved-fiducial detection: leave-one-out consistency of a registration.
+
+A ball that shifted on the skin since the CT (or was re-stuck) still looks like a ball; a
+registration that averages it in is wrong everywhere, and its FRE says little (FRE does not
+predict TRE). Each fit is therefore checked one fiducial at a time:
+
+1. **Leave one out.** For every matched fiducial i (at least ``MIN_PAIRS_LOO`` = 5 pairs, so
+   that the other >= 4 determine the pose with redundancy), the pose is re-fitted without i
+   (LM from the full fit) and i is predicted. Its prediction error e_i (px) has covariance
+   ``S_i = sigma^2 (I + J_i C_-i J_i^T)``, C_-i = (J_-i^T J_-i)^-1 the pose covariance of the
+   others and J_i i's projection Jacobian; ``d_i^2 = e_i^T S_i^-1 e_i`` is chi-square with 2
+   dof when nothing moved. sigma is the larger of the noise given by the caller (the stream's
+   pooled estimate) and the leave-one-out fit's own residual estimate (so the moved ball cannot
+   inflate it).
+2. **Moved** = ``d_i^2 > chi2_gate`` (default: 2-dof p = 1e-4, 18.4) **and** the implied shift
+   ``|e_i| * z_i / f`` (mm, perpendicular to the line of sight at the ball's depth) above
+   ``min_shift_mm`` (1.0 mm). The second rule is the false-alarm guard: a detector bias of a few
+   tenths of a pixel (a ball on the head's outline) is statistically visible but clinically
+   irrelevant and must not make the system discard a good ball. A shift along the line of sight
+   is invisible to one camera (and moves the pose little).
+3. The worst offender is excluded and the pose re-solved without it (``register`` with the
+   leave-one-out pose as prior); repeated up to ``max_exclusions`` times.
+4. **Near miss.** A ball displaced by more than the registration's inlier gate (~2 mm at
+   0.5 m) is not matched at all; it is named moved when an unmatched detection lies within
+   ``max_shift_mm`` of its predicted position and passes the same test. (A stray blob next to
+   a hidden ball looks the same; the consequence is only that the ball stays excluded.)
+
+Index conventions as :func:`register`: pairs are (image index, fiducial index) into the
+caller's full fiducial array; ``excluded`` fiducials are never used.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .api import register
+from .pnp import _residuals_and_jacobian, refine_pose
+from .projection import undistort_to_normalised
+from .result import Registration
+
+#: 2-dof chi-square quantile for p = 1e-4.
+CHI2_2DOF_1E4 = 18.42
+MIN_PAIRS_LOO = 5
+
+
+@dataclass(frozen=True)
+class MovedFiducial:
+    """A fiducial whose image disagrees with the others: ``fiducial_index`` (into the caller's
+    CT array), ``image_index`` (the detection), ``shift_mm`` (estimated displacement across the
+    line of sight, mm), ``error_px`` (leave-one-out prediction error, px), ``d2`` (its
+    Mahalanobis square), ``how`` "leave-one-out" or "near-miss"."""
+
+    fiducial_index: int
+    image_index: int
+    shift_mm: float
+    error_px: float
+    d2: float
+    how: str
+    T_without: np.ndarray | None = None
+
+
+@dataclass
+class Screened:
+    """``registration`` the final result (indices into the full fiducial array; excluded
+    fiducials appear in ``unmatched_fiducial_indices``); ``moved`` the fiducials found moved in
+    this call; ``excluded`` all fiducials left out (given + found)."""
+
+    registration: Registration
+    moved: list = field(default_factory=list)
+    excluded: list = field(default_factory=list)
+
+
+def _loo_one(T, X, obs, fxy, radius, i, sigma_px):
+    """Leave pair i out: (error px (2,), d2, T_without, sigma used)."""
+    keep = np.arange(len(X)) != i
+    ref = refine_pose(T, X[keep], obs[keep], fxy, radius, max_iter=10)
+    Tw = ref.T
+    k = int(keep.sum())
+    dof = 2 * k - 6
+    s_loo = float(np.sqrt(np.sum(ref.residuals**2) / dof)) if dof > 0 else 0.0
+    sigma = max(s_loo, sigma_px or 0.0, 1e-3)
+    r_i, J_i = _residuals_and_jacobian(Tw[:3, :3], Tw[:3, 3], X[i:i + 1], obs[i:i + 1], fxy, radius)
+    try:
+        C = np.linalg.inv(ref.JtJ)
+    except np.linalg.LinAlgError:
+        return r_i, np.inf, Tw, sigma
+    S = sigma**2 * (np.eye(2) + J_i @ C @ J_i.T)
+    try:
+        d2 = float(r_i @ np.linalg.solve(S, r_i))
+    except np.linalg.LinAlgError:
+        d2 = np.inf
+    return r_i, d2, Tw, sigma
+
+
+def _shift_mm(T, x_ct, err_px, fxy) -> float:
+    z = float((T[:3, :3] @ x_ct + T[:3, 3])[2])
+    return float(np.linalg.norm(np.asarray(err_px) / fxy) * z)
+
+
+def leave_one_out(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: float | None,
+                  pairs, sigma_px: float | None = None, screen_d2: float | None = None) -> list[MovedFiducial]:
+    """Leave-one-out test of every pair; one :class:`MovedFiducial` record per pair (not yet
+    judged), fiducial indices into ``X``.
+
+    Screening is closed-form at the fit (the deletion formulas of least squares: the left-out
+    prediction error is ``(I - H_ii)^-1 r_i`` with covariance ``sigma^2 (I - H_ii)^-1``, H the
+    2x2 block of the hat matrix), which costs one Jacobian; pairs whose screened ``d2`` exceeds
+    ``screen_d2 / 4`` (all pairs when None) are re-fitted without them exactly (LM), which
+    also gives the pose without them."""
+    pairs = list(pairs)
+    k = len(pairs)
+    if k < MIN_PAIRS_LOO:
+        return []
+    ii = np.array([p[0] for p in pairs])
+    mi = np.array([p[1] for p in pairs])
+    Xm, obs = X[mi], xn[ii]
+    r, J = _residuals_and_jacobian(T[:3, :3], T[:3, 3], Xm, obs, fxy, radius_mm)
+    try:
+        C = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return []
+    rss = float(r @ r)
+    dof_loo = 2 * (k - 1) - 6
+    out = []
+    for q in range(k):
+        Jq = J[2 * q:2 * q + 2]
+        rq = r[2 * q:2 * q + 2]
+        IH = np.eye(2) - Jq @ C @ Jq.T
+        try:
+            e = np.linalg.solve(IH, rq)
+        except np.linalg.LinAlgError:
+            e = rq * np.inf
+        quad = float(rq @ e)                       # r^T (I - H)^-1 r = drop in RSS
+        s_loo = np.sqrt(max(rss - quad, 0.0) / dof_loo) if dof_loo > 0 else 0.0
+        sigma = max(s_loo, sigma_px or 0.0, 1e-3)
+        d2 = quad / sigma**2
+        rec = MovedFiducial(int(mi[q]), int(ii[q]), _shift_mm(T, Xm[q], e, fxy), float(np.linalg.norm(e)),
+                            float(d2), "leave-one-out", None)
+        if screen_d2 is None or d2 > screen_d2 / 4:
+            e2, d2x, Tw, _ = _loo_one(T, Xm, obs, fxy, radius_mm, q, sigma_px)
+            rec = MovedFiducial(int(mi[q]), int(ii[q]), _shift_mm(Tw, Xm[q], e2, fxy),
+                                float(np.linalg.norm(e2)), float(d2x), "leave-one-out", Tw)
+        out.append(rec)
+    return out
+
+
+def near_misses(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: float | None,
+                pairs, candidates, sigma_px: float, max_shift_mm: float) -> list[MovedFiducial]:
+    """Unmatched fiducials (``candidates``, indices into X) with an unmatched detection within
+    ``max_shift_mm`` of their predicted position under the pose ``T`` fitted to ``pairs``."""
+    from .projection import project_normalised
+
+    used_img = {p[0] for p in pairs}
+    free = np.array([i for i in range(len(xn)) if i not in used_img], int)
+    if len(free) == 0 or len(pairs) < 4:
+        return []
+    ii = np.array([p[0] for p in pairs])
+    mi = np.array([p[1] for p in pairs])
+    _, J = _residuals_and_jacobian(T[:3, :3], T[:3, 3], X[mi], xn[ii], fxy, radius_mm)
+    try:
+        C = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return []
+    out = []
+    for j in candidates:
+        Xc = T[:3, :3] @ X[j] + T[:3, 3]
+        if Xc[2] <= (radius_mm or 0.0):
+            continue
+        pred = project_normalised(Xc[None], radius_mm)[0]
+        d = np.linalg.norm((xn[free] - pred) * fxy, axis=1)
+        a = int(np.argmin(d))
+        e = (xn[free[a]] - pred) * fxy
+        shift = float(np.linalg.norm(e / fxy) * Xc[2])
+        if shift > max_shift_mm:
+            continue
+        _, J_j = _residuals_and_jacobian(T[:3, :3], T[:3, 3], X[j:j + 1], xn[free[a]:free[a] + 1], fxy, radius_mm)
+        S = sigma_px**2 * (np.eye(2) + J_j @ C @ J_j.T)
+        out.append(MovedFiducial(int(j), int(free[a]), shift, float(np.linalg.norm(e)),
+                                 float(e @ np.linalg.solve(S, e)), "near-miss", T))
+    return out
+
+
+def _remap(reg: Registration, active: np.ndarray, n_all: int, excluded) -> Registration:
+    """Fiducial indices of a registration on ``X[active]`` -> indices into the full array."""
+    reg.pairs = [(int(i), int(active[j])) for i, j in reg.pairs]
+    if "rejected_pairs" in reg.stats:
+        reg.stats["rejected_pairs"] = [(int(i), int(active[j])) for i, j in reg.stats["rejected_pairs"]]
+    if "ambiguous_pairs" in reg.stats:
+        reg.stats["ambiguous_pairs"] = [(int(i), int(active[j])) for i, j in reg.stats["ambiguous_pairs"]]
+    matched = {j for _, j in reg.pairs}
+    reg.unmatched_fiducial_indices = sorted(set(range(n_all)) - matched)
+    reg.stats["excluded_fiducials"] = sorted(int(j) for j in excluded)
+    return reg
+
+
+def register_screened(fiducials_ct, image_points, K, dist=None, radius_mm=None, *, excluded=(), prior=None,
+                      method: str = "robust", sigma_px: float | None = None, min_shift_mm: float = 1.0,
+                      max_shift_mm: float = 8.0, chi2_gate: float = CHI2_2DOF_1E4,
+                      max_exclusions: int = 2) -> Screened:
+    """:func:`register` without the ``excluded`` fiducials, then the moved-fiducial test (module
+    docstring); a moved fiducial is excluded and the pose re-solved. ``sigma_px``: the image
+    noise known from earlier frames (px), or None (the fit's own leave-one-out estimate)."""
+    X_all = np.asarray(fiducials_ct, float).reshape(-1, 3)
+    pts = np.asarray(image_points, float).reshape(-1, 2)
+    n = len(X_all)
+    excl = set(int(j) for j in excluded)
+    K = np.asarray(K, float)
+    fxy = np.array([K[0, 0], K[1, 1]])
+    radius = float(radius_mm) if radius_mm else None
+    moved: list[MovedFiducial] = []
+
+    def solve(prior_T):
+        active = np.array([j for j in range(n) if j not in excl], int)
+        r = register(X_all[active], pts, K, dist, radius_mm=radius_mm, method=method, prior=prior_T)
+        return _remap(r, active, n, excl)
+
+    reg = solve(prior)
+    if len(pts) == 0 or not np.all(np.isfinite(pts)):
+        return Screened(reg, moved, sorted(excl))
+    xn = undistort_to_normalised(pts, K, dist)
+    for _ in range(max_exclusions + 1):
+        if reg.ok:
+            T, pairs = reg.T_cam_ct, reg.pairs
+        elif reg.stats.get("rejected_T_cam_ct") is not None and "ambiguous" not in reg.reason:
+            T, pairs = reg.stats["rejected_T_cam_ct"], reg.stats.get("rejected_pairs", [])
+        else:
+            break
+        if len(moved) >= max_exclusions:
+            break
+        tests = leave_one_out(T, X_all, xn, fxy, radius, pairs, sigma_px, screen_d2=chi2_gate)
+        bad = [m for m in tests if m.d2 > chi2_gate and m.shift_mm > min_shift_mm and m.T_without is not None]
+        if not bad:
+            break
+        worst = max(bad, key=lambda m: m.d2)
+        moved.append(worst)
+        excl.add(worst.fiducial_index)
+        reg = solve(worst.T_without)
+    if reg.ok and len(moved) < max_exclusions:
+        unmatched = [j for j in reg.unmatched_fiducial_indices if j not in excl]
+        sig = max(sigma_px or 0.0, reg.sigma_px if np.isfinite(reg.sigma_px) else 0.0, 1e-3)
+        for m in near_misses(reg.T_cam_ct, X_all, xn, fxy, radius, reg.pairs, unmatched, sig, max_shift_mm):
+            if m.d2 > chi2_gate and m.shift_mm > min_shift_mm and len(moved) < max_exclusions:
+                moved.append(m)
+                excl.add(m.fiducial_index)
+        reg.stats["excluded_fiducials"] = sorted(excl)
+    return Screened(reg, moved, sorted(excl))

@@ -1,0 +1,89 @@
+"""Online estimate of the detector's image noise (px) from registration residuals.
+
+One frame's residuals give ``sigma^2 = RSS / dof`` with ``dof = 2k - 6`` (k matched fiducials);
+with 9 fiducials that is 12 dof, a relative spread of about 20 % in sigma, and with 4 fiducials
+only 2 dof (the estimate can be near zero by chance). The detector's noise changes slowly, so
+:class:`OnlineNoise` pools the residual sums of squares of the recent accepted frames:
+``sigma_pool^2 = sum RSS / sum dof`` (a dof-weighted pooled variance, unbiased, no floor).
+
+Rules (choices written down here):
+
+* **No floor that hides low noise**: with enough pooled dof the pooled value is used as is.
+* **Nothing hides high noise**: if the current frame's variance is larger than the pool's by
+  more than the F-distribution's ``1 - alpha`` quantile for (frame dof, pool dof), the noise
+  went up now (blur, an occluder's edge, a bad ball); the frame's own estimate is used.
+* **Few dof, no history**: until ``min_dof`` residual dof are pooled (first frames, few balls)
+  the estimate is ``max(pooled, prior_px)``: conservative where the data cannot say.
+* Frames whose fiducials were found inconsistent (a moved ball) enter only after that ball was
+  excluded (the caller feeds the residuals of the final fit).
+
+Units: px (equivalent pinhole pixels, as the registration's residuals).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.stats import f as f_dist
+
+
+@dataclass(frozen=True)
+class NoiseEstimate:
+    """``sigma_px`` the noise to use; ``frame_px`` this frame's own estimate; ``pooled_px`` the
+    pool's (including this frame); ``dof`` behind ``sigma_px``; ``source`` one of "pooled",
+    "frame" (noise rose), "prior" (too few dof yet)."""
+
+    sigma_px: float
+    frame_px: float
+    pooled_px: float
+    dof: int
+    source: str
+
+
+class OnlineNoise:
+    """Pooled residual variance over the last ``window`` accepted frames (see module docstring)."""
+
+    def __init__(self, window: int = 30, min_dof: int = 10, prior_px: float = 0.3, alpha: float = 0.01):
+        self.window = int(window)
+        self.min_dof = int(min_dof)
+        self.prior_px = float(prior_px)
+        self.alpha = float(alpha)
+        self._frames: deque = deque(maxlen=self.window)
+
+    def reset(self) -> None:
+        self._frames.clear()
+
+    @property
+    def pooled_dof(self) -> int:
+        return int(sum(d for _, d in self._frames))
+
+    def peek(self, rss_px2: float, dof: int) -> NoiseEstimate:
+        """The estimate for a frame with residual sum of squares ``rss_px2`` (px^2) and ``dof``,
+        without adding it to the pool."""
+        dof = int(dof)
+        rss = float(rss_px2)
+        frame_var = rss / dof if dof > 0 else np.nan
+        p_rss = sum(r for r, _ in self._frames)
+        p_dof = sum(d for _, d in self._frames)
+        tot_dof = p_dof + max(dof, 0)
+        pooled_var = (p_rss + (rss if dof > 0 else 0.0)) / tot_dof if tot_dof > 0 else np.nan
+        frame_px = float(np.sqrt(frame_var)) if np.isfinite(frame_var) else float("nan")
+        pooled_px = float(np.sqrt(pooled_var)) if np.isfinite(pooled_var) else float("nan")
+        if tot_dof < self.min_dof:
+            cand = [v for v in (pooled_px, self.prior_px) if np.isfinite(v)]
+            return NoiseEstimate(max(cand), frame_px, pooled_px, tot_dof, "prior")
+        if dof > 0 and p_dof > 0:
+            old_var = p_rss / p_dof
+            crit = f_dist.ppf(1.0 - self.alpha, dof, p_dof)
+            if old_var > 0 and frame_var / old_var > crit:
+                return NoiseEstimate(max(frame_px, pooled_px), frame_px, pooled_px, dof, "frame")
+        return NoiseEstimate(pooled_px, frame_px, pooled_px, tot_dof, "pooled")
+
+    def update(self, rss_px2: float, dof: int) -> NoiseEstimate:
+        """:meth:`peek`, then add the frame to the pool."""
+        est = self.peek(rss_px2, dof)
+        if dof > 0 and np.isfinite(rss_px2):
+            self._frames.append((float(rss_px2), int(dof)))
+        return est
