@@ -5,6 +5,11 @@ Each area contributes its sub-commands from a ``commands`` module exposing
 code. Expected failures (:class:`~monotracker.errors.MonoTrackerError`) print one line
 ``error: ...`` and exit 2; anything unexpected prints one line naming the log file that holds
 the traceback and exits 3. The operator never sees a raw traceback.
+
+Arguments are checked where they enter (:mod:`monotracker.cli_args`); on top of that, any float
+argument that is NaN or infinite is refused here for every sub-command (exit 2). Output piped
+into a reader that stops early (``detect-ct --json | head``) ends quietly: a ``BrokenPipeError``
+exits 141 (as a shell reports SIGPIPE) without a message.
 """
 
 from __future__ import annotations
@@ -12,8 +17,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
+import tempfile
 import traceback
+from pathlib import Path
 
 from monotracker import __version__
 from monotracker.errors import MonoTrackerError
@@ -41,24 +49,55 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _log_internal_error() -> str:
+    """Append the current traceback to the error log (the data folder's, else the temp folder's)."""
     from monotracker.paths import data_dir
 
-    path = data_dir() / "monotracker-errors.log"
-    with open(path, "a", encoding="utf-8") as fh:
-        fh.write(traceback.format_exc())
-        fh.write("\n")
-    return str(path)
+    candidates = []
+    try:
+        candidates.append(data_dir() / "monotracker-errors.log")
+    except OSError:
+        pass
+    candidates.append(Path(tempfile.gettempdir()) / "monotracker-errors.log")
+    for path in candidates:
+        try:
+            with open(path, "a", encoding="utf-8") as fh:
+                fh.write(traceback.format_exc())
+                fh.write("\n")
+            return str(path)
+        except OSError:
+            continue
+    return "nowhere: no writable log folder"
+
+
+def _quiet_broken_pipe() -> int:
+    """The reader of stdout went away: point stdout at /dev/null so the final flush is silent."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    return 141
 
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from monotracker.cli_args import non_finite_floats
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 1
+    bad = non_finite_floats(args)
+    if bad:
+        print(f"error: --{bad[0].replace('_', '-')} must be a finite number", file=sys.stderr)
+        return 2
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()
+        return code
+    except BrokenPipeError:
+        return _quiet_broken_pipe()
     except MonoTrackerError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

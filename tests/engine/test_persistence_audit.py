@@ -6,6 +6,7 @@ import sqlite3
 
 import numpy as np
 import pytest
+from pathlib import Path
 
 from monotracker.engine.audit import AuditLog
 from monotracker.engine.persistence import atomic_write_json
@@ -82,3 +83,219 @@ def test_corrupt_plan_file_is_kept_aside_with_an_alarm(make_session, home):
     assert s.snapshot().fiducials == ()
     assert any(a.code == "plan_unreadable" for a in s.snapshot().alerts)
     assert any(p.name.startswith("plan.unreadable-") for p in home.iterdir())
+
+
+# ---------------------------------------------------------------------------------------------
+# Persistence failures refuse, they do not diverge (issue 17 item 3)
+def _disk_full(monkeypatch):
+    import errno
+
+    from monotracker.engine import persistence
+
+    real = persistence.os.replace
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(persistence.os, "replace", full)
+    return lambda: monkeypatch.setattr(persistence.os, "replace", real)
+
+
+def test_disk_full_refuses_commands_and_memory_stays_equal_to_disk(make_session, home, monkeypatch):
+    s = make_session(clock="sim")
+    ph = default_phantom()
+    for c in ph.fiducial_centres_lps:
+        assert s.add_fiducial(c, ph.fiducial_radius_mm).ok
+    on_disk = json.loads((home / "plan.json").read_text())
+    heal = _disk_full(monkeypatch)
+    r = s.confirm_fiducials()
+    assert not r.ok and "No space left on device" in r.message and "\n" not in r.message
+    for f in s.snapshot().fiducials:
+        r = s.set_fiducial_status(f.id, "rejected")
+        assert not r.ok and "not saved" in r.message
+    r = s.set_hand_eye(np.eye(4))
+    assert not r.ok
+    # memory is what is on disk: nothing unlocked, nothing rejected, no hand-eye
+    assert s.plan_copy().to_dict() == on_disk == json.loads((home / "plan.json").read_text())
+    assert not s.snapshot().fiducials_locked
+    alarms = [a.code for a in s.snapshot().alerts]
+    assert alarms.count("home_unwritable") == 1 and "plan_save_failed" in alarms
+    heal()
+    assert s.confirm_fiducials().ok
+    assert json.loads((home / "plan.json").read_text())["fiducials_locked"] is True
+    assert "home_writable" in [a.code for a in s.snapshot().alerts]
+    s.shutdown()
+    assert make_session(clock="sim").snapshot().fiducials_locked  # after a restart: what was said done
+
+
+_RO_CHILD = r'''
+import json, sys
+from monotracker.engine import Session, SessionConfig
+s = Session(SessionConfig(home=sys.argv[1], clock="sim"))
+r = s.unlock_fiducials()
+out = {"codes": [a.code for a in s.snapshot().alerts], "unlock": [r.ok, r.message],
+       "locked": s.snapshot().fiducials_locked, "spill": str(s._audit.spill_path)}
+s.shutdown()
+print(json.dumps(out))
+'''
+
+
+def test_read_only_home_starts_with_a_clear_alarm(tmp_path):
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+
+    from monotracker.engine import Session, SessionConfig
+
+    # a folder the unprivileged child can reach (pytest's tmp_path is private to this user)
+    home = Path(tempfile.mkdtemp(prefix="monotracker-ro-home-"))
+    os.chmod(home, 0o755)
+    try:
+        _read_only_home_case(home, Session, SessionConfig, subprocess, sys)
+    finally:
+        os.chmod(home, 0o755)
+        shutil.rmtree(home, ignore_errors=True)
+
+
+def _read_only_home_case(home, Session, SessionConfig, subprocess, sys):
+    s = Session(SessionConfig(home=home, clock="sim"))
+    plan_sample(s)
+    s.shutdown()
+    before = (home / "plan.json").read_text()
+    os.chmod(home, 0o555)
+    for f in home.iterdir():
+        os.chmod(f, 0o444)
+    cmd = [sys.executable, "-c", _RO_CHILD, str(home)]
+    if os.geteuid() == 0:  # root ignores folder modes: run the child as nobody
+        import shutil
+
+        if shutil.which("setpriv") is None:
+            pytest.skip("running as root without setpriv: cannot make a folder read-only for the child")
+        cmd = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"] + cmd
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd="/")
+    finally:
+        os.chmod(home, 0o755)
+    assert p.returncode == 0, p.stderr[-2000:]
+    out = json.loads(p.stdout.strip().splitlines()[-1])
+    assert "home_unwritable" in out["codes"] and "audit_unavailable" in out["codes"]
+    ok, msg = out["unlock"]
+    assert not ok and "not saved" in msg and out["locked"]  # refused, memory unchanged
+    assert (home / "plan.json").read_text() == before
+    spill = Path(out["spill"])
+    assert spill.is_file() and "home_unwritable" in spill.read_text()  # the events were not lost
+    spill.unlink()
+
+
+# ---------------------------------------------------------------------------------------------
+# The audit log never blocks safety (issue 17 item 4)
+_LOCKER = r'''
+import sqlite3, sys, time
+db = sqlite3.connect(sys.argv[1], isolation_level=None)
+db.execute("BEGIN EXCLUSIVE")
+print("LOCKED", flush=True)
+sys.stdin.readline()  # hold the lock until told
+db.execute("COMMIT")
+'''
+
+
+def test_stop_does_not_wait_for_a_locked_audit_database(make_session, home):
+    import subprocess
+    import sys
+    import time
+
+    from .doubles import FollowerRobotRig, TruthCameraRig
+
+    cam, rob = TruthCameraRig("still"), FollowerRobotRig()
+    s = make_session(clock="sim", camera_factory=lambda *a: cam, robot_factory=lambda *a: rob)
+    plan_sample(s)
+    assert s.start_camera().ok
+    s.advance(0.3)
+    assert s.arm("1234").ok and s.start_tracking().ok
+    s.advance(0.5)
+    assert s._audit.flush(30)
+    locker = subprocess.Popen([sys.executable, "-c", _LOCKER, str(home / "audit.sqlite")], stdin=subprocess.PIPE,
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert locker.stdout.readline().strip() == "LOCKED"
+        t0 = time.perf_counter()
+        r = s.estop()
+        took = time.perf_counter() - t0
+        assert r.ok
+        s.inject_fault("camera-freeze")  # more events while the database is locked
+        # estop returned while the database was still locked by the other process: it did not wait on it
+        assert locker.poll() is None
+        assert took < 5.0  # generous: a blocked write would have taken the busy timeout per event
+        assert s.snapshot().robot.state == "estopped"
+        s.advance(0.2)
+        assert np.max(np.abs(rob.status().qd)) < 1e-9  # the arm is still
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and "audit_delayed" not in [a.code for a in s.snapshot().alerts]:
+            time.sleep(0.05)
+        assert "audit_delayed" in [a.code for a in s.snapshot().alerts]
+    finally:
+        locker.communicate("go\n", timeout=30)
+    assert s._audit.flush(60)
+    db_codes = [e.code for e in s.audit_entries()]
+    spill = home / "audit.spill.jsonl"
+    spilled = [json.loads(line)["code"] for line in spill.read_text().splitlines()] if spill.exists() else []
+    for code in ("estop", "fault_injected"):
+        assert code in db_codes or code in spilled, (code, db_codes[-5:], spilled)
+    assert "estop" in spilled  # it was written while the lock was held: spilled, not lost
+    assert s._audit.lost == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Tamper-evident audit (issue 17 item 5)
+def _filled_log(path):
+    log = AuditLog(path, "s1")
+    for i in range(6):
+        log.record("event", "info", f"c{i}", f"row {i}", {"i": i})
+    assert log.flush(30)
+    log.close()
+
+
+def _tamper(path, *sql):
+    db = sqlite3.connect(path, isolation_level=None)
+    for q in sql:
+        db.execute(q)
+    db.close()
+
+
+def test_audit_verify_passes_an_untouched_log(tmp_path):
+    from monotracker.engine.audit import verify
+
+    p = tmp_path / "a.sqlite"
+    _filled_log(p)
+    v = verify(p)
+    assert v.ok and v.rows == 6, v.reason
+
+
+@pytest.mark.parametrize("sql,bad_id,word", [
+    (["DROP TRIGGER audit_no_update", "UPDATE audit SET message='forged' WHERE id=3"], 3, "changed"),
+    (["DROP TRIGGER audit_no_delete", "DELETE FROM audit WHERE id=3"], 3, "missing"),
+    (["DROP TRIGGER audit_no_replace",
+      "INSERT OR REPLACE INTO audit (id, t_unix, t_iso, session_id, kind, level, code, message, data, prev_hash, hash)"
+      " SELECT id, t_unix, t_iso, session_id, kind, level, code, 'forged', data, prev_hash, hash FROM audit WHERE id=4"],
+     4, "changed"),
+    (["DROP TRIGGER audit_no_delete"], None, "trigger"),
+])
+def test_audit_verify_names_the_first_bad_row(tmp_path, sql, bad_id, word):
+    from monotracker.engine.audit import verify
+
+    p = tmp_path / "a.sqlite"
+    _filled_log(p)
+    _tamper(p, *sql)
+    v = verify(p)
+    assert not v.ok and v.first_bad_id == bad_id and word in v.reason, v
+
+
+def test_insert_or_replace_is_refused_by_the_database(tmp_path):
+    p = tmp_path / "a.sqlite"
+    _filled_log(p)
+    db = sqlite3.connect(p)
+    with pytest.raises(sqlite3.DatabaseError, match="append-only"):
+        db.execute("INSERT OR REPLACE INTO audit (id, t_unix, t_iso, session_id, kind, level, code, message, data)"
+                   " VALUES (2, 0, '', 's', 'event', 'info', 'x', 'forged', '{}')")
+    db.close()

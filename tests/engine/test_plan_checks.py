@@ -112,9 +112,10 @@ def test_hand_eye_checks(T, word):
 @pytest.mark.parametrize("K,dist,size,word", [
     ([[0, 0, 320], [0, 800, 240], [0, 0, 1]], None, (640, 480), "focal"),
     ([[800, 0, 900], [0, 800, 240], [0, 0, 1]], None, (640, 480), "principal point"),
-    ([[800, 0, 320], [0, 800, 240], [0, 0, 1]], [0, np.nan, 0, 0, 0], (640, 480), "non-finite"),
+    ([[800, 0, 320], [0, 800, 240], [0, 0, 1]], [0, np.nan, 0, 0, 0], (640, 480), "NaN"),
     ([[800, 0, 320], [0, 800, 240], [0, 0, 1]], None, (0, 480), "positive"),
-    ("abc", None, None, "numbers"),
+    ("abc", None, (640, 480), "numbers"),
+    ([[800, 0, 320], [0, 800, 240], [0, 0, 1]], None, None, "together"),
 ])
 def test_camera_checks(K, dist, size, word):
     why = pc.check_camera(K, dist, size)

@@ -1,4 +1,6 @@
-"""``monotracker demo --headless``: the closed loop on the digital twin, summarised.
+"""``monotracker demo --headless`` and ``monotracker audit verify``.
+
+``demo --headless``: the closed loop on the digital twin, summarised.
 
     monotracker demo --headless --seconds S [--trajectory still|drift|breathing|jumps]
         [--fault none|camera-freeze|occlude-all|robot-disconnect|bad-pose] [--fault-at T]
@@ -7,6 +9,12 @@
 Runs on a simulated clock (see ``monotracker.engine.demo``); ``--seconds`` is tracking time.
 Exit code 0 when the run completed and, for a fault, the arm came to a standstill and the plan
 is intact; 1 otherwise (the summary says why).
+
+    monotracker audit verify [HOME]
+
+Checks the audit log of a session folder (default ``$MONOTRACKER_HOME`` or ``~/.monotracker``):
+the protective triggers are present and every row's hash chains to the one before. Exit 0 when
+intact, 1 naming the first bad row.
 """
 
 from __future__ import annotations
@@ -15,23 +23,59 @@ import argparse
 import sys
 from pathlib import Path
 
+from monotracker.cli_args import finite_float, home_folder, int_range
 from monotracker.engine.config import FAULTS, TRAJECTORIES
 from monotracker.errors import InputError
+
+MAX_DEMO_SECONDS = 3600.0
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="run the closed loop on the digital twin (camera + arm simulated)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--headless", action="store_true", help="no web app: run and print a summary")
-    p.add_argument("--seconds", type=float, default=10.0, help="tracking time in simulated seconds (default 10)")
+    p.add_argument("--seconds", type=finite_float(0.0, MAX_DEMO_SECONDS, lo_open=True), default=10.0,
+                   help=f"tracking time in simulated seconds, > 0 and <= {MAX_DEMO_SECONDS:g} (default 10)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="head motion (default breathing)")
     p.add_argument("--fault", choices=FAULTS, default="none", help="fault to inject while tracking")
-    p.add_argument("--fault-at", type=float, default=None, metavar="T",
+    p.add_argument("--fault-at", type=finite_float(0.0, MAX_DEMO_SECONDS), default=None, metavar="T",
                    help="seconds after tracking starts to inject the fault (default: half-way, >= 3 s)")
-    p.add_argument("--seed", type=int, default=0, help="simulator noise seed")
-    p.add_argument("--home", type=Path, default=None, help="session folder (default: a temporary one)")
+    p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="simulator noise seed, 0 .. 2^32-1")
+    p.add_argument("--home", type=home_folder, default=None, help="session folder (default: a temporary one)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.set_defaults(func=_demo)
+
+    a = subparsers.add_parser("audit", help="the session's audit log: verify its hash chain",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    asub = a.add_subparsers(dest="audit_command", metavar="ACTION", required=True)
+    v = asub.add_parser("verify", help="check the audit log's hash chain and protective triggers")
+    v.add_argument("home", nargs="?", type=home_folder, default=None,
+                   help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
+    v.add_argument("--json", action="store_true", help="print one JSON object")
+    v.set_defaults(func=_audit_verify)
+
+
+def _audit_verify(args) -> int:
+    import json
+    from dataclasses import asdict
+
+    from monotracker.engine.audit import verify
+    from monotracker.engine.session import AUDIT_FILE
+
+    if args.home is None:
+        import os
+
+        home = Path(os.environ.get("MONOTRACKER_HOME", Path.home() / ".monotracker"))
+    else:
+        home = args.home
+    if not (home / AUDIT_FILE).is_file():
+        raise InputError(f"no audit log in {home} (expected {AUDIT_FILE})")
+    r = verify(home / AUDIT_FILE)
+    if args.json:
+        print(json.dumps(asdict(r)))
+    else:
+        print(("OK: " if r.ok else "TAMPERED: ") + r.reason)
+    return 0 if r.ok else 1
 
 
 def _demo(args) -> int:

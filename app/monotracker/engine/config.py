@@ -81,8 +81,11 @@ class SessionConfig:
         if not (self.camera in ("sim", "sim-points") or self.camera.split(":", 1)[0] in ("device", "file", "folder")):
             raise InputError("camera must be 'sim', 'sim-points', 'device:N', 'file:PATH' or 'folder:PATH', "
                              f"not {self.camera!r}")
-        if not (self.robot == "sim" or self.robot.startswith("ur:")):
-            raise InputError(f"robot must be 'sim' or 'ur:<ip>', not {self.robot!r}")
+        from monotracker.cli_args import check_robot_spec
+
+        why = check_robot_spec(self.robot)
+        if why:
+            raise InputError(why)
         if self.camera_fps <= 0 or self.control_hz <= 0:
             raise InputError("camera_fps and control_hz must be positive")
         if self.min_fiducials < 3:

@@ -323,40 +323,34 @@ def path_unchecked_reason(plan, anatomy: Anatomy | None) -> str | None:
 
 # ---------------------------------------------------------------------- camera
 def check_camera(K, dist, image_size) -> str | None:
-    """Intrinsics ``K`` (3x3 px): positive focal lengths, principal point inside the image;
-    ``dist`` finite (4, 5, 8, 12 or 14 coefficients); ``image_size`` (width, height) px positive.
-    Any of them may be None (not known yet), but K and image_size are checked together when both are known."""
-    if K is not None:
-        Ka, why = finite_array(K, (3, 3), "camera K")
-        if why:
-            return why
-        if Ka[0, 0] <= 0 or Ka[1, 1] <= 0:
-            return f"camera K has non-positive focal lengths ({Ka[0, 0]:g}, {Ka[1, 1]:g}) px"
-        if not np.allclose(Ka[2], [0.0, 0.0, 1.0]) or abs(Ka[1, 0]) > 1e-9:
-            return "camera K must be upper-triangular with last row (0, 0, 1)"
-    if dist is not None:
-        if isinstance(dist, (str, bytes, dict)):
+    """Intrinsics ``K`` (3x3 px), distortion ``dist`` (OpenCV order), ``image_size`` (width,
+    height) px, as the plan stores them. All None: no camera yet. Types are checked here, the
+    values by vision's :func:`~monotracker.vision.camera_model.validate_intrinsics` (the one
+    intrinsics check: positive focal lengths, principal point inside the image, finite, a known
+    number of distortion coefficients)."""
+    if K is None and dist is None and image_size is None:
+        return None
+    if K is None or image_size is None:
+        return "camera K and image_size must be stored together"
+    Ka, why = finite_array(K, (3, 3), "camera K")
+    if why:
+        return why
+    if dist is None:
+        d = np.zeros(0)
+    else:
+        if isinstance(dist, (str, bytes, dict, bool)):
             return "camera dist must be a list of numbers"
         try:
             d = np.asarray(dist, dtype=float).ravel()
         except (TypeError, ValueError):
             return "camera dist must be a list of numbers"
-        if d.size not in (0, 4, 5, 8, 12, 14):
-            return f"camera dist has {d.size} coefficients (expected 4, 5, 8, 12 or 14)"
-        if not np.all(np.isfinite(d)):
-            return "camera dist has a non-finite value"
-    if image_size is not None:
-        if isinstance(image_size, (str, bytes, dict)) or len(image_size) != 2:
-            return "camera image_size must be (width, height)"
-        for v in image_size:
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
-                return f"camera image_size must be two positive integers, not {list(image_size)}"
-        if K is not None:
-            Ka = np.asarray(K, float)
-            w, h = image_size
-            if not (0 <= Ka[0, 2] <= w and 0 <= Ka[1, 2] <= h):
-                return f"camera principal point ({Ka[0, 2]:.0f}, {Ka[1, 2]:.0f}) px is outside the {w}x{h} image"
-    return None
+    if isinstance(image_size, (str, bytes, dict)) or len(image_size) != 2 or any(
+            isinstance(v, bool) or not isinstance(v, (int, np.integer)) for v in image_size):
+        return f"camera image_size must be two integers (width, height), not {image_size!r}"
+    from monotracker.vision.camera_model import validate_intrinsics
+
+    why = validate_intrinsics(Ka, d, tuple(int(v) for v in image_size))
+    return f"camera: {why}" if why else None
 
 
 # ---------------------------------------------------------------------- the whole plan

@@ -244,6 +244,10 @@ class Session:
             self._bus.alert("alarm", "audit_unavailable", f"audit database {self._audit.path} cannot be opened "
                             f"({self._audit.open_error}); events go to {self._audit.spill_path}")
         self._restore_plan()
+        ct_path = self._plan.ct_path
+        if ct_path and not Path(ct_path).exists():
+            self._bus.alert("alarm", "plan_ct_missing", f"the plan's CT {ct_path} is missing; the plan cannot be "
+                            "checked or armed until it is back (or start a new plan)", {"path": ct_path})
         # camera + loop + robot wiring (monotracker.engine.loop); created lazily
         from monotracker.engine.loop import TrackingLoop
 

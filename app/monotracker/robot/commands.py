@@ -7,6 +7,7 @@ import pathlib
 
 import numpy as np
 
+from monotracker.cli_args import finite_float, ip_address
 from monotracker.errors import InputError, MonoTrackerError
 
 
@@ -23,8 +24,8 @@ def register(sub) -> None:
     p.set_defaults(func=_calibrate)
 
     c = sub.add_parser("robot-check", help="connect to a UR through RTDE and print its joint state (no motion)")
-    c.add_argument("host", help="robot IP address")
-    c.add_argument("--rate", type=float, default=125.0, help="RTDE frequency, Hz (500 for e-Series)")
+    c.add_argument("host", type=ip_address, help="robot IP address (no host names: nothing is looked up)")
+    c.add_argument("--rate", type=finite_float(1.0, 500.0), default=125.0, help="RTDE frequency, Hz (500 for e-Series)")
     c.set_defaults(func=_check)
 
 

@@ -19,9 +19,10 @@ import os
 import secrets
 import signal
 import socket
-import threading
-from pathlib import Path
+import time
 
+from monotracker.cli_args import existing_file, home_folder, int_range, robot_spec
+from monotracker.engine.config import TRAJECTORIES
 from monotracker.errors import InputError
 
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
@@ -31,16 +32,17 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("serve", help="the web app (viser): CT, plan, register, robot",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1)")
-    p.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    p.add_argument("--port", type=int_range(1, 65535), default=8080, help="port (default 8080)")
     p.add_argument("--allow-remote", action="store_true",
                    help="allow a --host other than this machine (the page can move the robot)")
     p.add_argument("--sample", action="store_true", help="load the bundled sample CT at start")
     p.add_argument("--camera", default="sim", help="sim | sim-points | device:N | file:PATH | folder:PATH (default sim)")
-    p.add_argument("--calibration", default=None, help="camera calibration file (OpenCV YAML/JSON) for a real camera")
-    p.add_argument("--robot", default="sim", help="sim | ur:IP (default sim)")
+    p.add_argument("--calibration", type=existing_file, default=None,
+                   help="camera calibration file (OpenCV YAML/JSON) for a real camera; checked at start")
+    p.add_argument("--robot", type=robot_spec, default="sim", help="sim | ur:IP (default sim; an IP address, no host names)")
     p.add_argument("--pin", default=None, help="operator PIN for arming (default $MONOTRACKER_PIN, else a random one)")
-    p.add_argument("--trajectory", default="breathing", help="simulated head motion (sim camera only)")
-    p.add_argument("--home", type=Path, default=None, help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
+    p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
+    p.add_argument("--home", type=home_folder, default=None, help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
     p.set_defaults(func=_serve)
 
 
@@ -72,6 +74,36 @@ def resolve_pin(pin: str | None) -> tuple[str, bool]:
     return pin, False
 
 
+def wait_for_stop_signal(poll_s: float = 0.2, stop=None) -> int:
+    """Block the main thread until SIGINT or SIGTERM; returns the signal number.
+
+    The handler only records the signal in a list (no lock, no I/O, nothing that can block or
+    deadlock when a signal arrives in the middle of another handler or of a lock held by the
+    main thread); this thread polls the list and does the shutdown. ``stop`` (tests): a callable
+    that returns True to stop without a signal."""
+    got: list[int] = []
+
+    def handler(signum, _frame):
+        got.append(signum)
+
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            previous[sig] = signal.signal(sig, handler)
+        except ValueError:  # not the main thread (tests)
+            pass
+    try:
+        while not got and not (stop is not None and stop()):
+            time.sleep(poll_s)
+    finally:
+        for sig, h in previous.items():
+            try:
+                signal.signal(sig, h)
+            except (ValueError, TypeError):
+                pass
+    return got[0] if got else 0
+
+
 def _serve(args) -> int:
     from monotracker.engine import Session, SessionConfig
 
@@ -81,13 +113,15 @@ def _serve(args) -> int:
     cfg = SessionConfig(home=args.home, camera=args.camera, robot=args.robot, arm_pin=pin,
                         trajectory=args.trajectory, clock="real")
     cfg.validate()
+    if args.calibration is not None:  # a bad file is refused now, not when the camera starts
+        from monotracker.vision.camera_model import CameraModel
+
+        CameraModel.load(args.calibration)  # InputError with the reason
     session = Session(cfg)
     app = None
     try:
         if args.calibration is not None:
-            if not Path(args.calibration).exists():
-                raise InputError(f"calibration file not found: {args.calibration}")
-            r = session.set_camera(args.camera, args.calibration)
+            r = session.set_camera(args.camera, str(args.calibration))
             if not r.ok:
                 raise InputError(r.message)
         session.start()
@@ -102,13 +136,7 @@ def _serve(args) -> int:
         print(f"MonoTracker is running: open {app.url} in a browser (Ctrl-C to stop)", flush=True)
         if generated:
             print(f"operator PIN for arming: {pin}  (set your own with --pin or MONOTRACKER_PIN)", flush=True)
-        done = threading.Event()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            try:
-                signal.signal(sig, lambda *_: done.set())
-            except ValueError:  # not the main thread (tests)
-                pass
-        done.wait()
+        wait_for_stop_signal()
         print("stopping: robot disarmed, threads stopped", flush=True)
         return 0
     finally:
