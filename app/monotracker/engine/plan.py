@@ -54,6 +54,8 @@ class Plan:
     dist: np.ndarray | None = None
     image_size: tuple | None = None
     T_base_cam: np.ndarray | None = None
+    #: The balls used (``monotracker.ct.FiducialKit``: radius mm, density HU) or None (estimated).
+    fiducial_kit: "object | None" = None
     revision: int = 0
 
     # ------------------------------------------------------------------ queries
@@ -103,6 +105,7 @@ class Plan:
                 "image_size": None if self.image_size is None else list(self.image_size),
             },
             "T_base_cam_mm": arr(self.T_base_cam),
+            "fiducial_kit": None if self.fiducial_kit is None else self.fiducial_kit.to_dict(),
         }
 
     @classmethod
@@ -142,6 +145,7 @@ class Plan:
             dist=None if dist is None else np.asarray(dist, dtype=float).ravel(),
             image_size=None if cam.get("image_size") is None else tuple(int(v) for v in cam["image_size"]),
             T_base_cam=arr(d.get("T_base_cam_mm"), (4, 4)),
+            fiducial_kit=_kit_from_dict(d.get("fiducial_kit")),
             revision=int(d.get("revision", 0)),
         )
 
@@ -156,6 +160,14 @@ class Plan:
 
 
 # ---------------------------------------------------------------------- plan metrics
+def _kit_from_dict(d):
+    if d is None:
+        return None
+    from monotracker.ct.kit import FiducialKit  # only when a plan names a kit (the ct package is heavy)
+
+    return FiducialKit.from_dict(d)
+
+
 def path_length_mm(entry: np.ndarray, target: np.ndarray) -> float:
     return float(np.linalg.norm(np.asarray(target, float) - np.asarray(entry, float)))
 
