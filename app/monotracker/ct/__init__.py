@@ -9,12 +9,14 @@ from monotracker.ct.fiducials import (
     estimate_levels,
 )
 from monotracker.ct.dicom_series import SeriesInfo, list_series
+from monotracker.ct.kit import FiducialKit
 from monotracker.ct.surface import head_surface
 from monotracker.ct.volume import Volume, load_volume
 
 __all__ = [
     "Fiducial",
     "FiducialDetection",
+    "FiducialKit",
     "RejectedBlob",
     "SeriesInfo",
     "Volume",

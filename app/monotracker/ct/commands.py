@@ -21,6 +21,7 @@ def register(subparsers) -> None:
     p.add_argument("path", help="DICOM series folder or volume file")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--radius", type=float, default=None, metavar="MM", help="nominal ball radius in mm (default: estimate it)")
+    p.add_argument("--density", type=float, default=None, metavar="HU", help="the balls' density in HU when known (e.g. 1500 ceramic); metal of another density is rejected")
     p.add_argument("--series", default=None, metavar="UID", help="DICOM Series Instance UID to use when the folder holds several")
     p.add_argument("--list-series", action="store_true", help="list the DICOM series of the folder (uid, description, slices, spacing, tilt) and stop")
     p.add_argument("--baseline", action="store_true", help="use the paper's recipe (threshold + DBSCAN + centroid) instead")
@@ -48,7 +49,13 @@ def _detect_ct(args: argparse.Namespace) -> int:
     if args.baseline:
         det = detect_fiducials_paper(vol)
     else:
-        det = detect_fiducials(vol, radius_mm=args.radius)
+        from monotracker.ct.kit import FiducialKit
+
+        try:
+            kit = FiducialKit(radius_mm=args.radius, density_hu=args.density)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        det = detect_fiducials(vol, kit=kit)
     if args.json:
         out = det.to_dict()
         out["volume"] = {

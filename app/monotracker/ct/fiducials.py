@@ -46,6 +46,8 @@ from scipy.special import erfc
 from sklearn.cluster import DBSCAN
 from threadpoolctl import threadpool_limits
 
+from monotracker.ct.blob_search import search_blobs, threshold_ladder
+from monotracker.ct.kit import FiducialKit
 from monotracker.ct.volume import Volume
 
 #: Bounds of a plausible fiducial radius when none is given, mm.
@@ -96,6 +98,7 @@ class RejectedBlob:
             "centre_lps_mm": [round(float(x), 3) for x in self.centre_lps],
             "reason": self.reason,
             "n_voxels": int(self.n_voxels),
+            "radius_mm": None if not np.isfinite(self.radius_mm) else round(float(self.radius_mm), 3),
         }
 
 
@@ -112,6 +115,8 @@ class FiducialDetection:
     method: str = "robust"
     elapsed_s: float = 0.0
     notes: list[str] = field(default_factory=list)
+    #: The threshold ladder searched, HU (ascending); ``threshold_hu`` is its lowest level.
+    thresholds_hu: list[float] = field(default_factory=list)
 
     @property
     def centres(self) -> np.ndarray:
@@ -131,6 +136,7 @@ class FiducialDetection:
             "frame": "LPS",
             "units": "mm",
             "threshold_hu": None if not np.isfinite(self.threshold_hu) else round(float(self.threshold_hu), 1),
+            "thresholds_hu": [round(float(t), 1) for t in self.thresholds_hu],
             "levels_hu": {k: round(float(v), 1) for k, v in self.levels.items()},
             "fiducials": [f.to_dict() for f in self.fiducials],
             "rejected": [r.to_dict() for r in self.rejected],
@@ -387,108 +393,129 @@ def _window(volume: Volume, kji: np.ndarray, pad_mm: float):
 
 
 # ---------------------------------------------------------------------------- product method
-def detect_fiducials(volume: Volume, radius_mm: float | None = None) -> FiducialDetection:
+def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: FiducialKit | None = None,
+                     time_budget_s: float = 30.0) -> FiducialDetection:
     """Find the sphere fiducials in ``volume`` (see the module docstring).
 
-    ``radius_mm``: the balls' nominal radius; when None it is estimated (each ball's fitted
-    radius, checked against the median of all balls). Centres are LPS mm, sub-voxel.
+    ``kit``: what the balls are (nominal radius mm, density HU; either may be None);
+    ``radius_mm`` overrides the kit's radius. Without a radius it is estimated (each ball's
+    fitted radius, checked against the median of all balls). Centres are LPS mm, sub-voxel.
+    ``time_budget_s`` bounds the search on pathological scans (a note says when it stopped).
     """
     t0 = time.perf_counter()
+    kit = kit or FiducialKit()
+    if radius_mm is None:
+        radius_mm = kit.radius_mm
     levels = estimate_levels(volume)
     out = FiducialDetection(ok=False, reason="", levels=levels, method="robust")
-    bone, metal, noise = levels["bone"], levels["metal"], levels["noise"]
-    if not np.isfinite(metal) or metal - bone < max(400.0, 10.0 * noise):
-        out.reason = f"no objects denser than bone (bone ~{bone:.0f} HU): no fiducials in this scan"
-        out.elapsed_s = time.perf_counter() - t0
-        return out
-    T = 0.5 * (bone + metal)
-    out.threshold_hu = T
-    kji, pts = _candidate_points(volume, T)
-    if len(pts) > MAX_CANDIDATES:
-        out.reason = f"{len(pts)} voxels above {T:.0f} HU: too many for fiducials (metal implant or wrong units?)"
-        out.elapsed_s = time.perf_counter() - t0
-        return out
-    if len(pts) == 0:
-        out.reason = "no voxels above the fiducial threshold"
-        out.elapsed_s = time.perf_counter() - t0
-        return out
+    vmax = float(np.max(volume.array))
+    ladder = threshold_ladder(levels, min(vmax, 3071.0) if kit.density_hu is None else vmax, kit.density_hu)
+    out.threshold_hu = float(ladder[0])
+    out.thresholds_hu = [float(t) for t in ladder]
     sp = volume.spacing_mm
-    eps = 1.01 * float(sp.max())
-    labels = DBSCAN(eps=eps, min_samples=1).fit_predict(pts)
-    candidates = []  # (centre, radius, score parts, n, peak, elong)
+    voxel_mm3 = float(np.prod(sp))
+    min_vox = max(4, int(np.ceil((4.0 / 3.0) * np.pi * 0.8**3 / voxel_mm3)))
+    r_max = RADIUS_RANGE_MM[1] if radius_mm is None else (1.0 + RADIUS_TOLERANCE) * float(radius_mm)
+    max_vox = int(np.ceil((4.0 / 3.0) * np.pi * (r_max + float(sp.max())) ** 3 / voxel_mm3))
+    if vmax <= ladder[0]:
+        out.reason = f"nothing denser than {ladder[0]:.0f} HU in this scan: no fiducials"
+        out.elapsed_s = time.perf_counter() - t0
+        return out
+
+    def fit(kji, T, sibs):
+        return _fit_blob(volume, kji, T, sibs, levels, kit)
+
     # The fits solve tiny (n x 11) problems: BLAS threads only add contention (seen: 0.06 s ->
     # 4.5 s of SVD on a loaded 2-core machine), so run them single-threaded.
     with threadpool_limits(limits=1, user_api="blas"):
-        _fit_clusters(volume, labels, pts, kji, levels, T, out, candidates)
+        candidates, rejected, stats = search_blobs(volume, ladder, min_vox, max_vox, fit, time_budget_s=time_budget_s,
+                                                    tissue_hu=levels["tissue"], noise_hu=levels["noise"])
+    out.rejected.extend(rejected)
     _size_gate(out, candidates, radius_mm)
     out.fiducials.sort(key=lambda f: -f.centre_lps[2])
+    if stats.specks:
+        out.notes.append(f"{stats.specks} small or faint fragments ignored (noise, streaks, bone edges)")
+    if stats.stopped:
+        out.notes.append(stats.stopped)
     out.ok = bool(out.fiducials)
     out.reason = (
         f"{len(out.fiducials)} fiducials found" + (f", {len(out.rejected)} dense blobs rejected" if out.rejected else "")
         if out.ok
-        else "dense blobs found but none is a sphere of the expected size"
+        else ("dense blobs found but none is a sphere of the expected size" if out.rejected
+              else f"no sphere-shaped blob above {ladder[0]:.0f} HU: no fiducials in this scan")
     )
+    if stats.stopped:
+        out.reason += " (search stopped early)"
     out.elapsed_s = time.perf_counter() - t0
     return out
 
 
-def _fit_clusters(volume, labels, pts, kji, levels, T, out, candidates) -> None:
-    """Shape gate and sphere fit of every cluster; appends to ``candidates`` / ``out.rejected``."""
+def _touching_hint(n: int, voxel_mm3: float, radius_mm: float | None, elong: float) -> str:
+    if radius_mm is None or elong < 1.5:
+        return ""
+    k = n * voxel_mm3 / ((4.0 / 3.0) * np.pi * radius_mm**3)
+    return f"; as large as {k:.1f} balls: touching balls that could not be separated?" if 1.6 <= k <= 4.5 else ""
+
+
+def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, kit: FiducialKit):
+    """Shape gate and sphere fit of one blob (voxel indices ``ckji`` (n, 3) k, j, i).
+    Returns ``(candidate dict, None)`` or ``(None, RejectedBlob)``. ``sibs``: neighbouring
+    blobs whose voxels are kept out of the fit window."""
     sp = volume.spacing_mm
     voxel_mm3 = float(np.prod(sp))
-    min_vox = max(4, int(np.ceil((4.0 / 3.0) * np.pi * 0.8**3 / voxel_mm3)))
     arr = volume.array
     noise = levels["noise"]
-    for lab in np.unique(labels):
-        sel = labels == lab
-        cpts, ckji = pts[sel], kji[sel]
-        n = int(sel.sum())
-        centroid = cpts.mean(axis=0)
-        if n < min_vox:
-            out.rejected.append(RejectedBlob(centroid, f"too small ({n} voxels): noise or artefact", n))
-            continue
-        axes = _principal_axes(cpts, volume)
-        elong = float(axes[0] / max(axes[2], 1e-6))
-        if elong > MAX_ELONGATION:
-            out.rejected.append(
-                RejectedBlob(centroid, f"not round: {2 * axes[0]:.1f} x {2 * axes[2]:.1f} mm (elongation {elong:.2f}), e.g. clip, wire, streak or bone", n)
-            )
-            continue
-        r0 = float((3.0 * n * voxel_mm3 / (4.0 * np.pi)) ** (1.0 / 3.0))
-        lo, hi = _window(volume, ckji, pad_mm=2.5 + 2.0 * float(sp.max()))
-        sub = arr[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(float)
-        grid = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
-        wpts = volume.zyx_to_lps(grid)
-        vals = sub.ravel()
-        near = np.linalg.norm(wpts - centroid, axis=1) < r0 + 2.0 + 1.5 * float(sp.max())
-        wpts, vals = wpts[near], vals[near]
-        peak = float(np.percentile(vals, 99))
-        shell = vals[np.linalg.norm(wpts - centroid, axis=1) > r0 + 1.0]
-        b0 = float(np.percentile(shell, 20)) if shell.size else levels["air"]
-        x0 = np.r_[centroid, r0 + 0.2, 0.5, peak, b0]
-        f_scale = max(3.0 * noise, 0.03 * (peak - b0))
-        try:
-            params, rms, success = fit_blurred_sphere(wpts, vals, x0, f_scale)
-        except (ValueError, np.linalg.LinAlgError):
-            out.rejected.append(RejectedBlob(centroid, "sphere fit failed", n))
-            continue
-        c, r, s_edge, H, b = params[:3], params[3], params[4], params[5], params[6]
-        contrast = H - b
-        if success and contrast > 0:
-            box_cov = (volume.direction * (sp**2 / 12.0)) @ volume.direction.T
-            surf = refine_on_surface(wpts, vals, params, f_scale, box_cov)
-            if surf is not None and surf[1] <= rms * 1.05:
-                sp_, rms = surf
-                c, r, s_edge, H = sp_[:3], sp_[3], sp_[4], sp_[5]
-                contrast = H - min(sp_[6], sp_[7])
-        rel = rms / max(contrast, 1.0)
-        if not success or contrast <= 0 or H < T:
-            out.rejected.append(RejectedBlob(centroid, "no sphere fits this blob", n, r))
-            continue
-        if rel > MAX_REL_RESIDUAL:
-            out.rejected.append(RejectedBlob(c, f"not a sphere: fit residual {100 * rel:.0f}% of contrast", n, r))
-            continue
-        candidates.append(dict(c=c, r=float(r), rel=rel, n=n, peak=float(H), elong=elong, s=float(s_edge)))
+    n = len(ckji)
+    cpts = volume.zyx_to_lps(ckji)
+    centroid = cpts.mean(axis=0)
+    axes = _principal_axes(cpts, volume)
+    elong = float(axes[0] / max(axes[2], 1e-6))
+    if elong > MAX_ELONGATION:
+        return None, RejectedBlob(
+            centroid, f"not round: {2 * axes[0]:.1f} x {2 * axes[2]:.1f} mm (elongation {elong:.2f}), e.g. clip, rod, "
+                      f"streak or bone{_touching_hint(n, voxel_mm3, kit.radius_mm, elong)}", n)
+    r0 = float((3.0 * n * voxel_mm3 / (4.0 * np.pi)) ** (1.0 / 3.0))
+    lo, hi = _window(volume, ckji, pad_mm=2.5 + 2.0 * float(sp.max()))
+    sub = arr[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(float)
+    grid = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
+    wpts = volume.zyx_to_lps(grid)
+    vals = sub.ravel()
+    dist = np.linalg.norm(wpts - centroid, axis=1)
+    near = dist < r0 + 2.0 + 1.5 * float(sp.max())
+    for s in sibs:  # leave out what belongs to a neighbouring blob (touching balls, a clip)
+        if np.linalg.norm(s.centroid - centroid) < r0 + s.radius + 6.0:
+            near &= np.linalg.norm(wpts - s.centroid, axis=1) - s.radius > dist - r0
+    wpts, vals = wpts[near], vals[near]
+    if len(vals) < 20:
+        return None, RejectedBlob(centroid, "too little around the blob to fit a sphere", n)
+    peak = float(np.percentile(vals, 99))
+    shell = vals[np.linalg.norm(wpts - centroid, axis=1) > r0 + 1.0]
+    b0 = float(np.percentile(shell, 20)) if shell.size else levels["air"]
+    x0 = np.r_[centroid, r0 + 0.2, 0.5, peak, b0]
+    f_scale = max(3.0 * noise, 0.03 * (peak - b0))
+    try:
+        params, rms, success = fit_blurred_sphere(wpts, vals, x0, f_scale)
+    except (ValueError, np.linalg.LinAlgError):
+        return None, RejectedBlob(centroid, "sphere fit failed", n)
+    c, r, s_edge, H, b = params[:3], params[3], params[4], params[5], params[6]
+    contrast = H - b
+    if success and contrast > 0:
+        box_cov = (volume.direction * (sp**2 / 12.0)) @ volume.direction.T
+        surf = refine_on_surface(wpts, vals, params, f_scale, box_cov)
+        if surf is not None and surf[1] <= rms * 1.05:
+            sp_, rms = surf
+            c, r, s_edge, H = sp_[:3], sp_[3], sp_[4], sp_[5]
+            contrast = H - min(sp_[6], sp_[7])
+    rel = rms / max(contrast, 1.0)
+    if not success or contrast <= 0 or H < T:
+        return None, RejectedBlob(centroid, "no sphere fits this blob", n, r)
+    if rel > MAX_REL_RESIDUAL:
+        return None, RejectedBlob(c, f"not a sphere: fit residual {100 * rel:.0f}% of contrast", n, r)
+    if kit.density_hu is not None:
+        tol = max(300.0, 0.3 * (kit.density_hu - levels["tissue"]))
+        if abs(H - kit.density_hu) > tol:
+            return None, RejectedBlob(c, f"density {H:.0f} HU, the kit's balls are {kit.density_hu:.0f} HU (e.g. metal)", n, r)
+    return dict(c=c, r=float(r), rel=rel, n=n, peak=float(H), elong=elong, s=float(s_edge)), None
 
 
 def _size_gate(out, candidates, radius_mm) -> None:

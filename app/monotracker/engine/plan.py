@@ -64,6 +64,8 @@ class Plan:
     dist: np.ndarray | None = None
     image_size: tuple | None = None
     T_base_cam: np.ndarray | None = None
+    #: The balls used (``monotracker.ct.FiducialKit``: radius mm, density HU) or None (estimated).
+    fiducial_kit: "object | None" = None
     revision: int = 0
     #: hashes recorded with the plan: ``ct_sha256``, ``calibration_sha256`` (None: not known)
     integrity: dict = field(default_factory=dict)
@@ -117,6 +119,7 @@ class Plan:
                 "image_size": None if self.image_size is None else list(self.image_size),
             },
             "T_base_cam_mm": arr(self.T_base_cam),
+            "fiducial_kit": None if self.fiducial_kit is None else self.fiducial_kit.to_dict(),
             "integrity": {k: v for k, v in sorted(self.integrity.items()) if k != "plan_sha256"},
         })
 

@@ -153,6 +153,16 @@ def restore_plan(d, min_usable: int = 4):
         else:
             plan.T_base_cam = np.asarray(T, float)
 
+    # ------------------------------------------------------------ fiducial kit (the ct package's own checks)
+    kit = d.get("fiducial_kit")
+    if kit is not None:
+        try:
+            from monotracker.ct.kit import FiducialKit
+
+            plan.fiducial_kit = FiducialKit.from_dict(kit)
+        except (TypeError, ValueError) as exc:
+            rej.append(Rejection("fiducial_kit", str(exc)))
+
     # ------------------------------------------------------------ integrity record (checked by the session)
     integ = d.get("integrity")
     if integ is not None:

@@ -504,7 +504,9 @@ class Session:
         try:
             vol = load_volume(path, series=series)
             self._set_job(0.3, "detecting fiducials")
-            det = detect_fiducials(vol)
+            with self._lock:
+                kit = self._plan.fiducial_kit
+            det = detect_fiducials(vol, kit=kit)
             self._set_job(0.6, "extracting the head surface")
             try:
                 from monotracker.ct import head_surface

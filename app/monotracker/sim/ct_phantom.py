@@ -67,6 +67,8 @@ class DenseBlob:
     hu: float
     axes: np.ndarray = field(default_factory=lambda: np.eye(3))
     name: str = "blob"
+    #: Metal streaks thrown by this object (peak HU of the alternating radial pattern; 0 none).
+    streak_hu: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -86,6 +88,10 @@ class ScanParams:
     fov_circle: bool = True
     seed: int = 20250168
     distractors: tuple = ()
+    #: Ball density, HU (None: the phantom's 3000 HU); ceramic/plastic kits are 1500-2000 HU.
+    fiducial_hu: float | None = None
+    #: How deep the balls sink into the scalp, mm (0: resting on the skin; R: half-embedded).
+    fiducial_embed_mm: float = 0.0
 
 
 def default_distractors(phantom: HeadPhantom | None = None) -> tuple[DenseBlob, ...]:
@@ -128,7 +134,7 @@ class SyntheticCT:
 
     @property
     def fiducial_centres_lps(self) -> np.ndarray:
-        return self.phantom.fiducial_centres_lps
+        return fiducial_centres(self.phantom, self.params)
 
     def to_sitk(self):
         import SimpleITK as sitk
@@ -166,6 +172,37 @@ class SyntheticCT:
             "seed": p.seed,
         }
         return out
+
+
+def fiducial_centres(phantom: HeadPhantom, params: ScanParams) -> np.ndarray:
+    """(n, 3) true ball centres of this scan, LPS mm: the phantom's, sunk into the scalp by
+    ``params.fiducial_embed_mm`` along the skin normal."""
+    c = phantom.fiducial_centres_lps
+    if not params.fiducial_embed_mm:
+        return c
+    n = c - phantom.centre_lps
+    out = []
+    for ci in c:
+        _, nrm = phantom.skin_point(ci - phantom.centre_lps)
+        out.append(ci - params.fiducial_embed_mm * nrm)
+    return np.array(out)
+
+
+def metal_distractors(phantom: HeadPhantom | None = None, streak_hu: float = 300.0) -> tuple[DenseBlob, ...]:
+    """Metal denser than the balls near the fiducial patch, inside the head: three 3071 HU
+    "fillings" (blocks ~6 x 4 x 4 mm) and a steel rod (2 x 2 x 18 mm), each throwing streaks of
+    ``streak_hu``. What dental work and an implant do to a head CT's histogram."""
+    ph = phantom or default_phantom()
+    v = ph.view_direction_lps
+    out = []
+    for i, (th, phi) in enumerate(((18.0, 60.0), (22.0, 200.0), (12.0, 300.0))):
+        p, n = ph.skin_point(_rotate_towards(v, th, phi), inset_mm=ph.scalp_thickness_mm + ph.skull_thickness_mm + 4.0)
+        out.append(DenseBlob(p, np.array([3.0, 2.0, 2.0]), float(CT_MAX_HU), axes=_frame_with_z(n), name=f"filling {i + 1}",
+                             streak_hu=streak_hu))
+    p, n = ph.skin_point(_rotate_towards(v, 8.0, 130.0), inset_mm=ph.scalp_thickness_mm + ph.skull_thickness_mm + 6.0)
+    out.append(DenseBlob(p, np.array([1.0, 1.0, 9.0]), float(CT_MAX_HU), axes=_frame_with_z(n)[:, [2, 0, 1]], name="steel rod",
+                         streak_hu=streak_hu))
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------- geometry helpers
@@ -254,8 +291,10 @@ def generate_ct(phantom: HeadPhantom | None = None, params: ScanParams | None = 
     s_cut = float(_edge_sigma(np.array([0.0, 0.0, 1.0]), D, sp, p.psf_sigma_mm))
 
     # local dense objects: fiducials, extra blobs, the clip
-    blobs = [(c, np.full(3, ph.fiducial_radius_mm), np.eye(3), HU["fiducial"]) for c in ph.fiducial_centres_lps]
+    ball_hu = HU["fiducial"] if p.fiducial_hu is None else float(p.fiducial_hu)
+    blobs = [(c, np.full(3, ph.fiducial_radius_mm), np.eye(3), ball_hu) for c in fiducial_centres(ph, p)]
     blobs += [(b.centre_lps, np.asarray(b.semi_axes_mm, float), np.asarray(b.axes, float), b.hu) for b in p.distractors]
+    streaky = [b for b in p.distractors if b.streak_hu > 0]
     ca, cb = ph.clip_segment_lps
 
     def k_range(points_lps: np.ndarray, reach: float) -> tuple[int, int]:
@@ -302,6 +341,10 @@ def generate_ct(phantom: HeadPhantom | None = None, params: ScanParams | None = 
                 v[m] += f * (HU["clip"] - v[m])
             if p.metal_streak_hu > 0:
                 v += _streaks(pts, clip_mid, ab, D, p.metal_streak_hu, rng)
+        for b in streaky:
+            if k_range(np.array([b.centre_lps]), float(np.max(b.semi_axes_mm)))[0] <= k <= k_range(np.array([b.centre_lps]), float(np.max(b.semi_axes_mm)))[1]:
+                ext = 2.0 * float(np.max(b.semi_axes_mm)) * D[:, 2]
+                v += _streaks(pts, b.centre_lps, ext, D, b.streak_hu, rng)
         if p.noise_hu > 0:
             v += (p.noise_hu * noise_gain) * gaussian_filter(rng.normal(size=v.shape), corr_px)
         np.clip(v, AIR_FLOOR_HU, CT_MAX_HU, out=v)
@@ -335,7 +378,8 @@ def patch_scan_params(phantom: HeadPhantom | None = None, margin_mm: float = 7.0
     base = ScanParams(spacing_mm=(0.5, 0.5, 1.0), fov_circle=False)
     D = np.asarray(kw.get("direction", base.direction), float)
     sp = np.asarray(kw.get("spacing_mm", base.spacing_mm), float)
-    pts = np.vstack([ph.fiducial_centres_lps, *ph.clip_segment_lps])
+    pts = np.vstack([ph.fiducial_centres_lps, *ph.clip_segment_lps]
+                    + [np.atleast_2d(b.centre_lps) for b in kw.get("distractors", ())])
     g = pts @ D
     lo, hi = g.min(axis=0) - margin_mm, g.max(axis=0) + margin_mm
     size = tuple(int(np.ceil((h - l) / s)) + 1 for l, h, s in zip(lo, hi, sp))
