@@ -30,7 +30,9 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.set_camera(source, calibration_path=None)
     s.start_camera(); s.stop_camera()   # pose stream on its own thread
     s.set_hand_eye(T_base_cam_mm)       # 4x4 mm; the sim camera sets it from the OR layout
-    s.arm(pin); s.disarm()
+    s.arm(pin); s.disarm()               # wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/control.py
+    s.claim_control(client_id, pin, label=""); s.release_control(client_id)   # one browser client in control
+    s.for_client(client_id) -> ClientSession    # reads as is; commands only while in control; estop() always
     s.start_tracking(); s.stop_tracking()   # needs armed + plan + trusted fresh pose + hand-eye
     s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed
     s.inject_fault(name)                # sim only: "camera-freeze"|"occlude-all"|"robot-disconnect"|"bad-pose"|"none"
@@ -50,6 +52,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     snap.robot            # RobotSummary(state "disarmed"|"armed"|"tracking"|"holding"|"estopped", q rad,
                           #   tip_error_mm, angle_error_deg, speed_mm_s, connected, message, latency_ms)
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
+    snap.control          # ControlSummary(controller client id or None, controller_label, since, pin_locked_s)
+    snap.alarms           # active conditions, most important first: Alarm(code, level, priority, message, since, count)
     snap.alerts           # recent alerts (Event: t, t_session, kind, level "info"|"warning"|"alarm", code, message, data)
     s.volume()            # the loaded CT Volume (LPS mm) for read-only display, or None
     s.latest_frame()      # (image BGR uint8, frame_index, estimate) for the overlay, or None; estimate is
@@ -74,7 +78,8 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 [warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
 ``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
 with its shift in mm; excluded from then on); ``robot_warning`` [warning] from the robot's safety layer; ``estop``
-[alarm]; ``arm_refused`` [warning] wrong PIN; ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
+[alarm]; ``pin_lockout`` [alarm] too many wrong PIN tries, arming and taking control locked (each
+wrong try is an ``arm_refused`` / ``control_refused`` *event*, never an alert, never the PIN); ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
 / ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
 state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
 ``arm``, ``tracking_started``, ``robot_state``, ``fault_injected``, ...); all of them are in the audit log.
@@ -114,8 +119,10 @@ from pathlib import Path
 
 import numpy as np
 
+from monotracker.engine.alarms import AlarmBoard
 from monotracker.engine.audit import AuditEntry, AuditLog
 from monotracker.engine.config import FAULTS, SessionConfig
+from monotracker.engine.control import ClientSession, ControlArbiter, PinGuard
 from monotracker.engine.events import Event, EventBus
 from monotracker.engine import plan_checks
 from monotracker.engine.plan import (
@@ -144,6 +151,8 @@ from monotracker.errors import InputError, MonoTrackerError
 log = logging.getLogger(__name__)
 
 PLAN_FILE = "plan.json"
+#: integrity alarms that stand until the operator re-confirms the plan (or starts a new one)
+RECONFIRM_CODES = ("plan_ct_changed", "calibration_changed", "plan_changed_outside", "plan_reconfirm_pending")
 AUDIT_FILE = "audit.sqlite"
 
 
@@ -220,7 +229,7 @@ class Session:
         self._lock = threading.RLock()
         self._plan_path = self.home / PLAN_FILE
         self._audit = AuditLog(self.home / AUDIT_FILE, self.session_id,
-                               on_problem=lambda level, code, msg, data: self._bus.alert(level, code, msg, data))
+                               on_problem=self._persistent_alarm)
         self._bus = EventBus(sink=self._audit.record_event, clock=self.clock)
         self._job: Job | None = None
         self._job_thread: threading.Thread | None = None
@@ -235,18 +244,25 @@ class Session:
         self._started = False
         self._closed = False
         self._plan = Plan()
+        self._pin_guard = PinGuard(self.config.arm_pin)
+        self._alarm_board = AlarmBoard()  # active conditions (snap.alarms); the loop sets and clears them
+        self._control = ControlArbiter()
         unwritable = _home_write_problem(self.home)
         if unwritable:
             self._home_unwritable = unwritable
+            self._alarm_board.set("home_unwritable", f"cannot write the session folder {self.home}: {unwritable}",
+                                  float(self.clock()))
             self._bus.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: {unwritable}; "
                             "the plan cannot be changed and the audit log goes to a spill file until it is writable")
         if self._audit.open_error:
+            self._alarm_board.set("audit_unavailable", f"audit database cannot be opened; events go to "
+                                  f"{self._audit.spill_path.name}", float(self.clock()))
             self._bus.alert("alarm", "audit_unavailable", f"audit database {self._audit.path} cannot be opened "
                             f"({self._audit.open_error}); events go to {self._audit.spill_path}")
         self._restore_plan()
         ct_path = self._plan.ct_path
         if ct_path and not Path(ct_path).exists():
-            self._bus.alert("alarm", "plan_ct_missing", f"the plan's CT {ct_path} is missing; the plan cannot be "
+            self._persistent_alarm("alarm", "plan_ct_missing", f"the plan's CT {ct_path} is missing; the plan cannot be "
                             "checked or armed until it is back (or start a new plan)", {"path": ct_path})
         # camera + loop + robot wiring (monotracker.engine.loop); created lazily
         from monotracker.engine.loop import TrackingLoop
@@ -305,8 +321,22 @@ class Session:
         """``callback(event)`` for every later event/alert; returns the unsubscribe function."""
         return self._bus.subscribe(callback)
 
-    def alert(self, level: str, code: str, message: str, data: dict | None = None) -> Event:
-        """Raise an alert (to subscribers and the audit log). Used by the engine's parts."""
+    def alert(self, level: str, code: str, message: str, data: dict | None = None) -> Event | None:
+        """Raise an alert (to subscribers and the audit log). Used by the engine's parts.
+
+        Warnings from the robot's safety layer and an uncalibrated camera are also active
+        conditions in ``snap.alarms``; repeated robot warnings (a loaded machine overrunning the
+        control period) are reported at most once per quiet time (returns None when held back)."""
+        if code == "robot_warning":
+            kind = "loop_overrun" if "overran" in message else "robot_warning"
+            now = float(self.clock())
+            report = self._alarm_board.set(kind, message, now)
+            self._alarm_board.clear(kind, now)  # a pulse: shown for its linger time
+            if not report:
+                log.info("robot warning (not re-reported): %s", message)
+                return None
+        elif code == "camera_uncalibrated":
+            self._alarm_board.set(code, message, float(self.clock()))
         return self._bus.alert(level, code, message, data)
 
     def record(self, code: str, message: str, data: dict | None = None, level: str = "info") -> Event:
@@ -333,6 +363,7 @@ class Session:
         self._reconfirm = list(saved.reconfirm)
         codes = [c for c, _, _ in saved.alarms]
         for code, msg, data in saved.alarms:
+            self._alarm_board.set(code, msg, float(self.clock()))
             self._bus.alert("alarm", code, msg, data)
         if saved.rejected:
             # the file on disk would say what memory does not: write what was restored (the original
@@ -361,13 +392,18 @@ class Session:
         except OSError as exc:
             reason = f"not saved ({exc.strerror or exc}): the plan on disk and in memory are unchanged"
             if self._home_unwritable is None:
+                self._alarm_board.set("home_unwritable", f"cannot write the session folder {self.home}",
+                                      float(self.clock()))
                 self._bus.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: "
                                 f"{exc.strerror or exc}; changes are refused until it is writable",
                                 {"why": why, "errno": getattr(exc, "errno", None)})
+            self._alarm_board.set("plan_save_failed", f"could not save the plan ({exc.strerror or exc}): "
+                                  "changes are refused", float(self.clock()))
             self._bus.alert("alarm", "plan_save_failed", f"{why}: {reason}", {"why": why})
             self._home_unwritable = str(exc)
             return reason
         self._plan = plan
+        self._alarm_board.clear_all(("plan_save_failed", "plan_unreadable", "home_unwritable"), float(self.clock()))
         if self._home_unwritable is not None:
             self._home_unwritable = None
             self._bus.alert("info", "home_writable", f"session folder {self.home} is writable again")
@@ -408,13 +444,21 @@ class Session:
             if err:
                 return _fail(err)
             self._reconfirm = []
+        self._alarm_board.clear_all(RECONFIRM_CODES, float(self.clock()))
         self._bus.event("plan_reconfirmed", "plan re-confirmed by the operator", {"reasons": reasons})
         return _ok("plan re-confirmed")
 
     def _need_reconfirm(self, code: str, reason: str, data: dict | None = None) -> None:
         with self._lock:
             self._reconfirm.append(reason)
-        self._bus.alert("alarm", code, f"{reason}; re-confirm the plan before arming", data)
+        self._persistent_alarm("alarm", code, f"{reason}; re-confirm the plan before arming", data)
+
+    def _persistent_alarm(self, level: str, code: str, message: str, data: dict | None = None) -> None:
+        """An alert that is also an active condition (``snap.alarms``) until it is cleared."""
+        board = getattr(self, "_alarm_board", None)  # the audit log may report before the board exists
+        if board is not None:
+            board.set(code, message, float(self.clock()), level=level)
+        self._bus.alert(level, code, message, data)
 
     def plan_copy(self) -> Plan:
         """A deep copy of the current plan."""
@@ -440,6 +484,7 @@ class Session:
             self._head_normals = None
             self._anatomy = None
             self._reconfirm = []
+        self._alarm_board.clear_all(RECONFIRM_CODES + ("plan_field_rejected", "plan_ct_missing", "fiducial_moved"), float(self.clock()))
         self._bus.event("plan_cleared", "new plan: CT, fiducials and path cleared")
         return _ok("new plan")
 
@@ -467,6 +512,7 @@ class Session:
             self._job = Job("load_ct", 0.0, f"loading {Path(path).name}")
             th = threading.Thread(target=self._ct_job, args=(path, series), name="monotracker-ct", daemon=True)
             self._job_thread = th
+        self._alarm_board.clear("ct_failed", float(self.clock()))
         self._bus.event("ct_load_started", f"loading CT {path}", {"path": path})
         th.start()
         return _ok("loading CT")
@@ -489,6 +535,9 @@ class Session:
             self._bus.alert("warning", "ct_hash_failed", f"the CT's content hash could not be computed: {exc}")
             return None
 
+    def _ct_failed_alarm(self) -> None:
+        self._alarm_board.set("ct_failed", "the last CT could not be loaded (see the CT step)", float(self.clock()))
+
     def _set_job(self, progress: float, message: str, error: str | None = None, done: bool = False) -> None:
         with self._lock:
             name = self._job.name if self._job else "job"
@@ -499,6 +548,7 @@ class Session:
             from monotracker.ct import detect_fiducials, load_volume
         except ImportError as exc:
             self._set_job(1.0, "CT tools unavailable", f"CT tools are not installed: {exc}", True)
+            self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT tools are not available: {exc}")
             return
         try:
@@ -518,11 +568,13 @@ class Session:
             ct_sha = self._hash_ct(path)
         except MonoTrackerError as exc:
             self._set_job(1.0, "CT failed", str(exc), True)
+            self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT could not be used: {exc}", {"path": path})
             return
         except Exception as exc:  # noqa: BLE001 - report, never kill the engine
             log.exception("CT job failed")
             self._set_job(1.0, "CT failed", f"internal error: {type(exc).__name__}: {exc}", True)
+            self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT job failed: {type(exc).__name__}: {exc}", {"path": path})
             return
         with self._lock:
@@ -847,10 +899,79 @@ class Session:
 
     # ================================================================== robot
     def arm(self, pin) -> CommandResult:
-        if str(pin) != str(self.config.arm_pin):
-            self._bus.alert("warning", "arm_refused", "arming refused: wrong PIN")
-            return _fail("wrong PIN")
+        """Arm the robot; ``pin`` is the operator PIN (wrong tries count towards the lockout)."""
+        r = self._check_pin(pin, "arm_refused", "arming")
+        if not r.ok:
+            return r
         return self._loop.arm()
+
+    # ================================================================== control (browser clients)
+    def _check_pin(self, pin, refused_code: str, what: str) -> CommandResult:
+        """One PIN try through the shared :class:`PinGuard`: an audit row per wrong try (never the
+        PIN), one ``pin_lockout`` alert when a lockout starts."""
+        now = float(self.clock())
+        was_locked = self._pin_guard.locked_for(now) > 0
+        r = self._pin_guard.check("" if pin is None else str(pin), now)
+        if r.ok:
+            return r
+        self._bus.event(refused_code, f"{what} refused: {r.message}", {"total_wrong": self._pin_guard.total_wrong},
+                        level="warning")
+        locked_s = self._pin_guard.locked_for(now)
+        self._sync_pin_alarm(now)
+        if locked_s > 0 and not was_locked:
+            self._bus.alert("alarm", "pin_lockout", f"PIN locked for {locked_s:.0f} s after "
+                            f"{self._pin_guard.max_tries} wrong tries", {"locked_s": locked_s})
+        return r
+
+    def _sync_pin_alarm(self, now: float) -> float:
+        """``pin_lockout`` is active while the PIN is locked; returns the seconds left."""
+        left = self._pin_guard.locked_for(now)
+        if left > 0:
+            self._alarm_board.set("pin_lockout", f"PIN locked for {left:.0f} s after {self._pin_guard.max_tries} "
+                                  "wrong tries (arming and taking control)", now)
+        else:
+            self._alarm_board.clear("pin_lockout", now)
+        return left
+
+    def claim_control(self, client_id: str, pin, label: str = "") -> CommandResult:
+        """Make browser client ``client_id`` the one in control (taking over from another client).
+
+        ``pin``: the operator PIN (same guard and lockout as arming). ``label``: a display name for
+        the other stations ("OR laptop", "nurse tablet"). Refused with one line on a wrong PIN or
+        while locked. Already in control: ok without a PIN check."""
+        client_id = str(client_id)
+        if not client_id:
+            return _fail("a client id is needed to take control")
+        if self._control.is_controller(client_id):
+            return _ok("already in control")
+        r = self._check_pin(pin, "control_refused", "taking control")
+        if not r.ok:
+            return r
+        prev, prev_label = self._control.claim(client_id, label, float(self.clock()))
+        took = f" from {prev_label or prev}" if prev is not None else ""
+        self._bus.event("control_taken", f"{label or client_id} took control{took}",
+                        {"client": client_id, "label": label, "previous": prev, "previous_label": prev_label})
+        return _ok("in control" + took)
+
+    def release_control(self, client_id: str) -> CommandResult:
+        """Client ``client_id`` gives up control (also when it disconnects); others stay unaffected."""
+        if not self._control.release(str(client_id)):
+            return _ok("not in control")
+        self._bus.event("control_released", f"client {client_id} released control", {"client": str(client_id)})
+        return _ok("control released")
+
+    def is_in_control(self, client_id: str) -> bool:
+        """True if browser client ``client_id`` is the one in control."""
+        return self._control.is_controller(str(client_id))
+
+    def control_summary(self):
+        """:class:`~monotracker.engine.snapshot.ControlSummary` now (also in ``snap.control``)."""
+        return self._control.summary(self._sync_pin_alarm(float(self.clock())))
+
+    def for_client(self, client_id: str) -> ClientSession:
+        """The session as browser client ``client_id`` may drive it (see ``engine/control.py``):
+        reads as is, commands only while in control, ``estop()`` always."""
+        return ClientSession(self, str(client_id))
 
     def disarm(self) -> CommandResult:
         return self._loop.disarm()
@@ -912,5 +1033,6 @@ class Session:
             t=float(self.clock()), step=step, job=job, ct=ct, head_mesh=mesh, fiducials=fids,
             fiducials_locked=locked, plan=plan_summary, camera=camera, pose=pose, robot=robot, scene=scene,
             alerts=tuple(self._bus.recent("alert")[-50:]), plan_path=str(self._plan_path),
-            audit_path=str(self._audit.path),
+            audit_path=str(self._audit.path), control=self.control_summary(),
+            alarms=self._alarm_board.active(float(self.clock())),
         )
