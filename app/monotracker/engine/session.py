@@ -21,7 +21,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.load_ct(path)                     # async job: load + detect fiducials + head surface; progress in snap.job
     s.load_sample_ct()
     s.set_fiducial_status(fid_id, "confirmed" | "rejected" | "detected")
-    s.add_fiducial(p_lps_mm, radius_mm=None)   # operator-added fiducial (LPS mm); status "added"
+    s.add_fiducial(p_lps_mm, radius_mm=None, manual=False)   # operator-added fiducial (LPS mm); status "added";
+                                        #   with a CT it must be a dense ball there, else refused (manual=True: unverified)
     s.confirm_fiducials()               # locks the fiducial set (needs >= 4 confirmed/added)
     s.unlock_fiducials()                # back to editing (refused while armed/tracking)
     s.set_entry(p_lps_mm); s.set_target(p_lps_mm)   # planning; needs locked fiducials
@@ -30,6 +31,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.set_camera(source, calibration_path=None)
     s.start_camera(); s.stop_camera()   # pose stream on its own thread
     s.set_hand_eye(T_base_cam_mm)       # 4x4 mm; the sim camera sets it from the OR layout
+    s.plan_not_ready() -> str | None    # why arming/tracking is refused (plan_checks, CT loaded, re-confirmation)
+    s.reconfirm_plan()                  # the operator re-confirms after an integrity alarm (edited outside, CT/calibration changed)
     s.arm(pin); s.disarm()
     s.start_tracking(); s.stop_tracking()   # needs armed + plan + trusted fresh pose + hand-eye
     s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed
@@ -68,7 +71,11 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 [info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
 [warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
 ``robot_disconnected`` [alarm] /
-``robot_connected`` [info]; ``robot_warning`` [warning] from the robot's safety layer; ``estop``
+``robot_connected`` [info]; ``robot_warning`` [warning] from the robot's safety layer; integrity
+(engine/plan_commands.py, engine/audit.py): ``plan_field_rejected`` / ``plan_changed_outside`` /
+``plan_reconfirm_pending`` / ``plan_ct_changed`` / ``plan_ct_missing`` / ``calibration_changed`` /
+``plan_path_invalid`` / ``home_unwritable`` / ``audit_unavailable`` / ``audit_delayed`` / ``audit_lost``
+[alarm], ``home_writable`` / ``audit_recovered`` [info], ``fiducial_unverified`` [warning]; ``estop``
 [alarm]; ``arm_refused`` [warning] wrong PIN; ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
 / ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
 state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
@@ -88,8 +95,14 @@ are :class:`~monotracker.engine.events.Event` objects (with ``kind == "alert"``)
 
 Threading: every public method may be called from any thread (viser callbacks). State lives
 behind one re-entrant lock; methods hold it only for bookkeeping and for the plan's atomic save
-(a few ms, so the file and the in-memory plan never disagree), never across CT loading,
-registration or robot motion. Snapshots are copies with read-only arrays.
+(a few ms: a command saves the new plan first and swaps it in only once it is on disk, so the file
+and the in-memory plan never disagree), never across CT loading, registration or robot motion.
+The audit log is written by its own thread from a bounded queue: no command waits on it.
+Snapshots are copies with read-only arrays.
+
+Validation: one check per kind of plan state (``engine/plan_checks.py``), used by the commands,
+by the field-by-field restore of ``plan.json`` and by the arming gate: what a setter refuses, a
+restore refuses too; nothing is armed without a complete plan that passes every check.
 
 Safety choices: the session always starts disarmed, also after a crash; arming needs the PIN;
 tracking needs a trusted pose (>= ``min_fiducials`` visible, FRE below ``max_fre_mm``, passes the
