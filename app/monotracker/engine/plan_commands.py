@@ -58,9 +58,14 @@ def _fail(msg: str) -> CommandResult:
 
 
 def _point3(p) -> np.ndarray:
-    a = np.asarray(p, dtype=float).reshape(-1)
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise InputError("a point needs three finite coordinates (LPS mm)")
+    """(3,) LPS mm from any 3-sequence; :class:`InputError` (one line) unless :func:`plan_checks.check_point` passes."""
+    try:
+        a = np.asarray(p, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError("a point needs three finite coordinates (LPS mm)") from None
+    a, why = plan_checks.check_point(a, "the point")
+    if why:
+        raise InputError(f"{why} (a point needs three finite coordinates, LPS mm)")
     return a
 
 
