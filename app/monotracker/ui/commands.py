@@ -79,28 +79,22 @@ def wait_for_stop_signal(poll_s: float = 0.2, stop=None) -> int:
 
     The handler only records the signal in a list (no lock, no I/O, nothing that can block or
     deadlock when a signal arrives in the middle of another handler or of a lock held by the
-    main thread); this thread polls the list and does the shutdown. ``stop`` (tests): a callable
-    that returns True to stop without a signal."""
+    main thread); this thread polls the list and then does the shutdown. The handlers stay in
+    place afterwards, so a repeated signal during the shutdown is recorded and ignored rather
+    than interrupting it half way (every step of the shutdown has its own time limit).
+    ``stop`` (tests): a callable that returns True to stop without a signal."""
     got: list[int] = []
 
     def handler(signum, _frame):
         got.append(signum)
 
-    previous = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         try:
-            previous[sig] = signal.signal(sig, handler)
+            signal.signal(sig, handler)
         except ValueError:  # not the main thread (tests)
             pass
-    try:
-        while not got and not (stop is not None and stop()):
-            time.sleep(poll_s)
-    finally:
-        for sig, h in previous.items():
-            try:
-                signal.signal(sig, h)
-            except (ValueError, TypeError):
-                pass
+    while not got and not (stop is not None and stop()):
+        time.sleep(poll_s)
     return got[0] if got else 0
 
 
