@@ -100,9 +100,10 @@ def test_audit_verify_command(tmp_path):
 
 _WAITER = textwrap.dedent("""
     import signal, sys, threading
-    from monotracker.ui.commands import wait_for_stop_signal
+    from monotracker.ui.commands import StopSignals
+    signals = StopSignals()
     print("READY", flush=True)
-    sig = wait_for_stop_signal(poll_s=0.05)
+    sig = signals.wait(poll_s=0.05)
     print("STOPPING", sig, flush=True)
 """)
 

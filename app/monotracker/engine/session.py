@@ -286,7 +286,8 @@ class Session(PlanCommands):
         return self._bus.event(code, message, data, level)
 
     def audit_entries(self, limit: int | None = None, code: str | None = None) -> list[AuditEntry]:
-        """Rows of the audit log (all sessions in this home), oldest first."""
+        """Rows of the audit log (all sessions in this home), oldest first. Waits (at most 5 s)
+        for the rows still queued; rows delayed to a spill file appear once copied back in."""
         return self._audit.entries(code=code, limit=limit)
 
     # ================================================================== plan persistence
