@@ -120,10 +120,11 @@ def test_disk_full_refuses_commands_and_memory_stays_equal_to_disk(make_session,
     assert not s.snapshot().fiducials_locked
     alarms = [a.code for a in s.snapshot().alerts]
     assert alarms.count("home_unwritable") == 1 and "plan_save_failed" in alarms
+    assert [c for c, _ in s.integrity_alarms()] == ["home_unwritable"]  # stands while unwritable
     heal()
     assert s.confirm_fiducials().ok
     assert json.loads((home / "plan.json").read_text())["fiducials_locked"] is True
-    assert "home_writable" in [a.code for a in s.snapshot().alerts]
+    assert "home_writable" in [a.code for a in s.snapshot().alerts] and s.integrity_alarms() == []
     s.shutdown()
     assert make_session(clock="sim").snapshot().fiducials_locked  # after a restart: what was said done
 

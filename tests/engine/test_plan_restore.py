@@ -175,6 +175,7 @@ def test_plan_edited_outside_the_app_needs_reconfirmation(saved):
     try:
         assert _alarms(s, "plan_changed_outside")
         assert not _alarms(s, "plan_field_rejected")
+        assert [c for c, _ in s.integrity_alarms()] == ["plan_reconfirm_pending"]
         armed, _ = _try_to_track(s)
         assert not armed.ok and "re-confirm" in armed.message
         r = s.reconfirm_plan()

@@ -162,6 +162,28 @@ class PlanCommands:
         self._bus.event("plan_reconfirmed", "plan re-confirmed by the operator", {"reasons": reasons})
         return _ok("plan re-confirmed")
 
+    def integrity_alarms(self) -> list[tuple[str, str]]:
+        """Integrity conditions that stand until they clear, as ``(code, one line)``, most serious
+        first: the session folder is unwritable, the plan needs re-confirmation, the plan's CT is
+        missing, audit rows were lost or are delayed. For the active-alarm list (``snap.alarms``);
+        each was also raised once as an alert when it began."""
+        out = []
+        with self._lock:
+            unwritable, reconfirm, ct_path = self._home_unwritable, list(self._reconfirm), self._plan.ct_path
+        if unwritable:
+            out.append(("home_unwritable", f"session folder {self.home} is not writable ({unwritable}): "
+                        "plan changes are refused"))
+        if reconfirm:
+            out.append(("plan_reconfirm_pending", f"re-confirm the plan: {reconfirm[0]}"))
+        if ct_path and not Path(ct_path).exists():
+            out.append(("plan_ct_missing", f"the plan's CT {ct_path} is missing"))
+        audit = self._audit
+        if audit.lost:
+            out.append(("audit_lost", f"{audit.lost} audit rows were lost"))
+        elif audit.open_error or getattr(audit, "_trouble", False):
+            out.append(("audit_delayed", f"audit rows are delayed to {audit.spill_path} ({audit.delayed} so far)"))
+        return out
+
     def _need_reconfirm(self, code: str, reason: str, data: dict | None = None) -> None:
         with self._lock:
             self._reconfirm.append(reason)

@@ -33,6 +33,7 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.set_hand_eye(T_base_cam_mm)       # 4x4 mm; the sim camera sets it from the OR layout
     s.plan_not_ready() -> str | None    # why arming/tracking is refused (plan_checks, CT loaded, re-confirmation)
     s.reconfirm_plan()                  # the operator re-confirms after an integrity alarm (edited outside, CT/calibration changed)
+    s.integrity_alarms() -> [(code, line)]   # integrity conditions that stand until they clear (for snap.alarms)
     s.arm(pin); s.disarm()
     s.start_tracking(); s.stop_tracking()   # needs armed + plan + trusted fresh pose + hand-eye
     s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed
