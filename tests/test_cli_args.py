@@ -100,9 +100,10 @@ def test_audit_verify_command(tmp_path):
 
 _WAITER = textwrap.dedent("""
     import signal, sys, threading
-    from monotracker.ui.commands import wait_for_stop_signal
+    from monotracker.ui.commands import StopSignals
+    signals = StopSignals()
     print("READY", flush=True)
-    sig = wait_for_stop_signal(poll_s=0.05)
+    sig = signals.wait(poll_s=0.05)
     print("STOPPING", sig, flush=True)
 """)
 
@@ -139,3 +140,24 @@ def test_session_refuses_a_home_that_is_a_file(tmp_path):
     with pytest.raises(InputError, match="IP address"):
         SessionConfig(robot="ur:no-such-host.invalid").validate()
     assert time.monotonic() - t0 < 30  # no DNS lookup (generous bound)
+
+
+def test_serve_stops_on_repeated_sigterm(tmp_path):
+    """The real web app: SIGTERM three times in a burst; it shuts down (disarmed, threads stopped)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "app"), MONOTRACKER_HOME=str(tmp_path / "home"), MONOTRACKER_PIN="2468")
+    p = subprocess.Popen([sys.executable, "-m", "monotracker", "serve", "--port", str(_free_port())], cwd=ROOT, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        seen = []
+        while not any("MonoTracker is running" in x for x in seen):  # viser prints its banner first
+            line = p.stdout.readline()
+            assert line, ("".join(seen), p.stderr.read() if p.poll() is not None else "")
+            seen.append(line)
+        for _ in range(3):
+            p.send_signal(signal.SIGTERM)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err[-2000:]
+    assert "stopping" in out and "Traceback" not in err

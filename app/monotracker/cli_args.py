@@ -18,42 +18,34 @@ import math
 from pathlib import Path
 
 
-def finite_float(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False):
-    """A float type: finite, and within ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``)."""
+def _ranged(convert, kind: str, lo, hi, lo_open: bool = False):
+    """An argparse type: ``convert(text)``, finite, within ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``)."""
 
-    def parse(text: str) -> float:
+    def parse(text: str):
         try:
-            x = float(text)
+            x = convert(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if not math.isfinite(x):
+            raise argparse.ArgumentTypeError(f"{text!r} is not {kind}") from None
+        if isinstance(x, float) and not math.isfinite(x):
             raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
         if lo is not None and (x <= lo if lo_open else x < lo):
-            raise argparse.ArgumentTypeError(f"{x:g} must be {'>' if lo_open else '>='} {lo:g}")
+            raise argparse.ArgumentTypeError(f"{text} must be {'>' if lo_open else '>='} {lo:g}")
         if hi is not None and x > hi:
-            raise argparse.ArgumentTypeError(f"{x:g} must be <= {hi:g}")
+            raise argparse.ArgumentTypeError(f"{text} must be <= {hi:g}")
         return x
 
-    parse.__name__ = "number"
+    parse.__name__ = kind.split()[-1]
     return parse
+
+
+def finite_float(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False):
+    """A float type: finite, and within ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``)."""
+    return _ranged(float, "a number", lo, hi, lo_open)
 
 
 def int_range(lo: int | None = None, hi: int | None = None):
     """An int type within ``[lo, hi]``."""
-
-    def parse(text: str) -> int:
-        try:
-            x = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-        if lo is not None and x < lo:
-            raise argparse.ArgumentTypeError(f"{x} must be >= {lo}")
-        if hi is not None and x > hi:
-            raise argparse.ArgumentTypeError(f"{x} must be <= {hi}")
-        return x
-
-    parse.__name__ = "integer"
-    return parse
+    return _ranged(int, "an integer", lo, hi)
 
 
 def check_ip(text: str) -> str | None:

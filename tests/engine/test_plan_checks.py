@@ -130,3 +130,27 @@ def test_no_arming_without_a_complete_valid_plan(tmp_path):
         assert s.snapshot().robot.state == "disarmed"
     finally:
         s.shutdown()
+
+
+def test_a_camera_started_on_another_fiducial_set_cannot_arm(tmp_path):
+    from .conftest import plan_sample
+    from .doubles import FollowerRobotRig, TruthCameraRig
+
+    cam, rob = TruthCameraRig("still"), FollowerRobotRig()
+    s = Session(SessionConfig(home=tmp_path / "h", clock="sim"), camera_factory=lambda *a: cam,
+                robot_factory=lambda *a: rob)
+    try:
+        plan_sample(s)
+        assert s.start_camera().ok
+        s.advance(0.3)
+        assert s.unlock_fiducials().ok
+        f = s.plan_copy().usable_fiducials()[0]
+        assert s.set_fiducial_status(f.id, "rejected").ok  # the set changes while the camera runs
+        assert s.confirm_fiducials().ok
+        r = s.arm("1234")
+        assert not r.ok and "fiducial set changed" in r.message
+        assert s.stop_camera().ok and s.start_camera().ok
+        s.advance(0.3)
+        assert s.arm("1234").ok
+    finally:
+        s.shutdown()

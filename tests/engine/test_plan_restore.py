@@ -175,6 +175,7 @@ def test_plan_edited_outside_the_app_needs_reconfirmation(saved):
     try:
         assert _alarms(s, "plan_changed_outside")
         assert not _alarms(s, "plan_field_rejected")
+        assert [c for c, _ in s.integrity_alarms()] == ["plan_reconfirm_pending"]
         armed, _ = _try_to_track(s)
         assert not armed.ok and "re-confirm" in armed.message
         r = s.reconfirm_plan()
@@ -207,3 +208,53 @@ def test_strict_from_dict_names_the_field(saved):
     d["fiducials_locked"] = "false"
     with pytest.raises(ValueError, match="fiducials_locked"):
         Plan.from_dict(d)
+
+
+def _paths(obj, prefix=()):
+    """Every key/index path inside a parsed JSON object."""
+    yield prefix
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _paths(v, prefix + (k,))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _paths(v, prefix + (i,))
+
+
+def test_any_single_corruption_restores_only_valid_state(saved):
+    """Every place in a saved plan, replaced by each of a set of wrong values: restore never
+    raises (except ValueError for a file that is no plan at all), and whatever it keeps passes
+    the commands' checks."""
+    import copy
+
+    from monotracker.engine import plan_checks as pc
+    from monotracker.engine.plan_restore import restore_plan
+
+    _, d = saved
+    d["camera"] = {"source": "sim", "calibration_path": None, "K": [[800, 0, 320], [0, 800, 240], [0, 0, 1]],
+                   "dist": [0, 0, 0, 0, 0], "image_size": [640, 480]}
+    bad_values = [None, "abc", "", [], {}, -1, 0, float("nan"), float("inf"), 1e308, True, "false", [[1]], [None] * 3]
+    paths = [p for p in _paths(d) if p and p[0] not in ("format",)]
+    n = 0
+    for path in paths:
+        for v in bad_values:
+            dd = copy.deepcopy(d)
+            node = dd
+            for k in path[:-1]:
+                node = node[k]
+            node[path[-1]] = v
+            try:
+                plan, _ = restore_plan(dd, 4)
+            except ValueError:
+                assert path[0] == "version", path
+                continue
+            n += 1
+            for f in plan.fiducials:
+                assert pc.check_fiducial(f.id, f.centre_lps_mm, f.radius_mm, f.score, f.status) is None
+            assert pc.check_fiducial_set(plan.fiducials) is None
+            assert pc.check_locked(plan, 4) is None
+            assert plan.T_base_cam is None or pc.check_hand_eye(plan.T_base_cam) is None
+            assert pc.check_camera(plan.K, plan.dist, plan.image_size) is None
+            assert pc.check_path(plan.entry_lps_mm, plan.target_lps_mm, plan.fiducials, None) is None
+            assert isinstance(plan.fiducials_locked, bool) and isinstance(plan.revision, int)
+    assert n > 500

@@ -8,7 +8,10 @@ Never blocks safety: :meth:`AuditLog.record` only puts the row on a bounded queu
 thread of its own commits it. A stop, hold or alarm never waits on the database. When the
 database is locked by another process, full, read-only or cannot be opened, rows go to a
 JSON-lines spill file beside it (``audit.spill.jsonl``; if the folder is not writable, one in the
-system's temp folder), and ``on_problem(level, code, message, data)`` is told how many rows are
+system's temp folder); once the database takes writes again (or at the next session's first
+write) the spilled rows are copied into the chain, with an ``audit_spill_ingested`` row holding
+the spill file's hash (so a crash in between cannot copy them twice), and the file is renamed
+``audit.spill-ingested-*.jsonl``. ``on_problem(level, code, message, data)`` is told how many rows are
 delayed (spilled) or lost (the queue overflowed or even the spill failed): the session raises that
 as an ``audit_delayed`` / ``audit_lost`` alarm. :meth:`AuditLog.flush` waits (bounded) until the
 queue is written, for readers that want every row so far.
@@ -134,6 +137,7 @@ class AuditLog:
         self._reader: sqlite3.Connection | None = None
         self._last_open_try = 0.0
         self._trouble = False  # inside a delayed episode (one alarm per episode, then counts)
+        self._ingest_checked = False  # spill files of earlier sessions are copied in after the first write
         self._last_alarm = 0.0
         self._try_open()
         self._thread = threading.Thread(target=self._run, name="monotracker-audit", daemon=True)
@@ -208,33 +212,81 @@ class AuditLog:
         if self._db is None and (time.monotonic() - self._last_open_try < 2.0 or not self._try_open()):
             self._spill(batch, f"the audit database cannot be opened ({self.open_error})")
             return
-        db = self._db
         try:
-            db.execute("BEGIN IMMEDIATE")
-            try:
-                last = db.execute("SELECT id, hash FROM audit ORDER BY id DESC LIMIT 1").fetchone()
-                rid = 0 if last is None else int(last[0])
-                prev = GENESIS if last is None or last[1] is None else last[1]
-                for row in batch:
-                    rid += 1
-                    h = row_hash(prev, (rid, *row))
-                    db.execute(f"INSERT INTO audit ({_COLS}, prev_hash, hash) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
-                               (rid, *row, prev, h))
-                    prev = h
-                db.execute("COMMIT")
-            except BaseException:
-                try:
-                    db.execute("ROLLBACK")
-                except sqlite3.Error:
-                    pass
-                raise
+            self._insert(batch)
         except sqlite3.Error as exc:
             self._spill(batch, f"the audit database refused the write ({exc})")
             return
-        if self._trouble:
+        if self._trouble or not self._ingest_checked:
+            self._ingest_checked = True
+            recovered = self._trouble
             self._trouble = False
-            self._problem("info", "audit_recovered", "audit database writable again",
-                          {"delayed": self.delayed, "lost": self.lost, "spill_file": str(self.spill_path)})
+            n = self._ingest_spills()
+            if recovered:
+                self._problem("info", "audit_recovered", f"audit database writable again; {n} delayed rows copied in",
+                              {"delayed": self.delayed, "lost": self.lost, "ingested": n})
+
+    def _insert(self, rows: list, check_sha: str | None = None) -> bool:
+        """Append ``rows`` to the chain in one transaction. With ``check_sha``: only if no
+        ``audit_spill_ingested`` row names that spill file's hash yet (False: already in)."""
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            if check_sha is not None and db.execute(
+                    "SELECT 1 FROM audit WHERE code = 'audit_spill_ingested' AND data LIKE ?",
+                    (f'%"{check_sha}"%',)).fetchone():
+                db.execute("ROLLBACK")
+                return False
+            last = db.execute("SELECT id, hash FROM audit ORDER BY id DESC LIMIT 1").fetchone()
+            rid = 0 if last is None else int(last[0])
+            prev = GENESIS if last is None or last[1] is None else last[1]
+            for row in rows:
+                rid += 1
+                h = row_hash(prev, (rid, *row))
+                db.execute(f"INSERT INTO audit ({_COLS}, prev_hash, hash) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                           (rid, *row, prev, h))
+                prev = h
+            db.execute("COMMIT")
+            return True
+        except BaseException:
+            try:
+                db.execute("ROLLBACK")
+            except sqlite3.Error:
+                pass
+            raise
+
+    def _ingest_spills(self) -> int:
+        """Copy delayed rows from spill files into the database (idempotent: a summary row holds
+        each file's hash), then rename the file ``audit.spill-ingested-<UTC>.jsonl``. Returns how
+        many rows were copied in."""
+        total = 0
+        tmp_spill = Path(tempfile.gettempdir()) / f"monotracker-audit-spill-{self.session_id}.jsonl"
+        for path in dict.fromkeys((self.path.with_name("audit.spill.jsonl"), tmp_spill)):
+            if not path.is_file():
+                continue
+            try:
+                raw = path.read_bytes()
+                sha = hashlib.sha256(raw).hexdigest()
+                rows, bad = [], 0
+                keys = _COLS.split(", ")[1:]
+                for line in raw.decode("utf-8", errors="replace").splitlines():
+                    try:
+                        d = json.loads(line)
+                        rows.append(tuple(d[k] for k in keys))
+                    except (ValueError, KeyError, TypeError):
+                        bad += 1
+                t = time.time()
+                summary = (t, datetime.fromtimestamp(t, tz=timezone.utc).isoformat(timespec="milliseconds"), None,
+                           self.session_id, "event", "info", "audit_spill_ingested",
+                           f"{len(rows)} delayed rows copied in from {path.name}" + (f" ({bad} unreadable lines)" if bad else ""),
+                           json.dumps({"file": str(path), "sha256": sha, "rows": len(rows), "unreadable": bad}))
+                if self._insert(rows + [summary], check_sha=sha):
+                    total += len(rows)
+                stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+                os.replace(path, path.with_name(f"audit.spill-ingested-{stamp}-{sha[:8]}.jsonl"))
+            except (OSError, sqlite3.Error) as exc:
+                log.warning("delayed audit rows in %s not copied in yet: %s", path, exc)
+        return total
 
     def _spill(self, rows: list, why: str) -> None:
         """Append rows to the spill file (JSON lines); count them delayed, or lost if that fails too."""

@@ -78,6 +78,7 @@ class TrackingLoop:
         if saved.camera_source and saved.camera_source == cfg.camera:
             self.calibration_path = saved.calibration_path  # the calibration used last time
         self.rig: components.CameraRig | None = None
+        self._rig_fiducials: np.ndarray | None = None
         self.robot: components.RobotRig | None = None
         self.camera_error: str | None = None
         self.fault = "none"
@@ -185,8 +186,21 @@ class TrackingLoop:
         else:
             board.clear("robot_disconnected", now)
 
-    def arm(self) -> CommandResult:
+    def _plan_mismatch(self) -> str | None:
+        """The plan's readiness, and whether the running camera registers against this plan's
+        fiducial set (a pose computed on another set must not move the arm)."""
         why = self.s.plan_not_ready()
+        if why:
+            return why
+        rig, used = self.rig, self._rig_fiducials
+        if rig is not None and rig.running and used is not None:
+            now = self.s.plan_copy().fiducial_centres()
+            if now.shape != used.shape or not np.array_equal(now, used):
+                return "the fiducial set changed since the camera started; stop and start the camera"
+        return None
+
+    def arm(self) -> CommandResult:
+        why = self._plan_mismatch()
         if why:
             return self._refuse("arm", f"the plan is not ready: {why}")
         try:
@@ -210,7 +224,7 @@ class TrackingLoop:
     def start_tracking(self) -> CommandResult:
         if self.robot is None or self.robot_state() not in ("armed", "holding", "tracking"):
             return self._refuse("start_tracking", "arm the robot first")
-        why = self.s.plan_not_ready()
+        why = self._plan_mismatch()
         if why:
             return self._refuse("start_tracking", f"the plan is not ready: {why}")
         plan = self.s.plan_copy()
@@ -291,6 +305,7 @@ class TrackingLoop:
         self.s._alarm_board.clear_all(("camera_failed", "camera_stopped", "camera_uncalibrated"), self.now())
         with self._lock:
             self.rig = rig
+            self._rig_fiducials = plan.fiducial_centres().copy()  # the set this rig registers against
             self.camera_error = None
             self._last_frame_seen_at = self.now()
             self._next_frame_t = self.now()

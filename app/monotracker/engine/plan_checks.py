@@ -146,14 +146,19 @@ def check_hand_eye(T, limits: PlanLimits = LIMITS) -> str | None:
     if why:
         return why
     R = a[:3, :3]
-    orth = float(np.abs(R.T @ R - np.eye(3)).max())
-    det = float(np.linalg.det(R))
+    with np.errstate(all="ignore"):  # huge entries overflow to inf: refused below
+        orth = float(np.abs(R.T @ R - np.eye(3)).max())
+        det = float(np.linalg.det(R))
+    if not (np.isfinite(orth) and np.isfinite(det)):
+        return "T_base_cam is not a rigid transform (its entries are far too large)"
     if det < 0:
         return f"T_base_cam is a reflection (det {det:.3f}), not a rigid transform"
     if orth > limits.rigid_tol or abs(det - 1.0) > limits.rigid_tol:
         return f"T_base_cam is not a rigid transform (|R^T R - I| {orth:.2g}, det {det:.4f})"
     if not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
         return "T_base_cam's last row must be (0, 0, 0, 1)"
+    if np.abs(a[:3, 3]).max() > limits.max_translation_mm:  # before the norm: no overflow
+        return f"T_base_cam puts the camera more than {limits.max_translation_mm:.0f} mm from the robot base"
     t = float(np.linalg.norm(a[:3, 3]))
     if t > limits.max_translation_mm:
         return f"T_base_cam puts the camera {t:.0f} mm from the robot base (max {limits.max_translation_mm:.0f} mm)"
@@ -165,7 +170,7 @@ def check_fiducial(fid_id, centre, radius_mm, score, status, limits: PlanLimits 
     """One fiducial: integer id, finite centre (3,) LPS mm, radius in range, score 0..1, known status."""
     if isinstance(fid_id, bool) or not isinstance(fid_id, (int, np.integer)) or fid_id < 0:
         return f"fiducial id must be a non-negative integer, not {fid_id!r}"
-    _, why = finite_array(centre, (3,), f"fiducial {fid_id} centre")
+    _, why = check_point(centre, f"fiducial {fid_id} centre")
     if why:
         return why
     r, why = real_number(radius_mm, f"fiducial {fid_id} radius")
@@ -229,8 +234,18 @@ def check_added_fiducial(anatomy: Anatomy | None, centre, radius_mm: float,
 
 
 # ---------------------------------------------------------------------- path
+#: No CT point lies farther than this from the scanner's origin (mm): a sanity bound.
+MAX_COORD_MM = 10000.0
+
+
 def check_point(p, what: str) -> tuple[np.ndarray | None, str | None]:
-    return finite_array(p, (3,), what)
+    """(point, None) for three finite coordinates within +-:data:`MAX_COORD_MM` (LPS mm), else (None, reason)."""
+    a, why = finite_array(p, (3,), what)
+    if why:
+        return None, why
+    if np.abs(a).max() > MAX_COORD_MM:
+        return None, f"{what} lies more than {MAX_COORD_MM / 1000:g} m from the CT origin"
+    return a, None
 
 
 def check_entry_target_pair(entry, target, limits: PlanLimits = LIMITS) -> str | None:
@@ -344,7 +359,7 @@ def check_camera(K, dist, image_size) -> str | None:
             d = np.asarray(dist, dtype=float).ravel()
         except (TypeError, ValueError):
             return "camera dist must be a list of numbers"
-    if isinstance(image_size, (str, bytes, dict)) or len(image_size) != 2 or any(
+    if not isinstance(image_size, (list, tuple)) or len(image_size) != 2 or any(
             isinstance(v, bool) or not isinstance(v, (int, np.integer)) for v in image_size):
         return f"camera image_size must be two integers (width, height), not {image_size!r}"
     from monotracker.vision.camera_model import validate_intrinsics

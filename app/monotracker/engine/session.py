@@ -21,7 +21,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.load_ct(path)                     # async job: load + detect fiducials + head surface; progress in snap.job
     s.load_sample_ct()
     s.set_fiducial_status(fid_id, "confirmed" | "rejected" | "detected")
-    s.add_fiducial(p_lps_mm, radius_mm=None)   # operator-added fiducial (LPS mm); status "added"
+    s.add_fiducial(p_lps_mm, radius_mm=None, manual=False)   # operator-added fiducial (LPS mm); status "added";
+                                        #   with a CT it must be a dense ball there, else refused (manual=True: unverified)
     s.confirm_fiducials()               # locks the fiducial set (needs >= 4 confirmed/added)
     s.unlock_fiducials()                # back to editing (refused while armed/tracking)
     s.set_entry(p_lps_mm); s.set_target(p_lps_mm)   # planning; needs locked fiducials
@@ -30,6 +31,9 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.set_camera(source, calibration_path=None)
     s.start_camera(); s.stop_camera()   # pose stream on its own thread
     s.set_hand_eye(T_base_cam_mm)       # 4x4 mm; the sim camera sets it from the OR layout
+    s.plan_not_ready() -> str | None    # why arming/tracking is refused (plan_checks, CT loaded, re-confirmation)
+    s.reconfirm_plan()                  # the operator re-confirms after an integrity alarm (edited outside, CT/calibration changed)
+    s.integrity_alarms() -> [(code, line)]   # integrity conditions that stand until they clear (for snap.alarms)
     s.arm(pin); s.disarm()               # wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/control.py
     s.claim_control(client_id, pin, label=""); s.release_control(client_id)   # one browser client in control
     s.for_client(client_id) -> ClientSession    # reads as is; commands only while in control; estop() always
@@ -77,7 +81,11 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 ``frame_size`` [warning] frame size differs from the calibration; poses: ``tre_limit``
 [warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
 ``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
-with its shift in mm; excluded from then on); ``robot_warning`` [warning] from the robot's safety layer; ``estop``
+with its shift in mm; excluded from then on); ``robot_warning`` [warning] from the robot's safety layer; integrity
+(engine/plan_commands.py, engine/audit.py): ``plan_field_rejected`` / ``plan_changed_outside`` /
+``plan_reconfirm_pending`` / ``plan_ct_changed`` / ``plan_ct_missing`` / ``calibration_changed`` /
+``plan_path_invalid`` / ``home_unwritable`` / ``audit_unavailable`` / ``audit_delayed`` / ``audit_lost``
+[alarm], ``home_writable`` / ``audit_recovered`` [info], ``fiducial_unverified`` [warning]; ``estop``
 [alarm]; ``pin_lockout`` [alarm] too many wrong PIN tries, arming and taking control locked (each
 wrong try is an ``arm_refused`` / ``control_refused`` *event*, never an alert, never the PIN); ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
 / ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
@@ -98,8 +106,14 @@ are :class:`~monotracker.engine.events.Event` objects (with ``kind == "alert"``)
 
 Threading: every public method may be called from any thread (viser callbacks). State lives
 behind one re-entrant lock; methods hold it only for bookkeeping and for the plan's atomic save
-(a few ms, so the file and the in-memory plan never disagree), never across CT loading,
-registration or robot motion. Snapshots are copies with read-only arrays.
+(a few ms: a command saves the new plan first and swaps it in only once it is on disk, so the file
+and the in-memory plan never disagree), never across CT loading, registration or robot motion.
+The audit log is written by its own thread from a bounded queue: no command waits on it.
+Snapshots are copies with read-only arrays.
+
+Validation: one check per kind of plan state (``engine/plan_checks.py``), used by the commands,
+by the field-by-field restore of ``plan.json`` and by the arming gate: what a setter refuses, a
+restore refuses too; nothing is armed without a complete plan that passes every check.
 
 Safety choices: the session always starts disarmed, also after a crash; arming needs the PIN;
 tracking needs a trusted pose (>= ``min_fiducials`` visible, FRE below ``max_fre_mm``, passes the
@@ -125,6 +139,7 @@ from monotracker.engine.config import FAULTS, SessionConfig
 from monotracker.engine.control import ClientSession, ControlArbiter, PinGuard
 from monotracker.engine.events import Event, EventBus
 from monotracker.engine import plan_checks
+from monotracker.engine.plan_commands import PlanCommands, _fail, _home_write_problem, _ok, _prepare_home
 from monotracker.engine.plan import (
     Plan,
     PlanFiducial,
@@ -146,36 +161,14 @@ from monotracker.engine.snapshot import (
     Snapshot,
     frozen_array,
 )
-from monotracker.errors import InputError, MonoTrackerError
+from monotracker.errors import MonoTrackerError
 
 log = logging.getLogger(__name__)
 
 PLAN_FILE = "plan.json"
-#: integrity alarms that stand until the operator re-confirms the plan (or starts a new one)
-RECONFIRM_CODES = ("plan_ct_changed", "calibration_changed", "plan_changed_outside", "plan_reconfirm_pending")
+#: the integrity conditions :meth:`Session.integrity_alarms` derives from the session's state
+INTEGRITY_CODES = ("home_unwritable", "plan_reconfirm_pending", "plan_ct_missing", "audit_lost", "audit_delayed")
 AUDIT_FILE = "audit.sqlite"
-
-
-def _prepare_home(home: Path) -> None:
-    """Create the session folder; :class:`InputError` (one line) when ``home`` cannot be one."""
-    if home.exists() and not home.is_dir():
-        raise InputError(f"session folder {home} is not a folder")
-    try:
-        home.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the session folder {home}: {exc.strerror or exc}") from None
-
-
-def _home_write_problem(home: Path) -> str | None:
-    """None when a file can be created in ``home``; else the reason (one line)."""
-    import tempfile
-
-    try:
-        with tempfile.NamedTemporaryFile(dir=home, prefix=".write-check-"):
-            pass
-    except OSError as exc:
-        return exc.strerror or str(exc)
-    return None
 
 
 class SimClock:
@@ -194,22 +187,7 @@ class SimClock:
             self._t = float(t)
 
 
-def _ok(msg: str = "") -> CommandResult:
-    return CommandResult(True, msg)
-
-
-def _fail(msg: str) -> CommandResult:
-    return CommandResult(False, msg)
-
-
-def _point3(p) -> np.ndarray:
-    a = np.asarray(p, dtype=float).reshape(-1)
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise InputError("a point needs three finite coordinates (LPS mm)")
-    return a
-
-
-class Session:
+class Session(PlanCommands):
     """One surgical session (see the module docstring for the whole API)."""
 
     def __init__(self, config: SessionConfig | None = None, *, camera_factory=None, robot_factory=None):
@@ -229,7 +207,7 @@ class Session:
         self._lock = threading.RLock()
         self._plan_path = self.home / PLAN_FILE
         self._audit = AuditLog(self.home / AUDIT_FILE, self.session_id,
-                               on_problem=self._persistent_alarm)
+                               on_problem=lambda level, code, msg, data: self._bus.alert(level, code, msg, data))
         self._bus = EventBus(sink=self._audit.record_event, clock=self.clock)
         self._job: Job | None = None
         self._job_thread: threading.Thread | None = None
@@ -250,19 +228,15 @@ class Session:
         unwritable = _home_write_problem(self.home)
         if unwritable:
             self._home_unwritable = unwritable
-            self._alarm_board.set("home_unwritable", f"cannot write the session folder {self.home}: {unwritable}",
-                                  float(self.clock()))
             self._bus.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: {unwritable}; "
                             "the plan cannot be changed and the audit log goes to a spill file until it is writable")
         if self._audit.open_error:
-            self._alarm_board.set("audit_unavailable", f"audit database cannot be opened; events go to "
-                                  f"{self._audit.spill_path.name}", float(self.clock()))
             self._bus.alert("alarm", "audit_unavailable", f"audit database {self._audit.path} cannot be opened "
                             f"({self._audit.open_error}); events go to {self._audit.spill_path}")
         self._restore_plan()
         ct_path = self._plan.ct_path
         if ct_path and not Path(ct_path).exists():
-            self._persistent_alarm("alarm", "plan_ct_missing", f"the plan's CT {ct_path} is missing; the plan cannot be "
+            self._bus.alert("alarm", "plan_ct_missing", f"the plan's CT {ct_path} is missing; the plan cannot be "
                             "checked or armed until it is back (or start a new plan)", {"path": ct_path})
         # camera + loop + robot wiring (monotracker.engine.loop); created lazily
         from monotracker.engine.loop import TrackingLoop
@@ -339,126 +313,24 @@ class Session:
             self._alarm_board.set(code, message, float(self.clock()))
         return self._bus.alert(level, code, message, data)
 
+    def _persistent_alarm(self, level: str, code: str, message: str, data: dict | None = None) -> Event:
+        """An alert that is also an active condition (``snap.alarms``) until it is cleared."""
+        self._alarm_board.set(code, message, float(self.clock()), level=level)
+        return self._bus.alert(level, code, message, data)
+
     def record(self, code: str, message: str, data: dict | None = None, level: str = "info") -> Event:
         """Record a decision/state change (to subscribers and the audit log)."""
         return self._bus.event(code, message, data, level)
 
     def audit_entries(self, limit: int | None = None, code: str | None = None) -> list[AuditEntry]:
-        """Rows of the audit log (all sessions in this home), oldest first."""
+        """Rows of the audit log (all sessions in this home), oldest first. Waits (at most 5 s)
+        for the rows still queued; rows delayed to a spill file appear once copied back in."""
         return self._audit.entries(code=code, limit=limit)
 
     # ================================================================== plan persistence
     @property
     def plan_path(self) -> Path:
         return self._plan_path
-
-    def _restore_plan(self) -> None:
-        """Restore ``plan.json`` field by field with the commands' checks (never raises)."""
-        if not self._plan_path.exists():
-            return
-        from monotracker.engine.plan_restore import load_saved_plan
-
-        saved = load_saved_plan(self._plan_path, self.config.min_fiducials)
-        self._plan = saved.plan
-        self._reconfirm = list(saved.reconfirm)
-        codes = [c for c, _, _ in saved.alarms]
-        for code, msg, data in saved.alarms:
-            self._alarm_board.set(code, msg, float(self.clock()))
-            self._bus.alert("alarm", code, msg, data)
-        if saved.rejected:
-            # the file on disk would say what memory does not: write what was restored (the original
-            # is aside), carrying the pending re-confirmation so a restart cannot forget it
-            with self._lock:
-                plan = self._plan.copy()
-                if self._reconfirm:
-                    plan.integrity["reconfirm_pending"] = self._reconfirm[0]
-                self._commit_plan_locked(plan, "restored plan (invalid fields removed)")
-        if "plan_unreadable" in codes:
-            with self._lock:
-                self._commit_plan_locked(Plan(), "empty plan (the unreadable one is kept aside)")
-            return
-        plan = self._plan
-        self._bus.event("plan_restored", f"plan restored (revision {plan.revision}, "
-                        f"{len(plan.usable_fiducials())} fiducials, path {'set' if plan.path_complete else 'not set'})",
-                        {"revision": plan.revision, "plan": plan.to_dict()})
-
-    def _commit_plan_locked(self, plan: Plan, why: str) -> str | None:
-        """Save ``plan`` (a modified copy) and only then make it the session's plan; caller holds
-        the lock. Returns None when saved and swapped in, else a one-line reason (memory unchanged,
-        a ``home_unwritable`` alarm stands until a save succeeds again)."""
-        plan.revision = self._plan.revision + 1
-        try:
-            plan.save(self._plan_path)
-        except OSError as exc:
-            reason = f"not saved ({exc.strerror or exc}): the plan on disk and in memory are unchanged"
-            if self._home_unwritable is None:
-                self._alarm_board.set("home_unwritable", f"cannot write the session folder {self.home}",
-                                      float(self.clock()))
-                self._bus.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: "
-                                f"{exc.strerror or exc}; changes are refused until it is writable",
-                                {"why": why, "errno": getattr(exc, "errno", None)})
-            self._alarm_board.set("plan_save_failed", f"could not save the plan ({exc.strerror or exc}): "
-                                  "changes are refused", float(self.clock()))
-            self._bus.alert("alarm", "plan_save_failed", f"{why}: {reason}", {"why": why})
-            self._home_unwritable = str(exc)
-            return reason
-        self._plan = plan
-        self._alarm_board.clear_all(("plan_save_failed", "plan_unreadable", "home_unwritable"), float(self.clock()))
-        if self._home_unwritable is not None:
-            self._home_unwritable = None
-            self._bus.alert("info", "home_writable", f"session folder {self.home} is writable again")
-        log.debug("plan saved (%s) revision %d", why, plan.revision)
-        return None
-
-    def plan_not_ready(self) -> str | None:
-        """Why the current plan cannot be armed or tracked on (one line), or None when it is a
-        complete plan that passes every check (:func:`plan_checks.plan_problems`), its CT is loaded
-        when it was made on one, and no re-confirmation is pending."""
-        with self._lock:
-            plan, anatomy, reconfirm = self._plan, self._anatomy, list(self._reconfirm)
-            problems = plan_checks.plan_problems(plan, self.config.min_fiducials, anatomy)
-            ct_wanted = plan.ct_path is not None and self._ct is None
-        if problems:
-            return problems[0]
-        if ct_wanted:
-            return "the plan's CT is not loaded, so the path cannot be checked against it; load it first"
-        if reconfirm:
-            return f"re-confirm the plan first: {reconfirm[0]}"
-        return None
-
-    def reconfirm_plan(self) -> CommandResult:
-        """The operator has reviewed the plan after an integrity alarm (edited outside the app,
-        changed CT or calibration): clear the pending re-confirmation and record the plan's
-        current hashes. Refused when the plan itself fails its checks (the reason is returned)."""
-        with self._lock:
-            if not self._reconfirm:
-                return _ok("nothing to re-confirm")
-            problems = plan_checks.plan_problems(self._plan, self.config.min_fiducials, self._anatomy)
-            if problems:
-                return _fail(f"the plan cannot be re-confirmed: {problems[0]}")
-            reasons, plan = list(self._reconfirm), self._plan.copy()
-            plan.integrity.pop("reconfirm_pending", None)
-            if self._ct is not None and self._ct_sha256:
-                plan.integrity["ct_sha256"] = self._ct_sha256
-            err = self._commit_plan_locked(plan, "plan re-confirmed")
-            if err:
-                return _fail(err)
-            self._reconfirm = []
-        self._alarm_board.clear_all(RECONFIRM_CODES, float(self.clock()))
-        self._bus.event("plan_reconfirmed", "plan re-confirmed by the operator", {"reasons": reasons})
-        return _ok("plan re-confirmed")
-
-    def _need_reconfirm(self, code: str, reason: str, data: dict | None = None) -> None:
-        with self._lock:
-            self._reconfirm.append(reason)
-        self._persistent_alarm("alarm", code, f"{reason}; re-confirm the plan before arming", data)
-
-    def _persistent_alarm(self, level: str, code: str, message: str, data: dict | None = None) -> None:
-        """An alert that is also an active condition (``snap.alarms``) until it is cleared."""
-        board = getattr(self, "_alarm_board", None)  # the audit log may report before the board exists
-        if board is not None:
-            board.set(code, message, float(self.clock()), level=level)
-        self._bus.alert(level, code, message, data)
 
     def plan_copy(self) -> Plan:
         """A deep copy of the current plan."""
@@ -484,7 +356,7 @@ class Session:
             self._head_normals = None
             self._anatomy = None
             self._reconfirm = []
-        self._alarm_board.clear_all(RECONFIRM_CODES + ("plan_field_rejected", "plan_ct_missing", "fiducial_moved"), float(self.clock()))
+        self._alarm_board.clear_all(("plan_field_rejected", "fiducial_moved"), float(self.clock()))
         self._bus.event("plan_cleared", "new plan: CT, fiducials and path cleared")
         return _ok("new plan")
 
@@ -627,183 +499,6 @@ class Session:
             if not det.ok:
                 self._bus.alert("warning", "fiducials_detection", f"fiducial detection: {det.reason}")
 
-    # ================================================================== fiducials
-    def set_fiducial_status(self, fid_id: int, status: str) -> CommandResult:
-        """Operator decision on one fiducial.
-
-        ``fid_id``: the fiducial's id (int, as in ``snap.fiducials``). ``status``: ``"confirmed" |
-        "rejected" | "detected"`` (undo). Refused while the set is locked, for an unknown id, to set
-        an added fiducial back to detected, or when the plan cannot be saved (nothing changes)."""
-        if status not in ("confirmed", "rejected", "detected"):
-            return _fail(f"status must be confirmed, rejected or detected, not {status!r}")
-        if isinstance(fid_id, bool) or not isinstance(fid_id, (int, np.integer)):
-            return _fail(f"fiducial id must be an integer, not {fid_id!r}")
-        with self._lock:
-            if self._plan.fiducials_locked:
-                return _fail("fiducials are locked; unlock them first")
-            plan = self._plan.copy()
-            f = plan.fiducial(int(fid_id))
-            if f is None:
-                return _fail(f"no fiducial with id {fid_id}")
-            if f.status == "added" and status == "detected":
-                return _fail("an added fiducial can be confirmed or rejected, not set to detected")
-            old, f.status = f.status, status
-            why = plan_checks.check_fiducial_set(plan.fiducials)
-            if why:
-                return _fail(why)
-            err = self._commit_plan_locked(plan, "fiducial status")
-            if err:
-                return _fail(err)
-            centre = f.centre_lps_mm.tolist()
-        self._bus.event(f"fiducial_{status}", f"fiducial {fid_id} {status} (was {old})",
-                        {"id": int(fid_id), "centre_lps_mm": centre, "previous": old})
-        return _ok(f"fiducial {fid_id} {status}")
-
-    def add_fiducial(self, p_lps_mm, radius_mm: float | None = None, manual: bool = False) -> CommandResult:
-        """Add an operator-picked fiducial; it counts as confirmed (status ``"added"``).
-
-        ``p_lps_mm``: ball centre, (3,) CT LPS mm, finite. ``radius_mm``: ball radius in mm
-        (default: the median of the plan's fiducials, else 4 mm; within ``PlanLimits.radius_mm``).
-        With a CT loaded, the CT must show a dense ball of that radius there
-        (:func:`plan_checks.check_added_fiducial`), else the command is refused with what the CT
-        reads; ``manual=True`` adds it anyway, marked "manual, unverified" with a warning. Without a
-        CT it is added unverified with a warning. Refused while the set is locked, when it overlaps
-        another fiducial, or when the plan cannot be saved (nothing changes)."""
-        try:
-            p = _point3(p_lps_mm)
-        except InputError as exc:
-            return _fail(str(exc))
-        with self._lock:
-            if self._plan.fiducials_locked:
-                return _fail("fiducials are locked; unlock them first")
-            radii = [f.radius_mm for f in self._plan.fiducials]
-            if radius_mm is not None:
-                r, why = plan_checks.real_number(radius_mm, "fiducial radius")
-                if why:
-                    return _fail(why)
-            else:
-                r = float(np.median(radii)) if radii else 4.0
-            lo, hi = plan_checks.LIMITS.radius_mm
-            if not (lo <= r <= hi):
-                return _fail(f"fiducial radius must be between {lo:g} and {hi:g} mm, not {r:g}")
-            for f in self._plan.fiducials:
-                if f.status != "rejected" and np.linalg.norm(f.centre_lps_mm - p) < 2 * r:
-                    return _fail(f"too close to fiducial {f.id} ({np.linalg.norm(f.centre_lps_mm - p):.1f} mm)")
-            verified, how = plan_checks.check_added_fiducial(self._anatomy, p, r)
-            if verified is False and not manual:
-                return _fail(f"{how}; pick the ball's centre, or add it as manual (unverified)")
-            fid = max((f.id for f in self._plan.fiducials), default=-1) + 1
-            plan = self._plan.copy()
-            plan.fiducials.append(PlanFiducial(fid, p, r, 1.0, "added", bool(verified)))
-            err = self._commit_plan_locked(plan, "fiducial added")
-            if err:
-                return _fail(err)
-        self._bus.event("fiducial_added", f"fiducial {fid} added by the operator", {"id": fid, "centre_lps_mm": p.tolist(),
-                                                                                    "radius_mm": r, "verified": verified,
-                                                                                    "check": how})
-        if not verified:
-            self._bus.alert("warning", "fiducial_unverified", f"fiducial {fid} added manual, unverified: {how}",
-                            {"id": fid})
-            return _ok(f"fiducial {fid} added (manual, unverified: {how})")
-        return _ok(f"fiducial {fid} added")
-
-    def confirm_fiducials(self) -> CommandResult:
-        """Lock the fiducial set: needs >= ``config.min_fiducials`` confirmed or added fiducials,
-        each passing its check, no two overlapping. Refused (nothing changes) when the plan cannot be saved."""
-        with self._lock:
-            if self._plan.fiducials_locked:
-                return _ok("fiducials already locked")
-            n = len(self._plan.usable_fiducials())
-            need = self.config.min_fiducials
-            if n < need:
-                return _fail(f"{n} fiducials confirmed; at least {need} are needed")
-            plan = self._plan.copy()
-            plan.fiducials_locked = True
-            for f in plan.usable_fiducials():
-                why = plan_checks.check_fiducial(f.id, f.centre_lps_mm, f.radius_mm, f.score, f.status)
-                if why:
-                    return _fail(why)
-            why = plan_checks.check_fiducial_set(plan.fiducials) or plan_checks.check_locked(plan, need)
-            if why:
-                return _fail(why)
-            err = self._commit_plan_locked(plan, "fiducials locked")
-            if err:
-                return _fail(err)
-            ids = [f.id for f in plan.usable_fiducials()]
-        self._bus.event("fiducials_locked", f"fiducial set locked ({n} fiducials: {ids})", {"ids": ids})
-        return _ok(f"{n} fiducials locked")
-
-    def unlock_fiducials(self) -> CommandResult:
-        """Back to editing the fiducials (refused while armed or tracking, or when the plan cannot be saved)."""
-        if self._loop.robot_state() not in ("disarmed", "estopped"):
-            return _fail("disarm the robot before editing fiducials")
-        with self._lock:
-            if not self._plan.fiducials_locked:
-                return _ok("fiducials not locked")
-            plan = self._plan.copy()
-            plan.fiducials_locked = False
-            err = self._commit_plan_locked(plan, "fiducials unlocked")
-            if err:
-                return _fail(err)
-        self._bus.event("fiducials_unlocked", "fiducial set unlocked for editing")
-        return _ok("fiducials unlocked")
-
-    # ================================================================== path planning
-    def set_entry(self, p_lps_mm) -> CommandResult:
-        """Set the needle's entry point: ``p_lps_mm`` (3,) CT LPS mm, finite. Refused while tracking,
-        before the fiducials are locked, and when the path fails :func:`plan_checks.check_path`
-        (with a CT: the entry within ``PlanLimits.entry_skin_mm`` of the skin; always: distinct
-        from the target, length in range, clear of the fiducials), or the plan cannot be saved."""
-        return self._set_path_point("entry", p_lps_mm)
-
-    def set_target(self, p_lps_mm) -> CommandResult:
-        """Set the target point: ``p_lps_mm`` (3,) CT LPS mm, finite. Refused like :meth:`set_entry`;
-        with a CT the target must lie inside the CT volume and inside the head."""
-        return self._set_path_point("target", p_lps_mm)
-
-    def use_sample_plan(self) -> CommandResult:
-        """Entry/target of the phantom's sample plan (meant for the sample CT)."""
-        from monotracker.sim.phantom import default_phantom
-
-        ph = default_phantom()
-        r = self.set_entry(ph.sample_entry_lps)
-        return self.set_target(ph.sample_target_lps) if r.ok else r
-
-    def _set_path_point(self, which: str, p_lps_mm) -> CommandResult:
-        try:
-            p = _point3(p_lps_mm)
-        except InputError as exc:
-            return _fail(str(exc))
-        if self._loop.robot_state() == "tracking":
-            return _fail("stop tracking before changing the path")
-        with self._lock:
-            if not self._plan.fiducials_locked:
-                return _fail("confirm the fiducials before planning the path")
-            plan = self._plan.copy()
-            old = getattr(plan, f"{which}_lps_mm")
-            setattr(plan, f"{which}_lps_mm", p)
-            why = self._point_problem(which, p, plan)
-            if why:
-                return _fail(why)
-            err = self._commit_plan_locked(plan, f"{which} set")
-            if err:
-                return _fail(err)
-        self._bus.event(f"{which}_set", f"{which} set to ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm LPS",
-                        {"lps_mm": p.tolist(), "previous": None if old is None else old.tolist()})
-        return _ok(f"{which} set")
-
-    def _point_problem(self, which: str, p: np.ndarray, plan: Plan) -> str | None:
-        """The checks of one path point (caller holds the lock): its own anatomy check, and the
-        whole path's checks once both points are set."""
-        a = self._anatomy
-        if a is not None:
-            why = (plan_checks.check_entry_anatomy(p, a) if which == "entry" else plan_checks.check_target_anatomy(p, a))
-            if why:
-                return why
-        if plan.path_complete:
-            return plan_checks.check_path(plan.entry_lps_mm, plan.target_lps_mm, plan.fiducials, a)
-        return None
-
     # ================================================================== camera
     def set_camera(self, source: str, calibration_path: str | None = None) -> CommandResult:
         """Choose the frame source (and optional calibration file); applied by ``start_camera``."""
@@ -824,78 +519,6 @@ class Session:
         views), or None while no CT is loaded. Never modify it: the engine owns it."""
         with self._lock:
             return self._volume
-
-    def set_hand_eye(self, T_base_cam_mm) -> CommandResult:
-        """Set the hand-eye transform and save it in the plan.
-
-        ``T_base_cam_mm``: 4x4 ``T_base_cam`` (camera frame -> robot base frame), translation in mm.
-        Refused (one line, nothing changes) unless :func:`plan_checks.check_hand_eye` passes (finite,
-        orthonormal rotation with det +1, last row 0 0 0 1, camera within 3 m of the base), while
-        tracking, or when the plan cannot be saved."""
-        why = plan_checks.check_hand_eye(T_base_cam_mm)
-        if why:
-            return _fail(why)
-        T = np.asarray(T_base_cam_mm, dtype=float)
-        if self._loop.robot_state() == "tracking":
-            return _fail("stop tracking before changing the hand-eye calibration")
-        with self._lock:
-            plan = self._plan.copy()
-            plan.T_base_cam = T.copy()
-            err = self._commit_plan_locked(plan, "hand-eye")
-            if err:
-                return _fail(err)
-        self._bus.event("hand_eye_set", "hand-eye calibration T_base_cam set", {"T_base_cam_mm": T.tolist()})
-        return _ok("hand-eye set")
-
-    def _store_camera(self, source: str, calibration_path, K, dist, image_size) -> str | None:
-        """Save the camera in use and its calibration in the plan (called by the loop when a camera
-        starts). ``K`` 3x3 px, ``dist`` OpenCV coefficients, ``image_size`` (width, height) px.
-        Returns None when stored (or unchanged), else why it was refused (:func:`plan_checks.check_camera`
-        or the save failed). A calibration file whose content changed since the plan recorded it
-        raises ``calibration_changed`` and asks for re-confirmation."""
-        size = None if image_size is None else tuple(int(v) for v in image_size)
-        why = plan_checks.check_camera(K, dist, size)
-        if why:
-            self._bus.alert("alarm", "camera_calibration_invalid", f"camera calibration refused: {why}")
-            return why
-        cal_sha = None
-        if calibration_path:
-            from monotracker.engine.integrity import content_sha256
-
-            try:
-                cal_sha = content_sha256(calibration_path)
-            except OSError as exc:
-                return f"calibration file {calibration_path} cannot be read ({exc.strerror or exc})"
-        with self._lock:
-            p = self._plan
-            recorded = p.integrity.get("calibration_sha256")
-            changed = (calibration_path and p.calibration_path == calibration_path and recorded
-                       and cal_sha != recorded)
-            same = (p.camera_source == source and p.calibration_path == calibration_path and p.K is not None
-                    and K is not None and np.array_equal(p.K, K) and not changed)
-            if same:
-                return None
-            plan = p.copy()
-            plan.camera_source, plan.calibration_path = source, calibration_path
-            plan.K = None if K is None else np.asarray(K, float).copy()
-            plan.dist = None if dist is None else np.asarray(dist, float).ravel().copy()
-            plan.image_size = size
-            if cal_sha:
-                plan.integrity["calibration_sha256"] = cal_sha
-            else:
-                plan.integrity.pop("calibration_sha256", None)
-            err = self._commit_plan_locked(plan, "camera calibration")
-            if err:
-                return err
-        if changed:
-            self._need_reconfirm("calibration_changed", f"the calibration file {calibration_path} changed since "
-                                 "the plan recorded it (content hash differs)", {"path": calibration_path})
-        self._bus.event("camera_calibration", f"camera {source}: calibration stored in the plan",
-                        {"source": source, "calibration_path": calibration_path,
-                         "K": None if K is None else np.asarray(K).tolist(),
-                         "dist": None if dist is None else np.asarray(dist).ravel().tolist(),
-                         "image_size": None if image_size is None else list(image_size)})
-        return None
 
     # ================================================================== robot
     def arm(self, pin) -> CommandResult:
@@ -1034,5 +657,16 @@ class Session:
             fiducials_locked=locked, plan=plan_summary, camera=camera, pose=pose, robot=robot, scene=scene,
             alerts=tuple(self._bus.recent("alert")[-50:]), plan_path=str(self._plan_path),
             audit_path=str(self._audit.path), control=self.control_summary(),
-            alarms=self._alarm_board.active(float(self.clock())),
+            alarms=self._active_alarms(),
         )
+
+    def _active_alarms(self):
+        """The board's active conditions, with the integrity conditions derived from the state."""
+        now, board = float(self.clock()), self._alarm_board
+        standing = dict(self.integrity_alarms())
+        for code in INTEGRITY_CODES:
+            if code in standing:
+                board.set(code, standing[code], now, level="alarm")
+            else:
+                board.clear(code, now)
+        return board.active(now)

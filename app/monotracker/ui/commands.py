@@ -74,34 +74,32 @@ def resolve_pin(pin: str | None) -> tuple[str, bool]:
     return pin, False
 
 
-def wait_for_stop_signal(poll_s: float = 0.2, stop=None) -> int:
-    """Block the main thread until SIGINT or SIGTERM; returns the signal number.
+class StopSignals:
+    """SIGINT/SIGTERM as a flag: create it before starting anything, :meth:`wait` in the main thread.
 
-    The handler only records the signal in a list (no lock, no I/O, nothing that can block or
-    deadlock when a signal arrives in the middle of another handler or of a lock held by the
-    main thread); this thread polls the list and does the shutdown. ``stop`` (tests): a callable
-    that returns True to stop without a signal."""
-    got: list[int] = []
+    The handler only appends the signal number to a list (no lock, no I/O, nothing that can block
+    or deadlock when a signal arrives inside another handler or while the main thread holds a
+    lock); the main thread polls the list and then does the shutdown. The handlers stay in place
+    afterwards, so a repeated signal during the shutdown is recorded and ignored rather than
+    interrupting it half way (every step of the shutdown has its own time limit). A signal that
+    arrives while the app is still starting is kept: :meth:`wait` then returns at once."""
 
-    def handler(signum, _frame):
-        got.append(signum)
-
-    previous = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            previous[sig] = signal.signal(sig, handler)
-        except ValueError:  # not the main thread (tests)
-            pass
-    try:
-        while not got and not (stop is not None and stop()):
-            time.sleep(poll_s)
-    finally:
-        for sig, h in previous.items():
+    def __init__(self):
+        self.got: list[int] = []
+        for sig in (signal.SIGINT, signal.SIGTERM):
             try:
-                signal.signal(sig, h)
-            except (ValueError, TypeError):
+                signal.signal(sig, self._handler)
+            except ValueError:  # not the main thread (tests)
                 pass
-    return got[0] if got else 0
+
+    def _handler(self, signum, _frame) -> None:
+        self.got.append(signum)
+
+    def wait(self, poll_s: float = 0.2, stop=None) -> int:
+        """Block until a signal was received (or ``stop()`` returns True); the first signal number (0: none)."""
+        while not self.got and not (stop is not None and stop()):
+            time.sleep(poll_s)
+        return self.got[0] if self.got else 0
 
 
 def _serve(args) -> int:
@@ -113,6 +111,7 @@ def _serve(args) -> int:
     cfg = SessionConfig(home=args.home, camera=args.camera, robot=args.robot, arm_pin=pin,
                         trajectory=args.trajectory, clock="real")
     cfg.validate()
+    signals = StopSignals()  # from here on a stop signal is a flag the main thread acts on
     if args.calibration is not None:  # a bad file is refused now, not when the camera starts
         from monotracker.vision.camera_model import CameraModel
 
@@ -136,7 +135,7 @@ def _serve(args) -> int:
         print(f"MonoTracker is running: open {app.url} in a browser (Ctrl-C to stop)", flush=True)
         if generated:
             print(f"operator PIN for arming: {pin}  (set your own with --pin or MONOTRACKER_PIN)", flush=True)
-        wait_for_stop_signal()
+        signals.wait()
         print("stopping: robot disarmed, threads stopped", flush=True)
         return 0
     finally:
