@@ -217,11 +217,11 @@ _INV_SQRT_PI = 1.0 / np.sqrt(np.pi)
 
 
 def _bounded_robust_fit(resid, jac, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, f_scale: float,
-                        max_nfev: int) -> tuple[np.ndarray, float, bool]:
+                        max_nfev: int, loss: str = "soft_l1") -> tuple[np.ndarray, float, bool]:
     """Soft-L1 least squares of ``resid`` (HU) within bounds ``lo``..``hi``, started at ``x0``
     (clipped inside). Returns ``(params, rms of the inlier residuals (|r| < 3 f_scale), success)``."""
     x0 = np.clip(x0, lo + 1e-6, hi - 1e-6)
-    res = least_squares(resid, x0, jac=jac, loss="soft_l1", f_scale=f_scale, bounds=(lo, hi), x_scale="jac",
+    res = least_squares(resid, x0, jac=jac, loss=loss, f_scale=f_scale, bounds=(lo, hi), x_scale="jac",
                         max_nfev=max_nfev)
     r = res.fun
     inl = np.abs(r) < 3.0 * f_scale
@@ -244,7 +244,7 @@ def _sphere_model(params: np.ndarray, pts: np.ndarray, M: np.ndarray | None = No
 
 
 def fit_blurred_sphere(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float,
-                       box_cov: np.ndarray | None = None, r_bounds: tuple[float, float] = (0.3, 30.0)):
+                       box_cov: np.ndarray | None = None, r_bounds: tuple[float, float] = (0.3, 30.0), loss: str = "soft_l1"):
     """Least-squares fit of a blurred ball to voxel values at LPS points ``pts`` (n, 3).
 
     Parameters ``[cx, cy, cz, r, s, H, b]``: centre and radius (mm), edge sigma (mm), inside
@@ -276,7 +276,7 @@ def fit_blurred_sphere(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_sc
 
     lo = np.r_[x0[:3] - 3.0, r_bounds[0], 0.05, -np.inf, -np.inf]
     hi = np.r_[x0[:3] + 3.0, r_bounds[1], 5.0 if M is None else 1.5, np.inf, np.inf]
-    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=60)
+    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=60, loss=loss)
 
 
 def _unit_from_angles(theta: float, phi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -286,7 +286,7 @@ def _unit_from_angles(theta: float, phi: float) -> tuple[np.ndarray, np.ndarray,
 
 
 def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None,
-                        r_bounds: tuple[float, float] = (0.3, 30.0), max_tissue_hu: float = np.inf):
+                        r_bounds: tuple[float, float] = (0.3, 30.0), max_tissue_hu: float = np.inf, loss: str = "soft_l1"):
     """Least-squares fit of a blurred ball resting on a blurred plane surface (the scalp).
 
     The background is ``b_out`` on one side of the plane ``n . (x - c) = h`` and ``b_in`` on
@@ -346,7 +346,7 @@ def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_s
     # as dense as the ball can stand in for part of it
     lo = np.r_[x0[:3] - 3.0, r_bounds[0], 0.05, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf]
     hi = np.r_[x0[:3] + 3.0, r_bounds[1], 5.0, np.inf, max_tissue_hu, max_tissue_hu, np.inf, np.inf, np.inf]
-    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=80)
+    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=80, loss=loss)
 
 
 def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None,
@@ -540,6 +540,13 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
         if surf is not None and surf[1] <= rms * 1.05:
             success = True
             sp_, rms = surf
+            # streaks: a final pass with a Cauchy loss (residuals of a few f_scale count far
+            # less than with soft-L1) from the converged fit; kept when it stays close
+            r_b = (0.95 * sp_[3], 1.05 * sp_[3] + 0.05)
+            pol, rms_p, ok_p = fit_ball_on_surface(wpts, vals, sp_, f_scale, box_cov, r_bounds=r_b,
+                                                   max_tissue_hu=max(sp_[6], sp_[7]) + 0.6 * (sp_[5] - max(sp_[6], sp_[7])), loss="cauchy")
+            if ok_p and np.linalg.norm(pol[:3] - sp_[:3]) < 0.3:
+                sp_ = pol
             c, r, s_edge, H = sp_[:3], sp_[3], sp_[4], sp_[5]
             contrast = H - min(sp_[6], sp_[7])
     rel = rms / max(contrast, 1.0)
