@@ -258,3 +258,23 @@ def test_cli_lists_series_and_shows_the_resampling_note(tmp_path, capsys):
     captured = capsys.readouterr()
     err_lines = [ln for ln in (captured.err + captured.out).splitlines() if ln.strip()]
     assert len(err_lines) == 1 and "slices missing" in err_lines[0], err_lines
+
+
+def test_session_loads_the_chosen_series_and_shows_the_note(tmp_path):
+    from monotracker.engine import Session, SessionConfig
+
+    folder = tmp_path / "two"
+    write_series(folder, stack_specs(np.arange(16) * 1.0), _field, ROWS, COLS, PS, series_uid="1.2.3.1", description="big")
+    write_series(folder, stack_specs(np.arange(12) * 2.0, shear_y_per_mm=np.tan(np.radians(15.0))), _field, ROWS, COLS, PS,
+                 series_uid="1.2.3.2", description="tilted")
+    s = Session(SessionConfig(home=tmp_path / "home", clock="sim"))
+    try:
+        assert s.load_ct(str(folder), series="1.2.3.2").ok
+        job = s.wait_for_job(300)
+        assert job is not None and job.done
+        snap = s.snapshot()
+        assert snap.ct is not None, job
+        assert any("gantry tilt 15.0 deg" in n for n in snap.ct.notes), snap.ct.notes
+        assert s.volume().array.shape[0] == 12
+    finally:
+        s.shutdown()

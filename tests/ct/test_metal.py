@@ -126,3 +126,18 @@ def test_plan_keeps_the_kit(tmp_path):
     back = Plan.load(tmp_path / "plan.json")
     assert back.fiducial_kit == plan.fiducial_kit
     assert Plan.from_dict({**plan.to_dict(), "fiducial_kit": None}).fiducial_kit is None
+
+
+def test_half_embedded_3mm_balls_on_2mm_slices_with_streaks_subvoxel():
+    """Radius 3 mm balls sunk half into the scalp, 2 mm slices, metal streaks (+-900 HU at the
+    metal, a few hundred at the balls): every ball found, centres within 0.1 mm (a threshold +
+    excess-weighted centroid is off by 0.13 mm on average here, see the benchmark)."""
+    from monotracker.sim.ct_phantom import with_radius
+
+    ph = with_radius(default_phantom(), 3.0)
+    ct = generate_ct(ph, patch_params(ph, spacing_mm=(0.5, 0.5, 2.0), fiducial_embed_mm=3.0,
+                                      distractors=metal_distractors(default_phantom(), streak_hu=900.0)))
+    det = detect_fiducials(_vol(ct), kit=FiducialKit(radius_mm=3.0))
+    err, missed, false = match(det.centres, ct.fiducial_centres_lps)
+    assert (missed, false) == (0, 0), det.reason
+    assert err.mean() < 0.04 and err.max() < 0.1, err

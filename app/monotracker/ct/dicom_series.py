@@ -358,11 +358,15 @@ def _load_pixels(slices: list[_Slice]) -> None:
         ds = _read_dataset(path, pixels=True)
         if ds is None:
             raise InputError(f"{path.name} has no image data; the series is incomplete")
+        hu_applied = False
         try:
             arr = ds.pixel_array
         except Exception as exc:  # noqa: BLE001 - truncated data, unsupported compression
             msg = str(exc).split("\n")[0][:120]
-            raise InputError(f"{path.name} is truncated or its pixel data cannot be decoded ({msg})") from None
+            arr = _decode_compressed(ds, path)  # JPEG & co. without pydicom's optional decoders
+            if arr is None:
+                raise InputError(f"{path.name} is truncated or its pixel data cannot be decoded ({msg})") from None
+            hu_applied = True
         n_frames = int(ds.get("NumberOfFrames", 1) or 1)
         arr = np.asarray(arr)
         if n_frames == 1:
@@ -371,10 +375,28 @@ def _load_pixels(slices: list[_Slice]) -> None:
             raise InputError(f"{path.name} holds pixel data of shape {arr.shape}, not {n_frames} x {group[0].rows} x {group[0].cols}")
         for s in group:
             px = arr[0 if s.frame is None else s.frame]
-            if s.slope == 1.0 and float(s.intercept).is_integer():
+            if hu_applied:  # GDCM applied the rescale already
+                s.pixels = px.astype(np.int32) if px.dtype.kind in "iu" else px.astype(np.float64)
+            elif s.slope == 1.0 and float(s.intercept).is_integer():
                 s.pixels = px.astype(np.int32) + int(s.intercept)
             else:
                 s.pixels = px.astype(np.float64) * s.slope + s.intercept
+
+
+def _decode_compressed(ds, path: Path):
+    """Pixels of a compressed file via SimpleITK/GDCM (HU, rescale applied), or None. Only for
+    compressed transfer syntaxes: an uncompressed file pydicom cannot read is damaged, and GDCM
+    might pad it silently."""
+    meta = getattr(ds, "file_meta", None)
+    ts = getattr(meta, "TransferSyntaxUID", None) if meta is not None else None
+    if ts is None or not getattr(ts, "is_compressed", False):
+        return None
+    import SimpleITK as sitk
+
+    try:
+        return sitk.GetArrayFromImage(sitk.ReadImage(str(path)))
+    except RuntimeError:
+        return None
 
 
 def _stack(geo: _Geometry) -> tuple[np.ndarray, np.ndarray]:

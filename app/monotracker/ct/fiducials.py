@@ -217,11 +217,11 @@ _INV_SQRT_PI = 1.0 / np.sqrt(np.pi)
 
 
 def _bounded_robust_fit(resid, jac, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, f_scale: float,
-                        max_nfev: int) -> tuple[np.ndarray, float, bool]:
+                        max_nfev: int, loss: str = "soft_l1") -> tuple[np.ndarray, float, bool]:
     """Soft-L1 least squares of ``resid`` (HU) within bounds ``lo``..``hi``, started at ``x0``
     (clipped inside). Returns ``(params, rms of the inlier residuals (|r| < 3 f_scale), success)``."""
     x0 = np.clip(x0, lo + 1e-6, hi - 1e-6)
-    res = least_squares(resid, x0, jac=jac, loss="soft_l1", f_scale=f_scale, bounds=(lo, hi), x_scale="jac",
+    res = least_squares(resid, x0, jac=jac, loss=loss, f_scale=f_scale, bounds=(lo, hi), x_scale="jac",
                         max_nfev=max_nfev)
     r = res.fun
     inl = np.abs(r) < 3.0 * f_scale
@@ -229,44 +229,54 @@ def _bounded_robust_fit(resid, jac, x0: np.ndarray, lo: np.ndarray, hi: np.ndarr
     return res.x, rms, bool(res.success)
 
 
-def _sphere_model(params: np.ndarray, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _sphere_model(params: np.ndarray, pts: np.ndarray, M: np.ndarray | None = None):
     c, r, s, H, b = params[:3], params[3], params[4], params[5], params[6]
     rel = pts - c
     dist = np.sqrt(np.sum(rel * rel, axis=1))
-    u = (dist - r) / (_SQRT2 * s)
+    if M is None:
+        sF = np.full(len(pts), s)
+    else:
+        e = rel / np.maximum(dist, 1e-9)[:, None]
+        sF = np.sqrt(s * s + np.einsum("ij,jk,ik->i", e, M, e))
+    u = (dist - r) / (_SQRT2 * sF)
     fill = 0.5 * erfc(u)
-    return b + (H - b) * fill, fill, (dist, rel, u)
+    return b + (H - b) * fill, fill, (dist, rel, u, sF)
 
 
-def fit_blurred_sphere(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float):
+def fit_blurred_sphere(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float,
+                       box_cov: np.ndarray | None = None, r_bounds: tuple[float, float] = (0.3, 30.0), loss: str = "soft_l1"):
     """Least-squares fit of a blurred ball to voxel values at LPS points ``pts`` (n, 3).
 
     Parameters ``[cx, cy, cz, r, s, H, b]``: centre and radius (mm), edge sigma (mm), inside
-    and background levels (HU). Returns (params, inlier RMS residual HU, success).
+    and background levels (HU). ``box_cov`` (3x3 mm^2, the voxel box's covariance in LPS):
+    an edge with normal ``e`` is then blurred by ``sqrt(s**2 + e^T box_cov e)`` (the slice
+    profile: thick slices blur along z more than in-plane) and ``s`` is the scanner's PSF.
+    Returns (params, inlier RMS residual HU, success).
     """
+    M = None if box_cov is None else np.asarray(box_cov, float)
 
     def resid(p):
-        m, _, _ = _sphere_model(p, pts)
+        m, _, _ = _sphere_model(p, pts, M)
         return m - values
 
     def jac(p):
         c, r, s, H, b = p[:3], p[3], p[4], p[5], p[6]
-        _, fill, (dist, rel, u) = _sphere_model(p, pts)
+        _, fill, (dist, rel, u, sF) = _sphere_model(p, pts, M)
         g = -_INV_SQRT_PI * np.exp(-u * u)  # d fill / d u
-        du_ddist = 1.0 / (_SQRT2 * s)
+        du_ddist = 1.0 / (_SQRT2 * sF)
         k = (H - b) * g
         J = np.empty((len(pts), 7))
         unit = rel / np.maximum(dist, 1e-9)[:, None]
         J[:, :3] = -(k * du_ddist)[:, None] * unit
         J[:, 3] = -k * du_ddist
-        J[:, 4] = -k * u / s
+        J[:, 4] = -k * u * s / (sF * sF)
         J[:, 5] = fill
         J[:, 6] = 1.0 - fill
         return J
 
-    lo = np.r_[x0[:3] - 3.0, 0.3, 0.05, -np.inf, -np.inf]
-    hi = np.r_[x0[:3] + 3.0, 30.0, 5.0, np.inf, np.inf]
-    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=60)
+    lo = np.r_[x0[:3] - 3.0, r_bounds[0], 0.05, -np.inf, -np.inf]
+    hi = np.r_[x0[:3] + 3.0, r_bounds[1], 5.0 if M is None else 1.5, np.inf, np.inf]
+    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=60, loss=loss)
 
 
 def _unit_from_angles(theta: float, phi: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -275,7 +285,8 @@ def _unit_from_angles(theta: float, phi: float) -> tuple[np.ndarray, np.ndarray,
     return n, np.array([ct * cp, ct * sp, -st]), np.array([-st * sp, st * cp, 0.0])
 
 
-def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None):
+def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None,
+                        r_bounds: tuple[float, float] = (0.3, 30.0), max_tissue_hu: float = np.inf, loss: str = "soft_l1"):
     """Least-squares fit of a blurred ball resting on a blurred plane surface (the scalp).
 
     The background is ``b_out`` on one side of the plane ``n . (x - c) = h`` and ``b_in`` on
@@ -331,36 +342,51 @@ def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_s
         J[:, 10] = gP * k2
         return J
 
-    lo = np.r_[x0[:3] - 3.0, 0.3, 0.05, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf]
-    hi = np.r_[x0[:3] + 3.0, 30.0, 5.0, np.inf, np.inf, np.inf, np.inf, np.inf, np.inf]
-    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=80)
+    # the tissue must stay fainter than the ball (``max_tissue_hu``), or a half space of "tissue"
+    # as dense as the ball can stand in for part of it
+    lo = np.r_[x0[:3] - 3.0, r_bounds[0], 0.05, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf]
+    hi = np.r_[x0[:3] + 3.0, r_bounds[1], 5.0, np.inf, max_tissue_hu, max_tissue_hu, np.inf, np.inf, np.inf]
+    return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=80, loss=loss)
 
 
-def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None):
-    """Second stage after :func:`fit_blurred_sphere`: when voxels outside the ball are clearly
-    brighter than the ball's background on one side (the ball rests on tissue), refit with
-    :func:`fit_ball_on_surface`. Returns (centre, radius, edge sigma, H, rms, used_surface)."""
+def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None,
+                      psf_given: bool = False, ball_hu: float | None = None):
+    """Second stage after :func:`fit_blurred_sphere`: when the voxels outside the ball hold two
+    clearly different levels (air and the scalp the ball rests on or is sunk into), refit with
+    :func:`fit_ball_on_surface`, started with the plane tangent under the ball and through its
+    centre (a half-embedded ball); the better fit wins. ``ball`` is the plain fit's (or the
+    blob's) ``[c, r, s, H, b]``; ``ball_hu`` the ball level to compare the tissue with.
+    Returns (params, rms) or None."""
     c, r, s, H, b = ball[:3], ball[3], ball[4], ball[5], ball[6]
+    H = H if ball_hu is None else ball_hu
     rel = pts - c
     dist = np.linalg.norm(rel, axis=1)
-    outside = dist > r + 2.0 * s
-    bright = outside & (values > b + max(2.0 * f_scale, 150.0))
-    if bright.sum() < 10:
+    outside = (dist > r + 2.0 * min(s, 0.75)) & (values < b + 0.5 * (H - b))
+    if outside.sum() < 20:
         return None
-    d = rel[bright].mean(axis=0)
+    ov = values[outside]
+    split = 0.5 * (np.percentile(ov, 10) + np.percentile(ov, 90))
+    bright = outside & (values > split)
+    dark = outside & ~bright
+    if bright.sum() < 10 or dark.sum() < 10:
+        return None
+    b_in, b_out = float(np.median(values[bright])), float(np.median(values[dark]))
+    if b_in - b_out < max(2.0 * f_scale, 150.0):
+        return None
+    d = rel[bright].mean(axis=0) - rel[dark].mean(axis=0)
     if np.linalg.norm(d) < 1e-6:
         return None
     n = d / np.linalg.norm(d)
     th, ph = np.arccos(np.clip(n[2], -1, 1)), np.arctan2(n[1], n[0])
-    b_in = float(np.median(values[bright]))
-    dark = outside & ~bright
-    b_out = float(np.median(values[dark])) if dark.any() else b
-    s0 = s if box_cov is None else float(np.sqrt(max(s * s - np.trace(box_cov) / 3.0, 0.01)))
-    x0 = np.r_[c, r, s0, H, b_out, b_in, th, ph, r]
-    params, rms, ok = fit_ball_on_surface(pts, values, x0, f_scale, box_cov)
-    if not ok or np.linalg.norm(params[:3] - c) > 1.0:
-        return None
-    return params, rms
+    s0 = s if (box_cov is None or psf_given) else float(np.sqrt(max(s * s - np.trace(box_cov) / 3.0, 0.01)))
+    best = None
+    for h0 in (r, 0.0):
+        x0 = np.r_[c, r, s0, H, b_out, min(b_in, b_out + 0.5 * (H - b_out)), th, ph, h0]
+        params, rms, ok = fit_ball_on_surface(pts, values, x0, f_scale, box_cov, r_bounds=(0.8 * r, 1.25 * r + 0.2),
+                                              max_tissue_hu=b_out + 0.6 * (H - b_out))
+        if ok and np.linalg.norm(params[:3] - c) <= 1.5 and (best is None or rms < best[1]):
+            best = (params, rms)
+    return best
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -480,8 +506,14 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
     grid = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
     wpts = volume.zyx_to_lps(grid)
     vals = sub.ravel()
-    dist = np.linalg.norm(wpts - centroid, axis=1)
-    near = dist < r0 + 2.0 + 1.5 * float(sp.max())
+    rel0 = wpts - centroid
+    dist = np.linalg.norm(rel0, axis=1)
+    # window: the ball plus ~2.5 edge sigmas of the slice profile in each direction (thick slices
+    # reach further along z), so little of the tissue beyond (skull under the scalp) comes in
+    e0 = rel0 / np.maximum(dist, 1e-9)[:, None]
+    box_cov = (volume.direction * (sp**2 / 12.0)) @ volume.direction.T
+    s_dir = np.sqrt(0.25 + np.einsum("ij,jk,ik->i", e0, box_cov, e0))
+    near = dist < r0 + 1.5 + 2.5 * s_dir
     for s in sibs:  # leave out what belongs to a neighbouring blob (touching balls, a clip)
         if np.linalg.norm(s.centroid - centroid) < r0 + s.radius + 6.0:
             near &= np.linalg.norm(wpts - s.centroid, axis=1) - s.radius > dist - r0
@@ -491,19 +523,30 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
     peak = float(np.percentile(vals, 99))
     shell = vals[np.linalg.norm(wpts - centroid, axis=1) > r0 + 1.0]
     b0 = float(np.percentile(shell, 20)) if shell.size else levels["air"]
-    x0 = np.r_[centroid, r0 + 0.2, 0.5, peak, b0]
+    x0 = np.r_[centroid, r0 + 0.2, 0.4, peak, b0]
     f_scale = max(3.0 * noise, 0.03 * (peak - b0))
     try:
-        params, rms, success = fit_blurred_sphere(wpts, vals, x0, f_scale)
+        params, rms, success = fit_blurred_sphere(wpts, vals, x0, f_scale, box_cov, r_bounds=(max(0.3, 0.4 * r0), 2.5 * r0 + 1.0))
     except (ValueError, np.linalg.LinAlgError):
         return None, RejectedBlob(centroid, "sphere fit failed", n)
     c, r, s_edge, H, b = params[:3], params[3], params[4], params[5], params[6]
     contrast = H - b
-    if success and contrast > 0:
-        box_cov = (volume.direction * (sp**2 / 12.0)) @ volume.direction.T
-        surf = refine_on_surface(wpts, vals, params, f_scale, box_cov)
+    plausible = success and contrast > 0 and np.linalg.norm(c - centroid) < 1.5 and 0.75 * r0 < r < 1.4 * r0 + 0.5
+    if not plausible:  # a ball sunk into tissue can throw the one-background fit off: start again from the blob
+        rms, success = np.inf, False
+    seed = params if plausible else x0
+    if (success and contrast > 0) or not plausible:
+        surf = refine_on_surface(wpts, vals, seed, f_scale, box_cov, psf_given=True, ball_hu=peak if not plausible else None)
         if surf is not None and surf[1] <= rms * 1.05:
+            success = True
             sp_, rms = surf
+            # streaks: a final pass with a Cauchy loss (residuals of a few f_scale count far
+            # less than with soft-L1) from the converged fit; kept when it stays close
+            r_b = (0.95 * sp_[3], 1.05 * sp_[3] + 0.05)
+            pol, rms_p, ok_p = fit_ball_on_surface(wpts, vals, sp_, f_scale, box_cov, r_bounds=r_b,
+                                                   max_tissue_hu=max(sp_[6], sp_[7]) + 0.6 * (sp_[5] - max(sp_[6], sp_[7])), loss="cauchy")
+            if ok_p and np.linalg.norm(pol[:3] - sp_[:3]) < 0.3:
+                sp_ = pol
             c, r, s_edge, H = sp_[:3], sp_[3], sp_[4], sp_[5]
             contrast = H - min(sp_[6], sp_[7])
     rel = rms / max(contrast, 1.0)
