@@ -208,6 +208,7 @@ class PoseTracker:
         scr = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
                                 method=cfg.method, prior=prior, excluded=tuple(self.excluded),
                                 sigma_px=known_sigma.sigma_px if known_sigma.source == "pooled" else None,
+                                sigma_dof=known_sigma.dof,
                                 min_shift_mm=cfg.moved_min_shift_mm,
                                 max_exclusions=2 if cfg.check_moved else 0)
         reg = scr.registration
