@@ -11,24 +11,11 @@ import pytest
 from monotracker.registration.report import tre_mm
 from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised, make_scene
 from monotracker.vision.camera_model import CameraModel
-from monotracker.vision.detection import Detection, ImageFiducial
 from monotracker.vision.frames import Frame
+from monotracker.vision.point_detector import PointDetector
 from monotracker.vision.pose_stream import MOVED, SEEN, PoseTracker, TrackerConfig
 
 BLANK = np.zeros((720, 1280, 3), np.uint8)
-
-
-class PointDetector:
-    """Detector double: ``points`` (m, 2) px and ``minor`` (m,) px set before each frame."""
-
-    def __init__(self):
-        self.points = np.zeros((0, 2))
-        self.minor = np.zeros(0)
-
-    def detect(self, image):
-        fids = [ImageFiducial(np.array(p, float), (float(b), float(b)), 0.0, 1.0, np.pi * b * b)
-                for p, b in zip(self.points, self.minor)]
-        return Detection(fids, [], 0.0, "points")
 
 
 def _observe(s, X_scene, rng, noise_px):
@@ -57,7 +44,7 @@ def _run(s, tr, det, rng, noise_px, frames, X_scene=None, strays=None):
             px = np.concatenate([px, strays])
             minor = np.concatenate([minor, np.full(len(strays), np.median(minor))])
         perm = rng.permutation(len(px))
-        det.points, det.minor = px[perm], minor[perm]
+        det.set(px[perm], minor[perm])
         out.append(tr.process(Frame(BLANK, k / 30.0, k)))
     return out
 

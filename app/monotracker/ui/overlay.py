@@ -112,7 +112,8 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False) -
         if st in HIDDEN:
             if _finite(p_proj):
                 cv2.circle(img, _ipt(p_proj), ring, RED, max(2, int(3 * scale)), cv2.LINE_AA)
-                _text(img, f"{fid} {'MOVED' if st == 'moved' else 'HIDDEN'}", (_ipt(p_proj)[0] + ring + 4, _ipt(p_proj)[1] + 6), RED, 0.6 * scale)
+                word = "MOVED" if st == "moved" else "HIDDEN"
+                _text(img, f"{fid} {word}", (_ipt(p_proj)[0] + ring + 4, _ipt(p_proj)[1] + 6), RED, 0.6 * scale)
             continue
         if _finite(p_proj):
             cv2.circle(img, _ipt(p_proj), ring, CYAN, max(1, int(2 * scale)), cv2.LINE_AA)
