@@ -75,6 +75,11 @@ class Screened:
     registration: Registration
     moved: list = field(default_factory=list)
     excluded: list = field(default_factory=list)
+    #: residual sum of squares (px^2) and dof for a noise pool: the final fit's, without its
+    #: worst pair when that pair is suspect at the 1 % level (a ball that moved a little, not
+    #: enough to be named, must not inflate the pooled noise); (nan, 0) without a fit
+    noise_rss_px2: float = float("nan")
+    noise_dof: int = 0
 
 
 def _pick_sigma(s_loo: float, dof_loo: int, sigma_px: float | None, sigma_dof: int) -> tuple[float, int]:
@@ -168,6 +173,40 @@ def leave_one_out(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray,
                                 float(np.linalg.norm(e2)), float(d2x), "leave-one-out", Tw, sdof2)
         out.append(rec)
     return out
+
+
+def noise_sample(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: float | None,
+                 pairs, p_suspect: float = 0.01) -> tuple[float, int]:
+    """(RSS px^2, dof) of the fit for a noise pool, leaving out the worst pair when its
+    leave-one-out test (own noise estimate, F quantile) is significant at ``p_suspect``. Under
+    pure noise that trims ~k p_suspect of the frames, a small low bias (a few % in sigma)."""
+    pairs = list(pairs)
+    k = len(pairs)
+    if k < 4:
+        return float("nan"), 0
+    ii = np.array([p[0] for p in pairs])
+    mi = np.array([p[1] for p in pairs])
+    r, J = _residuals_and_jacobian(T[:3, :3], T[:3, 3], X[mi], xn[ii], fxy, radius_mm)
+    rss, dof = float(r @ r), 2 * k - 6
+    if k < MIN_PAIRS_LOO:
+        return rss, dof
+    try:
+        C = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return rss, dof
+    quads = []
+    for q in range(k):
+        Jq, rq = J[2 * q:2 * q + 2], r[2 * q:2 * q + 2]
+        try:
+            quads.append(float(rq @ np.linalg.solve(np.eye(2) - Jq @ C @ Jq.T, rq)))
+        except np.linalg.LinAlgError:
+            quads.append(0.0)
+    q = int(np.argmax(quads))
+    dof_loo = dof - 2
+    rest = max(rss - quads[q], 0.0)
+    if dof_loo > 0 and rest > 0 and quads[q] / (rest / dof_loo) > moved_gate(dof_loo, p_suspect):
+        return rest, dof_loo
+    return rss, dof
 
 
 def near_misses(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: float | None,
@@ -271,4 +310,6 @@ def register_screened(fiducials_ct, image_points, K, dist=None, radius_mm=None, 
                 moved.append(m)
                 excl.add(m.fiducial_index)
         reg.stats["excluded_fiducials"] = sorted(excl)
-    return Screened(reg, moved, sorted(excl))
+    rss, dof = (noise_sample(reg.T_cam_ct, X_all, xn, fxy, radius, reg.pairs) if reg.ok
+                else (float("nan"), 0))
+    return Screened(reg, moved, sorted(excl), rss, dof)
