@@ -650,7 +650,8 @@ class TrackingLoop:
             fiducial_status=dict(smp.fiducial_status), residuals_px=dict(smp.residuals_px),
             fre_mm=smp.fre_mm, predicted_tre_mm=smp.predicted_tre_mm,
             latency_ms=None if smp.t_ready is None else 1000 * (smp.t_ready - smp.t_capture),
-            truth_tre_mm=smp.truth_tre_mm,
+            truth_tre_mm=smp.truth_tre_mm, code="" if rec.trusted else rec.code,
+            max_predicted_tre_mm=self.cfg.max_predicted_tre_mm,
         )
 
     def summaries(self):

@@ -129,6 +129,10 @@ class PoseSummary:
     predicted_tre_mm: float | None
     latency_ms: float | None
     truth_tre_mm: float | None = None  # simulator only: TRE at the planned target vs truth
+    #: why the pose is not trusted, as an alert code ("" when trusted; e.g. "tre_limit", "frame_size")
+    code: str = ""
+    #: the trust limit on ``predicted_tre_mm`` (mm)
+    max_predicted_tre_mm: float | None = None
 
 
 @dataclass(frozen=True)

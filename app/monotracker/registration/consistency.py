@@ -9,10 +9,12 @@ predict TRE). Each fit is therefore checked one fiducial at a time:
    (LM from the full fit) and i is predicted. Its prediction error e_i (px) has covariance
    ``S_i = sigma^2 (I + J_i C_-i J_i^T)``, C_-i = (J_-i^T J_-i)^-1 the pose covariance of the
    others and J_i i's projection Jacobian; ``d_i^2 = e_i^T S_i^-1 e_i`` is chi-square with 2
-   dof when nothing moved. sigma is the larger of the noise given by the caller (the stream's
-   pooled estimate) and the leave-one-out fit's own residual estimate (so the moved ball cannot
-   inflate it).
-2. **Moved** = ``d_i^2 > chi2_gate`` (default: 2-dof p = 1e-4, 18.4) **and** the implied shift
+   dof when nothing moved (sigma known). sigma is the noise given by the caller (the stream's
+   pooled estimate) unless the leave-one-out fit's own residual estimate (which the tested ball
+   cannot inflate) is significantly larger; without a pooled value, the fit's own.
+2. **Moved** = ``d_i^2`` over ``2 F_{1-p}(2, dof)`` (p = 1e-4 per fiducial; ``dof`` those of
+   the noise estimate used, so that a sigma from few residuals does not raise false alarms;
+   ~18.4, the chi-square quantile, once many frames are pooled) **and** the implied shift
    ``|e_i| * z_i / f`` (mm, perpendicular to the line of sight at the ball's depth) above
    ``min_shift_mm`` (1.0 mm). The second rule is the false-alarm guard: a detector bias of a few
    tenths of a pixel (a ball on the head's outline) is statistically visible but clinically
@@ -34,14 +36,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.stats import f as f_dist
 
 from .api import register
 from .pnp import _residuals_and_jacobian, refine_pose
 from .projection import undistort_to_normalised
 from .result import Registration
 
-#: 2-dof chi-square quantile for p = 1e-4.
-CHI2_2DOF_1E4 = 18.42
+#: false-alarm probability per fiducial and registration of the moved test
+P_MOVED = 1e-4
 MIN_PAIRS_LOO = 5
 
 
@@ -59,6 +62,8 @@ class MovedFiducial:
     d2: float
     how: str
     T_without: np.ndarray | None = None
+    #: degrees of freedom of the noise estimate behind ``d2`` (the gate is an F quantile)
+    dof: int = 0
 
 
 @dataclass
@@ -70,28 +75,50 @@ class Screened:
     registration: Registration
     moved: list = field(default_factory=list)
     excluded: list = field(default_factory=list)
+    #: residual sum of squares (px^2) and dof for a noise pool: the final fit's, without its
+    #: worst pair when that pair is suspect at the 1 % level (a ball that moved a little, not
+    #: enough to be named, must not inflate the pooled noise); (nan, 0) without a fit
+    noise_rss_px2: float = float("nan")
+    noise_dof: int = 0
 
 
-def _loo_one(T, X, obs, fxy, radius, i, sigma_px):
-    """Leave pair i out: (error px (2,), d2, T_without, sigma used)."""
+def _pick_sigma(s_loo: float, dof_loo: int, sigma_px: float | None, sigma_dof: int) -> tuple[float, int]:
+    """(sigma px, its dof): the caller's pooled estimate unless this fit's own (leave-one-out)
+    estimate is significantly larger (F-test, 1 %): then the noise rose now and the fit's own
+    value, with its few dof, is used. Without a pooled estimate, the fit's own."""
+    if sigma_px is not None and sigma_dof > 0 and np.isfinite(sigma_px) and sigma_px > 0:
+        if dof_loo <= 0 or s_loo**2 / sigma_px**2 <= f_dist.ppf(0.99, dof_loo, sigma_dof):
+            return max(float(sigma_px), 1e-3), int(sigma_dof)
+    return max(float(s_loo), 1e-3), int(max(dof_loo, 1))
+
+
+def moved_gate(dof: int, p: float = P_MOVED) -> float:
+    """Threshold on d2 for a 2D prediction error whose noise sigma was estimated with ``dof``
+    degrees of freedom: ``2 F_{1-p}(2, dof)`` (-> the chi-square quantile for large dof).
+    Using the chi-square quantile with a noise estimate from 10 dof raised false alarms ~50x."""
+    return float(2.0 * f_dist.ppf(1.0 - p, 2, max(int(dof), 1)))
+
+
+def _loo_one(T, X, obs, fxy, radius, i, sigma_px, sigma_dof=0):
+    """Leave pair i out: (error px (2,), d2, T_without, dof of the sigma used)."""
     keep = np.arange(len(X)) != i
     ref = refine_pose(T, X[keep], obs[keep], fxy, radius, max_iter=10)
     Tw = ref.T
     k = int(keep.sum())
     dof = 2 * k - 6
     s_loo = float(np.sqrt(np.sum(ref.residuals**2) / dof)) if dof > 0 else 0.0
-    sigma = max(s_loo, sigma_px or 0.0, 1e-3)
+    sigma, sdof = _pick_sigma(s_loo, dof, sigma_px, sigma_dof)
     r_i, J_i = _residuals_and_jacobian(Tw[:3, :3], Tw[:3, 3], X[i:i + 1], obs[i:i + 1], fxy, radius)
     try:
         C = np.linalg.inv(ref.JtJ)
     except np.linalg.LinAlgError:
-        return r_i, np.inf, Tw, sigma
+        return r_i, np.inf, Tw, sdof
     S = sigma**2 * (np.eye(2) + J_i @ C @ J_i.T)
     try:
         d2 = float(r_i @ np.linalg.solve(S, r_i))
     except np.linalg.LinAlgError:
         d2 = np.inf
-    return r_i, d2, Tw, sigma
+    return r_i, d2, Tw, sdof
 
 
 def _shift_mm(T, x_ct, err_px, fxy) -> float:
@@ -100,15 +127,17 @@ def _shift_mm(T, x_ct, err_px, fxy) -> float:
 
 
 def leave_one_out(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: float | None,
-                  pairs, sigma_px: float | None = None, screen_d2: float | None = None) -> list[MovedFiducial]:
+                  pairs, sigma_px: float | None = None, screen: bool = True,
+                  sigma_dof: int = 0) -> list[MovedFiducial]:
     """Leave-one-out test of every pair; one :class:`MovedFiducial` record per pair (not yet
     judged), fiducial indices into ``X``.
 
     Screening is closed-form at the fit (the deletion formulas of least squares: the left-out
     prediction error is ``(I - H_ii)^-1 r_i`` with covariance ``sigma^2 (I - H_ii)^-1``, H the
     2x2 block of the hat matrix), which costs one Jacobian; pairs whose screened ``d2`` exceeds
-    ``screen_d2 / 4`` (all pairs when None) are re-fitted without them exactly (LM), which
-    also gives the pose without them."""
+    a quarter of their gate (all pairs when ``screen`` is False) are re-fitted without them
+    exactly (LM), which also gives the pose without them. ``sigma_px`` / ``sigma_dof``: a noise
+    estimate known from elsewhere (the stream's pool) and its dof."""
     pairs = list(pairs)
     k = len(pairs)
     if k < MIN_PAIRS_LOO:
@@ -134,20 +163,54 @@ def leave_one_out(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray,
             e = rq * np.inf
         quad = float(rq @ e)                       # r^T (I - H)^-1 r = drop in RSS
         s_loo = np.sqrt(max(rss - quad, 0.0) / dof_loo) if dof_loo > 0 else 0.0
-        sigma = max(s_loo, sigma_px or 0.0, 1e-3)
+        sigma, sdof = _pick_sigma(s_loo, dof_loo, sigma_px, sigma_dof)
         d2 = quad / sigma**2
         rec = MovedFiducial(int(mi[q]), int(ii[q]), _shift_mm(T, Xm[q], e, fxy), float(np.linalg.norm(e)),
-                            float(d2), "leave-one-out", None)
-        if screen_d2 is None or d2 > screen_d2 / 4:
-            e2, d2x, Tw, _ = _loo_one(T, Xm, obs, fxy, radius_mm, q, sigma_px)
+                            float(d2), "leave-one-out", None, sdof)
+        if not screen or d2 > moved_gate(sdof) / 4:
+            e2, d2x, Tw, sdof2 = _loo_one(T, Xm, obs, fxy, radius_mm, q, sigma_px, sigma_dof)
             rec = MovedFiducial(int(mi[q]), int(ii[q]), _shift_mm(Tw, Xm[q], e2, fxy),
-                                float(np.linalg.norm(e2)), float(d2x), "leave-one-out", Tw)
+                                float(np.linalg.norm(e2)), float(d2x), "leave-one-out", Tw, sdof2)
         out.append(rec)
     return out
 
 
+def noise_sample(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: float | None,
+                 pairs, p_suspect: float = 0.01) -> tuple[float, int]:
+    """(RSS px^2, dof) of the fit for a noise pool, leaving out the worst pair when its
+    leave-one-out test (own noise estimate, F quantile) is significant at ``p_suspect``. Under
+    pure noise that trims ~k p_suspect of the frames, a small low bias (a few % in sigma)."""
+    pairs = list(pairs)
+    k = len(pairs)
+    if k < 4:
+        return float("nan"), 0
+    ii = np.array([p[0] for p in pairs])
+    mi = np.array([p[1] for p in pairs])
+    r, J = _residuals_and_jacobian(T[:3, :3], T[:3, 3], X[mi], xn[ii], fxy, radius_mm)
+    rss, dof = float(r @ r), 2 * k - 6
+    if k < MIN_PAIRS_LOO:
+        return rss, dof
+    try:
+        C = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return rss, dof
+    quads = []
+    for q in range(k):
+        Jq, rq = J[2 * q:2 * q + 2], r[2 * q:2 * q + 2]
+        try:
+            quads.append(float(rq @ np.linalg.solve(np.eye(2) - Jq @ C @ Jq.T, rq)))
+        except np.linalg.LinAlgError:
+            quads.append(0.0)
+    q = int(np.argmax(quads))
+    dof_loo = dof - 2
+    rest = max(rss - quads[q], 0.0)
+    if dof_loo > 0 and rest > 0 and quads[q] / (rest / dof_loo) > moved_gate(dof_loo, p_suspect):
+        return rest, dof_loo
+    return rss, dof
+
+
 def near_misses(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, radius_mm: float | None,
-                pairs, candidates, sigma_px: float, max_shift_mm: float) -> list[MovedFiducial]:
+                pairs, candidates, sigma_px: float, max_shift_mm: float, sigma_dof: int = 1) -> list[MovedFiducial]:
     """Unmatched fiducials (``candidates``, indices into X) with an unmatched detection within
     ``max_shift_mm`` of their predicted position under the pose ``T`` fitted to ``pairs``."""
     from .projection import project_normalised
@@ -178,7 +241,7 @@ def near_misses(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, r
         _, J_j = _residuals_and_jacobian(T[:3, :3], T[:3, 3], X[j:j + 1], xn[free[a]:free[a] + 1], fxy, radius_mm)
         S = sigma_px**2 * (np.eye(2) + J_j @ C @ J_j.T)
         out.append(MovedFiducial(int(j), int(free[a]), shift, float(np.linalg.norm(e)),
-                                 float(e @ np.linalg.solve(S, e)), "near-miss", T))
+                                 float(e @ np.linalg.solve(S, e)), "near-miss", T, int(sigma_dof)))
     return out
 
 
@@ -196,8 +259,8 @@ def _remap(reg: Registration, active: np.ndarray, n_all: int, excluded) -> Regis
 
 
 def register_screened(fiducials_ct, image_points, K, dist=None, radius_mm=None, *, excluded=(), prior=None,
-                      method: str = "robust", sigma_px: float | None = None, min_shift_mm: float = 1.0,
-                      max_shift_mm: float = 8.0, chi2_gate: float = CHI2_2DOF_1E4,
+                      method: str = "robust", sigma_px: float | None = None, sigma_dof: int = 0,
+                      min_shift_mm: float = 1.0, max_shift_mm: float = 8.0, p_false: float = P_MOVED,
                       max_exclusions: int = 2) -> Screened:
     """:func:`register` without the ``excluded`` fiducials, then the moved-fiducial test (module
     docstring); a moved fiducial is excluded and the pose re-solved. ``sigma_px``: the image
@@ -229,8 +292,9 @@ def register_screened(fiducials_ct, image_points, K, dist=None, radius_mm=None, 
             break
         if len(moved) >= max_exclusions:
             break
-        tests = leave_one_out(T, X_all, xn, fxy, radius, pairs, sigma_px, screen_d2=chi2_gate)
-        bad = [m for m in tests if m.d2 > chi2_gate and m.shift_mm > min_shift_mm and m.T_without is not None]
+        tests = leave_one_out(T, X_all, xn, fxy, radius, pairs, sigma_px, sigma_dof=sigma_dof)
+        bad = [m for m in tests if m.d2 > moved_gate(m.dof, p_false) and m.shift_mm > min_shift_mm
+               and m.T_without is not None]
         if not bad:
             break
         worst = max(bad, key=lambda m: m.d2)
@@ -239,10 +303,13 @@ def register_screened(fiducials_ct, image_points, K, dist=None, radius_mm=None, 
         reg = solve(worst.T_without)
     if reg.ok and len(moved) < max_exclusions:
         unmatched = [j for j in reg.unmatched_fiducial_indices if j not in excl]
-        sig = max(sigma_px or 0.0, reg.sigma_px if np.isfinite(reg.sigma_px) else 0.0, 1e-3)
-        for m in near_misses(reg.T_cam_ct, X_all, xn, fxy, radius, reg.pairs, unmatched, sig, max_shift_mm):
-            if m.d2 > chi2_gate and m.shift_mm > min_shift_mm and len(moved) < max_exclusions:
+        own = reg.sigma_px if np.isfinite(reg.sigma_px) else 0.0
+        sig, sdof = _pick_sigma(own, reg.sigma_dof, sigma_px, sigma_dof)
+        for m in near_misses(reg.T_cam_ct, X_all, xn, fxy, radius, reg.pairs, unmatched, sig, max_shift_mm, sdof):
+            if m.d2 > moved_gate(m.dof, p_false) and m.shift_mm > min_shift_mm and len(moved) < max_exclusions:
                 moved.append(m)
                 excl.add(m.fiducial_index)
         reg.stats["excluded_fiducials"] = sorted(excl)
-    return Screened(reg, moved, sorted(excl))
+    rss, dof = (noise_sample(reg.T_cam_ct, X_all, xn, fxy, radius, reg.pairs) if reg.ok
+                else (float("nan"), 0))
+    return Screened(reg, moved, sorted(excl), rss, dof)

@@ -14,6 +14,10 @@ Rules (choices written down here):
   went up now (blur, an occluder's edge, a bad ball); the frame's own estimate is used.
 * **Few dof, no history**: until ``min_dof`` residual dof are pooled (first frames, few balls)
   the estimate is ``max(pooled, prior_px)``: conservative where the data cannot say.
+* **Degrees of freedom**: a sigma estimated from few residuals may be low by chance (12 dof:
+  ~20 % spread). ``upper_px`` is its one-sided 95 % upper confidence bound,
+  ``sigma sqrt(dof / chi2_0.05(dof))`` (x1.51 at 12 dof, x1.07 at 360); the pose stream gates
+  on the TRE predicted with it, and reports the calibrated one (``sigma_px``).
 * Frames whose fiducials were found inconsistent (a moved ball) enter only after that ball was
   excluded (the caller feeds the residuals of the final fit).
 
@@ -26,6 +30,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.stats import chi2
 from scipy.stats import f as f_dist
 
 
@@ -33,13 +38,20 @@ from scipy.stats import f as f_dist
 class NoiseEstimate:
     """``sigma_px`` the noise to use; ``frame_px`` this frame's own estimate; ``pooled_px`` the
     pool's (including this frame); ``dof`` behind ``sigma_px``; ``source`` one of "pooled",
-    "frame" (noise rose), "prior" (too few dof yet)."""
+    "frame" (noise rose), "prior" (too few dof yet); ``upper_px`` its 95 % upper bound."""
 
     sigma_px: float
     frame_px: float
     pooled_px: float
     dof: int
     source: str
+
+    @property
+    def upper_px(self) -> float:
+        """One-sided 95 % upper confidence bound of the noise (px), given ``dof``."""
+        if self.dof <= 0 or not np.isfinite(self.sigma_px):
+            return float("nan")
+        return float(self.sigma_px * np.sqrt(self.dof / chi2.ppf(0.05, self.dof)))
 
 
 class OnlineNoise:

@@ -27,7 +27,7 @@ RED = (40, 40, 235)
 MAGENTA = (255, 0, 255)
 WHITE = (255, 255, 255)
 
-HIDDEN = ("occluded", "newly_lost")
+HIDDEN = ("occluded", "newly_lost", "moved")
 
 
 def project_points(points_ct: np.ndarray, T_cam_ct: np.ndarray, K: np.ndarray, dist=None) -> np.ndarray:
@@ -112,7 +112,8 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False) -
         if st in HIDDEN:
             if _finite(p_proj):
                 cv2.circle(img, _ipt(p_proj), ring, RED, max(2, int(3 * scale)), cv2.LINE_AA)
-                _text(img, f"{fid} HIDDEN", (_ipt(p_proj)[0] + ring + 4, _ipt(p_proj)[1] + 6), RED, 0.6 * scale)
+                word = "MOVED" if st == "moved" else "HIDDEN"
+                _text(img, f"{fid} {word}", (_ipt(p_proj)[0] + ring + 4, _ipt(p_proj)[1] + 6), RED, 0.6 * scale)
             continue
         if _finite(p_proj):
             cv2.circle(img, _ipt(p_proj), ring, CYAN, max(1, int(2 * scale)), cv2.LINE_AA)
@@ -139,6 +140,8 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False) -
         msg = "NO POSE YET: waiting for the first registration"
     else:
         msg = f"POSE NOT VALID: {pose.reason}"
+        if pose.predicted_tre_mm is not None and "predicted error" not in pose.reason:
+            msg += f"   (predicted TRE {pose.predicted_tre_mm:.2f} mm)"
     _text(img, msg[:110], (int(10 * scale), int(28 * scale)), WHITE, 0.75 * scale, max(1, int(2 * scale)))
     return img
 

@@ -29,7 +29,9 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
   coplanar -> ``weak_geometry``;
 * predicted TRE at the planned target over ``max_predicted_tre_mm`` (1 mm) -> ``tre_limit``.
   The image noise behind it is estimated online from the residuals
-  (:class:`~monotracker.registration.noise.OnlineNoise`: pooled over frames, no floor);
+  (:class:`~monotracker.registration.noise.OnlineNoise`: pooled over frames, no floor); the
+  gate uses the noise's 95 % upper bound for its degrees of freedom (few balls or the first
+  frames: a wider bound), ``predicted_tre_mm`` the calibrated value;
 * a fiducial whose position disagrees with the others (leave-one-out,
   :mod:`monotracker.registration.consistency`) is excluded with a ``fiducial_moved`` alert
   naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
@@ -208,6 +210,7 @@ class PoseTracker:
         scr = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
                                 method=cfg.method, prior=prior, excluded=tuple(self.excluded),
                                 sigma_px=known_sigma.sigma_px if known_sigma.source == "pooled" else None,
+                                sigma_dof=known_sigma.dof,
                                 min_shift_mm=cfg.moved_min_shift_mm,
                                 max_exclusions=2 if cfg.check_moved else 0)
         reg = scr.registration
@@ -255,16 +258,20 @@ class PoseTracker:
                         ok, reason, code = False, why, "weak_geometry"
             if code not in ("pose_implausible",):
                 # the fit passed the residual gates: its residuals are a noise sample
-                rss = float(np.sum(np.asarray(reg.residuals_px) ** 2))
-                ne = self.noise.update(rss, reg.sigma_dof) if code in ("", "weak_geometry") else \
-                    self.noise.peek(rss, reg.sigma_dof)
+                rss, dof = scr.noise_rss_px2, scr.noise_dof   # the fit's residuals (suspect ball trimmed)
+                ne = self.noise.update(rss, dof) if code in ("", "weak_geometry") else self.noise.peek(rss, dof)
                 sigma, sigma_src = ne.sigma_px, ne.source
                 if self.target_ct is not None:
                     tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
-                if ok and self.target_ct is not None and not (tre <= cfg.max_predicted_tre_mm):
-                    ok, code = False, "tre_limit"
-                    reason = (f"predicted error at the target {tre:.2f} mm over the {cfg.max_predicted_tre_mm:g} mm "
-                              f"limit (image noise {sigma:.2f} px, {len(reg.pairs)} fiducials)")
+                    # gate on the 95 % upper bound of the noise: a sigma from few dof may be low by chance
+                    upper = ne.upper_px if np.isfinite(ne.upper_px) else sigma
+                    tre_hi = tre * upper / sigma if sigma > 0 else tre
+                    if ok and not (tre_hi <= cfg.max_predicted_tre_mm):
+                        ok, code = False, "tre_limit"
+                        bound = f"; up to {tre_hi:.2f} mm at 95 % with {ne.dof} dof" if tre_hi > tre + 0.005 else ""
+                        reason = (f"predicted error at the target {tre:.2f} mm{bound}: over the "
+                                  f"{cfg.max_predicted_tre_mm:g} mm limit (image noise {sigma:.2f} px, "
+                                  f"{len(reg.pairs)} fiducials)")
         else:
             if len(pts) < cfg.min_fiducials:
                 reason = f"{len(pts)} fiducials detected (need {cfg.min_fiducials}): {reason}"

@@ -1,0 +1,32 @@
+"""A detector that hands over given points: replaying recorded detections, tests, benchmarks.
+
+:class:`PointDetector` has the detectors' interface (``detect(image) -> Detection``) but ignores
+the image: it returns the ball centres (px) and minor semi-axes (px) set with :meth:`set`. With
+it, the pose stream's trust logic runs on point-level scenes with exact ground truth
+(``monotracker.sim.scenes``) or on detections recorded elsewhere.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .detection import Detection, ImageFiducial
+
+
+class PointDetector:
+    """``set(points_px (m, 2), minor_axes_px (m,))`` before each ``detect``."""
+
+    name = "points"
+
+    def __init__(self):
+        self.points = np.zeros((0, 2))
+        self.minor = np.zeros(0)
+
+    def set(self, points_px, minor_axes_px) -> None:
+        self.points = np.asarray(points_px, float).reshape(-1, 2)
+        self.minor = np.asarray(minor_axes_px, float).reshape(-1)
+
+    def detect(self, image) -> Detection:
+        fids = [ImageFiducial(np.array(p, float), (float(b), float(b)), 0.0, 1.0, float(np.pi * b * b))
+                for p, b in zip(self.points, self.minor)]
+        return Detection(fids, [], 0.0, self.name)

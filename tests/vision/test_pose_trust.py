@@ -1,0 +1,114 @@
+"""The pose stream's trust decisions on point-level scenes with known truth.
+
+A detector double hands the tracker the exact ellipse centres of a synthetic scene (OpenCV's
+projection, ``sim.scenes``) plus Gaussian noise, with the balls' true image size; the true pose
+is known, so every trusted pose can be checked at deep targets.
+"""
+
+import numpy as np
+import pytest
+
+from monotracker.registration.report import tre_mm
+from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised, make_scene
+from monotracker.vision.camera_model import CameraModel
+from monotracker.vision.frames import Frame
+from monotracker.vision.point_detector import PointDetector
+from monotracker.vision.pose_stream import MOVED, SEEN, PoseTracker, TrackerConfig
+
+BLANK = np.zeros((720, 1280, 3), np.uint8)
+
+
+def _observe(s, X_scene, rng, noise_px):
+    """Image points and ball sizes of the scene's balls at ``X_scene`` (CT mm; may differ from the CT)."""
+    T = s.T_cam_ct
+    Xc = X_scene @ T[:3, :3].T + T[:3, 3]
+    px = _to_pixels(ellipse_centre_normalised(Xc, s.radius_mm), s.K, s.dist)
+    px = px + rng.normal(scale=noise_px, size=px.shape)
+    minor = s.K[0, 0] * s.radius_mm / np.sqrt(Xc[:, 2] ** 2 - s.radius_mm**2)
+    return px, minor
+
+
+def _tracker(s, target, **cfg):
+    det = PointDetector()
+    tr = PoseTracker(s.fiducials_ct, CameraModel(s.K, s.dist if s.dist is not None else np.zeros(5), (1280, 720)),
+                     detector=det, radius_mm=s.radius_mm, target_ct=target, config=TrackerConfig(**cfg))
+    return tr, det
+
+
+def _run(s, tr, det, rng, noise_px, frames, X_scene=None, strays=None):
+    X_scene = s.fiducials_ct if X_scene is None else X_scene
+    out = []
+    for k in range(frames):
+        px, minor = _observe(s, X_scene, rng, noise_px)
+        if strays is not None and len(strays):
+            px = np.concatenate([px, strays])
+            minor = np.concatenate([minor, np.full(len(strays), np.median(minor))])
+        perm = rng.permutation(len(px))
+        det.set(px[perm], minor[perm])
+        out.append(tr.process(Frame(BLANK, k / 30.0, k)))
+    return out
+
+
+def test_tre_gate_refuses_noisy_far_poses_and_trusts_clean_ones():
+    rng = np.random.default_rng(4)
+    s = make_scene(rng, noise_px=0.0, ellipse_bias=True, distance_mm=(650.0, 700.0))
+    target = s.targets_ct[8]                                  # 80 mm deep
+    tr, det = _tracker(s, target)
+    clean = _run(s, tr, det, rng, 0.05, 15)
+    assert all(e.ok for e in clean), [e.reason for e in clean]
+    # no floor: the pooled noise estimate sees 0.05 px, and the prediction follows it
+    assert clean[-1].sigma_source == "pooled" and 0.035 < clean[-1].sigma_px < 0.07
+    assert clean[-1].predicted_tre_mm < 0.5
+    noisy = _run(s, tr, det, rng, 0.8, 5)      # under the 1.5 px RMS gate, far over 1 mm at the target
+    assert not any(e.ok for e in noisy)
+    assert all(e.code == "tre_limit" and "over the 1 mm limit" in e.reason for e in noisy)
+    assert noisy[0].alerts and "no valid pose" in noisy[0].alerts[-1]
+    # the limit is a setting
+    tr2, det2 = _tracker(s, target, max_predicted_tre_mm=50.0)
+    assert all(e.ok for e in _run(s, tr2, det2, rng, 0.8, 12)[-3:])
+
+
+@pytest.mark.parametrize("noise_px", [0.1, 0.3, 0.6, 1.0])
+def test_no_wrong_but_valid_pose(noise_px):
+    wrong_but_valid = 0
+    for seed in range(6):
+        rng = np.random.default_rng(50 + seed)
+        s = make_scene(rng, noise_px=0.0, ellipse_bias=True, n_stray=seed % 3)
+        target = s.targets_ct[6]
+        tr, det = _tracker(s, target)
+        strays = s.image_points[s.stray_indices]
+        for e in _run(s, tr, det, rng, noise_px, 8, strays=strays):
+            if e.ok:
+                err = tre_mm(e.T_cam_ct, s.T_cam_ct, target[None])[0]
+                wrong_but_valid += err > 2.0
+                # strays ignored: only real fiducials are matched
+                assert e.n_matched == len(s.fiducials_ct)
+    assert wrong_but_valid == 0
+
+
+def test_moved_ball_alert_names_it_and_it_stays_excluded():
+    rng = np.random.default_rng(11)
+    s = make_scene(rng, noise_px=0.0, ellipse_bias=True)
+    j = 4
+    X = s.fiducials_ct.copy()
+    T = s.T_cam_ct
+    # 3 mm across the line of sight (camera x axis, expressed in CT)
+    X[j] = X[j] + 3.0 * T[:3, :3].T @ np.array([1.0, 0.0, 0.0])
+    tr, det = _tracker(s, s.targets_ct[6])
+    ests = _run(s, tr, det, rng, 0.2, 6, X_scene=X)
+    first = ests[0]
+    assert first.moved and first.moved[0][0] == j and 2.0 < first.moved[0][1] < 4.0
+    assert any(f"fiducial {j} moved about" in a for a in first.alerts)
+    for e in ests:
+        assert e.ok, e.reason
+        assert e.status[j] == MOVED and e.excluded == [j]
+        assert sum(st == SEEN for st in e.status) == len(X) - 1
+        assert tre_mm(e.T_cam_ct, T, s.targets_ct).max() < 2.0
+    assert not any(e.moved for e in ests[1:])                   # alerted once, excluded for good
+    assert not any("moved" in a for e in ests[1:] for a in e.alerts)
+    # even once the ball is back where the CT has it, it does not come back silently
+    back = _run(s, tr, det, rng, 0.2, 2)
+    assert all(e.status[j] == MOVED for e in back)
+    tr.reset()                                                  # the operator re-checked the fiducials
+    again = _run(s, tr, det, rng, 0.2, 2)
+    assert all(e.ok and e.status[j] == SEEN for e in again)
