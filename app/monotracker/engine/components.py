@@ -55,7 +55,10 @@ class RobotStatus:
     """``state`` disarmed|armed|tracking|holding|estopped; ``q`` (6,) rad; ``qd`` (6,) rad/s;
     ``T_base_tip`` needle tip pose (4x4, mm, +z along the needle); ``speed_mm_s`` tip speed;
     ``command_stamp`` capture stamp of the target used by the last command and ``t_command``
-    when it was sent (session clock s)."""
+    when it was sent (session clock s); ``program_fault``: link up but the arm's control
+    program stopped (a UR's script: ``"watchdog" | "pendant" | "paused" | "protective_stop" |
+    "emergency_stop" | "safeguard_stop" | "not_running"``; "" while it runs), the operator's
+    reset restarts it; ``control``: where the control loop runs and with which priority."""
 
     state: str
     connected: bool
@@ -66,6 +69,8 @@ class RobotStatus:
     speed_mm_s: float = 0.0
     command_stamp: float | None = None
     t_command: float | None = None
+    program_fault: str = ""
+    control: str = ""
 
 
 class CameraRig:

@@ -603,7 +603,8 @@ class TrackingLoop:
             if T_tip is not None and T_base_ct is not None and plan.path_complete:
                 tip_err, ang_err = tip_and_axis_error(T_tip, T_base_ct, plan.entry_lps_mm, plan.target_lps_mm)
             robot = RobotSummary(st.state, frozen_array(q), tip_err, ang_err, float(speed), st.connected,
-                                 self._holding_reason or st.message, lat)
+                                 st.message if st.program_fault else (self._holding_reason or st.message), lat,
+                                 program_fault=st.program_fault, control=st.control)
         else:
             robot = RobotSummary("disarmed", None, None, None, 0.0, False, "robot not connected yet", None)
         scene = SceneGeometry(frozen_array(plan.T_base_cam), frozen_array(T_cam_ct), frozen_array(T_base_ct),

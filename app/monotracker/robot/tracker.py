@@ -35,7 +35,7 @@ import numpy as np
 
 from monotracker.geometry import apply_transform
 from monotracker.robot.apff import APFFController, APFFParams
-from monotracker.robot.arm import Arm, ArmError
+from monotracker.robot.arm import Arm, ArmError, ArmProgramStopped
 from monotracker.robot.head import Corridor, HeadSphere
 from monotracker.robot.kinematics import Kinematics, NeedleTool, manipulability
 from monotracker.robot.safety import SafetyConfig, SafetyLayer, State, Transition
@@ -115,6 +115,12 @@ class TrackerSnapshot:
     overruns: int = 0
     #: a head sphere is known: the keep-out (and APF repulsion) can act this cycle
     keepout_active: bool = False
+    #: link up but the arm's control program stopped (a UR's ur_rtde script): the cause
+    #: (``"watchdog" | "pendant" | "paused" | "protective_stop" | "emergency_stop" |
+    #: "safeguard_stop" | "not_running"``), "" while it runs; the operator's reset restarts it
+    program_fault: str = ""
+    #: one line saying why and what to do ("" while it runs)
+    program_fault_reason: str = ""
 
 
 class Tracker:
@@ -148,6 +154,7 @@ class Tracker:
         self._n_warn = 0
         self._snap: TrackerSnapshot | None = None
         self._controller_reset_due = False
+        self._program_fault: ArmProgramStopped | None = None
         #: real-time thread: cycles that ended after the next deadline, and the slowest cycle (ms)
         self.overruns = 0
         self.worst_cycle_ms = 0.0
@@ -258,7 +265,25 @@ class Tracker:
         return CommandResult(True, "e-stopped")
 
     def reset(self) -> CommandResult:
+        """Operator action: leave the e-stop (to disarmed; arming again is another action).
+        If the arm's control program has stopped (a UR's script: watchdog, pendant stop,
+        protective stop), this is the one place it is restarted (:meth:`Arm.recover`, e.g.
+        ``reuploadScript``); never while armed, never by itself. Refused with a one-line reason
+        when the restart fails (e.g. a protective stop not yet cleared on the pendant)."""
         with self._lock:
+            if self.safety.state != State.ESTOPPED:
+                return CommandResult(*self.safety.reset(self.clock()))
+            try:
+                fault = self.arm_backend.program_fault()
+                if fault is not None:
+                    self.arm_backend.recover()
+                    log.info("arm control program restarted on reset (was: %s)", fault)
+            except ArmError as exc:
+                return CommandResult(False, f"reset refused: {exc}")
+            except Exception as exc:  # noqa: BLE001 - never a traceback to the operator
+                log.exception("arm recovery failed")
+                return CommandResult(False, f"reset refused: arm recovery failed ({type(exc).__name__}: {exc})")
+            self._program_fault = None
             return CommandResult(*self.safety.reset(self.clock()))
 
     # ------------------------------------------------------------------ inputs
@@ -345,6 +370,7 @@ class Tracker:
                         self._stop_arm(self.safety.cfg.estop_decel)
                 else:
                     st = self.arm_backend.read()
+                    self._program_fault = None
                     q, dq = st.q, st.dq
                     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
                         raise ArmError("arm reported non-finite joint state")
@@ -376,6 +402,8 @@ class Tracker:
                             self._stop_arm(self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED
                                            else self.safety.cfg.joint_accel)
             except ArmError as exc:
+                if isinstance(exc, ArmProgramStopped):
+                    self._program_fault = exc
                 self.safety.estop(now, f"arm error: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
                 try:  # the error may have been the link dropping: report it in the snapshot
@@ -411,6 +439,8 @@ class Tracker:
             stage=stage, sigma_min=smin, last_transition=hist[-1] if hist else None,
             warnings=tuple(self.safety.warnings[-5:]), step_cost_ms=cost_ms, overruns=self.overruns,
             keepout_active=head is not None,
+            program_fault="" if self._program_fault is None else self._program_fault.cause,
+            program_fault_reason="" if self._program_fault is None else str(self._program_fault),
         )
 
     def snapshot(self) -> TrackerSnapshot | None:
@@ -444,6 +474,7 @@ class Tracker:
         nxt = self.clock()
         while self._run.is_set():
             t_start = self.clock()
+            token = self._begin_cycle()
             try:
                 self.step()
             except Exception as exc:  # noqa: BLE001 - step() catches loop errors; this is the last guard
@@ -459,8 +490,21 @@ class Tracker:
                 self._report_overrun(-delay)
             if delay < -self.period:  # overrun: re-phase rather than bursting
                 nxt = self.clock()
-            elif delay > 0:
+            elif delay > 0 and not self._wait_cycle(token):
                 time.sleep(delay)
+
+    def _begin_cycle(self):
+        try:
+            return self.arm_backend.begin_cycle()
+        except Exception:  # noqa: BLE001 - pacing falls back to our own sleep
+            return None
+
+    def _wait_cycle(self, token) -> bool:
+        """The backend's own pacing (ur_rtde ``waitPeriod``) when it has one; False: sleep here."""
+        try:
+            return bool(self.arm_backend.wait_cycle(token))
+        except Exception:  # noqa: BLE001
+            return False
 
     def stop(self) -> None:
         """Stop the thread; the arm is left stopped (tracking ends, the state machine keeps
