@@ -43,6 +43,10 @@ class SessionConfig:
     on the twin it helps a breathing head a little and hurts drift and jumps a little (the tip error
     is dominated by registration noise, which extrapolation amplifies); ``benchmarks/closed_loop.py``
     measures both.
+    ``control_process`` (True): with clock="real", the robot's control loop (tracker, safety, arm)
+    runs in its own process at real-time priority where the OS allows, so vision, UI and logging
+    cannot delay it (``robot/control_process.py``); False: a thread in the engine process.
+    clock="sim" always steps it in-process (deterministic).
     """
 
     home: Path | None = None
@@ -63,6 +67,7 @@ class SessionConfig:
     confirm_frames: int = 3
     controller: str = "APF-A-II"
     predict_target: bool = False
+    control_process: bool = True
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:

@@ -214,10 +214,17 @@ class TrackerRobotRig(RobotRig):
         # the state machine's live state (the snapshot is from the last control step)
         st = RobotStatus(state=self.tracker.state.value, connected=bool(self.tracker.arm_backend.is_connected()),
                          message=msg, q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=self._speed, command_stamp=stamp,
-                         t_command=snap.t, program_fault=snap.program_fault)
+                         t_command=snap.t, program_fault=snap.program_fault,
+                         control="in-process thread" if self.tracker._thread is not None else "in-process, stepped")
         self._status_cache = (now, st)
         return st
 
 
 def make_tracker_rig(cfg, session) -> RobotRig:
+    """clock="real" with ``control_process`` on: the control loop in its own process
+    (``engine/robot_process_rig.py``); otherwise (and always for clock="sim") in-process."""
+    if getattr(cfg, "clock", "sim") == "real" and getattr(cfg, "control_process", False):
+        from monotracker.engine.robot_process_rig import ProcessRobotRig
+
+        return ProcessRobotRig(cfg, session)
     return TrackerRobotRig(cfg, session)
