@@ -42,7 +42,6 @@ import os
 import queue
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 from itertools import count
 from typing import Callable
@@ -173,7 +172,7 @@ class _Child:
         self._parent_gone = threading.Event()
         self._quit = threading.Event()
         self._heart_lost = False
-        self.starts: deque = deque(maxlen=int(opts.get("keep_cycles", 200000)))
+        self.starts = self.tracker.cycle_starts  # the same bounded log as the in-process loop
         self.cycles = 0
         self.exit_reason = ""
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -124,6 +125,9 @@ class TrackerSnapshot:
 
 
 class Tracker:
+    #: how many cycle start times the real-time loop keeps (:attr:`cycle_starts`)
+    CYCLE_LOG = 20000
+
     def __init__(self, arm: Arm | None = None, variant: str = "APF-A-II",
                  params: APFFParams | None = None, safety_config: SafetyConfig | None = None,
                  tool: NeedleTool | None = None, corridor: Corridor | None = None,
@@ -159,6 +163,8 @@ class Tracker:
         self.overruns = 0
         self.worst_cycle_ms = 0.0
         self.predictor = TargetPredictor(prediction_horizon_s) if predict_target else None
+        #: real-time thread: start time (clock s) of the latest cycles (period jitter; benchmarks)
+        self.cycle_starts: deque = deque(maxlen=self.CYCLE_LOG)
 
     # ------------------------------------------------------------------ events
     def _on_transition(self, tr: Transition) -> None:
@@ -474,6 +480,7 @@ class Tracker:
         nxt = self.clock()
         while self._run.is_set():
             t_start = self.clock()
+            self.cycle_starts.append(t_start)
             token = self._begin_cycle()
             try:
                 self.step()
