@@ -104,6 +104,15 @@ class CameraRig:
     def poll_frames(self) -> list[float]:
         return []
 
+    def poll_frame_info(self) -> list[tuple[float, int | None]]:
+        """New frames since the last poll as ``(t_capture, content digest or None)``; the digest
+        lets the engine see a frozen camera repeating a frame bit for bit."""
+        return [(t, None) for t in self.poll_frames()]
+
+    def frame_digest(self, frame) -> int | None:
+        """Checksum of a frame's content (None: this rig cannot tell)."""
+        return None
+
     def latest_sample(self) -> PoseSample | None:
         return None
 

@@ -149,9 +149,10 @@ def run_demo(opts: DemoOptions, camera_factory=None, robot_factory=None, on_trac
     if home is None:
         tmp = tempfile.TemporaryDirectory(prefix="monotracker-demo-")
         home = Path(tmp.name)
-    cfg = SessionConfig(home=Path(home), camera="sim", trajectory=opts.trajectory, robot="sim", arm_pin=opts.pin,
-                        clock="sim", camera_fps=opts.camera_fps, control_hz=opts.control_hz, seed=opts.seed,
-                        **opts.config_overrides)
+    kw = dict(home=Path(home), camera="sim", trajectory=opts.trajectory, robot="sim", arm_pin=opts.pin,
+              clock="sim", camera_fps=opts.camera_fps, control_hz=opts.control_hz, seed=opts.seed)
+    kw.update(opts.config_overrides)  # e.g. camera="sim-points", or the benchmark's "no gate" baseline
+    cfg = SessionConfig(**kw)
     s = Session(cfg, camera_factory=camera_factory, robot_factory=robot_factory)
     try:
         return _run(s, opts, wall0, cpu0, on_tracking)

@@ -84,6 +84,8 @@ class TrackingLoop:
         self._last_trusted: components.PoseSample | None = None
         self._last_frame_t: float | None = None  # capture time of the newest frame seen
         self._last_frame_seen_at: float | None = None  # session time it arrived
+        self._last_digest = None  # content checksum of the newest frame (None: the rig gives none)
+        self._repeat_frames = 0  # bit-identical repeats since the last new frame (a frozen camera)
         self._frames = 0
         self._frame_times: deque[float] = deque(maxlen=90)
         self._holding_reason: str | None = None  # why the loop currently holds (None = not holding)
@@ -271,6 +273,7 @@ class TrackingLoop:
             self.rig = rig
             self.camera_error = None
             self._last_frame_seen_at = self.now()
+            self._last_digest, self._repeat_frames = None, 0
             self._next_frame_t = self.now()
             self.gate.reset()
             anchor = plan.entry_lps_mm if plan.entry_lps_mm is not None else plan.fiducial_centres().mean(axis=0)
@@ -428,7 +431,10 @@ class TrackingLoop:
         rig = self.rig
         if rig is not None and rig.running:
             seen = self._last_frame_seen_at
-            if seen is not None and now - seen > self.cfg.freeze_after_s:
+            if self._repeat_frames:
+                self._hold("camera_freeze", f"camera frozen: {self._repeat_frames} frame(s) repeated bit for bit "
+                                            f"(last new frame {1000 * (now - seen):.0f} ms ago)")
+            elif seen is not None and now - seen > self.cfg.freeze_after_s:
                 self._hold("camera_freeze", f"camera frozen: no new frame for {1000 * (now - seen):.0f} ms")
         rec = self._latest
         if rec is not None and rec.trusted and self._holding_reason is None:
@@ -437,12 +443,21 @@ class TrackingLoop:
                 self._hold("pose_stale", f"freshest trusted pose is {1000 * age:.0f} ms old")
         self._refresh_robot_state()
 
-    def note_frame(self, t_capture: float, now: float) -> bool:
+    def note_frame(self, t_capture: float, now: float, digest=None) -> bool:
         """A frame with capture time ``t_capture`` arrived; True if it is new. Only new frames
-        refresh the freeze watchdog (a frozen camera repeats its last frame)."""
+        refresh the freeze watchdog (a frozen camera repeats its last frame). ``digest``: a
+        checksum of the content; equal to the previous frame's, the frame is a bit-identical
+        repeat (a frozen camera; sensor noise never repeats a frame) and the freeze alarm holds
+        the arm at the next watchdog tick, without waiting ``freeze_after_s``."""
         with self._lock:
             if self._last_frame_t is not None and t_capture <= self._last_frame_t:
                 return False
+            if digest is not None and digest == self._last_digest:
+                self._last_frame_t = t_capture
+                self._repeat_frames += 1
+                return False
+            self._last_digest = digest
+            self._repeat_frames = 0
             self._last_frame_t = t_capture
             self._last_frame_seen_at = now
             self._frames += 1
@@ -474,7 +489,7 @@ class TrackingLoop:
                 if t + rig.transport_delay_s >= self._busy_until - 1e-12:
                     frame = rig.capture(t)
                     # A frozen camera hands back the same frame: nothing new to estimate.
-                    if frame is not None and self.note_frame(frame.t_capture, t):
+                    if frame is not None and self.note_frame(frame.t_capture, t, rig.frame_digest(frame)):
                         # compute time of detection + registration: this thread's CPU time, so
                         # the model does not depend on what else the machine runs meanwhile
                         w0 = time.thread_time()
@@ -514,8 +529,8 @@ class TrackingLoop:
             try:
                 rig = self.rig
                 if rig is not None and rig.running:
-                    for frame_t in rig.poll_frames():
-                        self.note_frame(frame_t, now)
+                    for frame_t, digest in rig.poll_frame_info():
+                        self.note_frame(frame_t, now, digest)
                     sample = rig.latest_sample()
                     if sample is not None and sample is not last_seen:
                         last_seen = sample
