@@ -39,49 +39,11 @@ from monotracker.robot.apff import APFFController, APFFParams
 from monotracker.robot.arm import Arm, ArmError, ArmProgramStopped
 from monotracker.robot.head import Corridor, HeadSphere
 from monotracker.robot.kinematics import Kinematics, NeedleTool, manipulability
+from monotracker.robot.prediction import TargetPredictor  # noqa: F401  (re-exported: its old home)
 from monotracker.robot.safety import SafetyConfig, SafetyLayer, State, Transition
 from monotracker.robot.units import m_to_mm, mm_to_m, transform_m_to_mm, transform_mm_to_m
 
 log = logging.getLogger(__name__)
-
-
-class TargetPredictor:
-    """Latency compensation (an extension beyond the paper; off by default).
-
-    The pose stream's targets are ``latency`` old when they arrive (capture stamp). From the
-    last two accepted targets the target's body twist is estimated (finite difference over
-    their capture stamps, then low-passed), and the controller gets the target extrapolated to
-    now, ``T @ exp(V (now - stamp))`` (at most ``horizon_s`` ahead), plus that twist as a
-    velocity feed-forward. Reset whenever a target is rejected."""
-
-    def __init__(self, horizon_s: float = 0.25, alpha: float = 0.5):
-        self.horizon_s = horizon_s
-        self.alpha = alpha
-        self.reset()
-
-    def reset(self) -> None:
-        self._last: tuple[np.ndarray, float] | None = None
-        self.V = np.zeros(6)
-
-    def update(self, T: np.ndarray, stamp: float) -> None:
-        from monotracker.robot.lie import log6, relative
-
-        if self._last is not None:
-            T0, s0 = self._last
-            dt = stamp - s0
-            if 1e-3 < dt < 0.5:
-                self.V = (1 - self.alpha) * self.V + self.alpha * log6(relative(T0, T)) / dt
-            elif dt >= 0.5:
-                self.V = np.zeros(6)
-        self._last = (T.copy(), stamp)
-
-    def predict(self, T: np.ndarray, now: float) -> tuple[np.ndarray, np.ndarray]:
-        from monotracker.robot.lie import exp6
-
-        if self._last is None:
-            return T, np.zeros(6)
-        h = float(np.clip(now - self._last[1], 0.0, self.horizon_s))
-        return T @ exp6(self.V * h), self.V.copy()
 
 
 @dataclass(frozen=True)
@@ -133,7 +95,7 @@ class Tracker:
                  tool: NeedleTool | None = None, corridor: Corridor | None = None,
                  rate_hz: float = 125.0, clock: Callable[[], float] = time.monotonic,
                  on_event: Callable[[str, object], None] | None = None,
-                 predict_target: bool = False, prediction_horizon_s: float = 0.25):
+                 predict_target: bool = True, prediction_horizon_s: float = 0.15):
         if arm is None:
             from monotracker.robot.sim_arm import SimulatedArm
 
@@ -386,6 +348,8 @@ class Tracker:
                         self._controller_reset_due = False
                         self.controller.reset()
                     self.controller.head = head
+                    if self.predictor is not None and self.safety.state != State.TRACKING:
+                        self.predictor.reset()  # holding/armed/...: no velocity survives a stop
                     if self.safety.state == State.TRACKING and self.safety.target is not None:
                         T_goal, V_goal = self.safety.target, None
                         if self.predictor is not None:
