@@ -79,7 +79,8 @@ def _stats(x) -> dict | None:
     a = np.asarray(x, float)
     if a.size == 0:
         return None
-    return {"mean": float(a.mean()), "p95": float(np.percentile(a, 95)), "max": float(a.max()), "n": int(a.size)}
+    return {"mean": float(a.mean()), "rms": float(np.sqrt(np.mean(a ** 2))), "p95": float(np.percentile(a, 95)),
+            "max": float(a.max()), "n": int(a.size)}
 
 
 class _Recorder:

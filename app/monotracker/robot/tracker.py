@@ -87,6 +87,25 @@ class TrackerSnapshot:
 
 
 class Tracker:
+    """APFF controller + safety layer + arm backend (see the module docstring).
+
+    Args:
+        arm: the arm backend (:class:`~monotracker.robot.arm.Arm`); default a
+            :class:`~monotracker.robot.sim_arm.SimulatedArm` on ``clock`` at ``rate_hz``.
+        variant: ``"APF-V" | "APF-A-I" | "APF-A-II"`` (paper section 2.3).
+        params: controller gains (:class:`APFFParams`, paper Eq. 32 defaults).
+        safety_config: limits and timeouts (:class:`SafetyConfig`).
+        tool: the needle (tip on tool0's z axis; default 0.20 m).
+        corridor: the planned-path tube where head repulsion and keep-out are off.
+        rate_hz: control rate (Hz; 125 for a UR CB3, 500 for an e-Series), > 0.
+        clock: monotonic seconds; capture stamps must be on the same clock.
+        on_event: ``(kind, payload)`` callback, ``"transition"`` / ``"warning"``; runs in the
+            control thread.
+        predict_target: latency compensation (:mod:`monotracker.robot.prediction`), on by default.
+        prediction_horizon_s: the prediction's extrapolation cap (s).
+
+    Raises ``ValueError`` for ``rate_hz <= 0`` or an unknown variant."""
+
     #: how many cycle start times the real-time loop keeps (:attr:`cycle_starts`)
     CYCLE_LOG = 20000
 
@@ -160,7 +179,9 @@ class Tracker:
 
     # ------------------------------------------------------------------ connection / operator
     def connect(self) -> CommandResult:
-        """Open (or re-open) the arm connection. Never resumes motion: if the link is down
+        """Open (or re-open) the arm connection. Returns ``CommandResult``; refused (ok=False,
+        one line) when the arm does not answer or its control program is stopped (then only
+        :meth:`reset` restarts it). Never resumes motion: if the link is down
         while armed/tracking/holding (a drop the control loop may not have seen yet), the e-stop
         latches first; if it is up, there is nothing to do."""
         with self._lock:
@@ -180,7 +201,8 @@ class Tracker:
         return CommandResult(True, "connected")
 
     def disconnect(self) -> None:
-        """Stop the loop thread (if running), stop the arm and close the connection."""
+        """Stop the loop thread (if running), disarm, stop the arm and close the connection.
+        Never raises; an e-stop stays latched."""
         self.stop()
         with self._lock:
             if self.safety.state not in (State.DISARMED, State.ESTOPPED):
@@ -188,15 +210,22 @@ class Tracker:
             self.arm_backend.disconnect()
 
     def arm(self) -> CommandResult:
+        """Operator action: disarmed -> armed (the arm holds still, commands stay zero).
+        Refused (ok=False, reason) when not disarmed (e.g. e-stopped: reset first) or the arm
+        is not connected."""
         with self._lock:
             return CommandResult(*self.safety.arm(self.clock(), self.arm_backend.is_connected()))
 
     def disarm(self) -> CommandResult:
+        """Operator action: armed/tracking/holding -> disarmed (the arm decelerates to rest).
+        Refused when e-stopped (reset leaves the e-stop) or already disarmed."""
         with self._lock:
             return CommandResult(*self.safety.disarm(self.clock()))
 
     def start_tracking(self) -> CommandResult:
-        """Operator action. Tracking without a head sphere is allowed (the sphere may be
+        """Operator action: armed/holding -> tracking. Refused (ok=False, reason) when not armed
+        or holding, or without a fresh valid target (capture stamp within the safety layer's
+        freshness limits). Tracking without a head sphere is allowed (the sphere may be
         unknown, e.g. too few fiducials for the fit) but warned about: then neither the keep-out
         nor the APF repulsion can act."""
         with self._lock:
@@ -209,6 +238,8 @@ class Tracker:
             return res
 
     def stop_tracking(self) -> CommandResult:
+        """Operator action: tracking/holding -> armed (the arm decelerates to rest and stays
+        there; tracking never resumes by itself after this). Refused when not tracking/holding."""
         with self._lock:
             return CommandResult(*self.safety.stop_tracking(self.clock()))
 
@@ -217,7 +248,8 @@ class Tracker:
     ESTOP_LOCK_WAIT_S = 0.05
 
     def estop(self, reason: str = "operator e-stop") -> CommandResult:
-        """Latched stop, effective immediately: the state latches at once (without waiting for
+        """Latched stop, effective immediately (``reason``: one line for the log and the UI;
+        always returns ok=True): the state latches at once (without waiting for
         the control loop), then the arm is told to stop. If a control cycle is stuck in an arm
         call, the stop is left to that cycle (it re-checks the state after sending a command)
         and, should the call never return, to the arm's own watchdog. Never blocks for long."""
@@ -257,9 +289,19 @@ class Tracker:
     # ------------------------------------------------------------------ inputs
     def set_target(self, T_base_target_mm: np.ndarray, stamp: float, valid: bool = True,
                    now: float | None = None) -> CommandResult:
-        """New desired needle-tip pose (4x4, mm, base frame) measured from a camera frame
-        captured at ``stamp`` (monotonic s). ``valid=False`` tells the tracker the pose stream has
-        no pose (e.g. fiducials occluded). ``now`` defaults to the tracker clock."""
+        """New desired needle-tip pose from one camera frame.
+
+        Args:
+            T_base_target_mm: (4, 4) rigid transform, base frame -> needle-tip target frame,
+                translation in mm; z axis along the planned path into the head.
+            stamp: capture time of the frame it was measured from (s, the tracker's clock).
+            valid: False when the pose stream has no pose (e.g. fiducials occluded): holds.
+            now: time of arrival (s); default the tracker clock.
+
+        Returns ``CommandResult``: ok=False with the reason when refused (NaN or non-rigid pose,
+        no finite stamp, too old, a stamp in the future, a jump > 20 mm / 10 deg, invalid); a
+        refused target holds the arm (auto-resume or operator restart, see the safety layer)
+        and resets the latency prediction. Never raises."""
         with self._lock:
             now = self.clock() if now is None else now
             try:
@@ -282,8 +324,15 @@ class Tracker:
 
     def set_head_sphere(self, centre_mm: np.ndarray, radius_mm: float, frame: str = "target") -> CommandResult:
         """Head obstacle (e.g. from :func:`~monotracker.robot.head.fit_head_sphere`).
-        ``frame="target"``: centre given in the target (needle tip) frame, so the sphere moves with
-        the head; ``frame="base"``: fixed in the robot base frame. mm."""
+
+        Args:
+            centre_mm: (3,) sphere centre, mm, in ``frame``.
+            radius_mm: sphere radius, mm, > 0.
+            frame: ``"target"``: centre in the needle-tip target frame, so the sphere moves with
+                the head; ``"base"``: fixed in the robot base frame.
+
+        Returns ``CommandResult``; refused (ok=False) for a non-finite centre, a radius <= 0 or
+        an unknown frame (the previous sphere is kept)."""
         c = np.asarray(centre_mm, dtype=float).reshape(-1)
         if c.shape != (3,) or not np.all(np.isfinite(c)) or not (np.isfinite(radius_mm) and radius_mm > 0):
             return CommandResult(False, "head sphere needs a finite centre (3 values, mm) and radius > 0 mm")
@@ -294,6 +343,7 @@ class Tracker:
         return CommandResult(True, "head sphere set")
 
     def clear_head_sphere(self) -> None:
+        """Forget the head obstacle (keep-out and repulsion off; tracking then warns)."""
         with self._lock:
             self._head_local = None
 
@@ -316,7 +366,9 @@ class Tracker:
             log.exception("arm stop failed")
 
     def step(self, now: float | None = None) -> TrackerSnapshot:
-        """One control cycle at time ``now`` (s; default: the tracker clock)."""
+        """One control cycle at time ``now`` (s, the tracker's clock; default: now). Reads the
+        arm, runs controller and safety filter, commands or stops the arm. Returns the
+        :class:`TrackerSnapshot`; never raises (any fault latches the e-stop)."""
         t0 = time.perf_counter()
         with self._lock:
             now = self.clock() if now is None else float(now)
@@ -420,7 +472,10 @@ class Tracker:
 
     # ------------------------------------------------------------------ real-time thread
     def start(self) -> None:
-        """Run :meth:`step` at ``rate_hz`` in a daemon thread (real clock)."""
+        """Run :meth:`step` at ``rate_hz`` in a daemon thread (real clock), paced by the arm's
+        own ``begin_cycle``/``wait_cycle`` (ur_rtde ``initPeriod``/``waitPeriod``) when it has
+        them. For a loop no other work in the process can stall, see
+        :mod:`monotracker.robot.control_process`."""
         if self._thread and self._thread.is_alive():
             return
         self._run.set()
