@@ -70,7 +70,7 @@ def test_fast_rotation_and_capture_gaps_reset():
 
 
 def test_tracker_forgets_the_velocity_on_occlusion_hold_and_rejects():
-    rig = Rig()  # prediction is on by default
+    rig = Rig(predict_target=True)
     assert rig.tracker.predictor is not None
 
     def moving(t):
@@ -103,7 +103,7 @@ def test_tracker_forgets_the_velocity_on_occlusion_hold_and_rejects():
 def _jump_overshoot(predictor=None):
     from monotracker.robot import kinematics as kin
 
-    rig = Rig()
+    rig = Rig(predict_target=True)
     if predictor is not None:
         rig.tracker.predictor = predictor
     T0 = ready_tip_pose()

@@ -1,4 +1,5 @@
-"""Latency compensation for the pose stream (an extension beyond the paper).
+"""Latency compensation for the pose stream (an extension beyond the paper; opt-in,
+``Tracker(predict_target=True)`` / ``SessionConfig(predict_target=True)``).
 
 A target reaches the tracker ``now - stamp`` after its camera frame was captured (transport,
 detection, registration: ~40-80 ms); a head moving at 15 mm/s is ~1 mm away by then. From the

@@ -101,7 +101,8 @@ class Tracker:
         clock: monotonic seconds; capture stamps must be on the same clock.
         on_event: ``(kind, payload)`` callback, ``"transition"`` / ``"warning"``; runs in the
             control thread.
-        predict_target: latency compensation (:mod:`monotracker.robot.prediction`), on by default.
+        predict_target: latency compensation (:mod:`monotracker.robot.prediction`; off by default,
+            see ``docs/robot.md`` for why).
         prediction_horizon_s: the prediction's extrapolation cap (s).
 
     Raises ``ValueError`` for ``rate_hz <= 0`` or an unknown variant."""
@@ -114,7 +115,7 @@ class Tracker:
                  tool: NeedleTool | None = None, corridor: Corridor | None = None,
                  rate_hz: float = 125.0, clock: Callable[[], float] = time.monotonic,
                  on_event: Callable[[str, object], None] | None = None,
-                 predict_target: bool = True, prediction_horizon_s: float = 0.15):
+                 predict_target: bool = False, prediction_horizon_s: float = 0.15):
         if arm is None:
             from monotracker.robot.sim_arm import SimulatedArm
 
@@ -365,6 +366,11 @@ class Tracker:
         except Exception:  # noqa: BLE001 - stopping must never raise
             log.exception("arm stop failed")
 
+    def _stop_decel(self) -> float:
+        """Deceleration (rad/s^2) for the current non-tracking state: the e-stop's, else the
+        joint acceleration limit."""
+        return self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED else self.safety.cfg.joint_accel
+
     def step(self, now: float | None = None) -> TrackerSnapshot:
         """One control cycle at time ``now`` (s, the tracker's clock; default: now). Reads the
         arm, runs controller and safety filter, commands or stops the arm. Returns the
@@ -413,16 +419,14 @@ class Tracker:
                         smin = manipulability(Jb)
                     cmd = self.safety.filter_command(now, q, dq_des, dt, T, Jb, smin, head)
                     if cmd is None:
-                        decel = (self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED
-                                 else self.safety.cfg.joint_accel)
+                        decel = self._stop_decel()
                         self.arm_backend.stop(decel)
                         cmd = np.zeros(6)
                     else:
                         self.arm_backend.command_velocity(cmd, self.safety.cfg.joint_accel)
                         if self.safety.state != State.TRACKING:
                             # latched (e-stop) from another thread while the command was sent
-                            self._stop_arm(self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED
-                                           else self.safety.cfg.joint_accel)
+                            self._stop_arm(self._stop_decel())
             except ArmError as exc:
                 if isinstance(exc, ArmProgramStopped):
                     self._program_fault = exc
