@@ -157,6 +157,7 @@ def test_real_clock_threads_track_and_snapshots_are_safe_from_other_threads(plan
 
     s = Session(SessionConfig(home=_home_with_plan(planned_home, tmp_path), clock="real", trajectory="breathing"))
     errors = []
+    child = None
     try:
         assert s.start().ok
         s.wait_for_job(60)  # the restart reloads the CT surface in the background; let it finish
@@ -200,9 +201,15 @@ def test_real_clock_threads_track_and_snapshots_are_safe_from_other_threads(plan
         time.sleep(0.5)
         snap = s.snapshot()
         assert snap.robot.state == "holding" and "camera_freeze" in [a.code for a in snap.alerts]
+        # the control loop ran in its own process (SessionConfig.control_process, the default)
+        assert snap.robot.control.startswith("control process pid"), snap.robot.control
+        child = s._loop.robot.proc.proc
+        assert child.is_alive() and child.pid != os.getpid()
+        assert s.estop().ok and s.snapshot().robot.state == "estopped"  # latched at once
     finally:
         s.shutdown()
     assert not [t for t in threading.enumerate() if t.name.startswith(("monotracker", "robot-tracker"))]
+    assert child is not None and not child.is_alive()  # shutdown ends the control process
 
 
 def test_restart_reloads_the_ct_for_the_views_and_keeps_the_confirmed_fiducials(planned_home, tmp_path):

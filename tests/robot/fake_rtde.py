@@ -6,7 +6,16 @@ Modelled from ur_rtde 1.6's source: ``speedStop`` is *not* one of the streaming 
 ``sendCommand`` blocks until the script's ``stopj`` has brought the arm to rest (``max|qd| / a``
 seconds) without writing the watchdog register meanwhile; the script's
 ``rtde_set_watchdog(..., "stop")`` then stops the program if that exceeds ``1 / min_frequency``,
-after which every command is refused (returns False). ``blocked_s`` records each blocking time."""
+after which every command is refused (returns False). ``blocked_s`` records each blocking time.
+
+Script stopped with the link up (ur_rtde 1.6 behaviour as described in its docs and issue 15):
+``stop_script(cause)`` stops the program as the RTDE watchdog (``"watchdog"``), Stop on the pendant
+(``"pendant"``), Pause (``"paused"``) or a protective stop (``"protective_stop"``) would; then
+``isProgramRunning()`` is False, every command returns False, ``isConnected()`` stays True,
+``setWatchdog`` returns False (the "could not enable the RTDE watchdog" trap), and only
+``reuploadScript()`` brings the program back (refused while a protective stop is active).
+The receive side reports ``getSafetyMode`` (1 normal, 3 protective stop) and ``getRuntimeState``
+(1 stopped, 2 playing, 4 paused). ``initPeriod``/``waitPeriod`` are recorded (no sleeping)."""
 
 import numpy as np
 
@@ -26,6 +35,17 @@ class FakeUR:
         self.watchdog_hz = None
         self.program_running = True
         self.blocked_s = []
+        self.runtime_state = 2  # playing
+        self.emergency_stop = False
+        self.freq = {}
+
+    def stop_script(self, cause="pendant"):
+        """The control script stops; the link stays up."""
+        self.program_running = False
+        self.dq = np.zeros(6)  # the robot brings itself to rest
+        self.runtime_state = 4 if cause == "paused" else 1
+        if cause == "protective_stop":
+            self.protective_stop = True
 
     def drop(self):
         self.connected = False
@@ -33,11 +53,15 @@ class FakeUR:
     def control(self, host, freq):
         if not self.answer:
             raise RuntimeError("One of the RTDE input registers is already in use! / timeout")
+        self.freq["control"] = freq
+        self.program_running = True  # the constructor uploads the script
+        self.runtime_state = 2
         return FakeControl(self)
 
     def receive(self, host, freq):
         if not self.answer:
             raise RuntimeError("Connection refused")
+        self.freq["receive"] = freq
         return FakeReceive(self)
 
     def names(self):
@@ -64,8 +88,28 @@ class _Base:
 class FakeControl(_Base):
     def setWatchdog(self, min_frequency=10.0):
         self.ur.calls.append(("setWatchdog", min_frequency))
+        if not self.ur.program_running:
+            return False
         self.ur.watchdog_hz = min_frequency
         return True
+
+    def isProgramRunning(self):
+        return self.ur.program_running
+
+    def reuploadScript(self):
+        self.ur.calls.append(("reuploadScript",))
+        if not self.ur.connected or self.ur.protective_stop or self.ur.emergency_stop:
+            return False
+        self.ur.program_running = True
+        self.ur.runtime_state = 2
+        return True
+
+    def initPeriod(self):
+        self.ur.calls.append(("initPeriod",))
+        return len(self.ur.calls)
+
+    def waitPeriod(self, t_start):
+        self.ur.calls.append(("waitPeriod", t_start))
 
     def kickWatchdog(self):
         if self.ur.fail_kick:
@@ -114,4 +158,10 @@ class FakeReceive(_Base):
         return self.ur.protective_stop
 
     def isEmergencyStopped(self):
-        return False
+        return self.ur.emergency_stop
+
+    def getSafetyMode(self):
+        return 7 if self.ur.emergency_stop else (3 if self.ur.protective_stop else 1)
+
+    def getRuntimeState(self):
+        return self.ur.runtime_state

@@ -60,7 +60,10 @@ class RobotStatus:
     """``state`` disarmed|armed|tracking|holding|estopped; ``q`` (6,) rad; ``qd`` (6,) rad/s;
     ``T_base_tip`` needle tip pose (4x4, mm, +z along the needle); ``speed_mm_s`` tip speed;
     ``command_stamp`` capture stamp of the target used by the last command and ``t_command``
-    when it was sent (session clock s)."""
+    when it was sent (session clock s); ``program_fault``: link up but the arm's control
+    program stopped (a UR's script: ``"watchdog" | "pendant" | "paused" | "protective_stop" |
+    "emergency_stop" | "safeguard_stop" | "not_running"``; "" while it runs), the operator's
+    reset restarts it; ``control``: where the control loop runs and with which priority."""
 
     state: str
     connected: bool
@@ -71,6 +74,8 @@ class RobotStatus:
     speed_mm_s: float = 0.0
     command_stamp: float | None = None
     t_command: float | None = None
+    program_fault: str = ""
+    control: str = ""
 
 
 class CameraRig:
@@ -103,6 +108,15 @@ class CameraRig:
 
     def poll_frames(self) -> list[float]:
         return []
+
+    def poll_frame_info(self) -> list[tuple[float, int | None]]:
+        """New frames since the last poll as ``(t_capture, content digest or None)``; the digest
+        lets the engine see a frozen camera repeating a frame bit for bit."""
+        return [(t, None) for t in self.poll_frames()]
+
+    def frame_digest(self, frame) -> int | None:
+        """Checksum of a frame's content (None: this rig cannot tell)."""
+        return None
 
     def latest_sample(self) -> PoseSample | None:
         return None

@@ -44,10 +44,17 @@ class SessionConfig:
     ``"crop:X,Y,W,H"``); without it a frame whose size differs from the calibration is refused.
     ``controller``: the APFF variant (``"APF-V" | "APF-A-I" | "APF-A-II"``, paper section 2.3).
     ``predict_target``: the robot tracker's latency compensation (target velocity estimated from
-    the pose stream, extrapolated over the measured latency; not in the paper). Off by default:
-    on the twin it helps a breathing head a little and hurts drift and jumps a little (the tip error
-    is dominated by registration noise, which extrapolation amplifies); ``benchmarks/closed_loop.py``
-    measures both.
+    the stamped pose stream, extrapolated over the measured latency, with its own bounds: capped
+    horizon, speed and offset, reset on jumps, gaps, occlusion and holds; ``robot/prediction.py``;
+    not in the paper). Off by default: it cuts the tip error on a head moving at 15 mm/s 3x and
+    is safe under jumps and occlusion, but its velocity feed-forward (noisy on the rendered twin)
+    has the arm moving faster when a fault hits, and the camera-freeze standstill then takes
+    0.10-0.14 s instead of 0.09 s (goal 0.1 s); ``benchmarks/robot_control.py`` and
+    ``benchmarks/closed_loop.py`` measure both.
+    ``control_process`` (True): with clock="real", the robot's control loop (tracker, safety, arm)
+    runs in its own process at real-time priority where the OS allows, so vision, UI and logging
+    cannot delay it (``robot/control_process.py``); False: a thread in the engine process.
+    clock="sim" always steps it in-process (deterministic).
     """
 
     home: Path | None = None
@@ -70,6 +77,7 @@ class SessionConfig:
     predict_target: bool = False
     max_predicted_tre_mm: float = 1.0
     camera_adapt: str = ""
+    control_process: bool = True
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:

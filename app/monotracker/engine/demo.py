@@ -79,7 +79,8 @@ def _stats(x) -> dict | None:
     a = np.asarray(x, float)
     if a.size == 0:
         return None
-    return {"mean": float(a.mean()), "p95": float(np.percentile(a, 95)), "max": float(a.max()), "n": int(a.size)}
+    return {"mean": float(a.mean()), "rms": float(np.sqrt(np.mean(a ** 2))), "p95": float(np.percentile(a, 95)),
+            "max": float(a.max()), "n": int(a.size)}
 
 
 class _Recorder:
@@ -149,9 +150,10 @@ def run_demo(opts: DemoOptions, camera_factory=None, robot_factory=None, on_trac
     if home is None:
         tmp = tempfile.TemporaryDirectory(prefix="monotracker-demo-")
         home = Path(tmp.name)
-    cfg = SessionConfig(home=Path(home), camera="sim", trajectory=opts.trajectory, robot="sim", arm_pin=opts.pin,
-                        clock="sim", camera_fps=opts.camera_fps, control_hz=opts.control_hz, seed=opts.seed,
-                        **opts.config_overrides)
+    kw = dict(home=Path(home), camera="sim", trajectory=opts.trajectory, robot="sim", arm_pin=opts.pin,
+              clock="sim", camera_fps=opts.camera_fps, control_hz=opts.control_hz, seed=opts.seed)
+    kw.update(opts.config_overrides)  # e.g. camera="sim-points", or the benchmark's "no gate" baseline
+    cfg = SessionConfig(**kw)
     s = Session(cfg, camera_factory=camera_factory, robot_factory=robot_factory)
     try:
         return _run(s, opts, wall0, cpu0, on_tracking)

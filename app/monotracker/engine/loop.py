@@ -86,6 +86,8 @@ class TrackingLoop:
         self._last_trusted: components.PoseSample | None = None
         self._last_frame_t: float | None = None  # capture time of the newest frame seen
         self._last_frame_seen_at: float | None = None  # session time it arrived
+        self._last_digest = None  # content checksum of the newest frame (None: the rig gives none)
+        self._repeat_frames = 0  # bit-identical repeats since the last new frame (a frozen camera)
         self._frames = 0
         self._frame_times: deque[float] = deque(maxlen=90)
         self._holding_reason: str | None = None  # why the loop currently holds (None = not holding)
@@ -308,6 +310,7 @@ class TrackingLoop:
             self._rig_fiducials = plan.fiducial_centres().copy()  # the set this rig registers against
             self.camera_error = None
             self._last_frame_seen_at = self.now()
+            self._last_digest, self._repeat_frames = None, 0
             self._next_frame_t = self.now()
             self.gate.reset()
             anchor = plan.entry_lps_mm if plan.entry_lps_mm is not None else plan.fiducial_centres().mean(axis=0)
@@ -500,7 +503,10 @@ class TrackingLoop:
         # a rig that watches its own camera (StreamRig) reports freezes as estimates with a code
         if rig is not None and rig.running and not getattr(rig, "watches_itself", False):
             seen = self._last_frame_seen_at
-            if seen is not None and now - seen > self.cfg.freeze_after_s:
+            if self._repeat_frames:
+                self._hold("camera_freeze", f"camera frozen: {self._repeat_frames} frame(s) repeated bit for bit "
+                                            f"(last new frame {1000 * (now - seen):.0f} ms ago)")
+            elif seen is not None and now - seen > self.cfg.freeze_after_s:
                 self._hold("camera_freeze", f"camera frozen: no new frame for {1000 * (now - seen):.0f} ms")
         rec = self._latest
         if rec is not None and rec.trusted and self._holding_reason is None:
@@ -509,12 +515,21 @@ class TrackingLoop:
                 self._hold("pose_stale", f"freshest trusted pose is {1000 * age:.0f} ms old")
         self._refresh_robot_state()
 
-    def note_frame(self, t_capture: float, now: float) -> bool:
+    def note_frame(self, t_capture: float, now: float, digest=None) -> bool:
         """A frame with capture time ``t_capture`` arrived; True if it is new. Only new frames
-        refresh the freeze watchdog (a frozen camera repeats its last frame)."""
+        refresh the freeze watchdog (a frozen camera repeats its last frame). ``digest``: a
+        checksum of the content; equal to the previous frame's, the frame is a bit-identical
+        repeat (a frozen camera; sensor noise never repeats a frame) and the freeze alarm holds
+        the arm at the next watchdog tick, without waiting ``freeze_after_s``."""
         with self._lock:
             if self._last_frame_t is not None and t_capture <= self._last_frame_t:
                 return False
+            if digest is not None and digest == self._last_digest:
+                self._last_frame_t = t_capture
+                self._repeat_frames += 1
+                return False
+            self._last_digest = digest
+            self._repeat_frames = 0
             self._last_frame_t = t_capture
             self._last_frame_seen_at = now
             self.s._alarm_board.clear("camera_freeze", now)
@@ -547,7 +562,7 @@ class TrackingLoop:
                 if t + rig.transport_delay_s >= self._busy_until - 1e-12:
                     frame = rig.capture(t)
                     # A frozen camera hands back the same frame: nothing new to estimate.
-                    if frame is not None and self.note_frame(frame.t_capture, t):
+                    if frame is not None and self.note_frame(frame.t_capture, t, rig.frame_digest(frame)):
                         # compute time of detection + registration: this thread's CPU time, so
                         # the model does not depend on what else the machine runs meanwhile
                         w0 = time.thread_time()
@@ -587,8 +602,8 @@ class TrackingLoop:
             try:
                 rig = self.rig
                 if rig is not None and rig.running:
-                    for frame_t in rig.poll_frames():
-                        self.note_frame(frame_t, now)
+                    for frame_t, digest in rig.poll_frame_info():
+                        self.note_frame(frame_t, now, digest)
                     sample = rig.latest_sample()
                     if sample is not None and sample is not last_seen:
                         last_seen = sample
@@ -678,7 +693,8 @@ class TrackingLoop:
             if T_tip is not None and T_base_ct is not None and plan.path_complete:
                 tip_err, ang_err = tip_and_axis_error(T_tip, T_base_ct, plan.entry_lps_mm, plan.target_lps_mm)
             robot = RobotSummary(st.state, frozen_array(q), tip_err, ang_err, float(speed), st.connected,
-                                 self._holding_reason or st.message, lat)
+                                 st.message if st.program_fault else (self._holding_reason or st.message), lat,
+                                 program_fault=st.program_fault, control=st.control)
         else:
             robot = RobotSummary("disarmed", None, None, None, 0.0, False, "robot not connected yet", None)
         scene = SceneGeometry(frozen_array(plan.T_base_cam), frozen_array(T_cam_ct), frozen_array(T_base_ct),

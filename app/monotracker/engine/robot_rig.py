@@ -72,7 +72,8 @@ class TrackerRobotRig(RobotRig):
                 from monotracker.robot.ur_rtde_arm import URRTDEArm
             except ImportError as exc:
                 raise MonoTrackerError(f"the ur_rtde backend is not available: {exc}") from exc
-            arm = URRTDEArm(ip)
+            # control_hz: 125 for a CB3, 500 for an e-Series (RTDE frequency and speedJ time)
+            arm = URRTDEArm(ip, rate_hz=cfg.control_hz)
         self.tracker = Tracker(arm, variant=cfg.controller, clock=self.clock, rate_hz=cfg.control_hz,
                                on_event=self._on_event, predict_target=cfg.predict_target)
         r = self.tracker.connect()
@@ -206,15 +207,24 @@ class TrackerRobotRig(RobotRig):
         if T_tip is not None and (self._prev_t is None or t_state > self._prev_t):
             self._prev_tip, self._prev_t = T_tip, t_state
         msg = snap.last_transition.reason if snap.last_transition is not None else ""
+        if snap.program_fault and snap.state == "estopped":
+            msg = snap.program_fault_reason
         safety = self.tracker.safety
         stamp = safety.target_stamp if np.isfinite(safety.target_stamp) else None
         # the state machine's live state (the snapshot is from the last control step)
         st = RobotStatus(state=self.tracker.state.value, connected=bool(self.tracker.arm_backend.is_connected()),
                          message=msg, q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=self._speed, command_stamp=stamp,
-                         t_command=snap.t)
+                         t_command=snap.t, program_fault=snap.program_fault,
+                         control="in-process thread" if self.tracker._thread is not None else "in-process, stepped")
         self._status_cache = (now, st)
         return st
 
 
 def make_tracker_rig(cfg, session) -> RobotRig:
+    """clock="real" with ``control_process`` on: the control loop in its own process
+    (``engine/robot_process_rig.py``); otherwise (and always for clock="sim") in-process."""
+    if getattr(cfg, "clock", "sim") == "real" and getattr(cfg, "control_process", False):
+        from monotracker.engine.robot_process_rig import ProcessRobotRig
+
+        return ProcessRobotRig(cfg, session)
     return TrackerRobotRig(cfg, session)

@@ -149,6 +149,12 @@ class RobotSummary:
     connected: bool
     message: str
     latency_ms: float | None = None  # frame capture -> robot command, last command
+    #: link up but the arm's control program stopped ("watchdog" | "pendant" | "paused" |
+    #: "protective_stop" | "emergency_stop" | "safeguard_stop" | "not_running"; "" while it
+    #: runs); ``message`` says why; the operator's e-stop reset restarts it
+    program_fault: str = ""
+    #: where the control loop runs ("in-process thread" | "process pid N, SCHED_FIFO 10" ...)
+    control: str = ""
 
 
 @dataclass(frozen=True)

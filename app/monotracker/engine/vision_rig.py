@@ -77,8 +77,36 @@ class _SimRig(CameraRig):
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._new_frame_times: list[float] = []
+        self._new_frame_info: list[tuple[float, int | None]] = []  # (t_capture, content digest)
         self._published: PoseSample | None = None
         self.last_error: str | None = None  # newest frame failure (camera thread), for diagnosis
+
+    def _frozen_frame(self, t: float):
+        """camera-freeze as a real frozen camera shows it: the driver keeps delivering at the frame
+        rate, newly stamped, but the content is the last frame, bit for bit (sensor noise never
+        repeats a frame exactly)."""
+        import dataclasses
+
+        self._index += 1
+        return dataclasses.replace(self._last_frame, t_capture=float(t), index=self._index)
+
+    def frame_digest(self, frame) -> int | None:
+        """A checksum of the frame's content (CRC-32 of the image, or of the image points): equal
+        for consecutive frames only when the camera repeats a frame bit for bit."""
+        import zlib
+
+        if isinstance(frame, _ImageFrame):
+            return zlib.crc32(np.ascontiguousarray(frame.image).data)
+        if isinstance(frame, SimFrame):
+            return zlib.crc32(np.ascontiguousarray(frame.points_px).tobytes()
+                              + np.ascontiguousarray(frame.point_ids).tobytes())
+        return None
+
+    def poll_frame_info(self) -> list[tuple[float, int | None]]:
+        with self._lock:
+            out, self._new_frame_info = self._new_frame_info, []
+            self._new_frame_times = []
+        return out
 
     # truth
     def truth_T_cam_ct(self, t: float) -> np.ndarray:
@@ -118,7 +146,7 @@ class _SimRig(CameraRig):
     def _run(self) -> None:
         period = 1.0 / self.fps
         t_next = self.clock()
-        last_t = None
+        last_t = last_digest = None
         while not self._stop.is_set():
             now = self.clock()
             if now < t_next:
@@ -130,8 +158,13 @@ class _SimRig(CameraRig):
                 if frame.t_capture == last_t:
                     continue  # frozen: nothing new
                 last_t = frame.t_capture
+                digest = self.frame_digest(frame)
                 with self._lock:
                     self._new_frame_times.append(frame.t_capture)
+                    self._new_frame_info.append((frame.t_capture, digest))
+                if digest is not None and digest == last_digest:
+                    continue  # a bit-identical repeat: never estimated (a stale pose, newly stamped)
+                last_digest = digest
                 smp = self.estimate(frame)
             except Exception as exc:  # noqa: BLE001 - the camera thread must outlive a bad frame
                 # No frame is published, so the engine's freeze watchdog holds the arm; the
@@ -183,7 +216,7 @@ class SimImageRig(_SimRig):
         import cv2
 
         if self.fault == "camera-freeze" and self._last_frame is not None:
-            return self._last_frame
+            return self._frozen_frame(t)
         img, truth = self.cam.render(t)
         centres = np.asarray(truth.ellipse_centres_px, float)
         radii = np.asarray(truth.radius_px, float)
@@ -263,7 +296,7 @@ class ProjectedFiducialRig(_SimRig):
         from monotracker.sim.scenes import ellipse_centre_normalised
 
         if self.fault == "camera-freeze" and self._last_frame is not None:
-            return self._last_frame
+            return self._frozen_frame(t)
         T = self.truth_T_cam_ct(t)
         Xc = apply_transform(T, self.true_fiducials_ct)
         ids = np.arange(len(Xc))

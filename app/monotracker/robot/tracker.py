@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -35,52 +36,14 @@ import numpy as np
 
 from monotracker.geometry import apply_transform
 from monotracker.robot.apff import APFFController, APFFParams
-from monotracker.robot.arm import Arm, ArmError
+from monotracker.robot.arm import Arm, ArmError, ArmProgramStopped
 from monotracker.robot.head import Corridor, HeadSphere
 from monotracker.robot.kinematics import Kinematics, NeedleTool, manipulability
+from monotracker.robot.prediction import TargetPredictor  # noqa: F401  (re-exported: its old home)
 from monotracker.robot.safety import SafetyConfig, SafetyLayer, State, Transition
 from monotracker.robot.units import m_to_mm, mm_to_m, transform_m_to_mm, transform_mm_to_m
 
 log = logging.getLogger(__name__)
-
-
-class TargetPredictor:
-    """Latency compensation (an extension beyond the paper; off by default).
-
-    The pose stream's targets are ``latency`` old when they arrive (capture stamp). From the
-    last two accepted targets the target's body twist is estimated (finite difference over
-    their capture stamps, then low-passed), and the controller gets the target extrapolated to
-    now, ``T @ exp(V (now - stamp))`` (at most ``horizon_s`` ahead), plus that twist as a
-    velocity feed-forward. Reset whenever a target is rejected."""
-
-    def __init__(self, horizon_s: float = 0.25, alpha: float = 0.5):
-        self.horizon_s = horizon_s
-        self.alpha = alpha
-        self.reset()
-
-    def reset(self) -> None:
-        self._last: tuple[np.ndarray, float] | None = None
-        self.V = np.zeros(6)
-
-    def update(self, T: np.ndarray, stamp: float) -> None:
-        from monotracker.robot.lie import log6, relative
-
-        if self._last is not None:
-            T0, s0 = self._last
-            dt = stamp - s0
-            if 1e-3 < dt < 0.5:
-                self.V = (1 - self.alpha) * self.V + self.alpha * log6(relative(T0, T)) / dt
-            elif dt >= 0.5:
-                self.V = np.zeros(6)
-        self._last = (T.copy(), stamp)
-
-    def predict(self, T: np.ndarray, now: float) -> tuple[np.ndarray, np.ndarray]:
-        from monotracker.robot.lie import exp6
-
-        if self._last is None:
-            return T, np.zeros(6)
-        h = float(np.clip(now - self._last[1], 0.0, self.horizon_s))
-        return T @ exp6(self.V * h), self.V.copy()
 
 
 @dataclass(frozen=True)
@@ -115,15 +78,44 @@ class TrackerSnapshot:
     overruns: int = 0
     #: a head sphere is known: the keep-out (and APF repulsion) can act this cycle
     keepout_active: bool = False
+    #: link up but the arm's control program stopped (a UR's ur_rtde script): the cause
+    #: (``"watchdog" | "pendant" | "paused" | "protective_stop" | "emergency_stop" |
+    #: "safeguard_stop" | "not_running"``), "" while it runs; the operator's reset restarts it
+    program_fault: str = ""
+    #: one line saying why and what to do ("" while it runs)
+    program_fault_reason: str = ""
 
 
 class Tracker:
+    """APFF controller + safety layer + arm backend (see the module docstring).
+
+    Args:
+        arm: the arm backend (:class:`~monotracker.robot.arm.Arm`); default a
+            :class:`~monotracker.robot.sim_arm.SimulatedArm` on ``clock`` at ``rate_hz``.
+        variant: ``"APF-V" | "APF-A-I" | "APF-A-II"`` (paper section 2.3).
+        params: controller gains (:class:`APFFParams`, paper Eq. 32 defaults).
+        safety_config: limits and timeouts (:class:`SafetyConfig`).
+        tool: the needle (tip on tool0's z axis; default 0.20 m).
+        corridor: the planned-path tube where head repulsion and keep-out are off.
+        rate_hz: control rate (Hz; 125 for a UR CB3, 500 for an e-Series), > 0.
+        clock: monotonic seconds; capture stamps must be on the same clock.
+        on_event: ``(kind, payload)`` callback, ``"transition"`` / ``"warning"``; runs in the
+            control thread.
+        predict_target: latency compensation (:mod:`monotracker.robot.prediction`; off by default,
+            see ``docs/robot.md`` for why).
+        prediction_horizon_s: the prediction's extrapolation cap (s).
+
+    Raises ``ValueError`` for ``rate_hz <= 0`` or an unknown variant."""
+
+    #: how many cycle start times the real-time loop keeps (:attr:`cycle_starts`)
+    CYCLE_LOG = 20000
+
     def __init__(self, arm: Arm | None = None, variant: str = "APF-A-II",
                  params: APFFParams | None = None, safety_config: SafetyConfig | None = None,
                  tool: NeedleTool | None = None, corridor: Corridor | None = None,
                  rate_hz: float = 125.0, clock: Callable[[], float] = time.monotonic,
                  on_event: Callable[[str, object], None] | None = None,
-                 predict_target: bool = False, prediction_horizon_s: float = 0.25):
+                 predict_target: bool = False, prediction_horizon_s: float = 0.15):
         if arm is None:
             from monotracker.robot.sim_arm import SimulatedArm
 
@@ -148,10 +140,13 @@ class Tracker:
         self._n_warn = 0
         self._snap: TrackerSnapshot | None = None
         self._controller_reset_due = False
+        self._program_fault: ArmProgramStopped | None = None
         #: real-time thread: cycles that ended after the next deadline, and the slowest cycle (ms)
         self.overruns = 0
         self.worst_cycle_ms = 0.0
         self.predictor = TargetPredictor(prediction_horizon_s) if predict_target else None
+        #: real-time thread: start time (clock s) of the latest cycles (period jitter; benchmarks)
+        self.cycle_starts: deque = deque(maxlen=self.CYCLE_LOG)
 
     # ------------------------------------------------------------------ events
     def _on_transition(self, tr: Transition) -> None:
@@ -185,7 +180,9 @@ class Tracker:
 
     # ------------------------------------------------------------------ connection / operator
     def connect(self) -> CommandResult:
-        """Open (or re-open) the arm connection. Never resumes motion: if the link is down
+        """Open (or re-open) the arm connection. Returns ``CommandResult``; refused (ok=False,
+        one line) when the arm does not answer or its control program is stopped (then only
+        :meth:`reset` restarts it). Never resumes motion: if the link is down
         while armed/tracking/holding (a drop the control loop may not have seen yet), the e-stop
         latches first; if it is up, there is nothing to do."""
         with self._lock:
@@ -205,7 +202,8 @@ class Tracker:
         return CommandResult(True, "connected")
 
     def disconnect(self) -> None:
-        """Stop the loop thread (if running), stop the arm and close the connection."""
+        """Stop the loop thread (if running), disarm, stop the arm and close the connection.
+        Never raises; an e-stop stays latched."""
         self.stop()
         with self._lock:
             if self.safety.state not in (State.DISARMED, State.ESTOPPED):
@@ -213,15 +211,22 @@ class Tracker:
             self.arm_backend.disconnect()
 
     def arm(self) -> CommandResult:
+        """Operator action: disarmed -> armed (the arm holds still, commands stay zero).
+        Refused (ok=False, reason) when not disarmed (e.g. e-stopped: reset first) or the arm
+        is not connected."""
         with self._lock:
             return CommandResult(*self.safety.arm(self.clock(), self.arm_backend.is_connected()))
 
     def disarm(self) -> CommandResult:
+        """Operator action: armed/tracking/holding -> disarmed (the arm decelerates to rest).
+        Refused when e-stopped (reset leaves the e-stop) or already disarmed."""
         with self._lock:
             return CommandResult(*self.safety.disarm(self.clock()))
 
     def start_tracking(self) -> CommandResult:
-        """Operator action. Tracking without a head sphere is allowed (the sphere may be
+        """Operator action: armed/holding -> tracking. Refused (ok=False, reason) when not armed
+        or holding, or without a fresh valid target (capture stamp within the safety layer's
+        freshness limits). Tracking without a head sphere is allowed (the sphere may be
         unknown, e.g. too few fiducials for the fit) but warned about: then neither the keep-out
         nor the APF repulsion can act."""
         with self._lock:
@@ -234,6 +239,8 @@ class Tracker:
             return res
 
     def stop_tracking(self) -> CommandResult:
+        """Operator action: tracking/holding -> armed (the arm decelerates to rest and stays
+        there; tracking never resumes by itself after this). Refused when not tracking/holding."""
         with self._lock:
             return CommandResult(*self.safety.stop_tracking(self.clock()))
 
@@ -242,7 +249,8 @@ class Tracker:
     ESTOP_LOCK_WAIT_S = 0.05
 
     def estop(self, reason: str = "operator e-stop") -> CommandResult:
-        """Latched stop, effective immediately: the state latches at once (without waiting for
+        """Latched stop, effective immediately (``reason``: one line for the log and the UI;
+        always returns ok=True): the state latches at once (without waiting for
         the control loop), then the arm is told to stop. If a control cycle is stuck in an arm
         call, the stop is left to that cycle (it re-checks the state after sending a command)
         and, should the call never return, to the arm's own watchdog. Never blocks for long."""
@@ -258,15 +266,43 @@ class Tracker:
         return CommandResult(True, "e-stopped")
 
     def reset(self) -> CommandResult:
+        """Operator action: leave the e-stop (to disarmed; arming again is another action).
+        If the arm's control program has stopped (a UR's script: watchdog, pendant stop,
+        protective stop), this is the one place it is restarted (:meth:`Arm.recover`, e.g.
+        ``reuploadScript``); never while armed, never by itself. Refused with a one-line reason
+        when the restart fails (e.g. a protective stop not yet cleared on the pendant)."""
         with self._lock:
+            if self.safety.state != State.ESTOPPED:
+                return CommandResult(*self.safety.reset(self.clock()))
+            try:
+                fault = self.arm_backend.program_fault()
+                if fault is not None:
+                    self.arm_backend.recover()
+                    log.info("arm control program restarted on reset (was: %s)", fault)
+            except ArmError as exc:
+                return CommandResult(False, f"reset refused: {exc}")
+            except Exception as exc:  # noqa: BLE001 - never a traceback to the operator
+                log.exception("arm recovery failed")
+                return CommandResult(False, f"reset refused: arm recovery failed ({type(exc).__name__}: {exc})")
+            self._program_fault = None
             return CommandResult(*self.safety.reset(self.clock()))
 
     # ------------------------------------------------------------------ inputs
     def set_target(self, T_base_target_mm: np.ndarray, stamp: float, valid: bool = True,
                    now: float | None = None) -> CommandResult:
-        """New desired needle-tip pose (4x4, mm, base frame) measured from a camera frame
-        captured at ``stamp`` (monotonic s). ``valid=False`` tells the tracker the pose stream has
-        no pose (e.g. fiducials occluded). ``now`` defaults to the tracker clock."""
+        """New desired needle-tip pose from one camera frame.
+
+        Args:
+            T_base_target_mm: (4, 4) rigid transform, base frame -> needle-tip target frame,
+                translation in mm; z axis along the planned path into the head.
+            stamp: capture time of the frame it was measured from (s, the tracker's clock).
+            valid: False when the pose stream has no pose (e.g. fiducials occluded): holds.
+            now: time of arrival (s); default the tracker clock.
+
+        Returns ``CommandResult``: ok=False with the reason when refused (NaN or non-rigid pose,
+        no finite stamp, too old, a stamp in the future, a jump > 20 mm / 10 deg, invalid); a
+        refused target holds the arm (auto-resume or operator restart, see the safety layer)
+        and resets the latency prediction. Never raises."""
         with self._lock:
             now = self.clock() if now is None else now
             try:
@@ -289,8 +325,15 @@ class Tracker:
 
     def set_head_sphere(self, centre_mm: np.ndarray, radius_mm: float, frame: str = "target") -> CommandResult:
         """Head obstacle (e.g. from :func:`~monotracker.robot.head.fit_head_sphere`).
-        ``frame="target"``: centre given in the target (needle tip) frame, so the sphere moves with
-        the head; ``frame="base"``: fixed in the robot base frame. mm."""
+
+        Args:
+            centre_mm: (3,) sphere centre, mm, in ``frame``.
+            radius_mm: sphere radius, mm, > 0.
+            frame: ``"target"``: centre in the needle-tip target frame, so the sphere moves with
+                the head; ``"base"``: fixed in the robot base frame.
+
+        Returns ``CommandResult``; refused (ok=False) for a non-finite centre, a radius <= 0 or
+        an unknown frame (the previous sphere is kept)."""
         c = np.asarray(centre_mm, dtype=float).reshape(-1)
         if c.shape != (3,) or not np.all(np.isfinite(c)) or not (np.isfinite(radius_mm) and radius_mm > 0):
             return CommandResult(False, "head sphere needs a finite centre (3 values, mm) and radius > 0 mm")
@@ -301,6 +344,7 @@ class Tracker:
         return CommandResult(True, "head sphere set")
 
     def clear_head_sphere(self) -> None:
+        """Forget the head obstacle (keep-out and repulsion off; tracking then warns)."""
         with self._lock:
             self._head_local = None
 
@@ -322,8 +366,15 @@ class Tracker:
         except Exception:  # noqa: BLE001 - stopping must never raise
             log.exception("arm stop failed")
 
+    def _stop_decel(self) -> float:
+        """Deceleration (rad/s^2) for the current non-tracking state: the e-stop's, else the
+        joint acceleration limit."""
+        return self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED else self.safety.cfg.joint_accel
+
     def step(self, now: float | None = None) -> TrackerSnapshot:
-        """One control cycle at time ``now`` (s; default: the tracker clock)."""
+        """One control cycle at time ``now`` (s, the tracker's clock; default: now). Reads the
+        arm, runs controller and safety filter, commands or stops the arm. Returns the
+        :class:`TrackerSnapshot`; never raises (any fault latches the e-stop)."""
         t0 = time.perf_counter()
         with self._lock:
             now = self.clock() if now is None else float(now)
@@ -345,6 +396,7 @@ class Tracker:
                         self._stop_arm(self.safety.cfg.estop_decel)
                 else:
                     st = self.arm_backend.read()
+                    self._program_fault = None
                     q, dq = st.q, st.dq
                     if not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
                         raise ArmError("arm reported non-finite joint state")
@@ -354,6 +406,8 @@ class Tracker:
                         self._controller_reset_due = False
                         self.controller.reset()
                     self.controller.head = head
+                    if self.predictor is not None and self.safety.state != State.TRACKING:
+                        self.predictor.reset()  # holding/armed/...: no velocity survives a stop
                     if self.safety.state == State.TRACKING and self.safety.target is not None:
                         T_goal, V_goal = self.safety.target, None
                         if self.predictor is not None:
@@ -365,17 +419,17 @@ class Tracker:
                         smin = manipulability(Jb)
                     cmd = self.safety.filter_command(now, q, dq_des, dt, T, Jb, smin, head)
                     if cmd is None:
-                        decel = (self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED
-                                 else self.safety.cfg.joint_accel)
+                        decel = self._stop_decel()
                         self.arm_backend.stop(decel)
                         cmd = np.zeros(6)
                     else:
                         self.arm_backend.command_velocity(cmd, self.safety.cfg.joint_accel)
                         if self.safety.state != State.TRACKING:
                             # latched (e-stop) from another thread while the command was sent
-                            self._stop_arm(self.safety.cfg.estop_decel if self.safety.state == State.ESTOPPED
-                                           else self.safety.cfg.joint_accel)
+                            self._stop_arm(self._stop_decel())
             except ArmError as exc:
+                if isinstance(exc, ArmProgramStopped):
+                    self._program_fault = exc
                 self.safety.estop(now, f"arm error: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
                 try:  # the error may have been the link dropping: report it in the snapshot
@@ -411,6 +465,8 @@ class Tracker:
             stage=stage, sigma_min=smin, last_transition=hist[-1] if hist else None,
             warnings=tuple(self.safety.warnings[-5:]), step_cost_ms=cost_ms, overruns=self.overruns,
             keepout_active=head is not None,
+            program_fault="" if self._program_fault is None else self._program_fault.cause,
+            program_fault_reason="" if self._program_fault is None else str(self._program_fault),
         )
 
     def snapshot(self) -> TrackerSnapshot | None:
@@ -420,7 +476,10 @@ class Tracker:
 
     # ------------------------------------------------------------------ real-time thread
     def start(self) -> None:
-        """Run :meth:`step` at ``rate_hz`` in a daemon thread (real clock)."""
+        """Run :meth:`step` at ``rate_hz`` in a daemon thread (real clock), paced by the arm's
+        own ``begin_cycle``/``wait_cycle`` (ur_rtde ``initPeriod``/``waitPeriod``) when it has
+        them. For a loop no other work in the process can stall, see
+        :mod:`monotracker.robot.control_process`."""
         if self._thread and self._thread.is_alive():
             return
         self._run.set()
@@ -444,6 +503,8 @@ class Tracker:
         nxt = self.clock()
         while self._run.is_set():
             t_start = self.clock()
+            self.cycle_starts.append(t_start)
+            token = self._begin_cycle()
             try:
                 self.step()
             except Exception as exc:  # noqa: BLE001 - step() catches loop errors; this is the last guard
@@ -459,8 +520,21 @@ class Tracker:
                 self._report_overrun(-delay)
             if delay < -self.period:  # overrun: re-phase rather than bursting
                 nxt = self.clock()
-            elif delay > 0:
+            elif delay > 0 and not self._wait_cycle(token):
                 time.sleep(delay)
+
+    def _begin_cycle(self):
+        try:
+            return self.arm_backend.begin_cycle()
+        except Exception:  # noqa: BLE001 - pacing falls back to our own sleep
+            return None
+
+    def _wait_cycle(self, token) -> bool:
+        """The backend's own pacing (ur_rtde ``waitPeriod``) when it has one; False: sleep here."""
+        try:
+            return bool(self.arm_backend.wait_cycle(token))
+        except Exception:  # noqa: BLE001
+            return False
 
     def stop(self) -> None:
         """Stop the thread; the arm is left stopped (tracking ends, the state machine keeps

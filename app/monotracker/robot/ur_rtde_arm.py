@@ -16,6 +16,16 @@
   is down (the tracker then latches an e-stop). ``connect()`` after that tries ``reconnect()``
   on the existing interfaces first, then builds new ones. A robot in protective or emergency
   stop is reported as an ArmError too.
+* Link up, script stopped (``isProgramRunning()`` False: the RTDE watchdog fired, Stop on the
+  pendant, a protective/emergency/safeguard stop, a script error): every command would return
+  False and ``setWatchdog`` fails, so ``read`` raises :class:`ArmProgramStopped` with the cause
+  (read from the receive interface: ``isProtectiveStopped``, ``isEmergencyStopped``,
+  ``getSafetyMode``, ``getRuntimeState`` and how long ago we last kicked the watchdog).
+  :meth:`recover` (the tracker calls it only from the operator's reset, in the e-stopped or
+  disarmed state) re-uploads the script with ``reuploadScript()`` and re-enables the watchdog.
+* Rate: ``rate_hz`` (125 for a CB3, 500 for an e-Series) is the RTDE frequency of both
+  interfaces and the ``time`` argument of every ``speedJ``; the real-time thread is paced with
+  ``initPeriod``/``waitPeriod`` (:meth:`begin_cycle`/:meth:`wait_cycle`).
 
 ur_rtde raises at once when no robot answers; the interface classes are injectable
 (``control_factory``, ``receive_factory``) so tests run against a recording fake.
@@ -28,7 +38,7 @@ import time
 
 import numpy as np
 
-from monotracker.robot.arm import Arm, ArmError, ArmState
+from monotracker.robot.arm import Arm, ArmError, ArmProgramStopped, ArmState
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +55,19 @@ def _default_receive(host: str, frequency: float):
     return rtde_receive.RTDEReceiveInterface(host, frequency)
 
 
+#: UR safety modes (``getSafetyMode``) that stop the program, with a cause and an operator hint
+_SAFETY_MODES = {
+    3: ("protective_stop", "protective stop: clear it on the teach pendant, then reset"),
+    5: ("safeguard_stop", "safeguard stop: clear the safeguard input, then reset"),
+    6: ("emergency_stop", "system emergency stop: release it, then reset"),
+    7: ("emergency_stop", "robot emergency stop: release it, then reset"),
+    8: ("protective_stop", "safety violation: clear it on the teach pendant, then reset"),
+    9: ("protective_stop", "safety fault: check the pendant, then reset"),
+}
+#: UR runtime state (``getRuntimeState``) 3 pausing, 4 paused
+_PAUSED = (3, 4)
+
+
 class URRTDEArm(Arm):
     def __init__(self, host: str, rate_hz: float = 125.0, watchdog_hz: float = 20.0,
                  control_factory=None, receive_factory=None, clock=time.monotonic):
@@ -58,6 +81,8 @@ class URRTDEArm(Arm):
         self.ctrl = None
         self.recv = None
         self._speed_mode = False
+        #: clock time of the last successful watchdog kick (None: none yet)
+        self._last_kick: float | None = None
 
     # -------------------------------------------------------------- connection
     def connect(self) -> None:
@@ -70,6 +95,9 @@ class URRTDEArm(Arm):
             else:
                 self.recv = self._receive_factory(self.host, self.rate_hz)
                 self.ctrl = self._control_factory(self.host, self.rate_hz)
+            fault = self.program_fault()
+            if fault is not None:  # setWatchdog would fail; reset restarts the script
+                raise fault
             if not self.ctrl.setWatchdog(self.watchdog_hz):
                 raise ArmError(f"UR at {self.host}: could not enable the RTDE watchdog")
         except ArmError:
@@ -77,6 +105,7 @@ class URRTDEArm(Arm):
         except Exception as exc:  # noqa: BLE001 - ur_rtde raises RuntimeError for "no robot"
             raise ArmError(f"UR at {self.host} did not answer ({exc}); check the cable, IP and remote-control mode") from None
         self._speed_mode = False
+        self._last_kick = None
         log.info("connected to UR at %s (%.0f Hz, watchdog %.0f Hz)", self.host, self.rate_hz, self.watchdog_hz)
 
     def disconnect(self) -> None:
@@ -108,6 +137,9 @@ class URRTDEArm(Arm):
         if not self.is_connected():
             raise ArmError(f"UR at {self.host}: connection lost")
         try:
+            fault = self.program_fault()  # first: it names the cause (watchdog, pendant, ...)
+            if fault is not None:
+                raise fault
             if self.recv.isProtectiveStopped():
                 raise ArmError("UR is in a protective stop: clear it on the teach pendant")
             if self.recv.isEmergencyStopped():
@@ -134,6 +166,7 @@ class URRTDEArm(Arm):
         try:
             ok = self.ctrl.speedJ(dq.tolist(), float(acceleration), self.period_s)
             self.ctrl.kickWatchdog()
+            self._last_kick = self.clock()
         except Exception as exc:  # noqa: BLE001
             raise ArmError(f"UR at {self.host}: speedJ failed ({exc})") from None
         if ok is False:
@@ -145,6 +178,14 @@ class URRTDEArm(Arm):
     def stop(self, deceleration: float) -> None:
         if self.ctrl is None:
             return
+        try:
+            if not self.ctrl.isProgramRunning():
+                # the script is stopped: the robot has stopped the arm itself and refuses
+                # every command; nothing to send until the operator's reset restarts it
+                self._speed_mode = False
+                return
+        except Exception:  # noqa: BLE001 - unknown: try the stop below
+            pass
         try:
             if self._speed_mode:
                 try:
@@ -162,8 +203,98 @@ class URRTDEArm(Arm):
                 if ok is False:
                     log.warning("UR refused the stop command (program stopped?)")
             self.ctrl.kickWatchdog()
+            self._last_kick = self.clock()
         except Exception:  # noqa: BLE001 - the robot's watchdog stops it if we cannot
             log.warning("UR stop command failed (connection down?); the RTDE watchdog will stop the arm")
+
+
+    # -------------------------------------------------------------- script state / recovery
+    def program_fault(self) -> ArmProgramStopped | None:
+        """:class:`ArmProgramStopped` (cause + one-line reason) when the link is up but ur_rtde's
+        control script is not running, else None. Never raises (unknown -> None; a dead link is
+        :meth:`read`'s business)."""
+        try:
+            if self.ctrl is None or self.ctrl.isProgramRunning():
+                return None
+        except Exception:  # noqa: BLE001
+            return None
+        cause, why = "not_running", "stopped on the pendant or by a script error; reset restarts it"
+        try:
+            mode = int(self.recv.getSafetyMode()) if hasattr(self.recv, "getSafetyMode") else 1
+        except Exception:  # noqa: BLE001
+            mode = 1
+        try:
+            runtime = int(self.recv.getRuntimeState()) if hasattr(self.recv, "getRuntimeState") else -1
+        except Exception:  # noqa: BLE001
+            runtime = -1
+        try:
+            protective = bool(self.recv.isProtectiveStopped())
+            emergency = bool(self.recv.isEmergencyStopped())
+        except Exception:  # noqa: BLE001
+            protective = emergency = False
+        gap = None if self._last_kick is None else self.clock() - self._last_kick
+        if emergency:
+            cause, why = "emergency_stop", "emergency stop pressed: release it, then reset"
+        elif protective:
+            cause, why = _SAFETY_MODES[3]
+        elif mode in _SAFETY_MODES:
+            cause, why = _SAFETY_MODES[mode]
+        elif gap is not None and self.watchdog_hz > 0 and gap > 1.0 / self.watchdog_hz:
+            cause = "watchdog"
+            why = (f"RTDE watchdog: no command for {gap * 1e3:.0f} ms (limit {1e3 / self.watchdog_hz:.0f} ms); "
+                   "reset restarts the script")
+        elif runtime in _PAUSED:
+            cause, why = "paused", "program paused on the teach pendant; reset restarts the script"
+        elif runtime in (0, 1):
+            cause = "pendant"
+        return ArmProgramStopped(f"UR control script not running ({why})", cause)
+
+    def recover(self) -> None:
+        """Re-upload ur_rtde's control script (``reuploadScript``) and re-enable the watchdog.
+        Refused with a one-line :class:`ArmError` while the link is down or a protective/
+        emergency stop is still active (the pendant must clear it first)."""
+        if self.ctrl is None or not self.is_connected():
+            raise ArmError(f"UR at {self.host}: not connected; reconnect first")
+        fault = self.program_fault()
+        if fault is None:
+            return
+        if fault.cause in ("protective_stop", "emergency_stop", "safeguard_stop"):
+            raise ArmError(f"cannot restart the UR control script: {fault}")
+        try:
+            ok = self.ctrl.reuploadScript()
+            running = bool(self.ctrl.isProgramRunning())
+        except Exception as exc:  # noqa: BLE001
+            raise ArmError(f"UR at {self.host}: script re-upload failed ({exc})") from None
+        if ok is False or not running:
+            raise ArmError(f"UR at {self.host}: the control script did not start again; "
+                           "check remote-control mode on the pendant")
+        try:
+            wd = self.ctrl.setWatchdog(self.watchdog_hz)
+        except Exception as exc:  # noqa: BLE001
+            raise ArmError(f"UR at {self.host}: could not enable the RTDE watchdog ({exc})") from None
+        if not wd:
+            raise ArmError(f"UR at {self.host}: could not enable the RTDE watchdog")
+        self._speed_mode = False
+        self._last_kick = None
+        log.info("UR control script re-uploaded after: %s", fault)
+
+    # -------------------------------------------------------------- pacing
+    def begin_cycle(self):
+        if self.ctrl is None or not hasattr(self.ctrl, "initPeriod"):
+            return None
+        try:
+            return self.ctrl.initPeriod()
+        except Exception:  # noqa: BLE001 - fall back to the tracker's own sleep
+            return None
+
+    def wait_cycle(self, token) -> bool:
+        if token is None or self.ctrl is None:
+            return False
+        try:
+            self.ctrl.waitPeriod(token)
+            return True
+        except Exception:  # noqa: BLE001
+            return False
 
 
 def read_joint_state(host: str, rate_hz: float = 125.0, receive_factory=None, clock=time.monotonic) -> ArmState:

@@ -1,0 +1,176 @@
+"""RobotRig whose control loop runs in its own process (``robot.control_process``).
+
+Used for ``clock="real"`` sessions when ``SessionConfig.control_process`` is on (the default):
+the tracker, its safety layer and the arm backend live in a spawned child at elevated priority
+where the OS allows, so vision, the web server and logging in the engine process cannot delay a
+control cycle. The engine sees the same :class:`RobotStatus` as with the in-process rig
+(``engine/robot_rig.py``), plus ``control`` saying where the loop runs and with which priority.
+``clock="sim"`` sessions keep the in-process, deterministic rig.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import threading
+
+import numpy as np
+
+from monotracker.engine.components import RobotStatus
+from monotracker.engine.robot_rig import TrackerRobotRig, standby_configuration
+from monotracker.engine.snapshot import CommandResult
+from monotracker.errors import MonoTrackerError
+from monotracker.geometry import apply_transform, invert_transform
+
+log = logging.getLogger(__name__)
+
+
+class ProcessRobotRig(TrackerRobotRig):
+    """Same interface and states as :class:`TrackerRobotRig`; the tracker runs in a child."""
+
+    def __init__(self, cfg, session, opts: dict | None = None):  # noqa: D401 - no super().__init__: no local tracker
+        from monotracker.robot.control_process import ControlProcess, ControlProcessError
+        from monotracker.robot.kinematics import Kinematics, NeedleTool
+
+        self.s = session
+        self.clock = session.clock
+        self.sim_arm = None  # lives in the child; its truth comes back through the state slot
+        self.tracker = None
+        if cfg.robot == "sim":
+            from monotracker.robot.sim_arm import SimulatedArm
+            from monotracker.sim.or_layout import default_layout
+
+            layout = default_layout()
+            q0 = standby_configuration(layout)
+            if q0 is None:
+                raise MonoTrackerError("the OR layout's standby pose is not reachable by the UR10 (IK failed)")
+            factory = functools.partial(SimulatedArm, q0=q0, period_s=1.0 / cfg.control_hz, seed=cfg.seed)
+            self.default_T_base_cam = layout.T_base_cam
+            self._is_sim = True
+        else:
+            from monotracker.robot.ur_rtde_arm import URRTDEArm
+
+            factory = functools.partial(URRTDEArm, cfg.robot.split(":", 1)[1], rate_hz=cfg.control_hz)
+            self._is_sim = False
+        self._kin, self._tool = Kinematics(), NeedleTool()
+        try:
+            self.proc = ControlProcess(factory, {"variant": cfg.controller, "rate_hz": cfg.control_hz,
+                                                 "predict_target": cfg.predict_target},
+                                       on_event=self._on_event, opts=opts)
+        except ControlProcessError as exc:
+            raise MonoTrackerError(str(exc)) from None
+        ok, reason = self.proc.connect_result
+        if not ok:
+            self.proc.close()
+            raise MonoTrackerError(f"robot did not connect: {reason}")
+        self.control = f"control process pid {self.proc.pid}, {self.proc.priority}"
+        log.info("robot %s", self.control)
+        if not self.proc.priority.startswith("SCHED_FIFO"):
+            session.alert("warning", "control_priority", f"robot control process runs without real-time "
+                                                         f"priority: {self.proc.priority}")
+        session.record("control_process", self.control, {"pid": self.proc.pid, "priority": self.proc.priority})
+        self._prev_tip: np.ndarray | None = None
+        self._prev_t: float | None = None
+        self._speed = 0.0
+        self._head_ct: tuple[np.ndarray, float] | None = None
+        self._status_cache = None
+        self._status_lock = threading.Lock()
+
+    # ------------------------------------------------------------------ commands
+    def _cmd(self, name: str) -> CommandResult:
+        ok, reason = self.proc.command(name)
+        return CommandResult(bool(ok), str(reason))
+
+    def arm(self) -> CommandResult:
+        self._set_head_sphere()
+        return self._cmd("arm")
+
+    def disarm(self) -> CommandResult:
+        return self._cmd("disarm")
+
+    def start_tracking(self) -> CommandResult:
+        return self._cmd("start_tracking")
+
+    def stop_tracking(self) -> CommandResult:
+        return self._cmd("stop_tracking")
+
+    def estop(self) -> CommandResult:
+        ok, reason = self.proc.estop("operator e-stop")
+        self._status_cache = None
+        return CommandResult(bool(ok), str(reason))
+
+    def reset(self) -> CommandResult:
+        ok, reason = self.proc.reset()
+        self._status_cache = None
+        return CommandResult(bool(ok), str(reason))
+
+    def set_target(self, T_base_target_mm, stamp: float, valid: bool, T_base_ct=None) -> None:
+        if T_base_target_mm is None:
+            T_base_target_mm = np.full((4, 4), np.nan)
+        if valid and T_base_ct is not None and self._head_ct is not None:
+            c_ct, r = self._head_ct
+            c_target = apply_transform(invert_transform(np.asarray(T_base_target_mm, float)),
+                                       apply_transform(np.asarray(T_base_ct, float), c_ct))
+            self.proc.set_head_sphere(c_target, r, frame="target")
+        self.proc.set_target(np.asarray(T_base_target_mm, float), float(stamp), bool(valid))
+
+    def step(self, now: float) -> None:
+        raise MonoTrackerError("the control process runs on its own clock; step() is for clock='sim' sessions")
+
+    def start_thread(self) -> None:
+        pass  # the child's loop runs from the start
+
+    def inject_disconnect(self) -> None:
+        ok, reason = self.proc.command("drop")
+        if not ok:
+            raise MonoTrackerError(reason)
+
+    def close(self) -> None:
+        self.proc.close()
+
+    # ------------------------------------------------------------------ state
+    def _status(self) -> RobotStatus:
+        st = self.proc.state()
+        if st is None:
+            return RobotStatus("disarmed", False, "not started", control=self.control)
+        if not self.proc.alive:
+            rep = self.proc.exit_report or {}
+            msg = f"robot control process exited ({rep.get('reason') or 'exit code ' + str(self.proc.proc.exitcode)})"
+            return RobotStatus("estopped", False, msg, control=self.control)
+        key = (st.t_published, st.state, self.proc.live_state())
+        if self._status_cache is not None and self._status_cache[0] == key:
+            return self._status_cache[1]
+        if self._is_sim and np.all(np.isfinite(st.true_q)):
+            from monotracker.robot.units import transform_m_to_mm
+
+            q, qd = st.true_q, st.true_dq
+            T_tip = transform_m_to_mm(self._kin.fk(q) @ self._tool.T_tool0_tip)
+        else:
+            q, qd = st.q, st.dq
+            T_tip = st.T_base_tip_mm if np.all(np.isfinite(st.T_base_tip_mm)) else None
+        t_state = st.t_published
+        if T_tip is not None and self._prev_t is not None and t_state > self._prev_t:
+            self._speed = float(np.linalg.norm(T_tip[:3, 3] - self._prev_tip[:3, 3]) / (t_state - self._prev_t))
+        if T_tip is not None and (self._prev_t is None or t_state > self._prev_t):
+            self._prev_tip, self._prev_t = T_tip, t_state
+        stamp = st.target_stamp if np.isfinite(st.target_stamp) else None
+        status = RobotStatus(state=self.proc.live_state(), connected=st.connected, message=self.proc.last_reason,
+                             q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=self._speed, command_stamp=stamp,
+                             t_command=st.t, program_fault=st.program_fault, control=self.control)
+        self._status_cache = (key, status)
+        return status
+
+    def status(self) -> RobotStatus:
+        with self._status_lock:
+            return self._status()
+
+    # events from the child arrive as dicts
+    def _on_event(self, kind: str, payload) -> None:
+        try:
+            if kind == "transition":
+                self.s.record("robot_transition", f"robot {payload['from']} -> {payload['to']}: {payload['reason']}",
+                              {"from": payload["from"], "to": payload["to"], "reason": payload["reason"]})
+            elif kind == "warning":
+                self.s.alert("warning", "robot_warning", str(payload))
+        except Exception:  # noqa: BLE001
+            log.exception("robot event forwarding failed")

@@ -1,0 +1,140 @@
+"""TargetPredictor's own safety bounds (issue 15): capped horizon and offset, jumps and gaps
+reset it, it never extrapolates from fewer than three agreeing targets, and it is forgotten
+whenever the tracker is not tracking."""
+
+import numpy as np
+
+from monotracker.geometry import rotation_about_axis
+from monotracker.robot.prediction import TargetPredictor
+from robot_rig import Rig, ready_tip_pose, to_mm
+
+
+def _pose(x_m=0.0, rot_deg=0.0):
+    T = np.eye(4)
+    T[0, 3] = x_m
+    T[:3, :3] = rotation_about_axis([0, 0, 1], np.radians(rot_deg))
+    return T
+
+
+def _feed(p, speed_m_s, n, dt=1 / 30, t0=0.0):
+    for i in range(n):
+        p.update(_pose(speed_m_s * (t0 + i * dt)), t0 + i * dt)
+    return t0 + (n - 1) * dt
+
+
+def test_extrapolates_a_constant_motion_to_now():
+    p = TargetPredictor()
+    t = _feed(p, 0.015, 6)  # 15 mm/s along x
+    T, V = p.predict(_pose(0.015 * t), t + 0.06)
+    assert abs(T[0, 3] - 0.015 * (t + 0.06)) < 1e-9  # exact for a constant velocity
+    assert abs(V[3] - 0.015) < 1e-9 and p.active
+
+
+def test_needs_three_agreeing_targets_before_extrapolating():
+    p = TargetPredictor()
+    t = _feed(p, 0.015, 2)
+    T, V = p.predict(_pose(0.015 * t), t + 0.06)
+    assert np.array_equal(T, _pose(0.015 * t)) and not np.any(V)
+
+
+def test_horizon_and_offset_are_capped():
+    p = TargetPredictor(horizon_s=0.15, max_offset_m=0.005)
+    t = _feed(p, 0.015, 6)
+    T_last = _pose(0.015 * t)
+    T, _ = p.predict(T_last, t + 10.0)  # an old target: at most horizon_s ahead
+    assert abs(T[0, 3] - T_last[0, 3] - 0.015 * 0.15) < 1e-9
+    p = TargetPredictor(horizon_s=0.15, max_offset_m=0.001, max_speed_m_s=0.05)
+    t = _feed(p, 0.04, 6)  # 40 mm/s: under the speed cap, offset capped at 1 mm
+    T, _ = p.predict(_pose(0.04 * t), t + 0.15)
+    assert abs(T[0, 3] - 0.04 * t - 0.001) < 1e-9
+
+
+def test_a_jump_resets_the_velocity_instead_of_extrapolating_it():
+    p = TargetPredictor()
+    t = _feed(p, 0.015, 6)
+    T_jump = _pose(0.015 * t + 0.006)  # 6 mm in one frame = 180 mm/s: a jump, not a motion
+    p.update(T_jump, t + 1 / 30)
+    T, V = p.predict(T_jump, t + 1 / 30 + 0.08)
+    assert np.array_equal(T, T_jump) and not np.any(V)  # sits on the measurement
+
+
+def test_fast_rotation_and_capture_gaps_reset():
+    p = TargetPredictor()
+    for i in range(6):
+        p.update(_pose(0.0, 2.0 * i), i / 30)  # 60 deg/s > 0.5 rad/s cap at the second sample
+    assert not np.any(p.V)
+    p = TargetPredictor()
+    t = _feed(p, 0.015, 6)
+    p.update(_pose(0.015 * (t + 0.2)), t + 0.2)  # three frames missing
+    assert not np.any(p.V) and not p.active
+
+
+def test_tracker_forgets_the_velocity_on_occlusion_hold_and_rejects():
+    rig = Rig(predict_target=True)
+    assert rig.tracker.predictor is not None
+
+    def moving(t):
+        T = ready_tip_pose()
+        T[:3, 3] += [0.01 * np.sin(1.5 * t), 0.0, 0.0]
+        return T
+
+    rig.start(moving(0.0))
+    for i in range(int(2.0 * 125)):
+        t = rig.clock()
+        if i % 4 == 0:
+            rig.tracker.set_target(to_mm(moving(t - 0.05)), t - 0.05)
+        rig.tracker.step()
+        rig.clock.advance(1 / 125)
+        rig.arm.advance_to(rig.clock())
+    assert rig.tracker.predictor.active
+    rig.tracker.set_target(to_mm(moving(rig.clock())), rig.clock(), valid=False)  # occluded
+    assert not rig.tracker.predictor.active
+    rig.tracker.step()
+    assert rig.tracker.state.value == "holding"
+    # while holding, nothing is learnt that could survive into the resumed tracking
+    rig.tracker.set_target(to_mm(moving(rig.clock())), rig.clock())
+    assert not rig.tracker.predictor.active
+    bad = to_mm(ready_tip_pose())
+    bad[0, 0] = np.nan
+    rig.tracker.set_target(bad, rig.clock())
+    assert not rig.tracker.predictor.active and not np.any(rig.tracker.predictor.V)
+
+
+def _jump_overshoot(predictor=None):
+    from monotracker.robot import kinematics as kin
+
+    rig = Rig(predict_target=True)
+    if predictor is not None:
+        rig.tracker.predictor = predictor
+    T0 = ready_tip_pose()
+    rig.start(T0)
+
+    def head(t):
+        T = T0.copy()
+        T[0, 3] += 0.01 * np.sin(1.5 * t) + (0.006 if t >= 2.0 else 0.0)
+        return T
+
+    over = 0.0
+    for i in range(int(3.5 * 125)):
+        t = rig.clock()
+        if i % 4 == 0:
+            rig.tracker.set_target(to_mm(head(t - 0.05)), t - 0.05)
+        rig.tracker.step()
+        rig.clock.advance(1 / 125)
+        rig.arm.advance_to(rig.clock())
+        if t >= 2.0:
+            tip = kin.fk(rig.arm.true_q) @ kin.NeedleTool().T_tool0_tip
+            over = max(over, tip[0, 3] - head(rig.clock())[0, 3])  # > 0: past the head along +x
+    return over, rig.tracker.state.value
+
+
+def test_prediction_never_commands_past_a_jumped_head():
+    """A real 6 mm head jump (under the safety layer's 20 mm limit), prediction on: the tip does
+    not go past the head by more than a fraction of a millimetre; a predictor without its bounds
+    (the jump taken as a 180 mm/s motion) would drive it millimetres past."""
+    over, state = _jump_overshoot()
+    assert state == "tracking"
+    assert over < 0.5e-3
+    unbounded = TargetPredictor(max_speed_m_s=1e9, max_rate_rad_s=1e9, max_offset_m=1e9, max_offset_rad=1e9)
+    over_unbounded, _ = _jump_overshoot(unbounded)
+    assert over_unbounded > 2 * over and over_unbounded > 0.5e-3
