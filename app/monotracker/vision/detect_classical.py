@@ -33,6 +33,8 @@ class ClassicalDetector:
     sat_min: int = 90
     val_min: int = 35
     name: str = "classical"
+    #: sub-pixel centre: "edge" (edge unmixing + ellipse fit) or "chroma" (the old soft centroid)
+    centre_method: str = "edge"
 
     def mask(self, image: np.ndarray) -> np.ndarray:
         """Binary uint8 mask (0/255) of ball-green pixels."""
@@ -42,5 +44,6 @@ class ClassicalDetector:
 
     def detect(self, image: np.ndarray) -> Detection:
         t0 = time.perf_counter()
-        accepted, rejected = analyse_blobs(image, self.mask(image), self.rules, self.name)
+        accepted, rejected = analyse_blobs(image, self.mask(image), self.rules, self.name,
+                                           centre_method=self.centre_method)
         return Detection(accepted, rejected, time.perf_counter() - t0, self.name)
