@@ -51,7 +51,7 @@ COLOUR_WEIGHTS = np.array([[0.114, 0.587, 0.299],
                            [-CHROMA_WEIGHT * 0.114, -CHROMA_WEIGHT * 0.587, CHROMA_WEIGHT * 0.701]], np.float32)
 
 #: refuse a ball when more than this share of its rays see an edge well inside the ellipse
-CUT_SHARE = 0.08
+CUT_SHARE = 0.15
 
 #: a fitted edge must be at least this round (minor / major axis) and this smooth (RMS px)
 MIN_AXIS_RATIO = 0.8
