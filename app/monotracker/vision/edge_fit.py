@@ -57,6 +57,9 @@ CUT_SHARE = 0.15
 MIN_AXIS_RATIO = 0.8
 MAX_EDGE_RMS_PX = 0.5
 
+#: largest relative residual of the ball/background unmixing inside a ray's edge window
+MAX_UNMIX_RESIDUAL = 0.12
+
 #: a usable ray needs at least this share of the rays (else the fit is refused)
 MIN_RAY_SHARE = 0.6
 
@@ -195,6 +198,15 @@ def _edge_points(image_bgr, balls, blur_px):
     starts = np.cumsum([0] + counts[:-1])
     noise_ball = np.repeat([_median(g_noise[a:a + c]) for a, c in zip(starts, counts)], counts)
     usable &= ball_side > 1.0 - np.clip(0.08 + 2.0 * noise_ball, 0.08, 0.25)
+    # a third colour in the edge window (the head's outline meeting the drape right at the
+    # ball, an instrument's edge) is outside the span of ball and background: the unmixing's
+    # residual, relative to the pixel, says so
+    pp = np.einsum("nkc,nkc->nk", prof, prof)
+    proj = (gg * pb**2 - 2.0 * bg * pb * pg + pg**2) / np.where(good_det, det, 1.0)
+    resid = np.sqrt(np.clip(pp - proj, 0.0, None) / np.maximum(pp, 1e-12))
+    jj = np.arange(k)[None, :]
+    win = (jj >= j_lo[:, None]) & (jj < j_hi[:, None])
+    usable &= np.where(win, resid, 0.0).max(axis=1) < MAX_UNMIX_RESIDUAL
     edge_rel = (j_lo - 0.5 + (cum[rows, j_hi] - cum[rows, j_lo])) * step        # from the ray start
     start = 0
     for (i, n, c, u, s0, _st), cnt in zip(geo, counts):
@@ -204,10 +216,11 @@ def _edge_points(image_bgr, balls, blur_px):
     return out
 
 
-def _coherent_arc(res: np.ndarray, usable: np.ndarray, width: int = 5) -> bool:
+def _coherent_arc(res: np.ndarray, usable: np.ndarray, radius_px: float) -> bool:
     """True when the edge residuals (px, rays in angular order) of the usable rays contain an
-    arc of ``width`` neighbouring rays that lies off the ellipse together (a chord, a dent),
-    beyond what their ray-to-ray scatter explains."""
+    arc of ~1/10 of the rays that lies off the ellipse together (a chord, a dent) by more than
+    max(0.3 px, 3 % of the radius) beyond what their ray-to-ray scatter explains."""
+    width = max(5, (len(res) // 10) | 1)
     r = np.where(usable, res, 0.0)
     w = usable.astype(float)
     kern = np.ones(width)
@@ -219,7 +232,8 @@ def _coherent_arc(res: np.ndarray, usable: np.ndarray, width: int = 5) -> bool:
         return False
     smooth = rs[ok] / ws[ok]
     scatter = 1.4826 * _median(np.abs(np.diff(res[usable]))) / np.sqrt(2)
-    return bool(np.max(np.abs(smooth)) > 0.3 + 3.0 * scatter / np.sqrt(width))
+    # an occluder hides: its chord lies inside the ellipse fitted through the rest
+    return bool(-np.min(smooth) > max(0.3, 0.03 * radius_px) + 3.0 * scatter / np.sqrt(width))
 
 
 def _robust_ellipse(pts, usable):
@@ -291,7 +305,7 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float = 2.0) 
             if min(d1, d2) < MIN_AXIS_RATIO * max(d1, d2):
                 res[i] = EdgeFit(False, "ball edge not round (cut by an occluder?)")
                 continue
-            if _coherent_arc(_ellipse_residuals(pts, ell), usable):
+            if _coherent_arc(_ellipse_residuals(pts, ell), usable, min(d1, d2) / 2):
                 res[i] = EdgeFit(False, "ball edge has a flat or dented arc (cut by an occluder?)")
                 continue
             if rms > MAX_EDGE_RMS_PX:
