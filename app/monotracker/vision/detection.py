@@ -69,6 +69,9 @@ class Detection:
     rejected: list
     time_s: float = 0.0
     detector: str = ""
+    #: '' or why this detector declines the frame (one line; e.g. the learned detector seeing
+    #: rings or nothing); its ``fiducials`` are then empty
+    refusal: str = ""
 
     @property
     def centres(self) -> np.ndarray:
