@@ -56,3 +56,19 @@ def test_lone_weak_cell_does_not_crash(learned, monkeypatch):
     monkeypatch.setattr(learned, "probability", lambda image: prob)
     d = learned.detect(np.full((720, 1280, 3), 100, np.uint8))
     assert d.fiducials == []
+
+
+def test_refuses_rings_and_empty_frames(learned, monkeypatch):
+    """A frame with nothing, and a network output of rings, give a one-line refusal, no balls."""
+    d = learned.detect(np.full((720, 1280, 3), 90, np.uint8))
+    assert d.fiducials == [] and "no balls" in d.refusal
+    import cv2
+
+    img = np.full((720, 1280, 3), (120, 95, 60), np.uint8)
+    prob = np.zeros((180, 320), np.float32)
+    for cx in (80, 160, 240):
+        cv2.circle(img, (4 * cx, 360), 40, (40, 160, 45), -1)       # big green balls
+        cv2.circle(prob, (cx, 90), 10, 1.0, 3)                     # ... seen as rings
+    monkeypatch.setattr(learned, "probability", lambda image: prob)
+    d = learned.detect(img)
+    assert d.fiducials == [] and "ring" in d.refusal

@@ -514,6 +514,18 @@ class Session(PlanCommands):
         """``(image BGR uint8, frame_index, PoseEstimate)`` of the newest processed frame, or None."""
         return self._loop.latest_frame()
 
+    def learn_ball_colour(self, x_px: float, y_px: float) -> CommandResult:
+        """Learn the balls' colour from one click (pixel x, y) on a ball in the newest camera frame;
+        the running detector uses it at once and the camera's calibration file keeps it."""
+        from monotracker.engine.ball_colour_cmd import learn_ball_colour_from_frame
+
+        try:
+            got = learn_ball_colour_from_frame(self._loop.rig, self._loop.calibration_path, x_px, y_px)
+        except MonoTrackerError as exc:
+            return _fail(str(exc))
+        self._bus.event("ball_colour_learned", got.message, {**got.colour.to_dict(), "saved_to": got.saved_to})
+        return _ok(got.message)
+
     def volume(self):
         """The loaded CT :class:`~monotracker.ct.Volume` (LPS mm) for read-only display (slice
         views), or None while no CT is loaded. Never modify it: the engine owns it."""

@@ -185,6 +185,14 @@ class _SimRig(CameraRig):
         with self._lock:
             return self._published
 
+    def set_ball_colour(self, colour) -> str:
+        """Detect balls of ``colour`` (vision's BallColour) from the next frame on; '' or why not."""
+        det = getattr(getattr(self, "tracker", None), "detector", None)
+        if det is None or not hasattr(det, "set_colour"):
+            return "this camera source has no colour detector (sim-points works on points)"
+        det.set_colour(colour)
+        return ""
+
 
 # ====================================================================== rendered images
 @dataclass
@@ -421,6 +429,9 @@ class StreamRig(CameraRig):
         tracker = PoseTracker(plan.fiducial_centres(), model, radius_mm=radius, target_ct=plan.target_lps_mm)
         if max_predicted_tre_mm is not None:
             tracker.config.max_predicted_tre_mm = float(max_predicted_tre_mm)
+        if model.ball_colour is not None and hasattr(tracker.detector, "set_colour"):
+            tracker.detector.set_colour(model.ball_colour)      # learned earlier, saved with the calibration
+        self.tracker = tracker
         self.source = _KeepLatest(src)
         self.stream = PoseStream(source=self.source, tracker=tracker)
         self._lock = threading.Lock()
@@ -458,6 +469,8 @@ class StreamRig(CameraRig):
     def latest_frame(self):
         fr, est = self.source.latest, self.stream.latest()
         return None if fr is None else (fr.image, fr.index, est)
+
+    set_ball_colour = _SimRig.set_ball_colour
 
 
 def make_vision_rig(source, calibration_path, plan, cfg, session) -> CameraRig:

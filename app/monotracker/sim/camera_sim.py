@@ -25,6 +25,12 @@ Ground truth per frame (:class:`FrameTruth`): ``T_cam_ct``; for each fiducial th
 ellipse centre (the centre of the sphere's image ellipse, distorted), the projection of the
 sphere centre, the visible fraction of its silhouette and whether it is fully visible.
 
+Photo-like frames (``optics=``, off by default so that the live app and the tests keep the
+simple, fast render): gloss on balls and skin, surgical drapes of several colours, hair, glove
+colours and steel instruments, then lens blur, Bayer mosaic, raw-space sensor noise,
+demosaicing and JPEG (:mod:`monotracker.sim.optics`). The truth is computed from the geometry
+alone, so it is the same with and without optics.
+
 Camera placement (a choice; the paper says "about half a metre"): 520 mm from the mean of the
 fiducial centres along the phantom's view direction, looking at it, image top towards anterior.
 """
@@ -38,6 +44,7 @@ import cv2
 import numpy as np
 
 from monotracker.geometry import apply_transform, invert_transform, look_at
+from monotracker.sim import optics as _optics
 from monotracker.sim.phantom import HeadPhantom, default_phantom
 from monotracker.sim.trajectories import Still, Trajectory
 from monotracker.vision.camera_model import CameraModel, default_camera, distort_normalised
@@ -178,7 +185,10 @@ class SimulatedCamera(FrameSource):
     phantom's view direction, looking at the fiducial patch),
     ``max_frames`` (None = endless), ``freeze_at_frame`` / ``disconnect_at_frame`` /
     ``stall_at_frame`` (faults: repeated image, ``read()`` raises, ``read()`` blocks),
-    ``seed``.
+    ``seed``, ``optics`` (None = the simple render; an :class:`~monotracker.sim.optics.Optics`
+    or a preset name of :data:`~monotracker.sim.optics.PRESETS` such as ``"photo"`` or
+    ``"degraded"`` = photo-like frames; ``noise_sigma`` is then unused, the sensor model makes
+    the noise), ``ball_bgr`` (the balls' dye, BGR 0-255; default matte green).
     """
 
     name = "simulated camera"
@@ -189,8 +199,15 @@ class SimulatedCamera(FrameSource):
                  exposure_s: float = 1 / 60, realtime: bool = False, max_frames: int | None = None,
                  freeze_at_frame: int | None = None, disconnect_at_frame: int | None = None,
                  stall_at_frame: int | None = None, seed: int = 0, start_index: int = 0,
-                 T_cam_world: np.ndarray | None = None):
+                 T_cam_world: np.ndarray | None = None, optics: "_optics.Optics | str | None" = None,
+                 ball_bgr=None):
         super().__init__()
+        if isinstance(optics, str):
+            if optics not in _optics.PRESETS:
+                raise ValueError(f"optics preset must be one of {sorted(_optics.PRESETS)}, got {optics!r}")
+            optics = _optics.PRESETS[optics]
+        self.optics = optics
+        self.ball_bgr = np.asarray(FIDUCIAL_BGR if ball_bgr is None else ball_bgr, float).reshape(3)
         self.camera = camera or default_camera()
         self.phantom = phantom or default_phantom()
         self.trajectory = trajectory or Still()
@@ -224,10 +241,16 @@ class SimulatedCamera(FrameSource):
         self._low_shape = (int(round(h * self._low_scale)), int(round(w * self._low_scale)))
         rng = np.random.default_rng(seed + 12345)
         self._background_low = self._make_background(rng)
-        self._noise_pos, self._noise_neg = self._make_noise(rng, 6)
+        self._noise_pos, self._noise_neg = self._make_noise(rng, 6) if optics is None else ([], [])
         self._noise_rng = np.random.default_rng(seed + 999)
         self._last_noise = -1
         self._light_cam = np.array([-0.3, -0.5, -1.0]) / np.linalg.norm([-0.3, -0.5, -1.0])  # towards light
+        self._chain = self._hair = None
+        if optics is not None:
+            orng = np.random.default_rng(seed + 777)
+            self._background_low = _optics.drape_background(optics, self._low_shape, orng).astype(np.float32)
+            self._hair = _optics.hair_layer(optics, (w, h), orng) if optics.hair_density > 0 else None
+            self._chain = _optics.OpticsChain(optics, (w, h), seed)
 
     # ------------------------------------------------------------------ set-up helpers
     def _make_background(self, rng) -> np.ndarray:
@@ -303,11 +326,14 @@ class SimulatedCamera(FrameSource):
 
         # --- skin at low resolution, composited on the background, then upsampled
         low = self._background_low.copy()
-        cov, shade = self._skin(self._rays_low, R, tr, self.K[0, 0] * self._low_scale)
+        cov, shade, spec = self._skin(self._rays_low, R, tr, self.K[0, 0] * self._low_scale)
         lowf = low.reshape(-1, 3)
         m = cov > 0
-        lowf[m] = lowf[m] * (1.0 - cov[m, None]) + (SKIN_BGR[None, :] * shade[m, None]) * cov[m, None]
+        skin = SKIN_BGR[None, :] * shade[m, None] + (255.0 * spec[m, None] if spec is not None else 0.0)
+        lowf[m] = lowf[m] * (1.0 - cov[m, None]) + skin * cov[m, None]
         img = cv2.resize(low, (w, h), interpolation=cv2.INTER_LINEAR)
+        if self._hair is not None and m.any():
+            self._add_hair(img, cov.reshape(self._low_shape).astype(np.float32))
 
         # --- skin clip (grey bar)
         a, b = ph.clip_segment_lps
@@ -351,8 +377,7 @@ class SimulatedCamera(FrameSource):
         for oc in self.events.occluders:
             poly = oc.at(t)
             if poly is not None:
-                colour = GLOVE_BGR if oc.kind == "hand" else INSTRUMENT_BGR
-                cv2.fillPoly(img, [np.round(poly * 16).astype(np.int32)], colour, cv2.LINE_AA, shift=4)
+                self._draw_occluder(img, oc, poly, len(polys))
                 polys.append(poly)
 
         label = None
@@ -389,8 +414,11 @@ class SimulatedCamera(FrameSource):
             img = self._motion_blur(img, t, C_all, proj)
 
         # --- lighting gain, quantise, noise
-        out = cv2.convertScaleAbs(img, alpha=gain)
-        if self.noise_sigma > 0:
+        if self._chain is not None:
+            out = self._chain.apply(img * np.float32(gain), key=t)
+        else:
+            out = cv2.convertScaleAbs(img, alpha=gain)
+        if self._chain is None and self.noise_sigma > 0:
             n = len(self._noise_pos)
             k = (self._last_noise + 1 + int(self._noise_rng.integers(n - 1))) % n
             self._last_noise = k
@@ -405,7 +433,8 @@ class SimulatedCamera(FrameSource):
 
     def _skin(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray, px_per_rad: float):
         """Skin coverage and shade for (n, 3) unit rays from the camera centre (low-res grid).
-        Returns (coverage (n,) in [0, 1], Lambert shade (n,)). Coverage is anti-aliased with the
+        Returns (coverage (n,) in [0, 1], Lambert shade (n,), specular (n,) fraction of white or
+        None without optics). Coverage is anti-aliased with the
         ray's closest approach to the ellipsoid in its unit-sphere coordinates (silhouette at
         distance 1), converted to pixels; the neck cut is honoured (hard edge there)."""
         ph = self.phantom
@@ -433,7 +462,10 @@ class SimulatedCamera(FrameSource):
         lam = np.clip(n_cam @ self._light_cam, 0, 1)
         facing = np.clip(-np.einsum("ij,ij->i", n_cam, rays), 0, 1)
         shade = 0.35 + 0.5 * lam + 0.15 * facing
-        return cov, shade
+        spec = None
+        if self.optics is not None and self.optics.skin_specular > 0:
+            spec = self.optics.skin_specular * _optics.specular(n_cam, rays, self._light_cam, 12.0)
+        return cov, shade, spec
 
     def _skin_depth(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray) -> np.ndarray:
         """Distance along each unit ray (n, 3) to the skin (inf where it misses)."""
@@ -481,7 +513,10 @@ class SimulatedCamera(FrameSource):
         nrm = (t_hit[..., None] * d - C) / rad
         lam = np.clip(nrm @ self._light_cam, 0, 1)
         shade = 0.3 + 0.6 * lam + 0.1 * np.clip(-(nrm * d).sum(-1), 0, 1)
-        col = shade[..., None] * FIDUCIAL_BGR
+        col = shade[..., None] * self.ball_bgr
+        if self.optics is not None and self.optics.ball_specular > 0:
+            o = self.optics
+            col = col + 255.0 * o.ball_specular * _optics.specular(nrm, d, self._light_cam, o.ball_shininess)[..., None]
         return cov.astype(np.float32), col.astype(np.float32)
 
     def _full_coverage(self, C, rad, roi) -> float:
@@ -499,6 +534,40 @@ class SimulatedCamera(FrameSource):
         c = C[:, 2]
         xn = C[:, :2] * (c / (c**2 - rad**2))[:, None]
         return distort_normalised(xn, self.K, self.dist)
+
+    def _add_hair(self, img: np.ndarray, cov_low: np.ndarray) -> None:
+        """Blend the hair layer into ``img`` (in place) where the skin covers it; only inside
+        the skin's bounding box (the hair layer is fixed in the image: texture, not geometry)."""
+        s = 1.0 / self._low_scale
+        ys, xs = np.nonzero(cov_low > 0)
+        h, w = img.shape[:2]
+        x0, x1 = max(int(xs.min() * s) - 4, 0), min(int((xs.max() + 1) * s) + 4, w)
+        y0, y1 = max(int(ys.min() * s) - 4, 0), min(int((ys.max() + 1) * s) + 4, h)
+        full = cv2.resize(cov_low, (w, h), interpolation=cv2.INTER_LINEAR)[y0:y1, x0:x1]
+        hair = cv2.multiply(full, self._hair[y0:y1, x0:x1])
+        hair3 = cv2.merge([hair, hair, hair])
+        patch = img[y0:y1, x0:x1]
+        img[y0:y1, x0:x1] = patch - cv2.multiply(patch, hair3) + hair3 * np.float32(_optics.HAIR_BGR)
+
+    def _draw_occluder(self, img, oc: Occluder, poly: np.ndarray, k: int) -> None:
+        """A hand (glove) or instrument polygon; with optics, gloves take one of several glove
+        colours and instruments are steel with a specular streak along the shaft."""
+        pts = [np.round(poly * 16).astype(np.int32)]
+        if self.optics is None:
+            colour = GLOVE_BGR if oc.kind == "hand" else INSTRUMENT_BGR
+            cv2.fillPoly(img, pts, colour, cv2.LINE_AA, shift=4)
+            return
+        if oc.kind == "hand":
+            colour = _optics.GLOVE_BGR[(k + int(oc.t_start * 7)) % len(_optics.GLOVE_BGR)]
+            cv2.fillPoly(img, pts, colour, cv2.LINE_AA, shift=4)
+            return
+        cv2.fillPoly(img, pts, _optics.STEEL_BGR, cv2.LINE_AA, shift=4)
+        if len(poly) == 11:            # a _finger polygon: tip at index 4, shaft end between 9 and 10
+            tip, end = poly[4], 0.5 * (poly[9] + poly[10])
+            axis = (end - tip) / (np.linalg.norm(end - tip) + 1e-9)
+            side = np.array([-axis[1], axis[0]]) * 0.2 * np.linalg.norm(poly[9] - poly[10]) / 2
+            p0, p1 = np.round((tip + 4 * axis + side) * 16).astype(int), np.round((end + side) * 16).astype(int)
+            cv2.line(img, tuple(p0), tuple(p1), (245.0, 245.0, 245.0), 2, cv2.LINE_AA, shift=4)
 
     def _draw_stray(self, img, s: Stray, offset=(0.0, 0.0), colour=STRAY_BGR):
         """Draw stray ``s`` (px) into ``img`` whose pixel (0, 0) is image pixel ``offset``."""

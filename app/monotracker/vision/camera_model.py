@@ -9,12 +9,18 @@ Files: OpenCV YAML as written by ``cv2.FileStorage`` (``camera_matrix``,
 calibration sample) and JSON with the same keys (``camera_matrix`` a 3x3 nested list,
 ``distortion_coefficients`` a flat list). Every bad file raises :class:`InputError` with one
 line saying what is wrong.
+
+Optional: the balls' colour (:class:`~monotracker.vision.ball_colour.BallColour`, learned from
+a click) is saved with the calibration, as a JSON object ``ball_colour`` or YAML keys
+``ball_colour_hue_lo`` / ``_hue_hi`` / ``_sat_min`` / ``_val_min``; files without it load with
+``ball_colour = None`` (the detector's default green).
 """
 
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 import cv2
@@ -35,6 +41,8 @@ class CameraModel:
     K: np.ndarray
     dist: np.ndarray
     image_size: tuple[int, int]
+    #: the balls' colour saved with this calibration (BallColour) or None (default green)
+    ball_colour: Any = None
 
     def __post_init__(self):
         self.K = np.asarray(self.K, dtype=float)
@@ -169,18 +177,24 @@ class CameraModel:
             fs.write("image_height", self.height)
             fs.write("camera_matrix", self.K)
             fs.write("distortion_coefficients", self.dist.reshape(1, -1))
+            if self.ball_colour is not None:
+                for k, v in self.ball_colour.to_dict().items():
+                    fs.write(f"ball_colour_{k}", int(v))
             fs.release()
         else:
             raise InputError(f"camera file {path.name}: use a .yml/.yaml/.xml (OpenCV) or .json name")
         return path
 
     def to_dict(self) -> dict:
-        return {
+        d = {
             "image_width": self.width,
             "image_height": self.height,
             "camera_matrix": self.K.tolist(),
             "distortion_coefficients": self.dist.tolist(),
         }
+        if self.ball_colour is not None:
+            d["ball_colour"] = self.ball_colour.to_dict()
+        return d
 
     @classmethod
     def load(cls, path: str | Path) -> "CameraModel":
@@ -221,6 +235,12 @@ class CameraModel:
                 node = fs.getNode(key)
                 if not node.empty():
                     data[key] = node.real()
+            from .ball_colour import FIELDS
+
+            colour = {k: fs.getNode(f"ball_colour_{k}").real() for k in FIELDS
+                      if not fs.getNode(f"ball_colour_{k}").empty()}
+            if colour:
+                data["ball_colour"] = colour
         finally:
             fs.release()
         return cls._from_mapping(data, path.name)
@@ -240,7 +260,12 @@ class CameraModel:
         problem = validate_intrinsics(K, dist, size)
         if problem:
             raise InputError(f"camera file {name}: {problem}")
-        return cls(K, dist, size)
+        colour = None
+        if data.get("ball_colour") is not None:
+            from .ball_colour import BallColour
+
+            colour = BallColour.from_dict(data["ball_colour"], f"camera file {name}: ball_colour")
+        return cls(K, dist, size, colour)
 
 
 def validate_intrinsics(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, int]) -> str:

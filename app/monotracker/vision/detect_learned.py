@@ -7,8 +7,14 @@ resolution and thresholded at ``threshold``; the resulting blobs go through the 
 scoring and sub-pixel refinement as the classical detector
 (:func:`~monotracker.vision.detection.analyse_blobs`): the network decides *where balls are*
 (it was trained to ignore stray green blobs, the clip and occluders), the colour image gives
-the sub-pixel geometry. The paper uses YOLOv8-seg (~10 fps on a GPU); this one is ~70 kB and
-runs in ~6-10 ms on 2 CPU cores.
+the sub-pixel geometry. The paper uses YOLOv8-seg (~10 fps on a GPU); this one is ~70 kB.
+
+Opt-in only (issue 13 measured it on photo-like frames, ``benchmarks/camera_pipeline.py``): it
+costs ~30 ms CPU per 1280x720 frame (the classical detector ~10), above the 10 ms budget; it
+misses half the balls at 5 px radius and in dark, blurred, noisy frames; above ~13 px radius its
+mask turns into rings. It was trained on the simple render. So the classical detector is the
+only default; this one refuses a frame (``Detection.refusal``, no fiducials) when it sees rings
+or nothing, rather than guessing.
 """
 
 from __future__ import annotations
@@ -104,6 +110,39 @@ class LearnedDetector:
         return out
 
     def detect(self, image: np.ndarray) -> Detection:
+        """Balls in ``image``; a refusal (``Detection.refusal``, no fiducials) instead of a guess
+        when the network outputs rings (balls larger than it was trained on) or nothing."""
         t0 = time.perf_counter()
-        accepted, rejected = analyse_blobs(image, self.mask(image), self.rules, self.name)
-        return Detection(accepted, rejected, time.perf_counter() - t0, self.name)
+        mask = self.mask(image)
+        rings = _ring_blobs(mask)
+        accepted, rejected = analyse_blobs(image, mask, self.rules, self.name)
+        refusal = ""
+        if rings and len(rings) >= len(accepted):
+            refusal = (f"learned detector: {len(rings)} ring-shaped outputs (balls larger than its ~5-12 px "
+                       "training radius?); use the classical detector")
+        elif not accepted:
+            refusal = ("learned detector: no balls found (motion blur, a dark frame or ball sizes outside its "
+                       "training range?); the classical detector is the default")
+        if refusal:
+            rejected = rejected + accepted
+            accepted = []
+        return Detection(accepted, rejected, time.perf_counter() - t0, self.name, refusal)
+
+
+def _ring_blobs(mask: np.ndarray) -> list:
+    """Outer contours of ``mask`` blobs with a hole of >= 15 % of their area (a ring, not a disc)."""
+    contours, hierarchy = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+    if hierarchy is None:
+        return []
+    out = []
+    for i, (nxt, prev, child, parent) in enumerate(hierarchy[0]):
+        if parent != -1 or child == -1:
+            continue
+        area = cv2.contourArea(contours[i])
+        holes, c = 0.0, child
+        while c != -1:
+            holes += cv2.contourArea(contours[c])
+            c = hierarchy[0][c][0]
+        if area > 0 and holes >= 0.15 * area:
+            out.append(contours[i])
+    return out

@@ -5,13 +5,21 @@ in the distorted image, semi-axes px, angle deg, score in [0, 1]) and the reject
 with the reason. ``centres`` ((n, 2) float64 px) is what goes to the registration, together
 with the sphere radius so that the ellipse-centre bias is corrected there.
 
-Sub-pixel centre (:func:`refine_blob`): the centroid of a soft mask. The weight of a pixel is
+Sub-pixel centre, ``centre_method="edge"`` (the default): the ball's edge is unmixed from its
+local background ray by ray in linear radiance and an ellipse is fitted to it
+(:mod:`monotracker.vision.edge_fit`); it holds under lens blur, gloss, shading and any
+background colour. A ball whose edge fit is refused (cut by an occluder, no contrast) is
+rejected with that reason.
+
+``centre_method="chroma"`` (the previous method, kept as the benchmark's baseline;
+:func:`refine_blob`): the centroid of a soft mask. The weight of a pixel is
 its green chromaticity ``(G - R) / (B + G + R)`` mapped linearly from the local background level
 (median of a ring around the blob) to the blob's interior level (median of its eroded core)
 and clipped to [0, 1]. Chromaticity does not depend on shading, so the lit and the shadowed
 side of a ball weigh the same, and anti-aliased edge pixels get fractional weight: the
 centroid is that of the silhouette, i.e. the ellipse centre (an ellipse's area centroid is its
-centre), to ~0.1 px.
+centre), to ~0.1 px on sharp frames; under lens blur it is pulled towards backgrounds of
+positive green chromaticity (blue drape: ~1 px).
 
 Shape score (:func:`score_blob`): product of four factors, each 1 for a clean sphere image:
 * boundary fit: RMS radial deviation (px) of the blob contour from the ellipse fitted by
@@ -31,6 +39,11 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
+from .edge_fit import fit_ball_edges
+
+#: sub-pixel centre methods of :func:`analyse_blobs`
+CENTRE_METHODS = ("edge", "chroma")
 
 
 @dataclass
@@ -56,6 +69,9 @@ class Detection:
     rejected: list
     time_s: float = 0.0
     detector: str = ""
+    #: '' or why this detector declines the frame (one line; e.g. the learned detector seeing
+    #: rings or nothing); its ``fiducials`` are then empty
+    refusal: str = ""
 
     @property
     def centres(self) -> np.ndarray:
@@ -150,9 +166,12 @@ def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[floa
 
 
 def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detector: str,
-                  refine_image: np.ndarray | None = None) -> tuple[list, list]:
+                  refine_image: np.ndarray | None = None, centre_method: str = "edge") -> tuple[list, list]:
     """Contours of a binary ``mask`` -> (accepted, rejected) :class:`ImageFiducial` lists.
-    ``refine_image`` (default ``image``) is the full-resolution BGR image for sub-pixel centres."""
+    ``refine_image`` (default ``image``) is the full-resolution BGR image for sub-pixel centres;
+    ``centre_method`` one of :data:`CENTRE_METHODS` (see the module docstring)."""
+    if centre_method not in CENTRE_METHODS:
+        raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {centre_method!r}")
     refine_image = image if refine_image is None else refine_image
     h, w = mask.shape[:2]
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
@@ -173,12 +192,16 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
                                           "too large for a fiducial"))
             continue
         score, feats, ell = score_blob(cnt, inner_area, rules)
-        ref = refine_blob(refine_image, cnt)
+        if centre_method == "chroma":
+            ref = refine_blob(refine_image, cnt)
+        else:        # the edge fit below gives the centre (and refuses a blob without contrast)
+            ref = (np.array(ell[0], float), area, None) if ell is not None else None
         if ell is None or ref is None:
             rejected.append(ImageFiducial(np.array([x + bw / 2, y + bh / 2]), (bw / 2, bh / 2), 0.0, 0.0, area,
                                           feats.get("why", "no contrast")))
             continue
         centre, soft_area, _ = ref
+        feats["contour_ellipse"] = cv2.fitEllipse(cnt)
         cands.append(ImageFiducial(centre, ell[1], float(ell[2]), score, soft_area, "", feats))
     # size consensus: balls lie at similar depths, so their minor axes agree
     good = [c.axes_px[1] for c in cands if c.score >= rules.min_score]
@@ -189,8 +212,22 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
             f_size = float(np.exp(-(max(rel - 0.12, 0.0) / 0.12) ** 2))
             c.features["f_size"] = f_size
             c.score *= f_size
+    edge_fits = {}
+    if centre_method == "edge":      # one batch for all candidates that passed the shape test
+        good = [i for i, c in enumerate(cands) if c.score >= rules.min_score]
+        fits = fit_ball_edges(refine_image, [cands[i].features["contour_ellipse"] for i in good])
+        edge_fits = dict(zip(good, fits))
     accepted = []
-    for c in cands:
+    for i, c in enumerate(cands):
+        c.features.pop("contour_ellipse")
+        fit = edge_fits.get(i)
+        if fit is not None:
+            c.features.update(edge_rms_px=fit.rms_px, edge_rays_kept=fit.kept)
+            if not fit.ok:
+                c.reason = fit.reason
+                rejected.append(c)
+                continue
+            c.centre_px = fit.centre_px
         if c.score >= rules.min_score:
             accepted.append(c)
         else:

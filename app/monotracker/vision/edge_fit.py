@@ -1,0 +1,332 @@
+"""Sub-pixel ball centre from its edge: per-ray colour unmixing + a robust ellipse fit.
+
+Why not a colour-weighted centroid: where lens blur mixes a ball with its background, a
+chromaticity weight is not the pixel's coverage (it depends on the background's colour and on
+its brightness relative to the ball), so the centroid is pulled towards backgrounds that look a
+little like the ball (blue drape has positive green chromaticity: ~1 px), and a specular
+highlight or a dark limb pulls it too.
+
+What this module does instead, for one ball given a coarse ellipse (px, distorted image):
+
+1. **Linear radiance.** The 8-bit image is linearised with a display gamma (2.2): blur mixes
+   light linearly, gamma-encoded values do not.
+2. **Rays.** ``n`` rays from the coarse centre are sampled (bilinear, 0.25 px steps) from well
+   inside the ball to beyond its blurred edge.
+3. **Unmixing.** A pixel on the edge sees ``p = a * B + (1 - a) * G``: ``a`` the ball's
+   coverage after blur, ``B`` the ball's radiance there, ``G`` the background's. Shading only
+   scales ``B`` (Lambert: same colour, other brightness), so ``p = alpha * b + gamma * G``
+   with ``b`` the ball's colour direction (median over all rays of the inner samples:
+   robust to a highlight) and ``G`` measured per ray just outside the edge (any background
+   colour, a different one on each side of a ball on the head's outline). The coefficient
+   ``gamma = 1 - a`` is the background fraction, whatever the shading.
+4. **Edge per ray** = ``s_in + integral of (1 - gamma) ds`` over the ray window: for any
+   symmetric blur (defocus disc, Gaussian, pixel box, demosaicing) this is the position where
+   coverage crosses one half, without a threshold and without sensitivity to noise.
+5. **Ellipse.** ``cv2.fitEllipse`` on the edge points, then rays whose edge lies off the
+   ellipse (hair, an occluder's edge, a highlight at the rim) are dropped (robust scale from
+   the median absolute deviation) and the ellipse refitted; the rays are re-centred on the new
+   ellipse once. The ellipse centre is the centre of the 50 %-coverage silhouette: the sphere's
+   image-ellipse centre, which the registration corrects to the sphere centre.
+
+Refusals (``ok`` False with a reason): too few usable rays (low colour contrast against the
+background all round), too many rays off the ellipse (a cut ball: an occluder's straight
+edge), or a refit that moved far from the coarse ellipse. Cost: ~0.3-1 ms per ball.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+#: 8-bit display value -> linear radiance (gamma 2.2), float32
+LINEAR_LUT = ((np.arange(256, dtype=np.float64) / 255.0) ** 2.2).astype(np.float32)
+
+#: linear BGR -> the space of the unmixing: luma (full weight) and two colour differences
+#: (down-weighted: JPEG and Bayer sampling keep colour at half resolution and quantise it harder)
+CHROMA_WEIGHT = 0.35
+COLOUR_WEIGHTS = np.array([[0.114, 0.587, 0.299],
+                           [CHROMA_WEIGHT * 0.886, -CHROMA_WEIGHT * 0.587, -CHROMA_WEIGHT * 0.299],
+                           [-CHROMA_WEIGHT * 0.114, -CHROMA_WEIGHT * 0.587, CHROMA_WEIGHT * 0.701]], np.float32)
+
+#: refuse a ball when more than this share of its rays see an edge well inside the ellipse
+CUT_SHARE = 0.15
+
+#: a fitted edge must be at least this round (minor / major axis) and this smooth (RMS px)
+MIN_AXIS_RATIO = 0.8
+MAX_EDGE_RMS_PX = 0.5
+
+#: largest relative residual of the ball/background unmixing inside a ray's edge window
+MAX_UNMIX_RESIDUAL = 0.12
+
+#: a usable ray needs at least this share of the rays (else the fit is refused)
+MIN_RAY_SHARE = 0.6
+
+
+@dataclass
+class EdgeFit:
+    """Result of :func:`fit_ball_edge`. ``centre_px`` (2,), ``axes_px`` (semi-major, semi-minor),
+    ``angle_deg`` (OpenCV fitEllipse convention), ``rms_px`` (edge residual RMS of the kept
+    rays), ``kept`` (share of rays kept), ``ok``, ``reason``."""
+
+    ok: bool
+    reason: str = ""
+    centre_px: np.ndarray | None = None
+    axes_px: tuple = (0.0, 0.0)
+    angle_deg: float = 0.0
+    rms_px: float = float("nan")
+    kept: float = 0.0
+
+
+def _median(x: np.ndarray) -> float:
+    """Median of a 1-D array (np.median's checks cost more than the work here)."""
+    n = len(x)
+    p = np.partition(x, [(n - 1) // 2, n // 2])
+    return 0.5 * float(p[(n - 1) // 2] + p[n // 2])
+
+
+def _ray_radius(axes, angle_deg, phi):
+    """Distance (px) from an ellipse's centre to its boundary along image direction ``phi``."""
+    a, b = axes
+    t = phi - np.radians(angle_deg)
+    return 1.0 / np.sqrt((np.cos(t) / a) ** 2 + (np.sin(t) / b) ** 2)
+
+
+def _ellipse_residuals(pts, ell):
+    """Approximate signed distance (px) of points from an OpenCV ellipse ((cx, cy), (d1, d2), ang)."""
+    (cx, cy), (d1, d2), ang = ell
+    th = np.radians(ang)
+    c, s = np.cos(th), np.sin(th)
+    q = pts - [cx, cy]
+    u = q[:, 0] * c + q[:, 1] * s
+    v = -q[:, 0] * s + q[:, 1] * c
+    au, av = d1 / 2, d2 / 2
+    rho = np.sqrt((u / au) ** 2 + (v / av) ** 2)
+    grad = np.sqrt((u / au**2) ** 2 + (v / av**2) ** 2) / np.maximum(rho, 1e-9)
+    return (rho - 1.0) / np.maximum(grad, 1e-9)
+
+
+#: samples per ray (the step adapts to the ball's size: ~0.2-0.4 px)
+SAMPLES = 48
+
+
+def _edge_points(image_bgr, balls, blur_px):
+    """Edge points of several balls at once. ``balls``: list of coarse OpenCV ellipses
+    ((cx, cy), (d1, d2), angle_deg). Returns per ball (points (n, 2) px, usable (n,) bool), or None
+    for a ball too close to the image border."""
+    h, w = image_bgr.shape[:2]
+    k = SAMPLES
+    profs, geo, out = [], [], [None] * len(balls)
+    for i, ((cx, cy), (d1, d2), ang) in enumerate(balls):
+        axes = (d1 / 2, d2 / 2)
+        a, b = max(axes), min(axes)
+        n_rays = int(np.clip(2 * np.pi * a / 1.6, 32, 96))
+        phi = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
+        r = _ray_radius(axes, ang, phi)
+        w_out = 3.0 + 0.25 * b + blur_px
+        w_in = min(w_out, 0.65 * float(r.min()))
+        step = (w_in + w_out) / (k - 1)
+        m = int(np.ceil(a + w_out + 2))
+        x0, y0 = int(np.floor(cx)) - m, int(np.floor(cy)) - m
+        x1, y1 = int(np.floor(cx)) + m + 2, int(np.floor(cy)) + m + 2
+        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+            continue
+        lin = LINEAR_LUT[image_bgr[y0:y1, x0:x1]]
+        s = (r - w_in)[:, None] + (np.arange(k) * step)[None, :]              # (n, k) from centre
+        u = np.stack([np.cos(phi), np.sin(phi)], 1)
+        mx = (cx - x0 + s * u[:, 0:1]).astype(np.float32)
+        my = (cy - y0 + s * u[:, 1:2]).astype(np.float32)
+        profs.append(cv2.remap(lin, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+        geo.append((i, n_rays, np.array([cx, cy]), u, r - w_in, step))
+    if not profs:
+        return out
+    prof = np.concatenate(profs, 0) @ COLOUR_WEIGHTS.T                          # (N, k, 3)
+    N = len(prof)
+    counts = [g[1] for g in geo]
+    step = np.repeat([g[5] for g in geo], counts)                               # (N,)
+    edge_k = max(k // 10, 3)
+    # ball colour direction per ball: median of the unit colour vectors of its inner samples
+    inner = prof[:, :edge_k]
+    inner = inner / (np.sqrt(np.einsum("nkc,nkc->nk", inner, inner))[..., None] + 1e-9)
+    bdirs, start = [], 0
+    for c in counts:
+        v = inner[start:start + c].reshape(-1, 3)
+        mid = len(v) // 2
+        bd = np.partition(v, mid, axis=0)[mid]
+        bdirs.append(bd / (np.linalg.norm(bd) + 1e-12))
+        start += c
+    bdir = np.repeat(np.array(bdirs), counts, axis=0)                           # (N, 3)
+    # background per ray and per sample: a line through the means of the two outer eighths of
+    # the ray (skin shading and drape folds vary along the ray)
+    half = k // 8
+    G1 = prof[:, k - 2 * half:k - half].mean(1)
+    G2 = prof[:, k - half:].mean(1)
+    slope = (G2 - G1) / half                                                    # per sample
+    t = (np.arange(k) - (k - 1.5 * half - 0.5)).astype(np.float32)[None, :]    # G(t) = G1 + t slope
+    # per sample: p = alpha * bdir + gamma * G(t)  ->  gamma from the 2x2 normal equations
+    dot = np.einsum
+    bg = dot("nc,nc->n", G1, bdir)[:, None] + t * dot("nc,nc->n", slope, bdir)[:, None]
+    gg = (dot("nc,nc->n", G1, G1)[:, None] + 2 * t * dot("nc,nc->n", G1, slope)[:, None]
+          + t * t * dot("nc,nc->n", slope, slope)[:, None])
+    pb = (prof @ bdir[:, :, None])[..., 0]
+    pg = (prof @ G1[:, :, None])[..., 0] + t * (prof @ slope[:, :, None])[..., 0]
+    det = gg - bg**2
+    good_det = det > 1e-12
+    gamma = np.clip((pg - bg * pb) / np.where(good_det, det, 1.0), 0.0, 1.0)
+    Gm = 0.5 * (G1 + G2)
+    gnorm = np.sqrt(np.einsum("ij,ij->i", Gm, Gm))
+    usable = (np.einsum("ij,ij->i", Gm, bdir) < 0.995 * gnorm) & (gnorm > 1e-4) & good_det.all(axis=1)
+    # the background must follow the line (a hair strand or an occluder's edge in it would
+    # bias this ray)
+    usable &= np.abs(gamma[:, k - 2 * half:] - 1.0).max(1) < 0.2
+    # integrate only near the edge: from the outermost sample still mostly ball (gamma < 0.5),
+    # +-(1.5 + blur) px; ball shading, a highlight or hair further inside cannot move the edge
+    below = gamma < 0.5
+    j_half = (k - 1) - np.argmax(below[:, ::-1], axis=1)                       # last gamma < 0.5
+    half_w = np.ceil((1.5 + blur_px) / step).astype(int)
+    j_lo = np.maximum(j_half - half_w, 0)     # small balls: from the ray's start (checked below)
+    usable &= below.any(axis=1)
+    cum = np.concatenate([np.zeros((N, 1), np.float32), np.cumsum(1.0 - gamma, axis=1)], axis=1)
+    rows = np.arange(N)
+    j_hi = np.minimum(j_half + half_w + 1, k)
+    # the ball side of the window must be ball (a highlight further in is allowed)
+    ball_side = (cum[rows, np.minimum(j_lo + edge_k, k)] - cum[rows, j_lo]) / edge_k
+    # (threshold adapts to the noise of gamma, measured on the clean background of each ball:
+    # a highlight spilling into the edge window shows as gamma > 0 on the ball side)
+    g_noise = np.std(gamma[:, k - 2 * half:], axis=1)
+    starts = np.cumsum([0] + counts[:-1])
+    noise_ball = np.repeat([_median(g_noise[a:a + c]) for a, c in zip(starts, counts)], counts)
+    usable &= ball_side > 1.0 - np.clip(0.08 + 2.0 * noise_ball, 0.08, 0.25)
+    # a third colour in the edge window (the head's outline meeting the drape right at the
+    # ball, an instrument's edge) is outside the span of ball and background: the unmixing's
+    # residual, relative to the pixel, says so
+    pp = np.einsum("nkc,nkc->nk", prof, prof)
+    proj = (gg * pb**2 - 2.0 * bg * pb * pg + pg**2) / np.where(good_det, det, 1.0)
+    resid = np.sqrt(np.clip(pp - proj, 0.0, None) / np.maximum(pp, 1e-12))
+    jj = np.arange(k)[None, :]
+    win = (jj >= j_lo[:, None]) & (jj < j_hi[:, None])
+    usable &= np.where(win, resid, 0.0).max(axis=1) < MAX_UNMIX_RESIDUAL
+    edge_rel = (j_lo - 0.5 + (cum[rows, j_hi] - cum[rows, j_lo])) * step        # from the ray start
+    start = 0
+    for (i, n, c, u, s0, _st), cnt in zip(geo, counts):
+        e = s0 + edge_rel[start:start + cnt]
+        out[i] = (c[None, :] + e[:, None] * u, usable[start:start + cnt])
+        start += cnt
+    return out
+
+
+def _coherent_arc(res: np.ndarray, usable: np.ndarray, radius_px: float) -> bool:
+    """True when the edge residuals (px, rays in angular order) of the usable rays contain an
+    arc of ~1/10 of the rays that lies off the ellipse together (a chord, a dent) by more than
+    max(0.3 px, 3 % of the radius) beyond what their ray-to-ray scatter explains."""
+    width = max(5, (len(res) // 10) | 1)
+    r = np.where(usable, res, 0.0)
+    w = usable.astype(float)
+    kern = np.ones(width)
+    pad = width // 2
+    rs = np.convolve(np.r_[r[-pad:], r, r[:pad]], kern, "valid")
+    ws = np.convolve(np.r_[w[-pad:], w, w[:pad]], kern, "valid")
+    ok = ws >= width - 1
+    if not ok.any():
+        return False
+    smooth = rs[ok] / ws[ok]
+    scatter = 1.4826 * _median(np.abs(np.diff(res[usable]))) / np.sqrt(2)
+    # an occluder hides: its chord lies inside the ellipse fitted through the rest
+    return bool(-np.min(smooth) > max(0.3, 0.03 * radius_px) + 3.0 * scatter / np.sqrt(width))
+
+
+def _robust_ellipse(pts, usable):
+    """Ellipse through the usable edge points, rays off it dropped (3 x MAD scale, >= 0.08 px).
+    Returns (ellipse, kept mask, rms px) or None when too few rays remain."""
+    n = len(pts)
+    keep = usable.copy()
+    for _ in range(3):
+        if keep.sum() < max(MIN_RAY_SHARE * n, 6):
+            return None
+        ell = cv2.fitEllipse(pts[keep].astype(np.float32))
+        res = _ellipse_residuals(pts, ell)
+        kr = res[keep]
+        med = _median(kr)
+        scale = max(1.4826 * _median(np.abs(kr - med)), 0.08)
+        keep_next = usable & (np.abs(res - med) < 3.0 * scale)
+        if np.array_equal(keep_next, keep):
+            break
+        keep = keep_next
+    else:
+        if keep.sum() < max(MIN_RAY_SHARE * n, 6):
+            return None
+        ell = cv2.fitEllipse(pts[keep].astype(np.float32))
+        res = _ellipse_residuals(pts, ell)
+    return ell, keep, float(np.sqrt(np.mean(res[keep] ** 2)))
+
+
+def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float = 2.0) -> list:
+    """Fit the edges of several balls (see the module docstring): ``ellipses`` the coarse
+    OpenCV ellipses ((cx, cy), (d1, d2), angle_deg) in px (full axes, as cv2.fitEllipse gives
+    them); ``blur_px`` an upper guess of the edge blur (px). One :class:`EdgeFit` per ellipse."""
+    res: list = [None] * len(ellipses)
+    todo = []
+    for i, e in enumerate(ellipses):
+        if min(e[1]) < 3.0:
+            res[i] = EdgeFit(False, "ball too small for an edge fit")
+        else:
+            todo.append(i)
+    current = {i: ellipses[i] for i in todo}
+    for it in range(2):
+        ids = list(current)
+        if not ids:
+            break
+        pts_all = _edge_points(image_bgr, [current[i] for i in ids], blur_px)
+        again = {}
+        for i, got in zip(ids, pts_all):
+            if got is None:
+                res[i] = EdgeFit(False, "too close to the image border")
+                continue
+            pts, usable = got
+            if usable.sum() < MIN_RAY_SHARE * len(pts):
+                res[i] = EdgeFit(False, "ball edge has too little contrast against its background")
+                continue
+            fit = _robust_ellipse(pts, usable)
+            if fit is None:
+                res[i] = EdgeFit(False, "ball edge not elliptic (cut by an occluder?)")
+                continue
+            ell, keep, rms = fit
+            (cx, cy), (d1, d2), ang = ell
+            # an occluder (or the head's outline) cutting the ball puts the edge of a whole arc
+            # of rays well inside the fitted ellipse: refuse rather than report a biased centre
+            res_all = _ellipse_residuals(pts[usable], ell)
+            if np.mean(res_all < -(0.6 + 0.06 * min(d1, d2) / 2)) > CUT_SHARE:
+                res[i] = EdgeFit(False, "ball edge cut (hidden by an occluder?)")
+                continue
+            # a sphere images as a near-circle (axis ratio = cos of the off-axis angle, >= 0.8
+            # within a 70 deg field of view) with a smooth edge; a chord fitted into the ellipse
+            # squashes it or leaves a large residual
+            if min(d1, d2) < MIN_AXIS_RATIO * max(d1, d2):
+                res[i] = EdgeFit(False, "ball edge not round (cut by an occluder?)")
+                continue
+            if _coherent_arc(_ellipse_residuals(pts, ell), usable, min(d1, d2) / 2):
+                res[i] = EdgeFit(False, "ball edge has a flat or dented arc (cut by an occluder?)")
+                continue
+            if rms > MAX_EDGE_RMS_PX:
+                res[i] = EdgeFit(False, f"ball edge irregular (residual {rms:.2f} px; cut by an occluder?)")
+                continue
+            c0 = np.array(ellipses[i][0], float)
+            if np.hypot(cx - c0[0], cy - c0[1]) > 0.35 * min(ellipses[i][1]) / 2 + 1.0:
+                res[i] = EdgeFit(False, "edge fit moved far from the blob (not a ball edge)")
+                continue
+            res[i] = EdgeFit(True, "", np.array([cx, cy]), (max(d1, d2) / 2, min(d1, d2) / 2), float(ang), rms,
+                             float(keep.mean()))
+            moved = np.hypot(cx - current[i][0][0], cy - current[i][0][1])
+            if it == 0 and moved > 0.6:
+                again[i] = ell   # re-centre the rays once (an oblique ray still finds the edge)
+        current = again
+    return res
+
+
+def fit_ball_edge(image_bgr: np.ndarray, centre_px, axes_px, angle_deg: float, blur_px: float = 2.0) -> EdgeFit:
+    """One ball: :func:`fit_ball_edges` with the coarse ellipse given by ``centre_px`` (px),
+    semi-axes ``axes_px`` (px, in the order of ``angle_deg``'s OpenCV convention)."""
+    ell = ((float(centre_px[0]), float(centre_px[1])), (2 * float(axes_px[0]), 2 * float(axes_px[1])),
+           float(angle_deg))
+    return fit_ball_edges(image_bgr, [ell], blur_px)[0]
