@@ -31,6 +31,8 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="simulator noise seed")
     p.add_argument("--home", type=Path, default=None, help="session folder (default: a temporary one)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="record frames, detections, poses, robot and alerts into DIR (replay with `monotracker replay DIR`)")
     p.set_defaults(func=_demo)
 
 
@@ -40,7 +42,7 @@ def _demo(args) -> int:
     from monotracker.engine.demo import DemoOptions, format_report, report_json, run_demo
 
     opts = DemoOptions(seconds=args.seconds, trajectory=args.trajectory, fault=args.fault, fault_at_s=args.fault_at,
-                       seed=args.seed, home=args.home)
+                       seed=args.seed, home=args.home, record=args.record)
     r = run_demo(opts)
     print(report_json(r) if args.json else format_report(r))
     sys.stdout.flush()

@@ -32,7 +32,9 @@ class PoseSample:
     id -> "seen"|"newly_lost"|"occluded"|"unknown"; ``residuals_px`` id -> px; ``fre_mm``;
     ``predicted_tre_mm`` at the planned target. Simulator only: ``truth_T_cam_ct`` and
     ``truth_tre_mm`` (error at the planned target vs truth, mm). ``raw``: the package's own
-    estimate object (for the UI overlay)."""
+    estimate object (for the UI overlay). ``frame``: what the estimate was computed from (the BGR
+    image for image cameras, a :class:`~monotracker.engine.vision_rig.SimFrame` of points for
+    "sim-points"; None when unknown), for session recording."""
 
     t_capture: float
     frame_index: int
@@ -48,6 +50,7 @@ class PoseSample:
     truth_T_cam_ct: np.ndarray | None = None
     truth_tre_mm: float | None = None
     raw: object = None
+    frame: object = None
 
 
 @dataclass

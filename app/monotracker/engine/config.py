@@ -18,7 +18,8 @@ class SessionConfig:
 
     ``home``: folder for ``plan.json``, ``audit.sqlite`` and logs (None = ``paths.data_dir()``).
     ``camera``: ``"sim"`` (rendered digital-twin camera) ``| "sim-points"`` (twin at the level of
-    detected points) ``| "device:0" | "file:/path/video.mp4" | "folder:/path"``.
+    detected points) ``| "device:0" | "file:/path/video.mp4" | "folder:/path" | "replay:/path"`` (a
+    session recording, ``monotracker.interop.recording``).
     ``trajectory``: simulated head motion (``"still" | "drift" | "breathing" | "jumps"``, see
     ``monotracker.sim.trajectories``, or a trajectory object with ``pose(t)``; sim only).
     ``robot``: ``"sim" | "ur:<ip>"``. ``arm_pin``: the operator PIN that ``arm(pin)`` checks.
@@ -71,9 +72,10 @@ class SessionConfig:
             raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
         if self.clock not in ("real", "sim"):
             raise InputError(f"clock must be 'real' or 'sim', not {self.clock!r}")
-        if not (self.camera in ("sim", "sim-points") or self.camera.split(":", 1)[0] in ("device", "file", "folder")):
-            raise InputError("camera must be 'sim', 'sim-points', 'device:N', 'file:PATH' or 'folder:PATH', "
-                             f"not {self.camera!r}")
+        if not (self.camera in ("sim", "sim-points")
+                or self.camera.split(":", 1)[0] in ("device", "file", "folder", "replay")):
+            raise InputError("camera must be 'sim', 'sim-points', 'device:N', 'file:PATH', 'folder:PATH' or "
+                             f"'replay:DIR' (a session recording), not {self.camera!r}")
         if not (self.robot == "sim" or self.robot.startswith("ur:")):
             raise InputError(f"robot must be 'sim' or 'ur:<ip>', not {self.robot!r}")
         if self.camera_fps <= 0 or self.control_hz <= 0:

@@ -63,6 +63,7 @@ class DemoOptions:
     settle_s: float = 2.0
     home: Path | None = None
     pin: str = "1234"
+    record: Path | None = None  # record the session into this folder (monotracker.interop.recording)
     #: SessionConfig fields to override (e.g. the benchmark's "no gate" baseline)
     config_overrides: dict = field(default_factory=dict)
 
@@ -182,6 +183,10 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         setup_steps.append("sample CT loaded, detected fiducials confirmed, sample plan set")
     else:
         setup_steps.append("saved plan restored")
+    if opts.record is not None:
+        r = s.start_recording(opts.record)
+        if not r.ok:
+            raise MonoTrackerError(f"--record: {r.message}")
     r = s.start_camera()
     if not r.ok:
         raise MonoTrackerError(f"camera: {r.message}")
@@ -220,6 +225,10 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         if not r.ok:
             raise MonoTrackerError(f"fault injection: {r.message}")
     s.advance(max(0.0, t_end - s.snapshot().t))
+    recording = None
+    if opts.record is not None:
+        r = s.stop_recording()
+        recording = {"path": str(opts.record), "ok": r.ok, "message": r.message}
     wall = time.perf_counter() - wall0
     wall_loop = time.perf_counter() - wall_loop0
     cpu = time.process_time() - cpu0
@@ -256,6 +265,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         "tracking_fraction": len(trk) / max(1, len([r for r in rec.rows if settle_from <= r[0] < until])),
         "latency_ms": _stats(lat),
         "final_state": snap.robot.state,
+        "recording": recording,
         "alerts": [{"t": round(a.t_session, 3), "level": a.level, "code": a.code, "message": a.message}
                    for a in alerts],
     }
@@ -305,6 +315,8 @@ def format_report(r: dict) -> str:
         f"  needle axis error   : {st(r['axis_error_deg'], 'deg')}",
         f"  latency             : {st(r['latency_ms'], 'ms', 1)} capture -> command",
         f"  final robot state   : {r['final_state']}",
+    ] + ([f"  recording           : {r['recording']['message']} ({r['recording']['path']})"]
+         if r.get("recording") else []) + [
         f"  alerts ({len(r['alerts'])})" + (":" if r["alerts"] else ""),
     ]
     for a in r["alerts"][:20]:

@@ -35,6 +35,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed
     s.inject_fault(name)                # sim only: "camera-freeze"|"occlude-all"|"robot-disconnect"|"bad-pose"|"none"
     s.export_slicer_markups(folder) -> list[Path]   # .mrk.json, LPS
+    s.start_recording(folder); s.stop_recording()   # frames + detections + poses + robot + alerts
+                                        # to a folder (docs/interop.md); state in snap.recording
 
     snap = s.snapshot()   # immutable copy (monotracker.engine.snapshot.Snapshot), cheap at 30 Hz
     snap.step             # "ct" | "plan" | "register" | "robot": the workflow step the session is at
@@ -50,6 +52,7 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     snap.robot            # RobotSummary(state "disarmed"|"armed"|"tracking"|"holding"|"estopped", q rad,
                           #   tip_error_mm, angle_error_deg, speed_mm_s, connected, message, latency_ms)
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
+    snap.recording        # None or RecordingSummary(path, frames, running, dropped, error)
     snap.alerts           # recent alerts (Event: t, t_session, kind, level "info"|"warning"|"alarm", code, message, data)
     s.volume()            # the loaded CT Volume (LPS mm) for read-only display, or None
     s.latest_frame()      # (image BGR uint8, frame_index, estimate) for the overlay, or None; estimate is
@@ -201,6 +204,7 @@ class Session:
         self._head_normals: np.ndarray | None = None
         self._started = False
         self._closed = False
+        self._recorder = None  # interop.recording.SessionRecorder while/after recording
         self._plan = Plan()
         self._restore_plan()
         # camera + loop + robot wiring (monotracker.engine.loop); created lazily
@@ -238,6 +242,7 @@ class Session:
             self._closed = True
         try:
             self._loop.shutdown()
+            self.stop_recording()
         finally:
             self._bus.event("session_shutdown", "session shut down")
             self._bus.stop()
@@ -621,6 +626,49 @@ class Session:
 
         return write_markups(self.plan_copy(), Path(folder))
 
+    # ================================================================== recording
+    def start_recording(self, folder) -> CommandResult:
+        """Record every estimated frame and what the engine made of it into ``folder`` (an empty or
+        new folder; layout in ``docs/interop.md``) until :meth:`stop_recording` or shutdown."""
+        from monotracker.interop.recording import SessionRecorder
+
+        with self._lock:
+            rec = self._recorder
+            if rec is not None and not rec._closed:
+                if rec.writer.running:
+                    return _fail(f"already recording to {rec.folder}")
+                rec.close()  # a failed recording: detach it before starting another
+            try:
+                self._recorder = SessionRecorder(self, folder)
+            except MonoTrackerError as exc:
+                return _fail(str(exc))
+        self._bus.event("recording_started", f"recording to {folder}", {"folder": str(folder)})
+        return _ok(f"recording to {folder}")
+
+    def stop_recording(self) -> CommandResult:
+        """Close the recording (manifest marked complete). Idempotent."""
+        rec = self._recorder
+        if rec is None or rec._closed:
+            return _ok("not recording")
+        m = rec.close()
+        if not m.get("complete"):
+            self._bus.alert("warning", "recording_failed", f"recording {rec.folder} is incomplete: "
+                            f"{m.get('error') or str(m.get('frames_dropped')) + ' frames dropped'}")
+            return _fail(f"recording {rec.folder} is incomplete")
+        self._bus.event("recording_stopped", f"recording closed: {m['frames']} frames in {rec.folder}",
+                        {"folder": str(rec.folder), "frames": m["frames"]})
+        return _ok(f"recording closed: {m['frames']} frames")
+
+    def _recording_summary(self):
+        from monotracker.engine.snapshot import RecordingSummary
+
+        rec = self._recorder
+        if rec is None:
+            return None
+        d = rec.summary()
+        return RecordingSummary(d["path"], int(d["frames"]), bool(d["running"]) and not rec._closed,
+                                int(d["dropped"]), d["error"])
+
     # ================================================================== snapshot
     def _plan_summary(self, plan: Plan) -> PlanSummary:
         e, t = plan.entry_lps_mm, plan.target_lps_mm
@@ -653,5 +701,5 @@ class Session:
             t=float(self.clock()), step=step, job=job, ct=ct, head_mesh=mesh, fiducials=fids,
             fiducials_locked=locked, plan=plan_summary, camera=camera, pose=pose, robot=robot, scene=scene,
             alerts=tuple(self._bus.recent("alert")[-50:]), plan_path=str(self._plan_path),
-            audit_path=str(self._audit.path),
+            audit_path=str(self._audit.path), recording=self._recording_summary(),
         )

@@ -165,6 +165,18 @@ class SceneGeometry:
 
 
 @dataclass(frozen=True)
+class RecordingSummary:
+    """Session recording (``Session.start_recording``): ``path`` the folder, ``frames`` written or
+    queued, ``running``, ``dropped`` frames lost (real clock, disk too slow), ``error`` one line."""
+
+    path: str
+    frames: int
+    running: bool
+    dropped: int = 0
+    error: str | None = None
+
+
+@dataclass(frozen=True)
 class Snapshot:
     """One consistent, immutable view of the session (see ``session.py`` for each field)."""
 
@@ -183,6 +195,7 @@ class Snapshot:
     alerts: tuple = field(default_factory=tuple)  # tuple[Event], newest last
     plan_path: str = ""
     audit_path: str = ""
+    recording: RecordingSummary | None = None  # None when no recording was made in this session
 
     @property
     def latest_alert(self) -> Event | None:

@@ -13,6 +13,8 @@ Three rigs, chosen by the camera source:
 * ``"device:N" | "file:PATH" | "folder:PATH"`` -- :class:`StreamRig`: vision's ``PoseStream`` on
   a real frame source (its own thread; clock="real" only), with the calibration file given to
   ``set_camera`` (``CameraModel.load``) or, without one, vision's default model and a warning.
+* ``"replay:DIR"`` -- :class:`StreamRig` on a session recording (``vision.replay_source``), paced
+  at the recorded frame times, with the recording's own calibration unless one is given.
 
 Both simulated rigs use the CT fiducials *confirmed in the plan* (from the CT detector), not the
 phantom's true centres, so CT detection error is part of the measured TRE; their truth (head
@@ -208,7 +210,9 @@ class SimImageRig(_SimRig):
         from monotracker.vision.frames import Frame
 
         est = self.tracker.process(Frame(frame.image, frame.t_capture, frame.index, frame.truth))
-        return self._finish(estimate_to_sample(est, self.fiducial_ids), np.asarray(frame.truth.T_cam_ct, float))
+        smp = self._finish(estimate_to_sample(est, self.fiducial_ids), np.asarray(frame.truth.T_cam_ct, float))
+        smp.frame = frame.image
+        return smp
 
     def latest_frame(self):
         fr, smp = self._last_frame, self._last_sample
@@ -290,7 +294,7 @@ class ProjectedFiducialRig(_SimRig):
         if n_pts < 4:
             self._prior = None
             smp = PoseSample(frame.t_capture, frame.index, False, f"{n_pts} fiducials visible (need 4)", None, n_pts,
-                             fiducial_status={fid: "occluded" for fid in self.fiducial_ids})
+                             fiducial_status={fid: "occluded" for fid in self.fiducial_ids}, frame=frame)
             return self._finish(smp, frame.truth_T_cam_ct)
         reg = register(self.fiducials_ct, frame.points_px, self.K, self.dist, radius_mm=self.radius_mm,
                        method="robust", prior=self._prior)
@@ -306,7 +310,7 @@ class ProjectedFiducialRig(_SimRig):
             t_capture=frame.t_capture, frame_index=frame.index, ok=bool(reg.ok), reason=reg.reason or "ok",
             T_cam_ct=reg.T_cam_ct if reg.ok else None, n_matched=len(reg.pairs) if reg.ok else 0,
             fiducial_status=status, residuals_px=residuals, fre_mm=float(reg.fre_mm) if reg.ok else None,
-            predicted_tre_mm=pred, raw=reg,
+            predicted_tre_mm=pred, raw=reg, frame=frame,
         )
         return self._finish(smp, frame.truth_T_cam_ct)
 
@@ -357,6 +361,11 @@ class StreamRig(CameraRig):
         kind, _, arg = source.partition(":")
         if kind == "device" and not arg.isdigit():
             raise MonoTrackerError(f"camera device must be a number, as in device:0 (got {source!r})")
+        if kind == "replay":
+            from monotracker.vision.replay_source import ReplaySource, calibration_path as recorded_calibration
+
+            replay = ReplaySource(arg, realtime=True)  # refuses an incomplete/corrupt recording (one line)
+            calibration_path = calibration_path or str(recorded_calibration(arg))
         if calibration_path:
             model = CameraModel.load(calibration_path)
         else:
@@ -367,7 +376,7 @@ class StreamRig(CameraRig):
         self.fiducial_ids = [f.id for f in plan.usable_fiducials()]
         radius = float(np.median([f.radius_mm for f in plan.usable_fiducials()]))
         try:
-            src = open_source(int(arg) if kind == "device" else arg)
+            src = replay if kind == "replay" else open_source(int(arg) if kind == "device" else arg)
         except MonoTrackerError:
             raise
         except Exception as exc:  # noqa: BLE001 - a camera that will not open is an operator problem
@@ -378,11 +387,17 @@ class StreamRig(CameraRig):
         self._lock = threading.Lock()
         self._frames: list[float] = []
         self._last_image = None
+        self._sample_cache = None
         self.stream.subscribe(self._on_estimate)
 
     def _on_estimate(self, est) -> None:
-        if est.camera == "ok":
-            with self._lock:
+        # runs on the stream thread right after the frame was processed: the newest frame read is
+        # the one this estimate came from (kept with it for session recording)
+        fr = self.source.latest
+        img = fr.image if fr is not None and fr.index == est.frame_index and est.camera == "ok" else None
+        with self._lock:
+            self._last_image = (est, img)
+            if est.camera == "ok":
                 self._frames.append(float(est.t_capture))
 
     def start(self) -> None:
@@ -403,8 +418,18 @@ class StreamRig(CameraRig):
         est = self.stream.latest()
         if est is None:
             return None
+        cached = self._sample_cache
+        if cached is not None and cached[0] is est:
+            return cached[1]  # the same estimate is the same sample (the loop handles each once)
+        with self._lock:
+            kept = self._last_image
+        if kept is None or kept[0] is not est:
+            # published but our subscriber (which pairs it with its image) has not run yet
+            return None if cached is None else cached[1]
         smp = estimate_to_sample(est, self.fiducial_ids)
         smp.t_ready = float(est.t_published)
+        smp.frame = kept[1]
+        self._sample_cache = (est, smp)
         return smp
 
     def latest_frame(self):

@@ -1,8 +1,9 @@
 """``monotracker serve``: the web app for the operating room.
 
     monotracker serve [--host 127.0.0.1] [--port 8080] [--allow-remote] [--sample]
-        [--camera sim|device:N|file:PATH|folder:PATH] [--calibration FILE]
+        [--camera sim|device:N|file:PATH|folder:PATH|replay:DIR] [--calibration FILE]
         [--robot sim|ur:IP] [--pin PIN] [--trajectory still|drift|breathing|jumps] [--home DIR]
+        [--record DIR]
 
 Serves on 127.0.0.1 unless ``--allow-remote`` is given (any other ``--host`` is refused
 without it: the page can move a robot). Arming needs the operator PIN: ``--pin`` or
@@ -35,12 +36,15 @@ def register(subparsers) -> None:
     p.add_argument("--allow-remote", action="store_true",
                    help="allow a --host other than this machine (the page can move the robot)")
     p.add_argument("--sample", action="store_true", help="load the bundled sample CT at start")
-    p.add_argument("--camera", default="sim", help="sim | sim-points | device:N | file:PATH | folder:PATH (default sim)")
+    p.add_argument("--camera", default="sim",
+                   help="sim | sim-points | device:N | file:PATH | folder:PATH | replay:DIR (default sim)")
     p.add_argument("--calibration", default=None, help="camera calibration file (OpenCV YAML/JSON) for a real camera")
     p.add_argument("--robot", default="sim", help="sim | ur:IP (default sim)")
     p.add_argument("--pin", default=None, help="operator PIN for arming (default $MONOTRACKER_PIN, else a random one)")
     p.add_argument("--trajectory", default="breathing", help="simulated head motion (sim camera only)")
     p.add_argument("--home", type=Path, default=None, help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="record frames, detections, poses, robot and alerts into DIR (`monotracker replay DIR`)")
     p.set_defaults(func=_serve)
 
 
@@ -90,6 +94,10 @@ def _serve(args) -> int:
             r = session.set_camera(args.camera, args.calibration)
             if not r.ok:
                 raise InputError(r.message)
+        if args.record is not None:
+            r = session.start_recording(args.record)
+            if not r.ok:
+                raise InputError(f"--record: {r.message}")
         session.start()
         if args.sample:
             snap = session.snapshot()
