@@ -64,6 +64,8 @@ class DemoOptions:
     home: Path | None = None
     pin: str = "1234"
     record: Path | None = None  # record the session into this folder (monotracker.interop.recording)
+    igtl_port: int | None = None  # stream to OpenIGTLink clients on this port (monotracker.interop.igtl)
+    allow_remote: bool = False  # OpenIGTLink on every interface, not only 127.0.0.1
     #: SessionConfig fields to override (e.g. the benchmark's "no gate" baseline)
     config_overrides: dict = field(default_factory=dict)
 
@@ -154,9 +156,20 @@ def run_demo(opts: DemoOptions, camera_factory=None, robot_factory=None, on_trac
                         clock="sim", camera_fps=opts.camera_fps, control_hz=opts.control_hz, seed=opts.seed,
                         **opts.config_overrides)
     s = Session(cfg, camera_factory=camera_factory, robot_factory=robot_factory)
+    streamer = None
     try:
-        return _run(s, opts, wall0, cpu0, on_tracking)
+        if opts.igtl_port is not None:
+            from monotracker.interop.igtl import IGTLStreamer
+
+            streamer = IGTLStreamer(s, opts.igtl_port, opts.allow_remote).start()
+        out = _run(s, opts, wall0, cpu0, on_tracking)
+        if streamer is not None:
+            out["igtl"] = {"host": streamer.host, "port": streamer.port, "sent": dict(streamer.sent),
+                           "epoch0": streamer.epoch0}
+        return out
     finally:
+        if streamer is not None:
+            streamer.stop()
         s.shutdown()
         if tmp is not None:
             tmp.cleanup()

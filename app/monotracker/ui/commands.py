@@ -3,7 +3,7 @@
     monotracker serve [--host 127.0.0.1] [--port 8080] [--allow-remote] [--sample]
         [--camera sim|device:N|file:PATH|folder:PATH|replay:DIR] [--calibration FILE]
         [--robot sim|ur:IP] [--pin PIN] [--trajectory still|drift|breathing|jumps] [--home DIR]
-        [--record DIR]
+        [--record DIR] [--igtl-port PORT]
 
 Serves on 127.0.0.1 unless ``--allow-remote`` is given (any other ``--host`` is refused
 without it: the page can move a robot). Arming needs the operator PIN: ``--pin`` or
@@ -45,6 +45,9 @@ def register(subparsers) -> None:
     p.add_argument("--home", type=Path, default=None, help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
     p.add_argument("--record", type=Path, default=None, metavar="DIR",
                    help="record frames, detections, poses, robot and alerts into DIR (`monotracker replay DIR`)")
+    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT",
+                   help="stream pose, needle, fiducials, path and status over OpenIGTLink (3D Slicer) on PORT "
+                        "(127.0.0.1 unless --allow-remote)")
     p.set_defaults(func=_serve)
 
 
@@ -86,7 +89,7 @@ def _serve(args) -> int:
                         trajectory=args.trajectory, clock="real")
     cfg.validate()
     session = Session(cfg)
-    app = None
+    app = streamer = None
     try:
         if args.calibration is not None:
             if not Path(args.calibration).exists():
@@ -99,6 +102,12 @@ def _serve(args) -> int:
             if not r.ok:
                 raise InputError(f"--record: {r.message}")
         session.start()
+        if args.igtl_port is not None:
+            from monotracker.interop.igtl import IGTLStreamer
+
+            streamer = IGTLStreamer(session, args.igtl_port, args.allow_remote).start()
+            print(f"OpenIGTLink: {streamer.host}:{streamer.port} (CTToCamera, NeedleTipToCT, Status, "
+                  "Fiducials, Path)", flush=True)
         if args.sample:
             snap = session.snapshot()
             if not snap.fiducials_locked:
@@ -122,4 +131,6 @@ def _serve(args) -> int:
     finally:
         if app is not None:
             app.stop()
+        if streamer is not None:
+            streamer.stop()
         session.shutdown()
