@@ -11,6 +11,8 @@ import pytest
 
 from monotracker.engine import Session, SessionConfig
 from monotracker.errors import InputError
+from monotracker.geometry import apply_transform
+from monotracker.sim.phantom import default_phantom
 
 
 @pytest.fixture
@@ -39,9 +41,10 @@ def test_replay_camera_reproduces_the_recorded_poses(image_recording, planned_ho
 
     def hook(loop, smp, trusted, now):
         with lock:
-            if getattr(smp.raw, "camera", "ok") == "ok":  # not the end-of-stream notice
+            cam = getattr(smp.raw, "camera", "ok")
+            if cam == "ok":
                 seen[smp.frame_index] = smp
-            else:
+            elif cam == "ended":  # the end-of-stream notice (a "stalled" notice can come on a loaded machine)
                 ended.set()
 
     s = Session(SessionConfig(home=home, camera=f"replay:{image_recording}", clock="real"))
@@ -63,11 +66,13 @@ def test_replay_camera_reproduces_the_recorded_poses(image_recording, planned_ho
     # the loop polls the newest estimate; on a loaded machine it may skip one now and then
     assert len(got) >= 0.8 * len(recorded)
     compared = 0
+    target = default_phantom().sample_target_lps
     for i, smp in got.items():  # replay frame i (from 0) is recorded row i
         rec = recorded[i]
         assert smp.ok == rec["ok"]
         if rec["ok"]:
-            assert np.abs(np.asarray(smp.T_cam_ct) - np.asarray(rec["T_cam_ct"])).max() < 1e-9
+            d = apply_transform(np.asarray(smp.T_cam_ct), target) - apply_transform(np.asarray(rec["T_cam_ct"]), target)
+            assert np.linalg.norm(d) <= 1e-3
             compared += 1
     assert compared >= 0.8 * len(recorded)
 

@@ -51,6 +51,7 @@ class PoseSample:
     truth_tre_mm: float | None = None
     raw: object = None
     frame: object = None
+    validation: object = None  # registration.validation.ValidationResult, or None (no validation fiducials / no pose)
 
 
 @dataclass

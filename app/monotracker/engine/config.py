@@ -38,6 +38,9 @@ class SessionConfig:
     (3.0): a pose that moved more than this from the last trusted one (per frame) is not trusted
     until ``confirm_frames`` (3) consecutive estimates agree with each other (a real head jump is
     followed after a short hold; a single wrong pose never moves the arm).
+    ``max_validation_tre_mm`` (1.5): arming is refused while any validation fiducial (a fiducial
+    the plan keeps out of the fit) is further than this from its viewing ray, or not seen
+    (``engine/verification.py`` says why 1.5 mm).
     ``controller``: the APFF variant (``"APF-V" | "APF-A-I" | "APF-A-II"``, paper section 2.3).
     ``predict_target``: the robot tracker's latency compensation (target velocity estimated from
     the pose stream, extrapolated over the measured latency; not in the paper). Off by default:
@@ -64,6 +67,7 @@ class SessionConfig:
     confirm_frames: int = 3
     controller: str = "APF-A-II"
     predict_target: bool = False
+    max_validation_tre_mm: float = 1.5
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -80,6 +84,8 @@ class SessionConfig:
             raise InputError(f"robot must be 'sim' or 'ur:<ip>', not {self.robot!r}")
         if self.camera_fps <= 0 or self.control_hz <= 0:
             raise InputError("camera_fps and control_hz must be positive")
+        if not (self.max_validation_tre_mm > 0):
+            raise InputError("max_validation_tre_mm must be positive")
         if self.min_fiducials < 3:
             raise InputError("min_fiducials must be at least 3 (a rigid pose needs 3 points)")
         if self.controller not in ("APF-V", "APF-A-I", "APF-A-II"):

@@ -605,6 +605,9 @@ class TrackingLoop:
             fre_mm=smp.fre_mm, predicted_tre_mm=smp.predicted_tre_mm,
             latency_ms=None if smp.t_ready is None else 1000 * (smp.t_ready - smp.t_capture),
             truth_tre_mm=smp.truth_tre_mm,
+            validation_tre_mm={} if smp.validation is None else dict(smp.validation.errors_mm),
+            validation_ok=None if smp.validation is None else bool(smp.validation.ok),
+            validation_reason="" if smp.validation is None else smp.validation.reason,
         )
 
     def summaries(self):

@@ -22,6 +22,9 @@ from monotracker.engine.persistence import atomic_write_json, read_json
 FORMAT = "monotracker-plan"
 VERSION = 1
 STATUSES = ("detected", "confirmed", "rejected", "added")
+#: "registration": used in the fit; "validation": seen by the camera but left out of the fit, to
+#: verify the registration independently (``registration.validation``)
+ROLES = ("registration", "validation")
 
 
 @dataclass
@@ -34,6 +37,7 @@ class PlanFiducial:
     radius_mm: float
     score: float
     status: str = "detected"
+    role: str = "registration"  # one of ROLES
 
     @property
     def usable(self) -> bool:
@@ -59,6 +63,18 @@ class Plan:
     # ------------------------------------------------------------------ queries
     def usable_fiducials(self) -> list[PlanFiducial]:
         return [f for f in self.fiducials if f.usable]
+
+    def registration_fiducials(self) -> list[PlanFiducial]:
+        """Usable fiducials the registration fits (role "registration"), in id order."""
+        return [f for f in self.usable_fiducials() if f.role == "registration"]
+
+    def validation_fiducials(self) -> list[PlanFiducial]:
+        """Usable fiducials kept out of the fit to verify it (role "validation")."""
+        return [f for f in self.usable_fiducials() if f.role == "validation"]
+
+    def registration_centres(self) -> np.ndarray:
+        """(n, 3) LPS mm of the registration fiducials, in id order."""
+        return np.array([f.centre_lps_mm for f in self.registration_fiducials()], dtype=float).reshape(-1, 3)
 
     def fiducial_centres(self) -> np.ndarray:
         """(n, 3) LPS mm of the usable fiducials, in id order."""
@@ -89,7 +105,7 @@ class Plan:
             "ct_path": self.ct_path,
             "fiducials": [
                 {"id": f.id, "centre_lps_mm": arr(f.centre_lps_mm), "radius_mm": float(f.radius_mm),
-                 "score": float(f.score), "status": f.status}
+                 "score": float(f.score), "status": f.status, "role": f.role}
                 for f in self.fiducials
             ],
             "fiducials_locked": bool(self.fiducials_locked),
@@ -126,8 +142,11 @@ class Plan:
             status = f.get("status", "detected")
             if status not in STATUSES:
                 raise ValueError(f"unknown fiducial status {status!r}")
+            role = f.get("role", "registration")
+            if role not in ROLES:
+                raise ValueError(f"unknown fiducial role {role!r}")
             fids.append(PlanFiducial(int(f["id"]), arr(f["centre_lps_mm"], (3,)), float(f["radius_mm"]),
-                                     float(f.get("score", 0.0)), status))
+                                     float(f.get("score", 0.0)), status, role))
         cam = d.get("camera") or {}
         dist = cam.get("dist")
         return cls(

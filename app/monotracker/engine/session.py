@@ -22,6 +22,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.load_sample_ct()
     s.set_fiducial_status(fid_id, "confirmed" | "rejected" | "detected")
     s.add_fiducial(p_lps_mm, radius_mm=None)   # operator-added fiducial (LPS mm); status "added"
+    s.set_fiducial_role(fid_id, "registration" | "validation")   # validation: kept out of the fit,
+                                        # verifies it (snap.pose.validation_tre_mm; arming gated)
     s.confirm_fiducials()               # locks the fiducial set (needs >= 4 confirmed/added)
     s.unlock_fiducials()                # back to editing (refused while armed/tracking)
     s.set_entry(p_lps_mm); s.set_target(p_lps_mm)   # planning; needs locked fiducials
@@ -474,8 +476,33 @@ class Session:
                                                                                     "radius_mm": r})
         return _ok(f"fiducial {fid} added")
 
+    def set_fiducial_role(self, fid_id: int, role: str) -> CommandResult:
+        """``"registration"`` (used in the fit, the default) or ``"validation"`` (kept out of the fit
+        to verify it; see ``engine/verification.py``). At least ``min_fiducials`` usable fiducials
+        must keep the registration role. Refused while the fiducials are locked."""
+        from monotracker.engine.plan import ROLES
+
+        if role not in ROLES:
+            return _fail(f"role must be registration or validation, not {role!r}")
+        with self._lock:
+            if self._plan.fiducials_locked:
+                return _fail("fiducials are locked; unlock them first")
+            f = self._plan.fiducial(int(fid_id))
+            if f is None:
+                return _fail(f"no fiducial with id {fid_id}")
+            if role == "validation" and f.role == "registration" and f.usable:
+                left = len(self._plan.registration_fiducials()) - 1
+                if left < self.config.min_fiducials:
+                    return _fail(f"only {left} fiducials would remain for the registration; "
+                                 f"at least {self.config.min_fiducials} are needed")
+            old, f.role = f.role, role
+            self._save_plan_locked("fiducial role")
+        self._bus.event("fiducial_role", f"fiducial {fid_id}: {role} (was {old})",
+                        {"id": int(fid_id), "role": role, "previous": old})
+        return _ok(f"fiducial {fid_id}: {role}")
+
     def confirm_fiducials(self) -> CommandResult:
-        """Lock the fiducial set (needs >= ``min_fiducials`` confirmed or added)."""
+        """Lock the fiducial set (needs >= ``min_fiducials`` confirmed or added registration fiducials)."""
         with self._lock:
             if self._plan.fiducials_locked:
                 return _ok("fiducials already locked")
@@ -483,6 +510,9 @@ class Session:
             need = self.config.min_fiducials
             if n < need:
                 return _fail(f"{n} fiducials confirmed; at least {need} are needed")
+            n_reg = len(self._plan.registration_fiducials())
+            if n_reg < need:
+                return _fail(f"{n_reg} confirmed fiducials have the registration role; at least {need} are needed")
             self._plan.fiducials_locked = True
             self._save_plan_locked("fiducials locked")
             ids = [f.id for f in self._plan.usable_fiducials()]
@@ -596,6 +626,16 @@ class Session:
         if str(pin) != str(self.config.arm_pin):
             self._bus.alert("warning", "arm_refused", "arming refused: wrong PIN")
             return _fail("wrong PIN")
+        from monotracker.engine import verification
+
+        why = verification.arm_refusal(self)
+        try:
+            verification.write_report(self, "refused" if why else "armed", why)
+        except OSError as exc:
+            self._bus.alert("warning", "verification_not_saved", f"verification report not saved: {exc}")
+        if why:
+            self._bus.alert("warning", "arm_refused", f"arming refused: {why}")
+            return _fail(why)
         return self._loop.arm()
 
     def disarm(self) -> CommandResult:

@@ -129,6 +129,11 @@ class PoseSummary:
     predicted_tre_mm: float | None
     latency_ms: float | None
     truth_tre_mm: float | None = None  # simulator only: TRE at the planned target vs truth
+    # accuracy verification (engine/verification.py): validation fiducial id -> error (mm, point to
+    # viewing ray) or None (not seen); ``validation_ok`` None when the plan has no validation fiducials
+    validation_tre_mm: dict = field(default_factory=dict)
+    validation_ok: bool | None = None
+    validation_reason: str = ""
 
 
 @dataclass(frozen=True)

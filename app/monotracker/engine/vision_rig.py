@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monotracker.engine.components import CameraRig, PoseSample
+from monotracker.engine.verification import KeepDetections, ValidationSet
 from monotracker.errors import MonoTrackerError
 from monotracker.geometry import apply_transform
 
@@ -65,9 +66,10 @@ class _SimRig(CameraRig):
         self.fps = float(fps)
         self.transport_delay_s = SIM_TRANSPORT_DELAY_S
         self.default_T_base_cam = self.layout.T_base_cam
-        self.fiducials_ct = plan.fiducial_centres()
-        self.fiducial_ids = [f.id for f in plan.usable_fiducials()]
-        self.radius_mm = float(np.median([f.radius_mm for f in plan.usable_fiducials()]))
+        self.fiducials_ct = plan.registration_centres()
+        self.fiducial_ids = [f.id for f in plan.registration_fiducials()]
+        self.radius_mm = float(np.median([f.radius_mm for f in plan.registration_fiducials()]))
+        self.validation = ValidationSet.from_plan(plan, self.radius_mm)
         self.target_ct = plan.target_lps_mm
         self.entry_ct = plan.entry_lps_mm
         self.occluded_ids: set[int] = set()  # phantom fiducial indices hidden (partial occlusion)
@@ -178,8 +180,9 @@ class SimImageRig(_SimRig):
         self.K = self.camera_model.K
         self.dist = self.camera_model.dist
         self.image_size = tuple(self.camera_model.image_size)
-        self.tracker = PoseTracker(self.fiducials_ct, self.camera_model, radius_mm=self.radius_mm,
-                                   target_ct=self.target_ct)
+        self.detector = KeepDetections(self.K, self.radius_mm)
+        self.tracker = PoseTracker(self.fiducials_ct, self.camera_model, detector=self.detector,
+                                   radius_mm=self.radius_mm, target_ct=self.target_ct)
 
     def capture(self, t: float) -> _ImageFrame:
         import cv2
@@ -212,6 +215,8 @@ class SimImageRig(_SimRig):
         est = self.tracker.process(Frame(frame.image, frame.t_capture, frame.index, frame.truth))
         smp = self._finish(estimate_to_sample(est, self.fiducial_ids), np.asarray(frame.truth.T_cam_ct, float))
         smp.frame = frame.image
+        smp.validation = self.validation.check(smp.T_cam_ct, self.detector.last, est.image_points_px, self.K,
+                                               self.dist)
         return smp
 
     def latest_frame(self):
@@ -312,6 +317,9 @@ class ProjectedFiducialRig(_SimRig):
             fiducial_status=status, residuals_px=residuals, fre_mm=float(reg.fre_mm) if reg.ok else None,
             predicted_tre_mm=pred, raw=reg, frame=frame,
         )
+        if reg.ok:
+            used = frame.points_px[[int(ii) for ii, _fi in reg.pairs]]
+            smp.validation = self.validation.check(reg.T_cam_ct, frame.points_px, used, self.K, self.dist)
         return self._finish(smp, frame.truth_T_cam_ct)
 
     def latest_frame(self):
@@ -373,15 +381,18 @@ class StreamRig(CameraRig):
             session.alert("warning", "camera_uncalibrated",
                           "no camera calibration given: using nominal intrinsics; registration accuracy is not assured")
         self.K, self.dist, self.image_size = model.K, model.dist, tuple(model.image_size)
-        self.fiducial_ids = [f.id for f in plan.usable_fiducials()]
-        radius = float(np.median([f.radius_mm for f in plan.usable_fiducials()]))
+        self.fiducial_ids = [f.id for f in plan.registration_fiducials()]
+        radius = float(np.median([f.radius_mm for f in plan.registration_fiducials()]))
+        self.validation = ValidationSet.from_plan(plan, radius)
         try:
             src = replay if kind == "replay" else open_source(int(arg) if kind == "device" else arg)
         except MonoTrackerError:
             raise
         except Exception as exc:  # noqa: BLE001 - a camera that will not open is an operator problem
             raise MonoTrackerError(f"cannot open camera {source}: {exc}") from exc
-        tracker = PoseTracker(plan.fiducial_centres(), model, radius_mm=radius, target_ct=plan.target_lps_mm)
+        self.detector = KeepDetections(model.K, radius)
+        tracker = PoseTracker(plan.registration_centres(), model, detector=self.detector, radius_mm=radius,
+                              target_ct=plan.target_lps_mm)
         self.source = _KeepLatest(src)
         self.stream = PoseStream(source=self.source, tracker=tracker)
         self._lock = threading.Lock()
@@ -395,8 +406,10 @@ class StreamRig(CameraRig):
         # the one this estimate came from (kept with it for session recording)
         fr = self.source.latest
         img = fr.image if fr is not None and fr.index == est.frame_index and est.camera == "ok" else None
+        # validation on this thread too: the detector's last detections belong to this frame
+        val = self.validation.check(est.T_cam_ct, self.detector.last, est.image_points_px, self.K, self.dist)
         with self._lock:
-            self._last_image = (est, img)
+            self._last_image = (est, img, val)
             if est.camera == "ok":
                 self._frames.append(float(est.t_capture))
 
@@ -429,6 +442,7 @@ class StreamRig(CameraRig):
         smp = estimate_to_sample(est, self.fiducial_ids)
         smp.t_ready = float(est.t_published)
         smp.frame = kept[1]
+        smp.validation = kept[2]
         self._sample_cache = (est, smp)
         return smp
 
@@ -442,7 +456,9 @@ def make_vision_rig(source, calibration_path, plan, cfg, session) -> CameraRig:
         cls = SimImageRig if source == "sim" else ProjectedFiducialRig
         rig = cls(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps)
         rig.clock = session.clock
-        return rig
-    if cfg.clock != "real":
-        raise MonoTrackerError("real cameras need a real-clock session (clock='real')")
-    return StreamRig(source, calibration_path, plan, session)
+    else:
+        if cfg.clock != "real":
+            raise MonoTrackerError("real cameras need a real-clock session (clock='real')")
+        rig = StreamRig(source, calibration_path, plan, session)
+    rig.validation.limit_mm = float(cfg.max_validation_tre_mm)
+    return rig

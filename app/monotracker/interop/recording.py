@@ -292,11 +292,11 @@ class SessionRecorder:
                                                    "distortion_coefficients": cal[1].tolist(),
                                                    "image_width": cal[2][0], "image_height": cal[2][1]})
         plan = self.s.plan_copy()
-        self._fids = [f.id for f in plan.usable_fiducials()]
+        self._fids = [f.id for f in plan.registration_fiducials()]  # what the rig registers (in this order)
         self.writer.manifest["segments"].append({
             "segment": self._segment, "source": loop.camera_source, "calibration": name,
-            "fiducial_ids": self._fids, "fiducials_lps_mm": plan.fiducial_centres().tolist(),
-            "radius_mm": float(np.median([f.radius_mm for f in plan.usable_fiducials()])),
+            "fiducial_ids": self._fids, "fiducials_lps_mm": plan.registration_centres().tolist(),
+            "radius_mm": float(np.median([f.radius_mm for f in plan.registration_fiducials()])),
             "target_lps_mm": None if plan.target_lps_mm is None else plan.target_lps_mm.tolist(),
             # the camera was already running when recording began: its tracker had a history
             "mid_stream": rig is self._rig_at_start,
