@@ -12,7 +12,6 @@ import pytest
 
 from monotracker.cli import main
 from monotracker.engine import Session, SessionConfig
-from monotracker.engine.demo import DemoOptions, run_demo
 from monotracker.errors import InputError
 from monotracker.geometry import apply_transform
 from monotracker.interop.replay import replay_recording
@@ -25,7 +24,9 @@ def _last_json_line(text: str) -> dict:
 
 def test_headless_demo_recording_replays_exactly(fresh_home, tmp_path, capsys):
     rec = tmp_path / "rec"
-    r = run_demo(DemoOptions(seconds=4.0, home=fresh_home, record=rec))
+    # the command line of the done criterion, in-process
+    assert main(["demo", "--headless", "--seconds", "4", "--record", str(rec), "--home", str(fresh_home), "--json"]) == 0
+    r = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert r["recording"]["ok"], r["recording"]
     manifest = json.loads((rec / "manifest.json").read_text())
     assert manifest["complete"] and manifest["frames"] >= 60

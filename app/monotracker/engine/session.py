@@ -670,44 +670,19 @@ class Session:
     def start_recording(self, folder) -> CommandResult:
         """Record every estimated frame and what the engine made of it into ``folder`` (an empty or
         new folder; layout in ``docs/interop.md``) until :meth:`stop_recording` or shutdown."""
-        from monotracker.interop.recording import SessionRecorder
+        from monotracker.interop.recording import start_session_recording
 
-        with self._lock:
-            rec = self._recorder
-            if rec is not None and not rec._closed:
-                if rec.writer.running:
-                    return _fail(f"already recording to {rec.folder}")
-                rec.close()  # a failed recording: detach it before starting another
-            try:
-                self._recorder = SessionRecorder(self, folder)
-            except MonoTrackerError as exc:
-                return _fail(str(exc))
-        self._bus.event("recording_started", f"recording to {folder}", {"folder": str(folder)})
-        return _ok(f"recording to {folder}")
+        return start_session_recording(self, folder)
 
     def stop_recording(self) -> CommandResult:
         """Close the recording (manifest marked complete). Idempotent."""
-        rec = self._recorder
-        if rec is None or rec._closed:
-            return _ok("not recording")
-        m = rec.close()
-        if not m.get("complete"):
-            self._bus.alert("warning", "recording_failed", f"recording {rec.folder} is incomplete: "
-                            f"{m.get('error') or str(m.get('frames_dropped')) + ' frames dropped'}")
-            return _fail(f"recording {rec.folder} is incomplete")
-        self._bus.event("recording_stopped", f"recording closed: {m['frames']} frames in {rec.folder}",
-                        {"folder": str(rec.folder), "frames": m["frames"]})
-        return _ok(f"recording closed: {m['frames']} frames")
+        from monotracker.interop.recording import stop_session_recording
+
+        return stop_session_recording(self)
 
     def _recording_summary(self):
-        from monotracker.engine.snapshot import RecordingSummary
-
         rec = self._recorder
-        if rec is None:
-            return None
-        d = rec.summary()
-        return RecordingSummary(d["path"], int(d["frames"]), bool(d["running"]) and not rec._closed,
-                                int(d["dropped"]), d["error"])
+        return None if rec is None else rec.snapshot_summary()
 
     # ================================================================== snapshot
     def _plan_summary(self, plan: Plan) -> PlanSummary:

@@ -266,8 +266,14 @@ class SessionRecorder:
     # ------------------------------------------------------------------ status
     def summary(self) -> dict:
         w = self.writer
-        return {"path": str(self.folder), "frames": w.frames - w.dropped, "running": w.running,
+        return {"path": str(self.folder), "frames": w.frames - w.dropped, "running": w.running and not self._closed,
                 "dropped": w.dropped, "error": w.error}
+
+    def snapshot_summary(self):
+        from monotracker.engine.snapshot import RecordingSummary
+
+        d = self.summary()
+        return RecordingSummary(d["path"], int(d["frames"]), bool(d["running"]), int(d["dropped"]), d["error"])
 
     # ------------------------------------------------------------------ hooks
     def _on_event(self, ev) -> None:
@@ -361,3 +367,40 @@ class SessionRecorder:
         self._remove_hook()
         self._unsubscribe()
         return self.writer.close()
+
+
+# ---------------------------------------------------------------------- Session.start/stop_recording
+def start_session_recording(session, folder):
+    """``Session.start_recording``: one recorder per session at a time."""
+    from monotracker.engine.snapshot import CommandResult
+    from monotracker.errors import MonoTrackerError
+
+    with session._lock:
+        rec = session._recorder
+        if rec is not None and not rec._closed:
+            if rec.writer.running:
+                return CommandResult(False, f"already recording to {rec.folder}")
+            rec.close()  # a failed recording: detach it before starting another
+        try:
+            session._recorder = SessionRecorder(session, folder)
+        except MonoTrackerError as exc:
+            return CommandResult(False, str(exc))
+    session.record("recording_started", f"recording to {folder}", {"folder": str(folder)})
+    return CommandResult(True, f"recording to {folder}")
+
+
+def stop_session_recording(session):
+    """``Session.stop_recording``: close and report (an alert if the recording is incomplete)."""
+    from monotracker.engine.snapshot import CommandResult
+
+    rec = session._recorder
+    if rec is None or rec._closed:
+        return CommandResult(True, "not recording")
+    m = rec.close()
+    if not m.get("complete"):
+        why = m.get("error") or f"{m.get('frames_dropped')} frames dropped"
+        session.alert("warning", "recording_failed", f"recording {rec.folder} is incomplete: {why}")
+        return CommandResult(False, f"recording {rec.folder} is incomplete ({why})")
+    session.record("recording_stopped", f"recording closed: {m['frames']} frames in {rec.folder}",
+                   {"folder": str(rec.folder), "frames": m["frames"]})
+    return CommandResult(True, f"recording closed: {m['frames']} frames")
