@@ -33,6 +33,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "monotracker.robot.commands",
     "monotracker.engine.commands",
     "monotracker.ui.commands",
+    "monotracker.interop.commands",
 )
 
 

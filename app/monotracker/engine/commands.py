@@ -4,7 +4,7 @@
 
     monotracker demo --headless --seconds S [--trajectory still|drift|breathing|jumps]
         [--fault none|camera-freeze|occlude-all|robot-disconnect|bad-pose] [--fault-at T]
-        [--seed N] [--home DIR] [--json]
+        [--seed N] [--home DIR] [--json] [--record DIR] [--igtl-port PORT [--allow-remote]]
 
 Runs on a simulated clock (see ``monotracker.engine.demo``); ``--seconds`` is tracking time.
 Exit code 0 when the run completed and, for a fault, the arm came to a standstill and the plan
@@ -43,6 +43,12 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="simulator noise seed, 0 .. 2^32-1")
     p.add_argument("--home", type=home_folder, default=None, help="session folder (default: a temporary one)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="record frames, detections, poses, robot and alerts into DIR (replay with `monotracker replay DIR`)")
+    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT",
+                   help="stream pose, needle, fiducials, path and status over OpenIGTLink (3D Slicer) on PORT")
+    p.add_argument("--allow-remote", action="store_true",
+                   help="serve OpenIGTLink on every interface (default: 127.0.0.1 only)")
     p.set_defaults(func=_demo)
 
     a = subparsers.add_parser("audit", help="the session's audit log: verify its hash chain",
@@ -84,7 +90,8 @@ def _demo(args) -> int:
     from monotracker.engine.demo import DemoOptions, format_report, report_json, run_demo
 
     opts = DemoOptions(seconds=args.seconds, trajectory=args.trajectory, fault=args.fault, fault_at_s=args.fault_at,
-                       seed=args.seed, home=args.home)
+                       seed=args.seed, home=args.home, record=args.record,
+                       igtl_port=args.igtl_port, allow_remote=args.allow_remote)
     r = run_demo(opts)
     print(report_json(r) if args.json else format_report(r))
     sys.stdout.flush()

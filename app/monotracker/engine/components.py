@@ -32,7 +32,9 @@ class PoseSample:
     id -> "seen"|"newly_lost"|"occluded"|"unknown"; ``residuals_px`` id -> px; ``fre_mm``;
     ``predicted_tre_mm`` at the planned target. Simulator only: ``truth_T_cam_ct`` and
     ``truth_tre_mm`` (error at the planned target vs truth, mm). ``raw``: the package's own
-    estimate object (for the UI overlay)."""
+    estimate object (for the UI overlay). ``frame``: what the estimate was computed from (the BGR
+    image for image cameras, a :class:`~monotracker.engine.vision_rig.SimFrame` of points for
+    "sim-points"; None when unknown), for session recording."""
 
     t_capture: float
     frame_index: int
@@ -53,6 +55,8 @@ class PoseSample:
     code: str = ""
     #: fiducials found moved in this frame: plan fiducial id -> estimated shift (mm)
     moved: dict = field(default_factory=dict)
+    frame: object = None
+    validation: object = None  # registration.validation.ValidationResult, or None (no validation fiducials / no pose)
 
 
 @dataclass

@@ -18,7 +18,8 @@ class SessionConfig:
 
     ``home``: folder for ``plan.json``, ``audit.sqlite`` and logs (None = ``paths.data_dir()``).
     ``camera``: ``"sim"`` (rendered digital-twin camera) ``| "sim-points"`` (twin at the level of
-    detected points) ``| "device:0" | "file:/path/video.mp4" | "folder:/path"``.
+    detected points) ``| "device:0" | "file:/path/video.mp4" | "folder:/path" | "replay:/path"`` (a
+    session recording, ``monotracker.interop.recording``).
     ``trajectory``: simulated head motion (``"still" | "drift" | "breathing" | "jumps"``, see
     ``monotracker.sim.trajectories``, or a trajectory object with ``pose(t)``; sim only).
     ``robot``: ``"sim" | "ur:<ip>"``. ``arm_pin``: the operator PIN that ``arm(pin)`` checks.
@@ -42,6 +43,9 @@ class SessionConfig:
     this is not trusted. ``camera_adapt``: "" or the user's explicit statement that a real camera
     runs the calibrated sensor binned or cropped (``"bin:2"``, ``"scale:0.5"``,
     ``"crop:X,Y,W,H"``); without it a frame whose size differs from the calibration is refused.
+    ``max_validation_tre_mm`` (1.5): arming is refused while any validation fiducial (a fiducial
+    the plan keeps out of the fit) is further than this from its viewing ray, or not seen
+    (``engine/verification.py`` says why 1.5 mm).
     ``controller``: the APFF variant (``"APF-V" | "APF-A-I" | "APF-A-II"``, paper section 2.3).
     ``predict_target``: the robot tracker's latency compensation (target velocity estimated from
     the stamped pose stream, extrapolated over the measured latency, with its own bounds: capped
@@ -78,6 +82,7 @@ class SessionConfig:
     max_predicted_tre_mm: float = 1.0
     camera_adapt: str = ""
     control_process: bool = True
+    max_validation_tre_mm: float = 1.5
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -86,9 +91,10 @@ class SessionConfig:
             raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
         if self.clock not in ("real", "sim"):
             raise InputError(f"clock must be 'real' or 'sim', not {self.clock!r}")
-        if not (self.camera in ("sim", "sim-points") or self.camera.split(":", 1)[0] in ("device", "file", "folder")):
-            raise InputError("camera must be 'sim', 'sim-points', 'device:N', 'file:PATH' or 'folder:PATH', "
-                             f"not {self.camera!r}")
+        if not (self.camera in ("sim", "sim-points")
+                or self.camera.split(":", 1)[0] in ("device", "file", "folder", "replay")):
+            raise InputError("camera must be 'sim', 'sim-points', 'device:N', 'file:PATH', 'folder:PATH' or "
+                             f"'replay:DIR' (a session recording), not {self.camera!r}")
         from monotracker.cli_args import check_robot_spec
 
         why = check_robot_spec(self.robot)
@@ -96,6 +102,8 @@ class SessionConfig:
             raise InputError(why)
         if self.camera_fps <= 0 or self.control_hz <= 0:
             raise InputError("camera_fps and control_hz must be positive")
+        if not (self.max_validation_tre_mm > 0):
+            raise InputError("max_validation_tre_mm must be positive")
         if self.min_fiducials < 3:
             raise InputError("min_fiducials must be at least 3 (a rigid pose needs 3 points)")
         if self.controller not in ("APF-V", "APF-A-I", "APF-A-II"):

@@ -63,6 +63,9 @@ class DemoOptions:
     settle_s: float = 2.0
     home: Path | None = None
     pin: str = "1234"
+    record: Path | None = None  # record the session into this folder (monotracker.interop.recording)
+    igtl_port: int | None = None  # stream to OpenIGTLink clients on this port (monotracker.interop.igtl)
+    allow_remote: bool = False  # OpenIGTLink on every interface, not only 127.0.0.1
     #: SessionConfig fields to override (e.g. the benchmark's "no gate" baseline)
     config_overrides: dict = field(default_factory=dict)
 
@@ -155,9 +158,20 @@ def run_demo(opts: DemoOptions, camera_factory=None, robot_factory=None, on_trac
     kw.update(opts.config_overrides)  # e.g. camera="sim-points", or the benchmark's "no gate" baseline
     cfg = SessionConfig(**kw)
     s = Session(cfg, camera_factory=camera_factory, robot_factory=robot_factory)
+    streamer = None
     try:
-        return _run(s, opts, wall0, cpu0, on_tracking)
+        if opts.igtl_port is not None:
+            from monotracker.interop.igtl import IGTLStreamer
+
+            streamer = IGTLStreamer(s, opts.igtl_port, opts.allow_remote).start()
+        out = _run(s, opts, wall0, cpu0, on_tracking)
+        if streamer is not None:
+            out["igtl"] = {"host": streamer.host, "port": streamer.port, "sent": dict(streamer.sent),
+                           "epoch0": streamer.epoch0}
+        return out
     finally:
+        if streamer is not None:
+            streamer.stop()
         s.shutdown()
         if tmp is not None:
             tmp.cleanup()
@@ -189,6 +203,10 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
             job = s.wait_for_job(120) if r.ok else None
             if not r.ok or job is None or job.error:
                 raise MonoTrackerError(f"the plan's CT: {r.message if not r.ok else (job.error if job else 'no job')}")
+    if opts.record is not None:
+        r = s.start_recording(opts.record)
+        if not r.ok:
+            raise MonoTrackerError(f"--record: {r.message}")
     r = s.start_camera()
     if not r.ok:
         raise MonoTrackerError(f"camera: {r.message}")
@@ -227,6 +245,10 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         if not r.ok:
             raise MonoTrackerError(f"fault injection: {r.message}")
     s.advance(max(0.0, t_end - s.snapshot().t))
+    recording = None
+    if opts.record is not None:
+        r = s.stop_recording()
+        recording = {"path": str(opts.record), "ok": r.ok, "message": r.message}
     wall = time.perf_counter() - wall0
     wall_loop = time.perf_counter() - wall_loop0
     cpu = time.process_time() - cpu0
@@ -263,6 +285,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         "tracking_fraction": len(trk) / max(1, len([r for r in rec.rows if settle_from <= r[0] < until])),
         "latency_ms": _stats(lat),
         "final_state": snap.robot.state,
+        "recording": recording,
         "alerts": [{"t": round(a.t_session, 3), "level": a.level, "code": a.code, "message": a.message}
                    for a in alerts],
     }
@@ -312,6 +335,8 @@ def format_report(r: dict) -> str:
         f"  needle axis error   : {st(r['axis_error_deg'], 'deg')}",
         f"  latency             : {st(r['latency_ms'], 'ms', 1)} capture -> command",
         f"  final robot state   : {r['final_state']}",
+    ] + ([f"  recording           : {r['recording']['message']} ({r['recording']['path']})"]
+         if r.get("recording") else []) + [
         f"  alerts ({len(r['alerts'])})" + (":" if r["alerts"] else ""),
     ]
     for a in r["alerts"][:20]:

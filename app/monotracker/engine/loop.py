@@ -104,6 +104,7 @@ class TrackingLoop:
         self._robot_connected = True
         self._robot_message = "not connected"
         self._tick_hooks: list = []
+        self._pose_hooks: list = []
         # sim clock bookkeeping
         self._t = 0.0
         self._next_frame_t = 0.0
@@ -139,6 +140,31 @@ class TrackingLoop:
     def add_tick_hook(self, fn) -> None:
         """``fn(loop, t)`` after every control tick (clock="sim"): metrics for demo/benchmark."""
         self._tick_hooks.append(fn)
+
+    def add_pose_hook(self, fn) -> "callable":
+        """``fn(loop, sample, trusted, now)`` after every estimate the loop handles (both clocks, on
+        the engine thread: keep it short, hand heavy work to your own thread). A hook that raises
+        is logged and never disturbs the loop. Returns the function that removes the hook."""
+        with self._lock:
+            self._pose_hooks = self._pose_hooks + [fn]
+
+        def remove() -> None:
+            with self._lock:
+                self._pose_hooks = [h for h in self._pose_hooks if h is not fn]
+        return remove
+
+    def _run_pose_hooks(self, sample, trusted: bool, now: float) -> None:
+        for fn in self._pose_hooks:
+            try:
+                fn(self, sample, trusted, now)
+            except Exception:  # noqa: BLE001 - recording/streaming must never hold the arm
+                log.exception("pose hook failed")
+
+    def target(self) -> tuple:
+        """(T_base_target 4x4 mm or None, its capture stamp or None): the needle target last handed
+        to the tracker."""
+        with self._lock:
+            return self._target_T, self._target_stamp
 
     # ================================================================== robot
     def _ensure_robot(self) -> components.RobotRig:
@@ -280,8 +306,9 @@ class TrackingLoop:
     # ================================================================== camera
     def set_camera(self, source: str, calibration_path: str | None) -> CommandResult:
         source = str(source)
-        if not (source in ("sim", "sim-points") or source.split(":", 1)[0] in ("device", "file", "folder")):
-            return CommandResult(False, "camera must be 'sim', 'sim-points', 'device:N', 'file:PATH' or 'folder:PATH'")
+        if not (source in ("sim", "sim-points") or source.split(":", 1)[0] in ("device", "file", "folder", "replay")):
+            return CommandResult(False, "camera must be 'sim', 'sim-points', 'device:N', 'file:PATH', 'folder:PATH' "
+                                 "or 'replay:DIR'")
         if self.rig is not None and self.rig.running:
             return CommandResult(False, "stop the camera first")
         if self.robot_state() == "tracking":
@@ -414,6 +441,7 @@ class TrackingLoop:
                     "acquiring": "acquiring"}.get(v.code, v.code)
             level = "info" if code == "acquiring" else "warning"
             self._hold(code, v.reason, level)
+        self._run_pose_hooks(sample, v.trusted, now)
 
     def _push_target(self, sample: components.PoseSample, now: float) -> None:
         plan = self.s.plan_copy()
@@ -667,6 +695,9 @@ class TrackingLoop:
             latency_ms=None if smp.t_ready is None else 1000 * (smp.t_ready - smp.t_capture),
             truth_tre_mm=smp.truth_tre_mm, code="" if rec.trusted else rec.code,
             max_predicted_tre_mm=self.cfg.max_predicted_tre_mm,
+            validation_tre_mm={} if smp.validation is None else dict(smp.validation.errors_mm),
+            validation_ok=None if smp.validation is None else bool(smp.validation.ok),
+            validation_reason="" if smp.validation is None else smp.validation.reason,
         )
 
     def summaries(self):

@@ -29,6 +29,9 @@ from monotracker.engine.persistence import atomic_write_json, read_json
 FORMAT = "monotracker-plan"
 VERSION = 1
 STATUSES = ("detected", "confirmed", "rejected", "added")  # same tuple as plan_checks.STATUSES
+#: "registration": used in the fit; "validation": seen by the camera but left out of the fit, to
+#: verify the registration independently (``registration.validation``)
+ROLES = ("registration", "validation")
 
 
 @dataclass
@@ -44,6 +47,7 @@ class PlanFiducial:
     score: float
     status: str = "detected"
     verified: bool | None = None
+    role: str = "registration"  # one of ROLES
 
     @property
     def usable(self) -> bool:
@@ -73,6 +77,18 @@ class Plan:
     # ------------------------------------------------------------------ queries
     def usable_fiducials(self) -> list[PlanFiducial]:
         return [f for f in self.fiducials if f.usable]
+
+    def registration_fiducials(self) -> list[PlanFiducial]:
+        """Usable fiducials the registration fits (role "registration"), in id order."""
+        return [f for f in self.usable_fiducials() if f.role == "registration"]
+
+    def validation_fiducials(self) -> list[PlanFiducial]:
+        """Usable fiducials kept out of the fit to verify it (role "validation")."""
+        return [f for f in self.usable_fiducials() if f.role == "validation"]
+
+    def registration_centres(self) -> np.ndarray:
+        """(n, 3) LPS mm of the registration fiducials, in id order."""
+        return np.array([f.centre_lps_mm for f in self.registration_fiducials()], dtype=float).reshape(-1, 3)
 
     def fiducial_centres(self) -> np.ndarray:
         """(n, 3) LPS mm of the usable fiducials, in id order."""
@@ -105,7 +121,8 @@ class Plan:
             "ct_path": self.ct_path,
             "fiducials": [
                 {"id": f.id, "centre_lps_mm": arr(f.centre_lps_mm), "radius_mm": float(f.radius_mm),
-                 "score": float(f.score), "status": f.status, "verified": f.verified}
+                 "score": float(f.score), "status": f.status, "verified": f.verified,
+                 "role": f.role}
                 for f in self.fiducials
             ],
             "fiducials_locked": bool(self.fiducials_locked),

@@ -211,6 +211,19 @@ def check_locked(plan, min_usable: int) -> str | None:
         n = len(plan.usable_fiducials())
         if n < min_usable:
             return f"fiducial set is locked with {n} usable fiducials; at least {min_usable} are needed"
+        n_reg = len(plan.registration_fiducials())
+        if n_reg < min_usable:
+            return (f"{n_reg} usable fiducials have the registration role (the rest validate it); "
+                    f"at least {min_usable} are needed")
+    return None
+
+
+def check_role(fid, role) -> str | None:
+    """A fiducial's role: ``"registration"`` (in the fit) or ``"validation"`` (kept out, verifies it)."""
+    from monotracker.engine.plan import ROLES
+
+    if role not in ROLES:
+        return f"fiducial {fid} role must be registration or validation, not {role!r}"
     return None
 
 

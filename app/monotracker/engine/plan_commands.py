@@ -297,6 +297,33 @@ class PlanCommands:
         self._bus.event("fiducials_locked", f"fiducial set locked ({n} fiducials: {ids})", {"ids": ids})
         return _ok(f"{n} fiducials locked")
 
+    def set_fiducial_role(self, fid_id: int, role: str) -> CommandResult:
+        """Give fiducial ``fid_id`` the role ``"registration"`` (used in the fit, the default) or
+        ``"validation"`` (seen by the camera but kept out of the fit, to verify it: see
+        ``engine/verification.py``). At least ``config.min_fiducials`` usable fiducials must keep the
+        registration role. Refused while the fiducials are locked, or when the plan cannot be saved."""
+        why = plan_checks.check_role(fid_id, role)
+        if why:
+            return _fail(why)
+        with self._lock:
+            if self._plan.fiducials_locked:
+                return _fail("fiducials are locked; unlock them first")
+            plan = self._plan.copy()
+            f = plan.fiducial(int(fid_id))
+            if f is None:
+                return _fail(f"no fiducial with id {fid_id}")
+            old, f.role = f.role, role
+            left = len(plan.registration_fiducials())
+            if role == "validation" and left < self.config.min_fiducials:
+                return _fail(f"only {left} fiducials would remain for the registration; "
+                             f"at least {self.config.min_fiducials} are needed")
+            err = self._commit_plan_locked(plan, "fiducial role")
+            if err:
+                return _fail(err)
+        self._bus.event("fiducial_role", f"fiducial {fid_id}: {role} (was {old})",
+                        {"id": int(fid_id), "role": role, "previous": old})
+        return _ok(f"fiducial {fid_id}: {role}")
+
     def unlock_fiducials(self) -> CommandResult:
         """Back to editing the fiducials (refused while armed or tracking, or when the plan cannot be saved)."""
         if self._loop.robot_state() not in ("disarmed", "estopped"):

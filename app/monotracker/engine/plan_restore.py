@@ -70,13 +70,15 @@ def restore_plan(d, min_usable: int = 4):
         verified = f.get("verified")
         if why is None and verified is not None and not isinstance(verified, bool):
             why = f"fiducial {f.get('id')} verified must be true, false or null, not {verified!r}"
+        role = f.get("role", "registration")
+        why = why or pc.check_role(f.get("id"), role)
         if why:
             rej.append(Rejection(f"fiducials[{i}]", why))
             fids_ok = False
             continue
         plan.fiducials.append(PlanFiducial(int(f["id"]), np.asarray(f["centre_lps_mm"], float),
                                            float(f["radius_mm"]), float(f.get("score", 0.0)),
-                                           f.get("status", "detected"), verified))
+                                           f.get("status", "detected"), verified, role))
     why = pc.check_fiducial_set(plan.fiducials)
     if why:
         rej.append(Rejection("fiducials", why))

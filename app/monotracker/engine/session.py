@@ -23,6 +23,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.set_fiducial_status(fid_id, "confirmed" | "rejected" | "detected")
     s.add_fiducial(p_lps_mm, radius_mm=None, manual=False)   # operator-added fiducial (LPS mm); status "added";
                                         #   with a CT it must be a dense ball there, else refused (manual=True: unverified)
+    s.set_fiducial_role(fid_id, "registration" | "validation")   # validation: kept out of the fit,
+                                        # verifies it (snap.pose.validation_tre_mm; arming gated)
     s.confirm_fiducials()               # locks the fiducial set (needs >= 4 confirmed/added)
     s.unlock_fiducials()                # back to editing (refused while armed/tracking)
     s.set_entry(p_lps_mm); s.set_target(p_lps_mm)   # planning; needs locked fiducials
@@ -41,6 +43,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed
     s.inject_fault(name)                # sim only: "camera-freeze"|"occlude-all"|"robot-disconnect"|"bad-pose"|"none"
     s.export_slicer_markups(folder) -> list[Path]   # .mrk.json, LPS
+    s.start_recording(folder); s.stop_recording()   # frames + detections + poses + robot + alerts
+                                        # to a folder (docs/interop.md); state in snap.recording
 
     snap = s.snapshot()   # immutable copy (monotracker.engine.snapshot.Snapshot), cheap at 30 Hz
     snap.step             # "ct" | "plan" | "register" | "robot": the workflow step the session is at
@@ -58,6 +62,7 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
     snap.control          # ControlSummary(controller client id or None, controller_label, since, pin_locked_s)
     snap.alarms           # active conditions, most important first: Alarm(code, level, priority, message, since, count)
+    snap.recording        # None or RecordingSummary(path, frames, running, dropped, error)
     snap.alerts           # recent alerts (Event: t, t_session, kind, level "info"|"warning"|"alarm", code, message, data)
     s.volume()            # the loaded CT Volume (LPS mm) for read-only display, or None
     s.latest_frame()      # (image BGR uint8, frame_index, estimate) for the overlay, or None; estimate is
@@ -221,6 +226,7 @@ class Session(PlanCommands):
         self._home_unwritable: str | None = None  # last save failure while the home is unwritable
         self._started = False
         self._closed = False
+        self._recorder = None  # interop.recording.SessionRecorder while/after recording
         self._plan = Plan()
         self._pin_guard = PinGuard(self.config.arm_pin)
         self._alarm_board = AlarmBoard()  # active conditions (snap.alarms); the loop sets and clears them
@@ -273,6 +279,7 @@ class Session(PlanCommands):
             self._closed = True
         try:
             self._loop.shutdown()
+            self.stop_recording()
         finally:
             self._bus.event("session_shutdown", "session shut down")
             self._bus.stop()
@@ -538,6 +545,16 @@ class Session(PlanCommands):
         r = self._check_pin(pin, "arm_refused", "arming")
         if not r.ok:
             return r
+        from monotracker.engine import verification
+
+        why = verification.arm_refusal(self)
+        try:
+            verification.write_report(self, "refused" if why else "armed", why)
+        except OSError as exc:
+            self._bus.alert("warning", "verification_not_saved", f"verification report not saved: {exc}")
+        if why:
+            self._bus.alert("warning", "arm_refused", f"arming refused: {why}")
+            return _fail(why)
         return self._loop.arm()
 
     # ================================================================== control (browser clients)
@@ -636,6 +653,24 @@ class Session(PlanCommands):
 
         return write_markups(self.plan_copy(), Path(folder))
 
+    # ================================================================== recording
+    def start_recording(self, folder) -> CommandResult:
+        """Record every estimated frame and what the engine made of it into ``folder`` (an empty or
+        new folder; layout in ``docs/interop.md``) until :meth:`stop_recording` or shutdown."""
+        from monotracker.interop.recording import start_session_recording
+
+        return start_session_recording(self, folder)
+
+    def stop_recording(self) -> CommandResult:
+        """Close the recording (manifest marked complete). Idempotent."""
+        from monotracker.interop.recording import stop_session_recording
+
+        return stop_session_recording(self)
+
+    def _recording_summary(self):
+        rec = self._recorder
+        return None if rec is None else rec.snapshot_summary()
+
     # ================================================================== snapshot
     def _plan_summary(self, plan: Plan) -> PlanSummary:
         e, t = plan.entry_lps_mm, plan.target_lps_mm
@@ -670,6 +705,7 @@ class Session(PlanCommands):
             alerts=tuple(self._bus.recent("alert")[-50:]), plan_path=str(self._plan_path),
             audit_path=str(self._audit.path), control=self.control_summary(),
             alarms=self._active_alarms(),
+            recording=self._recording_summary(),
         )
 
     def _active_alarms(self):

@@ -133,6 +133,11 @@ class PoseSummary:
     code: str = ""
     #: the trust limit on ``predicted_tre_mm`` (mm)
     max_predicted_tre_mm: float | None = None
+    # accuracy verification (engine/verification.py): validation fiducial id -> error (mm, point to
+    # viewing ray) or None (not seen); ``validation_ok`` None when the plan has no validation fiducials
+    validation_tre_mm: dict = field(default_factory=dict)
+    validation_ok: bool | None = None
+    validation_reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -207,6 +212,18 @@ class Alarm:
 
 
 @dataclass(frozen=True)
+class RecordingSummary:
+    """Session recording (``Session.start_recording``): ``path`` the folder, ``frames`` written or
+    queued, ``running``, ``dropped`` frames lost (real clock, disk too slow), ``error`` one line."""
+
+    path: str
+    frames: int
+    running: bool
+    dropped: int = 0
+    error: str | None = None
+
+
+@dataclass(frozen=True)
 class Snapshot:
     """One consistent, immutable view of the session (see ``session.py`` for each field)."""
 
@@ -227,6 +244,7 @@ class Snapshot:
     audit_path: str = ""
     control: ControlSummary = field(default_factory=ControlSummary)
     alarms: tuple = field(default_factory=tuple)  # tuple[Alarm], most important first
+    recording: RecordingSummary | None = None  # None when no recording was made in this session
 
     @property
     def latest_alert(self) -> Event | None:

@@ -13,6 +13,8 @@ Three rigs, chosen by the camera source:
 * ``"device:N" | "file:PATH" | "folder:PATH"`` -- :class:`StreamRig`: vision's ``PoseStream`` on
   a real frame source (its own thread; clock="real" only), with the calibration file given to
   ``set_camera`` (``CameraModel.load``) or, without one, vision's default model and a warning.
+* ``"replay:DIR"`` -- :class:`StreamRig` on a session recording (``vision.replay_source``), paced
+  at the recorded frame times, with the recording's own calibration unless one is given.
 
 Both simulated rigs use the CT fiducials *confirmed in the plan* (from the CT detector), not the
 phantom's true centres, so CT detection error is part of the measured TRE; their truth (head
@@ -30,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monotracker.engine.components import CameraRig, PoseSample
+from monotracker.engine.verification import KeepDetections, ValidationSet
 from monotracker.errors import MonoTrackerError
 from monotracker.geometry import apply_transform
 
@@ -63,9 +66,10 @@ class _SimRig(CameraRig):
         self.fps = float(fps)
         self.transport_delay_s = SIM_TRANSPORT_DELAY_S
         self.default_T_base_cam = self.layout.T_base_cam
-        self.fiducials_ct = plan.fiducial_centres()
-        self.fiducial_ids = [f.id for f in plan.usable_fiducials()]
-        self.radius_mm = float(np.median([f.radius_mm for f in plan.usable_fiducials()]))
+        self.fiducials_ct = plan.registration_centres()
+        self.fiducial_ids = [f.id for f in plan.registration_fiducials()]
+        self.radius_mm = float(np.median([f.radius_mm for f in plan.registration_fiducials()]))
+        self.validation = ValidationSet.from_plan(plan, self.radius_mm)
         self.target_ct = plan.target_lps_mm
         self.entry_ct = plan.entry_lps_mm
         self.occluded_ids: set[int] = set()  # phantom fiducial indices hidden (partial occlusion)
@@ -217,8 +221,9 @@ class SimImageRig(_SimRig):
         self.K = self.camera_model.K
         self.dist = self.camera_model.dist
         self.image_size = tuple(self.camera_model.image_size)
-        self.tracker = PoseTracker(self.fiducials_ct, self.camera_model, radius_mm=self.radius_mm,
-                                   target_ct=self.target_ct)
+        self.detector = KeepDetections(self.K, self.radius_mm)
+        self.tracker = PoseTracker(self.fiducials_ct, self.camera_model, detector=self.detector,
+                                   radius_mm=self.radius_mm, target_ct=self.target_ct)
 
     def capture(self, t: float) -> _ImageFrame:
         import cv2
@@ -249,7 +254,11 @@ class SimImageRig(_SimRig):
         from monotracker.vision.frames import Frame
 
         est = self.tracker.process(Frame(frame.image, frame.t_capture, frame.index, frame.truth))
-        return self._finish(estimate_to_sample(est, self.fiducial_ids), np.asarray(frame.truth.T_cam_ct, float))
+        smp = self._finish(estimate_to_sample(est, self.fiducial_ids), np.asarray(frame.truth.T_cam_ct, float))
+        smp.frame = frame.image
+        smp.validation = self.validation.check(smp.T_cam_ct, self.detector.last, est.image_points_px, self.K,
+                                               self.dist)
+        return smp
 
     def latest_frame(self):
         fr, smp = self._last_frame, self._last_sample
@@ -332,7 +341,7 @@ class ProjectedFiducialRig(_SimRig):
         if n_pts < 4:
             self._prior = None
             smp = PoseSample(frame.t_capture, frame.index, False, f"{n_pts} fiducials visible (need 4)", None, n_pts,
-                             fiducial_status={fid: "occluded" for fid in self.fiducial_ids})
+                             fiducial_status={fid: "occluded" for fid in self.fiducial_ids}, frame=frame)
             return self._finish(smp, frame.truth_T_cam_ct)
         reg = register(self.fiducials_ct, frame.points_px, self.K, self.dist, radius_mm=self.radius_mm,
                        method="robust", prior=self._prior)
@@ -348,8 +357,11 @@ class ProjectedFiducialRig(_SimRig):
             t_capture=frame.t_capture, frame_index=frame.index, ok=bool(reg.ok), reason=reg.reason or "ok",
             T_cam_ct=reg.T_cam_ct if reg.ok else None, n_matched=len(reg.pairs) if reg.ok else 0,
             fiducial_status=status, residuals_px=residuals, fre_mm=float(reg.fre_mm) if reg.ok else None,
-            predicted_tre_mm=pred, raw=reg,
+            predicted_tre_mm=pred, raw=reg, frame=frame,
         )
+        if reg.ok:
+            used = frame.points_px[[int(ii) for ii, _fi in reg.pairs]]
+            smp.validation = self.validation.check(reg.T_cam_ct, frame.points_px, used, self.K, self.dist)
         return self._finish(smp, frame.truth_T_cam_ct)
 
     def latest_frame(self):
@@ -410,6 +422,11 @@ class StreamRig(CameraRig):
         kind, _, arg = source.partition(":")
         if kind == "device" and not arg.isdigit():
             raise MonoTrackerError(f"camera device must be a number, as in device:0 (got {source!r})")
+        if kind == "replay":
+            from monotracker.vision.replay_source import ReplaySource, calibration_path as recorded_calibration
+
+            replay = ReplaySource(arg, realtime=True)  # refuses an incomplete/corrupt recording (one line)
+            calibration_path = calibration_path or str(recorded_calibration(arg))
         if calibration_path:
             model = CameraModel.load(calibration_path)
         else:
@@ -418,30 +435,41 @@ class StreamRig(CameraRig):
                           "no camera calibration given: using nominal intrinsics; registration accuracy is not assured")
         model = model.adapted(camera_adapt)
         self.K, self.dist, self.image_size = model.K, model.dist, tuple(model.image_size)
-        self.fiducial_ids = [f.id for f in plan.usable_fiducials()]
-        radius = float(np.median([f.radius_mm for f in plan.usable_fiducials()]))
+        self.fiducial_ids = [f.id for f in plan.registration_fiducials()]
+        radius = float(np.median([f.radius_mm for f in plan.registration_fiducials()]))
+        self.validation = ValidationSet.from_plan(plan, radius)
         try:
-            src = open_source(int(arg) if kind == "device" else arg)
+            src = replay if kind == "replay" else open_source(int(arg) if kind == "device" else arg)
         except MonoTrackerError:
             raise
         except Exception as exc:  # noqa: BLE001 - a camera that will not open is an operator problem
             raise MonoTrackerError(f"cannot open camera {source}: {exc}") from exc
-        tracker = PoseTracker(plan.fiducial_centres(), model, radius_mm=radius, target_ct=plan.target_lps_mm)
+        self.detector = KeepDetections(model.K, radius)  # keeps the blobs for the validation fiducials
+        tracker = PoseTracker(plan.registration_centres(), model, detector=self.detector, radius_mm=radius,
+                              target_ct=plan.target_lps_mm)
         if max_predicted_tre_mm is not None:
             tracker.config.max_predicted_tre_mm = float(max_predicted_tre_mm)
-        if model.ball_colour is not None and hasattr(tracker.detector, "set_colour"):
-            tracker.detector.set_colour(model.ball_colour)      # learned earlier, saved with the calibration
+        if model.ball_colour is not None:
+            self.detector.set_colour(model.ball_colour)      # learned earlier, saved with the calibration
         self.tracker = tracker
         self.source = _KeepLatest(src)
         self.stream = PoseStream(source=self.source, tracker=tracker)
         self._lock = threading.Lock()
         self._frames: list[float] = []
         self._last_image = None
+        self._sample_cache = None
         self.stream.subscribe(self._on_estimate)
 
     def _on_estimate(self, est) -> None:
-        if est.camera == "ok":
-            with self._lock:
+        # runs on the stream thread right after the frame was processed: the newest frame read is
+        # the one this estimate came from (kept with it for session recording)
+        fr = self.source.latest
+        img = fr.image if fr is not None and fr.index == est.frame_index and est.camera == "ok" else None
+        # validation on this thread too: the detector's last detections belong to this frame
+        val = self.validation.check(est.T_cam_ct, self.detector.last, est.image_points_px, self.K, self.dist)
+        with self._lock:
+            self._last_image = (est, img, val)
+            if est.camera == "ok":
                 self._frames.append(float(est.t_capture))
 
     def start(self) -> None:
@@ -462,8 +490,19 @@ class StreamRig(CameraRig):
         est = self.stream.latest()
         if est is None:
             return None
+        cached = self._sample_cache
+        if cached is not None and cached[0] is est:
+            return cached[1]  # the same estimate is the same sample (the loop handles each once)
+        with self._lock:
+            kept = self._last_image
+        if kept is None or kept[0] is not est:
+            # published but our subscriber (which pairs it with its image) has not run yet
+            return None if cached is None else cached[1]
         smp = estimate_to_sample(est, self.fiducial_ids)
         smp.t_ready = float(est.t_published)
+        smp.frame = kept[1]
+        smp.validation = kept[2]
+        self._sample_cache = (est, smp)
         return smp
 
     def latest_frame(self):
@@ -479,9 +518,11 @@ def make_vision_rig(source, calibration_path, plan, cfg, session) -> CameraRig:
         rig = cls(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps)
         rig.clock = session.clock
         if getattr(rig, "tracker", None) is not None:
-            rig.tracker.config.max_predicted_tre_mm = float(getattr(cfg, "max_predicted_tre_mm", 1.0))
-        return rig
-    if cfg.clock != "real":
-        raise MonoTrackerError("real cameras need a real-clock session (clock='real')")
-    return StreamRig(source, calibration_path, plan, session, camera_adapt=getattr(cfg, "camera_adapt", ""),
-                     max_predicted_tre_mm=getattr(cfg, "max_predicted_tre_mm", None))
+            rig.tracker.config.max_predicted_tre_mm = float(cfg.max_predicted_tre_mm)
+    else:
+        if cfg.clock != "real":
+            raise MonoTrackerError("real cameras need a real-clock session (clock='real')")
+        rig = StreamRig(source, calibration_path, plan, session, camera_adapt=cfg.camera_adapt,
+                        max_predicted_tre_mm=cfg.max_predicted_tre_mm)
+    rig.validation.limit_mm = float(cfg.max_validation_tre_mm)
+    return rig

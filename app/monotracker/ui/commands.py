@@ -1,8 +1,9 @@
 """``monotracker serve``: the web app for the operating room.
 
     monotracker serve [--host 127.0.0.1] [--port 8080] [--allow-remote] [--sample]
-        [--camera sim|device:N|file:PATH|folder:PATH] [--calibration FILE]
+        [--camera sim|device:N|file:PATH|folder:PATH|replay:DIR] [--calibration FILE]
         [--robot sim|ur:IP] [--pin PIN] [--trajectory still|drift|breathing|jumps] [--home DIR]
+        [--record DIR] [--igtl-port PORT]
 
 Serves on 127.0.0.1 unless ``--allow-remote`` is given (any other ``--host`` is refused
 without it: the page can move a robot). Arming needs the operator PIN: ``--pin`` or
@@ -36,13 +37,18 @@ def register(subparsers) -> None:
     p.add_argument("--allow-remote", action="store_true",
                    help="allow a --host other than this machine (the page can move the robot)")
     p.add_argument("--sample", action="store_true", help="load the bundled sample CT at start")
-    p.add_argument("--camera", default="sim", help="sim | sim-points | device:N | file:PATH | folder:PATH (default sim)")
+    p.add_argument("--camera", default="sim", help="sim | sim-points | device:N | file:PATH | folder:PATH | replay:DIR (default sim)")
     p.add_argument("--calibration", type=existing_file, default=None,
                    help="camera calibration file (OpenCV YAML/JSON) for a real camera; checked at start")
     p.add_argument("--robot", type=robot_spec, default="sim", help="sim | ur:IP (default sim; an IP address, no host names)")
     p.add_argument("--pin", default=None, help="operator PIN for arming (default $MONOTRACKER_PIN, else a random one)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
     p.add_argument("--home", type=home_folder, default=None, help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
+    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+                   help="record frames, detections, poses, robot and alerts into DIR (`monotracker replay DIR`)")
+    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT",
+                   help="stream pose, needle, fiducials, path and status over OpenIGTLink (3D Slicer) on PORT "
+                        "(127.0.0.1 unless --allow-remote)")
     p.set_defaults(func=_serve)
 
 
@@ -117,13 +123,23 @@ def _serve(args) -> int:
 
         CameraModel.load(args.calibration)  # InputError with the reason
     session = Session(cfg)
-    app = None
+    app = streamer = None
     try:
         if args.calibration is not None:
             r = session.set_camera(args.camera, str(args.calibration))
             if not r.ok:
                 raise InputError(r.message)
+        if args.record is not None:
+            r = session.start_recording(args.record)
+            if not r.ok:
+                raise InputError(f"--record: {r.message}")
         session.start()
+        if args.igtl_port is not None:
+            from monotracker.interop.igtl import IGTLStreamer
+
+            streamer = IGTLStreamer(session, args.igtl_port, args.allow_remote).start()
+            print(f"OpenIGTLink: {streamer.host}:{streamer.port} (CTToCamera, NeedleTipToCT, Status, "
+                  "Fiducials, Path)", flush=True)
         if args.sample:
             snap = session.snapshot()
             if not snap.fiducials_locked:
@@ -141,4 +157,6 @@ def _serve(args) -> int:
     finally:
         if app is not None:
             app.stop()
+        if streamer is not None:
+            streamer.stop()
         session.shutdown()

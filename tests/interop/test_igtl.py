@@ -1,0 +1,158 @@
+"""OpenIGTLink streaming, checked with a real pyigtl client on 127.0.0.1 against the simulator's
+truth (the received CTToCamera at each message's capture time) and the plan.
+
+Rates: the messages carry the frame's capture time (simulated clock in the headless demo), so the
+>= 20 Hz check reads the stream's own timestamps and holds on a loaded machine; the wall-clock rate
+is a benchmark number (benchmarks/interop.py), not asserted here."""
+
+import socket
+import threading
+
+import numpy as np
+import pyigtl
+import pytest
+
+from monotracker.engine.demo import DemoOptions, run_demo
+from monotracker.errors import InputError
+from monotracker.geometry import apply_transform
+from monotracker.interop.igtl import F_LPS_RAS, IGTLStreamer
+from monotracker.sim.phantom import default_phantom
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class _Log(dict):
+    """pyigtl keeps only each device's newest message; this keeps every one, in arrival order."""
+
+    def __init__(self):
+        super().__init__()
+        self.all = []
+
+    def __setitem__(self, key, msg):
+        self.all.append(msg)
+        super().__setitem__(key, msg)
+
+
+def _client(port):
+    c = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port, start_now=False)
+    c.incoming_messages = _Log()
+    c.start()
+    return c
+
+
+def _truth(t):
+    from monotracker.sim.or_layout import default_layout
+
+    lay = default_layout()
+    return lay.T_cam_ct(lay.motion("breathing", seed=0 + 1), t)  # the rig's motion (seed + 1)
+
+
+def _rigid(T, tol=1e-5):
+    R = np.asarray(T)[:3, :3]
+    return np.abs(R.T @ R - np.eye(3)).max() < tol and abs(np.linalg.det(R) - 1) < tol
+
+
+def test_client_receives_pose_needle_points_and_status(fresh_home):
+    port = free_port()
+    client = _client(port)
+    try:
+        r = run_demo(DemoOptions(seconds=3.0, home=fresh_home, igtl_port=port))
+    finally:
+        client.stop()
+    msgs = list(client.incoming_messages.all)
+    ig = r["igtl"]
+    assert ig["host"] == "127.0.0.1"
+    by = {}
+    for m in msgs:
+        by.setdefault(m.device_name, []).append(m)
+    cam = by["CTToCamera"]
+    ts = np.array([m.timestamp for m in cam])
+    assert len(cam) >= 60
+    rate = (len(np.unique(ts)) - 1) / (ts.max() - ts.min())
+    assert rate >= 20.0, rate  # camera rate (30 Hz) in the stream's own (capture) time
+    ph = default_phantom()
+    target = ph.sample_target_lps
+    errs = []
+    for m in cam:
+        T = np.asarray(m.matrix, float)
+        assert _rigid(T)
+        T_lps = T @ F_LPS_RAS  # back to MonoTracker's LPS CT frame
+        t_capture = m.timestamp - ig["epoch0"]
+        errs.append(np.linalg.norm(apply_transform(T_lps, target) - apply_transform(_truth(t_capture), target)))
+    assert max(errs) < 1.0, max(errs)  # the twin's registration TRE is ~0.33 mm
+
+    tip = by["NeedleTipToCT"]
+    assert len(tip) >= 30 and all(_rigid(np.asarray(m.matrix, float)) for m in tip)
+    T = F_LPS_RAS @ np.asarray(tip[-1].matrix, float)  # tip -> CT (LPS), last message: tracking
+    axis = (ph.sample_target_lps - ph.sample_entry_lps) / np.linalg.norm(ph.sample_target_lps - ph.sample_entry_lps)
+    assert np.linalg.norm(T[:3, 3] - ph.sample_entry_lps) < 2.0
+    assert np.degrees(np.arccos(np.clip(T[:3, 2] @ axis, -1, 1))) < 2.0
+
+    fid = by["Fiducials"][-1]
+    P = np.asarray(fid.positions, float) @ F_LPS_RAS[:3, :3]
+    d = np.linalg.norm(P[:, None] - ph.fiducial_centres_lps[None], axis=2).min(axis=1)
+    assert len(P) == 9 and d.max() < 1e-3
+    path = np.asarray(by["Path"][-1].positions, float) @ F_LPS_RAS[:3, :3]
+    assert np.allclose(path, [ph.sample_entry_lps, ph.sample_target_lps], atol=1e-3)
+    last = by["Status"][-1].string
+    assert "robot=tracking" in last and "pose=VALID" in last and "coordinates=RAS" in last
+
+
+def test_no_pose_is_sent_while_the_fiducials_are_covered(fresh_home):
+    port = free_port()
+    client = _client(port)
+    try:
+        r = run_demo(DemoOptions(seconds=4.0, home=fresh_home, igtl_port=port, fault="occlude-all", fault_at_s=2.0))
+    finally:
+        client.stop()
+    epoch0, fault_at = r["igtl"]["epoch0"], r["fault_report"]["injected_at_s"]
+    msgs = list(client.incoming_messages.all)
+    cam_t = [m.timestamp - epoch0 for m in msgs if m.device_name == "CTToCamera"]
+    assert cam_t and min(cam_t) < fault_at
+    # frames captured after the drape fell never yield a pose message
+    assert max(cam_t) <= fault_at + 1e-6
+    assert not [m for m in msgs if m.device_name == "NeedleTipToCT" and m.timestamp - epoch0 > fault_at + 1e-6]
+    after = [m.string for m in msgs if m.device_name == "Status" and m.timestamp - epoch0 > fault_at + 0.1]
+    assert after and all("pose=INVALID" in s for s in after)
+    assert any("occlusion" in s or "fiducials" in s for s in after)
+
+
+def test_loopback_only_unless_allowed_and_busy_port_refused(fresh_home):
+    from monotracker.engine import Session, SessionConfig
+
+    s = Session(SessionConfig(home=fresh_home, clock="sim"))
+    port = free_port()
+    try:
+        with IGTLStreamer(s, port) as st:
+            assert st.host == "127.0.0.1"
+            with pytest.raises(InputError, match="cannot serve OpenIGTLink"):
+                IGTLStreamer(s, port).start()
+        with IGTLStreamer(s, free_port(), allow_remote=True) as st:
+            assert st.host == "0.0.0.0"
+        with pytest.raises(InputError, match="between 1 and 65535"):
+            IGTLStreamer(s, 70000)
+    finally:
+        s.shutdown()
+
+
+def test_wrong_poses_the_engine_distrusts_are_never_sent(fresh_home):
+    """bad-pose: confident estimates 8-15 mm off; the engine's gate distrusts them, so must the stream."""
+    port = free_port()
+    client = _client(port)
+    try:
+        r = run_demo(DemoOptions(seconds=4.0, home=fresh_home, igtl_port=port, fault="bad-pose", fault_at_s=2.0))
+    finally:
+        client.stop()
+    epoch0, fault_at = r["igtl"]["epoch0"], r["fault_report"]["injected_at_s"]
+    msgs = list(client.incoming_messages.all)
+    target = default_phantom().sample_target_lps
+    cam = [m for m in msgs if m.device_name == "CTToCamera"]
+    errs = [np.linalg.norm(apply_transform(np.asarray(m.matrix, float) @ F_LPS_RAS, target)
+                           - apply_transform(_truth(m.timestamp - epoch0), target)) for m in cam]
+    assert len(cam) > 30 and max(errs) < 1.0, max(errs)
+    status = [m.string for m in msgs if m.device_name == "Status" and m.timestamp - epoch0 > fault_at]
+    assert any("pose=INVALID" in s for s in status)
