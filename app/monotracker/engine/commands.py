@@ -43,9 +43,9 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int_range(0, 2**32 - 1), default=0, help="simulator noise seed, 0 .. 2^32-1")
     p.add_argument("--home", type=home_folder, default=None, help="session folder (default: a temporary one)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
-    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+    p.add_argument("--record", type=home_folder, default=None, metavar="DIR",
                    help="record frames, detections, poses, robot and alerts into DIR (replay with `monotracker replay DIR`)")
-    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT",
+    p.add_argument("--igtl-port", type=int_range(1, 65535), default=None, metavar="PORT",
                    help="stream pose, needle, fiducials, path and status over OpenIGTLink (3D Slicer) on PORT")
     p.add_argument("--allow-remote", action="store_true",
                    help="serve OpenIGTLink on every interface (default: 127.0.0.1 only)")

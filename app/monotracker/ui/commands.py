@@ -44,9 +44,9 @@ def register(subparsers) -> None:
     p.add_argument("--pin", default=None, help="operator PIN for arming (default $MONOTRACKER_PIN, else a random one)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
     p.add_argument("--home", type=home_folder, default=None, help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
-    p.add_argument("--record", type=Path, default=None, metavar="DIR",
+    p.add_argument("--record", type=home_folder, default=None, metavar="DIR",
                    help="record frames, detections, poses, robot and alerts into DIR (`monotracker replay DIR`)")
-    p.add_argument("--igtl-port", type=int, default=None, metavar="PORT",
+    p.add_argument("--igtl-port", type=int_range(1, 65535), default=None, metavar="PORT",
                    help="stream pose, needle, fiducials, path and status over OpenIGTLink (3D Slicer) on PORT "
                         "(127.0.0.1 unless --allow-remote)")
     p.set_defaults(func=_serve)
