@@ -1,0 +1,48 @@
+"""Every script in examples/ runs on a fresh install and passes its own ground-truth check.
+
+Each example exits non-zero when its result disagrees with the simulator's truth (a wrong pose,
+a missed fiducial, an arm that does not hold), so a zero exit code is a real assertion; the
+printed lines are checked for the key facts too. The time limit is generous: it only catches a
+hang (the machine may be loaded), never measures speed.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLES = sorted((ROOT / "examples").glob("[0-9][0-9]_*.py"))
+
+#: a line each example must print (beyond its own exit-code check)
+EXPECT = {
+    "01_register_synthetic_scene.py": "right",
+    "02_detect_ct_fiducials.py": "error vs ground truth",
+    "03_detect_image_fiducials.py": "vs the true ellipse centres",
+    "04_pose_stream_sim_camera.py": "fiducial 6 lost",
+    "05_apff_tracker_sim_ur10.py": "stale target: state holding",
+    "06_headless_session.py": "3D Slicer markups",
+}
+
+
+def test_every_example_is_listed_in_the_index_and_here():
+    index = (ROOT / "examples" / "README.md").read_text()
+    assert EXAMPLES, "no examples found"
+    for p in EXAMPLES:
+        assert p.name in index, f"{p.name} missing from examples/README.md"
+        assert p.name in EXPECT, f"{p.name} has no expectation in this test"
+
+
+@pytest.mark.parametrize("script", EXAMPLES, ids=lambda p: p.stem)
+def test_example_runs_and_checks_itself(script, tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "app"), MONOTRACKER_HOME=str(tmp_path))
+    proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=420)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, f"{script.name} failed (exit {proc.returncode}):\n{out[-3000:]}"
+    assert "Traceback" not in out, out[-3000:]
+    assert EXPECT[script.name] in proc.stdout, proc.stdout[-3000:]
