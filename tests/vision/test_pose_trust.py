@@ -112,3 +112,18 @@ def test_moved_ball_alert_names_it_and_it_stays_excluded():
     tr.reset()                                                  # the operator re-checked the fiducials
     again = _run(s, tr, det, rng, 0.2, 2)
     assert all(e.ok and e.status[j] == SEEN for e in again)
+
+
+def test_engine_gate_keeps_the_estimators_code_and_gates_on_predicted_tre():
+    from monotracker.engine.gate import PoseGate
+
+    g = PoseGate(confirm_frames=1, max_predicted_tre_mm=1.0)
+    T = np.eye(4)
+    T[2, 3] = 500.0
+    v = g.check(False, "camera stream ended", None, 0, None, 0.0, code="camera_ended")
+    assert not v.trusted and v.code == "camera_ended"
+    assert g.check(False, "no pose", None, 2, None, 0.0).code == "occlusion"      # no code given: as before
+    v = g.check(True, "", T, 9, 0.3, 0.1, predicted_tre_mm=1.4)
+    assert not v.trusted and v.code == "tre_limit" and "1.40 mm" in v.reason
+    assert g.check(True, "", T, 9, 0.3, 0.2, predicted_tre_mm=0.4).trusted
+    assert g.check(True, "", T, 9, 0.3, 0.3, predicted_tre_mm=None).trusted      # no target: no TRE gate
