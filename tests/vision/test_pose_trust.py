@@ -63,9 +63,21 @@ def test_tre_gate_refuses_noisy_far_poses_and_trusts_clean_ones():
     assert not any(e.ok for e in noisy)
     assert all(e.code == "tre_limit" and "over the 1 mm limit" in e.reason for e in noisy)
     assert noisy[0].alerts and "no valid pose" in noisy[0].alerts[-1]
-    # the limit is a setting
-    tr2, det2 = _tracker(s, target, max_predicted_tre_mm=50.0)
+    # the limits are settings
+    tr2, det2 = _tracker(s, target, max_predicted_tre_mm=50.0, max_wrong_probability=1.0)
     assert all(e.ok for e in _run(s, tr2, det2, rng, 0.8, 12)[-3:])
+
+
+def test_the_tail_gate_refuses_a_pose_that_may_well_be_2_mm_off():
+    """An RMS under the limit is not enough: the chance of > 2 mm at the target must be tiny."""
+    rng = np.random.default_rng(4)
+    s = make_scene(rng, noise_px=0.0, ellipse_bias=True, distance_mm=(650.0, 700.0))
+    target = s.targets_ct[8]
+    tr, det = _tracker(s, target, max_predicted_tre_mm=5.0)          # RMS limit out of the way
+    ests = _run(s, tr, det, rng, 0.5, 15)
+    assert not any(e.ok for e in ests[-5:])
+    assert all(e.code == "tre_limit" and "may exceed 2 mm" in e.reason for e in ests[-5:])
+    assert all(e.predicted_tre_mm < 5.0 for e in ests[-5:])
 
 
 @pytest.mark.parametrize("noise_px", [0.1, 0.3, 0.6, 1.0])
