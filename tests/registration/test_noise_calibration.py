@@ -58,3 +58,16 @@ def test_online_noise_pools_and_never_hides_a_rise():
     # a frame that is merely a little noisier than the pool stays with the pool
     calm = est.peek(float(np.sum(np.full(12, 0.12) ** 2)), 12)
     assert calm.source == "pooled"
+
+
+def test_exceed_probability_matches_closed_forms():
+    from scipy.stats import chi2, norm
+
+    from monotracker.registration.report import exceed_probability
+
+    # one dominant direction: P(|z| > r / sigma); isotropic: chi-square with 3 dof
+    assert abs(exceed_probability(np.diag([1.0, 1e-10, 1e-10]), 2.0) - 2 * norm.sf(2.0)) < 0.003
+    assert abs(exceed_probability(np.eye(3) / 3, 2.0) - chi2.sf(12.0, 3)) < 0.0015
+    R = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]       # rotation-invariant
+    C = np.diag([0.5, 0.2, 0.05])
+    assert abs(exceed_probability(R @ C @ R.T, 1.5) - exceed_probability(C, 1.5)) < 1e-12

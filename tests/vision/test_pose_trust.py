@@ -63,9 +63,21 @@ def test_tre_gate_refuses_noisy_far_poses_and_trusts_clean_ones():
     assert not any(e.ok for e in noisy)
     assert all(e.code == "tre_limit" and "over the 1 mm limit" in e.reason for e in noisy)
     assert noisy[0].alerts and "no valid pose" in noisy[0].alerts[-1]
-    # the limit is a setting
-    tr2, det2 = _tracker(s, target, max_predicted_tre_mm=50.0)
+    # the limits are settings
+    tr2, det2 = _tracker(s, target, max_predicted_tre_mm=50.0, max_wrong_probability=1.0)
     assert all(e.ok for e in _run(s, tr2, det2, rng, 0.8, 12)[-3:])
+
+
+def test_the_tail_gate_refuses_a_pose_that_may_well_be_2_mm_off():
+    """An RMS under the limit is not enough: the chance of > 2 mm at the target must be tiny."""
+    rng = np.random.default_rng(4)
+    s = make_scene(rng, noise_px=0.0, ellipse_bias=True, distance_mm=(650.0, 700.0))
+    target = s.targets_ct[8]
+    tr, det = _tracker(s, target, max_predicted_tre_mm=5.0)          # RMS limit out of the way
+    ests = _run(s, tr, det, rng, 0.5, 15)
+    assert not any(e.ok for e in ests[-5:])
+    assert all(e.code == "tre_limit" and "may exceed 2 mm" in e.reason for e in ests[-5:])
+    assert all(e.predicted_tre_mm < 5.0 for e in ests[-5:])
 
 
 @pytest.mark.parametrize("noise_px", [0.1, 0.3, 0.6, 1.0])
@@ -112,3 +124,18 @@ def test_moved_ball_alert_names_it_and_it_stays_excluded():
     tr.reset()                                                  # the operator re-checked the fiducials
     again = _run(s, tr, det, rng, 0.2, 2)
     assert all(e.ok and e.status[j] == SEEN for e in again)
+
+
+def test_engine_gate_keeps_the_estimators_code_and_gates_on_predicted_tre():
+    from monotracker.engine.gate import PoseGate
+
+    g = PoseGate(confirm_frames=1, max_predicted_tre_mm=1.0)
+    T = np.eye(4)
+    T[2, 3] = 500.0
+    v = g.check(False, "camera stream ended", None, 0, None, 0.0, code="camera_ended")
+    assert not v.trusted and v.code == "camera_ended"
+    assert g.check(False, "no pose", None, 2, None, 0.0).code == "occlusion"      # no code given: as before
+    v = g.check(True, "", T, 9, 0.3, 0.1, predicted_tre_mm=1.4)
+    assert not v.trusted and v.code == "tre_limit" and "1.40 mm" in v.reason
+    assert g.check(True, "", T, 9, 0.3, 0.2, predicted_tre_mm=0.4).trusted
+    assert g.check(True, "", T, 9, 0.3, 0.3, predicted_tre_mm=None).trusted      # no target: no TRE gate

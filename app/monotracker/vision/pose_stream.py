@@ -31,7 +31,9 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
   The image noise behind it is estimated online from the residuals
   (:class:`~monotracker.registration.noise.OnlineNoise`: pooled over frames, no floor); the
   gate uses the noise's 95 % upper bound for its degrees of freedom (few balls or the first
-  frames: a wider bound), ``predicted_tre_mm`` the calibrated value;
+  frames: a wider bound), ``predicted_tre_mm`` the calibrated value. The same bound must keep
+  the probability that the error at the target exceeds ``wrong_mm`` (2 mm) below
+  ``max_wrong_probability`` (0.1 %): an RMS limit alone leaves a tail;
 * a fiducial whose position disagrees with the others (leave-one-out,
   :mod:`monotracker.registration.consistency`) is excluded with a ``fiducial_moved`` alert
   naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
@@ -139,6 +141,10 @@ class TrackerConfig:
     method: str = "robust"
     #: refuse a pose whose predicted TRE at the planned target exceeds this (mm)
     max_predicted_tre_mm: float = 1.0
+    #: ... or whose error at the target may exceed ``wrong_mm`` with more than this probability
+    #: (the RMS alone leaves a tail: 1 mm RMS along one direction exceeds 2 mm 4.6 % of the time)
+    wrong_mm: float = 2.0
+    max_wrong_probability: float = 1e-3
     #: moved-fiducial test: smallest shift (mm) that counts as moved; off with check_moved=False
     check_moved: bool = True
     moved_min_shift_mm: float = 1.0
@@ -193,6 +199,7 @@ class PoseTracker:
 
     def process(self, frame: Frame) -> PoseEstimate:
         from monotracker.registration.consistency import register_screened
+        from monotracker.registration.report import exceed_probability, target_covariance
 
         from .pose_checks import PhysicalLimits, physical_problem, weak_geometry
 
@@ -272,6 +279,15 @@ class PoseTracker:
                         reason = (f"predicted error at the target {tre:.2f} mm{bound}: over the "
                                   f"{cfg.max_predicted_tre_mm:g} mm limit (image noise {sigma:.2f} px, "
                                   f"{len(reg.pairs)} fiducials)")
+                    elif ok and reg.pose_covariance is not None and reg.sigma_px > 0:
+                        cov3 = target_covariance(reg.T_cam_ct, reg.pose_covariance, self.target_ct)
+                        p_wrong = exceed_probability(cov3 * (upper / reg.sigma_px) ** 2, cfg.wrong_mm)
+                        if p_wrong > cfg.max_wrong_probability:
+                            ok, code = False, "tre_limit"
+                            reason = (f"predicted error at the target {tre:.2f} mm, but it may exceed "
+                                      f"{cfg.wrong_mm:g} mm (probability {100 * p_wrong:.2f} % > "
+                                      f"{100 * cfg.max_wrong_probability:g} %; image noise {sigma:.2f} px, "
+                                      f"{len(reg.pairs)} fiducials)")
         else:
             if len(pts) < cfg.min_fiducials:
                 reason = f"{len(pts)} fiducials detected (need {cfg.min_fiducials}): {reason}"
