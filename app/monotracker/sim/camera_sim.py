@@ -246,6 +246,7 @@ class SimulatedCamera(FrameSource):
         self._last_noise = -1
         self._light_cam = np.array([-0.3, -0.5, -1.0]) / np.linalg.norm([-0.3, -0.5, -1.0])  # towards light
         self._chain = self._hair = None
+        self._skin_cache = None       # (pose bytes, skin render) of the last frame
         if optics is not None:
             orng = np.random.default_rng(seed + 777)
             self._background_low = _optics.drape_background(optics, self._low_shape, orng).astype(np.float32)
@@ -326,7 +327,12 @@ class SimulatedCamera(FrameSource):
 
         # --- skin at low resolution, composited on the background, then upsampled
         low = self._background_low.copy()
-        cov, shade, spec = self._skin(self._rays_low, R, tr, self.K[0, 0] * self._low_scale)
+        key = T.tobytes()
+        if self._skin_cache is not None and self._skin_cache[0] == key:
+            cov, shade, spec = self._skin_cache[1]        # a still head: same skin as last frame
+        else:
+            cov, shade, spec = self._skin(self._rays_low, R, tr, self.K[0, 0] * self._low_scale)
+            self._skin_cache = (key, (cov, shade, spec))
         lowf = low.reshape(-1, 3)
         m = cov > 0
         skin = SKIN_BGR[None, :] * shade[m, None] + (255.0 * spec[m, None] if spec is not None else 0.0)

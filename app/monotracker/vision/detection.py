@@ -222,7 +222,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
         c.features.pop("contour_ellipse")
         fit = edge_fits.get(i)
         if fit is not None:
-            c.features.update(edge_rms_px=fit.rms_px, edge_rays_kept=fit.kept)
+            c.features.update(edge_rms_px=fit.rms_px, edge_rays_kept=fit.kept, centre_sigma_px=fit.centre_sigma_px)
             if not fit.ok:
                 c.reason = fit.reason
                 rejected.append(c)

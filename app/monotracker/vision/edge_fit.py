@@ -77,6 +77,9 @@ class EdgeFit:
     angle_deg: float = 0.0
     rms_px: float = float("nan")
     kept: float = 0.0
+    #: rough 1-sigma of the centre (px): edge RMS / sqrt(kept rays / 2); neighbouring rays err
+    #: together under JPEG and hair, so treat it as a lower bound
+    centre_sigma_px: float = float("nan")
 
 
 def _median(x: np.ndarray) -> float:
@@ -316,7 +319,7 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float = 2.0) 
                 res[i] = EdgeFit(False, "edge fit moved far from the blob (not a ball edge)")
                 continue
             res[i] = EdgeFit(True, "", np.array([cx, cy]), (max(d1, d2) / 2, min(d1, d2) / 2), float(ang), rms,
-                             float(keep.mean()))
+                             float(keep.mean()), rms / np.sqrt(max(keep.sum(), 2) / 2.0))
             moved = np.hypot(cx - current[i][0][0], cy - current[i][0][1])
             if it == 0 and moved > 0.6:
                 again[i] = ell   # re-centre the rays once (an oblique ray still finds the edge)
