@@ -6,7 +6,6 @@ Rates: the messages carry the frame's capture time (simulated clock in the headl
 is a benchmark number (benchmarks/interop.py), not asserted here."""
 
 import socket
-import threading
 
 import numpy as np
 import pyigtl

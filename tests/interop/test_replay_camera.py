@@ -30,26 +30,31 @@ def image_recording(fresh_home, tmp_path):
 
 
 def test_replay_camera_reproduces_the_recorded_poses(image_recording, planned_home, tmp_path):
+    from monotracker.engine.vision_rig import make_vision_rig
+
     home = tmp_path / "home2"
     home.mkdir()
     shutil.copy(planned_home / "plan.json", home / "plan.json")
     recorded = [json.loads(line) for line in (image_recording / "poses.jsonl").read_text().splitlines()]
     assert len(recorded) >= 20
-    seen = {}
-    lock = threading.Lock()
+    estimates = []  # every estimate of the live pipeline (vision's PoseStream), in order
     ended = threading.Event()
 
-    def hook(loop, smp, trusted, now):
-        with lock:
-            cam = getattr(smp.raw, "camera", "ok")
-            if cam == "ok":
-                seen[smp.frame_index] = smp
-            elif cam == "ended":  # the end-of-stream notice (a "stalled" notice can come on a loaded machine)
-                ended.set()
+    def on_estimate(est):
+        if est.camera == "ok":
+            estimates.append(est)
+        elif est.camera == "ended":  # a "stalled" notice can also come on a loaded machine
+            ended.set()
 
-    s = Session(SessionConfig(home=home, camera=f"replay:{image_recording}", clock="real"))
+    def factory(source, calibration_path, plan, cfg, session):
+        rig = make_vision_rig(source, calibration_path, plan, cfg, session)
+        rig.stream.subscribe(on_estimate)
+        return rig
+
+    seen = []  # what reached the engine loop (it polls the newest; it may skip some when starved)
+    s = Session(SessionConfig(home=home, camera=f"replay:{image_recording}", clock="real"), camera_factory=factory)
     try:
-        s._loop.add_pose_hook(hook)
+        s._loop.add_pose_hook(lambda loop, smp, trusted, now: seen.append(smp))
         s.start()
         assert s.start_camera().ok, s.snapshot().camera.error
         deadline = time.monotonic() + 240  # loaded machine: wait on state, generously
@@ -61,20 +66,20 @@ def test_replay_camera_reproduces_the_recorded_poses(image_recording, planned_ho
         assert np.array_equal(snap.camera.K, np.array(cal["camera_matrix"]))
     finally:
         s.shutdown()
-    with lock:
-        got = dict(seen)
-    # the loop polls the newest estimate; on a loaded machine it may skip one now and then
-    assert len(got) >= 0.8 * len(recorded)
-    compared = 0
     target = default_phantom().sample_target_lps
-    for i, smp in got.items():  # replay frame i (from 0) is recorded row i
-        rec = recorded[i]
-        assert smp.ok == rec["ok"]
+    assert [e.frame_index for e in estimates] == list(range(len(recorded)))  # every frame, in order
+    compared = 0
+    for est, rec in zip(estimates, recorded):  # replay frame i (from 0) is recorded row i
+        assert est.ok == rec["ok"]
         if rec["ok"]:
-            d = apply_transform(np.asarray(smp.T_cam_ct), target) - apply_transform(np.asarray(rec["T_cam_ct"]), target)
+            d = apply_transform(np.asarray(est.T_cam_ct), target) - apply_transform(np.asarray(rec["T_cam_ct"]), target)
             assert np.linalg.norm(d) <= 1e-3
             compared += 1
     assert compared >= 0.8 * len(recorded)
+    # the engine loop handled these same poses
+    by_index = {e.frame_index: e for e in estimates}
+    live = [smp for smp in seen if getattr(smp.raw, "camera", "ok") == "ok"]
+    assert live and all(np.array_equal(smp.T_cam_ct, by_index[smp.frame_index].T_cam_ct) for smp in live if smp.ok)
 
 
 def test_replay_camera_refuses_a_broken_recording(image_recording, fresh_home):

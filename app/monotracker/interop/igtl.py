@@ -11,7 +11,8 @@ device name        type       content
 ``NeedleTipToCT``  TRANSFORM  needle tip frame (z along the needle) -> CT (RAS, mm), from the
                               robot's measured tip pose and the current registration
 ``Status``         STRING     ``key=value; ...``: robot state, pose validity and reason, pose age
-                              (ms), fiducials matched, FRE (mm), recent alert codes, coordinates
+                              (ms), fiducials matched, FRE (mm), validation-fiducial verdict,
+                              recent alert codes, coordinates
 ``Fiducials``      POINT      the registration fiducials (CT RAS mm, named ``F<id>``)
 ``Path``           POINT      ``Entry`` and ``Target`` (CT RAS mm)
 =================  =========  =================================================================
@@ -182,6 +183,8 @@ class IGTLStreamer:
             "robot": "none" if st is None else st.state,
             "T_base_tip": None if st is None or st.T_base_tip is None else np.array(st.T_base_tip, float),
             "alerts": alerts,
+            "validation": ("none" if smp.validation is None else
+                           (f"ok max_mm={smp.validation.max_mm:.2f}" if smp.validation.ok else "FAILED")),
         })
         self._wake.set()
 
@@ -239,7 +242,8 @@ class IGTLStreamer:
         fre = "n/a" if d["fre"] is None else f"{d['fre']:.3f}"
         status = (f"robot={d['robot']}; {pose}; age_ms={1000 * (d['now'] - d['t_capture']):.0f}; "
                   f"fiducials={d['n']}; fre_mm={fre}; needle={'sent' if tip_sent else 'not sent'}; "
-                  f"alerts={','.join(d['alerts']) or 'none'}; coordinates={self.coordinates}")
+                  f"validation={d['validation']}; alerts={','.join(d['alerts']) or 'none'}; "
+                  f"coordinates={self.coordinates}")
         self._send(pyigtl.StringMessage(status, timestamp=ts, device_name="Status"))
         if (self._static_sent_at is None or d["now"] - self._static_sent_at >= STATIC_EVERY_S
                 or plan.revision != self._static_revision):

@@ -47,7 +47,7 @@ import numpy as np
 
 from monotracker import __version__
 from monotracker.errors import InputError
-from monotracker.vision.replay_source import FORMAT, FRAMES, FRAMES_DIR, MANIFEST, VERSION
+from monotracker.vision.replay_source import FORMAT, FRAMES_DIR, MANIFEST, VERSION
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from monotracker.errors import InputError
 from monotracker.geometry import apply_transform
-from monotracker.vision.replay_source import FRAMES_DIR, load_frame_image, read_frame_index, read_jsonl, read_manifest
+from monotracker.vision.replay_source import load_frame_image, read_frame_index, read_jsonl, read_manifest
 
 DEFAULT_TOLERANCE_MM = 1e-3
 
@@ -203,4 +203,4 @@ def format_report(r: ReplayReport) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["ReplayReport", "replay_recording", "format_report", "DEFAULT_TOLERANCE_MM", "FRAMES_DIR"]
+__all__ = ["ReplayReport", "replay_recording", "format_report", "DEFAULT_TOLERANCE_MM"]
