@@ -102,6 +102,7 @@ class MonoTrackerApp:
         self._pushed: dict[int, float] = {}  # frame code -> wall time pushed (benchmark)
         self._push_count = 0
         self._notice = None
+        self._msg_seq = 0
         snap = session.snapshot()
         if snap.fiducials or snap.plan.entry_lps_mm is not None:
             self._notice = f"Saved plan restored ({snap.plan_path}); robot starts DISARMED."
@@ -129,7 +130,10 @@ class MonoTrackerApp:
 
     # ================================================================== commands (viser threads)
     def _say(self, ok: bool, text: str) -> None:
-        self.h_msg.content = st.message_html(ok, text)
+        with self._lock:
+            self._msg_seq += 1
+            seq = self._msg_seq
+        self.h_msg.content = st.message_html(ok, text, seq)
 
     def _run(self, what: str, fn, *args):
         """Call one Session command, show its result; never lets an exception escape."""

@@ -113,8 +113,10 @@ def status_html(snap, *, view_step: str | None = None, notice: str | None = None
     return "".join(parts)
 
 
-def message_html(ok: bool, text: str) -> str:
-    """The result line of the operator's last command."""
+def message_html(ok: bool, text: str, seq: int = 0) -> str:
+    """The result line of the operator's last command. ``seq`` counts the results shown in this
+    page (``data-seq``), so a repeated identical result is still a new one (tests wait on it)."""
     cls = "ok" if ok else "err"
     mark = "&#10003;" if ok else "&#10007;"
-    return f"<div class='mt-msg {cls}' id='mt-msg' data-ok='{int(bool(ok))}'>{mark} {_esc(text)}</div>"
+    return (f"<div class='mt-msg {cls}' id='mt-msg' data-ok='{int(bool(ok))}' data-seq='{int(seq)}'>"
+            f"{mark} {_esc(text)}</div>")
