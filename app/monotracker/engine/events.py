@@ -75,6 +75,9 @@ class EventBus:
         self._clock = clock
         self._lock = threading.Lock()
         self._recent: deque[Event] = deque(maxlen=keep)
+        # alerts kept apart so that a burst of events (wrong PIN tries, state changes) cannot
+        # push the operator's alerts out of the recent list
+        self._recent_alerts: deque[Event] = deque(maxlen=keep)
         self._subscribers: dict[int, Subscriber] = {}
         self._next_id = 0
         self._queue: queue.Queue[Event | None] = queue.Queue()
@@ -104,6 +107,8 @@ class EventBus:
                    message=message, data=dict(data or {}))
         with self._lock:
             self._recent.append(ev)
+            if kind == "alert":
+                self._recent_alerts.append(ev)
         if self._sink is not None:
             try:
                 self._sink(ev)
@@ -124,7 +129,7 @@ class EventBus:
     def recent(self, kind: str | None = None) -> list[Event]:
         """Copies of the recent events (oldest first), optionally only one kind."""
         with self._lock:
-            items = list(self._recent)
+            items = list(self._recent_alerts if kind == "alert" else self._recent)
         return [e for e in items if kind is None or e.kind == kind]
 
     def _deliver(self, ev: Event) -> None:

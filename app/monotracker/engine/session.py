@@ -30,7 +30,9 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.set_camera(source, calibration_path=None)
     s.start_camera(); s.stop_camera()   # pose stream on its own thread
     s.set_hand_eye(T_base_cam_mm)       # 4x4 mm; the sim camera sets it from the OR layout
-    s.arm(pin); s.disarm()
+    s.arm(pin); s.disarm()               # wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/control.py
+    s.claim_control(client_id, pin, label=""); s.release_control(client_id)   # one browser client in control
+    s.for_client(client_id) -> ClientSession    # reads as is; commands only while in control; estop() always
     s.start_tracking(); s.stop_tracking()   # needs armed + plan + trusted fresh pose + hand-eye
     s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed
     s.inject_fault(name)                # sim only: "camera-freeze"|"occlude-all"|"robot-disconnect"|"bad-pose"|"none"
@@ -50,6 +52,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     snap.robot            # RobotSummary(state "disarmed"|"armed"|"tracking"|"holding"|"estopped", q rad,
                           #   tip_error_mm, angle_error_deg, speed_mm_s, connected, message, latency_ms)
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
+    snap.control          # ControlSummary(controller client id or None, controller_label, since, pin_locked_s)
+    snap.alarms           # active conditions, most important first: Alarm(code, level, priority, message, since, count)
     snap.alerts           # recent alerts (Event: t, t_session, kind, level "info"|"warning"|"alarm", code, message, data)
     s.volume()            # the loaded CT Volume (LPS mm) for read-only display, or None
     s.latest_frame()      # (image BGR uint8, frame_index, estimate) for the overlay, or None; estimate is
@@ -69,7 +73,8 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 [warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
 ``robot_disconnected`` [alarm] /
 ``robot_connected`` [info]; ``robot_warning`` [warning] from the robot's safety layer; ``estop``
-[alarm]; ``arm_refused`` [warning] wrong PIN; ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
+[alarm]; ``pin_lockout`` [alarm] too many wrong PIN tries, arming and taking control locked (each
+wrong try is an ``arm_refused`` / ``control_refused`` *event*, never an alert, never the PIN); ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
 / ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
 state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
 ``arm``, ``tracking_started``, ``robot_state``, ``fault_injected``, ...); all of them are in the audit log.
@@ -111,6 +116,7 @@ import numpy as np
 
 from monotracker.engine.audit import AuditEntry, AuditLog
 from monotracker.engine.config import FAULTS, SessionConfig
+from monotracker.engine.control import ClientSession, ControlArbiter, PinGuard
 from monotracker.engine.events import Event, EventBus
 from monotracker.engine.plan import (
     Plan,
@@ -202,6 +208,8 @@ class Session:
         self._started = False
         self._closed = False
         self._plan = Plan()
+        self._pin_guard = PinGuard(self.config.arm_pin)
+        self._control = ControlArbiter()
         self._restore_plan()
         # camera + loop + robot wiring (monotracker.engine.loop); created lazily
         from monotracker.engine.loop import TrackingLoop
@@ -588,10 +596,68 @@ class Session:
 
     # ================================================================== robot
     def arm(self, pin) -> CommandResult:
-        if str(pin) != str(self.config.arm_pin):
-            self._bus.alert("warning", "arm_refused", "arming refused: wrong PIN")
-            return _fail("wrong PIN")
+        """Arm the robot; ``pin`` is the operator PIN (wrong tries count towards the lockout)."""
+        r = self._check_pin(pin, "arm_refused", "arming")
+        if not r.ok:
+            return r
         return self._loop.arm()
+
+    # ================================================================== control (browser clients)
+    def _check_pin(self, pin, refused_code: str, what: str) -> CommandResult:
+        """One PIN try through the shared :class:`PinGuard`: an audit row per wrong try (never the
+        PIN), one ``pin_lockout`` alert when a lockout starts."""
+        now = float(self.clock())
+        was_locked = self._pin_guard.locked_for(now) > 0
+        r = self._pin_guard.check("" if pin is None else str(pin), now)
+        if r.ok:
+            return r
+        self._bus.event(refused_code, f"{what} refused: {r.message}", {"total_wrong": self._pin_guard.total_wrong},
+                        level="warning")
+        locked_s = self._pin_guard.locked_for(now)
+        if locked_s > 0 and not was_locked:
+            self._bus.alert("alarm", "pin_lockout", f"PIN locked for {locked_s:.0f} s after "
+                            f"{self._pin_guard.max_tries} wrong tries", {"locked_s": locked_s})
+        return r
+
+    def claim_control(self, client_id: str, pin, label: str = "") -> CommandResult:
+        """Make browser client ``client_id`` the one in control (taking over from another client).
+
+        ``pin``: the operator PIN (same guard and lockout as arming). ``label``: a display name for
+        the other stations ("OR laptop", "nurse tablet"). Refused with one line on a wrong PIN or
+        while locked. Already in control: ok without a PIN check."""
+        client_id = str(client_id)
+        if not client_id:
+            return _fail("a client id is needed to take control")
+        if self._control.is_controller(client_id):
+            return _ok("already in control")
+        r = self._check_pin(pin, "control_refused", "taking control")
+        if not r.ok:
+            return r
+        prev, prev_label = self._control.claim(client_id, label, float(self.clock()))
+        took = f" from {prev_label or prev}" if prev is not None else ""
+        self._bus.event("control_taken", f"{label or client_id} took control{took}",
+                        {"client": client_id, "label": label, "previous": prev, "previous_label": prev_label})
+        return _ok("in control" + took)
+
+    def release_control(self, client_id: str) -> CommandResult:
+        """Client ``client_id`` gives up control (also when it disconnects); others stay unaffected."""
+        if not self._control.release(str(client_id)):
+            return _ok("not in control")
+        self._bus.event("control_released", f"client {client_id} released control", {"client": str(client_id)})
+        return _ok("control released")
+
+    def is_in_control(self, client_id: str) -> bool:
+        """True if browser client ``client_id`` is the one in control."""
+        return self._control.is_controller(str(client_id))
+
+    def control_summary(self):
+        """:class:`~monotracker.engine.snapshot.ControlSummary` now (also in ``snap.control``)."""
+        return self._control.summary(self._pin_guard.locked_for(float(self.clock())))
+
+    def for_client(self, client_id: str) -> ClientSession:
+        """The session as browser client ``client_id`` may drive it (see ``engine/control.py``):
+        reads as is, commands only while in control, ``estop()`` always."""
+        return ClientSession(self, str(client_id))
 
     def disarm(self) -> CommandResult:
         return self._loop.disarm()
@@ -653,5 +719,5 @@ class Session:
             t=float(self.clock()), step=step, job=job, ct=ct, head_mesh=mesh, fiducials=fids,
             fiducials_locked=locked, plan=plan_summary, camera=camera, pose=pose, robot=robot, scene=scene,
             alerts=tuple(self._bus.recent("alert")[-50:]), plan_path=str(self._plan_path),
-            audit_path=str(self._audit.path),
+            audit_path=str(self._audit.path), control=self.control_summary(),
         )

@@ -165,6 +165,38 @@ class SceneGeometry:
 
 
 @dataclass(frozen=True)
+class ControlSummary:
+    """Which browser client is in control (see ``engine/control.py``).
+
+    ``controller``: the client id in control, None when nobody is (the local operator calling the
+    Session directly is never refused). ``controller_label``: its display name. ``since``: session
+    clock (s) when it took control. ``pin_locked_s``: seconds the PIN stays locked after too many
+    wrong tries (0 when not locked)."""
+
+    controller: str | None = None
+    controller_label: str = ""
+    since: float | None = None
+    pin_locked_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Alarm:
+    """One active condition (see ``engine/alarms.py``), shown until it clears.
+
+    ``code`` stable name (e.g. ``"estop"``, ``"occlusion"``, ``"pin_lockout"``); ``level``
+    ``"alarm" | "warning" | "info"``; ``priority`` 0 = most important; ``message`` one line;
+    ``since`` session clock (s) when the condition began; ``count`` how many times it began
+    (episodes) since the session started."""
+
+    code: str
+    level: str
+    priority: int
+    message: str
+    since: float
+    count: int = 1
+
+
+@dataclass(frozen=True)
 class Snapshot:
     """One consistent, immutable view of the session (see ``session.py`` for each field)."""
 
@@ -183,6 +215,8 @@ class Snapshot:
     alerts: tuple = field(default_factory=tuple)  # tuple[Event], newest last
     plan_path: str = ""
     audit_path: str = ""
+    control: ControlSummary = field(default_factory=ControlSummary)
+    alarms: tuple = field(default_factory=tuple)  # tuple[Alarm], most important first
 
     @property
     def latest_alert(self) -> Event | None:
