@@ -147,4 +147,4 @@ def test_client_session_is_fail_closed_for_unknown_commands(make_session):
         raise AssertionError("private attribute reachable")
     except AttributeError:
         pass
-    assert c.snapshot().control.controller is None and c.config.arm_pin == "1234"
+    assert c.snapshot().control.controller is None and c.config.arm_pin == "****" and s.config.arm_pin == "1234"

@@ -142,17 +142,18 @@ class ControlArbiter:
 class ClientSession:
     """One browser client's view of a :class:`~monotracker.engine.session.Session`.
 
-    Reads (``snapshot``, ``volume``, ``latest_frame``, ``subscribe``, ``audit_entries``, ...) are
-    forwarded as is. Every other public method of the session is a command: it runs only while
-    this client is in control, else it returns ``CommandResult(False, NOT_IN_CONTROL)`` (so a
-    command added to Session later is guarded by default). ``estop()`` always runs, from every
+    Reads (:data:`READS`: ``snapshot``, ``volume``, ``latest_frame``, ``subscribe``,
+    ``audit_entries``, ...) are forwarded as is; ``config`` is a copy with the PIN masked. Every
+    other public method of the session is a command: it runs only while this client is in
+    control, else it returns ``CommandResult(False, NOT_IN_CONTROL)`` (so a command added to
+    Session later is guarded by default); other attributes are not reachable. ``estop()`` always runs, from every
     client. ``claim_control``/``release_control`` act for this client only.
     """
 
     #: methods and attributes forwarded without a control check (they change nothing)
     READS = frozenset({
         "snapshot", "volume", "latest_frame", "subscribe", "audit_entries", "plan_copy", "wait_for_job",
-        "plan_path", "config", "session_id", "home", "clock", "control_summary", "is_in_control",
+        "plan_path", "session_id", "home", "clock", "control_summary", "is_in_control",
     })
     #: commands every client may always run
     ALWAYS = frozenset({"estop"})
@@ -166,6 +167,13 @@ class ClientSession:
 
     def __setattr__(self, name, value):
         raise AttributeError("a ClientSession is read-only; call its commands")
+
+    @property
+    def config(self):
+        """A copy of the session's configuration with ``arm_pin`` masked."""
+        import dataclasses
+
+        return dataclasses.replace(self._session.config, arm_pin="****")
 
     @property
     def in_control(self) -> bool:
@@ -197,8 +205,10 @@ class ClientSession:
         if name.startswith("_"):
             raise AttributeError(name)
         target = getattr(self._session, name)
-        if name in self.READS or not callable(target):
+        if name in self.READS:
             return target
+        if not callable(target):
+            raise AttributeError(f"{name} is not available to a browser client")
         session, cid = self._session, self.client_id
 
         def guarded(*args, **kwargs):

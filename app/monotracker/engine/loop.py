@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monotracker.engine import components
+from monotracker.engine.alarms import POSE_CODES
 from monotracker.engine.gate import PoseGate
 from monotracker.engine.snapshot import (
     CameraSummary,
@@ -88,6 +89,7 @@ class TrackingLoop:
         self._frame_times: deque[float] = deque(maxlen=90)
         self._holding_reason: str | None = None  # why the loop currently holds (None = not holding)
         self._holding_code: str | None = None
+        self._hold_reported = False  # the current hold episode was reported (so its end is too)
         self._seen_ids: set | None = None  # fiducial ids seen in the previous estimate
         self._alerted: set[str] = set()
         self._target_T: np.ndarray | None = None
@@ -165,9 +167,23 @@ class TrackingLoop:
         elif st.connected and not was_conn:
             self._clear_alert("robot_disconnected")
             self.s.alert("info", "robot_connected", "robot connection restored")
+        self._sync_robot_alarms(st)
         if st.state != old:
             self.s.record("robot_state", f"robot {old} -> {st.state}" + (f" ({st.message})" if st.message else ""),
                           {"from": old, "to": st.state})
+
+    def _sync_robot_alarms(self, st) -> None:
+        """Active conditions that mirror the robot's state: e-stop latched, connection lost."""
+        board, now = self.s._alarm_board, self.now()
+        if st.state == "estopped":
+            board.set("estop", "EMERGENCY STOP latched: arm stopped" + (f" ({st.message})" if st.message else "")
+                      + "; reset the e-stop to continue", now)
+        else:
+            board.clear("estop", now)
+        if not st.connected:
+            board.set("robot_disconnected", "robot connection lost: the arm controller stopped the arm", now)
+        else:
+            board.clear("robot_disconnected", now)
 
     def arm(self) -> CommandResult:
         try:
@@ -265,8 +281,10 @@ class TrackingLoop:
             rig = components.make_camera_rig(self.camera_source, self.calibration_path, plan, self.cfg, self.s)
         except MonoTrackerError as exc:
             self.camera_error = str(exc)
+            self.s._alarm_board.set("camera_failed", f"camera could not start: {exc}", self.now())
             self.s.alert("alarm", "camera_failed", f"camera could not start: {exc}")
             return CommandResult(False, str(exc))
+        self.s._alarm_board.clear_all(("camera_failed", "camera_stopped", "camera_uncalibrated"), self.now())
         with self._lock:
             self.rig = rig
             self.camera_error = None
@@ -292,6 +310,7 @@ class TrackingLoop:
         rig.running = False
         rig.stop()
         self.s.record("camera_stopped", "camera stopped")
+        self.s._alarm_board.clear_all(POSE_CODES + ("camera_uncalibrated",), self.now())
         self._hold("camera_stopped", "camera stopped")
         return CommandResult(True, "camera stopped")
 
@@ -392,15 +411,34 @@ class TrackingLoop:
             if code == "acquiring" and self._holding_code not in (None, "acquiring"):
                 return  # re-acquiring after an occlusion/fault: keep the cause for the resume alert
             self._holding_code = code
+        tracking = self.robot_state() in ("tracking", "holding")
+        msg = reason + ("; arm holding still" if tracking else "")
+        report = self._set_pose_alarm(code, msg, tracking)
         if not self._mark(code):
             return
-        tracking = self.robot_state() in ("tracking", "holding")
+        self._hold_reported = self._hold_reported or report
+        if not report:
+            return  # a technical condition again within its quiet time: shown, counted, not re-reported
+        unreported = self.s._alarm_board.unreported(code)
+        if unreported:
+            msg += f" ({unreported} more short episode{'s' if unreported > 1 else ''} since the last report)"
         if code == "acquiring":
             self.s.record("pose_acquiring", reason)
             return
-        msg = reason + ("; arm holding still" if tracking else "")
         lvl = "alarm" if code in ("camera_freeze", "robot_disconnected", "engine_error") else level
-        self.s.alert(lvl, code, msg, {"reason": reason, "tracking": tracking})
+        self.s.alert(lvl, code, msg, {"reason": reason, "tracking": tracking, "unreported_episodes": unreported})
+
+    def _set_pose_alarm(self, code: str, message: str, tracking: bool) -> bool:
+        """Show why the arm holds (one pose condition at a time); True when it is to be reported.
+        A stopped camera is a condition only while the arm is armed; the rest always are (the
+        registration view needs them too), as alarms while the arm follows the head."""
+        board, now = self.s._alarm_board, self.now()
+        if code == "camera_stopped" and self.robot_state() in ("disarmed", "estopped"):
+            board.clear_all(POSE_CODES, now)
+            return True
+        if code != "engine_error":
+            board.clear_all(POSE_CODES, now, keep=code)
+        return board.set(code, message, now, level="alarm" if tracking else None)
 
     @staticmethod
     def _registration_data(smp: components.PoseSample) -> dict:
@@ -414,8 +452,10 @@ class TrackingLoop:
             was, code = self._holding_reason, self._holding_code
             self._holding_reason = self._holding_code = None
             self._alerted &= {"robot_disconnected"}
-        if was is None:
-            return
+            reported, self._hold_reported = self._hold_reported, False
+        self.s._alarm_board.clear_all(tuple(c for c in POSE_CODES if c != "engine_error"), self.now())
+        if was is None or not reported:
+            return  # an unreported (rate-limited) hold ends unreported too
         if code == "acquiring":
             self.s.record("registration", f"registration acquired: {why}", data)
             return
@@ -445,6 +485,7 @@ class TrackingLoop:
                 return False
             self._last_frame_t = t_capture
             self._last_frame_seen_at = now
+            self.s._alarm_board.clear("camera_freeze", now)
             self._frames += 1
             self._frame_times.append(now)
             return True
@@ -526,6 +567,7 @@ class TrackingLoop:
                     # the first control step after the target was handed over used it
                     if st.t_command is not None and st.t_command >= self._pending_latency_set_at:
                         self.after_command(st.t_command)
+                self.s._alarm_board.clear("engine_error", now)
             except Exception:  # noqa: BLE001 - the loop must survive; hold the arm and report
                 log.exception("engine loop iteration failed")
                 self._on_iteration_error()

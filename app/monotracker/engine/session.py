@@ -114,6 +114,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monotracker.engine.alarms import AlarmBoard
 from monotracker.engine.audit import AuditEntry, AuditLog
 from monotracker.engine.config import FAULTS, SessionConfig
 from monotracker.engine.control import ClientSession, ControlArbiter, PinGuard
@@ -209,6 +210,7 @@ class Session:
         self._closed = False
         self._plan = Plan()
         self._pin_guard = PinGuard(self.config.arm_pin)
+        self._alarm_board = AlarmBoard()  # active conditions (snap.alarms); the loop sets and clears them
         self._control = ControlArbiter()
         self._restore_plan()
         # camera + loop + robot wiring (monotracker.engine.loop); created lazily
@@ -268,8 +270,22 @@ class Session:
         """``callback(event)`` for every later event/alert; returns the unsubscribe function."""
         return self._bus.subscribe(callback)
 
-    def alert(self, level: str, code: str, message: str, data: dict | None = None) -> Event:
-        """Raise an alert (to subscribers and the audit log). Used by the engine's parts."""
+    def alert(self, level: str, code: str, message: str, data: dict | None = None) -> Event | None:
+        """Raise an alert (to subscribers and the audit log). Used by the engine's parts.
+
+        Warnings from the robot's safety layer and an uncalibrated camera are also active
+        conditions in ``snap.alarms``; repeated robot warnings (a loaded machine overrunning the
+        control period) are reported at most once per quiet time (returns None when held back)."""
+        if code == "robot_warning":
+            kind = "loop_overrun" if "overran" in message else "robot_warning"
+            now = float(self.clock())
+            report = self._alarm_board.set(kind, message, now)
+            self._alarm_board.clear(kind, now)  # a pulse: shown for its linger time
+            if not report:
+                log.info("robot warning (not re-reported): %s", message)
+                return None
+        elif code == "camera_uncalibrated":
+            self._alarm_board.set(code, message, float(self.clock()))
         return self._bus.alert(level, code, message, data)
 
     def record(self, code: str, message: str, data: dict | None = None, level: str = "info") -> Event:
@@ -296,6 +312,8 @@ class Session:
                 self._plan_path.rename(keep)
             except OSError:
                 keep = self._plan_path
+            self._alarm_board.set("plan_unreadable", f"saved plan could not be read; kept as {keep.name}",
+                                  float(self.clock()))
             self._bus.alert("alarm", "plan_unreadable",
                             f"saved plan could not be read ({exc}); kept as {keep.name}, starting empty")
             return
@@ -310,8 +328,10 @@ class Session:
         try:
             self._plan.save(self._plan_path)
         except OSError as exc:
+            self._alarm_board.set("plan_save_failed", f"could not save the plan: {exc}", float(self.clock()))
             self._bus.alert("alarm", "plan_save_failed", f"could not save the plan: {exc}")
             raise MonoTrackerError(f"could not save the plan to {self._plan_path}: {exc}") from exc
+        self._alarm_board.clear_all(("plan_save_failed", "plan_unreadable"), float(self.clock()))
         log.debug("plan saved (%s) revision %d", why, self._plan.revision)
 
     def plan_copy(self) -> Plan:
@@ -358,6 +378,7 @@ class Session:
             self._job = Job("load_ct", 0.0, f"loading {Path(path).name}")
             th = threading.Thread(target=self._ct_job, args=(path,), name="monotracker-ct", daemon=True)
             self._job_thread = th
+        self._alarm_board.clear("ct_failed", float(self.clock()))
         self._bus.event("ct_load_started", f"loading CT {path}", {"path": path})
         th.start()
         return _ok("loading CT")
@@ -370,6 +391,9 @@ class Session:
         with self._lock:
             return self._job
 
+    def _ct_failed_alarm(self) -> None:
+        self._alarm_board.set("ct_failed", "the last CT could not be loaded (see the CT step)", float(self.clock()))
+
     def _set_job(self, progress: float, message: str, error: str | None = None, done: bool = False) -> None:
         with self._lock:
             name = self._job.name if self._job else "job"
@@ -380,6 +404,7 @@ class Session:
             from monotracker.ct import detect_fiducials, load_volume
         except ImportError as exc:
             self._set_job(1.0, "CT tools unavailable", f"CT tools are not installed: {exc}", True)
+            self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT tools are not available: {exc}")
             return
         try:
@@ -394,11 +419,13 @@ class Session:
             mesh = head_surface(vol) if head_surface is not None else None
         except MonoTrackerError as exc:
             self._set_job(1.0, "CT failed", str(exc), True)
+            self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT could not be used: {exc}", {"path": path})
             return
         except Exception as exc:  # noqa: BLE001 - report, never kill the engine
             log.exception("CT job failed")
             self._set_job(1.0, "CT failed", f"internal error: {type(exc).__name__}: {exc}", True)
+            self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT job failed: {type(exc).__name__}: {exc}", {"path": path})
             return
         with self._lock:
@@ -614,10 +641,21 @@ class Session:
         self._bus.event(refused_code, f"{what} refused: {r.message}", {"total_wrong": self._pin_guard.total_wrong},
                         level="warning")
         locked_s = self._pin_guard.locked_for(now)
+        self._sync_pin_alarm(now)
         if locked_s > 0 and not was_locked:
             self._bus.alert("alarm", "pin_lockout", f"PIN locked for {locked_s:.0f} s after "
                             f"{self._pin_guard.max_tries} wrong tries", {"locked_s": locked_s})
         return r
+
+    def _sync_pin_alarm(self, now: float) -> float:
+        """``pin_lockout`` is active while the PIN is locked; returns the seconds left."""
+        left = self._pin_guard.locked_for(now)
+        if left > 0:
+            self._alarm_board.set("pin_lockout", f"PIN locked for {left:.0f} s after {self._pin_guard.max_tries} "
+                                  "wrong tries (arming and taking control)", now)
+        else:
+            self._alarm_board.clear("pin_lockout", now)
+        return left
 
     def claim_control(self, client_id: str, pin, label: str = "") -> CommandResult:
         """Make browser client ``client_id`` the one in control (taking over from another client).
@@ -652,7 +690,7 @@ class Session:
 
     def control_summary(self):
         """:class:`~monotracker.engine.snapshot.ControlSummary` now (also in ``snap.control``)."""
-        return self._control.summary(self._pin_guard.locked_for(float(self.clock())))
+        return self._control.summary(self._sync_pin_alarm(float(self.clock())))
 
     def for_client(self, client_id: str) -> ClientSession:
         """The session as browser client ``client_id`` may drive it (see ``engine/control.py``):
@@ -720,4 +758,5 @@ class Session:
             fiducials_locked=locked, plan=plan_summary, camera=camera, pose=pose, robot=robot, scene=scene,
             alerts=tuple(self._bus.recent("alert")[-50:]), plan_path=str(self._plan_path),
             audit_path=str(self._audit.path), control=self.control_summary(),
+            alarms=self._alarm_board.active(float(self.clock())),
         )

@@ -1,0 +1,168 @@
+"""Alarms that cannot hide: the session's list of *active conditions*, most important first.
+
+``snap.alerts`` is history (what happened, newest last); an alert scrolls away when the next
+one comes. ``snap.alarms`` is the present: every condition that holds *now* (e-stop latched, arm
+lost, pose not trusted, fiducials occluded, camera frozen, PIN locked, ...), each with the time
+it began and how many episodes it had, until the condition clears. A new, less important
+condition never replaces a more important one on screen.
+
+The :class:`AlarmBoard` is bookkeeping only (no threads; the engine's parts call :meth:`set`
+when a condition holds and :meth:`clear` when it is over, as often as they like):
+
+* one *episode* per start: ``set`` on an active code refreshes its message, nothing else;
+* ``linger_s`` (per code): the shortest time a condition stays shown after it was last set, so a
+  one-tick glitch is readable and a condition re-set within that time stays one episode (this is
+  display hysteresis; the engine's decisions never wait on it);
+* ``set`` returns True when the caller should write an alert (audit row): every new episode of
+  a safety condition, but for *technical* conditions (stale pose, control-loop overrun, ...) at
+  most one per ``quiet_s`` (10 s); the episodes in between are counted (``Alarm.count``) and the
+  next report says how many went unreported (:meth:`unreported`).
+
+Codes, levels and priorities are in :data:`CATALOGUE` (0 = most important). ``set`` may raise the
+level for one episode (a pose condition is an ``"alarm"`` while the arm follows the head, a
+``"warning"`` otherwise). Times are session-clock seconds.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+from monotracker.engine.snapshot import Alarm
+
+
+@dataclass(frozen=True)
+class AlarmKind:
+    level: str  # default level: "alarm" | "warning" | "info"
+    priority: int  # 0 = most important
+    technical: bool = False  # rate-limited reports (one per quiet_s)
+    linger_s: float = 1.0  # shown at least this long after the last set
+
+
+#: every code the board knows; unknown codes are shown as technical warnings at priority 90
+CATALOGUE: dict[str, AlarmKind] = {
+    # safety: the arm and what it follows
+    "estop": AlarmKind("alarm", 0, linger_s=0.0),
+    "robot_disconnected": AlarmKind("alarm", 1, linger_s=0.0),
+    "engine_error": AlarmKind("alarm", 2, linger_s=2.0),
+    "pose_lost": AlarmKind("warning", 3),  # the estimator failed
+    "bad_pose": AlarmKind("warning", 3),  # FRE too large
+    "pose_jump": AlarmKind("warning", 3),  # pose disagrees with the last trusted one
+    "occlusion": AlarmKind("warning", 4),
+    "camera_freeze": AlarmKind("alarm", 5),
+    "camera_failed": AlarmKind("alarm", 5, linger_s=0.0),
+    "camera_stopped": AlarmKind("warning", 6, linger_s=0.0),
+    "pose_stale": AlarmKind("warning", 7, technical=True),
+    "plan_save_failed": AlarmKind("alarm", 8, linger_s=0.0),
+    "pin_lockout": AlarmKind("warning", 9, linger_s=0.0),
+    # technical
+    "loop_overrun": AlarmKind("warning", 20, technical=True, linger_s=10.0),
+    "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0),
+    "camera_uncalibrated": AlarmKind("warning", 22, linger_s=0.0),
+    "plan_unreadable": AlarmKind("warning", 23, linger_s=0.0),
+    "ct_failed": AlarmKind("warning", 24, linger_s=0.0),
+    "acquiring": AlarmKind("info", 30, technical=True),
+}
+_UNKNOWN = AlarmKind("warning", 90, technical=True)
+#: the conditions under which the arm holds for the pose (one at a time)
+POSE_CODES = ("pose_lost", "bad_pose", "pose_jump", "occlusion", "acquiring", "pose_stale", "camera_freeze",
+              "camera_stopped", "engine_error")
+LEVEL_RANK = {"alarm": 0, "warning": 1, "info": 2}
+
+
+@dataclass
+class _State:
+    level: str
+    message: str
+    since: float
+    last_set: float
+    clear_asked: bool = False
+    data: dict | None = None
+
+
+class AlarmBoard:
+    """The active conditions of one session (thread-safe). ``quiet_s``: shortest time between two
+    reports (alerts) of the same technical condition."""
+
+    def __init__(self, quiet_s: float = 10.0):
+        self.quiet_s = float(quiet_s)
+        self._lock = threading.Lock()
+        self._active: dict[str, _State] = {}
+        self._episodes: dict[str, int] = {}
+        self._last_report: dict[str, float] = {}
+        self._held_back: dict[str, int] = {}  # episodes not reported since the last report
+        self._unreported: dict[str, int] = {}  # episodes held back before the latest report
+
+    @staticmethod
+    def kind(code: str) -> AlarmKind:
+        return CATALOGUE.get(code, _UNKNOWN)
+
+    def set(self, code: str, message: str, now: float, level: str | None = None) -> bool:
+        """The condition ``code`` holds at ``now`` (s); ``message`` one line. Returns True when
+        the caller should report it (write an alert): a new episode, rate-limited if technical."""
+        k = self.kind(code)
+        lvl = level or k.level
+        now = float(now)
+        with self._lock:
+            st = self._active.get(code)
+            if st is not None:
+                st.message, st.last_set, st.clear_asked = message, now, False
+                if LEVEL_RANK.get(lvl, 1) < LEVEL_RANK.get(st.level, 1):
+                    st.level = lvl  # worsened within the episode (e.g. tracking started)
+                return False
+            self._active[code] = _State(lvl, message, now, now)
+            self._episodes[code] = self._episodes.get(code, 0) + 1
+            if k.technical and now - self._last_report.get(code, -float("inf")) < self.quiet_s:
+                self._held_back[code] = self._held_back.get(code, 0) + 1
+                return False
+            self._last_report[code] = now
+            self._unreported[code] = self._held_back.pop(code, 0)
+            return True
+
+    def unreported(self, code: str) -> int:
+        """Episodes of ``code`` held back before its latest report (for that report's message;
+        read once: the count is forgotten)."""
+        with self._lock:
+            return self._unreported.pop(code, 0)
+
+    def clear(self, code: str, now: float) -> bool:
+        """The condition is over at ``now``; it leaves the list once shown for ``linger_s``.
+        Returns True if it was active."""
+        now = float(now)
+        with self._lock:
+            st = self._active.get(code)
+            if st is None:
+                return False
+            if now - st.last_set >= self.kind(code).linger_s:
+                del self._active[code]
+            else:
+                st.clear_asked = True
+            return True
+
+    def clear_all(self, codes, now: float, keep: str | None = None) -> None:
+        """``clear`` every code in ``codes`` except ``keep``."""
+        for c in codes:
+            if c != keep:
+                self.clear(c, now)
+
+    def is_active(self, code: str) -> bool:
+        with self._lock:
+            return code in self._active
+
+    def episodes(self, code: str) -> int:
+        """How many times ``code`` began since the session started."""
+        with self._lock:
+            return self._episodes.get(code, 0)
+
+    def active(self, now: float) -> tuple[Alarm, ...]:
+        """The active conditions at ``now``, most important first (priority, then level, then the
+        oldest first)."""
+        now = float(now)
+        with self._lock:
+            for code in [c for c, st in self._active.items()
+                         if st.clear_asked and now - st.last_set >= self.kind(c).linger_s]:
+                del self._active[code]
+            items = [Alarm(code, st.level, self.kind(code).priority, st.message, st.since, self._episodes[code])
+                     for code, st in self._active.items()]
+        items.sort(key=lambda a: (a.priority, LEVEL_RANK.get(a.level, 1), a.since, a.code))
+        return tuple(items)

@@ -1,0 +1,133 @@
+"""Alarms that cannot hide: active conditions, most important first, until they clear."""
+
+from monotracker.engine.alarms import AlarmBoard
+
+from .conftest import plan_sample
+from .doubles import FollowerRobotRig, TruthCameraRig
+
+
+# ---------------------------------------------------------------- the board (pure)
+def test_board_orders_by_priority_and_keeps_since_and_count():
+    b = AlarmBoard()
+    assert b.set("loop_overrun", "overran", 1.0)
+    assert b.set("occlusion", "3 fiducials", 2.0)
+    assert b.set("estop", "e-stop", 3.0)
+    assert [a.code for a in b.active(3.0)] == ["estop", "occlusion", "loop_overrun"]
+    # a refresh keeps the start time and episode count, updates the message
+    assert not b.set("occlusion", "2 fiducials", 4.0)
+    occ = [a for a in b.active(4.0) if a.code == "occlusion"][0]
+    assert (occ.since, occ.count, occ.message) == (2.0, 1, "2 fiducials")
+    # cleared conditions leave (after their short linger); a new episode counts
+    b.clear("estop", 5.0)
+    assert "estop" not in [a.code for a in b.active(5.0)]
+    b.clear("occlusion", 4.5)
+    assert "occlusion" in [a.code for a in b.active(4.9)]  # shown at least linger_s (1 s)
+    assert "occlusion" not in [a.code for a in b.active(5.1)]
+    assert b.set("occlusion", "4 fiducials", 7.0)
+    occ = [a for a in b.active(7.0) if a.code == "occlusion"][0]
+    assert (occ.since, occ.count) == (7.0, 2)
+
+
+def test_board_set_again_within_linger_is_one_episode():
+    b = AlarmBoard()
+    assert b.set("occlusion", "x", 0.0)
+    b.clear("occlusion", 0.1)
+    assert not b.set("occlusion", "x", 0.5)  # flicker: same episode, not reported again
+    assert b.episodes("occlusion") == 1
+    b.clear("occlusion", 0.6)
+    assert b.active(1.7) == ()
+
+
+def test_technical_conditions_are_reported_once_per_quiet_time():
+    b = AlarmBoard(quiet_s=10.0)
+    reports = 0
+    for i in range(100):  # an episode every 2 s for 200 s
+        t = 2.0 * i
+        reports += b.set("pose_stale", "stale", t)
+        b.clear("pose_stale", t + 1.5)
+        b.active(t + 1.5)
+    assert b.episodes("pose_stale") == 100
+    assert reports == 20  # one per 10 s
+    assert b.unreported("pose_stale") == 4 and b.unreported("pose_stale") == 0
+    # safety conditions: every episode is reported
+    reports = 0
+    for i in range(10):
+        reports += b.set("occlusion", "o", 3.0 * i)
+        b.clear("occlusion", 3.0 * i + 2)
+    assert reports == 10 and b.episodes("occlusion") == 10
+
+
+# ---------------------------------------------------------------- in the session
+def _tracking(make_session, visible):
+    cam = TruthCameraRig("still", visible=visible)
+    rob = FollowerRobotRig()
+    s = make_session(clock="sim", camera_factory=lambda *a: cam, robot_factory=lambda *a: rob)
+    plan_sample(s)
+    assert s.start_camera().ok
+    s.advance(0.3)
+    assert s.arm("1234").ok
+    assert s.start_tracking().ok
+    return s, rob
+
+
+def test_occlusion_stays_on_top_while_newer_alerts_arrive(make_session):
+    s, _ = _tracking(make_session, visible=lambda t: 3 if 2.0 <= t < 5.0 else 9)
+    s.advance(0.8)
+    assert s.snapshot().alarms == ()
+    s.advance(1.5)  # t ~ 2.6: occluded since 2.0
+    s.alert("warning", "robot_warning", "control loop overran its 8.0 ms period (1 cycles so far)")
+    s.advance(0.5)
+    snap = s.snapshot()
+    assert snap.latest_alert.code != "occlusion"  # the history moved on ...
+    codes = [a.code for a in snap.alarms]
+    assert codes[0] == "occlusion" and "loop_overrun" in codes  # ... the active condition did not
+    occ = snap.alarms[0]
+    assert occ.level == "alarm" and 1.95 <= occ.since <= 2.2 and "holding" in occ.message
+    assert snap.robot.state == "holding"
+    s.advance(3.0)  # fiducials back at 5.0, trusted again after the confirm frames
+    snap = s.snapshot()
+    assert snap.robot.state == "tracking"
+    assert "occlusion" not in [a.code for a in snap.alarms]
+    assert [a.code for a in snap.alerts].count("occlusion") == 1
+
+
+def test_estop_and_arm_lost_outrank_everything_until_they_clear(make_session):
+    s, rob = _tracking(make_session, visible=lambda t: 9)
+    s.advance(0.5)
+    s.alert("warning", "robot_warning", "control loop overran its 8.0 ms period")
+    assert s.estop().ok
+    s.advance(0.2)
+    snap = s.snapshot()
+    assert snap.alarms[0].code == "estop" and snap.alarms[0].level == "alarm"
+    s.advance(20.0)  # a latched e-stop stays, however long
+    assert s.snapshot().alarms[0].code == "estop"
+    assert s.reset_estop().ok
+    assert "estop" not in [a.code for a in s.snapshot().alarms]
+    assert s.arm("1234").ok and s.start_tracking().ok
+    assert s.inject_fault("robot-disconnect").ok
+    s.advance(0.2)
+    codes = [a.code for a in s.snapshot().alarms]
+    assert codes[:2] == ["estop", "robot_disconnected"]
+
+
+def test_pin_lockout_is_an_active_condition_until_it_ends(make_session):
+    s = make_session(clock="sim")
+    for _ in range(5):
+        s.arm("0000")
+    lk = [a for a in s.snapshot().alarms if a.code == "pin_lockout"]
+    assert len(lk) == 1 and "30 s" in lk[0].message and lk[0].since == 0.0
+    s.advance(15.0)
+    assert "15 s" in [a for a in s.snapshot().alarms if a.code == "pin_lockout"][0].message
+    s.advance(15.1)
+    assert [a.code for a in s.snapshot().alarms] == []
+
+
+def test_camera_start_failure_is_shown_until_a_start_succeeds(make_session):
+    s = make_session(clock="sim")
+    plan_sample(s)
+    assert s.set_camera("file:/nonexistent/video.mp4").ok
+    r = s.start_camera()
+    assert not r.ok
+    assert [a.code for a in s.snapshot().alarms] == ["camera_failed"]
+    assert s.set_camera("sim-points").ok and s.start_camera().ok
+    assert "camera_failed" not in [a.code for a in s.snapshot().alarms]
