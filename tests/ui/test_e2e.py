@@ -71,6 +71,23 @@ def _command(page, name, *, after: int | None = None) -> str:
     return _msg(page)
 
 
+def _pin_pad(page, pin: str) -> str:
+    """Type ``pin`` on the open PIN pad (big buttons, dots shown) and press OK; the result line."""
+    page.locator("#mt-pin-dots").wait_for()
+    for d in pin:
+        n = int(page.locator("#mt-pin-dots").get_attribute("data-n"))
+        _click(page, d)
+        page.wait_for_function(f"document.querySelector('#mt-pin-dots') && "
+                               f"Number(document.querySelector('#mt-pin-dots').dataset.n) === {n + 1}")
+    assert pin not in page.locator("#mt-pin-dots").inner_text()  # dots, never the digits
+    return _command(page, "OK")
+
+
+def _take_control(page, pin: str) -> str:
+    _click(page, "Take control (PIN)")
+    return _pin_pad(page, pin)
+
+
 def _state(page):
     return page.locator("#mt-robot-state").first.get_attribute("data-state")
 
@@ -83,6 +100,10 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     page.goto(app.url)
     page.get_by_role("button", name="Load sample CT").wait_for()
     assert _state(page) == "disarmed"
+    # a tab views until it takes control with the PIN
+    assert "VIEWING" in page.locator("#mt-control").inner_text()
+    assert "in control" in _take_control(page, "2468")
+    page.wait_for_function("document.querySelector('#mt-control').dataset.mine === '1'")
 
     # ---- step 1: CT. Bad input first: a wrong path gives a message, not a traceback.
     _input(page, "CT file or folder").fill("/no/such/ct.nii.gz")
@@ -146,11 +167,11 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     print(f"[{time.monotonic() - t_start:5.1f} s] ---- step 4")
     # ---- step 4: robot. Wrong PIN refused, right PIN arms.
     _click(page, "4 Robot")
-    _input(page, "Operator PIN").fill("0000")
-    assert "wrong PIN" in _command(page, "Arm")
+    _click(page, "Arm (PIN)")
+    assert "wrong PIN" in _pin_pad(page, "0000")
     assert s.snapshot().robot.state == "disarmed"
-    _input(page, "Operator PIN").fill("2468")
-    _click(page, "Arm")
+    _click(page, "Arm (PIN)")
+    _pin_pad(page, "2468")
     _wait(lambda: s.snapshot().robot.state == "armed", what="armed")
     page.wait_for_function("document.querySelector('#mt-robot-state').dataset.state === 'armed'")
     # tracking needs a fresh trusted pose; on a loaded machine a start can be refused ("pose is
