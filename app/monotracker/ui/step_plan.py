@@ -24,7 +24,7 @@ class PlanStep:
         with self.folder:
             gui.add_markdown("Pick the **entry** on the skin and the **target** inside: click the head "
                              "(choose what the click sets below) or type LPS coordinates in mm.")
-            self.h_click = gui.add_dropdown("Click on head", CLICK_MODES_PLAN, initial_value="set entry",
+            self.h_click = gui.add_dropdown("Head click sets", CLICK_MODES_PLAN, initial_value="set entry",
                                             hint="what a click on the 3D head surface does")
             self.h_entry = gui.add_vector3("Entry (LPS mm)", (0.0, 0.0, 0.0), step=0.1)
             b_e = gui.add_button("Set entry")
