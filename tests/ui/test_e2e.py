@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from browser_helpers import T_STATE, _click, _command, _input, _msg, _pin_pad, _state, _take_control, _wait
+from browser_helpers import T_PAGE_MS, T_STATE, _click, _command, _input, _msg, _pin_pad, _state, _take_control, _wait
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -137,6 +137,10 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     _wait(lambda: s.snapshot().robot.state == "holding" and s.snapshot().pose is not None
           and not s.snapshot().pose.trusted, what="holding on occlusion")
     page.locator("#mt-occlusion").wait_for()
+    # the always-visible panel lists the active condition (not only the newest alert) until it clears
+    _wait(lambda: any(a.code in ("occlusion", "pose_lost") for a in s.snapshot().alarms), what="occlusion alarm")
+    page.wait_for_function("[...document.querySelectorAll('#mt-alarms li')].some(l => "
+                           "['occlusion', 'pose_lost'].includes(l.dataset.code))")
     time.sleep(1.0)
     page.screenshot(path=str(artifacts / "5_occlusion.png"))
 

@@ -9,6 +9,7 @@ Click-to-pick on the head sets the entry on the skin and the target inside the h
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -184,4 +185,19 @@ def test_click_on_head_sets_entry_on_skin_and_target_inside(served_ct, browser):
     target = np.asarray(s.snapshot().plan.target_lps_mm)
     assert np.min(np.linalg.norm(verts - target, axis=1)) > 20.0, "the target lies deep inside, not on the skin"
     assert np.all(target > verts.min(axis=0)) and np.all(target < verts.max(axis=0))
+
+    # the Slicer export reaches the browser as a download (and the engine's files on the server)
+    with page.expect_download(timeout=T_PAGE_MS) as dl:
+        _click(page, "Export to 3D Slicer (.mrk.json)")
+    name = dl.value.suggested_filename
+    assert name.endswith(".zip") or name.endswith(".mrk.json")
+    data = Path(dl.value.path()).read_bytes()
+    assert len(data) > 100
+    written = sorted((s.home / "slicer").glob("*.mrk.json"))
+    assert written, "the engine wrote the markups"
+    if name.endswith(".zip"):
+        import io
+        import zipfile
+
+        assert sorted(zipfile.ZipFile(io.BytesIO(data)).namelist()) == sorted(p.name for p in written)
     page.close()

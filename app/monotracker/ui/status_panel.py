@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from monotracker.ui import status as st
 from monotracker.ui.pin_pad import PinPad
+from monotracker.ui.view import PANEL_PX
 
 
 class StatusPanel:
@@ -30,7 +31,7 @@ class StatusPanel:
             self.h_status = gui.add_html(st.status_html(snap))
             self.h_msg = gui.add_html(st.message_html(True, ""))
         self.panel.dock_left()
-        self.panel.set_width(430)
+        self.panel.set_width(PANEL_PX["status"])
 
         @self.h_stop.on_click
         @view.safe("STOP")

@@ -23,13 +23,13 @@ class RegisterStep:
         with self.folder:
             src = session.config.camera
             opts = CAMERA_SOURCES if src in CAMERA_SOURCES else (src,) + CAMERA_SOURCES
+            self.h_pose_banner = gui.add_html("")
+            self.h_live = gui.add_image(np.zeros((54, 96, 3), np.uint8), label="live camera + overlay", format="jpeg")
+            grp = gui.add_button_group("Camera", ["Start camera", "Stop camera"])
             self.h_cam_src = gui.add_dropdown("Camera source", opts, initial_value=src)
             self.h_cam_path = gui.add_text("Video file / device / folder", "", hint="for file:PATH / folder:PATH / device:N")
             self.h_calib = gui.add_text("Calibration file", "", hint="OpenCV YAML/JSON; empty for the simulated camera")
             b_apply = gui.add_button("Use this camera")
-            grp = gui.add_button_group("Camera", ["Start camera", "Stop camera"])
-            self.h_pose_banner = gui.add_html("")
-            self.h_live = gui.add_image(np.zeros((54, 96, 3), np.uint8), label="live camera + overlay", format="jpeg")
             self.h_reg_table = gui.add_html("")
             self.h_fault = gui.add_dropdown("Simulate a fault (sim only)", FAULTS_UI, initial_value="none")
             b_f = gui.add_button("Inject fault")

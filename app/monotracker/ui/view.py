@@ -25,7 +25,8 @@ log = logging.getLogger(__name__)
 VIEW_STEPS = ("ct", "plan", "register", "robot")
 STEP_LABELS = {"ct": "1 CT", "plan": "2 Plan", "register": "3 Register", "robot": "4 Robot"}
 LABEL_STEPS = {v: k for k, v in STEP_LABELS.items()}
-LIVE_STEPS = ("register",)  # steps whose page shows the live camera overlay
+LIVE_STEPS = ("register", "robot")  # steps whose page shows the live camera overlay
+PANEL_PX = {"status": 360, "steps": 470, "steps_live": 640}  # docked panel widths (px): at 1280x800 the 3D view keeps ~450 px
 
 
 def fmt(v, unit="", nd=1) -> str:
@@ -76,6 +77,7 @@ class ClientView:
         self.selected_fid = 0
         self.scene_keys: dict = {}
         self._msg_seq = 0
+        self._panel_width = None
         self._job_watch = False  # this tab started a CT job: report its end on the result line
         self.notice = app.notice
 
@@ -93,9 +95,8 @@ class ClientView:
 
         self.steps = {"ct": CtStep(self), "plan": PlanStep(self), "register": RegisterStep(self), "robot": RobotStep(self)}
         self.scene3d = SceneView(self)
-        self.show_step()
         gui.main_panel.dock_right()
-        gui.main_panel.set_width(560)
+        self.show_step()
         self.say(*first_message(snap, self.notice))
         self.scene3d.aim(self.step, snap)
 
@@ -158,6 +159,11 @@ class ClientView:
             step = self.step
         for k, s in self.steps.items():
             s.folder.visible = k == step
+        # the live camera is the view that matters in Register / Robot: a wider step panel there
+        width = PANEL_PX["steps_live"] if step in LIVE_STEPS else PANEL_PX["steps"]
+        if width != self._panel_width:
+            self._panel_width = width
+            self.gui.main_panel.set_width(width)
 
     # ------------------------------------------------------------------ render (render thread)
     def render(self, snap) -> None:
@@ -187,8 +193,11 @@ class ClientView:
         self.scene3d.render(snap, step)
 
     def show_frame(self, jpeg: bytes) -> None:
-        """The newest overlay frame (JPEG bytes, encoded once for all tabs)."""
-        self.steps["register"].show_frame(jpeg)
+        """The newest overlay frame (JPEG bytes, encoded once for all tabs) on the shown step."""
+        with self.lock:
+            step = self.step
+        if step in LIVE_STEPS:
+            self.steps[step].show_frame(jpeg)
 
     @property
     def wants_live(self) -> bool:
