@@ -1,6 +1,6 @@
 """Screenshots of each web-app step at 1280x800 and 1920x1080 -> docs/img/ui_<step>_<size>.jpg.
 
-    .venv/bin/python scripts/ui_screenshots.py   (from the repository root; needs chromium)
+    .venv/bin/python tests/ui/make_screenshots.py   (from the repository root; needs chromium)
 """
 import sys, tempfile, time
 from pathlib import Path
