@@ -1,8 +1,10 @@
 """Always-visible status banner (HTML) and the page's stylesheet, built from an engine snapshot.
 
-Pure functions: ``status_html(snap, ...)`` shows the robot state in a big coloured block
-(DISARMED grey, ARMED orange, TRACKING green, HOLDING amber, E-STOPPED red), the camera and pose
-state, the workflow steps (done / current / to do) and the newest warning or alarm. ``CSS`` makes
+Pure functions: ``state_html(snap)`` shows the robot state in a big coloured block (DISARMED
+grey, ARMED orange, TRACKING green, HOLDING amber, E-STOPPED red) and, hidden until the page
+loses its server, "CONNECTION LOST - robot state unknown"; ``control_html`` who is in control;
+``status_html(snap, ...)`` the active alarms (each with the time it began), the camera and pose
+state, the workflow steps (done / current / to do) and the newest warning not already listed. ``CSS`` makes
 buttons and text large enough for gloved hands on a touch screen and the stop button huge.
 """
 
@@ -30,7 +32,22 @@ CSS = """
   font-weight: 800 !important; letter-spacing: 0.04em; }
 .mantine-SegmentedControl-label, .mantine-Input-input, .mantine-TextInput-input { font-size: 1.05rem !important; }
 .mt-status { font-family: system-ui, sans-serif; }
-.mt-state { color: white; border-radius: 8px; padding: 10px 14px; margin-bottom: 6px; }
+.mt-state { color: white; border-radius: 8px; padding: 10px 14px; margin-bottom: 6px; height: 3.4rem;
+  overflow: hidden; white-space: nowrap; box-sizing: border-box; }
+.mt-conn-lost { display: none; }
+/* viser dims the GUI and sets pointer-events:none on it while the websocket is down: then the
+   robot state shown is stale, say so over it */
+div[style*="pointer-events: none"] .mt-conn-lost { display: block; position: fixed; left: 0; right: 0; top: 0;
+  z-index: 10000; background: #000; color: #ff4040; font: 800 2.2rem system-ui, sans-serif; text-align: center;
+  padding: 18px; border-bottom: 6px solid #ff4040; }
+div[style*="pointer-events: none"] .mt-state { filter: grayscale(1); }
+.mt-control { border-radius: 6px; padding: 8px 12px; font-size: 1.15rem; font-weight: 700; margin: 4px 0; }
+.mt-control.mine { background: #e6fffa; color: #234e52; border: 2px solid #38a169; }
+.mt-control.viewing { background: #fffbea; color: #744210; border: 2px solid #d69e2e; }
+.mt-alarms { list-style: none; padding: 0; margin: 4px 0; }
+.mt-alarm { color: white; border-radius: 6px; padding: 6px 10px; font-size: 1.05rem; margin-bottom: 4px; }
+.mt-alarm .mt-since { float: right; font-weight: 400; font-size: 0.9rem; }
+.mt-pin-dots { font-size: 2.2rem; letter-spacing: 0.2em; text-align: center; min-height: 3rem; }
 .mt-state b { font-size: 2.0rem; letter-spacing: 0.05em; }
 .mt-state span { font-size: 1.0rem; margin-left: 10px; }
 .mt-row { font-size: 1.05rem; margin: 3px 0; }
@@ -85,13 +102,52 @@ def recent_alert(snap, now_wall: float | None = None, within_s: float = 6.0):
     return None
 
 
-def status_html(snap, *, view_step: str | None = None, notice: str | None = None, now_wall: float | None = None) -> str:
-    """The banner shown at the top of the panel at all times."""
+def state_html(snap) -> str:
+    """The robot state in a big coloured block (fixed height: STOP below it never moves), and the
+    connection-lost banner the stylesheet shows when the page loses the server."""
     colour, word, hint = STATE_STYLE.get(snap.robot.state, ("#333", snap.robot.state.upper(), ""))
     if not snap.robot.connected and snap.robot.state != "disarmed":
         hint = "robot NOT CONNECTED"
-    parts = [f"<div class='mt-status'><div class='mt-state' id='mt-robot-state' data-state='{_esc(snap.robot.state)}' "
-             f"style='background:{colour}'><b>{word}</b><span>{_esc(hint)}</span></div>"]
+    return (f"<div class='mt-status'><div class='mt-conn-lost' id='mt-conn-lost'>CONNECTION LOST<br>"
+            f"robot state unknown</div><div class='mt-state' id='mt-robot-state' "
+            f"data-state='{_esc(snap.robot.state)}' style='background:{colour}'><b>{word}</b>"
+            f"<span>{_esc(hint)}</span></div></div>")
+
+
+def control_html(snap, client_id: str) -> str:
+    """Who is in control, as this tab (``client_id``) sees it."""
+    c = snap.control
+    locked = (f"<div class='mt-row' style='color:#c81e1e'><b>PIN locked for {c.pin_locked_s:.0f} s</b> "
+              f"after too many wrong tries</div>") if c.pin_locked_s > 0 else ""
+    if c.controller == client_id:
+        return (f"<div class='mt-control mine' id='mt-control' data-mine='1'>IN CONTROL: this station "
+                f"({_esc(c.controller_label or client_id)})</div>{locked}")
+    who = "nobody" if c.controller is None else (c.controller_label or c.controller)
+    return (f"<div class='mt-control viewing' id='mt-control' data-mine='0'>VIEWING: {_esc(who)} is in control"
+            f"<br><small>STOP works from every station</small></div>{locked}")
+
+
+def alarms_html(snap, wall_of=None) -> str:
+    """The active alarms, most important first, each with the time it began (``wall_of(since)``
+    turns the session clock into wall time), until it clears."""
+    alarms = tuple(getattr(snap, "alarms", ()) or ())
+    if not alarms:
+        return ""
+    items = []
+    for a in alarms:
+        when = "" if wall_of is None else time.strftime("%H:%M:%S", time.localtime(wall_of(a.since)))
+        count = f" (x{a.count})" if a.count > 1 else ""
+        items.append(f"<li class='mt-alarm' data-code='{_esc(a.code)}' data-level='{_esc(a.level)}' "
+                     f"style='background:{LEVEL_COLOUR.get(a.level, '#555')}'>"
+                     f"<b>{'ALARM' if a.level == 'alarm' else a.level.upper()}</b> {_esc(a.message)}"
+                     f"<span class='mt-since'>since {when}{count}</span></li>")
+    return f"<ul class='mt-alarms' id='mt-alarms'>{''.join(items)}</ul>"
+
+
+def status_html(snap, *, view_step: str | None = None, notice: str | None = None, now_wall: float | None = None,
+                wall_of=None) -> str:
+    """Below STOP: active alarms, workflow steps, camera, pose, the newest warning."""
+    parts = ["<div class='mt-status'>", alarms_html(snap, wall_of)]
     cur = _STEP_ORDER.index(snap.step) if snap.step in _STEP_ORDER else 0
     steps = []
     for i, (key, label) in enumerate(STEPS):
@@ -104,8 +160,9 @@ def status_html(snap, *, view_step: str | None = None, notice: str | None = None
     parts.append(f"<div class='mt-row'>{pose_line(snap)}</div>")
     if notice:
         parts.append(f"<div class='mt-row' style='color:#2b6cb0'><b>{_esc(notice)}</b></div>")
+    active = {a.code for a in (getattr(snap, "alarms", ()) or ())}
     ev = recent_alert(snap, now_wall)
-    if ev is not None:
+    if ev is not None and ev.code not in active:
         parts.append(f"<div class='mt-alert' id='mt-alert' data-code='{_esc(ev.code)}' "
                      f"style='background:{LEVEL_COLOUR[ev.level]}'>{'ALARM' if ev.level == 'alarm' else 'WARNING'}: "
                      f"{_esc(ev.message)}</div>")
@@ -113,8 +170,10 @@ def status_html(snap, *, view_step: str | None = None, notice: str | None = None
     return "".join(parts)
 
 
-def message_html(ok: bool, text: str) -> str:
-    """The result line of the operator's last command."""
+def message_html(ok: bool, text: str, seq: int = 0) -> str:
+    """The result line of the operator's last command. ``seq`` counts the results shown in this
+    page (``data-seq``), so a repeated identical result is still a new one (tests wait on it)."""
     cls = "ok" if ok else "err"
     mark = "&#10003;" if ok else "&#10007;"
-    return f"<div class='mt-msg {cls}' id='mt-msg' data-ok='{int(bool(ok))}'>{mark} {_esc(text)}</div>"
+    return (f"<div class='mt-msg {cls}' id='mt-msg' data-ok='{int(bool(ok))}' data-seq='{int(seq)}'>"
+            f"{mark} {_esc(text)}</div>")

@@ -1,0 +1,66 @@
+"""The always-visible status panel of one tab, docked left: who is in control, the robot state,
+STOP, the active alarms and the result of this tab's last command.
+
+Order (top to bottom) is fixed so STOP never moves: the robot-state block and STOP come first
+and have a fixed height; everything that grows or shrinks (alarms, steps, camera, pose, the
+result line) comes below STOP. STOP is also bound to the Space and Escape keys (viser command
+hotkeys; they do not fire while the cursor is in a text field).
+
+"Take control" opens a PIN pad (:mod:`monotracker.ui.pin_pad`): the digits live on the server
+in this tab's view only, the pad shows dots, the PIN is cleared after each try and never logged.
+"""
+
+from __future__ import annotations
+
+from monotracker.ui import status as st
+from monotracker.ui.pin_pad import PinPad
+from monotracker.ui.view import PANEL_PX
+
+
+class StatusPanel:
+    def __init__(self, view, snap):
+        self.view = view
+        gui = view.gui
+        self.panel = gui.add_panel()
+        tab = self.panel.add_tab("Status")
+        with tab:
+            self.h_state = gui.add_html(st.state_html(snap))
+            self.h_stop = gui.add_button("STOP", color="red", hint="Emergency stop: the arm stops and stays stopped (keys: Space, Esc)")
+            self.h_control = gui.add_html(st.control_html(snap, view.client_id))
+            self.h_take = gui.add_button("Take control (PIN)", hint="make this station the one that drives the robot")
+            self.h_status = gui.add_html(st.status_html(snap))
+            self.h_msg = gui.add_html(st.message_html(True, ""))
+        self.panel.dock_left()
+        self.panel.set_width(PANEL_PX["status"])
+
+        @self.h_stop.on_click
+        @view.safe("STOP")
+        def _(_event) -> None:
+            self.stop()
+
+        for key in ("space", "escape"):
+            cmd = gui.add_command("STOP the robot", description="emergency stop (latched)", hotkey=key)
+
+            @cmd.on_trigger
+            @view.safe("STOP")
+            def _(_event) -> None:
+                self.stop()
+
+        @self.h_take.on_click
+        @view.safe("Take control")
+        def _(_event) -> None:
+            PinPad(view, "Take control", self._claim)
+
+    def stop(self) -> None:
+        self.view.run("STOP", self.view.session.estop)
+
+    def _claim(self, pin: str) -> None:
+        self.view.run("Take control", self.view.session.claim_control, self.view.client_id, pin, self.view.label)
+
+    def render(self, snap, step: str) -> None:
+        view = self.view
+        self.h_state.content = st.state_html(snap)
+        self.h_control.content = st.control_html(snap, view.client_id)
+        self.h_take.visible = snap.control.controller != view.client_id
+        self.h_status.content = st.status_html(snap, view_step=step, notice=view.notice,
+                                               wall_of=lambda t: view.wall_time(snap, t))

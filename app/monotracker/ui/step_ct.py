@@ -1,0 +1,148 @@
+"""Step 1 of one tab: open the CT (file, DICOM folder or the sample), check each detected
+fiducial (confirm / reject / undo, add one typed in LPS mm or picked on the head), lock the set.
+Slices (axial, coronal, sagittal, LPS-aligned) through the selected fiducial."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from monotracker.ui import status as st
+from monotracker.ui.slice_panel import SlicePanel
+
+FID_RGB = {"confirmed": (60, 200, 60), "added": (60, 200, 60), "detected": (240, 200, 0), "rejected": (220, 40, 40)}
+CLICK_MODES_CT = ("nothing", "add fiducial")
+
+
+class CtStep:
+    def __init__(self, view):
+        self.view = view
+        gui, session = view.gui, view.session
+        self.folder = gui.add_folder("Step 1: CT and fiducials")
+        with self.folder:
+            gui.add_markdown("Open the patient CT (a file or a DICOM folder), or the bundled sample. "
+                             "Check each fiducial, then lock the set: nothing else can start before.")
+            self.h_ct_path = gui.add_text("CT file or folder", "", hint="path on the server: .nii.gz, .nrrd, .mha or a DICOM folder")
+            b_open = gui.add_button("Open CT")
+            b_sample = gui.add_button("Load sample CT")
+            self.h_progress = gui.add_progress_bar(0.0, visible=False, animated=True)
+            self.h_job = gui.add_markdown("")
+            self.h_fid_table = gui.add_html("")
+            self.h_fid_sel = gui.add_number("Fiducial number", 0, min=0, max=99, step=1)
+            grp = gui.add_button_group("Selected fiducial", ["Confirm", "Reject", "Undo"])
+            b_all = gui.add_button("Confirm all detected")
+            self.h_new_fid = gui.add_vector3("New fiducial (LPS mm)", (0.0, 0.0, 0.0), step=0.1)
+            b_add = gui.add_button("Add fiducial here")
+            self.h_click = gui.add_dropdown("Click on head", CLICK_MODES_CT, initial_value="nothing",
+                                            hint="what a click on the 3D head surface does")
+            b_lock = gui.add_button("Lock fiducials and go to Plan", color="green")
+            b_unlock = gui.add_button("Unlock fiducials (edit)")
+            gui.add_markdown("**Slices** through the selected fiducial (green confirmed, yellow to check, red rejected)")
+            self.slices = SlicePanel(view, "ct")
+
+        @b_open.on_click
+        @view.safe("Open CT")
+        def _(_event) -> None:
+            path = self.h_ct_path.value.strip()
+            if not path:
+                view.say(False, "Open CT: type the path of a CT file or folder first")
+                return
+            r = view.run("Open CT", session.load_ct, path)
+            if r is not None and r.ok:
+                view.watch_job()
+
+        @b_sample.on_click
+        @view.safe("Load sample CT")
+        def _(_event) -> None:
+            r = view.run("Load sample CT", session.load_sample_ct)
+            if r is not None and r.ok:
+                view.watch_job()
+
+        @self.h_fid_sel.on_update
+        def _(_event) -> None:
+            with view.lock:
+                view.selected_fid = int(self.h_fid_sel.value)
+
+        @grp.on_click
+        @view.safe("Fiducial")
+        def _(event) -> None:
+            word = {"Confirm": "confirmed", "Reject": "rejected", "Undo": "detected"}[event.target.value]
+            i = int(self.h_fid_sel.value)
+            view.run(f"Fiducial {i}", session.set_fiducial_status, i, word)
+
+        @b_all.on_click
+        @view.safe("Confirm all detected")
+        def _(_event) -> None:
+            self._confirm_all()
+
+        @b_add.on_click
+        @view.safe("Add fiducial")
+        def _(_event) -> None:
+            view.run("Add fiducial", session.add_fiducial, np.array(self.h_new_fid.value, float))
+
+        @b_lock.on_click
+        @view.safe("Lock fiducials")
+        def _(_event) -> None:
+            r = view.run("Lock fiducials", session.confirm_fiducials)
+            if r is not None and r.ok:
+                view.goto("plan")
+
+        @b_unlock.on_click
+        @view.safe("Unlock fiducials")
+        def _(_event) -> None:
+            view.run("Unlock fiducials", session.unlock_fiducials)
+
+    def _confirm_all(self) -> None:
+        view = self.view
+        ids = [f.id for f in view.session.snapshot().fiducials if f.status == "detected"]
+        if not ids:
+            view.say(False, "Confirm all detected: no detected fiducial waits for a decision")
+            return
+        for i in ids:
+            r = view.session.set_fiducial_status(i, "confirmed")
+            if not r.ok:
+                view.say(False, f"Fiducial {i}: {r.message}")
+                return
+        view.say(True, f"Confirmed fiducials {', '.join(map(str, ids))}")
+
+    def render(self, snap) -> None:
+        job = snap.job
+        if job is not None and not job.done:
+            self.h_progress.visible = True
+            self.h_progress.value = 100.0 * job.progress
+            self.h_job.content = f"**{job.message}** ({100 * job.progress:.0f} %)"
+        else:
+            self.h_progress.visible = False
+            if job is not None and job.error:
+                self.h_job.content = f"<div class='mt-msg err'>&#10007; CT: {st._esc(job.error)}</div>"
+            elif snap.ct is not None:
+                sp = snap.ct.spacing_mm
+                notes = "".join(f"<br>note: {st._esc(n)}" for n in snap.ct.notes)
+                self.h_job.content = (f"CT **{Path(snap.ct.path).name}**: {snap.ct.shape[2]}x{snap.ct.shape[1]}x"
+                                      f"{snap.ct.shape[0]} voxels, {sp[0]:.2f} x {sp[1]:.2f} x {sp[2]:.2f} mm{notes}")
+            else:
+                self.h_job.content = "No CT loaded."
+        self.h_fid_table.content = fiducial_table(snap)
+        with self.view.lock:
+            fid_id = self.view.selected_fid
+        fid = next((f for f in snap.fiducials if f.id == fid_id), None)
+        self.slices.render(snap, None if fid is None else np.asarray(fid.centre_lps_mm))
+
+
+def fiducial_table(snap) -> str:
+    """The fiducial table (status, centre LPS mm, radius mm, score) as HTML."""
+    if not snap.fiducials:
+        return ""
+    lock = ("<b style='color:#1f8f3a'>LOCKED</b>" if snap.fiducials_locked else
+            "<b style='color:#b7791f'>not locked: confirm or reject each, then lock</b>")
+    rows = []
+    for f in snap.fiducials:
+        col = "#%02x%02x%02x" % FID_RGB.get(f.status, (0, 0, 0))
+        c = f.centre_lps_mm
+        rows.append(f"<tr><td><b>{f.id}</b></td><td style='color:{col}'><b>{st._esc(f.status)}</b></td>"
+                    f"<td>{c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}</td><td>{f.radius_mm:.1f}</td><td>{f.score:.2f}</td></tr>")
+    n_ok = sum(f.status in ("confirmed", "added") for f in snap.fiducials)
+    return (f"<div class='mt-row'>{len(snap.fiducials)} fiducials, {n_ok} confirmed; {lock}</div>"
+            "<table class='mt' id='mt-fiducials'><tr><th>#</th><th>status</th><th>centre LPS mm</th><th>r mm</th>"
+            f"<th>score</th></tr>{''.join(rows)}</table>")

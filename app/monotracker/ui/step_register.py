@@ -1,0 +1,120 @@
+"""Step 3 of one tab: camera source and calibration, start/stop; the live image with the
+overlay (shared JPEG, see :mod:`monotracker.ui.stream`), the pose banner, the per-fiducial table
+with the OCCLUSION alert; simulated faults (sim only)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from monotracker.ui import status as st
+from monotracker.ui.view import fmt
+
+CAMERA_SOURCES = ("sim", "sim-points", "device:0", "file:PATH", "folder:PATH")
+FAULTS_UI = ("none", "occlude-all", "camera-freeze", "bad-pose", "robot-disconnect")
+
+
+class RegisterStep:
+    def __init__(self, view):
+        self.view = view
+        gui, session = view.gui, view.session
+        self.folder = gui.add_folder("Step 3: register (camera)")
+        with self.folder:
+            src = session.config.camera
+            opts = CAMERA_SOURCES if src in CAMERA_SOURCES else (src,) + CAMERA_SOURCES
+            self.h_pose_banner = gui.add_html("")
+            self.h_live = gui.add_image(np.zeros((54, 96, 3), np.uint8), label="live camera + overlay", format="jpeg")
+            grp = gui.add_button_group("Camera", ["Start camera", "Stop camera"])
+            self.h_cam_src = gui.add_dropdown("Camera source", opts, initial_value=src)
+            self.h_cam_path = gui.add_text("Video file / device / folder", "", hint="for file:PATH / folder:PATH / device:N")
+            self.h_calib = gui.add_text("Calibration file", "", hint="OpenCV YAML/JSON; empty for the simulated camera")
+            b_apply = gui.add_button("Use this camera")
+            self.h_reg_table = gui.add_html("")
+            self.h_fault = gui.add_dropdown("Simulate a fault (sim only)", FAULTS_UI, initial_value="none")
+            b_f = gui.add_button("Inject fault")
+            b_next = gui.add_button("Registration is good: go to Robot", color="green")
+
+        @b_apply.on_click
+        @view.safe("Camera")
+        def _(_event) -> None:
+            self._apply_camera()
+
+        @grp.on_click
+        @view.safe("Camera")
+        def _(event) -> None:
+            if event.target.value == "Start camera":
+                view.run("Start camera", session.start_camera)
+            else:
+                view.run("Stop camera", session.stop_camera)
+
+        @b_f.on_click
+        @view.safe("Fault")
+        def _(_event) -> None:
+            view.run("Fault", session.inject_fault, self.h_fault.value)
+
+        @b_next.on_click
+        @view.safe("Go to Robot")
+        def _(_event) -> None:
+            view.goto("robot")
+
+    def _apply_camera(self) -> None:
+        view = self.view
+        src = self.h_cam_src.value
+        extra = self.h_cam_path.value.strip()
+        if src.endswith(":PATH") or src.startswith("device:"):
+            kind = src.split(":", 1)[0]
+            if extra:
+                src = f"{kind}:{extra}"
+            elif src.endswith(":PATH"):
+                view.say(False, f"Camera: type the {kind} path in 'Video file / device / folder'")
+                return
+        calib = self.h_calib.value.strip() or None
+        if calib is not None and not Path(calib).exists():
+            view.say(False, f"Camera: calibration file not found: {calib}")
+            return
+        view.run("Camera", view.session.set_camera, src, calib)
+
+    def show_frame(self, jpeg: bytes) -> None:
+        """Show one overlay frame already encoded as JPEG (the same bytes go to every tab; viser's
+        image props are the encoded data and its format, so nothing is encoded again here)."""
+        h = self.h_live
+        h._format = "jpeg"
+        h._data = jpeg
+
+    def render(self, snap) -> None:
+        self.h_pose_banner.content = pose_banner(snap)
+        self.h_reg_table.content = registration_table(snap.pose)
+
+
+def pose_banner(snap) -> str:
+    pose = snap.pose
+    if snap.camera.error:
+        return f"<div class='mt-banner-bad' id='mt-pose-banner'>CAMERA: {st._esc(snap.camera.error)}</div>"
+    if pose is None:
+        what = "NO POSE: start the camera" if not snap.camera.running else "NO POSE YET"
+        return f"<div class='mt-banner-bad' id='mt-pose-banner'>{what}</div>"
+    if pose.trusted:
+        return (f"<div class='mt-banner-ok' id='mt-pose-banner'>POSE VALID: FRE {fmt(pose.fre_mm, ' mm', 2)}, "
+                f"predicted TRE at target {fmt(pose.predicted_tre_mm, ' mm', 2)}, "
+                f"{pose.n_visible} fiducials, latency {fmt(pose.latency_ms, ' ms', 0)}</div>")
+    return f"<div class='mt-banner-bad' id='mt-pose-banner'>POSE NOT VALID: {st._esc(pose.reason)}</div>"
+
+
+def registration_table(pose) -> str:
+    if pose is None:
+        return ""
+    rows = []
+    for fid, s in pose.fiducial_status.items():
+        r = pose.residuals_px.get(fid)
+        hidden = s in ("occluded", "newly_lost")
+        col = "#c81e1e" if hidden else ("#1f8f3a" if s == "seen" else "#555")
+        word = "HIDDEN (occluded)" if hidden else s
+        rows.append(f"<tr><td><b>#{fid}</b></td><td style='color:{col}'><b>{word}</b></td><td>{fmt(r, ' px', 2)}</td></tr>")
+    hidden_ids = [fid for fid, s in pose.fiducial_status.items() if s in ("occluded", "newly_lost")]
+    alert = ""
+    if hidden_ids:
+        alert = (f"<div class='mt-alert' id='mt-occlusion' style='background:#b7791f'>OCCLUSION: fiducial"
+                 f"{'s' if len(hidden_ids) > 1 else ''} {', '.join(map(str, hidden_ids))} hidden from the camera</div>")
+    return (alert + "<table class='mt' id='mt-reg'><tr><th>fiducial</th><th>camera</th><th>residual</th></tr>"
+            + "".join(rows) + "</table>")

@@ -1,0 +1,68 @@
+"""Step 4 of one tab: Arm (operator PIN on the PIN pad), Disarm, Start / Stop tracking, Reset
+e-stop; tip error, angle error, speed, latency and their live plot (last 60 s)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from monotracker.ui import plots
+from monotracker.ui import status as st
+from monotracker.ui.pin_pad import PinPad
+from monotracker.ui.view import fmt
+
+
+PLOT_PERIOD_S = 0.5
+
+
+class RobotStep:
+    def __init__(self, view):
+        self.view = view
+        self._plot_t = 0.0
+        gui, session = view.gui, view.session
+        self.folder = gui.add_folder("Step 4: robot")
+        with self.folder:
+            self.h_live = gui.add_image(np.zeros((54, 96, 3), np.uint8), label="live camera + overlay", format="jpeg")
+            b_arm = gui.add_button("Arm (PIN)", color="orange", hint="the PIN set when the app was started")
+            b_dis = gui.add_button("Disarm")
+            b_start = gui.add_button("Start tracking", color="green")
+            b_stop = gui.add_button("Stop tracking", color="yellow")
+            b_reset = gui.add_button("Reset e-stop")
+            self.h_info = gui.add_html("")
+            self.h_plot = plots.add_tracking_plot(gui)
+
+        @b_arm.on_click
+        @view.safe("Arm")
+        def _(_event) -> None:
+            PinPad(view, "Arm the robot", lambda pin: view.run("Arm", session.arm, pin))
+
+        for button, what, fn in ((b_dis, "Disarm", session.disarm), (b_start, "Start tracking", session.start_tracking),
+                                 (b_stop, "Stop tracking", session.stop_tracking), (b_reset, "Reset e-stop", session.reset_estop)):
+            self._bind(button, what, fn)
+
+    def _bind(self, button, what: str, fn) -> None:
+        view = self.view
+
+        @button.on_click
+        @view.safe(what)
+        def _(_event) -> None:
+            view.run(what, fn)
+
+    def show_frame(self, jpeg: bytes) -> None:
+        """The shared overlay JPEG (see ``RegisterStep.show_frame``)."""
+        self.h_live._format = "jpeg"
+        self.h_live._data = jpeg
+
+    def render(self, snap) -> None:
+        r = snap.robot
+        conn = "connected" if r.connected else "<b style='color:#c81e1e'>NOT CONNECTED</b>"
+        self.h_info.content = (
+            f"<div class='mt-row'>Robot {conn}; {st._esc(r.message)}</div>"
+            f"<div class='mt-row' id='mt-robot-metrics'>Tip error <b>{fmt(r.tip_error_mm, ' mm', 2)}</b>, "
+            f"angle error <b>{fmt(r.angle_error_deg, '&deg;', 2)}</b>, speed <b>{fmt(r.speed_mm_s, ' mm/s', 1)}</b>, "
+            f"latency {fmt(r.latency_ms, ' ms', 0)}</div>")
+        now = time.monotonic()
+        if now - self._plot_t >= PLOT_PERIOD_S:  # the chart at 2 Hz: a redraw is costly in the browser
+            self._plot_t = now
+            plots.update_tracking_plot(self.h_plot, self.view.app.history())

@@ -1,0 +1,216 @@
+"""One browser client's page: its own step, fields, messages, 3D scene and engine proxy.
+
+viser gives every connected browser tab a :class:`viser.ClientHandle` with its own ``gui`` and
+``scene``; a :class:`ClientView` builds the whole page on that handle, so one tab never switches
+another's step, overwrites its fields or shows its result line. Every command goes through
+``session.for_client(client_id)``: the engine refuses it unless this tab is in control (STOP is
+always allowed).
+
+Threads: viser runs this view's callbacks on its worker threads; the app's render thread calls
+:meth:`ClientView.render` at ~8 Hz and the overlay thread :meth:`ClientView.show_frame`. View
+state (step, selected fiducial, scene keys) is guarded by ``self.lock``.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import threading
+import time
+
+from monotracker.ui import status as st
+
+log = logging.getLogger(__name__)
+
+VIEW_STEPS = ("ct", "plan", "register", "robot")
+STEP_LABELS = {"ct": "1 CT", "plan": "2 Plan", "register": "3 Register", "robot": "4 Robot"}
+LABEL_STEPS = {v: k for k, v in STEP_LABELS.items()}
+LIVE_STEPS = ("register", "robot")  # steps whose page shows the live camera overlay
+PANEL_PX = {"status": 360, "steps": 470, "steps_live": 640}  # docked panel widths (px): at 1280x800 the 3D view keeps ~450 px
+
+
+def fmt(v, unit="", nd=1) -> str:
+    """A number with its unit, or '-' for None."""
+    return "-" if v is None else f"{v:.{nd}f}{unit}"
+
+
+def first_message(snap, notice: str | None) -> tuple[bool, str]:
+    """The result line a fresh page starts with, true to the session's state (a CT loaded by
+    ``--sample`` or a restored plan is not "start with step 1")."""
+    if notice:
+        return True, notice
+    job = snap.job
+    if job is not None and not job.done:
+        return True, f"{job.message} ({100 * job.progress:.0f} %)"
+    if job is not None and job.error:
+        return False, f"CT: {job.error}"
+    if snap.ct is None and not snap.fiducials:
+        return True, "Ready. Start with step 1: load a CT."
+    if not snap.fiducials_locked:
+        return True, "CT loaded: check each fiducial, then lock the set."
+    if not snap.plan.complete:
+        return True, "Fiducials locked: plan the entry and the target (step 2)."
+    return True, "Plan ready: register the camera (step 3)."
+
+
+class ClientView:
+    """The page of one browser client (``client``: a :class:`viser.ClientHandle`)."""
+
+    def __init__(self, app, client):
+        from monotracker.ui.scene import SceneView
+        from monotracker.ui.status_panel import StatusPanel
+        from monotracker.ui.step_ct import CtStep
+        from monotracker.ui.step_plan import PlanStep
+        from monotracker.ui.step_register import RegisterStep
+        from monotracker.ui.step_robot import RobotStep
+
+        self.app = app
+        self.client = client
+        self.client_id = str(client.client_id)
+        self.label = f"station {client.client_id}"
+        self.session = app.session.for_client(self.client_id)
+        self.gui, self.scene = client.gui, client.scene
+        self.lock = threading.RLock()
+        snap = self.session.snapshot()
+        self.step: str = snap.step
+        self._last_session_step = snap.step
+        self.selected_fid = 0
+        self.scene_keys: dict = {}
+        self._msg_seq = 0
+        self._panel_width = None
+        self._job_watch = False  # this tab started a CT job: report its end on the result line
+        self.notice = app.notice
+
+        gui = self.gui
+        gui.configure_theme(control_width="large", show_share_button=False, brand_color=(43, 108, 176))
+        gui.set_panel_label("MonoTracker")
+        gui.add_html(st.CSS)
+        self.status = StatusPanel(self, snap)
+        self.h_steps = gui.add_button_group("Step", [STEP_LABELS[s] for s in VIEW_STEPS])
+
+        @self.h_steps.on_click
+        @self.safe("Step")
+        def _(event) -> None:
+            self.goto(LABEL_STEPS.get(event.target.value, "ct"))
+
+        self.steps = {"ct": CtStep(self), "plan": PlanStep(self), "register": RegisterStep(self), "robot": RobotStep(self)}
+        self.scene3d = SceneView(self)
+        gui.main_panel.dock_right()
+        self.show_step()
+        self.say(*first_message(snap, self.notice))
+        self.scene3d.aim(self.step, snap)
+
+    # ------------------------------------------------------------------ commands
+    def say(self, ok: bool, text: str) -> None:
+        """Show ``text`` on this tab's result line (green tick or red cross)."""
+        with self.lock:
+            self._msg_seq += 1
+            seq = self._msg_seq
+        self.status.h_msg.content = st.message_html(ok, text, seq)
+
+    def run(self, what: str, fn, *args):
+        """Call one session command, show its result on this tab; never lets an exception escape."""
+        try:
+            r = fn(*args)
+        except Exception as exc:  # noqa: BLE001 - the operator sees one line, the log the traceback
+            log.exception("command %s failed", what)
+            self.say(False, f"{what}: internal error ({type(exc).__name__}: {exc})")
+            return None
+        ok = bool(getattr(r, "ok", True))
+        msg = getattr(r, "message", "") or ("done" if ok else "failed")
+        self.say(ok, f"{what}: {msg}")
+        with self.lock:
+            self.scene_keys.pop(("slices", self.step), None)
+        return r
+
+    def safe(self, what: str):
+        """Decorator for a viser callback: an unexpected exception becomes one line on this tab
+        (and a traceback in the log), never a dead button."""
+
+        def wrap(fn):
+            @functools.wraps(fn)
+            def cb(event):
+                try:
+                    return fn(event)
+                except Exception as exc:  # noqa: BLE001
+                    log.exception("callback %s failed", what)
+                    self.say(False, f"{what}: internal error ({type(exc).__name__}: {exc})")
+                    return None
+
+            return cb
+
+        return wrap
+
+    def watch_job(self) -> None:
+        """This tab started a CT job: its end (done or failed) replaces the result line."""
+        with self.lock:
+            self._job_watch = True
+
+    # ------------------------------------------------------------------ steps
+    def goto(self, step: str) -> None:
+        """Show ``step`` on this tab only."""
+        with self.lock:
+            self.step = step
+            self.scene_keys.clear()
+        self.show_step()
+
+    def show_step(self) -> None:
+        with self.lock:
+            step = self.step
+        for k, s in self.steps.items():
+            s.folder.visible = k == step
+        # the live camera is the view that matters in Register / Robot: a wider step panel there
+        width = PANEL_PX["steps_live"] if step in LIVE_STEPS else PANEL_PX["steps"]
+        if width != self._panel_width:
+            self._panel_width = width
+            self.gui.main_panel.set_width(width)
+
+    # ------------------------------------------------------------------ render (render thread)
+    def render(self, snap) -> None:
+        """Bring this tab up to date with ``snap``."""
+        with self.lock:
+            if snap.step != self._last_session_step:
+                # the session went back (fiducials unlocked, new plan): show the step that now
+                # needs work. Forward moves are the operator's (go-to buttons, the step bar).
+                if snap.step in ("ct", "plan") and VIEW_STEPS.index(snap.step) < VIEW_STEPS.index(self.step):
+                    self.step = snap.step
+                    self.scene_keys.clear()
+                self._last_session_step = snap.step
+            step = self.step
+            report_job = self._job_watch and snap.job is not None and snap.job.done
+            if report_job:
+                self._job_watch = False
+        if report_job:
+            if snap.job.error:
+                self.say(False, f"CT: {snap.job.error}")
+            else:
+                self.say(True, f"CT loaded: {len(snap.fiducials)} fiducials found; check each, then lock the set")
+        self.show_step()
+        if snap.robot.state != "disarmed":
+            self.notice = None
+        self.status.render(snap, step)
+        self.steps[step].render(snap)
+        self.scene3d.render(snap, step)
+
+    def show_frame(self, jpeg: bytes) -> None:
+        """The newest overlay frame (JPEG bytes, encoded once for all tabs) on the shown step."""
+        with self.lock:
+            step = self.step
+        if step in LIVE_STEPS:
+            self.steps[step].show_frame(jpeg)
+
+    @property
+    def wants_live(self) -> bool:
+        with self.lock:
+            return self.step in LIVE_STEPS
+
+    def close(self) -> None:
+        """The tab went away: give up control if it had it."""
+        try:
+            self.app.session.release_control(self.client_id)
+        except Exception:  # noqa: BLE001
+            log.exception("release control failed")
+
+    def wall_time(self, snap, t_session: float) -> float:
+        """Session clock time -> wall time (s since the epoch), for "since 12:03:07"."""
+        return time.time() - (float(snap.t) - float(t_session))

@@ -1,0 +1,68 @@
+"""Helpers shared by the browser tests: waits on state (never on wall-clock guesses), clicks,
+viser's inputs by label, the result line and its sequence number, the PIN pad."""
+
+from __future__ import annotations
+
+import time
+
+# Every wait is on state (the session's or the page's) with a generous limit: on a loaded 2-core
+# machine the same step can take 10x longer than on a quiet one, and that is not a bug.
+T_STATE = 120.0  # s, session state
+T_PAGE_MS = 120_000  # ms, the page catching up with the session
+
+
+def _wait(pred, timeout=T_STATE, what="condition"):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        v = pred()
+        if v:
+            return v
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _click(page, name):
+    page.get_by_role("button", name=name, exact=True).first.click()
+
+
+def _input(page, label):
+    """The input next to a viser label (viser's label 'for' does not match the input id)."""
+    return page.locator(f"xpath=//label[normalize-space()='{label}']/../../following-sibling::div[1]//input").first
+
+
+def _msg(page):
+    return page.locator("#mt-msg").last.inner_text()
+
+
+def _seq(page) -> int:
+    """How many command results the page has shown (#mt-msg data-seq)."""
+    return int(page.locator("#mt-msg").last.get_attribute("data-seq") or 0)
+
+
+def _command(page, name, *, after: int | None = None) -> str:
+    """Click a button and wait until the page shows the result of *this* click (a new data-seq)."""
+    before = _seq(page) if after is None else after
+    _click(page, name)
+    page.wait_for_function(f"Number(document.querySelector('#mt-msg').dataset.seq) > {before}")
+    return _msg(page)
+
+
+def _pin_pad(page, pin: str) -> str:
+    """Type ``pin`` on the open PIN pad (big buttons, dots shown) and press OK; the result line."""
+    page.locator("#mt-pin-dots").wait_for()
+    for d in pin:
+        n = int(page.locator("#mt-pin-dots").get_attribute("data-n"))
+        _click(page, d)
+        page.wait_for_function(f"document.querySelector('#mt-pin-dots') && "
+                               f"Number(document.querySelector('#mt-pin-dots').dataset.n) === {n + 1}")
+    assert pin not in page.locator("#mt-pin-dots").inner_text()  # dots, never the digits
+    return _command(page, "OK")
+
+
+def _take_control(page, pin: str) -> str:
+    _click(page, "Take control (PIN)")
+    return _pin_pad(page, pin)
+
+
+def _state(page):
+    return page.locator("#mt-robot-state").first.get_attribute("data-state")

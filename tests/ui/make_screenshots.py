@@ -1,0 +1,52 @@
+"""Screenshots of each web-app step at 1280x800 and 1920x1080 -> docs/img/ui_<step>_<size>.jpg.
+
+    .venv/bin/python tests/ui/make_screenshots.py   (from the repository root; needs chromium)
+"""
+import sys, tempfile, time
+from pathlib import Path
+sys.path.insert(0, "tests/ui")
+from conftest import chromium_path, CHROMIUM_ARGS, free_port
+from browser_helpers import _click, _take_control, _wait, _pin_pad, _command
+from monotracker.engine import Session, SessionConfig
+from monotracker.ui.app import MonoTrackerApp
+from playwright.sync_api import sync_playwright
+
+out = Path("docs/img"); out.mkdir(parents=True, exist_ok=True)
+home = Path(tempfile.mkdtemp(prefix="ui-shots"))
+s = Session(SessionConfig(home=home, camera="sim", robot="sim", trajectory="breathing", arm_pin="2468")); s.start()
+s.load_sample_ct()
+_wait(lambda: s.snapshot().job is not None and s.snapshot().job.done and s.snapshot().head_mesh is not None, what="ct")
+for f in s.snapshot().fiducials:
+    s.set_fiducial_status(f.id, "confirmed")
+app = MonoTrackerApp(s, "127.0.0.1", free_port()); app.start()
+try:
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=chromium_path(), headless=True, args=CHROMIUM_ARGS)
+        for w, h in ((1280, 800), (1920, 1080)):
+            page = b.new_page(viewport={"width": w, "height": h})
+            page.set_default_timeout(120000)
+            page.goto(app.url)
+            page.locator("#mt-control").wait_for()
+            if s.snapshot().control.controller is None:
+                _take_control(page, "2468")
+            page.wait_for_function("document.querySelector('#mt-control').dataset.mine === '1'")
+            for step, label in (("ct", "1 CT"), ("plan", "2 Plan"), ("register", "3 Register"), ("robot", "4 Robot")):
+                if step == "plan" and not s.snapshot().fiducials_locked:
+                    s.confirm_fiducials(); s.use_sample_plan()
+                _click(page, label)
+                if step == "register" and not s.snapshot().camera.running:
+                    _command(page, "Start camera")
+                    _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="pose")
+                if step == "robot" and s.snapshot().robot.state == "disarmed":
+                    _click(page, "Arm (PIN)"); _pin_pad(page, "2468")
+                    _wait(lambda: s.snapshot().robot.state == "armed", what="armed")
+                    for _ in range(20):
+                        if s.snapshot().robot.state in ("tracking", "holding"):
+                            break
+                        _command(page, "Start tracking")
+                time.sleep(4)
+                page.screenshot(path=str(out / f"ui_{step}_{w}x{h}.jpg"), type="jpeg", quality=70)
+                print("shot", step, w, h, flush=True)
+            page.close()
+finally:
+    app.stop(); s.shutdown()
