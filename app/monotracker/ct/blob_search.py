@@ -70,7 +70,7 @@ class Sibling:
 
 
 def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_voxels: int, fit,
-                 max_fits: int = 400, time_budget_s: float = 30.0, tissue_hu: float = 0.0, noise_hu: float = 20.0):
+                 max_fits: int = 400, time_budget_s: float = 60.0, tissue_hu: float = 0.0, noise_hu: float = 20.0):
     """Run the ladder search (module docstring). ``fit(kji, T, siblings)`` returns
     ``(candidate, None)`` or ``(None, RejectedBlob)``. Returns (candidates, rejected, stats).
 

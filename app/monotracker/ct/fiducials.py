@@ -422,7 +422,7 @@ def _window(volume: Volume, kji: np.ndarray, pad_mm: float):
 
 # ---------------------------------------------------------------------------- product method
 def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: FiducialKit | None = None,
-                     time_budget_s: float = 30.0) -> FiducialDetection:
+                     time_budget_s: float = 60.0) -> FiducialDetection:
     """Find the sphere fiducials in ``volume`` (see the module docstring).
 
     ``kit``: what the balls are (nominal radius mm, density HU; either may be None);
