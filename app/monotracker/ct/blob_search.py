@@ -70,7 +70,7 @@ class Sibling:
 
 
 def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_voxels: int, fit,
-                 max_fits: int = 400, time_budget_s: float = 30.0, tissue_hu: float = 0.0, noise_hu: float = 20.0):
+                 max_fits: int = 400, time_budget_s: float = 60.0, tissue_hu: float = 0.0, noise_hu: float = 20.0):
     """Run the ladder search (module docstring). ``fit(kji, T, siblings)`` returns
     ``(candidate, None)`` or ``(None, RejectedBlob)``. Returns (candidates, rejected, stats).
 
@@ -103,11 +103,28 @@ def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_v
         labels, n = ndimage.label(mask, structure=_STRUCTURE)
         if n == 0:
             return False
-        counts = np.bincount(labels.ravel())
-        objs = ndimage.find_objects(labels)
+        counts = np.bincount(labels.ravel(), minlength=n + 1)
         stats.components += n
+        sizable = np.flatnonzero(counts >= min_voxels)
+        sizable = sizable[sizable > 0]
+        stats.specks += n - len(sizable)
+        if len(sizable) == 0:
+            return False
+        # a component whose densest voxel barely passes T is a fragment of something at about
+        # that level (bone just above a threshold, a streak): counted, not fitted
+        on = labels > 0
+        peak_of = np.full(n + 1, -np.inf)
+        np.maximum.at(peak_of, labels[on], sub[on].astype(float))  # far faster than ndimage.maximum
+        peaks = peak_of[sizable]
+        small = counts[sizable] <= max_ball_voxels
+        faint = small & (peaks < T + max(6.0 * noise_hu, 0.15 * (T - tissue_hu)))
+        stats.specks += int(faint.sum())
+        todo = sizable[~faint]
+        if len(todo) == 0:
+            return False
+        objs = ndimage.find_objects(labels)
         # blobs that could be (or hold) balls, for the neighbour masks of each other's fits
-        idx = [lab for lab in range(1, n + 1) if min_voxels <= counts[lab] <= 3 * max_ball_voxels]
+        idx = [lab for lab in todo if counts[lab] <= 3 * max_ball_voxels]
         comps = {}
         for lab in idx:
             sl = objs[lab - 1]
@@ -117,11 +134,8 @@ def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_v
         cents = {lab: volume.zyx_to_lps(kji.mean(axis=0)[None])[0] for lab, (_, _, kji) in comps.items()}
         radii = {lab: float((3.0 * counts[lab] * voxel_mm3 / (4.0 * np.pi)) ** (1.0 / 3.0)) for lab in comps}
         found = False
-        for lab in range(1, n + 1):
+        for lab in todo:
             c = int(counts[lab])
-            if c < min_voxels:
-                stats.specks += 1
-                continue
             if over_budget():
                 return found
             sl = objs[lab - 1]
@@ -136,9 +150,6 @@ def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_v
                     rejected.append(_too_large(volume, kji, c))
                 continue
             _, comp, kji = comps[lab]
-            if float(sub[sl][comp].max()) < T + max(6.0 * noise_hu, 0.15 * (T - tissue_hu)):
-                stats.specks += 1
-                continue
             sibs = [Sibling(cents[o], radii[o]) for o in comps if o != lab]
             stats.fits += 1
             cand, rej = fit(kji, T, sibs)

@@ -386,6 +386,8 @@ def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_s
                                               max_tissue_hu=b_out + 0.6 * (H - b_out))
         if ok and np.linalg.norm(params[:3] - c) <= 1.5 and (best is None or rms < best[1]):
             best = (params, rms)
+        if best is not None and best[1] < 0.5 * f_scale:  # residuals at the noise level: no need for the other start
+            break
     return best
 
 
@@ -420,7 +422,7 @@ def _window(volume: Volume, kji: np.ndarray, pad_mm: float):
 
 # ---------------------------------------------------------------------------- product method
 def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: FiducialKit | None = None,
-                     time_budget_s: float = 30.0) -> FiducialDetection:
+                     time_budget_s: float = 60.0) -> FiducialDetection:
     """Find the sphere fiducials in ``volume`` (see the module docstring).
 
     ``kit``: what the balls are (nominal radius mm, density HU; either may be None);
@@ -543,7 +545,7 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
             # streaks: a final pass with a Cauchy loss (residuals of a few f_scale count far
             # less than with soft-L1) from the converged fit; kept when it stays close
             r_b = (0.95 * sp_[3], 1.05 * sp_[3] + 0.05)
-            pol, rms_p, ok_p = fit_ball_on_surface(wpts, vals, sp_, f_scale, box_cov, r_bounds=r_b,
+            pol, rms_p, ok_p = (None, rms, False) if rms < 0.5 * f_scale else fit_ball_on_surface(wpts, vals, sp_, f_scale, box_cov, r_bounds=r_b,
                                                    max_tissue_hu=max(sp_[6], sp_[7]) + 0.6 * (sp_[5] - max(sp_[6], sp_[7])), loss="cauchy")
             if ok_p and np.linalg.norm(pol[:3] - sp_[:3]) < 0.3:
                 sp_ = pol
