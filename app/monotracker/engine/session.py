@@ -525,6 +525,8 @@ class Session:
         return _ok(f"{n} fiducials locked")
 
     def unlock_fiducials(self) -> CommandResult:
+        """Back to editing the fiducial set (refused while armed). Stops a running camera and
+        forgets the pose: both were registered against the locked set."""
         if self._loop.robot_state() not in ("disarmed", "estopped"):
             return _fail("disarm the robot before editing fiducials")
         with self._lock:
@@ -538,9 +540,13 @@ class Session:
 
     # ================================================================== path planning
     def set_entry(self, p_lps_mm) -> CommandResult:
+        """Planned entry point. ``p_lps_mm``: 3 finite coordinates, CT LPS mm. Needs locked
+        fiducials; refused while tracking. A different point restarts a running camera on the new
+        plan and forgets the pose (arming and tracking wait for a pose for *this* plan)."""
         return self._set_path_point("entry", p_lps_mm)
 
     def set_target(self, p_lps_mm) -> CommandResult:
+        """Planned target point. ``p_lps_mm``: 3 finite coordinates, CT LPS mm (see set_entry)."""
         return self._set_path_point("target", p_lps_mm)
 
     def use_sample_plan(self) -> CommandResult:
@@ -579,9 +585,12 @@ class Session:
         return self._loop.set_camera(source, calibration_path)
 
     def start_camera(self) -> CommandResult:
+        """Start the pose stream with the source chosen by ``set_camera`` (needs locked
+        fiducials). A failure clears the pose and raises the ``camera_failed`` alarm."""
         return self._loop.start_camera()
 
     def stop_camera(self) -> CommandResult:
+        """Stop the pose stream; the pose is cleared (``snap.pose`` None) and an engaged arm holds."""
         return self._loop.stop_camera()
 
     def latest_frame(self):
@@ -706,18 +715,25 @@ class Session:
         return ClientSession(self, str(client_id))
 
     def disarm(self) -> CommandResult:
+        """Disarm the robot (stops tracking first)."""
         return self._loop.disarm()
 
     def start_tracking(self) -> CommandResult:
+        """Follow the planned path. Needs armed, a complete plan, hand-eye and a trusted pose no
+        older than ``max_pose_age_s``; on a real clock waits up to ``start_wait_s`` for one while
+        poses keep arriving."""
         return self._loop.start_tracking()
 
     def stop_tracking(self) -> CommandResult:
+        """Stop following (the arm stays armed and still); never undone automatically."""
         return self._loop.stop_tracking()
 
     def estop(self) -> CommandResult:
+        """Emergency stop, latched until ``reset_estop``; allowed from every browser client."""
         return self._loop.estop()
 
     def reset_estop(self) -> CommandResult:
+        """Clear a latched e-stop; the robot comes back disarmed."""
         return self._loop.reset_estop()
 
     def inject_fault(self, name: str) -> CommandResult:
