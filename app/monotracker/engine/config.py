@@ -46,6 +46,13 @@ class SessionConfig:
     ``max_validation_tre_mm`` (1.5): arming is refused while any validation fiducial (a fiducial
     the plan keeps out of the fit) is further than this from its viewing ray, or not seen
     (``engine/verification.py`` says why 1.5 mm).
+    ``resume_dwell_s`` (0.3): hysteresis; after a stale pose stream or a frozen camera, tracking
+    resumes only once trusted poses have been arriving fresh (each younger than
+    ``max_pose_age_s`` when it arrives, no gap) for this long; entering the hold is immediate. A stream that
+    fails again within 10 s of resuming doubles the dwell (up to 4x) until it is steady for 10 s.
+    ``start_wait_s`` (1.0, real clock): ``start_tracking`` waits up to this long for a fresh
+    trusted pose while trusted poses keep arriving, instead of refusing a click that fell between
+    two frames on a loaded machine.
     ``controller``: the APFF variant (``"APF-V" | "APF-A-I" | "APF-A-II"``, paper section 2.3).
     ``predict_target``: the robot tracker's latency compensation (target velocity estimated from
     the stamped pose stream, extrapolated over the measured latency, with its own bounds: capped
@@ -77,6 +84,8 @@ class SessionConfig:
     max_jump_mm: float = 5.0
     max_jump_deg: float = 3.0
     confirm_frames: int = 3
+    resume_dwell_s: float = 0.3
+    start_wait_s: float = 1.0
     controller: str = "APF-A-II"
     predict_target: bool = False
     max_predicted_tre_mm: float = 1.0
@@ -114,5 +123,7 @@ class SessionConfig:
             kind = str(self.camera_adapt).partition(":")[0]
             if kind not in ("bin", "scale", "crop"):
                 raise InputError(f"camera_adapt {self.camera_adapt!r} not understood: use bin:N, scale:F or crop:X,Y,W,H")
+        if self.resume_dwell_s < 0 or self.start_wait_s < 0:
+            raise InputError("resume_dwell_s and start_wait_s must be >= 0 s")
         if not str(self.arm_pin):
             raise InputError("arm_pin must not be empty")

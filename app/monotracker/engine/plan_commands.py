@@ -337,6 +337,7 @@ class PlanCommands:
             if err:
                 return _fail(err)
         self._bus.event("fiducials_unlocked", "fiducial set unlocked for editing")
+        self._loop.plan_changed("fiducials unlocked for editing", restart_camera=False)
         return _ok("fiducials unlocked")
 
     # ================================================================== path planning
@@ -381,6 +382,8 @@ class PlanCommands:
                 return _fail(err)
         self._bus.event(f"{which}_set", f"{which} set to ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm LPS",
                         {"lps_mm": p.tolist(), "previous": None if old is None else old.tolist()})
+        if old is None or not np.array_equal(old, p):
+            self._loop.plan_changed(f"{which} changed", restart_camera=True)
         return _ok(f"{which} set")
 
     def _point_problem(self, which: str, p: np.ndarray, plan: Plan) -> str | None:

@@ -36,7 +36,7 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.plan_not_ready() -> str | None    # why arming/tracking is refused (plan_checks, CT loaded, re-confirmation)
     s.reconfirm_plan()                  # the operator re-confirms after an integrity alarm (edited outside, CT/calibration changed)
     s.integrity_alarms() -> [(code, line)]   # integrity conditions that stand until they clear (for snap.alarms)
-    s.arm(pin); s.disarm()               # wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/control.py
+    s.arm(pin); s.disarm()               # arm needs a fresh trusted pose for this plan; wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/control.py
     s.claim_control(client_id, pin, label=""); s.release_control(client_id)   # one browser client in control
     s.for_client(client_id) -> ClientSession    # reads as is; commands only while in control; estop() always
     s.start_tracking(); s.stop_tracking()   # needs armed + plan + trusted fresh pose + hand-eye
@@ -56,7 +56,9 @@ on engine threads. Commands never raise for operator mistakes (the message says 
                           #             angle_to_skin_normal_deg, distance_to_fiducials_mm, complete)
     snap.camera           # CameraSummary(source, running, fps, K, dist, image_size, calibration_path, error, frames)
     snap.pose             # None or PoseSummary(t, age_s, ok, trusted, reason, T_cam_ct, n_visible,
-                          #   fiducial_status, residuals_px, fre_mm, predicted_tre_mm, latency_ms, truth_tre_mm)
+                          #   fiducial_status, residuals_px, fre_mm, predicted_tre_mm, latency_ms, truth_tre_mm,
+                          #   stale): None again after the plan's fiducials/path/CT change or the camera stops;
+                          #   trusted=False, stale=True while the engine holds for a stale stream
     snap.robot            # RobotSummary(state "disarmed"|"armed"|"tracking"|"holding"|"estopped", q rad,
                           #   tip_error_mm, angle_error_deg, speed_mm_s, connected, message, latency_ms)
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
@@ -365,6 +367,7 @@ class Session(PlanCommands):
             self._reconfirm = []
         self._alarm_board.clear_all(("plan_field_rejected", "fiducial_moved"), float(self.clock()))
         self._bus.event("plan_cleared", "new plan: CT, fiducials and path cleared")
+        self._loop.plan_changed("new plan", restart_camera=False)
         return _ok("new plan")
 
     # ================================================================== CT
@@ -495,6 +498,8 @@ class Session(PlanCommands):
                                          anatomy) if self._plan.path_complete else None
             if why:
                 self._bus.alert("alarm", "plan_path_invalid", f"the restored path fails its check on the CT: {why}")
+        if not restored:
+            self._loop.plan_changed("new CT loaded", restart_camera=False)
         self._set_job(1.0, "CT ready" if det.ok else f"CT ready; fiducials: {det.reason}", None, True)
         if restored:
             self._bus.event("ct_reloaded", f"CT reloaded for the saved plan: {path}", {"path": path})
@@ -512,9 +517,12 @@ class Session(PlanCommands):
         return self._loop.set_camera(source, calibration_path)
 
     def start_camera(self) -> CommandResult:
+        """Start the pose stream with the source chosen by ``set_camera`` (needs locked
+        fiducials). A failure clears the pose and raises the ``camera_failed`` alarm."""
         return self._loop.start_camera()
 
     def stop_camera(self) -> CommandResult:
+        """Stop the pose stream; the pose is cleared (``snap.pose`` None) and an engaged arm holds."""
         return self._loop.stop_camera()
 
     def latest_frame(self):
@@ -626,18 +634,25 @@ class Session(PlanCommands):
         return ClientSession(self, str(client_id))
 
     def disarm(self) -> CommandResult:
+        """Disarm the robot (stops tracking first)."""
         return self._loop.disarm()
 
     def start_tracking(self) -> CommandResult:
+        """Follow the planned path. Needs armed, a complete plan, hand-eye and a trusted pose no
+        older than ``max_pose_age_s``; on a real clock waits up to ``start_wait_s`` for one while
+        poses keep arriving."""
         return self._loop.start_tracking()
 
     def stop_tracking(self) -> CommandResult:
+        """Stop following (the arm stays armed and still); never undone automatically."""
         return self._loop.stop_tracking()
 
     def estop(self) -> CommandResult:
+        """Emergency stop, latched until ``reset_estop``; allowed from every browser client."""
         return self._loop.estop()
 
     def reset_estop(self) -> CommandResult:
+        """Clear a latched e-stop; the robot comes back disarmed."""
         return self._loop.reset_estop()
 
     def inject_fault(self, name: str) -> CommandResult:
