@@ -49,7 +49,8 @@ TARGET = 8           # index into Scene.targets_ct: 80 mm deep, centred
 
 
 def baseline_config() -> TrackerConfig:
-    return TrackerConfig(max_predicted_tre_mm=np.inf, check_moved=False, noise_prior_px=LEGACY_SIGMA_FLOOR_PX)
+    return TrackerConfig(max_predicted_tre_mm=np.inf, max_wrong_probability=1.0, check_moved=False,
+                         noise_prior_px=LEGACY_SIGMA_FLOOR_PX)
 
 
 # ------------------------------------------------------------------ 1. calibration
