@@ -107,3 +107,22 @@ def test_non_numeric_radius_and_json_summary(scene):
     r = register(scene.fiducials_ct, scene.image_points, scene.K, scene.dist, radius_mm=4.0)
     d = json.loads(json.dumps(r.to_dict()))
     assert d["ok"] and len(d["pairs"]) == 9 and len(d["T_cam_ct"]) == 4
+
+
+def test_non_numeric_inputs_are_refused_with_the_first_failing_check(scene):
+    X, P, K = scene.fiducials_ct, scene.image_points, scene.K
+    _fails(register("abc", P, K), "not numeric")
+    _fails(register(X, P, K, dist="abc"), "dist is not numeric")
+    _fails(register(X, P, K, dist=[0.0, 0.0, 0.0, np.inf]), "finite opencv coefficients")
+    # checklist order: the shape of the fiducials is checked before dist and radius
+    _fails(register(X[:, :2], P, K, dist="abc", radius_mm=-1), "fiducials_ct must be (n, 3)")
+    _fails(register(X, P, K, dist="abc", radius_mm=-1), "dist is not numeric")
+
+
+@pytest.mark.parametrize("prior", ["junk", np.full((4, 4), np.nan), np.eye(3)])
+def test_a_broken_prior_is_ignored_not_raised(scene, prior):
+    """A prior that is not a finite 4x4 is dropped: the full search runs and finds the truth."""
+    r = register(scene.fiducials_ct, scene.image_points, scene.K, scene.dist, radius_mm=scene.radius_mm, prior=prior)
+    assert r.ok, r.reason
+    assert not r.used_prior
+    assert sorted(r.pairs) == sorted(scene.truth_pairs)

@@ -456,8 +456,21 @@ def _resample(geo: _Geometry, stack: np.ndarray, integer: bool) -> tuple[np.ndar
 
 # ---------------------------------------------------------------------------- public
 def list_series(path: str | Path) -> list[SeriesInfo]:
-    """The DICOM series of a folder (or of one DICOM file), largest first, each with its
-    description, slice count, spacing (mm), gantry tilt (deg) and what loading it would say."""
+    """The DICOM series of a folder (or of one DICOM file), largest first.
+
+    Args:
+        path: a folder (its files; sub-folders are not searched) or one DICOM file (``~`` expanded).
+
+    Returns:
+        list of :class:`SeriesInfo`, most slices first: ``uid`` (pass it as ``series=`` to
+        :func:`~monotracker.ct.volume.load_volume`), ``description``, ``modality``,
+        ``slices``, ``spacing_mm`` (column, row, slice) mm, ``tilt_deg`` (gantry tilt, deg),
+        ``notes`` (what loading it would say), ``ok`` False with the refusal in ``notes`` for a
+        series that cannot be loaded. Empty when the folder holds no DICOM image.
+
+    Raises:
+        InputError: ``path`` does not exist or cannot be read (permission denied).
+    """
     p = Path(path).expanduser()
     if not p.exists():
         raise InputError(f"no such file or folder: {p}")

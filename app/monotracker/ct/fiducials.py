@@ -425,10 +425,24 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
                      time_budget_s: float = 60.0) -> FiducialDetection:
     """Find the sphere fiducials in ``volume`` (see the module docstring).
 
-    ``kit``: what the balls are (nominal radius mm, density HU; either may be None);
-    ``radius_mm`` overrides the kit's radius. Without a radius it is estimated (each ball's
-    fitted radius, checked against the median of all balls). Centres are LPS mm, sub-voxel.
-    ``time_budget_s`` bounds the search on pathological scans (a note says when it stopped).
+    Args:
+        volume: the CT (:class:`~monotracker.ct.volume.Volume`, HU, LPS geometry), e.g. from
+            :func:`~monotracker.ct.volume.load_volume`.
+        radius_mm: nominal ball radius, mm; overrides ``kit.radius_mm``. Without a radius it is
+            estimated (each ball's fitted radius, checked against the median of all balls).
+        kit: what the balls are (nominal radius mm, density HU; either may be None); None is
+            ``FiducialKit()`` (both unknown).
+        time_budget_s: wall-clock bound of the search, s, for pathological scans (a note says
+            when it stopped and ``reason`` ends with "(search stopped early)").
+
+    Returns:
+        :class:`FiducialDetection`: ``fiducials`` (centre LPS mm, sub-voxel; fitted radius mm;
+        score in [0, 1]) sorted superior to inferior, ``centres`` as (n, 3) float64 LPS mm,
+        ``rejected`` dense blobs with the reason each was not taken, ``notes``, ``levels`` and
+        the thresholds searched (HU).
+
+    Refuses (ok=False, reason): nothing denser than the threshold; dense blobs but none a
+    sphere of the expected size; no sphere-shaped blob. Never raises for an empty result.
     """
     t0 = time.perf_counter()
     kit = kit or FiducialKit()

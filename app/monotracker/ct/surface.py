@@ -26,9 +26,19 @@ def _block_mean(arr: np.ndarray, f: tuple[int, int, int]) -> np.ndarray:
 
 
 def head_surface(volume: Volume, target_mm: float = 2.0, level_hu: float | None = None) -> trimesh.Trimesh:
-    """Skin mesh (LPS mm). ``level_hu`` defaults to the air/soft-tissue midpoint.
+    """The head's skin as a triangle mesh (marching cubes on a block-averaged volume).
 
-    Raises :class:`MonoTrackerError` when the volume holds no surface at that level.
+    Args:
+        volume: the CT (:class:`~monotracker.ct.volume.Volume`, HU, LPS geometry).
+        target_mm: approximate edge length of the averaging blocks, mm (larger: coarser, faster).
+        level_hu: iso-level, HU; None picks the air/soft-tissue midpoint of the volume's levels.
+
+    Returns:
+        ``trimesh.Trimesh`` with vertices in CT LPS mm and outward normals: the largest
+        connected surface (the head), closed where the head touches the volume's border.
+
+    Raises:
+        MonoTrackerError: the volume holds no surface at ``level_hu`` (all above or all below).
     """
     from monotracker.ct.fiducials import estimate_levels
 

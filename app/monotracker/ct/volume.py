@@ -227,10 +227,24 @@ def _check_hounsfield(arr: np.ndarray, name: str) -> None:
 
 def load_volume(path: str | Path, series: str | None = None) -> Volume:
     """Load a CT from a DICOM series folder, ``.nii``/``.nii.gz``, ``.nrrd``, ``.mha``/``.mhd``
-    (or one multi-frame DICOM file). ``series`` picks a DICOM series by its Series Instance UID;
-    without it the largest series of a folder is used and ``notes`` says so.
+    (or one multi-frame DICOM file).
 
-    Raises :class:`InputError` (one line) for every input that cannot be used.
+    Args:
+        path: the folder or file (``~`` expanded).
+        series: Series Instance UID of the DICOM series to load (see :func:`list_series`);
+            None takes the largest series of a folder and ``notes`` says so. Ignored, with a
+            note, for a single file.
+
+    Returns:
+        :class:`Volume`: ``array`` (z, y, x) = [k, j, i] in HU (the file's dtype, usually
+        int16), ``spacing_mm`` (i, j, k), ``origin_mm`` (LPS mm of voxel 0), ``direction``
+        (3x3, columns = i, j, k axes in LPS), ``notes`` for the operator (series picked,
+        resampling of irregular series, ...).
+
+    Raises:
+        InputError: one line, for every input that cannot be used: missing, empty or
+            unreadable path; no image in it; an unknown ``series``; inconsistent slice
+            geometry; NaN/infinite voxels; values that are not Hounsfield units.
     """
     p = Path(path).expanduser()
     try:

@@ -66,6 +66,12 @@ class SessionConfig:
     runs in its own process at real-time priority where the OS allows, so vision, UI and logging
     cannot delay it (``robot/control_process.py``); False: a thread in the engine process.
     clock="sim" always steps it in-process (deterministic).
+    ``extra``: free-form settings for experiments; nothing in the engine reads it.
+
+    Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
+    :class:`InputError` with one line for an unknown trajectory, clock, camera, robot spec,
+    controller or ``camera_adapt`` kind, a non-positive rate or gate, ``min_fiducials`` < 3, or
+    an empty ``arm_pin``.
     """
 
     home: Path | None = None

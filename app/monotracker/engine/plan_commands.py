@@ -354,7 +354,8 @@ class PlanCommands:
         return self._set_path_point("target", p_lps_mm)
 
     def use_sample_plan(self) -> CommandResult:
-        """Entry/target of the phantom's sample plan (meant for the sample CT)."""
+        """Entry/target of the phantom's sample plan (meant for the sample CT); refused like
+        :meth:`set_entry` / :meth:`set_target` (the first refusal is returned)."""
         from monotracker.sim.phantom import default_phantom
 
         ph = default_phantom()

@@ -190,6 +190,7 @@ class SimClock:
             return self._t
 
     def set(self, t: float) -> None:
+        """Set the simulated time, s."""
         with self._lock:
             self._t = float(t)
 
@@ -339,6 +340,7 @@ class Session(PlanCommands):
     # ================================================================== plan persistence
     @property
     def plan_path(self) -> Path:
+        """Where the plan is saved: ``plan.json`` in the session's ``home``."""
         return self._plan_path
 
     def plan_copy(self) -> Plan:
@@ -372,6 +374,7 @@ class Session(PlanCommands):
 
     # ================================================================== CT
     def load_sample_ct(self) -> CommandResult:
+        """:meth:`load_ct` on the bundled phantom CT (``paths.sample_ct_path()``); same refusals."""
         from monotracker.paths import sample_ct_path
 
         return self.load_ct(sample_ct_path())
@@ -382,7 +385,19 @@ class Session(PlanCommands):
         (``monotracker.ct.list_series(path)`` lists them); None picks the largest (noted).
 
         If the plan's fiducials are locked, the CT must be the one the plan was made on: its volume
-        and surface are reloaded and the saved fiducials are kept (restart after a crash)."""
+        and surface are reloaded and the saved fiducials are kept (restart after a crash).
+
+        Args:
+            path: DICOM folder or volume file (see :func:`monotracker.ct.load_volume`).
+            series: Series Instance UID, or None.
+
+        Returns:
+            :class:`CommandResult` at once; the job's outcome (``snap.job.error``, alerts
+            ``ct_failed`` / ``fiducials_detection``) comes later, :meth:`wait_for_job` waits for it.
+
+        Refuses (ok=False, message): another job still running; the plan's fiducials are
+        locked on another CT; no such path.
+        """
         path = str(path)
         with self._lock:
             if self._job is not None and not self._job.done:
@@ -400,7 +415,11 @@ class Session(PlanCommands):
         return _ok("loading CT")
 
     def wait_for_job(self, timeout: float | None = None) -> Job | None:
-        """Block until the current job ends (for scripts and tests; the UI polls snapshots)."""
+        """Block until the current job ends (for scripts and tests; the UI polls snapshots).
+
+        ``timeout``: seconds, None = no limit. Returns the last :class:`Job` (``done``,
+        ``error`` one line or None) or None when no job ever ran; ``done`` is False if the
+        timeout expired first."""
         th = self._job_thread
         if th is not None:
             th.join(timeout)
@@ -513,16 +532,34 @@ class Session(PlanCommands):
 
     # ================================================================== camera
     def set_camera(self, source: str, calibration_path: str | None = None) -> CommandResult:
-        """Choose the frame source (and optional calibration file); applied by ``start_camera``."""
+        """Choose the frame source (and optional calibration file); applied by ``start_camera``.
+
+        Args:
+            source: "sim", "sim-points", "device:N", "file:PATH" (video), "folder:PATH"
+                (images) or "replay:DIR" (a session recording).
+            calibration_path: OpenCV YAML/XML or JSON intrinsics
+                (:meth:`~monotracker.vision.camera_model.CameraModel.load`); None for the
+                simulated camera (it knows its own) or a recording.
+
+        Refuses (ok=False, message): an unknown source kind; the camera is running (stop it
+        first); the robot is tracking. A bad calibration file is refused by :meth:`start_camera`.
+        """
         return self._loop.set_camera(source, calibration_path)
 
     def start_camera(self) -> CommandResult:
-        """Start the pose stream with the source chosen by ``set_camera`` (needs locked
-        fiducials). A failure clears the pose and raises the ``camera_failed`` alarm."""
+        """Start the pose stream on the source of :meth:`set_camera` (its own thread with
+        clock="real"; stepped by :meth:`advance` with clock="sim"). Poses appear in ``snap.pose``.
+
+        Refuses (ok=False, message): the fiducials are not confirmed (locked); the source or
+        its calibration cannot be opened or read (also raised as the ``camera_failed`` alarm; the
+        pose is cleared);
+        the calibration cannot be stored in the plan. Already running: ok.
+        """
         return self._loop.start_camera()
 
     def stop_camera(self) -> CommandResult:
-        """Stop the pose stream; the pose is cleared (``snap.pose`` None) and an engaged arm holds."""
+        """Stop the pose stream; the pose is cleared (``snap.pose`` None) and a tracking arm holds.
+        Not running: ok. Never refused."""
         return self._loop.stop_camera()
 
     def latest_frame(self):
@@ -549,7 +586,13 @@ class Session(PlanCommands):
 
     # ================================================================== robot
     def arm(self, pin) -> CommandResult:
-        """Arm the robot; ``pin`` is the operator PIN (wrong tries count towards the lockout)."""
+        """Arm the robot; ``pin`` is the operator PIN (wrong tries count towards the lockout).
+
+        Refuses (ok=False, message): a wrong PIN or a running PIN lockout; the plan is not
+        ready (:meth:`plan_not_ready`, e.g. fiducials not confirmed, no path, integrity alarm);
+        a validation fiducial off its ray by more than ``config.max_validation_tre_mm`` or not
+        seen (a verification report is written either way); the robot cannot be reached.
+        """
         r = self._check_pin(pin, "arm_refused", "arming")
         if not r.ok:
             return r
@@ -634,29 +677,40 @@ class Session(PlanCommands):
         return ClientSession(self, str(client_id))
 
     def disarm(self) -> CommandResult:
-        """Disarm the robot (stops tracking first)."""
+        """Disarm the robot from armed, tracking or holding (the arm decelerates to rest).
+        Refused (ok=False, message) while the e-stop is latched (reset it first); no robot: ok."""
         return self._loop.disarm()
 
     def start_tracking(self) -> CommandResult:
-        """Follow the planned path. Needs armed, a complete plan, hand-eye and a trusted pose no
-        older than ``max_pose_age_s``; on a real clock waits up to ``start_wait_s`` for one while
-        poses keep arriving."""
+        """The arm starts following the planned path as the head moves (APFF tracker).
+
+        Refuses (ok=False, message): not armed; the plan is not ready or changed since the
+        camera started; no hand-eye calibration (``T_base_cam``); no trusted pose younger than
+        ``config.max_pose_age_s`` (on a real clock it waits up to ``config.start_wait_s`` for one
+        while poses keep arriving); the robot refuses (its message).
+        """
         return self._loop.start_tracking()
 
     def stop_tracking(self) -> CommandResult:
-        """Stop following (the arm stays armed and still); never undone automatically."""
+        """The arm stops following and holds, still armed. Not tracking: ok."""
         return self._loop.stop_tracking()
 
     def estop(self) -> CommandResult:
-        """Emergency stop, latched until ``reset_estop``; allowed from every browser client."""
+        """Emergency stop: the arm stops at once and the stop is latched (``alarm`` ``estop``)
+        until :meth:`reset_estop`. Never refused, also without a robot."""
         return self._loop.estop()
 
     def reset_estop(self) -> CommandResult:
-        """Clear a latched e-stop; the robot comes back disarmed."""
+        """Release a latched e-stop; the arm is left disarmed (arm again to move it). Refused
+        (ok=False, message) when the robot refuses the reset; no robot: ok."""
         return self._loop.reset_estop()
 
     def inject_fault(self, name: str) -> CommandResult:
-        """Simulated sessions only: start a fault (see ``monotracker.sim.faults``)."""
+        """Simulated sessions only: start a fault (see ``monotracker.sim.faults``).
+
+        ``name``: one of ``FAULTS`` ("camera-freeze", "occlude-all", "robot-disconnect",
+        "bad-pose", ...; "none" clears). Refused (ok=False, message) for an unknown name, a real
+        camera or robot, or "robot-disconnect" without a robot."""
         if name not in FAULTS:
             return _fail(f"unknown fault {name!r}; use one of {', '.join(FAULTS)}")
         return self._loop.inject_fault(name)

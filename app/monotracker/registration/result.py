@@ -15,11 +15,32 @@ class Registration:
 
     ``T_cam_ct`` (4x4, mm) maps CT points into the OpenCV camera frame; it is ``None`` when
     ``ok`` is False (``reason`` says why; a fit that was refused, e.g. as ambiguous, is kept in
-    ``stats["rejected_T_cam_ct"]`` / ``stats["rejected_pairs"]`` for diagnosis only). ``pairs`` lists (image index, fiducial index);
-    ``residuals_px`` holds the per-pair reprojection error magnitude (equivalent pinhole px)
-    in the order of ``pairs`` and ``residual_vectors_px`` the (k, 2) vectors (observed minus
-    predicted). ``fre_mm`` is the monocular FRE (RMS point-to-ray distance, see
-    :mod:`.report`). ``timing`` holds seconds per stage (``total_s`` always).
+    ``stats["rejected_T_cam_ct"]`` / ``stats["rejected_pairs"]`` for diagnosis only).
+
+    Attributes:
+        ok: True when the pose passed every acceptance gate; False means "do not use".
+        reason: one line saying why ``ok`` is False ("" when ok).
+        method: the method that ran: "robust", "paper" or "naive".
+        T_cam_ct: (4, 4) float64, CT LPS mm -> OpenCV camera mm (x right, y down, z forward);
+            None when not ok.
+        pairs: k tuples (image index, fiducial index): which image point is which CT fiducial
+            (indices into the ``image_points`` and ``fiducials_ct`` given); [] when not ok.
+        fre_mm: monocular fiducial registration error, mm: RMS distance from each matched
+            fiducial (moved by ``T_cam_ct``) to its image point's viewing ray (see :mod:`.report`).
+        reprojection_rms_px: RMS reprojection error over the pairs, equivalent pinhole px.
+        residuals_px: (k,) reprojection error magnitude per pair, px, in the order of ``pairs``.
+        residual_vectors_px: (k, 2) observed minus predicted image position per pair, px.
+        unmatched_image_indices: image points explained by no fiducial (stray blobs), sorted.
+        unmatched_fiducial_indices: fiducials not seen in the image (occluded, out of view), sorted.
+        sigma_px: per-coordinate image noise estimated from the residuals, px (floored at
+            ``report.SIGMA_FLOOR_PX``; ``sigma_dof`` degrees of freedom).
+        pose_covariance: (6, 6) covariance of the pose: rotation vector (rad) then translation
+            (mm), camera frame; None when not ok.
+        timing: seconds per stage (``undistort_s``, ``prior_s``, ``search_s``; ``total_s`` always).
+        stats: search diagnostics (counts, ``prior_rejected``, ``ambiguous_pairs``,
+            ``rejected_T_cam_ct``, ``rejected_pairs``); for logs, not a stable API.
+        used_prior: True when the ``prior`` fast path produced this pose (no full search ran).
+        sigma_dof: residual degrees of freedom behind ``sigma_px`` (2k - 6 for k pairs).
     """
 
     ok: bool
@@ -42,9 +63,16 @@ class Registration:
     sigma_dof: int = 0
 
     def predicted_tre_mm(self, target_ct: np.ndarray, sigma_px: float | None = None) -> float | np.ndarray:
-        """Predicted RMS 3D error (mm) at target(s) given in CT mm; NaN if not ok. ``sigma_px``:
-        use this image noise (px, e.g. the pose stream's pooled estimate) instead of this fit's
-        own ``sigma_px``."""
+        """Predicted RMS 3D error (mm) at target(s) from the pose covariance.
+
+        Args:
+            target_ct: (3,) or (t, 3) float, CT LPS mm.
+            sigma_px: use this image noise (px, e.g. the pose stream's pooled estimate) instead
+                of this fit's own ``sigma_px``; None keeps the fit's own.
+
+        Returns:
+            float for one target, (t,) array for several, mm; NaN when not ok.
+        """
         if not self.ok or self.pose_covariance is None:
             return float("nan") if np.ndim(target_ct) == 1 else np.full(len(target_ct), np.nan)
         cov = self.pose_covariance

@@ -36,7 +36,22 @@ _RAY_CACHE: dict = {}
 
 @dataclass
 class CameraModel:
-    """Intrinsics ``K`` (3x3 px), distortion ``dist`` (OpenCV order) and ``image_size`` (w, h px)."""
+    """Intrinsics ``K`` (3x3 px), distortion ``dist`` (OpenCV order) and ``image_size`` (w, h px).
+
+    Args:
+        K: (3, 3) float, px: ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, pixel centres at integer
+            coordinates (OpenCV convention).
+        dist: OpenCV distortion coefficients (k1, k2, p1, p2[, k3, ...]): 0, 4, 5, 8, 12 or 14
+            values, acting on normalised coordinates.
+        image_size: (width, height) px of the images this calibration is valid for.
+        ball_colour: the balls' colour saved with this calibration
+            (:class:`~monotracker.vision.ball_colour.BallColour`) or None (default green).
+
+    Raises:
+        InputError: one line (:func:`validate_intrinsics`): K not 3x3 or not finite,
+            focal lengths <= 0 or more than 3x apart, principal point outside the image, a bad
+            distortion length, a non-positive image size.
+    """
 
     K: np.ndarray
     dist: np.ndarray
@@ -167,7 +182,8 @@ class CameraModel:
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> Path:
-        """Write OpenCV YAML (``.yml``/``.yaml``/``.xml``) or JSON (``.json``)."""
+        """Write OpenCV YAML (``.yml``/``.yaml``/``.xml``) or JSON (``.json``), chosen by the
+        suffix of ``path``; returns ``path``. Raises :class:`InputError` for another suffix."""
         path = Path(path)
         if path.suffix.lower() == ".json":
             path.write_text(json.dumps(self.to_dict(), indent=2))
@@ -198,7 +214,18 @@ class CameraModel:
 
     @classmethod
     def load(cls, path: str | Path) -> "CameraModel":
-        """Read OpenCV YAML/XML or JSON intrinsics; raises :class:`InputError` on any problem."""
+        """Read OpenCV YAML/XML or JSON intrinsics (the keys of the module docstring).
+
+        Args:
+            path: a ``.json`` file, or an OpenCV ``FileStorage`` file (``.yml``/``.yaml``/``.xml``).
+
+        Returns:
+            the :class:`CameraModel`, with ``ball_colour`` when the file holds one.
+
+        Raises:
+            InputError: one line: missing file, unreadable or malformed content, missing keys,
+                intrinsics that fail :func:`validate_intrinsics`.
+        """
         path = Path(path)
         if not path.is_file():
             raise InputError(f"camera calibration file not found: {path}")

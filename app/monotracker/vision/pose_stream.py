@@ -86,7 +86,35 @@ class PoseEstimate:
     no target was given or no pose). ``alerts`` are one-line operator messages for this frame.
     ``camera`` is "ok", "frozen", "stalled", "disconnected" or "ended". ``detect_s`` /
     ``register_s`` are the stage times (s); ``truth`` is the simulator's ground truth of the
-    frame (None for real cameras), carried for overlays and benchmarks."""
+    frame (None for real cameras), carried for overlays and benchmarks.
+
+    Attributes:
+        ok: True when the pose passed every gate of the module docstring; when False the
+            controller holds and ``code`` / ``reason`` say why.
+        reason: one line for the operator ("" when ok).
+        frame_index: index of the frame in its source.
+        t_capture, t_published: ``time.monotonic()`` s of capture and of publication.
+        T_cam_ct: (4, 4) float64, CT LPS mm -> OpenCV camera mm; None when not ok.
+        status: n strings, one per CT fiducial: "seen", "newly_lost", "occluded", "unknown",
+            "moved".
+        image_points_px: (n, 2) float, px: the matched detection per CT fiducial, NaN where none.
+        residuals_px: (n,) float, px: reprojection error per CT fiducial, NaN where none.
+        fre_mm: monocular FRE of the fit, mm (NaN without a pose).
+        reprojection_rms_px: RMS reprojection error of the fit, px (NaN without a pose).
+        predicted_tre_mm: predicted RMS error at the planned target, mm (NaN without a target
+            or a pose).
+        n_detected, n_matched: balls detected in the image; of those, matched to fiducials.
+        alerts: one-line operator messages raised in this frame.
+        camera: "ok", "frozen", "stalled", "disconnected" or "ended".
+        used_prior: the registration's prior fast path produced the pose.
+        detect_s, register_s: stage times, s.
+        truth: the simulator's ground truth of the frame, or None (real cameras).
+        code: alert code when not ok ("frame_size", "camera_freeze", "occlusion", "pose_lost",
+            "pose_implausible", "weak_geometry", "tre_limit", ...); "" when ok.
+        sigma_px, sigma_source: image noise (px) behind ``predicted_tre_mm`` and its origin.
+        moved: [(fiducial index, shift mm)] found moved in this frame.
+        excluded: indices of every fiducial excluded so far (moved).
+    """
 
     ok: bool
     reason: str
@@ -158,10 +186,20 @@ class TrackerConfig:
 
 
 class PoseTracker:
-    """Per-frame detect + register + status logic (no threads). ``fiducials_ct`` (n, 3) CT mm,
-    ``camera`` the calibrated :class:`CameraModel`, ``detector`` any object with
-    ``detect(image) -> Detection``, ``radius_mm`` the ball radius (ellipse-centre bias is
-    corrected by the registration), ``target_ct`` (3,) planned target for the predicted TRE."""
+    """Per-frame detect + register + status logic (no threads).
+
+    Args:
+        fiducials_ct: (n, 3) float, CT LPS mm: the fiducial centres (e.g. from
+            :func:`monotracker.ct.detect_fiducials`).
+        camera: the calibrated :class:`CameraModel`; frames of another size are refused.
+        detector: any object with ``detect(image) -> Detection`` (image points in px); None
+            builds the classical colour detector for ``radius_mm`` and the camera's focal length.
+        radius_mm: ball radius, mm (the registration corrects the ellipse-centre bias with it).
+        target_ct: (3,) float, CT LPS mm: planned target for ``predicted_tre_mm``, or None.
+        config: the gates (:class:`TrackerConfig`); defaults when None.
+
+    :meth:`process` never raises for a bad frame: it returns ``ok=False`` with a ``code``.
+    """
 
     def __init__(self, fiducials_ct: np.ndarray, camera: CameraModel, detector=None, radius_mm: float = 4.0,
                  target_ct: np.ndarray | None = None, config: TrackerConfig | None = None):
@@ -195,9 +233,26 @@ class PoseTracker:
         self.__init__(self.fiducials_ct, self.camera, self.detector, self.radius_mm, self.target_ct, self.config)
 
     def set_target(self, target_ct: np.ndarray | None) -> None:
+        """Planned target, (3,) CT LPS mm, for ``predicted_tre_mm`` (None: no target)."""
         self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
 
     def process(self, frame: Frame) -> PoseEstimate:
+        """Detect, register and gate one frame.
+
+        Args:
+            frame: a :class:`~monotracker.vision.frames.Frame` (``image`` of the calibrated
+                size, ``index``, ``t_capture`` monotonic s).
+
+        Returns:
+            the :class:`PoseEstimate` of this frame.
+
+        Refuses (ok=False, code): frame size differs from the calibration (``frame_size``);
+        the registration refused, or its RMS or a residual is over the gates (``pose_lost``);
+        fewer than ``min_fiducials`` matched (``occlusion``); an implausible pose
+        (``pose_implausible``); too few,
+        collinear or coplanar matched balls (``weak_geometry``); the predicted error at the
+        target over the gates of :class:`TrackerConfig` (``tre_limit``).
+        """
         from monotracker.registration.consistency import register_screened
         from monotracker.registration.report import exceed_probability, target_covariance
 
@@ -371,11 +426,21 @@ class PoseTracker:
 class PoseStream:
     """Runs a :class:`PoseTracker` on a frame source in a background thread.
 
-    ``source`` any :class:`FrameSource` (default: a realtime :class:`SimulatedCamera`), ``tracker``
-    a :class:`PoseTracker` (default: for the default phantom and the source's camera).
     ``latest()`` returns the newest :class:`PoseEstimate` (or None); ``subscribe(cb)`` adds a
     callback run in the stream thread for every estimate; ``stop()`` joins the threads and
-    closes the source. ``estimates`` counts published estimates.
+    closes the source. ``estimates`` counts published estimates; ``camera_state`` is the
+    source's last state ("ok", "frozen", "stalled", "disconnected", "ended").
+
+    Args:
+        source: any :class:`FrameSource` (camera, video file, image folder, replay); None is a
+            realtime :class:`~monotracker.sim.camera_sim.SimulatedCamera`.
+        tracker: the :class:`PoseTracker`; None builds one for the default phantom and the
+            source's ``camera`` (only possible for sources that carry their calibration).
+        watchdog: freeze / stall detection (:class:`FrameWatchdog`); defaults when None.
+        close_source: close ``source`` in :meth:`stop`.
+
+    Raises:
+        MonoTrackerError: ``tracker`` is None and the source carries no camera calibration.
     """
 
     def __init__(self, source: FrameSource | None = None, tracker: PoseTracker | None = None,
@@ -412,10 +477,13 @@ class PoseStream:
 
     # ------------------------------------------------------------------ API
     def subscribe(self, callback: Callable[[PoseEstimate], None]) -> None:
+        """Call ``callback(estimate)`` for every published estimate, from the stream thread
+        (keep it short: post to your own queue)."""
         with self._lock:
             self._subs.append(callback)
 
     def latest(self) -> PoseEstimate | None:
+        """The newest published :class:`PoseEstimate`, or None before the first one."""
         with self._lock:
             return self._latest
 
@@ -424,6 +492,7 @@ class PoseStream:
         return self._thread is not None and self._thread.is_alive()
 
     def start(self) -> "PoseStream":
+        """Start the stream and watchdog threads (no-op when running); returns ``self``."""
         if self.running:
             return self
         self._stop.clear()
