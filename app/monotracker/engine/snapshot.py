@@ -129,7 +129,6 @@ class PoseSummary:
     predicted_tre_mm: float | None
     latency_ms: float | None
     truth_tre_mm: float | None = None  # simulator only: TRE at the planned target vs truth
-<<<<<<< HEAD
     #: why the pose is not trusted, as an alert code ("" when trusted; e.g. "tre_limit", "frame_size")
     code: str = ""
     #: the trust limit on ``predicted_tre_mm`` (mm)
@@ -139,9 +138,7 @@ class PoseSummary:
     validation_tre_mm: dict = field(default_factory=dict)
     validation_ok: bool | None = None
     validation_reason: str = ""
-=======
     stale: bool = False  # the engine holds because the pose stream is not fresh (then trusted is False)
->>>>>>> ops
 
 
 @dataclass(frozen=True)
