@@ -87,6 +87,8 @@ _UNKNOWN = AlarmKind("warning", 90, technical=True)
 POSE_CODES = ("pose_lost", "bad_pose", "pose_jump", "occlusion", "acquiring", "pose_stale", "camera_freeze",
               "camera_stopped", "engine_error", "camera_disconnected", "camera_ended", "frame_size",
               "frame_unreadable", "tre_limit", "weak_geometry", "pose_implausible")
+#: holds about a pose stream that stopped being fresh; resuming from them needs resume_dwell_s
+FRESHNESS_CODES = ("pose_stale", "camera_freeze")
 LEVEL_RANK = {"alarm": 0, "warning": 1, "info": 2}
 
 

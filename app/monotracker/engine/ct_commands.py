@@ -1,0 +1,187 @@
+"""The session's CT commands: load a CT (DICOM folder, NIfTI, NRRD, MHA) on a job thread, detect the fiducials, build the head surface.
+
+Progress and errors go to ``snap.job``; a failure is an alarm with one line, never a traceback.
+Mixed into :class:`~monotracker.engine.session.Session`, whose state these methods use."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from monotracker.engine import plan_checks
+from monotracker.engine.plan_commands import _fail, _ok
+from monotracker.engine.plan import PlanFiducial
+from monotracker.engine.snapshot import (
+    CommandResult,
+    CTSummary,
+    HeadMesh,
+    Job,
+    frozen_array,
+)
+from monotracker.errors import MonoTrackerError
+
+log = logging.getLogger(__name__)
+
+
+class CTCommands:
+    """The session's CT commands: load a CT (DICOM folder, NIfTI, NRRD, MHA) on a job thread, detect the fiducials, build the head surface (part of :class:`~monotracker.engine.session.Session`)."""
+
+    def load_sample_ct(self) -> CommandResult:
+        """:meth:`load_ct` on the bundled phantom CT (``paths.sample_ct_path()``); same refusals."""
+        from monotracker.paths import sample_ct_path
+
+        return self.load_ct(sample_ct_path())
+
+    def load_ct(self, path, series: str | None = None) -> CommandResult:
+        """Start the CT job (load, detect fiducials, head surface). Progress in ``snap.job``.
+        ``series``: the DICOM Series Instance UID to load from a folder holding several
+        (``monotracker.ct.list_series(path)`` lists them); None picks the largest (noted).
+
+        If the plan's fiducials are locked, the CT must be the one the plan was made on: its volume
+        and surface are reloaded and the saved fiducials are kept (restart after a crash).
+
+        Args:
+            path: DICOM folder or volume file (see :func:`monotracker.ct.load_volume`).
+            series: Series Instance UID, or None.
+
+        Returns:
+            :class:`CommandResult` at once; the job's outcome (``snap.job.error``, alerts
+            ``ct_failed`` / ``fiducials_detection``) comes later, :meth:`wait_for_job` waits for it.
+
+        Refuses (ok=False, message): another job still running; the plan's fiducials are
+        locked on another CT; no such path.
+        """
+        path = str(path)
+        with self._lock:
+            if self._job is not None and not self._job.done:
+                return _fail(f"busy: {self._job.name} is still running")
+            if self._plan.fiducials_locked and self._plan.ct_path and Path(self._plan.ct_path) != Path(path):
+                return _fail("the plan's fiducials are locked on another CT; start a new plan first")
+            if not Path(path).exists():
+                return _fail(f"no such file or folder: {path}")
+            self._job = Job("load_ct", 0.0, f"loading {Path(path).name}")
+            th = threading.Thread(target=self._ct_job, args=(path, series), name="monotracker-ct", daemon=True)
+            self._job_thread = th
+        self._alarm_board.clear("ct_failed", float(self.clock()))
+        self._bus.event("ct_load_started", f"loading CT {path}", {"path": path})
+        th.start()
+        return _ok("loading CT")
+
+    def wait_for_job(self, timeout: float | None = None) -> Job | None:
+        """Block until the current job ends (for scripts and tests; the UI polls snapshots).
+
+        ``timeout``: seconds, None = no limit. Returns the last :class:`Job` (``done``,
+        ``error`` one line or None) or None when no job ever ran; ``done`` is False if the
+        timeout expired first."""
+        th = self._job_thread
+        if th is not None:
+            th.join(timeout)
+        with self._lock:
+            return self._job
+
+    def _hash_ct(self, path: str) -> str | None:
+        """SHA-256 of the CT file or DICOM folder (on the CT job's thread); None if unreadable."""
+        from monotracker.engine.integrity import content_sha256
+
+        try:
+            return content_sha256(path)
+        except OSError as exc:
+            self._bus.alert("warning", "ct_hash_failed", f"the CT's content hash could not be computed: {exc}")
+            return None
+
+    def _ct_failed_alarm(self) -> None:
+        self._alarm_board.set("ct_failed", "the last CT could not be loaded (see the CT step)", float(self.clock()))
+
+    def _set_job(self, progress: float, message: str, error: str | None = None, done: bool = False) -> None:
+        with self._lock:
+            name = self._job.name if self._job else "job"
+            self._job = Job(name, progress, message, error, done)
+
+    def _ct_job(self, path: str, series: str | None = None) -> None:
+        try:
+            from monotracker.ct import detect_fiducials, load_volume
+        except ImportError as exc:
+            self._set_job(1.0, "CT tools unavailable", f"CT tools are not installed: {exc}", True)
+            self._ct_failed_alarm()
+            self._bus.alert("alarm", "ct_failed", f"CT tools are not available: {exc}")
+            return
+        try:
+            vol = load_volume(path, series=series)
+            self._set_job(0.3, "detecting fiducials")
+            with self._lock:
+                kit = self._plan.fiducial_kit
+            det = detect_fiducials(vol, kit=kit)
+            self._set_job(0.6, "extracting the head surface")
+            try:
+                from monotracker.ct import head_surface
+            except ImportError:  # older ct package: no surface, the plan still works
+                head_surface = None
+            mesh = head_surface(vol) if head_surface is not None else None
+            self._set_job(0.8, "checking the CT's content hash")
+            anatomy = plan_checks.Anatomy.from_ct(vol, mesh)
+            ct_sha = self._hash_ct(path)
+        except MonoTrackerError as exc:
+            self._set_job(1.0, "CT failed", str(exc), True)
+            self._ct_failed_alarm()
+            self._bus.alert("alarm", "ct_failed", f"CT could not be used: {exc}", {"path": path})
+            return
+        except Exception as exc:  # noqa: BLE001 - report, never kill the engine
+            log.exception("CT job failed")
+            self._set_job(1.0, "CT failed", f"internal error: {type(exc).__name__}: {exc}", True)
+            self._ct_failed_alarm()
+            self._bus.alert("alarm", "ct_failed", f"CT job failed: {type(exc).__name__}: {exc}", {"path": path})
+            return
+        with self._lock:
+            restored = self._plan.fiducials_locked and self._plan.ct_path == path
+            recorded = self._plan.integrity.get("ct_sha256")
+            if not restored:  # a new plan on this CT: saved first, then swapped in with the volume
+                plan = self._plan.copy()
+                plan.ct_path = path
+                plan.fiducials = [
+                    PlanFiducial(i, np.asarray(f.centre_lps, float), float(f.radius_mm), float(f.score), "detected")
+                    for i, f in enumerate(det.fiducials)
+                ]
+                plan.fiducials_locked = False
+                plan.entry_lps_mm = None
+                plan.target_lps_mm = None
+                plan.integrity["ct_sha256"] = ct_sha
+                save_err = self._commit_plan_locked(plan, "CT loaded")
+                if save_err:
+                    self._job = Job(self._job.name if self._job else "load_ct", 1.0, "CT not used",
+                                    f"the new plan could not be saved: {save_err}", True)
+                    return
+            self._volume = vol
+            self._ct = CTSummary(path=path, shape=tuple(int(v) for v in vol.array.shape),
+                                 spacing_mm=tuple(float(v) for v in vol.spacing_mm),
+                                 notes=tuple(getattr(vol, "notes", ()) or ()))
+            if mesh is not None:
+                self._head_mesh = HeadMesh(frozen_array(np.asarray(mesh.vertices, float)),
+                                           frozen_array(np.asarray(mesh.faces), np.int64))
+                self._head_normals = np.asarray(mesh.vertex_normals, dtype=float)
+            else:
+                self._head_mesh = self._head_normals = None
+            self._anatomy = anatomy
+            self._ct_sha256 = ct_sha
+        if restored and recorded and ct_sha and recorded != ct_sha:
+            self._need_reconfirm("plan_ct_changed", f"the CT {path} changed since the plan was made "
+                                 "(content hash differs)", {"path": path, "recorded": recorded, "now": ct_sha})
+        if restored:
+            why = plan_checks.check_path(self._plan.entry_lps_mm, self._plan.target_lps_mm, self._plan.fiducials,
+                                         anatomy) if self._plan.path_complete else None
+            if why:
+                self._bus.alert("alarm", "plan_path_invalid", f"the restored path fails its check on the CT: {why}")
+        if not restored:
+            self._loop.plan_changed("new CT loaded", restart_camera=False)
+        self._set_job(1.0, "CT ready" if det.ok else f"CT ready; fiducials: {det.reason}", None, True)
+        if restored:
+            self._bus.event("ct_reloaded", f"CT reloaded for the saved plan: {path}", {"path": path})
+        else:
+            self._bus.event("fiducials_detected", f"{len(det.fiducials)} fiducials detected in the CT"
+                            + ("" if det.ok else f" ({det.reason})"),
+                            {"path": path, "ok": bool(det.ok), "reason": det.reason,
+                             "centres_lps_mm": [np.asarray(f.centre_lps).tolist() for f in det.fiducials]})
+            if not det.ok:
+                self._bus.alert("warning", "fiducials_detection", f"fiducial detection: {det.reason}")
