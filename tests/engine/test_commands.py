@@ -50,16 +50,26 @@ def test_snapshot_is_an_immutable_copy(make_session):
 
 
 def test_arm_needs_the_pin_and_refusals_are_audited(make_session):
-    from .doubles import FollowerRobotRig
+    from .doubles import FollowerRobotRig, TruthCameraRig
 
-    s = make_session(clock="sim", robot_factory=lambda cfg, sess: FollowerRobotRig())
+    def camera(*a):
+        rig = TruthCameraRig()
+        rig.default_T_base_cam = None  # no hand-eye from the camera: the operator must set it
+        return rig
+
+    s = make_session(clock="sim", robot_factory=lambda cfg, sess: FollowerRobotRig(), camera_factory=camera)
     plan_sample(s)
     assert not s.arm("0000").ok
+    r = s.arm("1234")  # the right PIN, but no pose registered for this plan yet
+    assert not r.ok and "no trusted, fresh pose for this plan" in r.message
+    assert s.start_camera().ok
+    s.advance(0.5)
     assert s.arm("1234").ok and s.snapshot().robot.state == "armed"
     r = s.start_tracking()
     assert not r.ok and "hand-eye" in r.message
     assert not s.set_hand_eye(np.diag([1.0, 1.0, -1.0, 1.0])).ok  # a reflection is not rigid
     assert s.set_hand_eye(np.eye(4)).ok
+    assert s.stop_camera().ok  # the pose is cleared with the camera
     r = s.start_tracking()
     assert not r.ok and "pose" in r.message
     codes = [e.code for e in s.audit_entries()]

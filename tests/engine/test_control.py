@@ -113,10 +113,11 @@ def test_take_over_needs_the_pin_and_disconnect_releases(make_session):
 
 def test_wrong_pins_lock_arming_and_control_and_never_reach_the_log(make_session):
     s = _tracking_ready(make_session)
+    assert s.start_camera().ok
     for _ in range(4):
-        r = s.arm("9999")
+        r = s.arm("wrong-9999")
         assert not r.ok and "wrong PIN" in r.message
-    r = s.claim_control("tab-a", "8888")  # the same guard: the 5th wrong try locks both
+    r = s.claim_control("tab-a", "wrong-8888")  # the same guard: the 5th wrong try locks both
     assert not r.ok and r.message == "PIN locked for 30 s after 5 wrong tries"
     snap = s.snapshot()
     assert snap.control.pin_locked_s == 30.0
@@ -134,7 +135,7 @@ def test_wrong_pins_lock_arming_and_control_and_never_reach_the_log(make_session
     assert sum(e.code == "arm_refused" for e in rows) == 4 + 1 + 200  # the right PIN while locked counts as a refused try too
     for e in rows:
         text = e.message + repr(getattr(e, "data", ""))
-        assert "9999" not in text and "8888" not in text and "'1234'" not in text
+        assert "wrong-9999" not in text and "wrong-8888" not in text and "'1234'" not in text
 
 
 def test_client_session_is_fail_closed_for_unknown_commands(make_session):

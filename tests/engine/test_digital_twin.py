@@ -158,22 +158,28 @@ def test_real_clock_threads_track_and_snapshots_are_safe_from_other_threads(plan
         assert s.start().ok
         s.wait_for_job(60)  # the restart reloads the CT surface in the background; let it finish
         assert s.start_camera().ok
-        deadline = time.monotonic() + 5
+        deadline = time.monotonic() + 30
         while time.monotonic() < deadline and not (s.snapshot().pose and s.snapshot().pose.trusted):
             time.sleep(0.05)
-        assert s.arm("1234").ok
+        deadline = time.monotonic() + 10
+        while not (r := s.arm("1234")).ok and time.monotonic() < deadline:
+            time.sleep(0.02)  # arming needs a fresh trusted pose: retry as an operator would
+        assert r.ok, r.message
         deadline = time.monotonic() + 10
         while not (r := s.start_tracking()).ok and time.monotonic() < deadline:
             time.sleep(0.02)  # on a loaded machine the pose may be momentarily stale: retry as an operator would
         assert r.ok, r.message
         err0 = s.snapshot().robot.tip_error_mm  # the arm starts 60 mm back from the entry
         stop = threading.Event()
+        seen = {"n": 0, "held_stale": 0}
 
         def hammer():
             try:
                 while not stop.is_set():
                     snap = s.snapshot()
                     assert snap.robot.state in ("tracking", "holding")
+                    seen["n"] += 1
+                    seen["held_stale"] += snap.robot.state == "holding" and snap.pose.stale
                     s.latest_frame()
                     assert not s.set_fiducial_status(0, "rejected").ok  # locked: refused, no exception
             except Exception as exc:  # noqa: BLE001
@@ -191,7 +197,9 @@ def test_real_clock_threads_track_and_snapshots_are_safe_from_other_threads(plan
         # no timing assertions here (the machine may be loaded): the threads ran, the arm tracked
         assert snap.robot.state in ("tracking", "holding") and snap.camera.frames > 10 and snap.camera.fps > 0
         assert "tracking_started" in [e.code for e in s.audit_entries()]
-        assert snap.robot.tip_error_mm < err0 - 5.0  # it moved towards the entry (how fast depends on load)
+        # it moved towards the entry (how fast depends on load), unless the machine is so loaded
+        # that poses mostly arrive older than max_pose_age_s: then the arm must hold, and say so
+        assert snap.robot.tip_error_mm < err0 - 5.0 or seen["held_stale"] > 0.5 * seen["n"], seen
         assert snap.robot.latency_ms is not None and snap.robot.latency_ms > 0
         assert s.inject_fault("camera-freeze").ok
         time.sleep(0.5)

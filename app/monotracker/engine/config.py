@@ -37,6 +37,13 @@ class SessionConfig:
     (3.0): a pose that moved more than this from the last trusted one (per frame) is not trusted
     until ``confirm_frames`` (3) consecutive estimates agree with each other (a real head jump is
     followed after a short hold; a single wrong pose never moves the arm).
+    ``resume_dwell_s`` (0.3): hysteresis; after a stale pose stream or a frozen camera, tracking
+    resumes only once trusted poses have been arriving fresh (each younger than
+    ``max_pose_age_s`` when it arrives, no gap) for this long; entering the hold is immediate. A stream that
+    fails again within 10 s of resuming doubles the dwell (up to 4x) until it is steady for 10 s.
+    ``start_wait_s`` (1.0, real clock): ``start_tracking`` waits up to this long for a fresh
+    trusted pose while trusted poses keep arriving, instead of refusing a click that fell between
+    two frames on a loaded machine.
     ``controller``: the APFF variant (``"APF-V" | "APF-A-I" | "APF-A-II"``, paper section 2.3).
     ``predict_target``: the robot tracker's latency compensation (target velocity estimated from
     the pose stream, extrapolated over the measured latency; not in the paper). Off by default:
@@ -61,6 +68,8 @@ class SessionConfig:
     max_jump_mm: float = 5.0
     max_jump_deg: float = 3.0
     confirm_frames: int = 3
+    resume_dwell_s: float = 0.3
+    start_wait_s: float = 1.0
     controller: str = "APF-A-II"
     predict_target: bool = False
     extra: dict = field(default_factory=dict)
@@ -82,5 +91,7 @@ class SessionConfig:
             raise InputError("min_fiducials must be at least 3 (a rigid pose needs 3 points)")
         if self.controller not in ("APF-V", "APF-A-I", "APF-A-II"):
             raise InputError(f"controller must be APF-V, APF-A-I or APF-A-II, not {self.controller!r}")
+        if self.resume_dwell_s < 0 or self.start_wait_s < 0:
+            raise InputError("resume_dwell_s and start_wait_s must be >= 0 s")
         if not str(self.arm_pin):
             raise InputError("arm_pin must not be empty")

@@ -53,6 +53,9 @@ from monotracker.errors import MonoTrackerError
 
 log = logging.getLogger(__name__)
 
+#: holds about a pose stream that stopped being fresh; resuming from them needs resume_dwell_s
+FRESHNESS_CODES = ("pose_stale", "camera_freeze")
+
 
 @dataclass
 class _PoseRecord:
@@ -90,6 +93,11 @@ class TrackingLoop:
         self._holding_reason: str | None = None  # why the loop currently holds (None = not holding)
         self._holding_code: str | None = None
         self._hold_reported = False  # the current hold episode was reported (so its end is too)
+        self._fresh_since: float | None = None  # trusted poses arriving fresh without a gap since (s)
+        self._dwell_s = cfg.resume_dwell_s  # current resume dwell (doubles while the stream keeps failing)
+        self._fresh_resumed_at = -np.inf  # when tracking last resumed after a freshness hold
+        self._hold_began = -np.inf  # when the current hold's cause was set
+        self._latest_arrival = -np.inf  # when the newest estimate reached the loop
         self._seen_ids: set | None = None  # fiducial ids seen in the previous estimate
         self._alerted: set[str] = set()
         self._target_T: np.ndarray | None = None
@@ -186,6 +194,12 @@ class TrackingLoop:
             board.clear("robot_disconnected", now)
 
     def arm(self) -> CommandResult:
+        """Arm the robot (the PIN was checked by the session); needs a fresh trusted pose
+        registered for the current plan (see :meth:`invalidate_pose`)."""
+        rec, _now, why = self._wait_for_fresh_pose()
+        if why is not None:
+            return self._refuse("arm", f"no trusted, fresh pose for this plan ({why}); start the camera "
+                                       "and wait for a valid pose")
         try:
             rob = self._ensure_robot()
         except MonoTrackerError as exc:
@@ -212,11 +226,13 @@ class TrackingLoop:
             return self._refuse("start_tracking", "plan the entry and the target first")
         if plan.T_base_cam is None:
             return self._refuse("start_tracking", "no hand-eye calibration (T_base_cam)")
-        rec = self._latest
-        now = self.now()
-        if rec is None or not rec.trusted or now - rec.sample.t_capture > self.cfg.max_pose_age_s:
-            why = "no pose yet" if rec is None else (rec.reason if not rec.trusted else "pose is stale")
+        rec, now, why = self._wait_for_fresh_pose()
+        if why is not None:
             return self._refuse("start_tracking", f"no trusted, fresh pose ({why})")
+        with self._lock:
+            dwelling = self._holding_code in FRESHNESS_CODES
+        if dwelling:
+            self._resume("operator started tracking on a fresh pose", self._registration_data(rec.sample))
         self._push_target(rec.sample, now)
         r = self.robot.start_tracking()
         self._refresh_robot_state()
@@ -227,6 +243,42 @@ class TrackingLoop:
         else:
             self.s.record("tracking_refused", f"tracking refused: {r.message}", level="warning")
         return r
+
+    def _fresh_pose_now(self):
+        """``(record, now, None)`` when the newest pose is trusted and younger than max_pose_age_s;
+        else ``(record, now, why)``. Inside the resume dwell after a stale episode a fresh pose is
+        enough: the operator's Start confirms it (the dwell only keeps *automatic* resumes from
+        flapping; the age limit is the same)."""
+        rec, now = self._latest, self.now()
+        with self._lock:
+            code, reason = self._holding_code, self._holding_reason
+            new_since_hold = self._latest_arrival > self._hold_began
+        if rec is None:
+            return rec, now, "no pose yet"
+        if not rec.trusted:
+            return rec, now, rec.reason
+        age = now - rec.sample.t_capture
+        if code in FRESHNESS_CODES and not new_since_hold:
+            return rec, now, reason or "pose is stale"  # no pose since the stream stalled
+        if age > self.cfg.max_pose_age_s:
+            return rec, now, (reason if code in FRESHNESS_CODES and reason else
+                              f"pose is stale ({1000 * age:.0f} ms old)")
+        return rec, now, None
+
+    def _wait_for_fresh_pose(self):
+        """Start tracking on a loaded machine: while trusted poses keep arriving (or the gate is
+        confirming a new lock), a click that lands between two of them (or inside a short stale
+        episode) waits for the next fresh one,
+        up to ``start_wait_s`` (real clock only; the simulated clock cannot advance here)."""
+        rec, now, why = self._fresh_pose_now()
+        if why is None or self.cfg.clock != "real" or self.cfg.start_wait_s <= 0:
+            return rec, now, why
+        deadline = time.monotonic() + self.cfg.start_wait_s
+        while (why is not None and time.monotonic() < deadline and rec is not None
+               and (rec.trusted or rec.code == "acquiring")):  # poses flow (or are being confirmed)
+            time.sleep(0.01)
+            rec, now, why = self._fresh_pose_now()
+        return rec, now, why
 
     def _refuse(self, code: str, msg: str) -> CommandResult:
         self.s.record(f"{code}_refused", f"{code.replace('_', ' ')} refused: {msg}", level="warning")
@@ -281,6 +333,7 @@ class TrackingLoop:
             rig = components.make_camera_rig(self.camera_source, self.calibration_path, plan, self.cfg, self.s)
         except MonoTrackerError as exc:
             self.camera_error = str(exc)
+            self.invalidate_pose("camera could not start")
             self.s._alarm_board.set("camera_failed", f"camera could not start: {exc}", self.now())
             self.s.alert("alarm", "camera_failed", f"camera could not start: {exc}")
             return CommandResult(False, str(exc))
@@ -312,7 +365,42 @@ class TrackingLoop:
         self.s.record("camera_stopped", "camera stopped")
         self.s._alarm_board.clear_all(POSE_CODES + ("camera_uncalibrated",), self.now())
         self._hold("camera_stopped", "camera stopped")
+        self.invalidate_pose("camera stopped", hold=False)
         return CommandResult(True, "camera stopped")
+
+    def invalidate_pose(self, why: str, hold: bool = True) -> None:
+        """Forget the pose: it no longer belongs to the current plan/camera (new CT, new plan,
+        fiducials or path changed, camera stopped or failed). ``snap.pose`` becomes None, the trust
+        gate starts over (first lock needs ``confirm_frames`` consistent estimates), and an engaged
+        arm holds (``hold``) until a pose for *this* plan is trusted."""
+        with self._lock:
+            had = self._latest is not None
+            self._latest = self._last_trusted = None
+            self._fresh_since = None
+            self._seen_ids = None
+            self.gate.reset()
+        if hold and self.robot_state() in ("tracking", "holding"):
+            self._hold("pose_lost", f"pose cleared: {why}")
+        if had:
+            self.s.record("pose_invalidated", f"pose cleared: {why}", {"why": why})
+
+    def plan_changed(self, why: str, restart_camera: bool) -> None:
+        """The plan's fiducials, path or CT changed: the pose (and a running camera rig, built with
+        the old fiducials and target) belong to the old plan. Stop the camera, forget the pose and,
+        if ``restart_camera`` and the camera was running, start it again on the new plan."""
+        rig = self.rig
+        was_running = rig is not None and rig.running
+        if was_running:
+            rig.running = False
+            rig.stop()
+            self.s.record("camera_stopped", f"camera stopped: {why}")
+        self.invalidate_pose(why)
+        if was_running and restart_camera:
+            r = self.start_camera()
+            if not r.ok:
+                self.s.alert("warning", "camera_stopped", f"camera stopped ({why}) and could not restart: {r.message}")
+        elif was_running:
+            self._hold("camera_stopped", f"camera stopped: {why}")
 
     def latest_frame(self):
         rig = self.rig
@@ -368,13 +456,34 @@ class TrackingLoop:
         v = self.gate.check(sample.ok, sample.reason, sample.T_cam_ct, sample.n_matched, sample.fre_mm,
                             sample.t_capture)
         rec = _PoseRecord(sample, v.trusted, v.code, v.reason)
+        age = now - sample.t_capture
+        limit = self.cfg.max_pose_age_s
         with self._lock:
             self._latest = rec
+            self._latest_arrival = now
             if v.trusted:
                 self._last_trusted = sample
-        if v.trusted:
+            if not v.trusted or age > limit:
+                self._fresh_since = None
+            elif self._fresh_since is None:
+                self._fresh_since = now
+            fresh_for = None if self._fresh_since is None else now - self._fresh_since
+            holding, code = self._holding_reason is not None, self._holding_code
+        if v.trusted and age > limit:
+            # trusted but already too old when it arrived: never a command; hold as stale
+            self._hold("pose_stale", f"pose stale: trusted pose arrived {1000 * age:.0f} ms after capture "
+                                     f"(limit {1000 * limit:.0f} ms)")
+        elif v.trusted:
+            dwell = self._dwell_s
+            if holding and code in FRESHNESS_CODES and fresh_for < dwell:
+                # hysteresis: after a stale/frozen stream, resume only once poses have been
+                # arriving fresh for resume_dwell_s (the arm keeps holding meanwhile)
+                with self._lock:
+                    self._holding_reason = (f"pose stale: fresh again for {1000 * fresh_for:.0f} ms; resuming after "
+                                            f"{1000 * dwell:.0f} ms")
+                return
             self._push_target(sample, now)
-            if self._holding_reason is not None:
+            if holding:
                 self._resume(f"pose trusted again ({sample.n_matched} fiducials)", self._registration_data(sample))
         else:
             code = {"occlusion": "occlusion", "fre": "bad_pose", "jump": "pose_jump", "estimator": "pose_lost",
@@ -410,6 +519,14 @@ class TrackingLoop:
             self._holding_reason = reason
             if code == "acquiring" and self._holding_code not in (None, "acquiring"):
                 return  # re-acquiring after an occlusion/fault: keep the cause for the resume alert
+            if code in FRESHNESS_CODES and self._holding_code not in FRESHNESS_CODES:
+                # a new stale episode: if the stream failed again soon after the last one, the
+                # next resume waits twice as long (up to 4x); a quiet 10 s resets the dwell
+                soon = self.now() - self._fresh_resumed_at < 10.0
+                base = self.cfg.resume_dwell_s
+                self._dwell_s = min(4 * base, 2 * self._dwell_s) if soon else base
+            if code != self._holding_code:
+                self._hold_began = self.now()
             self._holding_code = code
         tracking = self.robot_state() in ("tracking", "holding")
         msg = reason + ("; arm holding still" if tracking else "")
@@ -451,6 +568,8 @@ class TrackingLoop:
         with self._lock:
             was, code = self._holding_reason, self._holding_code
             self._holding_reason = self._holding_code = None
+            if code in FRESHNESS_CODES:
+                self._fresh_resumed_at = self.now()
             self._alerted &= {"robot_disconnected"}
             reported, self._hold_reported = self._hold_reported, False
         self.s._alarm_board.clear_all(tuple(c for c in POSE_CODES if c != "engine_error"), self.now())
@@ -471,10 +590,13 @@ class TrackingLoop:
             if seen is not None and now - seen > self.cfg.freeze_after_s:
                 self._hold("camera_freeze", f"camera frozen: no new frame for {1000 * (now - seen):.0f} ms")
         rec = self._latest
-        if rec is not None and rec.trusted and self._holding_reason is None:
+        if rec is not None and rec.trusted:
             age = now - rec.sample.t_capture
             if age > self.cfg.max_pose_age_s:
-                self._hold("pose_stale", f"freshest trusted pose is {1000 * age:.0f} ms old")
+                with self._lock:
+                    self._fresh_since = None  # a gap: the resume dwell starts again
+                if self._holding_reason is None:
+                    self._hold("pose_stale", f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old")
         self._refresh_robot_state()
 
     def note_frame(self, t_capture: float, now: float) -> bool:
@@ -611,14 +733,18 @@ class TrackingLoop:
             return None
         smp = rec.sample
         now = self.now()
+        with self._lock:
+            code, why = self._holding_code, self._holding_reason
+        stale = rec.trusted and code in FRESHNESS_CODES  # the engine holds for staleness: say so
         return PoseSummary(
-            t=smp.t_capture, age_s=now - smp.t_capture, ok=smp.ok, trusted=rec.trusted,
-            reason=rec.reason if not rec.trusted else (smp.reason or "pose trusted"),
+            t=smp.t_capture, age_s=now - smp.t_capture, ok=smp.ok, trusted=rec.trusted and not stale,
+            reason=(why or "pose is stale") if stale else (rec.reason if not rec.trusted else
+                                                           (smp.reason or "pose trusted")),
             T_cam_ct=frozen_array(smp.T_cam_ct), n_visible=smp.n_matched,
             fiducial_status=dict(smp.fiducial_status), residuals_px=dict(smp.residuals_px),
             fre_mm=smp.fre_mm, predicted_tre_mm=smp.predicted_tre_mm,
             latency_ms=None if smp.t_ready is None else 1000 * (smp.t_ready - smp.t_capture),
-            truth_tre_mm=smp.truth_tre_mm,
+            truth_tre_mm=smp.truth_tre_mm, stale=stale,
         )
 
     def summaries(self):

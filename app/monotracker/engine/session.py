@@ -30,7 +30,7 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.set_camera(source, calibration_path=None)
     s.start_camera(); s.stop_camera()   # pose stream on its own thread
     s.set_hand_eye(T_base_cam_mm)       # 4x4 mm; the sim camera sets it from the OR layout
-    s.arm(pin); s.disarm()               # wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/control.py
+    s.arm(pin); s.disarm()               # arm needs a fresh trusted pose for this plan; wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/control.py
     s.claim_control(client_id, pin, label=""); s.release_control(client_id)   # one browser client in control
     s.for_client(client_id) -> ClientSession    # reads as is; commands only while in control; estop() always
     s.start_tracking(); s.stop_tracking()   # needs armed + plan + trusted fresh pose + hand-eye
@@ -48,7 +48,9 @@ on engine threads. Commands never raise for operator mistakes (the message says 
                           #             angle_to_skin_normal_deg, distance_to_fiducials_mm, complete)
     snap.camera           # CameraSummary(source, running, fps, K, dist, image_size, calibration_path, error, frames)
     snap.pose             # None or PoseSummary(t, age_s, ok, trusted, reason, T_cam_ct, n_visible,
-                          #   fiducial_status, residuals_px, fre_mm, predicted_tre_mm, latency_ms, truth_tre_mm)
+                          #   fiducial_status, residuals_px, fre_mm, predicted_tre_mm, latency_ms, truth_tre_mm,
+                          #   stale): None again after the plan's fiducials/path/CT change or the camera stops;
+                          #   trusted=False, stale=True while the engine holds for a stale stream
     snap.robot            # RobotSummary(state "disarmed"|"armed"|"tracking"|"holding"|"estopped", q rad,
                           #   tip_error_mm, angle_error_deg, speed_mm_s, connected, message, latency_ms)
     snap.scene            # SceneGeometry(T_base_cam, T_cam_ct, T_base_ct, T_base_tip, T_base_target, q), mm
@@ -354,6 +356,7 @@ class Session:
             self._head_normals = None
             self._save_plan_locked("new plan")
         self._bus.event("plan_cleared", "new plan: CT, fiducials and path cleared")
+        self._loop.plan_changed("new plan", restart_camera=False)
         return _ok("new plan")
 
     # ================================================================== CT
@@ -450,6 +453,8 @@ class Session:
                 self._plan.entry_lps_mm = None
                 self._plan.target_lps_mm = None
                 self._save_plan_locked("CT loaded")
+        if not restored:
+            self._loop.plan_changed("new CT loaded", restart_camera=False)
         self._set_job(1.0, "CT ready" if det.ok else f"CT ready; fiducials: {det.reason}", None, True)
         if restored:
             self._bus.event("ct_reloaded", f"CT reloaded for the saved plan: {path}", {"path": path})
@@ -528,6 +533,7 @@ class Session:
             self._plan.fiducials_locked = False
             self._save_plan_locked("fiducials unlocked")
         self._bus.event("fiducials_unlocked", "fiducial set unlocked for editing")
+        self._loop.plan_changed("fiducials unlocked for editing", restart_camera=False)
         return _ok("fiducials unlocked")
 
     # ================================================================== path planning
@@ -563,6 +569,8 @@ class Session:
             self._save_plan_locked(f"{which} set")
         self._bus.event(f"{which}_set", f"{which} set to ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm LPS",
                         {"lps_mm": p.tolist(), "previous": None if old is None else old.tolist()})
+        if old is None or not np.array_equal(old, p):
+            self._loop.plan_changed(f"{which} changed", restart_camera=True)
         return _ok(f"{which} set")
 
     # ================================================================== camera

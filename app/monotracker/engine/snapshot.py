@@ -129,6 +129,7 @@ class PoseSummary:
     predicted_tre_mm: float | None
     latency_ms: float | None
     truth_tre_mm: float | None = None  # simulator only: TRE at the planned target vs truth
+    stale: bool = False  # the engine holds because the pose stream is not fresh (then trusted is False)
 
 
 @dataclass(frozen=True)
