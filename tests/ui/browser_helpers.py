@@ -18,7 +18,7 @@ def _wait(pred, timeout=T_STATE, what="condition"):
         if v:
             return v
         time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
+    raise AssertionError(f"timed out waiting for {what() if callable(what) else what}")
 
 
 def _click(page, name):
