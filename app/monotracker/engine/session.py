@@ -476,6 +476,16 @@ class Session(PlanCommands, CTCommands, ControlCommands):
         (ok=False, message) when the robot refuses the reset; no robot: ok."""
         return self._loop.reset_estop()
 
+    def connect_robot(self) -> CommandResult:
+        """Connect the arm (sim or real) without arming it, e.g. to record hand-eye poses in the
+        browser's Calibrate step; the robot stays DISARMED (arming connects it too)."""
+        try:
+            rob = self._loop._ensure_robot()
+        except MonoTrackerError as exc:
+            return _fail(str(exc))
+        st = rob.status()
+        return _ok("robot connected (disarmed)") if st.connected else _fail(f"robot not connected: {st.message}")
+
     def inject_fault(self, name: str) -> CommandResult:
         """Simulated sessions only: start a fault (see ``monotracker.sim.faults``).
 

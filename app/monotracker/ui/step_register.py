@@ -30,6 +30,7 @@ class RegisterStep:
             self.h_cam_path = gui.add_text("Video file / device / folder", "", hint="for file:PATH / folder:PATH / device:N")
             self.h_calib = gui.add_text("Calibration file", "", hint="OpenCV YAML/JSON; empty for the simulated camera")
             b_apply = gui.add_button("Use this camera")
+            b_calib = gui.add_button("Calibrate camera / hand-eye")  # ui/step_calibration.py
             self.h_reg_table = gui.add_html("")
             self.h_fault = gui.add_dropdown("Simulate a fault (sim only)", FAULTS_UI, initial_value="none")
             b_f = gui.add_button("Inject fault")
@@ -52,6 +53,11 @@ class RegisterStep:
         @view.safe("Fault")
         def _(_event) -> None:
             view.run("Fault", session.inject_fault, self.h_fault.value)
+
+        @b_calib.on_click
+        @view.safe("Calibrate")
+        def _(_event) -> None:
+            view.goto("calibration")
 
         @b_next.on_click
         @view.safe("Go to Robot")

@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 VIEW_STEPS = ("ct", "plan", "register", "robot")
 STEP_LABELS = {"ct": "1 CT", "plan": "2 Plan", "register": "3 Register", "robot": "4 Robot"}
 LABEL_STEPS = {v: k for k, v in STEP_LABELS.items()}
-LIVE_STEPS = ("register", "robot")  # steps whose page shows the live camera overlay
+LIVE_STEPS = ("register", "robot", "calibration")  # steps whose page shows the live camera overlay
 PANEL_PX = {"status": 360, "steps": 470, "steps_live": 640}  # docked panel widths (px): at 1280x800 the 3D view keeps ~450 px
 
 
@@ -59,6 +59,7 @@ class ClientView:
     def __init__(self, app, client):
         from monotracker.ui.scene import SceneView
         from monotracker.ui.status_panel import StatusPanel
+        from monotracker.ui.step_calibration import CalibrationStep
         from monotracker.ui.step_ct import CtStep
         from monotracker.ui.step_plan import PlanStep
         from monotracker.ui.step_register import RegisterStep
@@ -93,7 +94,8 @@ class ClientView:
         def _(event) -> None:
             self.goto(LABEL_STEPS.get(event.target.value, "ct"))
 
-        self.steps = {"ct": CtStep(self), "plan": PlanStep(self), "register": RegisterStep(self), "robot": RobotStep(self)}
+        self.steps = {"ct": CtStep(self), "plan": PlanStep(self), "register": RegisterStep(self), "robot": RobotStep(self),
+                      "calibration": CalibrationStep(self)}  # reached from Register
         self.scene3d = SceneView(self)
         gui.main_panel.dock_right()
         self.show_step()
