@@ -536,7 +536,7 @@ class Session(PlanCommands, CTCommands, ControlCommands):
         """An immutable, consistent copy of the session state (thread-safe, cheap)."""
         with self._lock:
             plan = self._plan
-            fids = tuple(Fiducial(f.id, frozen_array(f.centre_lps_mm), f.radius_mm, f.score, f.status)
+            fids = tuple(Fiducial(f.id, frozen_array(f.centre_lps_mm), f.radius_mm, f.score, f.status, f.role)
                          for f in plan.fiducials)
             plan_summary = self._plan_summary(plan)
             job, ct, mesh, locked = self._job, self._ct, self._head_mesh, plan.fiducials_locked

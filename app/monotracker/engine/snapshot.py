@@ -75,6 +75,8 @@ class Fiducial:
     radius_mm: float
     score: float
     status: str
+    #: "registration" (used in the fit) or "validation" (kept out of the fit to verify it)
+    role: str = "registration"
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ class CtStep:
             self.h_fid_table = gui.add_html("")
             self.h_fid_sel = gui.add_number("Fiducial number", 0, min=0, max=99, step=1)
             grp = gui.add_button_group("Selected fiducial", ["Confirm", "Reject", "Undo"])
+            role = gui.add_button_group("Role of the selected fiducial", ["Registration", "Validation"])
             b_all = gui.add_button("Confirm all detected")
             self.h_new_fid = gui.add_vector3("New fiducial (LPS mm)", (0.0, 0.0, 0.0), step=0.1)
             b_add = gui.add_button("Add fiducial here")
@@ -70,6 +71,12 @@ class CtStep:
             word = {"Confirm": "confirmed", "Reject": "rejected", "Undo": "detected"}[event.target.value]
             i = int(self.h_fid_sel.value)
             view.run(f"Fiducial {i}", session.set_fiducial_status, i, word)
+
+        @role.on_click
+        @view.safe("Fiducial role")
+        def _(event) -> None:
+            i = int(self.h_fid_sel.value)
+            view.run(f"Fiducial {i} role", session.set_fiducial_role, i, event.target.value.lower())
 
         @b_all.on_click
         @view.safe("Confirm all detected")
@@ -140,7 +147,8 @@ def fiducial_table(snap) -> str:
     for f in snap.fiducials:
         col = "#%02x%02x%02x" % FID_RGB.get(f.status, (0, 0, 0))
         c = f.centre_lps_mm
-        rows.append(f"<tr><td><b>{f.id}</b></td><td style='color:{col}'><b>{st._esc(f.status)}</b></td>"
+        role = "" if f.role == "registration" else " <i>(validation: not in the fit)</i>"
+        rows.append(f"<tr><td><b>{f.id}</b></td><td style='color:{col}'><b>{st._esc(f.status)}</b>{role}</td>"
                     f"<td>{c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}</td><td>{f.radius_mm:.1f}</td><td>{f.score:.2f}</td></tr>")
     n_ok = sum(f.status in ("confirmed", "added") for f in snap.fiducials)
     return (f"<div class='mt-row'>{len(snap.fiducials)} fiducials, {n_ok} confirmed; {lock}</div>"

@@ -90,7 +90,7 @@ class RegisterStep:
 
     def render(self, snap) -> None:
         self.h_pose_banner.content = pose_banner(snap)
-        self.h_reg_table.content = registration_table(snap.pose)
+        self.h_reg_table.content = validation_line(snap.pose) + registration_table(snap.pose) + recording_line(snap)
 
 
 def pose_banner(snap) -> str:
@@ -105,6 +105,30 @@ def pose_banner(snap) -> str:
                 f"predicted TRE at target {fmt(pose.predicted_tre_mm, ' mm', 2)}, "
                 f"{pose.n_visible} fiducials, latency {fmt(pose.latency_ms, ' ms', 0)}</div>")
     return f"<div class='mt-banner-bad' id='mt-pose-banner'>POSE NOT VALID: {st._esc(pose.reason)}</div>"
+
+
+def validation_line(pose) -> str:
+    """Live error at the validation fiducials (mm, point to viewing ray; engine/verification.py)
+    and whether it allows arming; empty when the plan has no validation fiducials."""
+    if pose is None or pose.validation_ok is None:
+        return ""
+    errs = ", ".join(f"#{fid} {fmt(e, ' mm', 2) if e is not None else 'not seen'}"
+                     for fid, e in sorted(pose.validation_tre_mm.items()))
+    ok = bool(pose.validation_ok)
+    word = "VERIFIED" if ok else "NOT VERIFIED: arming refused"
+    why = "" if ok or not pose.validation_reason else f" ({st._esc(pose.validation_reason)})"
+    return (f"<div class='{'mt-banner-ok' if ok else 'mt-banner-bad'}' id='mt-validation' data-ok='{int(ok)}'>"
+            f"Validation fiducials {word}: {errs}{why}</div>")
+
+
+def recording_line(snap) -> str:
+    """Session recording state (``--record``): folder, frames, dropped, error."""
+    rec = snap.recording
+    if rec is None:
+        return ""
+    state = "RECORDING" if rec.running else "recording stopped"
+    extra = (f", {rec.dropped} dropped" if rec.dropped else "") + (f", {st._esc(rec.error)}" if rec.error else "")
+    return f"<div class='mt-row' id='mt-recording'>{state}: {rec.frames} frames to {st._esc(rec.path)}{extra}</div>"
 
 
 def registration_table(pose) -> str:
