@@ -26,6 +26,8 @@ EXPECT = {
     "04_pose_stream_sim_camera.py": "fiducial 6 lost",
     "05_apff_tracker_sim_ur10.py": "stale target: state holding",
     "06_headless_session.py": "3D Slicer markups",
+    "07_record_and_replay.py": "poses reproduced within 0.001 mm",
+    "08_openigtlink_client.py": "pose=VALID",
 }
 
 
