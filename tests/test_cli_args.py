@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def _run(args, tmp_path, timeout=120, **kw):
     env = dict(os.environ, PYTHONPATH=str(ROOT / "app"), MONOTRACKER_HOME=str(tmp_path / "home"))
     return subprocess.run([sys.executable, "-m", "monotracker", *args], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=timeout, **kw)
+                          text=True, encoding="utf-8", errors="replace", timeout=timeout, **kw)
 
 
 def _free_port() -> int:
@@ -113,7 +113,7 @@ def test_stop_signals_cannot_deadlock_the_shutdown():
     them, the main thread stops once."""
     env = dict(os.environ, PYTHONPATH=str(ROOT / "app"))
     p = subprocess.Popen([sys.executable, "-c", _WAITER], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True)
+                         text=True, encoding="utf-8", errors="replace")
     try:
         assert p.stdout.readline().strip() == "READY"
         for _ in range(3):
@@ -146,7 +146,7 @@ def test_serve_stops_on_repeated_sigterm(tmp_path):
     """The real web app: SIGTERM three times in a burst; it shuts down (disarmed, threads stopped)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT / "app"), MONOTRACKER_HOME=str(tmp_path / "home"), MONOTRACKER_PIN="2468")
     p = subprocess.Popen([sys.executable, "-m", "monotracker", "serve", "--port", str(_free_port())], cwd=ROOT, env=env,
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, encoding="utf-8", errors="replace")
     try:
         seen = []
         while not any("MonoTracker is running" in x for x in seen):  # viser prints its banner first

@@ -145,8 +145,17 @@ def test_a_camera_started_on_another_fiducial_set_cannot_arm(tmp_path):
         s.advance(0.3)
         assert s.unlock_fiducials().ok
         f = s.plan_copy().usable_fiducials()[0]
-        assert s.set_fiducial_status(f.id, "rejected").ok  # the set changes while the camera runs
+        # unlocking stops the camera and forgets the pose: it was registered against the old set
+        assert not s.snapshot().camera.running and s.snapshot().pose is None
+        assert s.set_fiducial_status(f.id, "rejected").ok
         assert s.confirm_fiducials().ok
+        r = s.arm("1234")
+        assert not r.ok and "no trusted, fresh pose for this plan" in r.message
+        # a camera started before the change would register against the old set: refused too
+        s._loop._rig_fiducials = np.zeros((3, 3))  # what a rig started on another set remembers
+        assert s.start_camera().ok
+        s._loop._rig_fiducials = np.zeros((3, 3))
+        s.advance(0.3)
         r = s.arm("1234")
         assert not r.ok and "fiducial set changed" in r.message
         assert s.stop_camera().ok and s.start_camera().ok

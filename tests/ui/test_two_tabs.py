@@ -117,6 +117,9 @@ def test_second_tab_cannot_see_the_pin_nor_drive_but_can_stop(served_ct, browser
     _wait(lambda: s.snapshot().plan.complete, what="plan")
     assert "Sample plan" not in _msg(b)
 
+    # arming needs a fresh trusted pose for this plan: the local operator starts the camera
+    assert s.start_camera().ok
+    _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="trusted pose")
     # A arms; B's STOP works, always
     _click(a, "4 Robot")
     _wait(lambda: _visible_step(a) == "robot", what="A on Robot")
