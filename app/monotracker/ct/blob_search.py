@@ -18,6 +18,21 @@ component (26-connected, on the voxel grid) is handled by size:
 The ladder is a handful of levels (:data:`LADDER_LEVELS`), so the work is bounded: each level
 labels at most the boxes of the components it refines, fits are capped (``max_fits``) and a
 time budget stops the search with a note instead of running for minutes on a head full of metal.
+
+**Large components** (a box of more than :data:`FINE_BOX_MAX` voxels: the skull of a whole
+head, a dental arch): relabelling the skull's box on the full grid at every threshold cost seconds
+per level on a 512 x 512 x 300 head. The first level is labelled on the full grid, as above (so
+every ball apart from bone and metal at that level is found exactly as on a small scan); a large
+component is then refined on a coarse grid (the maximum of its voxels over ``b x b x b`` blocks,
+``b`` from :func:`block_size`): at each higher level, a coarse piece whose box on the full grid
+holds at most ``FINE_BOX_MAX`` voxels goes to the full-resolution search above, from that level
+on, restricted to its own voxels; a larger one is split again on the coarse grid one level up,
+and searched on the full grid at the last level. Every full-grid component above a threshold
+lies inside exactly one coarse piece of that threshold (a block is above it when any of its
+voxels is, and 26-neighbouring voxels lie in 26-neighbouring blocks), so nothing is lost or seen
+twice; the one difference to a full-grid ladder: inside such a large component, a ball-sized
+piece closer than about one block to the rest is first looked at one level higher, once the two
+have separated on the coarse grid too (at the last level at full resolution in any case).
 """
 
 from __future__ import annotations
@@ -32,7 +47,38 @@ from monotracker.ct.volume import Volume
 
 #: Number of thresholds from the lowest level to 85 % of the densest (or the kit's density).
 LADDER_LEVELS = 7
+#: Largest box (voxels) searched on the full grid in one piece; larger volumes are split on a
+#: coarse grid first (module docstring).
+FINE_BOX_MAX = 2_000_000
+#: About this many voxels in the coarse grid of a large volume.
+COARSE_TARGET = 1_500_000
 _STRUCTURE = np.ones((3, 3, 3), bool)
+
+
+def block_size(shape) -> int:
+    """Edge (voxels) of the coarse grid's blocks for a box of ``shape``: 1 (no coarse grid) up
+    to :data:`FINE_BOX_MAX` voxels, else about ``(voxels / COARSE_TARGET) ** (1/3)``, at least 2."""
+    n = float(np.prod(shape))
+    if n <= FINE_BOX_MAX:
+        return 1
+    return max(2, int(round((n / COARSE_TARGET) ** (1.0 / 3.0))))
+
+
+def block_max(arr: np.ndarray, b: int) -> np.ndarray:
+    """Maximum over ``b x b x b`` blocks (the last block along an axis may be shorter)."""
+    out = arr
+    for ax in range(3):  # the slowest axis first: later passes read less
+        n = out.shape[ax]
+        m = n // b
+        whole = out[(slice(None),) * ax + (slice(0, m * b),)]
+        shape = list(whole.shape)
+        shape[ax:ax + 1] = [m, b]
+        red = whole.reshape(shape).max(axis=ax + 1)  # far faster than np.maximum.reduceat
+        if n > m * b:
+            rest = out[(slice(None),) * ax + (slice(m * b, n),)].max(axis=ax, keepdims=True)
+            red = np.concatenate([red, rest], axis=ax)
+        out = red
+    return out
 
 
 def threshold_ladder(levels: dict, vmax: float, density_hu: float | None = None) -> np.ndarray:
@@ -58,6 +104,8 @@ class SearchStats:
     labelled_voxels: int = 0
     stopped: str = ""
     accepted_at: list = field(default_factory=list)
+    #: Largest edge of the coarse grid's blocks used, voxels (1: the full grid only).
+    block: int = 1
 
 
 @dataclass
@@ -70,9 +118,12 @@ class Sibling:
 
 
 def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_voxels: int, fit,
-                 max_fits: int = 400, time_budget_s: float = 60.0, tissue_hu: float = 0.0, noise_hu: float = 20.0):
+                 max_fits: int = 400, time_budget_s: float = 60.0, tissue_hu: float = 0.0, noise_hu: float = 20.0,
+                 block: int | None = None):
     """Run the ladder search (module docstring). ``fit(kji, T, siblings)`` returns
     ``(candidate, None)`` or ``(None, RejectedBlob)``. Returns (candidates, rejected, stats).
+    ``block``: edge of the coarse grid's blocks for large components (voxels), None =
+    :func:`block_size` of the component's box.
 
     A component whose densest voxel barely passes its threshold (by less than
     ``max(6 noise, 15 % of T - tissue)``) is a fragment of something at about that level (bone
@@ -111,18 +162,19 @@ def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_v
         if len(sizable) == 0:
             return False
         # a component whose densest voxel barely passes T is a fragment of something at about
-        # that level (bone just above a threshold, a streak): counted, not fitted
-        on = labels > 0
-        peak_of = np.full(n + 1, -np.inf)
-        np.maximum.at(peak_of, labels[on], sub[on].astype(float))  # far faster than ndimage.maximum
-        peaks = peak_of[sizable]
+        # that level (bone just above a threshold, a streak): counted, not fitted. Peaks only of
+        # the ball-sized ones, each in its own box (a pass over a whole head's labels is slow)
+        objs = ndimage.find_objects(labels)
         small = counts[sizable] <= max_ball_voxels
+        peaks = np.full(len(sizable), np.inf)
+        for q in np.flatnonzero(small):
+            sl = objs[sizable[q] - 1]
+            peaks[q] = float(sub[sl][labels[sl] == sizable[q]].max())
         faint = small & (peaks < T + max(6.0 * noise_hu, 0.15 * (T - tissue_hu)))
         stats.specks += int(faint.sum())
         todo = sizable[~faint]
         if len(todo) == 0:
             return False
-        objs = ndimage.find_objects(labels)
         # blobs that could be (or hold) balls, for the neighbour masks of each other's fits
         idx = [lab for lab in todo if counts[lab] <= 3 * max_ball_voxels]
         comps = {}
@@ -143,7 +195,9 @@ def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_v
             ghi = lo + np.array([s.stop for s in sl])
             if c > max_ball_voxels:
                 comp = labels[sl] == lab
-                if level + 1 < len(ladder):
+                if level + 1 < len(ladder) and np.prod(ghi - glo) > FINE_BOX_MAX:
+                    found |= refine_coarse(glo, ghi, comp, level + 1)
+                elif level + 1 < len(ladder):
                     found |= visit(glo, ghi, comp, level + 1)
                 elif not any(_inside(r.centre_lps, volume, glo, ghi) for r in rejected):
                     kji = np.argwhere(comp) + glo
@@ -167,8 +221,98 @@ def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_v
             rejected.append(rej)
         return found
 
+    min_sp = float(np.min(volume.spacing_mm))
+
+    def refine_coarse(lo: np.ndarray, hi: np.ndarray, comp: np.ndarray | None, level: int, exact: bool = False) -> bool:
+        """Search the box lo..hi (restricted to the full-grid mask ``comp``, None = all of it)
+        from ``level`` on, split on a coarse grid first (module docstring). ``exact``: a
+        piece too large for one full-grid box is still searched on the full grid at ``level``
+        (the first level), else split again on the coarse grid one level up."""
+        b = block_size(hi - lo) if block is None else int(block)
+        sub = arr[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+        if comp is not None:
+            low = np.asarray(-np.inf if sub.dtype.kind == "f" else np.iinfo(sub.dtype).min, sub.dtype)
+            sub = np.where(comp, sub, low)
+        coarse = block_max(sub, b)
+        stats.block = max(stats.block, b)
+        # pieces closer than ~6 mm are searched together: they are each other's fit siblings
+        grow = int(np.ceil(3.0 / (b * min_sp)))
+
+        def visit_coarse(clo: np.ndarray, chi: np.ndarray, crestrict: np.ndarray | None, level: int) -> bool:
+            T = float(ladder[level])
+            mask = coarse[clo[0]:chi[0], clo[1]:chi[1], clo[2]:chi[2]] > T
+            if crestrict is not None:
+                mask &= crestrict
+            stats.labelled_voxels += mask.size
+            groups, n = ndimage.label(ndimage.binary_dilation(mask, _STRUCTURE, iterations=grow) if grow else mask,
+                                      structure=_STRUCTURE)
+            found = False
+            for g, sl in enumerate(ndimage.find_objects(groups), start=1):
+                if sl is None:
+                    continue
+                if over_budget():
+                    return found
+                gmask = (groups[sl] == g) & mask[sl]
+                nz = np.nonzero(gmask)
+                if len(nz[0]) * b**3 < min_voxels:  # cannot hold a blob of min_voxels: a speck
+                    stats.specks += 1 if len(nz[0]) else 0
+                    continue
+                g_lo = np.array([x.min() for x in nz])
+                g_hi = np.array([x.max() + 1 for x in nz])
+                cmask = gmask[g_lo[0]:g_hi[0], g_lo[1]:g_hi[1], g_lo[2]:g_hi[2]]
+                c_lo = clo + np.array([x.start for x in sl]) + g_lo
+                c_hi = c_lo + (g_hi - g_lo)
+                f_lo, f_hi = c_lo * b, np.minimum(c_hi * b, hi - lo)  # full grid, relative to lo
+                if exact or np.prod(f_hi - f_lo) <= FINE_BOX_MAX or level + 1 == len(ladder):
+                    idx = [np.arange(f_lo[a], f_hi[a]) // b - c_lo[a] for a in range(3)]
+                    restrict = cmask[np.ix_(*idx)]
+                    if comp is not None:
+                        restrict &= comp[f_lo[0]:f_hi[0], f_lo[1]:f_hi[1], f_lo[2]:f_hi[2]]
+                    found |= visit(lo + f_lo, lo + f_hi, restrict, level)
+                else:
+                    found |= visit_coarse(c_lo, c_hi, cmask, level + 1)
+            return found
+
+        return visit_coarse(np.zeros(3, int), np.array(coarse.shape), None, level)
+
     shape = np.array(arr.shape)
-    visit(np.zeros(3, int), shape, None, 0)
+    if arr.size <= FINE_BOX_MAX and block is None:
+        visit(np.zeros(3, int), shape, None, 0)
+    else:  # a large volume: the first level is split on a coarse grid, each piece searched exactly
+        refine_coarse(np.zeros(3, int), shape, None, 0, exact=True)
+    return cands, rejected, stats
+    coarse = block_max(arr, b)
+    stats.block = b
+
+    def visit_coarse(clo: np.ndarray, chi: np.ndarray, crestrict: np.ndarray | None, level: int) -> bool:
+        T = float(ladder[level])
+        mask = coarse[clo[0]:chi[0], clo[1]:chi[1], clo[2]:chi[2]] > T
+        if crestrict is not None:
+            mask &= crestrict
+        stats.labelled_voxels += mask.size
+        labels, n = ndimage.label(mask, structure=_STRUCTURE)
+        if n == 0:
+            return False
+        counts = np.bincount(labels.ravel(), minlength=n + 1)
+        found = False
+        for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
+            if over_budget():
+                return found
+            if counts[lab] * b**3 < min_voxels:  # cannot hold a blob of min_voxels: a speck
+                stats.specks += 1
+                continue
+            c_lo = clo + np.array([s.start for s in sl])
+            c_hi = clo + np.array([s.stop for s in sl])
+            f_lo, f_hi = c_lo * b, np.minimum(c_hi * b, shape)
+            cmask = labels[sl] == lab
+            if np.prod(f_hi - f_lo) <= FINE_BOX_MAX or level + 1 == len(ladder):
+                idx = [np.arange(f_lo[a], f_hi[a]) // b - c_lo[a] for a in range(3)]
+                found |= visit(f_lo, f_hi, cmask[np.ix_(*idx)], level)
+            else:
+                found |= visit_coarse(c_lo, c_hi, cmask, level + 1)
+        return found
+
+    visit_coarse(np.zeros(3, int), np.array(coarse.shape), None, 0)
     return cands, rejected, stats
 
 
