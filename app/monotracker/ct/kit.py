@@ -9,6 +9,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
+#: Plausible nominal ball radius, mm (every check of a kit uses these).
+RADIUS_MM = (0.5, 20.0)
+#: Plausible ball density, HU: denser than soft tissue; up to extended-range scanners.
+DENSITY_HU = (300.0, 30000.0)
+
 
 @dataclass(frozen=True)
 class FiducialKit:
@@ -20,10 +27,16 @@ class FiducialKit:
     name: str = ""
 
     def __post_init__(self):
-        if self.radius_mm is not None and not (0.5 <= float(self.radius_mm) <= 20.0):
-            raise ValueError(f"fiducial radius {self.radius_mm} mm is implausible (0.5-20 mm)")
-        if self.density_hu is not None and not (300.0 <= float(self.density_hu) <= 30000.0):
-            raise ValueError(f"fiducial density {self.density_hu} HU is implausible (300-30000 HU, denser than soft tissue)")
+        for what, v in (("radius", self.radius_mm), ("density", self.density_hu)):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating))):
+                raise ValueError(f"fiducial {what} must be a number, not {v!r}")
+            if v is not None and not np.isfinite(float(v)):
+                raise ValueError(f"fiducial {what} must be a finite number, not {v!r}")
+        if self.radius_mm is not None and not (RADIUS_MM[0] <= float(self.radius_mm) <= RADIUS_MM[1]):
+            raise ValueError(f"fiducial radius {self.radius_mm} mm is implausible ({RADIUS_MM[0]:g}-{RADIUS_MM[1]:g} mm)")
+        if self.density_hu is not None and not (DENSITY_HU[0] <= float(self.density_hu) <= DENSITY_HU[1]):
+            raise ValueError(f"fiducial density {self.density_hu} HU is implausible "
+                             f"({DENSITY_HU[0]:g}-{DENSITY_HU[1]:g} HU, denser than soft tissue)")
 
     def to_dict(self) -> dict:
         return {"radius_mm": self.radius_mm, "density_hu": self.density_hu, "name": self.name}
@@ -38,6 +51,10 @@ class FiducialKit:
 
         def num(key):
             v = d.get(key)
-            return None if v is None else float(v)
+            if v is None:
+                return None
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"fiducial kit {key} must be a number, not {v!r}")
+            return float(v)
 
         return cls(num("radius_mm"), num("density_hu"), str(d.get("name", "") or ""))

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ from monotracker.engine.plan_commands import _fail, _ok
 from monotracker.engine.plan import PlanFiducial
 from monotracker.engine.snapshot import (
     CommandResult,
+    CTRejectedBlob,
     CTSummary,
     HeadMesh,
     Job,
@@ -24,6 +26,23 @@ from monotracker.engine.snapshot import (
 from monotracker.errors import MonoTrackerError
 
 log = logging.getLogger(__name__)
+
+
+def detected_fiducials(det) -> list:
+    """The plan's fiducials from a detection: ids 0.., status ``detected``."""
+    return [PlanFiducial(i, np.asarray(f.centre_lps, float), float(f.radius_mm), float(f.score), "detected")
+            for i, f in enumerate(det.fiducials)]
+
+
+def rejected_summary(det, vol) -> tuple:
+    """``det.rejected`` as :class:`CTRejectedBlob` rows (radius: fitted, else of a ball of the
+    blob's volume, mm)."""
+    voxel_mm3 = float(np.prod(vol.spacing_mm))
+    out = []
+    for r in det.rejected:
+        rad = float(r.radius_mm) if np.isfinite(r.radius_mm) else float((3.0 * r.n_voxels * voxel_mm3 / (4.0 * np.pi)) ** (1 / 3))
+        out.append(CTRejectedBlob(tuple(round(float(x), 2) for x in r.centre_lps), round(rad, 2), int(r.n_voxels), str(r.reason)))
+    return tuple(out)
 
 
 class CTCommands:
@@ -69,6 +88,86 @@ class CTCommands:
         self._bus.event("ct_load_started", f"loading CT {path}", {"path": path})
         th.start()
         return _ok("loading CT")
+
+    def set_fiducial_kit(self, radius_mm, density_hu=None) -> CommandResult:
+        """Set the fiducial kit (nominal ball radius, mm; material density, HU, None = unknown),
+        kept in the plan, and re-run the fiducial detection on the loaded CT as the CT job
+        (progress in ``snap.job``; :meth:`wait_for_job` waits for it). The new detection
+        replaces the detected fiducials and the decisions on them; fiducials the operator added
+        are kept unless the new detection finds the same ball. Without a CT the kit is only kept.
+
+        Refuses (ok=False, one line): radius missing, not a finite number or outside 0.5-20 mm;
+        density not a finite number or outside 300-30000 HU; the fiducials are locked; a job is
+        running; the plan cannot be saved."""
+        why = plan_checks.check_fiducial_kit(radius_mm, density_hu)
+        if why:
+            return _fail(why)
+        from monotracker.ct.kit import FiducialKit
+
+        kit = FiducialKit(float(radius_mm), None if density_hu is None else float(density_hu))
+        with self._lock:
+            if self._job is not None and not self._job.done:
+                return _fail(f"busy: {self._job.name} is still running")
+            if self._plan.fiducials_locked:
+                return _fail("fiducials are locked; unlock them first (a new kit re-runs the detection)")
+            old = self._plan.fiducial_kit
+            plan = self._plan.copy()
+            plan.fiducial_kit = kit
+            err = self._commit_plan_locked(plan, "fiducial kit")
+            if err:
+                return _fail(err)
+            vol = self._volume
+            th = None
+            if vol is not None:
+                self._job = Job("detect_fiducials", 0.0, "detecting fiducials with the new kit")
+                th = threading.Thread(target=self._detect_job, args=(vol, kit), name="monotracker-ct", daemon=True)
+                self._job_thread = th
+        self._bus.event("fiducial_kit_set", f"fiducial kit: radius {kit.radius_mm:g} mm, density "
+                        + ("unknown" if kit.density_hu is None else f"{kit.density_hu:g} HU"),
+                        {"kit": kit.to_dict(), "previous": None if old is None else old.to_dict()})
+        if th is None:
+            return _ok("fiducial kit kept in the plan; it is used when a CT is loaded")
+        th.start()
+        return _ok("fiducial kit kept in the plan; detecting the fiducials again")
+
+    def _detect_job(self, vol, kit) -> None:
+        """The CT job of :meth:`set_fiducial_kit`: detection on the loaded volume, then the plan."""
+        try:
+            from monotracker.ct import detect_fiducials
+
+            det = detect_fiducials(vol, kit=kit)
+        except Exception as exc:  # noqa: BLE001 - report, never kill the engine
+            log.exception("fiducial detection failed")
+            self._set_job(1.0, "detection failed", f"internal error: {type(exc).__name__}: {exc}", True)
+            self._bus.alert("alarm", "ct_failed", f"fiducial detection failed: {type(exc).__name__}: {exc}")
+            return
+        with self._lock:
+            if self._volume is not vol or self._plan.fiducials_locked:
+                self._job = Job("detect_fiducials", 1.0, "detection not used", "the CT or the plan changed meanwhile", True)
+                return
+            plan = self._plan.copy()
+            new = detected_fiducials(det)
+            kept = [f for f in plan.fiducials if f.status == "added"
+                    and all(np.linalg.norm(np.asarray(f.centre_lps_mm) - g.centre_lps_mm) >= f.radius_mm + g.radius_mm for g in new)]
+            dropped = sum(f.status == "added" for f in plan.fiducials) - len(kept)
+            for k, f in enumerate(kept):
+                f.id = len(new) + k
+            plan.fiducials = new + kept
+            err = self._commit_plan_locked(plan, "fiducials detected again (new kit)")
+            if err:
+                self._job = Job("detect_fiducials", 1.0, "detection not used", f"the plan could not be saved: {err}", True)
+                return
+            if self._ct is not None:
+                self._ct = replace(self._ct, rejected=rejected_summary(det, vol), detection=det.reason)
+        self._loop.plan_changed("fiducials detected again (new kit)", restart_camera=False)
+        extra = f"; {dropped} added fiducial(s) now detected" if dropped else ""
+        self._set_job(1.0, ("fiducials detected again" if det.ok else f"fiducials: {det.reason}") + extra, None, True)
+        self._bus.event("fiducials_detected", f"{len(det.fiducials)} fiducials detected in the CT (new kit)"
+                        + ("" if det.ok else f" ({det.reason})"),
+                        {"ok": bool(det.ok), "reason": det.reason, "kit": kit.to_dict(),
+                         "centres_lps_mm": [np.asarray(f.centre_lps).tolist() for f in det.fiducials]})
+        if not det.ok:
+            self._bus.alert("warning", "fiducials_detection", f"fiducial detection: {det.reason}")
 
     def wait_for_job(self, timeout: float | None = None) -> Job | None:
         """Block until the current job ends (for scripts and tests; the UI polls snapshots).
@@ -140,10 +239,7 @@ class CTCommands:
             if not restored:  # a new plan on this CT: saved first, then swapped in with the volume
                 plan = self._plan.copy()
                 plan.ct_path = path
-                plan.fiducials = [
-                    PlanFiducial(i, np.asarray(f.centre_lps, float), float(f.radius_mm), float(f.score), "detected")
-                    for i, f in enumerate(det.fiducials)
-                ]
+                plan.fiducials = detected_fiducials(det)
                 plan.fiducials_locked = False
                 plan.entry_lps_mm = None
                 plan.target_lps_mm = None
@@ -156,7 +252,8 @@ class CTCommands:
             self._volume = vol
             self._ct = CTSummary(path=path, shape=tuple(int(v) for v in vol.array.shape),
                                  spacing_mm=tuple(float(v) for v in vol.spacing_mm),
-                                 notes=tuple(getattr(vol, "notes", ()) or ()))
+                                 notes=tuple(getattr(vol, "notes", ()) or ()),
+                                 rejected=rejected_summary(det, vol), detection=det.reason)
             if mesh is not None:
                 self._head_mesh = HeadMesh(frozen_array(np.asarray(mesh.vertices, float)),
                                            frozen_array(np.asarray(mesh.faces), np.int64))

@@ -188,6 +188,21 @@ def check_fiducial(fid_id, centre, radius_mm, score, status, limits: PlanLimits 
     return None
 
 
+def check_fiducial_kit(radius_mm, density_hu=None) -> str | None:
+    """The fiducial kit: radius (mm) and optional density (HU), finite numbers in the ranges of
+    :class:`monotracker.ct.kit.FiducialKit` (the one place they are written down; a restored
+    plan's kit goes through the same class)."""
+    from monotracker.ct.kit import FiducialKit
+
+    if radius_mm is None:
+        return "the fiducial kit needs the balls' radius (mm)"
+    try:
+        FiducialKit(radius_mm, density_hu)
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
 def check_fiducial_set(fiducials) -> str | None:
     """Unique ids; no two usable balls overlapping."""
     ids = [f.id for f in fiducials]

@@ -46,13 +46,28 @@ class Job:
 
 
 @dataclass(frozen=True)
+class CTRejectedBlob:
+    """A dense blob the fiducial detection did not take: ``centre_lps_mm`` (3,) LPS mm,
+    ``radius_mm`` (fitted, or of a ball of the blob's volume; mm), ``n_voxels``, ``reason``."""
+
+    centre_lps_mm: tuple
+    radius_mm: float
+    n_voxels: int
+    reason: str
+
+
+@dataclass(frozen=True)
 class CTSummary:
-    """The loaded CT: ``path``, ``shape`` (z, y, x voxels), ``spacing_mm`` (x, y, z), ``notes``."""
+    """The loaded CT: ``path``, ``shape`` (z, y, x voxels), ``spacing_mm`` (x, y, z), ``notes``;
+    ``rejected``: the dense blobs the last detection did not take (:class:`CTRejectedBlob`);
+    ``detection``: its one-line outcome."""
 
     path: str
     shape: tuple
     spacing_mm: tuple
     notes: tuple = ()
+    rejected: tuple = ()
+    detection: str = ""
 
 
 @dataclass(frozen=True)

@@ -26,8 +26,20 @@ class CtStep:
             self.h_ct_path = gui.add_text("CT file or folder", "", hint="path on the server: .nii.gz, .nrrd, .mha or a DICOM folder")
             b_open = gui.add_button("Open CT")
             b_sample = gui.add_button("Load sample CT")
+            # a DICOM folder with several series: the operator chooses, never a silent pick
+            self.h_series_info = gui.add_html("", visible=False)
+            self.h_series = gui.add_dropdown("Series", ("-",), initial_value="-", visible=False)
+            b_series = gui.add_button("Open chosen series", visible=False)
+            self.series_widgets = (self.h_series_info, self.h_series, b_series)
+            self.series_choices: dict = {}
+            self.series_path = ""
             self.h_progress = gui.add_progress_bar(0.0, visible=False, animated=True)
             self.h_job = gui.add_markdown("")
+            self.h_kit_r = gui.add_number("Ball radius (mm)", 4.0, min=0.5, max=20.0, step=0.1,
+                                          hint="nominal radius of the kit's balls")
+            self.h_kit_hu = gui.add_text("Ball density (HU)", "", hint="blank = unknown; e.g. 1500-2000 ceramic, 3071 steel")
+            b_kit = gui.add_button("Apply fiducial kit (detect again)")
+            self.h_rejected = gui.add_html("")
             self.h_fid_table = gui.add_html("")
             self.h_fid_sel = gui.add_number("Fiducial number", 0, min=0, max=99, step=1)
             grp = gui.add_button_group("Selected fiducial", ["Confirm", "Reject", "Undo"])
@@ -49,8 +61,40 @@ class CtStep:
             if not path:
                 view.say(False, "Open CT: type the path of a CT file or folder first")
                 return
+            what, infos = open_ct_choice(path)
+            if what == "error":
+                self._show_series("", [])
+                view.say(False, f"Open CT: {infos}")
+                return
+            if what == "choose":
+                self._show_series(path, infos)
+                view.say(False, f"Open CT: this folder holds {len(infos)} series; choose one under Series, then Open chosen series")
+                return
+            self._show_series("", [])
             r = view.run("Open CT", session.load_ct, path)
             if r is not None and r.ok:
+                view.watch_job()
+
+        @b_series.on_click
+        @view.safe("Open chosen series")
+        def _(_event) -> None:
+            uid = self.series_choices.get(self.h_series.value)
+            if not self.series_path or uid is None:
+                view.say(False, "Open chosen series: press Open CT on a DICOM folder first")
+                return
+            r = view.run("Open chosen series", session.load_ct, self.series_path, uid)
+            if r is not None and r.ok:
+                view.watch_job()
+
+        @b_kit.on_click
+        @view.safe("Fiducial kit")
+        def _(_event) -> None:
+            kit = parse_kit(self.h_kit_r.value, self.h_kit_hu.value)
+            if isinstance(kit, str):
+                view.say(False, f"Fiducial kit: {kit}")
+                return
+            r = view.run("Fiducial kit", session.set_fiducial_kit, *kit)
+            if r is not None and r.ok and "detecting" in r.message:
                 view.watch_job()
 
         @b_sample.on_click
@@ -100,6 +144,18 @@ class CtStep:
         def _(_event) -> None:
             view.run("Unlock fiducials", session.unlock_fiducials)
 
+    def _show_series(self, path: str, infos: list) -> None:
+        """Offer the series of ``path`` to choose from (none: hide the chooser)."""
+        self.series_path = path
+        self.series_choices = {series_label(i, k): i.uid for k, i in enumerate(infos)}
+        if self.series_choices:
+            labels = tuple(self.series_choices)
+            self.h_series.options = labels
+            self.h_series.value = labels[0]
+            self.h_series_info.content = series_table(infos)
+        for h in self.series_widgets:
+            h.visible = bool(self.series_choices)
+
     def _confirm_all(self) -> None:
         view = self.view
         ids = [f.id for f in view.session.snapshot().fiducials if f.status == "detected"]
@@ -131,6 +187,7 @@ class CtStep:
             else:
                 self.h_job.content = "No CT loaded."
         self.h_fid_table.content = fiducial_table(snap)
+        self.h_rejected.content = rejected_table(snap)
         with self.view.lock:
             fid_id = self.view.selected_fid
         fid = next((f for f in snap.fiducials if f.id == fid_id), None)
@@ -154,3 +211,67 @@ def fiducial_table(snap) -> str:
     return (f"<div class='mt-row'>{len(snap.fiducials)} fiducials, {n_ok} confirmed; {lock}</div>"
             "<table class='mt' id='mt-fiducials'><tr><th>#</th><th>status</th><th>centre LPS mm</th><th>r mm</th>"
             f"<th>score</th></tr>{''.join(rows)}</table>")
+
+
+def open_ct_choice(path: str) -> tuple[str, object]:
+    """What Open CT does with ``path``: ``("load", None)`` (a file, or a folder with one series),
+    ``("choose", [SeriesInfo, ...])`` (a DICOM folder with several: the operator chooses), or
+    ``("error", one line)``."""
+    p = Path(path).expanduser()
+    if not p.is_dir():
+        return "load", None
+    try:
+        from monotracker.ct import list_series
+
+        infos = list_series(p)
+    except Exception as exc:  # noqa: BLE001 - unreadable folder: one line, the load would say the same
+        return "error", str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return ("choose", infos) if len(infos) > 1 else ("load", None)
+
+
+def series_label(info, k: int) -> str:
+    """One dropdown line per series (unique: numbered)."""
+    sp = info.spacing_mm
+    tilt = f", tilt {info.tilt_deg:.1f} deg" if np.isfinite(info.tilt_deg) and info.tilt_deg >= 0.05 else ""
+    bad = "" if info.ok else " (cannot be loaded)"
+    return (f"{k + 1}: {info.description or 'no description'}, {info.slices} slices, "
+            f"{sp[0]:.2f} x {sp[1]:.2f} x {sp[2]:.2f} mm{tilt}{bad}")
+
+
+def series_table(infos) -> str:
+    """The series of a folder as HTML: description, slices, spacing (mm), tilt, notes."""
+    rows = []
+    for k, i in enumerate(infos):
+        sp = i.spacing_mm
+        tilt = f"{i.tilt_deg:.1f}" if np.isfinite(i.tilt_deg) else "-"
+        notes = "; ".join(i.notes)
+        style = "" if i.ok else " style='color:#c0392b'"
+        rows.append(f"<tr><td>{k + 1}</td><td>{st._esc(i.description or '-')}</td><td>{i.slices}</td>"
+                    f"<td>{sp[0]:.2f} x {sp[1]:.2f} x {sp[2]:.2f}</td><td>{tilt}</td>"
+                    f"<td{style}>{st._esc(notes)}</td></tr>")
+    return ("<table class='mt' id='mt-series'><tr><th>#</th><th>description</th><th>slices</th><th>spacing mm</th>"
+            f"<th>tilt deg</th><th>notes</th></tr>{''.join(rows)}</table>")
+
+
+def parse_kit(radius, density_text) -> tuple | str:
+    """The kit fields of the CT step: ``(radius_mm, density_hu or None)``, or a one-line reason
+    (the session checks the ranges)."""
+    text = str(density_text or "").strip()
+    if not text:
+        return float(radius), None
+    try:
+        return float(radius), float(text)
+    except ValueError:
+        return f"density must be a number of HU or blank (unknown), not {text!r}"
+
+
+def rejected_table(snap) -> str:
+    """The dense blobs the detection did not take (centre LPS mm, radius mm, voxels, reason)."""
+    ct = snap.ct
+    if ct is None or not ct.rejected:
+        return ""
+    rows = "".join(f"<tr><td>{b.centre_lps_mm[0]:.1f}, {b.centre_lps_mm[1]:.1f}, {b.centre_lps_mm[2]:.1f}</td>"
+                   f"<td>{b.radius_mm:.1f}</td><td>{b.n_voxels}</td><td>{st._esc(b.reason)}</td></tr>" for b in ct.rejected)
+    return (f"<div class='mt-row'>{len(ct.rejected)} dense blobs not taken as fiducials</div>"
+            "<table class='mt' id='mt-rejected'><tr><th>centre LPS mm</th><th>r mm</th><th>voxels</th><th>reason</th></tr>"
+            f"{rows}</table>")
