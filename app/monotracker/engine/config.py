@@ -66,11 +66,16 @@ class SessionConfig:
     runs in its own process at real-time priority where the OS allows, so vision, UI and logging
     cannot delay it (``robot/control_process.py``); False: a thread in the engine process.
     clock="sim" always steps it in-process (deterministic).
+    ``camera_optics`` (None): how the simulated camera (``camera="sim"``) makes its frames: None =
+    the simple render (cheap: the live default); a preset of ``monotracker.sim.optics.PRESETS``
+    (``"photo"``: gloss, lens blur, Bayer mosaic, raw sensor noise, JPEG 85, drapes and gloves;
+    ``"degraded"``: more blur and noise, JPEG 70; ``"sharp"``) = photo-like frames, ~40 ms more
+    per frame (``docs/vision.md``). Refused for any other camera (it would change nothing).
     ``extra``: free-form settings for experiments; nothing in the engine reads it.
 
     Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
     :class:`InputError` with one line for an unknown trajectory, clock, camera, robot spec,
-    controller or ``camera_adapt`` kind, a non-positive rate or gate, ``min_fiducials`` < 3, or
+    controller, ``camera_adapt`` kind or ``camera_optics`` preset, a non-positive rate or gate, ``min_fiducials`` < 3, or
     an empty ``arm_pin``.
     """
 
@@ -98,6 +103,7 @@ class SessionConfig:
     camera_adapt: str = ""
     control_process: bool = True
     max_validation_tre_mm: float = 1.5
+    camera_optics: str | None = None
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -129,6 +135,15 @@ class SessionConfig:
             kind = str(self.camera_adapt).partition(":")[0]
             if kind not in ("bin", "scale", "crop"):
                 raise InputError(f"camera_adapt {self.camera_adapt!r} not understood: use bin:N, scale:F or crop:X,Y,W,H")
+        if self.camera_optics is not None:
+            from monotracker.sim.optics import PRESETS
+
+            if self.camera_optics not in PRESETS:
+                raise InputError(f"camera_optics must be one of {', '.join(sorted(PRESETS))} (or unset for the "
+                                 f"simple render), not {self.camera_optics!r}")
+            if self.camera != "sim":
+                raise InputError(f"camera_optics applies to the rendered simulated camera (camera='sim') only, "
+                                 f"not camera={self.camera!r}")
         if self.resume_dwell_s < 0 or self.start_wait_s < 0:
             raise InputError("resume_dwell_s and start_wait_s must be >= 0 s")
         if not str(self.arm_pin):

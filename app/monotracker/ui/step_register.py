@@ -1,6 +1,7 @@
 """Step 3 of one tab: camera source and calibration, start/stop; the live image with the
 overlay (shared JPEG, see :mod:`monotracker.ui.stream`), the pose banner, the per-fiducial table
-with the OCCLUSION alert; simulated faults (sim only)."""
+with the OCCLUSION alert; learning the ball colour from one click on a ball
+(:mod:`monotracker.ui.ball_colour_pick`); simulated faults (sim only)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,11 @@ class RegisterStep:
             self.h_calib = gui.add_text("Calibration file", "", hint="OpenCV YAML/JSON; empty for the simulated camera")
             b_apply = gui.add_button("Use this camera")
             b_calib = gui.add_button("Calibrate camera / hand-eye")  # ui/step_calibration.py
+            pick = gui.add_button_group("Ball colour", ["Learn ball colour (click a ball)", "Cancel"])
+            self.h_ball_xy = gui.add_vector2("Ball at x, y (px)", (0.0, 0.0), step=1.0,
+                                             hint="pixel of the full-resolution camera frame")
+            b_ball_xy = gui.add_button("Learn ball colour at x, y")
+            self.h_colour = gui.add_html("")
             self.h_reg_table = gui.add_html("")
             self.h_fault = gui.add_dropdown("Simulate a fault (sim only)", FAULTS_UI, initial_value="none")
             b_f = gui.add_button("Inject fault")
@@ -48,6 +54,24 @@ class RegisterStep:
                 view.run("Start camera", session.start_camera)
             else:
                 view.run("Stop camera", session.stop_camera)
+
+        from monotracker.ui.ball_colour_pick import BallColourPicker
+
+        self.picker = BallColourPicker(view, on_result=self._show_colour_result)
+
+        @pick.on_click
+        @view.safe("Ball colour")
+        def _(event) -> None:
+            if event.target.value == "Cancel":
+                self.picker.cancel()
+                self._show_colour_result("")
+            else:
+                self.picker.start()
+
+        @b_ball_xy.on_click
+        @view.safe("Ball colour")
+        def _(_event) -> None:
+            self.picker.learn_at(*self.h_ball_xy.value)
 
         @b_f.on_click
         @view.safe("Fault")
@@ -80,6 +104,9 @@ class RegisterStep:
             view.say(False, f"Camera: calibration file not found: {calib}")
             return
         view.run("Camera", view.session.set_camera, src, calib)
+
+    def _show_colour_result(self, text: str) -> None:
+        self.h_colour.content = (f"<div class='mt-row' id='mt-ball-colour'>{st._esc(text)}</div>" if text else "")
 
     def show_frame(self, jpeg: bytes) -> None:
         """Show one overlay frame already encoded as JPEG (the same bytes go to every tab; viser's
