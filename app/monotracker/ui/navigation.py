@@ -183,7 +183,7 @@ def nav_point(snap, volume_centre, picked=None, live: bool = True) -> NavPoint:
     return NavPoint(np.asarray(volume_centre, float), "centre")
 
 
-def plane_views(point, entry=None, target=None, *, fov_mm: float = 160.0, pixel_mm: float = 0.8) -> dict:
+def plane_views(point, entry=None, target=None, *, fov_mm: float = 180.0, pixel_mm: float = 0.8) -> dict:
     """The views (name -> :class:`PlaneView`) through ``point`` (LPS mm). With a path (entry and
     target, LPS mm) also "probe" (perpendicular to the path where the path passes at the depth of
     ``point``, centred on the path) and "along" (the path's plane, centred on its middle, the whole
