@@ -123,6 +123,12 @@ class SceneView:
     def render(self, snap, step: str) -> None:
         scene = self.view.scene
         keys = self.view.scene_keys
+        nav = self.view.nav_panel(step)
+        if nav is not None and nav.state()[0]:
+            # the navigation view (slices) has the canvas: its worker draws it
+            keys["view"] = "nav"
+            self.view.nav_scene.post(snap, nav)
+            return
         T_wc = world_from_ct(snap, step)
         if keys.get("view") != step or (T_wc is not None) != keys.get("placed"):
             keys["placed"] = T_wc is not None
@@ -131,7 +137,9 @@ class SceneView:
             keys["view"] = step
             for k in ("mesh", "fids", "path", "robot_q", "frustum"):
                 keys.pop(k, None)
-            scene.reset()
+            with self.view.nav_scene.scene_lock:  # no slice tile lands in the 3D view
+                self.view.nav_scene.leave()
+                scene.reset()
             self._ct_frame = scene.add_frame("/ct", show_axes=False)
             self._cam_frame = scene.add_frame("/cam", show_axes=False, visible=step in ("register", "robot"))
             self._robot_frame = scene.add_frame("/robot", show_axes=False, visible=step == "robot")

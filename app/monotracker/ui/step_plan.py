@@ -10,6 +10,7 @@ import zipfile
 import numpy as np
 
 from monotracker.engine.plan import distance_segment_to_points_mm
+from monotracker.ui.navigation_panel import NavigationPanel
 from monotracker.ui.slice_panel import SlicePanel
 from monotracker.ui.view import fmt
 
@@ -35,6 +36,10 @@ class PlanStep:
             self.h_info = gui.add_html("")
             b_next = gui.add_button("Path is good: go to Register", color="green")
             b_x = gui.add_button("Export to 3D Slicer (.mrk.json)")
+            gui.add_markdown("**Navigation view** in the main view: slices through the target (or a picked "
+                             "point), probe's eye and along-path; a click on a slice can set the entry, "
+                             "the target or add a fiducial")
+            self.nav = NavigationPanel(view, "plan", live=False)
             gui.add_markdown("**Slices** through the target (path: cyan entry, magenta target)")
             self.slices = SlicePanel(view, "plan")
         self._synced: dict = {}

@@ -9,6 +9,7 @@ import numpy as np
 
 from monotracker.ui import plots
 from monotracker.ui import status as st
+from monotracker.ui.navigation_panel import NavigationPanel
 from monotracker.ui.pin_pad import PinPad
 from monotracker.ui.view import fmt
 
@@ -30,6 +31,9 @@ class RobotStep:
             b_stop = gui.add_button("Stop tracking", color="yellow")
             b_reset = gui.add_button("Reset e-stop")
             self.h_info = gui.add_html("")
+            gui.add_markdown("**Navigation view**: CT slices through the live needle tip (else the planned "
+                             "target), probe's eye and along-path, in the main view")
+            self.nav = NavigationPanel(view, "robot", live=True)
             self.h_plot = plots.add_tracking_plot(gui)
 
         @b_arm.on_click

@@ -26,7 +26,24 @@ VIEW_STEPS = ("ct", "plan", "register", "robot")
 STEP_LABELS = {"ct": "1 CT", "plan": "2 Plan", "register": "3 Register", "robot": "4 Robot"}
 LABEL_STEPS = {v: k for k, v in STEP_LABELS.items()}
 LIVE_STEPS = ("register", "robot", "calibration")  # steps whose page shows the live camera overlay
-PANEL_PX = {"status": 360, "steps": 470, "steps_live": 640}  # docked panel widths (px): at 1280x800 the 3D view keeps ~450 px
+#: docked panel widths (px) for a compact screen (1280x800: the canvas keeps 480-540 px between
+#: the panels, enough for the 3D head or the navigation slices) and a wide one (>= 1700 px).
+PANEL_PX = {"status": 300, "steps": 440, "steps_live": 500}
+PANEL_PX_WIDE = {"status": 360, "steps": 470, "steps_live": 640}
+WIDE_PX = (1650, 1750)  # viewport widths (px) to switch to compact below / to wide above (hysteresis)
+
+
+def panel_widths(step: str, wide: bool) -> tuple[int, int]:
+    """(status panel, step panel) widths in px for ``step`` on a compact or wide screen."""
+    px = PANEL_PX_WIDE if wide else PANEL_PX
+    return px["status"], px["steps_live"] if step in LIVE_STEPS else px["steps"]
+
+
+def is_wide(viewport_px: float | None, wide_now: bool) -> bool:
+    """Whether the page is wide enough for the wide panels (with hysteresis)."""
+    if viewport_px is None:
+        return wide_now
+    return viewport_px >= WIDE_PX[0] if wide_now else viewport_px >= WIDE_PX[1]
 
 
 def fmt(v, unit="", nd=1) -> str:
@@ -57,6 +74,7 @@ class ClientView:
     """The page of one browser client (``client``: a :class:`viser.ClientHandle`)."""
 
     def __init__(self, app, client):
+        from monotracker.ui.navigation_panel import NavigationScene
         from monotracker.ui.scene import SceneView
         from monotracker.ui.status_panel import StatusPanel
         from monotracker.ui.step_calibration import CalibrationStep
@@ -78,9 +96,11 @@ class ClientView:
         self.selected_fid = 0
         self.scene_keys: dict = {}
         self._msg_seq = 0
-        self._panel_width = None
+        self._panel_width = None  # (status px, steps px) last set
+        self._wide = False
         self._job_watch = False  # this tab started a CT job: report its end on the result line
         self.notice = app.notice
+        self.nav_scene = NavigationScene(self)  # the navigation view's worker (slices in the canvas)
 
         gui = self.gui
         gui.configure_theme(control_width="large", show_share_button=False, brand_color=(43, 108, 176))
@@ -161,11 +181,25 @@ class ClientView:
             step = self.step
         for k, s in self.steps.items():
             s.folder.visible = k == step
-        # the live camera is the view that matters in Register / Robot: a wider step panel there
-        width = PANEL_PX["steps_live"] if step in LIVE_STEPS else PANEL_PX["steps"]
-        if width != self._panel_width:
-            self._panel_width = width
-            self.gui.main_panel.set_width(width)
+        # the live camera is the view that matters in Register / Robot: a wider step panel there;
+        # the panels grow on a wide screen (the browser's canvas width + the panels = the page)
+        with self.lock:
+            viewport = None
+            try:
+                cam = self.client.camera
+                if self._panel_width is not None and cam.update_timestamp and cam.image_width > 0:
+                    viewport = cam.image_width + sum(self._panel_width)
+            except Exception:  # noqa: BLE001 - no camera message from the browser yet
+                viewport = None
+            self._wide = is_wide(viewport, self._wide)
+            widths = panel_widths(step, self._wide)
+            if widths == self._panel_width:
+                return
+            old = self._panel_width
+            self._panel_width = widths
+        if old is None or widths[0] != old[0]:
+            self.status.panel.set_width(widths[0])
+        self.gui.main_panel.set_width(widths[1])
 
     # ------------------------------------------------------------------ render (render thread)
     def render(self, snap) -> None:
@@ -201,6 +235,10 @@ class ClientView:
         if step in LIVE_STEPS:
             self.steps[step].show_frame(jpeg)
 
+    def nav_panel(self, step: str):
+        """The navigation controls of ``step`` (a :class:`NavigationPanel`), or None."""
+        return getattr(self.steps.get(step), "nav", None)
+
     @property
     def wants_live(self) -> bool:
         with self.lock:
@@ -208,6 +246,7 @@ class ClientView:
 
     def close(self) -> None:
         """The tab went away: give up control if it had it."""
+        self.nav_scene.close()
         try:
             self.app.session.release_control(self.client_id)
         except Exception:  # noqa: BLE001
