@@ -63,6 +63,7 @@ CATALOGUE: dict[str, AlarmKind] = {
     "pose_stale": AlarmKind("warning", 7, technical=True),
     "plan_save_failed": AlarmKind("alarm", 8, linger_s=0.0),
     "pin_lockout": AlarmKind("warning", 9, linger_s=0.0),
+    "login_lockout": AlarmKind("warning", 9, linger_s=0.0),  # the web login (--allow-remote) refused wrong passwords
     # the saved session: nothing reported as done that is not on disk, edits outside the app
     "home_unwritable": AlarmKind("alarm", 8, linger_s=0.0),
     "audit_unavailable": AlarmKind("alarm", 10, linger_s=0.0),

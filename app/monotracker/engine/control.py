@@ -40,15 +40,18 @@ class PinGuard:
     ``pin``: the PIN to accept (compared in constant time). ``max_tries`` (5): consecutive wrong
     tries that start a lockout. ``lockout_s`` (30 s): the first lockout; each lockout that follows
     another without a right PIN in between lasts twice as long, up to ``max_lockout_s``.
+    ``noun``: what the secret is called in the refusals ("PIN"; the web login uses "password").
     """
 
-    def __init__(self, pin: str, max_tries: int = 5, lockout_s: float = 30.0, max_lockout_s: float = 3600.0):
+    def __init__(self, pin: str, max_tries: int = 5, lockout_s: float = 30.0, max_lockout_s: float = 3600.0,
+                 noun: str = "PIN"):
         if not str(pin):
             raise ValueError("the PIN must not be empty")
         self._pin = str(pin).encode()
         self.max_tries = max(1, int(max_tries))
         self.lockout_s = float(lockout_s)
         self.max_lockout_s = float(max_lockout_s)
+        self.noun = str(noun)
         self._lock = threading.Lock()
         self._wrong = 0  # consecutive wrong tries since the last right PIN or lockout start
         self._lockouts = 0  # lockouts in a row (doubling)
@@ -76,13 +79,13 @@ class PinGuard:
             if left > 0:
                 if not right:
                     self.total_wrong += 1
-                return CommandResult(False, f"PIN locked for {math.ceil(left)} s after "
+                return CommandResult(False, f"{self.noun} locked for {math.ceil(left)} s after "
                                             f"{self.max_tries} wrong tries")
             if right:
                 self._wrong = 0
                 self._lockouts = 0
                 self._locked_since = None
-                return CommandResult(True, "PIN accepted")
+                return CommandResult(True, f"{self.noun} accepted")
             self._wrong += 1
             self.total_wrong += 1
             if self._wrong >= self.max_tries:
@@ -91,10 +94,10 @@ class PinGuard:
                 self._wrong = 0
                 self._locked_until = now + dur
                 self._locked_since = now
-                return CommandResult(False, f"PIN locked for {math.ceil(dur)} s after {self.max_tries} wrong tries")
+                return CommandResult(False, f"{self.noun} locked for {math.ceil(dur)} s after {self.max_tries} wrong tries")
             left_tries = self.max_tries - self._wrong
             next_dur = min(self.max_lockout_s, self.lockout_s * (2 ** self._lockouts))
-            return CommandResult(False, f"wrong PIN ({left_tries} tr{'y' if left_tries == 1 else 'ies'} left "
+            return CommandResult(False, f"wrong {self.noun} ({left_tries} tr{'y' if left_tries == 1 else 'ies'} left "
                                         f"before a {math.ceil(next_dur)} s lockout)")
 
 

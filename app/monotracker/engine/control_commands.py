@@ -79,3 +79,14 @@ class ControlCommands:
         """The session as browser client ``client_id`` may drive it (see ``engine/control.py``):
         reads as is, commands only while in control, ``estop()`` always."""
         return ClientSession(self, str(client_id))
+
+    def report_login_lockout(self, locked_s: float, message: str = "") -> None:
+        """The page login (``ui/remote_login.py``, ``serve --allow-remote``) is locked for
+        ``locked_s`` s after wrong passwords (> 0: the ``login_lockout`` alarm is active with
+        ``message``, and an alert is written when it begins) or no longer locked (0: cleared)."""
+        now = float(self.clock())
+        if locked_s > 0:
+            if self._alarm_board.set("login_lockout", message, now):
+                self._bus.alert("alarm", "login_lockout", message, {"locked_s": float(locked_s)})
+        else:
+            self._alarm_board.clear("login_lockout", now)

@@ -38,13 +38,19 @@ class MonoTrackerApp:
     """The viser app. ``start()`` serves the page and starts the threads; ``stop()`` ends them
     (the session is shut down by its owner). ``stream_code``: stamp a frame-number barcode into
     the streamed image (benchmark only). ``display_width``: px width of the live overlay as sent
-    to the browsers (frames are downscaled once for all tabs)."""
+    to the browsers (frames are downscaled once for all tabs). ``login``: a
+    :class:`~monotracker.ui.remote_login.LoginGate` (``serve --allow-remote``): viser then listens
+    on 127.0.0.1 (an ephemeral port) and the login proxy on ``host:port``."""
 
     def __init__(self, session, host: str = "127.0.0.1", port: int = 8080, *, stream_code: bool = False,
-                 jpeg_quality: int = 80, max_stream_fps: float = 30.0, display_width: int = 960):
+                 jpeg_quality: int = 80, max_stream_fps: float = 30.0, display_width: int = 960, login=None):
         self.session = session
         self.host, self.port = host, int(port)
-        self.server = viser.ViserServer(host=host, port=self.port, verbose=False)
+        self.login, self.proxy = login, None
+        if login is None:
+            self.server = viser.ViserServer(host=host, port=self.port, verbose=False)
+        else:  # nothing reaches viser but through the login proxy (ui/remote_login.py)
+            self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
         self.stream = OverlayStream(display_width=display_width, jpeg_quality=jpeg_quality, stream_code=stream_code)
         self.max_stream_fps = float(max_stream_fps)
         self._lock = threading.RLock()
@@ -59,6 +65,10 @@ class MonoTrackerApp:
 
     # ================================================================== lifecycle
     def start(self) -> None:
+        if self.login is not None:
+            from monotracker.ui.remote_login import LoginProxy
+
+            self.proxy = LoginProxy(self.login, self.host, self.port, self.server.get_port()).start()
         self.server.scene.world_axes.visible = False
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
@@ -71,6 +81,8 @@ class MonoTrackerApp:
         self._stop.set()
         for th in self._threads:
             th.join(timeout=2.0)
+        if self.proxy is not None:
+            self.proxy.stop()
         try:
             self.server.stop()
         except Exception:  # noqa: BLE001

@@ -3,10 +3,14 @@
     monotracker serve [--host 127.0.0.1] [--port 8080] [--allow-remote] [--sample]
         [--camera sim|device:N|file:PATH|folder:PATH|replay:DIR] [--calibration FILE]
         [--robot sim|ur:IP] [--pin PIN] [--trajectory still|drift|breathing|jumps] [--home DIR]
-        [--record DIR] [--igtl-port PORT]
+        [--record DIR] [--igtl-port PORT] [--password-file FILE] [--login-hours H]
 
 Serves on 127.0.0.1 unless ``--allow-remote`` is given (any other ``--host`` is refused
-without it: the page can move a robot). Arming needs the operator PIN: ``--pin`` or
+without it: the page can move a robot). With ``--allow-remote`` the page needs a login first
+(``ui/remote_login.py``): the session password is the first line of ``--password-file``, else
+``$MONOTRACKER_PASSWORD``, else a random one printed here, on the console, only; a login lasts
+``--login-hours`` (12). On 127.0.0.1 (the default) there is no login: whoever can use this
+machine can use the page. Arming needs the operator PIN: ``--pin`` or
 ``$MONOTRACKER_PIN``; without either a random 6-digit PIN is made and printed here, on the
 console, only. ``--sample`` loads the bundled sample CT at start (its fiducials still need the
 operator's confirmation). Restarting restores the saved plan from the session folder (``--home``
@@ -22,7 +26,7 @@ import signal
 import socket
 import time
 
-from monotracker.cli_args import existing_file, home_folder, int_range, robot_spec
+from monotracker.cli_args import existing_file, finite_float, home_folder, int_range, robot_spec
 from monotracker.engine.config import TRAJECTORIES
 from monotracker.errors import InputError
 
@@ -35,7 +39,13 @@ def register(subparsers) -> None:
     p.add_argument("--host", default="127.0.0.1", help="interface to listen on (default 127.0.0.1)")
     p.add_argument("--port", type=int_range(1, 65535), default=8080, help="port (default 8080)")
     p.add_argument("--allow-remote", action="store_true",
-                   help="allow a --host other than this machine (the page can move the robot)")
+                   help="allow a --host other than this machine (the page can move the robot); the page "
+                        "then needs a login with the session password")
+    p.add_argument("--password-file", default=None, metavar="FILE",
+                   help="--allow-remote: the login password is this file's first line (default "
+                        "$MONOTRACKER_PASSWORD, else a random one printed on this console)")
+    p.add_argument("--login-hours", type=finite_float(0.001, 72.0), default=12.0, metavar="H",
+                   help="--allow-remote: how long one login lasts (hours, default 12)")
     p.add_argument("--sample", action="store_true", help="load the bundled sample CT at start")
     p.add_argument("--camera", default="sim", help="sim | sim-points | device:N | file:PATH | folder:PATH | replay:DIR (default sim)")
     p.add_argument("--calibration", type=existing_file, default=None,
@@ -80,6 +90,20 @@ def resolve_pin(pin: str | None) -> tuple[str, bool]:
     return pin, False
 
 
+def resolve_password(password_file: str | None) -> tuple[str, bool]:
+    """The page-login password for ``--allow-remote``: (password, generated?). From
+    ``--password-file`` (first line), else ``$MONOTRACKER_PASSWORD``, else a random one.
+    InputError with one line for a bad file or a too short password."""
+    from monotracker.ui.remote_login import check_password, read_password_file
+
+    if password_file is not None:
+        return read_password_file(password_file), False
+    env = os.environ.get("MONOTRACKER_PASSWORD")
+    if env is not None:
+        return check_password(env.strip(), "MONOTRACKER_PASSWORD"), False
+    return secrets.token_urlsafe(9), True
+
+
 class StopSignals:
     """SIGINT/SIGTERM as a flag: create it before starting anything, :meth:`wait` in the main thread.
 
@@ -114,6 +138,11 @@ def _serve(args) -> int:
     check_host(args.host, args.allow_remote)
     check_port_free(args.host, args.port)
     pin, generated = resolve_pin(args.pin)
+    password = None
+    if args.allow_remote:
+        password, password_generated = resolve_password(args.password_file)
+    elif args.password_file is not None:
+        raise InputError("--password-file is for --allow-remote (on this machine only the page has no login)")
     cfg = SessionConfig(home=args.home, camera=args.camera, robot=args.robot, arm_pin=pin,
                         trajectory=args.trajectory, clock="real")
     cfg.validate()
@@ -146,9 +175,19 @@ def _serve(args) -> int:
                 session.load_sample_ct()
         from monotracker.ui.app import MonoTrackerApp
 
-        app = MonoTrackerApp(session, args.host, args.port)
+        login = None
+        if password is not None:
+            from monotracker.ui.remote_login import for_session
+
+            login = for_session(session, password, ttl_s=3600.0 * args.login_hours)
+        app = MonoTrackerApp(session, args.host, args.port, login=login)
         app.start()
         print(f"MonoTracker is running: open {app.url} in a browser (Ctrl-C to stop)", flush=True)
+        if login is not None:
+            print(f"the page needs a login (session password, valid {args.login_hours:g} h per login)", flush=True)
+            if password_generated:
+                print(f"session password for the page: {password}  (set your own with --password-file or "
+                      "MONOTRACKER_PASSWORD)", flush=True)
         if generated:
             print(f"operator PIN for arming: {pin}  (set your own with --pin or MONOTRACKER_PIN)", flush=True)
         signals.wait()

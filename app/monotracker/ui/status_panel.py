@@ -30,6 +30,8 @@ class StatusPanel:
             self.h_take = gui.add_button("Take control (PIN)", hint="make this station the one that drives the robot")
             self.h_status = gui.add_html(st.status_html(snap))
             self.h_msg = gui.add_html(st.message_html(True, ""))
+            if getattr(view.app, "login", None) is not None:  # serve --allow-remote: the page login
+                gui.add_html("<div class='mt-row'><a id='mt-logout' href='/logout'>Log out of this browser</a></div>")
         self.panel.dock_left()
         self.panel.set_width(PANEL_PX["status"])
 
