@@ -161,7 +161,7 @@ def test_filter_divides_the_jitter_that_a_finite_difference_amplifies():
     """Predicted position 60 ms ahead vs the true head, after 2 s: the filter beats both the
     last measurement (no prediction) and a two-point extrapolation (written out here)."""
     stamps, poses, truth = _noisy_sine(0.15e-3)
-    p = TargetPredictor()
+    p = TargetPredictor(blend_s=0.0)  # the filter's own prediction, sampled once per frame
     e_kf, e_last, e_fd = [], [], []
     for i, (s, T) in enumerate(zip(stamps, poses)):
         p.update(T, s)
@@ -201,3 +201,30 @@ def test_only_the_filters_last_measurement_is_extrapolated():
     other = _pose(0.015 * t + 0.001)  # not what the filter saw last: returned as it is
     T, V = p.predict(other, t + 0.06)
     assert np.array_equal(T, other) and not np.any(V)
+
+
+def test_a_new_measurement_moves_the_prediction_without_a_step():
+    """Sampled at the control rate, the predicted target is continuous when a frame arrives
+    (the correction fades in over blend_s) and reaches the filter's own prediction soon after."""
+    stamps, poses, _ = _noisy_sine(0.15e-3, seconds=3.0)
+    smooth, raw = TargetPredictor(), TargetPredictor(blend_s=0.0)
+    steps_s, steps_r, late = [], [], []
+    prev_s = prev_r = None
+    for i, (s, T) in enumerate(zip(stamps, poses)):
+        smooth.update(T, s)
+        raw.update(T, s)
+        for k in range(4):  # 125 Hz control cycles until the next frame
+            now = s + 0.05 + k * 0.008
+            Ts, _ = smooth.predict(T, now)
+            Tr, _ = raw.predict(T, now)
+            if s > 1.0 and prev_s is not None:
+                if k == 0:  # the first cycle after a frame arrived: step over one cycle
+                    steps_s.append(np.linalg.norm(Ts[:3, 3] - prev_s[:3, 3]))
+                    steps_r.append(np.linalg.norm(Tr[:3, 3] - prev_r[:3, 3]))
+            prev_s, prev_r = Ts, Tr
+        if s > 1.0:
+            late.append(np.linalg.norm(Ts[:3, 3] - Tr[:3, 3]))
+    # a head at <= 15 mm/s moves <= 0.12 mm in one 8 ms cycle: the blended target does not jump
+    assert max(steps_s) < 0.5 * max(steps_r)
+    assert np.median(steps_s) < 0.15e-3
+    assert np.median(late) < np.median(steps_r)  # 24 ms later it is close to the filter's estimate

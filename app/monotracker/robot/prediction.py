@@ -72,7 +72,8 @@ class TargetPredictor:
                  max_gap_s: float = 0.1, min_samples: int = 3, lead_s: float = 0.0,
                  meas_sigma_m: float = 0.15e-3, meas_sigma_rad: float = np.radians(0.05),
                  jerk_sigma_m_s3: float = 0.02, jerk_sigma_rad_s3: float = 0.05,
-                 accel0_m_s2: float = 0.05, accel0_rad_s2: float = 0.1, model: str = "ca", learn_noise: bool = True):
+                 accel0_m_s2: float = 0.05, accel0_rad_s2: float = 0.1, model: str = "ca", learn_noise: bool = True,
+                 blend_s: float = 0.05):
         if model not in ("ca", "cv"):
             raise ValueError(f"prediction model must be 'ca' or 'cv', not {model!r}")
         self.model = model
@@ -90,6 +91,7 @@ class TargetPredictor:
         self._r_est = self._r0.copy()
         self.learn_noise = bool(learn_noise)
         self.noise_frames = 30.0
+        self.blend_s = float(blend_s)
         self._q = np.array([jerk_sigma_rad_s3 ** 2, jerk_sigma_m_s3 ** 2], dtype=float)
         self._a0 = np.array([accel0_rad_s2 ** 2, accel0_m_s2 ** 2], dtype=float)
         self.resets = 0
@@ -102,6 +104,8 @@ class TargetPredictor:
         self._P = np.zeros((2, 3, 3))  # [group][3x3] covariance of (pose, twist, accel) per component
         self._n = 0
         self._recent: list = []
+        self._out = self._blend = None  # last output (T, V, now); fading correction (xi, t0)
+        self._fresh = False
         self.V = np.zeros(6)
         self.A = np.zeros(6)
         self.resets = getattr(self, "resets", 0) + 1
@@ -165,6 +169,7 @@ class TargetPredictor:
             k[:, sl] = K[:, None]
             self._P[g] = P - np.outer(K, P[0, :])
         self._T = T_pred @ exp6(k[0] * y)
+        self._fresh = True
         self.V = V_pred + k[1] * y
         self.A = self.A + k[2] * y
 
@@ -208,12 +213,30 @@ class TargetPredictor:
         from monotracker.robot.lie import exp6, log6, relative
 
         if self._last is None or self._n < self.min_samples or self._T is None:
+            if self._last is not None and np.array_equal(T, self._last[0]):
+                self._out = (T.copy(), np.zeros(6), float(now))  # blended from, once active
             return T, np.zeros(6)
         T_meas, stamp = self._last
         if not np.array_equal(T, T_meas) or self._too_fast(self.V):
+            self._out = self._blend = None
             return T, np.zeros(6)
         h = float(np.clip(now + self.lead_s - stamp, 0.0, self.horizon_s))
-        xi = log6(relative(T_meas, self._T @ exp6(self.V * h + 0.5 * self.A * h * h)))  # offset from the measurement
+        V = self.V + self.A * h
+        T_raw = self._T @ exp6(self.V * h + 0.5 * self.A * h * h)
+        if self._fresh and self._out is not None and 0.0 <= now - self._out[2] <= 0.05:
+            # a new measurement moved the prediction: start from where the last output was
+            # heading and fade the difference out over blend_s (no step in the target)
+            T_o, V_o, t_o = self._out
+            self._blend = (log6(relative(T_raw, T_o @ exp6(V_o * (now - t_o)))), float(now))
+        self._fresh = False
+        if self._blend is not None:
+            w = float(np.exp(-(now - self._blend[1]) / self.blend_s)) if self.blend_s > 0 else 0.0
+            if w < 1e-3:
+                self._blend = None
+            else:
+                T_raw = T_raw @ exp6(self._blend[0] * w)
+        self._out = (T_raw, V, float(now))
+        xi = log6(relative(T_meas, T_raw))  # offset from the measurement
         lin, ang = float(np.linalg.norm(xi[3:])), float(np.linalg.norm(xi[:3]))
         scale = min(1.0, self.max_offset_m / lin if lin > 0 else 1.0, self.max_offset_rad / ang if ang > 0 else 1.0)
-        return T_meas @ exp6(xi * scale), self.V + self.A * h
+        return T_meas @ exp6(xi * scale), V
