@@ -261,9 +261,12 @@ class APFFController:
         # Semi-implicit Euler (Eq. 24): velocity first, then the reference pose.
         damp = self._b * (self.V if V_ff is None else self.V - V_ff)
         self.V = self._saturate(self.V + dt * (F + k * S - damp) / self._m)
-        self.T_ref = self.T_ref @ exp6(self.V * dt)
-        # Command: reference twist seen from the measured frame + correction towards the reference.
+        # Command: reference twist seen from the measured frame + correction towards the
+        # reference *now* (the pose measured at the start of this period against the reference
+        # for the same instant; the one integrated below is for the end of the period, and
+        # correcting towards it would put the arm one period ahead of its reference)
         T_err = relative(T_mid, self.T_ref)
+        self.T_ref = self.T_ref @ exp6(self.V * dt)
         V_cmd = adjoint(T_err) @ self.V + p.kp * log6(T_err)
         dq, smin = dls_solve(J_mid, V_cmd, p.sigma_min, p.lambda_max)
         return ControlOutput(dq, S, F, self.V.copy(), "near" if self.near else "far", smin)
