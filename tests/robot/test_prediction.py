@@ -228,3 +228,46 @@ def test_a_new_measurement_moves_the_prediction_without_a_step():
     assert max(steps_s) < 0.5 * max(steps_r)
     assert np.median(steps_s) < 0.15e-3
     assert np.median(late) < np.median(steps_r)  # 24 ms later it is close to the filter's estimate
+
+
+def _roll_follows_the_arm(predictor):
+    """The engine's target takes its roll about the needle axis from the arm's current tip
+    (``engine/target.py``: no needless wrist spin). A head moving at 15 mm/s with 0.1 deg of
+    pose jitter, 30 fps, 50 ms latency; returns the largest wrist-3 speed (rad/s) after 1 s."""
+    from monotracker.robot import kinematics as kin
+    from monotracker.robot.targets import align_roll
+
+    rig = Rig(predict_target=True)
+    rig.tracker.predictor = predictor
+    rng = np.random.default_rng(3)
+    T0 = ready_tip_pose()
+
+    def head(t):
+        T = T0.copy()
+        T[:3, 3] += [0.01 * np.sin(1.5 * t), 0.006 * np.sin(1.05 * t), 0.0]
+        return T
+
+    rig.start(T0)
+    worst = 0.0
+    for i in range(int(4.0 * 125)):
+        t = rig.clock()
+        if i % 4 == 0 and t >= 0.05:
+            T = head(t - 0.05)
+            T[:3, :3] = rotation_about_axis(rng.normal(size=3), np.radians(rng.normal(0, 0.1))) @ T[:3, :3]
+            tip = kin.fk(rig.arm.true_q) @ kin.NeedleTool().T_tool0_tip
+            rig.tracker.set_target(to_mm(align_roll(T, tip)), t - 0.05)
+        rig.tracker.step()
+        rig.clock.advance(1 / 125)
+        rig.arm.advance_to(rig.clock())
+        if t > 1.0:
+            worst = max(worst, abs(rig.arm.true_dq[5]))
+    assert rig.tracker.state.value == "tracking"
+    return worst
+
+
+def test_the_roll_about_the_needle_is_never_extrapolated():
+    """With the roll taken from the arm, extrapolating it feeds back (the wrist spins up to the
+    predictor's rate cap); the predictor keeps the measured roll, so the wrist stays quiet."""
+    quiet = _roll_follows_the_arm(TargetPredictor())
+    spinning = _roll_follows_the_arm(TargetPredictor(free_roll=False))
+    assert quiet < 0.05 and spinning > 4 * quiet

@@ -63,6 +63,13 @@ class TargetPredictor:
         model: ``"ca"`` (constant acceleration) or ``"cv"`` (constant velocity; the
             ``jerk_sigma`` values are then the acceleration's white noise).
         learn_noise: learn the jitter from the stream (else ``meas_sigma`` throughout).
+        blend_s: a new frame's correction of the prediction fades in with this time constant
+            (s) instead of stepping the target (0: step).
+        free_roll: never extrapolate the roll about the needle axis (body z), neither in the
+            pose nor in the feed-forward: a needle is symmetric, so the roll is a convention,
+            and the engine chooses it to follow the arm's current roll (no needless wrist
+            spin); extrapolating that roll would feed back (arm rolls -> target rolls -> a roll
+            rate is estimated -> arm rolls faster) up to the rate cap.
 
     Raises ``ValueError`` for an unknown ``model``.
     """
@@ -73,7 +80,7 @@ class TargetPredictor:
                  meas_sigma_m: float = 0.15e-3, meas_sigma_rad: float = np.radians(0.05),
                  jerk_sigma_m_s3: float = 0.02, jerk_sigma_rad_s3: float = 0.05,
                  accel0_m_s2: float = 0.05, accel0_rad_s2: float = 0.1, model: str = "ca", learn_noise: bool = True,
-                 blend_s: float = 0.05):
+                 blend_s: float = 0.05, free_roll: bool = True):
         if model not in ("ca", "cv"):
             raise ValueError(f"prediction model must be 'ca' or 'cv', not {model!r}")
         self.model = model
@@ -92,6 +99,7 @@ class TargetPredictor:
         self.learn_noise = bool(learn_noise)
         self.noise_frames = 30.0
         self.blend_s = float(blend_s)
+        self.free_roll = bool(free_roll)
         self._q = np.array([jerk_sigma_rad_s3 ** 2, jerk_sigma_m_s3 ** 2], dtype=float)
         self._a0 = np.array([accel0_rad_s2 ** 2, accel0_m_s2 ** 2], dtype=float)
         self.resets = 0
@@ -237,6 +245,10 @@ class TargetPredictor:
                 T_raw = T_raw @ exp6(self._blend[0] * w)
         self._out = (T_raw, V, float(now))
         xi = log6(relative(T_meas, T_raw))  # offset from the measurement
+        if self.free_roll:
+            xi[2] = 0.0  # keep the measured roll about the needle axis (see free_roll)
+            V = V.copy()
+            V[2] = 0.0
         lin, ang = float(np.linalg.norm(xi[3:])), float(np.linalg.norm(xi[:3]))
         scale = min(1.0, self.max_offset_m / lin if lin > 0 else 1.0, self.max_offset_rad / ang if ang > 0 else 1.0)
         return T_meas @ exp6(xi * scale), V
