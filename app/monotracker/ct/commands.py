@@ -37,6 +37,14 @@ def register(subparsers) -> None:
 
 
 def _detect_ct(args: argparse.Namespace) -> int:
+    try:
+        return _detect_ct_run(args)
+    except KeyboardInterrupt:
+        print("interrupted (Ctrl-C): CT detection stopped, nothing written", file=sys.stderr)
+        return 130
+
+
+def _detect_ct_run(args: argparse.Namespace) -> int:
     from monotracker.ct.fiducials import detect_fiducials, detect_fiducials_paper
     from monotracker.ct.volume import load_volume
 

@@ -35,6 +35,7 @@ class CtStep:
             self.series_path = ""
             self.h_progress = gui.add_progress_bar(0.0, visible=False, animated=True)
             self.h_job = gui.add_markdown("")
+            self.b_cancel = gui.add_button("Cancel CT job", visible=False)
             self.h_kit_r = gui.add_number("Ball radius (mm)", 4.0, min=0.5, max=20.0, step=0.1,
                                           hint="nominal radius of the kit's balls")
             self.h_kit_hu = gui.add_text("Ball density (HU)", "", hint="blank = unknown; e.g. 1500-2000 ceramic, 3071 steel")
@@ -74,6 +75,11 @@ class CtStep:
             r = view.run("Open CT", session.load_ct, path)
             if r is not None and r.ok:
                 view.watch_job()
+
+        @self.b_cancel.on_click
+        @view.safe("Cancel CT job")
+        def _(_event) -> None:
+            view.run("Cancel CT job", session.cancel_ct_job)
 
         @b_series.on_click
         @view.safe("Open chosen series")
@@ -171,6 +177,7 @@ class CtStep:
 
     def render(self, snap) -> None:
         job = snap.job
+        self.b_cancel.visible = job is not None and not job.done
         if job is not None and not job.done:
             self.h_progress.visible = True
             self.h_progress.value = 100.0 * job.progress
