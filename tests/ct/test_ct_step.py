@@ -196,3 +196,15 @@ def test_cancel_button_stops_a_running_load(tmp_path, step, monkeypatch):
     gate.set()
     s.wait_for_job(300)
     assert s.snapshot().ct is None  # nothing of the cancelled load was kept
+
+
+def test_kit_fields_show_the_plans_kit(tmp_path, monkeypatch):
+    monkeypatch.setattr(step_ct, "SlicePanel", lambda view, name: None)
+    s = Session(SessionConfig(home=tmp_path / "home", clock="sim"))
+    try:
+        assert s.set_fiducial_kit(2.5, 1700.0).ok
+        view = FakeView(s)
+        step_ct.CtStep(view)
+        assert view.gui.h["Ball radius (mm)"].value == 2.5 and view.gui.h["Ball density (HU)"].value == "1700"
+    finally:
+        s.shutdown()

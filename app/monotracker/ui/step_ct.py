@@ -40,6 +40,10 @@ class CtStep:
                                           hint="nominal radius of the kit's balls")
             self.h_kit_hu = gui.add_text("Ball density (HU)", "", hint="blank = unknown; e.g. 1500-2000 ceramic, 3071 steel")
             b_kit = gui.add_button("Apply fiducial kit (detect again)")
+            kit = session.plan_copy().fiducial_kit  # the plan's kit, when it has one
+            if kit is not None and kit.radius_mm is not None:
+                self.h_kit_r.value = float(kit.radius_mm)
+                self.h_kit_hu.value = "" if kit.density_hu is None else f"{kit.density_hu:g}"
             self.h_rejected = gui.add_html("")
             self.h_fid_table = gui.add_html("")
             self.h_fid_sel = gui.add_number("Fiducial number", 0, min=0, max=99, step=1)
