@@ -168,3 +168,43 @@ def test_rejected_blobs_are_listed():
     html = step_ct.rejected_table(SimpleNamespace(ct=ct))
     assert "1.0, 2.0, 3.0" in html and "not round" in html and "&lt;clip&gt;" in html and "120" in html
     assert step_ct.rejected_table(SimpleNamespace(ct=None)) == ""
+
+
+def test_cancel_button_stops_a_running_load(tmp_path, step, monkeypatch):
+    import monotracker.ct as ct_pkg
+
+    ui, view, s = step
+    gate, entered = threading.Event(), threading.Event()
+    real = ct_pkg.load_volume
+
+    def slow(path, series=None):
+        entered.set()
+        gate.wait(120)
+        return real(path, series=series)
+
+    monkeypatch.setattr(ct_pkg, "load_volume", slow)
+    folder = tmp_path / "one"
+    write_series(folder, stack_specs(np.arange(16) * 1.0), _field, series_uid="1.2.3.9", description="only")
+    view.gui.h["CT file or folder"].value = str(folder)
+    view.gui.h["Open CT"].cb(None)
+    assert entered.wait(60)
+    assert s.snapshot().job is not None and not s.snapshot().job.done
+    view.gui.h["Cancel CT job"].cb(None)
+    assert view.said[-1][0], view.said[-1]
+    job = s.snapshot().job
+    assert job.done and "cancelled by the operator" in job.error
+    gate.set()
+    s.wait_for_job(300)
+    assert s.snapshot().ct is None  # nothing of the cancelled load was kept
+
+
+def test_kit_fields_show_the_plans_kit(tmp_path, monkeypatch):
+    monkeypatch.setattr(step_ct, "SlicePanel", lambda view, name: None)
+    s = Session(SessionConfig(home=tmp_path / "home", clock="sim"))
+    try:
+        assert s.set_fiducial_kit(2.5, 1700.0).ok
+        view = FakeView(s)
+        step_ct.CtStep(view)
+        assert view.gui.h["Ball radius (mm)"].value == 2.5 and view.gui.h["Ball density (HU)"].value == "1700"
+    finally:
+        s.shutdown()

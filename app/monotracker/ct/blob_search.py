@@ -119,11 +119,12 @@ class Sibling:
 
 def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_voxels: int, fit,
                  max_fits: int = 400, time_budget_s: float = 60.0, tissue_hu: float = 0.0, noise_hu: float = 20.0,
-                 block: int | None = None):
+                 block: int | None = None, cancel=None):
     """Run the ladder search (module docstring). ``fit(kji, T, siblings)`` returns
     ``(candidate, None)`` or ``(None, RejectedBlob)``. Returns (candidates, rejected, stats).
     ``block``: edge of the coarse grid's blocks for large components (voxels), None =
-    :func:`block_size` of the component's box.
+    :func:`block_size` of the component's box. ``cancel``: a callable; once it returns True
+    the search stops (``stats.stopped`` says so).
 
     A component whose densest voxel barely passes its threshold (by less than
     ``max(6 noise, 15 % of T - tissue)``) is a fragment of something at about that level (bone
@@ -138,7 +139,9 @@ def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_v
     def over_budget() -> bool:
         if stats.stopped:
             return True
-        if time.perf_counter() > t_end:
+        if cancel is not None and cancel():
+            stats.stopped = "search cancelled: results incomplete"
+        elif time.perf_counter() > t_end:
             stats.stopped = f"search stopped after {time_budget_s:.0f} s: results may be incomplete"
         elif stats.fits >= max_fits:
             stats.stopped = f"search stopped after {max_fits} blob fits (a scan full of dense objects?): results may be incomplete"

@@ -37,11 +37,23 @@ def register(subparsers) -> None:
 
 
 def _detect_ct(args: argparse.Namespace) -> int:
+    try:
+        return _detect_ct_run(args)
+    except KeyboardInterrupt:
+        print("interrupted (Ctrl-C): CT detection stopped, nothing written", file=sys.stderr)
+        return 130
+
+
+def _detect_ct_run(args: argparse.Namespace) -> int:
     from monotracker.ct.fiducials import detect_fiducials, detect_fiducials_paper
     from monotracker.ct.volume import load_volume
 
-    if args.radius is not None and not (0.5 <= args.radius <= 20.0):
-        raise InputError(f"--radius {args.radius} mm is implausible (0.5-20 mm)")
+    from monotracker.ct.kit import FiducialKit
+
+    try:  # the kit's own checks (the same as the app's), before the slow load
+        kit = FiducialKit(radius_mm=args.radius, density_hu=args.density)
+    except ValueError as exc:
+        raise InputError(str(exc).replace("fiducial radius", "--radius").replace("fiducial density", "--density")) from None
     if args.list_series:
         return _list_series(args)
     with _native_stderr_silenced():
@@ -49,12 +61,6 @@ def _detect_ct(args: argparse.Namespace) -> int:
     if args.baseline:
         det = detect_fiducials_paper(vol)
     else:
-        from monotracker.ct.kit import FiducialKit
-
-        try:
-            kit = FiducialKit(radius_mm=args.radius, density_hu=args.density)
-        except ValueError as exc:
-            raise InputError(str(exc)) from None
         det = detect_fiducials(vol, kit=kit)
     if args.json:
         out = det.to_dict()

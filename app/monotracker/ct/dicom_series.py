@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from monotracker.ct.dicom_interleave import check_interleaved
 from monotracker.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -92,6 +93,8 @@ class _Slice:
     instance: int
     acquisition: str
     pixels: np.ndarray | None = None
+    #: AcquisitionTime (else ContentTime) of the slice, s since midnight; None when absent.
+    time_s: float | None = None
 
 
 # ---------------------------------------------------------------------------- reading headers
@@ -167,8 +170,28 @@ def _frame_attr(ds, frame_item, seq_name: str, attr: str):
     return None
 
 
+def _tm_seconds(value) -> float | None:
+    """DICOM TM (``HHMMSS.ffffff``, parts may be cut short) as seconds since midnight."""
+    t = str(value or "").strip().replace(":", "")
+    if len(t) < 2 or not t.split(".")[0].isdigit():
+        return None
+    try:
+        hh, mm, ss = int(t[0:2]), int(t[2:4] or 0), float(t[4:] or 0)
+    except ValueError:
+        return None
+    return hh * 3600.0 + mm * 60.0 + ss
+
+
 def _slices_of(ds, path: Path) -> list[_Slice]:
-    """The 2D images of one dataset with their geometry (headers only)."""
+    """The 2D images of one dataset with their geometry (headers only), with the slice time."""
+    out = _slices_of_geometry(ds, path)
+    t = _tm_seconds(ds.get("AcquisitionTime")) if ds.get("AcquisitionTime") else _tm_seconds(ds.get("ContentTime"))
+    for s in out:
+        s.time_s = t
+    return out
+
+
+def _slices_of_geometry(ds, path: Path) -> list[_Slice]:
     n_frames = int(ds.get("NumberOfFrames", 1) or 1)
     instance = int(ds.get("InstanceNumber", 0) or 0)
     acq = str(ds.get("AcquisitionNumber", ""))
@@ -275,6 +298,8 @@ def _check_geometry(slices: list[_Slice], what: str) -> _Geometry:
                     f"{what} holds {len(acqs)} acquisitions (AcquisitionNumber {', '.join(acqs[:4])}) that overlap in space; "
                     "they are not one volume: export each acquisition as its own series"
                 )
+
+    check_interleaved(slices, what)
 
     # duplicate positions
     keep = [0]

@@ -422,7 +422,7 @@ def _window(volume: Volume, kji: np.ndarray, pad_mm: float):
 
 # ---------------------------------------------------------------------------- product method
 def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: FiducialKit | None = None,
-                     time_budget_s: float = 60.0) -> FiducialDetection:
+                     time_budget_s: float = 60.0, cancel=None) -> FiducialDetection:
     """Find the sphere fiducials in ``volume`` (see the module docstring).
 
     Args:
@@ -434,6 +434,8 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
             ``FiducialKit()`` (both unknown).
         time_budget_s: wall-clock bound of the search, s, for pathological scans (a note says
             when it stopped and ``reason`` ends with "(search stopped early)").
+        cancel: optional callable; once it returns True the search stops the same way (the
+            CT job's cancel button and overall timeout).
 
     Returns:
         :class:`FiducialDetection`: ``fiducials`` (centre LPS mm, sub-voxel; fitted radius mm;
@@ -471,7 +473,7 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
     # 4.5 s of SVD on a loaded 2-core machine), so run them single-threaded.
     with threadpool_limits(limits=1, user_api="blas"):
         candidates, rejected, stats = search_blobs(volume, ladder, min_vox, max_vox, fit, time_budget_s=time_budget_s,
-                                                    tissue_hu=levels["tissue"], noise_hu=levels["noise"])
+                                                    tissue_hu=levels["tissue"], noise_hu=levels["noise"], cancel=cancel)
     out.rejected.extend(rejected)
     _size_gate(out, candidates, radius_mm)
     out.fiducials.sort(key=lambda f: -f.centre_lps[2])

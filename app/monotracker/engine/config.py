@@ -104,6 +104,9 @@ class SessionConfig:
     control_process: bool = True
     max_validation_tre_mm: float = 1.5
     camera_optics: str | None = None
+    #: Longest a CT job (load + fiducial detection + surface) may run, s; then it is stopped
+    #: with a one-line message and the previous CT and plan stay (engine/ct_commands.py).
+    ct_job_timeout_s: float = 600.0
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -148,3 +151,6 @@ class SessionConfig:
             raise InputError("resume_dwell_s and start_wait_s must be >= 0 s")
         if not str(self.arm_pin):
             raise InputError("arm_pin must not be empty")
+        t = self.ct_job_timeout_s
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not (1.0 <= float(t) <= 86400.0):
+            raise InputError(f"ct_job_timeout_s must be a number of seconds from 1 to 86400, not {t!r}")

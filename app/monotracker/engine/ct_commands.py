@@ -28,6 +28,38 @@ from monotracker.errors import MonoTrackerError
 log = logging.getLogger(__name__)
 
 
+class JobCancelled(Exception):
+    """The CT job was cancelled (operator) or ran past ``ct_job_timeout_s``; ``str`` is the line."""
+
+
+class JobToken:
+    """One CT job's cancel flag: set by :meth:`CTCommands.cancel_ct_job` or the timeout; the
+    job checks it between its stages (and the fiducial search inside its loop) and then
+    discards its results, so the previous CT and plan stay."""
+
+    def __init__(self):
+        self._event = threading.Event()
+        self.reason = ""
+        self.committed = False  # the job is storing its results: too late to stop it
+        self.timer: threading.Timer | None = None
+
+    def cancel(self, reason: str) -> bool:
+        """Flag the job; False when it was already flagged (the first reason stays)."""
+        if self._event.is_set():
+            return False
+        self.reason = reason
+        self._event.set()
+        return True
+
+    @property
+    def cancelled(self) -> bool:
+        return self._event.is_set()
+
+    def check(self) -> None:
+        if self._event.is_set():
+            raise JobCancelled(self.reason)
+
+
 def detected_fiducials(det) -> list:
     """The plan's fiducials from a detection: ids 0.., status ``detected``."""
     return [PlanFiducial(i, np.asarray(f.centre_lps, float), float(f.radius_mm), float(f.score), "detected")
@@ -82,12 +114,62 @@ class CTCommands:
             if not Path(path).exists():
                 return _fail(f"no such file or folder: {path}")
             self._job = Job("load_ct", 0.0, f"loading {Path(path).name}")
-            th = threading.Thread(target=self._ct_job, args=(path, series), name="monotracker-ct", daemon=True)
+            token = self._new_job_token()
+            th = threading.Thread(target=self._ct_job, args=(path, series, token), name="monotracker-ct", daemon=True)
             self._job_thread = th
         self._alarm_board.clear("ct_failed", float(self.clock()))
         self._bus.event("ct_load_started", f"loading CT {path}", {"path": path})
-        th.start()
+        self._start_job(th, token)
         return _ok("loading CT")
+
+    # ------------------------------------------------------------------ cancel and timeout
+    def _new_job_token(self) -> JobToken:
+        """A fresh token for the job about to start (caller holds the lock)."""
+        self._ct_token = JobToken()
+        return self._ct_token
+
+    def _start_job(self, th: threading.Thread, token: JobToken) -> None:
+        """Start the job thread and its overall timeout (``config.ct_job_timeout_s``)."""
+        limit = float(self.config.ct_job_timeout_s)
+        timer = threading.Timer(limit, self._stop_ct_job, args=(token, f"the CT job ran past its {limit:g} s limit "
+                                                                       "(ct_job_timeout_s) and was stopped"))
+        timer.daemon = True
+        token.timer = timer
+        timer.start()
+        th.start()
+
+    def cancel_ct_job(self) -> CommandResult:
+        """Cancel the running CT job (load, detection, surface). The job stops at its next
+        stage (the fiducial search at once); whatever it had made is discarded: the previous
+        CT, fiducials and plan stay as they were. ``snap.job`` says so at once.
+
+        Refuses (ok=False): no CT job is running."""
+        with self._lock:
+            token = getattr(self, "_ct_token", None)
+            running = self._job is not None and not self._job.done
+        if token is None or not running:
+            return _fail("no CT job is running")
+        if not self._stop_ct_job(token, "cancelled by the operator"):
+            return _fail("no CT job is running")
+        return _ok("CT job cancelled; the previous CT and plan are unchanged")
+
+    def _stop_ct_job(self, token: JobToken, reason: str) -> bool:
+        """Flag ``token``'s job and end it in ``snap.job`` now (the thread winds down by
+        itself). False when that job had already ended or been stopped."""
+        with self._lock:
+            if (token is not getattr(self, "_ct_token", None) or token.committed or self._job is None
+                    or self._job.done):
+                return False
+            if not token.cancel(reason):
+                return False
+            name = self._job.name
+            self._job = Job(name, 1.0, "CT job stopped", f"{reason}; the previous CT and plan are unchanged", True)
+        self._bus.alert("warning", "ct_job_stopped", f"CT job stopped: {reason}", {"job": name})
+        return True
+
+    def _job_ended(self, token: JobToken) -> None:
+        if token.timer is not None:
+            token.timer.cancel()
 
     def set_fiducial_kit(self, radius_mm, density_hu=None) -> CommandResult:
         """Set the fiducial kit (nominal ball radius, mm; material density, HU, None = unknown),
@@ -120,28 +202,41 @@ class CTCommands:
             th = None
             if vol is not None:
                 self._job = Job("detect_fiducials", 0.0, "detecting fiducials with the new kit")
-                th = threading.Thread(target=self._detect_job, args=(vol, kit), name="monotracker-ct", daemon=True)
+                token = self._new_job_token()
+                th = threading.Thread(target=self._detect_job, args=(vol, kit, token), name="monotracker-ct", daemon=True)
                 self._job_thread = th
         self._bus.event("fiducial_kit_set", f"fiducial kit: radius {kit.radius_mm:g} mm, density "
                         + ("unknown" if kit.density_hu is None else f"{kit.density_hu:g} HU"),
                         {"kit": kit.to_dict(), "previous": None if old is None else old.to_dict()})
         if th is None:
             return _ok("fiducial kit kept in the plan; it is used when a CT is loaded")
-        th.start()
+        self._start_job(th, token)
         return _ok("fiducial kit kept in the plan; detecting the fiducials again")
 
-    def _detect_job(self, vol, kit) -> None:
+    def _detect_job(self, vol, kit, token: JobToken) -> None:
         """The CT job of :meth:`set_fiducial_kit`: detection on the loaded volume, then the plan."""
+        try:
+            self._detect_job_body(vol, kit, token)
+        finally:
+            self._job_ended(token)
+
+    def _detect_job_body(self, vol, kit, token: JobToken) -> None:
         try:
             from monotracker.ct import detect_fiducials
 
-            det = detect_fiducials(vol, kit=kit)
+            det = detect_fiducials(vol, kit=kit, cancel=lambda: token.cancelled)
+            token.check()
+        except JobCancelled:
+            return
         except Exception as exc:  # noqa: BLE001 - report, never kill the engine
             log.exception("fiducial detection failed")
-            self._set_job(1.0, "detection failed", f"internal error: {type(exc).__name__}: {exc}", True)
+            self._set_job(1.0, "detection failed", f"internal error: {type(exc).__name__}: {exc}", True, token)
             self._bus.alert("alarm", "ct_failed", f"fiducial detection failed: {type(exc).__name__}: {exc}")
             return
         with self._lock:
+            if token.cancelled:
+                return
+            token.committed = True
             if self._volume is not vol or self._plan.fiducials_locked:
                 self._job = Job("detect_fiducials", 1.0, "detection not used", "the CT or the plan changed meanwhile", True)
                 return
@@ -161,7 +256,7 @@ class CTCommands:
                 self._ct = replace(self._ct, rejected=rejected_summary(det, vol), detection=det.reason)
         self._loop.plan_changed("fiducials detected again (new kit)", restart_camera=False)
         extra = f"; {dropped} added fiducial(s) now detected" if dropped else ""
-        self._set_job(1.0, ("fiducials detected again" if det.ok else f"fiducials: {det.reason}") + extra, None, True)
+        self._set_job(1.0, ("fiducials detected again" if det.ok else f"fiducials: {det.reason}") + extra, None, True, token)
         self._bus.event("fiducials_detected", f"{len(det.fiducials)} fiducials detected in the CT (new kit)"
                         + ("" if det.ok else f" ({det.reason})"),
                         {"ok": bool(det.ok), "reason": det.reason, "kit": kit.to_dict(),
@@ -194,46 +289,70 @@ class CTCommands:
     def _ct_failed_alarm(self) -> None:
         self._alarm_board.set("ct_failed", "the last CT could not be loaded (see the CT step)", float(self.clock()))
 
-    def _set_job(self, progress: float, message: str, error: str | None = None, done: bool = False) -> None:
+    def _set_job(self, progress: float, message: str, error: str | None = None, done: bool = False,
+                 token: JobToken | None = None) -> None:
+        """Update ``snap.job``; ignored for a job that was stopped (``token`` cancelled)."""
         with self._lock:
+            if token is not None and (token.cancelled or token is not getattr(self, "_ct_token", None)):
+                return
             name = self._job.name if self._job else "job"
             self._job = Job(name, progress, message, error, done)
 
-    def _ct_job(self, path: str, series: str | None = None) -> None:
+    def _ct_job(self, path: str, series: str | None = None, token: JobToken | None = None) -> None:
+        token = token or JobToken()
+        try:
+            self._ct_job_body(path, series, token)
+        finally:
+            self._job_ended(token)
+
+    def _ct_job_body(self, path: str, series: str | None, token: JobToken) -> None:
         try:
             from monotracker.ct import detect_fiducials, load_volume
         except ImportError as exc:
-            self._set_job(1.0, "CT tools unavailable", f"CT tools are not installed: {exc}", True)
+            self._set_job(1.0, "CT tools unavailable", f"CT tools are not installed: {exc}", True, token)
             self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT tools are not available: {exc}")
             return
         try:
             vol = load_volume(path, series=series)
-            self._set_job(0.3, "detecting fiducials")
+            token.check()
+            self._set_job(0.3, "detecting fiducials", token=token)
             with self._lock:
                 kit = self._plan.fiducial_kit
-            det = detect_fiducials(vol, kit=kit)
-            self._set_job(0.6, "extracting the head surface")
+            det = detect_fiducials(vol, kit=kit, cancel=lambda: token.cancelled)
+            token.check()
+            self._set_job(0.6, "extracting the head surface", token=token)
             try:
                 from monotracker.ct import head_surface
             except ImportError:  # older ct package: no surface, the plan still works
                 head_surface = None
             mesh = head_surface(vol) if head_surface is not None else None
-            self._set_job(0.8, "checking the CT's content hash")
+            token.check()
+            self._set_job(0.8, "checking the CT's content hash", token=token)
             anatomy = plan_checks.Anatomy.from_ct(vol, mesh)
             ct_sha = self._hash_ct(path)
+            token.check()
+        except JobCancelled:
+            return  # snap.job already says why; nothing of this job is kept
         except MonoTrackerError as exc:
-            self._set_job(1.0, "CT failed", str(exc), True)
+            if token.cancelled:
+                return
+            self._set_job(1.0, "CT failed", str(exc), True, token)
             self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT could not be used: {exc}", {"path": path})
             return
         except Exception as exc:  # noqa: BLE001 - report, never kill the engine
+            if token.cancelled:
+                return
             log.exception("CT job failed")
-            self._set_job(1.0, "CT failed", f"internal error: {type(exc).__name__}: {exc}", True)
+            self._set_job(1.0, "CT failed", f"internal error: {type(exc).__name__}: {exc}", True, token)
             self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT job failed: {type(exc).__name__}: {exc}", {"path": path})
             return
         with self._lock:
+            if token.cancelled:  # stopped while finishing: the previous CT and plan stay
+                return
+            token.committed = True  # from here on the job cannot be stopped: it is being kept
             restored = self._plan.fiducials_locked and self._plan.ct_path == path
             recorded = self._plan.integrity.get("ct_sha256")
             if not restored:  # a new plan on this CT: saved first, then swapped in with the volume
@@ -272,7 +391,7 @@ class CTCommands:
                 self._bus.alert("alarm", "plan_path_invalid", f"the restored path fails its check on the CT: {why}")
         if not restored:
             self._loop.plan_changed("new CT loaded", restart_camera=False)
-        self._set_job(1.0, "CT ready" if det.ok else f"CT ready; fiducials: {det.reason}", None, True)
+        self._set_job(1.0, "CT ready" if det.ok else f"CT ready; fiducials: {det.reason}", None, True, token)
         if restored:
             self._bus.event("ct_reloaded", f"CT reloaded for the saved plan: {path}", {"path": path})
         else:

@@ -20,6 +20,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
 
     s.load_ct(path)                     # async job: load + detect fiducials + head surface; progress in snap.job
     s.load_sample_ct()
+    s.set_fiducial_kit(radius_mm, density_hu=None)   # kept in the plan; with a CT: detection again (CT job)
+    s.cancel_ct_job()                   # stop the CT job; previous CT and plan stay (also: config.ct_job_timeout_s)
     s.set_fiducial_status(fid_id, "confirmed" | "rejected" | "detected")
     s.add_fiducial(p_lps_mm, radius_mm=None, manual=False)   # operator-added fiducial (LPS mm); status "added";
                                         #   with a CT it must be a dense ball there, else refused (manual=True: unverified)
@@ -49,7 +51,7 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     snap = s.snapshot()   # immutable copy (monotracker.engine.snapshot.Snapshot), cheap at 30 Hz
     snap.step             # "ct" | "plan" | "register" | "robot": the workflow step the session is at
     snap.job              # None or Job(name, progress 0..1, message, error, done)
-    snap.ct               # None or CTSummary(path, shape, spacing_mm, notes); snap.head_mesh: HeadMesh(vertices LPS mm, faces)
+    snap.ct               # None or CTSummary(path, shape, spacing_mm, notes, rejected, detection); snap.head_mesh: HeadMesh(vertices LPS mm, faces)
     snap.fiducials        # tuple of Fiducial(id, centre_lps_mm, radius_mm, score, status)
     snap.fiducials_locked # bool
     snap.plan             # PlanSummary(entry_lps_mm, target_lps_mm, path_length_mm,

@@ -25,6 +25,11 @@ class SliceSpec:
     iop: np.ndarray
     instance: int = 0
     acquisition: int = 1
+    #: AcquisitionTime and ContentTime of the slice, s since midnight (None: not written).
+    time_s: float | None = None
+    #: The patient's displacement for this slice, mm (LPS): ``field`` is sampled at
+    #: ``points - shift`` (motion between two acquisitions).
+    shift_mm: tuple = (0.0, 0.0, 0.0)
 
 
 def axial_iop() -> np.ndarray:
@@ -94,8 +99,12 @@ def write_series(folder: Path, specs: list[SliceSpec], field, rows: int = 32, co
         ds.SliceThickness = "1.0"
         ds.InstanceNumber = spec.instance or k + 1
         ds.AcquisitionNumber = spec.acquisition
+        if spec.time_s is not None:
+            t = float(spec.time_s)
+            ds.AcquisitionTime = ds.ContentTime = f"{int(t // 3600):02d}{int(t % 3600 // 60):02d}{t % 60:09.6f}"
         ds.RescaleSlope, ds.RescaleIntercept = 1, intercept
-        hu = field(pixel_points(spec, rows, cols, pixel_spacing).reshape(-1, 3)).reshape(rows, cols)
+        pts = pixel_points(spec, rows, cols, pixel_spacing).reshape(-1, 3) - np.asarray(spec.shift_mm, float)
+        hu = field(pts).reshape(rows, cols)
         ds.PixelData = np.clip(np.rint(hu - intercept), -32768, 32767).astype("<i2").tobytes()
         p = folder / f"{description}_{k:04d}.dcm"
         ds.save_as(p, enforce_file_format=True)

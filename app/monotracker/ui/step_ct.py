@@ -35,10 +35,15 @@ class CtStep:
             self.series_path = ""
             self.h_progress = gui.add_progress_bar(0.0, visible=False, animated=True)
             self.h_job = gui.add_markdown("")
+            self.b_cancel = gui.add_button("Cancel CT job", visible=False)
             self.h_kit_r = gui.add_number("Ball radius (mm)", 4.0, min=0.5, max=20.0, step=0.1,
                                           hint="nominal radius of the kit's balls")
             self.h_kit_hu = gui.add_text("Ball density (HU)", "", hint="blank = unknown; e.g. 1500-2000 ceramic, 3071 steel")
             b_kit = gui.add_button("Apply fiducial kit (detect again)")
+            kit = session.plan_copy().fiducial_kit  # the plan's kit, when it has one
+            if kit is not None and kit.radius_mm is not None:
+                self.h_kit_r.value = float(kit.radius_mm)
+                self.h_kit_hu.value = "" if kit.density_hu is None else f"{kit.density_hu:g}"
             self.h_rejected = gui.add_html("")
             self.h_fid_table = gui.add_html("")
             self.h_fid_sel = gui.add_number("Fiducial number", 0, min=0, max=99, step=1)
@@ -74,6 +79,11 @@ class CtStep:
             r = view.run("Open CT", session.load_ct, path)
             if r is not None and r.ok:
                 view.watch_job()
+
+        @self.b_cancel.on_click
+        @view.safe("Cancel CT job")
+        def _(_event) -> None:
+            view.run("Cancel CT job", session.cancel_ct_job)
 
         @b_series.on_click
         @view.safe("Open chosen series")
@@ -171,6 +181,7 @@ class CtStep:
 
     def render(self, snap) -> None:
         job = snap.job
+        self.b_cancel.visible = job is not None and not job.done
         if job is not None and not job.done:
             self.h_progress.visible = True
             self.h_progress.value = 100.0 * job.progress
