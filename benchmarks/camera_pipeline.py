@@ -15,7 +15,9 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    of fully visible balls, partly hidden balls accepted, and per frame through the pose
    tracker: right (TRE < 1 mm at the planned deep target), refused, wrong-but-valid (TRE > 2 mm
    while trusted: must be 0), predicted/actual TRE (median ratio), detector ms (wall median)
-   and CPU ms (process time, all threads).
+   and CPU ms (process time, all threads); frame ms: CPU time of the whole frame through the pose
+   tracker (detection + registration + trust checks). ``edge-v1``: the edge detector with its
+   settings before the JPEG work (colour as it is, integration window +-3.5 px), same run.
 B. Scale: ball radius 5-30 px (camera 880-150 mm away), photo-like optics: recall, centre
    error, refusals and time for each detector (the learned detector's place).
 Full run only: 2. whole-frame timing, 3. pose over a 60 s trajectory, 4. occlusion alert latency
@@ -74,6 +76,29 @@ class Recording:
         return self.last
 
 
+class EdgeSettings:
+    """A detector run with other edge-fit settings (module constants of vision/edge_fit.py), e.g.
+    the previous ones, for a same-run comparison."""
+
+    def __init__(self, det, **settings):
+        self.det, self.settings, self.name = det, settings, det.name
+
+    def detect(self, image):
+        from monotracker.vision import edge_fit
+
+        old = {k: getattr(edge_fit, k) for k in self.settings}
+        for k, v in self.settings.items():
+            setattr(edge_fit, k, v)
+        try:
+            return self.det.detect(image)
+        finally:
+            for k, v in old.items():
+                setattr(edge_fit, k, v)
+
+
+#: the edge fit before the JPEG work (issue 13, round 2): colour as it is, window +-3.5 px
+EDGE_V1 = dict(CHROMA_SIGMA_PX=0.0, INTEGRATION_SHARE=1.75)
+
 CONDITIONS = ("clean", "OR", "degraded", "clutter")
 
 
@@ -122,7 +147,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
     print(f"\nA. Conditions x detectors, OR-layout camera, {n_frames} frames over {seconds:.0f} s each "
           "(error vs exact ellipse centre; TRE at the planned deep target)")
     print(f"{'condition':<9} {'detector':<11} {'err mean':>8} {'err p95':>7} {'recall':>6} {'partial':>7} "
-          f"{'right %':>7} {'refused %':>9} {'wrong-valid':>11} {'pred/act':>8} {'det ms':>6} {'cpu ms':>6}")
+          f"{'right %':>7} {'refused %':>9} {'wrong-valid':>11} {'pred/act':>8} {'det ms':>6} {'cpu ms':>6} "
+          f"{'frame ms':>8}")
     for cond in CONDITIONS:
         cam = condition_camera(cond, seconds, seed)
         ph = cam.phantom
@@ -135,7 +161,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
             colour = learn_ball_colour(img0, tr0.ellipse_centres_px[k])
         except Exception as exc:  # noqa: BLE001 - report the refusal in the table
             colour, why = None, str(exc)
-        dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")), ("edge", ClassicalDetector(rules))]
+        dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")),
+                ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)), ("edge", ClassicalDetector(rules))]
         dets.append(("edge+colour", ClassicalDetector(rules, colour=colour) if colour is not None else None))
         if with_learned:
             dets.append(("learned", LearnedDetector(rules=rules)))
@@ -147,8 +174,11 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
             trk = PoseTracker(cam.fiducials_ct, cam.camera, detector=rec, radius_mm=ph.fiducial_radius_mm,
                               target_ct=ph.sample_target_lps)
             errs, found, vis, partial, right, refused, wrong, ratio, wall = [], 0, 0, 0, 0, 0, 0, [], []
+            frame_cpu = []
             for i, (img, tr) in enumerate(frames):
+                c0 = time.process_time()
                 e = trk.process(Frame(img, float(times[i]), i, tr))
+                frame_cpu.append(time.process_time() - c0)
                 d = rec.last
                 wall.append(d.time_s)
                 er, f, pa = _match_centres(d.centres, tr)
@@ -170,7 +200,7 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
             print(f"{cond:<9} {name:<11} {np.nanmean(ea):8.3f} {np.nanpercentile(ea, 95):7.3f} "
                   f"{found / max(vis, 1):6.3f} {partial:7d} {100 * right / n:7.1f} {100 * refused / n:9.1f} "
                   f"{wrong:11d} {np.median(ratio) if ratio else float('nan'):8.2f} "
-                  f"{1000 * np.median(wall):6.1f} {1000 * np.median(rec.cpu):6.1f}")
+                  f"{1000 * np.median(wall):6.1f} {1000 * np.median(rec.cpu):6.1f} {1000 * np.median(frame_cpu):8.1f}")
 
 
 def scale_table(seed: int, n_frames: int, with_learned: bool = True):
@@ -184,7 +214,8 @@ def scale_table(seed: int, n_frames: int, with_learned: bool = True):
         frames = [cam.render(t) for t in np.linspace(0, 2, n_frames)]
         rules = BlobRules(radius_mm=4.0, focal_px=1100.0, min_distance_mm=min(250.0, 0.8 * dist),
                           max_distance_mm=max(1000.0, 1.2 * dist))
-        dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")), ("edge", ClassicalDetector(rules))]
+        dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")),
+                ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)), ("edge", ClassicalDetector(rules))]
         if with_learned:
             dets.append(("learned", LearnedDetector(rules=rules)))
         for name, det in dets:

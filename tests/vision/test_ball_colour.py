@@ -25,8 +25,9 @@ def test_learned_magenta_balls_are_detected_default_green_finds_none(magenta_fra
     assert colour.hue_lo < 154 < colour.hue_hi
     assert ClassicalDetector().detect(img).fiducials == []
     d = ClassicalDetector(colour=colour).detect(img)
-    # hair may cross one ball's edge: that ball is refused (never a biased centre)
-    assert len(d.fiducials) >= 8 and int(tr.visible.sum()) == 9
+    # hair may cross a ball's edge, JPEG blocks may dent one: such a ball is refused (never a
+    # biased centre); at most two of nine here
+    assert len(d.fiducials) >= 7 and int(tr.visible.sum()) == 9
     err = np.linalg.norm(d.centres[:, None] - tr.ellipse_centres_px[None], axis=2).min(1)
     assert err.max() < 0.35
 

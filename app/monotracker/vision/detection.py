@@ -174,7 +174,10 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
         raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {centre_method!r}")
     refine_image = image if refine_image is None else refine_image
     h, w = mask.shape[:2]
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    # outer boundaries of every blob, also of blobs inside a hole of another one (balls on the
+    # head seen through a ball-coloured drape around it: RETR_EXTERNAL would drop them unseen)
+    contours, hier = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    contours = [c for c, hh in zip(contours, hier[0] if hier is not None else []) if hh[3] < 0]
     cands, rejected = [], []
     for cnt in contours:
         inner_area = cv2.contourArea(cnt)              # area inside the pixel-centre contour

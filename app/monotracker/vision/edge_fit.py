@@ -117,44 +117,73 @@ def _ellipse_residuals(pts, ell):
     return (rho - 1.0) / np.maximum(grad, 1e-9)
 
 
+#: Gaussian sigma (px) to which the colour-difference channels are smoothed along each ray
+#: before the edge integral (the checks see the pixels as they are); 0 = off. JPEG (4:2:0) and
+#: the camera's demosaicing keep colour at half resolution, and JPEG quantises it in 16x16 px
+#: blocks in gamma-encoded space: at JPEG 85 its errors moved edge-fit centres by ~0.1 px.
+#: Colour is trusted only at the resolution it has; luma keeps full resolution.
+CHROMA_SIGMA_PX = 2.0
+
+
+#: chroma counts as band-limited (JPEG 4:2:0 / 4:2:2, heavy demosaicing) when its fine detail
+#: (second differences) has less than this share of the luma's energy; measured on our renders:
+#: uncompressed Bayer or RGB frames 0.65-0.94, JPEG 4:2:0 (quality 70-95) 0.03-0.09
+CHROMA_BANDLIMIT_RATIO = 0.13
+
+
+def _detail_energy(roi_bgr: np.ndarray) -> np.ndarray:
+    """Sum of squared second differences (x and y) of Y', Cr, Cb of a uint8 BGR patch (3,)."""
+    ycc = cv2.cvtColor(roi_bgr, cv2.COLOR_BGR2YCrCb).astype(np.float32)
+    dx = ycc[:, 2:] - 2.0 * ycc[:, 1:-1] + ycc[:, :-2]
+    dy = ycc[2:] - 2.0 * ycc[1:-1] + ycc[:-2]
+    return (dx**2).sum(axis=(0, 1)) + (dy**2).sum(axis=(0, 1))
+
+
+def chroma_is_band_limited(detail_energy) -> bool:
+    """True when the colour of the frame has much less fine detail than its luma (see
+    :data:`CHROMA_BANDLIMIT_RATIO`): its fine colour detail is then compression noise, and the
+    edge integral uses colour smoothed to :data:`CHROMA_SIGMA_PX`."""
+    e = np.asarray(detail_energy, float)
+    return bool(e[0] > 0 and 0.5 * (e[1] + e[2]) < CHROMA_BANDLIMIT_RATIO * e[0])
+
+
+def _smooth_chroma_along_rays(enc_prof: np.ndarray, sigma_samples: float) -> np.ndarray:
+    """Ray profiles of gamma-encoded BGR (n, k, 3), 0-255 -> linear-light BGR (n, k, 3) with the
+    colour differences (B - Y', R - Y', what JPEG calls Cb and Cr) smoothed ALONG each ray by a
+    Gaussian of ``sigma_samples`` and luma Y' untouched. Along the ray only: a blur across the
+    edge leaves a symmetric edge integral in place, whereas a 2-D blur of a disc's colour pulls
+    its edge inwards by ~sigma^2 / (2 r) (0.2 px for a 9 px ball at sigma 2 px), unevenly where the
+    background changes colour around the ball."""
+    k = enc_prof.shape[1]
+    j = np.arange(k)
+    ker = np.exp(-0.5 * ((j[:, None] - j[None, :]) / max(sigma_samples, 1e-6)) ** 2)
+    ker /= ker.sum(1, keepdims=True)                                  # (k, k), rows sum to 1
+    b, g, r = enc_prof[..., 0], enc_prof[..., 1], enc_prof[..., 2]
+    y = 0.114 * b + 0.587 * g + 0.299 * r
+    b2 = y + (b - y) @ ker.T
+    r2 = y + (r - y) @ ker.T
+    g2 = (y - 0.114 * b2 - 0.299 * r2) * (1.0 / 0.587)
+    out = np.stack([b2, g2, r2], -1).astype(np.float32)
+    return cv2.pow(np.clip(out, 0.0, 255.0) * np.float32(1.0 / 255.0), 2.2)
+
+
+#: the edge integral runs over +-(this x blur_px) px around the half-coverage crossing (1.5 px
+#: at the default blur_px 2): a window centred on the crossing needs not hold the whole blurred
+#: edge (what it cuts off on either side cancels), and every further sample adds its noise
+#: (JPEG's above all); 0.75 measured best on photo-like frames with and without JPEG
+INTEGRATION_SHARE = 0.75
+CROSSING_AGREE_PX = 1.0
+
 #: samples per ray (the step adapts to the ball's size: ~0.2-0.4 px)
 SAMPLES = 48
 
 
-def _edge_points(image_bgr, balls, blur_px):
-    """Edge points of several balls at once. ``balls``: list of coarse OpenCV ellipses
-    ((cx, cy), (d1, d2), angle_deg). Returns per ball (points (n, 2) px, usable (n,) bool), or None
-    for a ball too close to the image border."""
-    h, w = image_bgr.shape[:2]
-    k = SAMPLES
-    profs, geo, out = [], [], [None] * len(balls)
-    for i, ((cx, cy), (d1, d2), ang) in enumerate(balls):
-        axes = (d1 / 2, d2 / 2)
-        a, b = max(axes), min(axes)
-        n_rays = int(np.clip(2 * np.pi * a / 1.6, 32, 96))
-        phi = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
-        r = _ray_radius(axes, ang, phi)
-        w_out = 3.0 + 0.25 * b + blur_px
-        w_in = min(w_out, 0.65 * float(r.min()))
-        step = (w_in + w_out) / (k - 1)
-        m = int(np.ceil(a + w_out + 2))
-        x0, y0 = int(np.floor(cx)) - m, int(np.floor(cy)) - m
-        x1, y1 = int(np.floor(cx)) + m + 2, int(np.floor(cy)) + m + 2
-        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
-            continue
-        lin = LINEAR_LUT[image_bgr[y0:y1, x0:x1]]
-        s = (r - w_in)[:, None] + (np.arange(k) * step)[None, :]              # (n, k) from centre
-        u = np.stack([np.cos(phi), np.sin(phi)], 1)
-        mx = (cx - x0 + s * u[:, 0:1]).astype(np.float32)
-        my = (cy - y0 + s * u[:, 1:2]).astype(np.float32)
-        profs.append(cv2.remap(lin, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
-        geo.append((i, n_rays, np.array([cx, cy]), u, r - w_in, step))
-    if not profs:
-        return out
-    prof = np.concatenate(profs, 0) @ COLOUR_WEIGHTS.T                          # (N, k, 3)
-    N = len(prof)
-    counts = [g[1] for g in geo]
-    step = np.repeat([g[5] for g in geo], counts)                               # (N,)
+def _unmix(prof, counts, t):
+    """Per sample of (N, k, 3) ray profiles (colour space of :data:`COLOUR_WEIGHTS`): the share
+    gamma of the background in ``p = alpha * ball colour + gamma * background(t)``, clipped to
+    [0, 1]; ``counts`` the rays per ball, ``t`` (1, k) the sample position of the background
+    line. Returns (gamma (N, k), the pieces the checks reuse)."""
+    k = prof.shape[1]
     edge_k = max(k // 10, 3)
     # ball colour direction per ball: median of the unit colour vectors of its inner samples
     inner = prof[:, :edge_k]
@@ -173,7 +202,6 @@ def _edge_points(image_bgr, balls, blur_px):
     G1 = prof[:, k - 2 * half:k - half].mean(1)
     G2 = prof[:, k - half:].mean(1)
     slope = (G2 - G1) / half                                                    # per sample
-    t = (np.arange(k) - (k - 1.5 * half - 0.5)).astype(np.float32)[None, :]    # G(t) = G1 + t slope
     # per sample: p = alpha * bdir + gamma * G(t)  ->  gamma from the 2x2 normal equations
     dot = np.einsum
     bg = dot("nc,nc->n", G1, bdir)[:, None] + t * dot("nc,nc->n", slope, bdir)[:, None]
@@ -184,6 +212,63 @@ def _edge_points(image_bgr, balls, blur_px):
     det = gg - bg**2
     good_det = det > 1e-12
     gamma = np.clip((pg - bg * pb) / np.where(good_det, det, 1.0), 0.0, 1.0)
+    return gamma, dict(bdir=bdir, G1=G1, G2=G2, slope=slope, bg=bg, gg=gg, pb=pb, pg=pg, det=det,
+                       good_det=good_det)
+
+
+def _edge_points(image_bgr, balls, blur_px):
+    """Edge points of several balls at once. ``balls``: list of coarse OpenCV ellipses
+    ((cx, cy), (d1, d2), angle_deg). Returns per ball (points (n, 2) px, usable (n,) bool), or None
+    for a ball too close to the image border."""
+    h, w = image_bgr.shape[:2]
+    k = SAMPLES
+    profs, sprofs, geo, out = [], [], [], [None] * len(balls)
+    hf = np.zeros(3)
+    for i, ((cx, cy), (d1, d2), ang) in enumerate(balls):
+        axes = (d1 / 2, d2 / 2)
+        a, b = max(axes), min(axes)
+        n_rays = int(np.clip(2 * np.pi * a / 1.6, 32, 96))
+        phi = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
+        r = _ray_radius(axes, ang, phi)
+        w_out = 3.0 + 0.25 * b + blur_px
+        w_in = min(w_out, 0.65 * float(r.min()))
+        step = (w_in + w_out) / (k - 1)
+        m = int(np.ceil(a + w_out + 2))
+        x0, y0 = int(np.floor(cx)) - m, int(np.floor(cy)) - m
+        x1, y1 = int(np.floor(cx)) + m + 2, int(np.floor(cy)) + m + 2
+        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+            continue
+        roi = image_bgr[y0:y1, x0:x1]
+        lin = LINEAR_LUT[roi]
+        s = (r - w_in)[:, None] + (np.arange(k) * step)[None, :]              # (n, k) from centre
+        u = np.stack([np.cos(phi), np.sin(phi)], 1)
+        mx = (cx - x0 + s * u[:, 0:1]).astype(np.float32)
+        my = (cy - y0 + s * u[:, 1:2]).astype(np.float32)
+        profs.append(cv2.remap(lin, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+        if CHROMA_SIGMA_PX > 0:
+            hf += _detail_energy(roi)
+            sprofs.append((roi, mx, my, step))
+        geo.append((i, n_rays, np.array([cx, cy]), u, r - w_in, step))
+    if not profs:
+        return out
+    prof = np.concatenate(profs, 0) @ COLOUR_WEIGHTS.T                          # (N, k, 3)
+    N = len(prof)
+    counts = [g[1] for g in geo]
+    step = np.repeat([g[5] for g in geo], counts)                               # (N,)
+    edge_k = max(k // 10, 3)
+    half = k // 8
+    t = (np.arange(k) - (k - 1.5 * half - 0.5)).astype(np.float32)[None, :]    # G(t) = G1 + t slope
+    gamma, U = _unmix(prof, counts, t)
+    bdir, G1, G2, slope = U["bdir"], U["G1"], U["G2"], U["slope"]
+    bg, gg, pb, pg, det, good_det = U["bg"], U["gg"], U["pb"], U["pg"], U["det"], U["good_det"]
+    # the edge's position comes from the chroma-smoothed profile (same geometry); the checks
+    # below from the pixels as they are
+    gamma_e = gamma
+    if sprofs and chroma_is_band_limited(hf):
+        enc = [_smooth_chroma_along_rays(cv2.remap(roi.astype(np.float32), mx, my, cv2.INTER_LINEAR,
+                                                   borderMode=cv2.BORDER_REPLICATE), CHROMA_SIGMA_PX / st)
+               for roi, mx, my, st in sprofs]
+        gamma_e = _unmix(np.concatenate(enc, 0) @ COLOUR_WEIGHTS.T, counts, t)[0]
     Gm = 0.5 * (G1 + G2)
     gnorm = np.sqrt(np.einsum("ij,ij->i", Gm, Gm))
     usable = (np.einsum("ij,ij->i", Gm, bdir) < 0.995 * gnorm) & (gnorm > 1e-4) & good_det.all(axis=1)
@@ -191,11 +276,20 @@ def _edge_points(image_bgr, balls, blur_px):
     # bias this ray)
     usable &= np.abs(gamma[:, k - 2 * half:] - 1.0).max(1) < 0.2
     # integrate only near the edge: from the outermost sample still mostly ball (gamma < 0.5),
-    # +-(1.5 + blur) px; ball shading, a highlight or hair further inside cannot move the edge
+    # +-INTEGRATION_SHARE * blur px; ball shading, a highlight or hair further inside cannot move
+    # the edge. The checks below look at a wider window, +-(1.5 + blur) px.
+    starts = np.cumsum([0] + counts[:-1])
     below = gamma < 0.5
     j_half = (k - 1) - np.argmax(below[:, ::-1], axis=1)                       # last gamma < 0.5
     half_w = np.ceil((1.5 + blur_px) / step).astype(int)
     j_lo = np.maximum(j_half - half_w, 0)     # small balls: from the ray's start (checked below)
+    half_i = np.ceil(max(INTEGRATION_SHARE * blur_px, 1.0) / step).astype(int)
+    below_e = gamma_e < 0.5
+    j_half_e = (k - 1) - np.argmax(below_e[:, ::-1], axis=1)
+    # both crossings must agree (smoothing must not move the edge by more than a pixel)
+    usable &= below_e.any(axis=1) & (np.abs(j_half_e - j_half) * step <= CROSSING_AGREE_PX)
+    j_lo_i = np.maximum(j_half_e - half_i, 0)
+    j_hi_i = np.minimum(j_half_e + half_i + 1, k)
     usable &= below.any(axis=1)
     cum = np.concatenate([np.zeros((N, 1), np.float32), np.cumsum(1.0 - gamma, axis=1)], axis=1)
     rows = np.arange(N)
@@ -205,7 +299,6 @@ def _edge_points(image_bgr, balls, blur_px):
     # (threshold adapts to the noise of gamma, measured on the clean background of each ball:
     # a highlight spilling into the edge window shows as gamma > 0 on the ball side)
     g_noise = np.std(gamma[:, k - 2 * half:], axis=1)
-    starts = np.cumsum([0] + counts[:-1])
     noise_ball = np.repeat([_median(g_noise[a:a + c]) for a, c in zip(starts, counts)], counts)
     usable &= ball_side > 1.0 - np.clip(0.08 + 2.0 * noise_ball, 0.08, 0.25)
     # a third colour in the edge window (the head's outline meeting the drape right at the
@@ -217,7 +310,9 @@ def _edge_points(image_bgr, balls, blur_px):
     jj = np.arange(k)[None, :]
     win = (jj >= j_lo[:, None]) & (jj < j_hi[:, None])
     usable &= np.where(win, resid, 0.0).max(axis=1) < MAX_UNMIX_RESIDUAL
-    edge_rel = (j_lo - 0.5 + (cum[rows, j_hi] - cum[rows, j_lo])) * step        # from the ray start
+    cum_e = cum if gamma_e is gamma else np.concatenate(
+        [np.zeros((N, 1), np.float32), np.cumsum(1.0 - gamma_e, axis=1)], axis=1)
+    edge_rel = (j_lo_i - 0.5 + (cum_e[rows, j_hi_i] - cum_e[rows, j_lo_i])) * step  # from the ray start
     start = 0
     for (i, n, c, u, s0, _st), cnt in zip(geo, counts):
         e = s0 + edge_rel[start:start + cnt]
