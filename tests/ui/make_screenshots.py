@@ -1,4 +1,6 @@
-"""Screenshots of each web-app step at 1280x800 and 1920x1080 -> docs/img/ui_<step>_<size>.jpg.
+"""Screenshots of each web-app step at 1280x800 and 1920x1080 -> docs/img/ui_<step>_<size>.jpg,
+and of the navigation view (slices in the main view) in Plan and Robot (live needle tip) ->
+docs/img/ui_navigation_<step>_<size>.jpg.
 
     .venv/bin/python tests/ui/make_screenshots.py   (from the repository root; needs chromium)
 """
@@ -13,7 +15,9 @@ from playwright.sync_api import sync_playwright
 
 out = Path("docs/img"); out.mkdir(parents=True, exist_ok=True)
 home = Path(tempfile.mkdtemp(prefix="ui-shots"))
-s = Session(SessionConfig(home=home, camera="sim", robot="sim", trajectory="breathing", arm_pin="2468")); s.start()
+# pictures, not a test: on a loaded machine the freshness gates are loosened so the pose stays trusted
+s = Session(SessionConfig(home=home, camera="sim", robot="sim", trajectory="breathing", arm_pin="2468",
+                          camera_fps=15.0, max_pose_age_s=1.0, freeze_after_s=1.0)); s.start()
 s.load_sample_ct()
 _wait(lambda: s.snapshot().job is not None and s.snapshot().job.done and s.snapshot().head_mesh is not None, what="ct")
 for f in s.snapshot().fiducials:
@@ -38,7 +42,11 @@ try:
                     _command(page, "Start camera")
                     _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="pose")
                 if step == "robot" and s.snapshot().robot.state == "disarmed":
-                    _click(page, "Arm (PIN)"); _pin_pad(page, "2468")
+                    for _ in range(30):  # on a loaded machine arming is refused while the pose is stale
+                        _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="pose")
+                        _click(page, "Arm (PIN)"); print("arm:", _pin_pad(page, "2468"), flush=True)
+                        if s.snapshot().robot.state == "armed":
+                            break
                     _wait(lambda: s.snapshot().robot.state == "armed", what="armed")
                     for _ in range(20):
                         if s.snapshot().robot.state in ("tracking", "holding"):
@@ -47,6 +55,14 @@ try:
                 time.sleep(4)
                 page.screenshot(path=str(out / f"ui_{step}_{w}x{h}.jpg"), type="jpeg", quality=70)
                 print("shot", step, w, h, flush=True)
+                if step in ("plan", "robot"):  # the navigation view (slices) in the main view
+                    page.locator("text=Slices in main view >> visible=true").first.click()
+                    want = "tip" if step == "robot" else "target"
+                    page.wait_for_function(f"document.querySelector('#mt-nav-{step}').dataset.source === '{want}'")
+                    time.sleep(3)
+                    page.screenshot(path=str(out / f"ui_navigation_{step}_{w}x{h}.jpg"), type="jpeg", quality=70)
+                    print("shot navigation", step, w, h, page.locator(f"#mt-nav-{step}").inner_text(), flush=True)
+                    page.locator("text=Slices in main view >> visible=true").first.click()
             page.close()
 finally:
     app.stop(); s.shutdown()

@@ -121,6 +121,11 @@ class SceneView:
         handle.position = T_mm[:3, 3] * MM
 
     def render(self, snap, step: str) -> None:
+        # one writer of this tab's scene at a time: the navigation worker resets it for its tiles
+        with self.view.nav_scene.scene_lock:
+            self._render(snap, step)
+
+    def _render(self, snap, step: str) -> None:
         scene = self.view.scene
         keys = self.view.scene_keys
         nav = self.view.nav_panel(step)
@@ -137,9 +142,8 @@ class SceneView:
             keys["view"] = step
             for k in ("mesh", "fids", "path", "robot_q", "frustum"):
                 keys.pop(k, None)
-            with self.view.nav_scene.scene_lock:  # no slice tile lands in the 3D view
-                self.view.nav_scene.leave()
-                scene.reset()
+            self.view.nav_scene.leave()  # no slice tile stays in the 3D view
+            scene.reset()
             self._ct_frame = scene.add_frame("/ct", show_axes=False)
             self._cam_frame = scene.add_frame("/cam", show_axes=False, visible=step in ("register", "robot"))
             self._robot_frame = scene.add_frame("/robot", show_axes=False, visible=step == "robot")

@@ -28,9 +28,14 @@ LABEL_STEPS = {v: k for k, v in STEP_LABELS.items()}
 LIVE_STEPS = ("register", "robot", "calibration")  # steps whose page shows the live camera overlay
 #: docked panel widths (px) for a compact screen (1280x800: the canvas keeps 480-540 px between
 #: the panels, enough for the 3D head or the navigation slices) and a wide one (>= 1700 px).
-PANEL_PX = {"status": 300, "steps": 440, "steps_live": 500}
+PANEL_PX = {"status": 330, "steps": 440, "steps_live": 480}
 PANEL_PX_WIDE = {"status": 360, "steps": 470, "steps_live": 640}
 WIDE_PX = (1650, 1750)  # viewport widths (px) to switch to compact below / to wide above (hysteresis)
+
+
+#: on a compact page the state block's words shrink a little so they fit the narrower status panel
+COMPACT_CSS = ("<style>@media (max-width: 1600px) { .mt-state b { font-size: 1.7rem; } "
+               ".mt-state span { font-size: 0.8rem; margin-left: 6px; } }</style>")
 
 
 def panel_widths(step: str, wide: bool) -> tuple[int, int]:
@@ -106,6 +111,7 @@ class ClientView:
         gui.configure_theme(control_width="large", show_share_button=False, brand_color=(43, 108, 176))
         gui.set_panel_label("MonoTracker")
         gui.add_html(st.CSS)
+        gui.add_html(COMPACT_CSS)
         self.status = StatusPanel(self, snap)
         self.h_steps = gui.add_button_group("Step", [STEP_LABELS[s] for s in VIEW_STEPS])
 
