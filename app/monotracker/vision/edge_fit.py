@@ -181,6 +181,10 @@ def _smooth_chroma_along_rays(enc_prof: np.ndarray, sigma_samples: float) -> np.
 INTEGRATION_SHARE = 0.75
 CROSSING_AGREE_PX = 1.0
 
+#: a ball whose fitted centre moved further than this (px) from the coarse one gets its rays
+#: re-centred and fitted once more
+RECENTRE_PX = 0.6
+
 #: samples per ray (the step adapts to the ball's size: ~0.2-0.4 px)
 SAMPLES = 48
 
@@ -430,7 +434,7 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float = 2.0) 
             res[i] = EdgeFit(True, "", np.array([cx, cy]), (max(d1, d2) / 2, min(d1, d2) / 2), float(ang), rms,
                              float(keep.mean()), rms / np.sqrt(max(keep.sum(), 2) / 2.0))
             moved = np.hypot(cx - current[i][0][0], cy - current[i][0][1])
-            if it == 0 and moved > 0.6:
+            if it == 0 and moved > RECENTRE_PX:
                 again[i] = ell   # re-centre the rays once (an oblique ray still finds the edge)
         current = again
     return res
