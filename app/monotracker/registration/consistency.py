@@ -36,10 +36,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import f as f_dist
 
 from .api import register
 from .pnp import _residuals_and_jacobian, refine_pose
+from .quantiles import f_ppf
 from .projection import undistort_to_normalised
 from .result import Registration
 
@@ -87,7 +87,7 @@ def _pick_sigma(s_loo: float, dof_loo: int, sigma_px: float | None, sigma_dof: i
     estimate is significantly larger (F-test, 1 %): then the noise rose now and the fit's own
     value, with its few dof, is used. Without a pooled estimate, the fit's own."""
     if sigma_px is not None and sigma_dof > 0 and np.isfinite(sigma_px) and sigma_px > 0:
-        if dof_loo <= 0 or s_loo**2 / sigma_px**2 <= f_dist.ppf(0.99, dof_loo, sigma_dof):
+        if dof_loo <= 0 or s_loo**2 / sigma_px**2 <= f_ppf(0.99, dof_loo, sigma_dof):
             return max(float(sigma_px), 1e-3), int(sigma_dof)
     return max(float(s_loo), 1e-3), int(max(dof_loo, 1))
 
@@ -96,7 +96,7 @@ def moved_gate(dof: int, p: float = P_MOVED) -> float:
     """Threshold on d2 for a 2D prediction error whose noise sigma was estimated with ``dof``
     degrees of freedom: ``2 F_{1-p}(2, dof)`` (-> the chi-square quantile for large dof).
     Using the chi-square quantile with a noise estimate from 10 dof raised false alarms ~50x."""
-    return float(2.0 * f_dist.ppf(1.0 - p, 2, max(int(dof), 1)))
+    return float(2.0 * f_ppf(1.0 - p, 2, max(int(dof), 1)))
 
 
 def _loo_one(T, X, obs, fxy, radius, i, sigma_px, sigma_dof=0):

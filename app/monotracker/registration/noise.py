@@ -30,8 +30,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
-from scipy.stats import f as f_dist
+from monotracker.registration.quantiles import chi2_ppf, f_ppf
 
 
 @dataclass(frozen=True)
@@ -49,9 +48,14 @@ class NoiseEstimate:
     @property
     def upper_px(self) -> float:
         """One-sided 95 % upper confidence bound of the noise (px), given ``dof``."""
+        return self.upper(0.95)
+
+    def upper(self, confidence: float = 0.95) -> float:
+        """One-sided upper confidence bound of the noise (px) at ``confidence`` (0.5 ~ the
+        estimate itself), given ``dof``: ``sigma sqrt(dof / chi2_(1 - confidence)(dof))``."""
         if self.dof <= 0 or not np.isfinite(self.sigma_px):
             return float("nan")
-        return float(self.sigma_px * np.sqrt(self.dof / chi2.ppf(0.05, self.dof)))
+        return float(self.sigma_px * np.sqrt(self.dof / chi2_ppf(1.0 - confidence, self.dof)))
 
 
 class OnlineNoise:
@@ -88,7 +92,7 @@ class OnlineNoise:
             return NoiseEstimate(max(cand), frame_px, pooled_px, tot_dof, "prior")
         if dof > 0 and p_dof > 0:
             old_var = p_rss / p_dof
-            crit = f_dist.ppf(1.0 - self.alpha, dof, p_dof)
+            crit = f_ppf(1.0 - self.alpha, dof, p_dof)
             if old_var > 0 and frame_var / old_var > crit:
                 return NoiseEstimate(max(frame_px, pooled_px), frame_px, pooled_px, dof, "frame")
         return NoiseEstimate(pooled_px, frame_px, pooled_px, tot_dof, "pooled")

@@ -124,11 +124,11 @@ def is_ambiguous(best: "Candidate", runner: "Candidate | None", opts: RobustOpti
         return True
     db, dr = 2 * best.count - 6, 2 * runner.count - 6
     if runner.count >= best.count and db >= 4 and dr >= 4:
-        from scipy.stats import f as f_dist
+        from monotracker.registration.quantiles import f_ppf
 
         sb = float(np.sum(best.refinement.residuals**2)) / db
         sr = float(np.sum(runner.refinement.residuals**2)) / dr
-        return sr < f_dist.ppf(0.95, dr, db) * max(sb, 1e-12)
+        return sr < f_ppf(0.95, dr, db) * max(sb, 1e-12)
     return False
 
 

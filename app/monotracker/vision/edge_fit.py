@@ -43,6 +43,7 @@ still be off by ~1.5 px (seen only with the learned detector's coarser blobs).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -147,6 +148,15 @@ def chroma_is_band_limited(detail_energy) -> bool:
     return bool(e[0] > 0 and 0.5 * (e[1] + e[2]) < CHROMA_BANDLIMIT_RATIO * e[0])
 
 
+@lru_cache(maxsize=256)
+def _ray_kernel(k: int, sigma_samples: float) -> np.ndarray:
+    """(k, k) Gaussian smoothing matrix along a ray profile, rows summing to 1 (truncated at
+    the profile's ends)."""
+    j = np.arange(k)
+    ker = np.exp(-0.5 * ((j[:, None] - j[None, :]) / max(sigma_samples, 1e-6)) ** 2)
+    return (ker / ker.sum(1, keepdims=True)).astype(np.float32)
+
+
 def _smooth_chroma_along_rays(enc_prof: np.ndarray, sigma_samples: float) -> np.ndarray:
     """Ray profiles of gamma-encoded BGR (n, k, 3), 0-255 -> linear-light BGR (n, k, 3) with the
     colour differences (B - Y', R - Y', what JPEG calls Cb and Cr) smoothed ALONG each ray by a
@@ -154,10 +164,7 @@ def _smooth_chroma_along_rays(enc_prof: np.ndarray, sigma_samples: float) -> np.
     edge leaves a symmetric edge integral in place, whereas a 2-D blur of a disc's colour pulls
     its edge inwards by ~sigma^2 / (2 r) (0.2 px for a 9 px ball at sigma 2 px), unevenly where the
     background changes colour around the ball."""
-    k = enc_prof.shape[1]
-    j = np.arange(k)
-    ker = np.exp(-0.5 * ((j[:, None] - j[None, :]) / max(sigma_samples, 1e-6)) ** 2)
-    ker /= ker.sum(1, keepdims=True)                                  # (k, k), rows sum to 1
+    ker = _ray_kernel(enc_prof.shape[1], round(float(sigma_samples), 2))
     b, g, r = enc_prof[..., 0], enc_prof[..., 1], enc_prof[..., 2]
     y = 0.114 * b + 0.587 * g + 0.299 * r
     b2 = y + (b - y) @ ker.T
@@ -173,6 +180,10 @@ def _smooth_chroma_along_rays(enc_prof: np.ndarray, sigma_samples: float) -> np.
 #: (JPEG's above all); 0.75 measured best on photo-like frames with and without JPEG
 INTEGRATION_SHARE = 0.75
 CROSSING_AGREE_PX = 1.0
+
+#: a ball whose fitted centre moved further than this (px) from the coarse one gets its rays
+#: re-centred and fitted once more
+RECENTRE_PX = 0.6
 
 #: samples per ray (the step adapts to the ball's size: ~0.2-0.4 px)
 SAMPLES = 48
@@ -423,7 +434,7 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float = 2.0) 
             res[i] = EdgeFit(True, "", np.array([cx, cy]), (max(d1, d2) / 2, min(d1, d2) / 2), float(ang), rms,
                              float(keep.mean()), rms / np.sqrt(max(keep.sum(), 2) / 2.0))
             moved = np.hypot(cx - current[i][0][0], cy - current[i][0][1])
-            if it == 0 and moved > 0.6:
+            if it == 0 and moved > RECENTRE_PX:
                 again[i] = ell   # re-centre the rays once (an oblique ray still finds the edge)
         current = again
     return res
