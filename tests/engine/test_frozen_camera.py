@@ -62,8 +62,11 @@ def test_real_clock_rig_never_estimates_a_repeated_frame(tmp_path):
 
 def test_frozen_camera_detected_at_the_first_repeat_and_arm_still_within_0_1_s(tmp_path):
     fast = Breathing(amplitude_mm=4.0, period_s=2.0)  # 12.6 mm/s peak: the arm is moving
-    r = run_demo(DemoOptions(seconds=4.0, trajectory=fast, fault="camera-freeze", fault_at_s=2.5,
-                             home=_planned_home(tmp_path), config_overrides={"camera": "sim-points"}))
+    # the freeze hits where the head moves fastest (the arm surely moving, whatever the load did
+    # to when tracking started), and right after a frame: the slowest detection
+    r = run_demo(DemoOptions(seconds=4.0, trajectory=fast, fault="camera-freeze", fault_at_s=2.0,
+                             fault_at_fastest_within_s=1.0, home=_planned_home(tmp_path),
+                             config_overrides={"camera": "sim-points"}))
     fr = r["fault_report"]
     assert fr["engine_reported"].startswith("[alarm] camera_freeze") and "bit for bit" in fr["engine_reported"]
     assert fr["tip_speed_before_fault_mm_s"] > 3.0
@@ -71,5 +74,8 @@ def test_frozen_camera_detected_at_the_first_repeat_and_arm_still_within_0_1_s(t
     # the first repeated frame comes at most one frame period after the fault
     assert fr["detection_delay_s"] <= 2 / 30 + 1e-9
     assert fr["standstill_after_fault_s"] <= 0.1 + 1e-9
-    assert fr["arm_travel_after_fault_mm"] < 0.5
+    # the stop itself: < 0.5 mm; before the detection the arm follows the head (up to one frame
+    # period at 17 mm/s: 0.5 mm without prediction, 0.8 mm with it, measured)
+    assert fr["arm_travel_after_detection_mm"] < 0.5
+    assert fr["arm_travel_after_fault_mm"] < 1.0
     assert fr["state_after"] == "holding" and fr["plan_intact"]
