@@ -102,6 +102,8 @@ class _Recorder:
         self.rows = []  # (t, state, tip_err, ang_err, tip_speed, max_joint_speed)
         self.tip_positions = []  # (t, tip position in base mm) 
         self.tre = []
+        self.tip_vs_registered = []  # (t, tip distance to the registered entry mm) while tracking
+        self._reg_error = None
         self._seen_pose = None
         self.tracking_since = None
 
@@ -119,6 +121,12 @@ class _Recorder:
             self.tracking_since = t
         qd = 0.0 if st is None or st.qd is None else float(np.max(np.abs(st.qd)))
         self.rows.append((t, state, tip, ang, 0.0 if st is None else float(st.speed_mm_s), qd))
+        if (state == "tracking" and st is not None and st.T_base_tip is not None and T_base_ct is not None
+                and self._reg_error is not None):
+            # the entry where the newest registration puts it, on the head as it is now: what a
+            # tracker without latency would reach with this registration
+            e = apply_transform(T_base_ct @ self._reg_error, self.entry)
+            self.tip_vs_registered.append((t, float(np.linalg.norm(st.T_base_tip[:3, 3] - e))))
         if st is not None and st.T_base_tip is not None:
             self.tip_positions.append((t, st.T_base_tip[:3, 3].copy()))
         rec = loop._latest
@@ -127,6 +135,8 @@ class _Recorder:
             smp = rec.sample
             if rec.trusted and smp.T_cam_ct is not None and smp.truth_T_cam_ct is not None:
                 d = apply_transform(smp.T_cam_ct, self.target) - apply_transform(smp.truth_T_cam_ct, self.target)
+                # the registration's error as a rigid map in CT (T_cam_ct = truth @ error)
+                self._reg_error = np.linalg.solve(smp.truth_T_cam_ct, smp.T_cam_ct)
                 self.tre.append(float(np.linalg.norm(d)))
 
 
@@ -303,6 +313,9 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         "tracking_started_at_s": t_track,
         "registration_tre_mm": _stats(rec.tre),
         "tip_error_mm": _stats([r[2] for r in trk]),
+        # against the entry where the newest registration puts it on the head as it is now (not
+        # the truth): the tracking part of the error, without the registration's own
+        "tip_error_vs_registered_mm": _stats([e for t, e in rec.tip_vs_registered if settle_from <= t < until]),
         "axis_error_deg": _stats([r[3] for r in trk]),
         "tracking_fraction": len(trk) / max(1, len([r for r in rec.rows if settle_from <= r[0] < until])),
         "latency_ms": _stats(lat),
