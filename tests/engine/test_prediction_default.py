@@ -9,8 +9,9 @@ import pytest
 
 from monotracker.engine import Session, SessionConfig
 from monotracker.engine.demo import DemoOptions, run_demo
-from monotracker.sim.phantom import default_phantom
 from monotracker.sim.trajectories import Breathing
+
+from .conftest import plan_sample
 
 # a head oscillating 4 mm at 0.5 Hz (12.6 mm/s peak): the arm is really moving when a fault hits
 FAST = Breathing(amplitude_mm=4.0, period_s=2.0)
@@ -21,10 +22,7 @@ def planned_home(tmp_path_factory):
     home = tmp_path_factory.mktemp("planned")
     s = Session(SessionConfig(home=home, clock="sim"))
     try:
-        ph = default_phantom()
-        for c in ph.fiducial_centres_lps:
-            assert s.add_fiducial(c, ph.fiducial_radius_mm).ok
-        assert s.confirm_fiducials().ok and s.use_sample_plan().ok
+        plan_sample(s)
     finally:
         s.shutdown()
     return home
