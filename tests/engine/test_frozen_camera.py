@@ -48,14 +48,16 @@ def test_real_clock_rig_never_estimates_a_repeated_frame(tmp_path):
         rig.set_fault("camera-freeze")
         time.sleep(0.05)
         rig.poll_frame_info()
-        last = rig.latest_sample().t_capture
         info = []
         while len(info) < 3 and time.monotonic() < deadline:
             info += rig.poll_frame_info()
             time.sleep(0.02)
         assert len(info) >= 3 and len({d for _, d in info}) == 1  # repeats, newly stamped
         assert len({t for t, _ in info}) == len(info)
-        assert rig.latest_sample().t_capture <= last  # no pose from a repeated frame
+        # no pose from a repeated frame: nothing newer than the first of the identical frames
+        # (the original may be among them; a frame captured before the freeze may still finish
+        # estimating meanwhile on a loaded machine, so no snapshot of "the latest" is taken)
+        assert rig.latest_sample().t_capture <= min(t for t, _ in info)
     finally:
         rig.stop()
 
