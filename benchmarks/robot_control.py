@@ -376,9 +376,9 @@ def main(argv=None) -> int:
             rms, mx, ang, frms, fmax = tracking(v, rate, speed, t_track, pred)
             if i == 0:
                 rows.append([label, "baseline: ideal arm on the last received target", f"{frms:.2f}", f"{fmax:.2f}", "-"])
-            name = v + (" + latency prediction (ours, opt-in)" if pred else "")
+            name = v + (" + latency prediction (engine default)" if pred else "")
             if v == "APF-A-II" and not pred:
-                name += " (default)"
+                name += " (paper; old engine default)"
             rows.append([label, name, f"{rms:.2f}", f"{mx:.2f}", f"{ang:.2f}"])
     table(f"3. Tracking a moving head (camera 30 Hz, 50 ms latency, pose jitter {NOISE_MM} mm / {NOISE_DEG} deg; "
           "error vs the true current target, after 2 s; goal with prediction: 15 mm/s <= 0.5 mm RMS, "
@@ -389,7 +389,7 @@ def main(argv=None) -> int:
     for kind in ("stale target", "target jump", "NaN pose", "arm disconnect", "singular pose"):
         for pred in (False, True):
             st, tstop, dist, reason = fault(kind, rate, predict=pred)
-            rows.append([kind, "on" if pred else "off (default)", st, f"{tstop:.3f}",
+            rows.append([kind, "on (default)" if pred else "off (old default)", st, f"{tstop:.3f}",
                          f"{dist:.2f}", reason])
     table("4. Fault injection while tracking a head moving at 15 mm/s (APF-A-II): time from the fault to "
           "standstill (< 1e-3 rad/s) and needle-tip distance travelled meanwhile",
@@ -399,7 +399,7 @@ def main(argv=None) -> int:
     for kind in ("jump", "occlusion"):
         for pred in (False, True):
             before, after, over, st, states = prediction_event(kind, rate, pred)
-            rows.append([kind, "on" if pred else "off (default)", f"{before:.2f}", f"{after:.2f}",
+            rows.append([kind, "on (default)" if pred else "off (old default)", f"{before:.2f}", f"{after:.2f}",
                          "-" if not np.isfinite(over) else f"{over:.2f}", states, st])
     table("5. Prediction under a real 6 mm head jump (accepted: under the 20 mm limit) and a 0.3 s occlusion, "
           "head at 15 mm/s: worst tip error before (1 s) and after (1.5 s) the event, overshoot beyond the "

@@ -57,6 +57,10 @@ class DemoOptions:
     trajectory: str = "breathing"
     fault: str = "none"
     fault_at_s: float | None = None  # default: half-way through the tracking time
+    #: move the fault to where the true head moves fastest (at the planned entry) within this
+    #: many seconds after ``fault_at_s``: the arm is then surely moving when it hits, whatever
+    #: the machine's load did to when tracking started (tests of stopping need that)
+    fault_at_fastest_within_s: float | None = None
     seed: int = 0
     camera_fps: float = 30.0
     control_hz: float = 125.0
@@ -74,6 +78,8 @@ class DemoOptions:
             raise InputError("--seconds must be positive")
         if not (self.trajectory in TRAJECTORIES or hasattr(self.trajectory, "pose")):
             raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
+        if self.fault_at_fastest_within_s is not None and not (self.fault_at_fastest_within_s >= 0):
+            raise InputError("fault_at_fastest_within_s must be >= 0 s")
         if self.fault not in FAULTS:
             raise InputError(f"unknown fault {self.fault!r}; use one of {', '.join(FAULTS)}")
 
@@ -96,6 +102,8 @@ class _Recorder:
         self.rows = []  # (t, state, tip_err, ang_err, tip_speed, max_joint_speed)
         self.tip_positions = []  # (t, tip position in base mm) 
         self.tre = []
+        self.tip_vs_registered = []  # (t, tip distance to the registered entry mm) while tracking
+        self._reg_error = None
         self._seen_pose = None
         self.tracking_since = None
 
@@ -113,6 +121,12 @@ class _Recorder:
             self.tracking_since = t
         qd = 0.0 if st is None or st.qd is None else float(np.max(np.abs(st.qd)))
         self.rows.append((t, state, tip, ang, 0.0 if st is None else float(st.speed_mm_s), qd))
+        if (state == "tracking" and st is not None and st.T_base_tip is not None and T_base_ct is not None
+                and self._reg_error is not None):
+            # the entry where the newest registration puts it, on the head as it is now: what a
+            # tracker without latency would reach with this registration
+            e = apply_transform(T_base_ct @ self._reg_error, self.entry)
+            self.tip_vs_registered.append((t, float(np.linalg.norm(st.T_base_tip[:3, 3] - e))))
         if st is not None and st.T_base_tip is not None:
             self.tip_positions.append((t, st.T_base_tip[:3, 3].copy()))
         rec = loop._latest
@@ -121,6 +135,8 @@ class _Recorder:
             smp = rec.sample
             if rec.trusted and smp.T_cam_ct is not None and smp.truth_T_cam_ct is not None:
                 d = apply_transform(smp.T_cam_ct, self.target) - apply_transform(smp.truth_T_cam_ct, self.target)
+                # the registration's error as a rigid map in CT (T_cam_ct = truth @ error)
+                self._reg_error = np.linalg.solve(smp.truth_T_cam_ct, smp.T_cam_ct)
                 self.tre.append(float(np.linalg.norm(d)))
 
 
@@ -139,6 +155,20 @@ def _standstill_after(rows, t0: float) -> float | None:
         else:
             start = None
     return None
+
+
+def _fastest_head_time(s: Session, t0: float, window_s: float, rate_hz: float) -> float:
+    """The control tick in ``[t0, t0 + window_s]`` where the simulator's TRUE planned entry
+    point moves fastest (s, session clock); ``t0`` when the rig has no truth."""
+    rig = s._loop.rig
+    if rig is None or not hasattr(rig, "truth_T_base_ct"):
+        return t0
+    entry = s.plan_copy().entry_lps_mm
+    ts = t0 + np.arange(0.0, window_s + 1e-9, 1.0 / rate_hz)
+    p = np.array([apply_transform(rig.truth_T_base_ct(t), entry) for t in ts])
+    if len(p) < 2:
+        return t0
+    return float(ts[1:][int(np.argmax(np.linalg.norm(np.diff(p, axis=0), axis=1)))])
 
 
 def run_demo(opts: DemoOptions, camera_factory=None, robot_factory=None, on_tracking=None) -> dict:
@@ -238,6 +268,8 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
     fault_at = None
     if opts.fault != "none":
         fault_at = t_track + (opts.fault_at_s if opts.fault_at_s is not None else max(opts.settle_s + 1.0, 0.5 * opts.seconds))
+        if opts.fault_at_fastest_within_s:
+            fault_at = _fastest_head_time(s, fault_at, float(opts.fault_at_fastest_within_s), opts.control_hz)
         fault_at = min(fault_at, t_end - 0.5)
         s.advance(max(0.0, fault_at - s.snapshot().t))
         fault_at = s.snapshot().t
@@ -281,6 +313,9 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         "tracking_started_at_s": t_track,
         "registration_tre_mm": _stats(rec.tre),
         "tip_error_mm": _stats([r[2] for r in trk]),
+        # against the entry where the newest registration puts it on the head as it is now (not
+        # the truth): the tracking part of the error, without the registration's own
+        "tip_error_vs_registered_mm": _stats([e for t, e in rec.tip_vs_registered if settle_from <= t < until]),
         "axis_error_deg": _stats([r[3] for r in trk]),
         "tracking_fraction": len(trk) / max(1, len([r for r in rec.rows if settle_from <= r[0] < until])),
         "latency_ms": _stats(lat),
@@ -296,6 +331,8 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         t_still = _standstill_after(rec.rows, fault_at)
         after = [p for t, p in rec.tip_positions if t >= fault_at]
         travel = max(float(np.linalg.norm(p - after[0])) for p in after) if after else None
+        after_det = [p for t, p in rec.tip_positions if t_det is not None and t >= t_det]
+        travel_det = max(float(np.linalg.norm(p - after_det[0])) for p in after_det) if after_det else None
         out["fault_report"] = {
             "injected_at_s": fault_at,
             "detected_at_s": t_det,
@@ -305,6 +342,8 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
             "standstill_after_detection_s": None if (t_still is None or t_det is None) else max(0.0, t_still - t_det),
             "engine_reported": None if det is None else f"[{det.level}] {det.code}: {det.message}",
             "arm_travel_after_fault_mm": travel,
+            # from the detection on: what the stop itself cost (before it the arm follows the head)
+            "arm_travel_after_detection_mm": travel_det,
             "tip_speed_before_fault_mm_s": max((r[4] for r in rec.rows if fault_at - 0.1 <= r[0] <= fault_at),
                                                default=None),
             "state_after": snap.robot.state,

@@ -6,6 +6,7 @@ state (``self.s`` the session, ``self.robot``, the pose records) these methods u
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -19,14 +20,27 @@ from monotracker.errors import MonoTrackerError
 class RobotCommands:
     """The tracking loop's robot commands: arm, disarm, start/stop tracking, e-stop, reset (part of :class:`~monotracker.engine.loop.TrackingLoop`)."""
 
+    #: serialises robot creation (``connect_robot`` from the browser's Calibrate step and
+    #: ``arm`` may race: two callers must never build two arm connections); class-wide because
+    #: the mixin has no ``__init__`` of its own, and creation is rare
+    _robot_create_lock = threading.Lock()
+
     def _ensure_robot(self) -> components.RobotRig:
-        if self.robot is None:
-            self.robot = components.make_robot_rig(self.cfg, self.s)
-            if self._threads_wanted and self.cfg.clock == "real":
-                self.robot.start_thread()
-            plan = self.s.plan_copy()
-            if plan.T_base_cam is None and self.robot.default_T_base_cam is not None:
-                self.s.set_hand_eye(self.robot.default_T_base_cam)
+        """The robot rig, created (and connected) on first use; thread-safe: concurrent
+        callers get the same rig. Raises ``MonoTrackerError`` when it cannot be created."""
+        rob = self.robot
+        if rob is not None:
+            return rob
+        with self._robot_create_lock:
+            if self.robot is None:  # checked again: another caller may have created it meanwhile
+                rob = components.make_robot_rig(self.cfg, self.s)
+                with self._lock:
+                    self.robot = rob
+                if self._threads_wanted and self.cfg.clock == "real":
+                    rob.start_thread()
+                plan = self.s.plan_copy()
+                if plan.T_base_cam is None and rob.default_T_base_cam is not None:
+                    self.s.set_hand_eye(rob.default_T_base_cam)
         return self.robot
 
     def robot_state(self) -> str:

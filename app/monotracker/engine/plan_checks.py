@@ -145,18 +145,11 @@ def check_hand_eye(T, limits: PlanLimits = LIMITS) -> str | None:
     a, why = finite_array(T, (4, 4), "T_base_cam")
     if why:
         return why
-    R = a[:3, :3]
-    with np.errstate(all="ignore"):  # huge entries overflow to inf: refused below
-        orth = float(np.abs(R.T @ R - np.eye(3)).max())
-        det = float(np.linalg.det(R))
-    if not (np.isfinite(orth) and np.isfinite(det)):
-        return "T_base_cam is not a rigid transform (its entries are far too large)"
-    if det < 0:
-        return f"T_base_cam is a reflection (det {det:.3f}), not a rigid transform"
-    if orth > limits.rigid_tol or abs(det - 1.0) > limits.rigid_tol:
-        return f"T_base_cam is not a rigid transform (|R^T R - I| {orth:.2g}, det {det:.4f})"
-    if not np.allclose(a[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
-        return "T_base_cam's last row must be (0, 0, 0, 1)"
+    from monotracker.robot.rigid import rigid_problem  # the one rigid check (robot targets, hand-eye)
+
+    why = rigid_problem(a, limits.rigid_tol, "T_base_cam")
+    if why:
+        return why
     if np.abs(a[:3, 3]).max() > limits.max_translation_mm:  # before the norm: no overflow
         return f"T_base_cam puts the camera more than {limits.max_translation_mm:.0f} mm from the robot base"
     t = float(np.linalg.norm(a[:3, 3]))

@@ -17,7 +17,7 @@ import threading
 import numpy as np
 
 from monotracker.engine.components import RobotStatus
-from monotracker.engine.robot_rig import TrackerRobotRig, standby_configuration
+from monotracker.engine.robot_rig import TrackerRobotRig, sim_arm_setup
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
 from monotracker.geometry import apply_transform, invert_transform
@@ -38,14 +38,9 @@ class ProcessRobotRig(TrackerRobotRig):
         self.tracker = None
         if cfg.robot == "sim":
             from monotracker.robot.sim_arm import SimulatedArm
-            from monotracker.sim.or_layout import default_layout
 
-            layout = default_layout()
-            q0 = standby_configuration(layout)
-            if q0 is None:
-                raise MonoTrackerError("the OR layout's standby pose is not reachable by the UR10 (IK failed)")
-            factory = functools.partial(SimulatedArm, q0=q0, period_s=1.0 / cfg.control_hz, seed=cfg.seed)
-            self.default_T_base_cam = layout.T_base_cam
+            arm_kw, self.default_T_base_cam = sim_arm_setup(cfg)
+            factory = functools.partial(SimulatedArm, **arm_kw)
             self._is_sim = True
         else:
             from monotracker.robot.ur_rtde_arm import URRTDEArm

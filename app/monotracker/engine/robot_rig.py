@@ -45,6 +45,20 @@ def standby_configuration(layout, standby_mm: float = STANDBY_MM):
     return res.q if res.ok else None
 
 
+def sim_arm_setup(cfg) -> tuple[dict, np.ndarray]:
+    """The simulated UR10 for ``robot="sim"`` (both rigs, in-process and control process):
+    ``(SimulatedArm keyword arguments without the clock, T_base_cam of the OR layout (mm))``,
+    the arm starting at the layout's standby configuration. Raises ``MonoTrackerError`` when the
+    UR10 cannot reach the standby pose."""
+    from monotracker.sim.or_layout import default_layout
+
+    layout = default_layout()
+    q0 = standby_configuration(layout)
+    if q0 is None:
+        raise MonoTrackerError("the OR layout's standby pose is not reachable by the UR10 (IK failed)")
+    return {"q0": q0, "period_s": 1.0 / cfg.control_hz, "seed": cfg.seed}, layout.T_base_cam
+
+
 class TrackerRobotRig(RobotRig):
     def __init__(self, cfg, session):
         if not ROBOT_READY:
@@ -57,15 +71,10 @@ class TrackerRobotRig(RobotRig):
         self.sim_arm = None
         if cfg.robot == "sim":
             from monotracker.robot.sim_arm import SimulatedArm
-            from monotracker.sim.or_layout import default_layout
 
-            layout = default_layout()
-            q0 = standby_configuration(layout)
-            if q0 is None:
-                raise MonoTrackerError("the OR layout's standby pose is not reachable by the UR10 (IK failed)")
-            arm = SimulatedArm(q0=q0, clock=self.clock, period_s=1.0 / cfg.control_hz, seed=cfg.seed)
+            arm_kw, self.default_T_base_cam = sim_arm_setup(cfg)
+            arm = SimulatedArm(clock=self.clock, **arm_kw)
             self.sim_arm = arm
-            self.default_T_base_cam = layout.T_base_cam
         else:
             ip = cfg.robot.split(":", 1)[1]
             try:

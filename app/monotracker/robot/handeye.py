@@ -27,6 +27,7 @@ import numpy as np
 
 from monotracker.errors import InputError
 from monotracker.geometry import invert_transform, make_transform, rotation_angle_deg
+from monotracker.robot.rigid import rigid_problem
 
 METHODS = {
     "tsai": cv2.CALIB_HAND_EYE_TSAI,
@@ -95,13 +96,10 @@ def _residuals(T_bt, T_ct, T_bc):
 def _check_poses(name, Ts) -> list[np.ndarray]:
     out = []
     for i, T in enumerate(Ts):
-        T = np.asarray(T, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise InputError(f"hand-eye: {name}[{i}] is not a finite 4x4 transform")
-        R = T[:3, :3]
-        if not np.allclose(R.T @ R, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0:
-            raise InputError(f"hand-eye: {name}[{i}] has no proper rotation")
-        out.append(T)
+        why = rigid_problem(T, 1e-4, f"{name}[{i}]")
+        if why:
+            raise InputError(f"hand-eye: {why}")
+        out.append(np.asarray(T, dtype=float))
     return out
 
 

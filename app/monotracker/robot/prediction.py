@@ -59,7 +59,8 @@ class TargetPredictor:
         jerk_sigma_m_s3, jerk_sigma_rad_s3: the head's jerk as white noise (m/s^3, rad/s^3,
             per sqrt(s)): larger follows changes of speed sooner, smaller filters more (tuned
             on the benchmarks: a 15 mm/s head and breathing).
-        accel0_m_s2, accel0_rad_s2: prior spread of the acceleration when the filter starts.
+        speed0_m_s, speed0_rad_s, accel0_m_s2, accel0_rad_s2: prior spreads (1 sigma) of the
+            head's speed and acceleration when the filter (re)starts.
         model: ``"ca"`` (constant acceleration) or ``"cv"`` (constant velocity; the
             ``jerk_sigma`` values are then the acceleration's white noise).
         learn_noise: learn the jitter from the stream (else ``meas_sigma`` throughout).
@@ -79,6 +80,7 @@ class TargetPredictor:
                  max_gap_s: float = 0.1, min_samples: int = 3, lead_s: float = 0.0,
                  meas_sigma_m: float = 0.15e-3, meas_sigma_rad: float = np.radians(0.05),
                  jerk_sigma_m_s3: float = 0.02, jerk_sigma_rad_s3: float = 0.05,
+                 speed0_m_s: float = 0.02, speed0_rad_s: float = 0.05,
                  accel0_m_s2: float = 0.05, accel0_rad_s2: float = 0.1, model: str = "ca", learn_noise: bool = True,
                  blend_s: float = 0.05, free_roll: bool = True):
         if model not in ("ca", "cv"):
@@ -101,6 +103,7 @@ class TargetPredictor:
         self.blend_s = float(blend_s)
         self.free_roll = bool(free_roll)
         self._q = np.array([jerk_sigma_rad_s3 ** 2, jerk_sigma_m_s3 ** 2], dtype=float)
+        self._v0 = np.array([speed0_rad_s ** 2, speed0_m_s ** 2], dtype=float)
         self._a0 = np.array([accel0_rad_s2 ** 2, accel0_m_s2 ** 2], dtype=float)
         self.resets = 0
         self.reset()
@@ -148,15 +151,6 @@ class TargetPredictor:
         self._n += 1
         if self.learn_noise:
             self._learn_noise(T, float(stamp))
-        if self._n == 2:
-            # initialise from the two measurements: exact for a constant motion, with the
-            # covariance of a two-point difference; acceleration unknown (zero, wide)
-            self._T, self.V, self.A = T.copy(), step, np.zeros(6)
-            for g in range(2):
-                r = self._r[g]
-                self._P[g] = np.array([[r, r / dt, 0.0], [r / dt, 2.0 * r / dt ** 2, 0.0],
-                                       [0.0, 0.0, self._a0[g] if self.model == "ca" else 0.0]])
-            return
         # predict (constant acceleration, white-noise jerk) ...
         T_pred = self._T @ exp6(self.V * dt + 0.5 * self.A * dt * dt)
         V_pred = self.V + self.A * dt
@@ -207,9 +201,15 @@ class TargetPredictor:
         self._r = np.clip(self._r_est, 0.01 * self._r0, 100.0 * self._r0)
 
     def _restart(self, T, stamp) -> None:
+        """Start the filter on one measurement: pose ``T``, twist and its rate zero with the
+        prior spreads of a head's motion (``speed0``, ``accel0``), so the first frame-to-frame
+        differences, noisy over a 33 ms baseline, are shrunk towards standing still rather than
+        taken as they are."""
         self.reset()
         self._last = (T.copy(), float(stamp))
         self._T = T.copy()
+        for g in range(2):
+            self._P[g] = np.diag([self._r[g], self._v0[g], self._a0[g] if self.model == "ca" else 0.0])
         self._n = 1
 
     def predict(self, T: np.ndarray, now: float) -> tuple[np.ndarray, np.ndarray]:

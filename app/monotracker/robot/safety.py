@@ -49,6 +49,7 @@ from monotracker.geometry import invert_transform
 from monotracker.robot.head import Corridor, HeadSphere
 from monotracker.robot.kinematics import Kinematics, NeedleTool, joint_limits
 from monotracker.robot.lie import adjoint, log3
+from monotracker.robot.rigid import rigid_problem
 
 log = logging.getLogger(__name__)
 
@@ -102,12 +103,12 @@ class TargetStatus:
     reason: str
 
 
+#: a target's rotation may be off by this much (it went through unit conversions and products)
+TARGET_RIGID_TOL = 1e-3
+
+
 def _rigid_ok(T: np.ndarray) -> bool:
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        return False
-    R = T[:3, :3]
-    return (np.allclose(R.T @ R, np.eye(3), atol=1e-3) and abs(np.linalg.det(R) - 1.0) < 1e-3
-            and np.allclose(T[3], [0, 0, 0, 1]))
+    return rigid_problem(T, TARGET_RIGID_TOL, "target") is None
 
 
 class SafetyLayer:
