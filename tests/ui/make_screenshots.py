@@ -17,7 +17,8 @@ out = Path("docs/img"); out.mkdir(parents=True, exist_ok=True)
 home = Path(tempfile.mkdtemp(prefix="ui-shots"))
 # pictures, not a test: on a loaded machine the freshness gates are loosened so the pose stays trusted
 s = Session(SessionConfig(home=home, camera="sim", robot="sim", trajectory="breathing", arm_pin="2468",
-                          camera_fps=15.0, max_pose_age_s=1.0, freeze_after_s=1.0)); s.start()
+                          camera_fps=15.0, max_pose_age_s=1.0, freeze_after_s=1.0,
+                          control_process=False)); s.start()  # a control process may not start in time under load
 s.load_sample_ct()
 _wait(lambda: s.snapshot().job is not None and s.snapshot().job.done and s.snapshot().head_mesh is not None, what="ct")
 for f in s.snapshot().fiducials:
@@ -42,16 +43,19 @@ try:
                     _command(page, "Start camera")
                     _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="pose")
                 if step == "robot" and s.snapshot().robot.state == "disarmed":
-                    for _ in range(30):  # on a loaded machine arming is refused while the pose is stale
+                    # the local operator arms (the PIN pad flow is what tests/ui/test_e2e.py checks);
+                    # on a loaded machine arming is refused while the pose is stale: try again
+                    for _ in range(30):
                         _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="pose")
-                        _click(page, "Arm (PIN)"); print("arm:", _pin_pad(page, "2468"), flush=True)
+                        print("arm:", s.arm("2468"), flush=True)
                         if s.snapshot().robot.state == "armed":
                             break
-                    _wait(lambda: s.snapshot().robot.state == "armed", what="armed")
-                    for _ in range(20):
+                        time.sleep(1)
+                    for _ in range(30):
                         if s.snapshot().robot.state in ("tracking", "holding"):
                             break
-                        _command(page, "Start tracking")
+                        print("start:", s.start_tracking(), flush=True)
+                        time.sleep(1)
                 time.sleep(4)
                 page.screenshot(path=str(out / f"ui_{step}_{w}x{h}.jpg"), type="jpeg", quality=70)
                 print("shot", step, w, h, flush=True)

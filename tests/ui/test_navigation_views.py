@@ -154,3 +154,22 @@ def test_window_level_presets_change_the_pixels(preset):
     assert grey[0] == 0 and grey[-1] == 255
     assert abs(grey[col] - 127) < 30
     assert np.abs(img.astype(int) - other.astype(int)).mean() > 5
+
+
+def test_a_click_ray_on_a_tile_gives_the_point_drawn_there_and_off_tile_gives_none():
+    from monotracker.ui.navigation_panel import TILE, NavigationScene, grid
+
+    sc = NavigationScene(SimpleNamespace(client_id="t"))
+    try:
+        v = nav.plane_views(CENTRE, CENTRE + np.array([0.0, -30.0, 40.0]), CENTRE)["probe"]
+        sc._tiles = {"probe": (None, v, (0.1, -0.2))}
+        p = v.to_lps(40.3, 170.7)
+        w = sc.world_of("probe", p)
+        cam = np.array([0.05, 0.02, -0.6])  # an oblique ray, as from a camera off the tile's axis
+        got = sc.pick("probe", cam, (w - cam) / np.linalg.norm(w - cam))
+        assert np.allclose(got, p, atol=1e-9)
+        assert sc.pick("probe", cam, (w + np.array([TILE, 0.0, 0.0])) - cam) is None
+        assert sc.pick("axial", cam, w - cam) is None  # no such tile shown
+    finally:
+        sc.close()
+    assert grid(5, 1.6) == (3, 2) and grid(5, 0.6) == (2, 3) and grid(3, 1.6) == (2, 2)

@@ -190,7 +190,14 @@ class NavigationScene:
         snap, panel = req
         active, width, level, picked = panel.state()
         vol = self.view.session.volume()
-        if not active or vol is None:
+        if not active:
+            return
+        if vol is None:
+            with self._lock:
+                said = self._key == "no-ct"
+                self._key = "no-ct"
+            if not said:
+                panel.h_info.content = info_html(panel.key, self._seq, width, level, "", "No CT loaded: nothing to slice.")
             return
         lo, hi = volume_bounds_lps(vol)
         np_ = nav.nav_point(snap, (lo + hi) / 2, picked, live=panel.live)

@@ -105,7 +105,7 @@ class SceneView:
                 up = (0.0, -1.0, 0.0)
             else:
                 look = apply_transform(T_wc, centre) * MM if T_wc is not None else np.array([0.6, 0.0, 0.3])
-                pos = look + np.array([1.0, -1.4, 0.8])
+                pos = look + np.array([0.5, -0.7, 0.45])  # ~1 m: head, needle and the wrist fill the view
                 up = (0.0, 0.0, 1.0)
             client = self.view.client
             with client.atomic():
