@@ -66,6 +66,11 @@ class SessionConfig:
     runs in its own process at real-time priority where the OS allows, so vision, UI and logging
     cannot delay it (``robot/control_process.py``); False: a thread in the engine process.
     clock="sim" always steps it in-process (deterministic).
+    ``pose_nice`` (-10): with clock="real", the pose pipeline's threads (camera, detection,
+    registration, the engine loop that feeds the target) ask for this nice value so that CPU
+    load beside the app cannot age the poses past ``max_pose_age_s``
+    (``engine/pipeline_priority.py``; a ``pose_priority`` warning where the OS refuses; 0 =
+    leave the priority alone).
     ``extra``: free-form settings for experiments; nothing in the engine reads it.
 
     Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
@@ -98,6 +103,9 @@ class SessionConfig:
     camera_adapt: str = ""
     control_process: bool = True
     max_validation_tre_mm: float = 1.5
+    pose_nice: int = -10
+    pose_rt_priority: int = 5
+    sim_camera_process: bool = True
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -129,6 +137,10 @@ class SessionConfig:
             kind = str(self.camera_adapt).partition(":")[0]
             if kind not in ("bin", "scale", "crop"):
                 raise InputError(f"camera_adapt {self.camera_adapt!r} not understood: use bin:N, scale:F or crop:X,Y,W,H")
+        if not 0 <= int(self.pose_rt_priority) <= 99:
+            raise InputError(f"pose_rt_priority must be a SCHED_FIFO priority 1-99, or 0 for none, not {self.pose_rt_priority!r}")
+        if not -20 <= int(self.pose_nice) <= 19:
+            raise InputError(f"pose_nice must be a nice value from -20 to 19, not {self.pose_nice!r}")
         if self.resume_dwell_s < 0 or self.start_wait_s < 0:
             raise InputError("resume_dwell_s and start_wait_s must be >= 0 s")
         if not str(self.arm_pin):
