@@ -21,14 +21,11 @@ def served(tmp_path, monkeypatch, port):
     from monotracker.ui.app import MonoTrackerApp
 
     monkeypatch.setenv("MONOTRACKER_HOME", str(tmp_path))
-    # This test is about the web app. The engine's real-time freshness budget (a pose older than
-    # 0.15 s is not trusted, a camera silent for 0.1 s is frozen) is tested in tests/engine; on a
-    # loaded 2-core CI machine the simulated pipeline's own latency exceeds it, so here the budget
-    # is 1 s: the page must follow the session whatever the load, which is what is checked.
-    # a still head: at 1-3 fps under load the breathing motion between frames fails the engine's
-    # consistency check (re-acquiring), an engine matter, not the page's
-    s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="still", robot="sim", arm_pin="2468",
-                              max_pose_age_s=1.0, freeze_after_s=1.0))
+    # The engine's own limits (a trusted pose older than 0.15 s holds the arm, a camera silent for
+    # 0.1 s is frozen) and a breathing head: the pose pipeline holds them on a loaded 2-core
+    # machine (engine/pipeline_priority.py, engine/sim_camera_process.py); check with
+    # MONOTRACKER_TEST_HOGS=4 (tests/conftest.py) and benchmarks/pose_latency.py.
+    s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="breathing", robot="sim", arm_pin="2468"))
     s.start()
     app = MonoTrackerApp(s, "127.0.0.1", port)
     app.start()
@@ -132,7 +129,14 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
             assert "Start tracking" in msg and page.locator("#mt-msg").last.get_attribute("data-ok") == "0"
             _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="trusted pose again")
     page.wait_for_function("['tracking','holding'].includes(document.querySelector('#mt-robot-state').dataset.state)")
-    time.sleep(3.0)
+    # the arm follows the breathing head onto the entry (the robot's truth, not the page): poses
+    # arriving older than max_pose_age_s would keep it holding short of it
+    _wait(lambda: s.snapshot().robot.state == "tracking" and (s.snapshot().robot.tip_error_mm or 1e9) < 2.0,
+          what=lambda: f"the tip on the entry while tracking (last: {s.snapshot().robot.state}, "
+                       f"{s.snapshot().robot.tip_error_mm} mm, pose {s.snapshot().pose})")
+    stale = [e for e in s.audit_entries(code="pose_stale")]
+    print(f"tracking: tip on the entry; {len(stale)} stale-pose holds so far")
+    time.sleep(1.0)
     page.screenshot(path=str(artifacts / "4_robot_tracking.png"))
 
     print(f"[{time.monotonic() - t_start:5.1f} s] occlusion:")

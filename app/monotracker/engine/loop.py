@@ -43,7 +43,8 @@ from monotracker.engine.gate import PoseGate
 from monotracker.engine.loop_camera import CameraCommands
 from monotracker.engine.loop_robot import RobotCommands
 from monotracker.engine.loop_summaries import LoopSummaries
-from monotracker.engine.pipeline_priority import raise_pipeline_priority, raise_process_priority
+from monotracker.engine.pipeline_priority import (raise_pipeline_priority, raise_process_priority,
+                                                   set_gil_switch_interval)
 from monotracker.engine.target import needle_target
 from monotracker.errors import MonoTrackerError
 
@@ -428,6 +429,8 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries):
         # the engine process shares one GIL: its threads are raised together so that a thread
         # holding the GIL is not preempted by load beside the app while the pipeline waits for it
         self.process_priority = raise_process_priority(int(getattr(self.cfg, "pose_nice", 0)))
+        if int(getattr(self.cfg, "pose_rt_priority", 0)) > 0:
+            set_gil_switch_interval()
         log.info("engine process threads: %s", self.process_priority)
         if self.robot is not None:
             self.robot.start_thread()

@@ -96,3 +96,21 @@ def raise_pipeline_priority(rt_priority: int, nice: int) -> str:
 
         return elevate_priority(int(rt_priority))
     return raise_thread_priority(nice)
+
+
+#: the GIL switch interval while a real-time pose pipeline runs in the process (s; Python's 5 ms)
+GIL_SWITCH_INTERVAL_S = 0.001
+
+
+def set_gil_switch_interval(interval_s: float = GIL_SWITCH_INTERVAL_S) -> float:
+    """Lower the interpreter's GIL switch interval to ``interval_s`` (never raise it); returns it.
+
+    Detection and registration release the GIL in every OpenCV/NumPy call; each time another
+    thread (web server, overlay) takes it, the pipeline thread waits up to the switch interval to
+    get it back, dozens of times per frame. At 1 ms instead of 5 ms a frame's estimate on a
+    loaded machine stays close to its CPU time (``benchmarks/pose_latency.py``)."""
+    import sys as _sys
+
+    if _sys.getswitchinterval() > interval_s:
+        _sys.setswitchinterval(interval_s)
+    return _sys.getswitchinterval()
