@@ -11,12 +11,15 @@ app's render loop). Each configuration runs on a quiet machine and with ``--hogs
 
 Configurations, measured one after the other in the same run under the same load:
 
-* ``baseline``: the pipeline as it was: the camera + pose thread and the engine thread at normal
-  priority, the twin's render started after the frame's modelled 30 ms transport delay
-  (``SessionConfig(pose_nice=0)``, rig ``render_in_transport=False``);
-* ``ours``: the defaults: the pipeline threads at a raised priority (``pose_nice`` -10,
-  ``engine/pipeline_priority.py``), the render inside the camera's transport delay, the engine
-  thread woken by each new sample.
+* ``baseline``: the pipeline as it was: the twin's render, detection and registration on one
+  thread of the engine process at normal priority, the render started after the frame's modelled
+  30 ms transport delay (``SessionConfig(pose_nice=0, pose_rt_priority=0,
+  sim_camera_process=False)``, rig ``render_in_transport=False``), Python's 5 ms GIL interval;
+* ``nice`` (``--only nice``, an ablation): ours without SCHED_FIFO (``pose_rt_priority=0``);
+* ``ours``: the defaults: the twin camera renders in its own process
+  (``engine/sim_camera_process.py``), the pipeline and engine threads at SCHED_FIFO 5, every
+  engine-process thread at nice -10, the GIL switch interval at 1 ms
+  (``engine/pipeline_priority.py``), the engine thread woken by each new sample.
 
 Columns (ms unless said): ``poses/s`` trusted poses handled per second; ``arrive p50/p95``
 the age of a pose when the engine hands it to the control target (capture stamp -> target);
@@ -33,7 +36,7 @@ The last line is a JSON object: ours and the baseline with hogs (``p95_pose_age_
 ``baseline_p95_pose_age_ms``, ...), the goal (p95 age well under 150 ms with 4 hogs) and every row.
 
     PYTHONPATH=app python benchmarks/pose_latency.py [--quick] [--json] [--seconds S] [--hogs N]
-        [--no-ui-load] [--only ours|baseline]
+        [--no-ui-load] [--only baseline,nice,ours] [--loaded-only]
 """
 
 from __future__ import annotations

@@ -69,12 +69,7 @@ def _child(wake_fd_holder, shm_name: str, shape: tuple, cam_kwargs: dict, fps: f
     realtime = priority.startswith("SCHED_FIFO")
     parent = os.getppid()
     shm = shared_memory.SharedMemory(name=shm_name)
-    try:  # the parent owns (and unlinks) the segment; Python < 3.13 registers every attach
-        from multiprocessing import resource_tracker
-
-        resource_tracker.unregister(shm._name, "shared_memory")  # noqa: SLF001
-    except Exception:  # noqa: BLE001 - only a spurious warning at exit is at stake
-        pass
+    # (the spawn-ed child shares its parent's resource tracker: the parent's unlink unregisters it)
     conn = wake_fd_holder
     cam = None
     try:
