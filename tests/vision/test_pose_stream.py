@@ -73,7 +73,9 @@ def test_too_few_fiducials_invalidates_the_pose():
     assert any("no valid pose" in a for a in bad.alerts) and len(bad.newly_lost) == 6
 
 
-def _collect(stream, until, timeout=30.0):
+def _collect(stream, until, timeout=120.0):
+    """Estimates published by ``stream`` until one satisfies ``until`` (waits on that state; the
+    limit is generous, for a loaded machine, and is a failure when reached)."""
     got = []
     done = threading.Event()
 
@@ -84,8 +86,9 @@ def _collect(stream, until, timeout=30.0):
 
     stream.subscribe(cb)
     stream.start()
-    done.wait(timeout)
+    reached = done.wait(timeout)
     stream.stop()
+    assert reached, f"the stream never published the awaited estimate in {timeout:.0f} s ({len(got)} estimates)"
     return got
 
 
@@ -98,7 +101,8 @@ def test_stream_thread_publishes_and_reports_unplugged_camera():
     assert sum(e.ok for e in got) >= 9
     assert got[-1].code == "camera_disconnected"
     assert got[-1].camera == "disconnected" and not got[-1].ok and "disconnected" in got[-1].reason
-    assert all(np.isfinite(e.latency_s) and e.latency_s >= 0 for e in got)   # no wall-clock bound: loaded machines
+    # published after capture (how long after is load-dependent: benchmarks/pose_latency.py)
+    assert all(e.latency_s >= 0 for e in got)
     assert threading.current_thread() is threading.main_thread()
 
 
@@ -108,7 +112,7 @@ def test_frozen_camera_reported_on_the_third_identical_frame():
     of a repeated image before it reports the freeze (3 identical frames in a row)."""
     cam = SimulatedCamera(realtime=True, freeze_at_frame=8, seed=1)
     stream = PoseStream(cam)
-    got = _collect(stream, lambda e: e.camera == "frozen", timeout=20.0)
+    got = _collect(stream, lambda e: e.camera == "frozen")
     bad = got[-1]
     assert bad.camera == "frozen" and not bad.ok and "frozen" in bad.reason and bad.code == "camera_freeze"
     assert "3 identical frames" in bad.reason and bad.alerts
@@ -124,7 +128,7 @@ def test_stalled_camera_reported():
     it still blocks (behaviour; the latency is a benchmark figure)."""
     cam = SimulatedCamera(realtime=True, stall_at_frame=8, seed=1)
     stream = PoseStream(cam)
-    got = _collect(stream, lambda e: e.camera == "stalled", timeout=20.0)
+    got = _collect(stream, lambda e: e.camera == "stalled")
     bad = got[-1]
     assert bad.camera == "stalled" and not bad.ok and bad.code == "camera_freeze"
     ms = float(bad.reason.split("no new frame for ")[1].split(" ms")[0])

@@ -57,6 +57,13 @@ class PoseSample:
     moved: dict = field(default_factory=dict)
     frame: object = None
     validation: object = None  # registration.validation.ValidationResult, or None (no validation fiducials / no pose)
+    #: where this estimate's time went, wall seconds unless ``*_cpu_s`` (thread CPU time), for
+    #: diagnosis and ``benchmarks/pose_latency.py``; empty when the rig does not measure. The
+    #: simulated rigs give ``late_s`` (frame started after its camera tick), ``render_s`` /
+    #: ``render_cpu_s`` (the twin camera's render), ``arrived_s`` (exposure -> frame in memory),
+    #: ``estimate_s`` / ``estimate_cpu_s`` (detection + registration + checks), ``detect_s``,
+    #: ``register_s``.
+    stages: dict = field(default_factory=dict)
 
 
 @dataclass

@@ -71,6 +71,11 @@ class SessionConfig:
     (``"photo"``: gloss, lens blur, Bayer mosaic, raw sensor noise, JPEG 85, drapes and gloves;
     ``"degraded"``: more blur and noise, JPEG 70; ``"sharp"``) = photo-like frames, ~40 ms more
     per frame (``docs/vision.md``). Refused for any other camera (it would change nothing).
+    ``pose_nice`` (-10): with clock="real", the pose pipeline's threads (camera, detection,
+    registration, the engine loop that feeds the target) ask for this nice value so that CPU
+    load beside the app cannot age the poses past ``max_pose_age_s``
+    (``engine/pipeline_priority.py``; a ``pose_priority`` warning where the OS refuses; 0 =
+    leave the priority alone).
     ``extra``: free-form settings for experiments; nothing in the engine reads it.
 
     Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
@@ -107,6 +112,9 @@ class SessionConfig:
     #: Longest a CT job (load + fiducial detection + surface) may run, s; then it is stopped
     #: with a one-line message and the previous CT and plan stay (engine/ct_commands.py).
     ct_job_timeout_s: float = 600.0
+    pose_nice: int = -10
+    pose_rt_priority: int = 5
+    sim_camera_process: bool = True
     extra: dict = field(default_factory=dict)
 
     def validate(self) -> None:
@@ -147,6 +155,10 @@ class SessionConfig:
             if self.camera != "sim":
                 raise InputError(f"camera_optics applies to the rendered simulated camera (camera='sim') only, "
                                  f"not camera={self.camera!r}")
+        if not 0 <= int(self.pose_rt_priority) <= 99:
+            raise InputError(f"pose_rt_priority must be a SCHED_FIFO priority 1-99, or 0 for none, not {self.pose_rt_priority!r}")
+        if not -20 <= int(self.pose_nice) <= 19:
+            raise InputError(f"pose_nice must be a nice value from -20 to 19, not {self.pose_nice!r}")
         if self.resume_dwell_s < 0 or self.start_wait_s < 0:
             raise InputError("resume_dwell_s and start_wait_s must be >= 0 s")
         if not str(self.arm_pin):

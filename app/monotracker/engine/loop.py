@@ -43,6 +43,8 @@ from monotracker.engine.gate import PoseGate
 from monotracker.engine.loop_camera import CameraCommands
 from monotracker.engine.loop_robot import RobotCommands
 from monotracker.engine.loop_summaries import LoopSummaries
+from monotracker.engine.pipeline_priority import (raise_pipeline_priority, raise_process_priority,
+                                                   set_gil_switch_interval)
 from monotracker.engine.target import needle_target
 from monotracker.errors import MonoTrackerError
 
@@ -114,6 +116,8 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries):
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._threads_wanted = False
+        self.priority = ""  # what the OS granted the engine thread (pipeline_priority)
+        self.process_priority = ""  # ... and the engine process's threads
 
     # ================================================================== plumbing
     def now(self) -> float:
@@ -422,6 +426,12 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries):
         self._threads_wanted = True
         if self.cfg.clock != "real" or self._thread is not None:
             return
+        # the engine process shares one GIL: its threads are raised together so that a thread
+        # holding the GIL is not preempted by load beside the app while the pipeline waits for it
+        self.process_priority = raise_process_priority(int(getattr(self.cfg, "pose_nice", 0)))
+        if int(getattr(self.cfg, "pose_rt_priority", 0)) > 0:
+            set_gil_switch_interval()
+        log.info("engine process threads: %s", self.process_priority)
         if self.robot is not None:
             self.robot.start_thread()
         self._stop.clear()
@@ -429,12 +439,18 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries):
         self._thread.start()
 
     def _run(self) -> None:
+        # the engine thread is part of the pose pipeline (estimate -> trust -> target): same priority
+        self.priority = raise_pipeline_priority(int(getattr(self.cfg, "pose_rt_priority", 0)),
+                                                int(getattr(self.cfg, "pose_nice", 0)))
         period = 1.0 / 250.0
         last_seen = None
         while not self._stop.is_set():
             now = self.now()
+            rig = self.rig
+            woke = getattr(rig, "new_sample", None)  # a rig that signals new samples wakes us at once
+            if woke is not None:
+                woke.clear()
             try:
-                rig = self.rig
                 if rig is not None and rig.running:
                     for frame_t, digest in rig.poll_frame_info():
                         self.note_frame(frame_t, now, digest)
@@ -452,7 +468,10 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries):
             except Exception:  # noqa: BLE001 - the loop must survive; hold the arm and report
                 log.exception("engine loop iteration failed")
                 self._on_iteration_error()
-            self._stop.wait(period)
+            if woke is not None:
+                woke.wait(period)
+            else:
+                self._stop.wait(period)
 
     def _on_iteration_error(self) -> None:
         """After a failed loop iteration: hold the arm and raise the alarm. If holding itself fails

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from monotracker.engine.components import CameraRig, PoseSample
+from monotracker.engine.pipeline_priority import (DEFAULT_POSE_NICE, DEFAULT_POSE_RT_PRIORITY, elevated,
+                                                   raise_pipeline_priority)
 from monotracker.engine.verification import KeepDetections, ValidationSet
 from monotracker.errors import MonoTrackerError
 from monotracker.geometry import apply_transform
@@ -84,6 +86,21 @@ class _SimRig(CameraRig):
         self._new_frame_info: list[tuple[float, int | None]] = []  # (t_capture, content digest)
         self._published: PoseSample | None = None
         self.last_error: str | None = None  # newest frame failure (camera thread), for diagnosis
+        #: the pipeline thread's nice value (``SessionConfig.pose_nice``; 0 = leave it) and what
+        #: the OS granted ("" until the thread started); ``on_priority(text)`` is told once
+        self.nice = DEFAULT_POSE_NICE
+        #: SCHED_FIFO priority of the pipeline thread (``SessionConfig.pose_rt_priority``; 0 = none)
+        self.rt_priority = DEFAULT_POSE_RT_PRIORITY
+        self._realtime = False
+        #: render the twin camera in its own process (real clock; ``SessionConfig.sim_camera_process``)
+        self.camera_process = False
+        self._camproc = None
+        self.priority = ""
+        self.on_priority = None
+        #: the render runs inside the modelled transport delay (see :meth:`_run`)
+        self.render_in_transport = True
+        #: set whenever a new sample is published (the engine loop may wait on it)
+        self.new_sample = threading.Event()
 
     def _frozen_frame(self, t: float):
         """camera-freeze as a real frozen camera shows it: the driver keeps delivering at the frame
@@ -136,6 +153,7 @@ class _SimRig(CameraRig):
     def start(self) -> None:
         if self._thread is not None:
             return
+        self._camproc = self._start_camera_process() if self.camera_process else None
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name="monotracker-simcam", daemon=True)
         self._thread.start()
@@ -146,19 +164,76 @@ class _SimRig(CameraRig):
         if th is not None:
             th.join(2.0)
         self._thread = None
+        camproc, self._camproc = self._camproc, None
+        if camproc is not None:
+            camproc.close()
+
+    def _start_camera_process(self):
+        """The rig's camera rendering in its own process (``engine/sim_camera_process.py``), or None
+        (this rig renders nothing worth a process, or the process could not start: then the
+        render stays on the pipeline thread, and the log says why)."""
+        return None
 
     def _run(self) -> None:
+        """The simulated camera + pose pipeline thread: one frame per camera period, always the
+        newest (a late thread drops frames rather than queueing them), at the pipeline's raised
+        priority (:mod:`~monotracker.engine.pipeline_priority`).
+
+        The render is the simulated camera's hardware at work: with ``render_in_transport``
+        (default) it runs inside the frame's modelled transport delay, as a real camera's
+        readout and USB transfer do: a frame exposed at ``t`` is rendered from ``t`` on and
+        handed over at ``t + transport_delay_s`` at the earliest (never sooner than a real
+        camera would deliver it; later when the render overruns, and that lateness is pose
+        age). Without it (the baseline) the render starts ``transport_delay_s`` after the
+        exposure it shows, so its time adds to the pose age."""
+        self.priority = raise_pipeline_priority(self.rt_priority, self.nice)
+        self._realtime = self.priority.startswith("SCHED_FIFO")
+        if self._camproc is not None:
+            self.priority += f"; camera process pid {self._camproc.pid}: {self._camproc.priority}"
+        log.info("simulated camera pipeline thread: %s", self.priority)
+        if self.on_priority is not None:
+            try:
+                self.on_priority(self.priority)
+            except Exception:  # noqa: BLE001 - a report must never stop the camera
+                log.exception("reporting the pipeline priority failed")
         period = 1.0 / self.fps
         t_next = self.clock()
         last_t = last_digest = None
+        render_s = 0.0  # running estimate of the render's wall time (s)
+        camproc = self._camproc
         while not self._stop.is_set():
-            now = self.clock()
-            if now < t_next:
-                self._stop.wait(t_next - now)
-                continue
-            t_next = max(t_next + period, now)  # drop frames rather than queue them
             try:
-                frame = self.capture(now - self.transport_delay_s)  # exposed d seconds ago
+                if camproc is not None:  # the twin camera renders in its own process
+                    got = self._receive(camproc, 0.05)
+                    if got is None:
+                        if not camproc.alive():
+                            self.last_error = "simulated camera process ended"
+                            self._stop.wait(0.05)
+                        continue
+                    frame, w_render = got
+                    late_s, w1 = 0.0, self.clock()
+                    w0, c0 = w1 - w_render, 0.0
+                    c1 = 0.0
+                else:
+                    now = self.clock()
+                    if now < t_next:
+                        self._stop.wait(t_next - now)
+                        continue
+                    late_s = now - t_next
+                    t_next = max(t_next + period, now)  # drop frames rather than queue them
+                    d = self.transport_delay_s
+                    ahead = min(render_s, d) if self.render_in_transport else 0.0
+                    t_exp = now - d + ahead  # the exposure this frame shows
+                    w0, c0 = self.clock(), time.thread_time()
+                    frame = self.capture(t_exp)
+                    w1, c1 = self.clock(), time.thread_time()
+                    if self.render_in_transport:
+                        render_s = w1 - w0 if render_s == 0.0 else 0.8 * render_s + 0.2 * (w1 - w0)
+                        hold = frame.t_capture + d - w1
+                        if hold > 0:  # rendered faster than the camera delivers: wait for the hand-over
+                            if self._stop.wait(hold):
+                                break
+                w_arrived = self.clock()
                 if frame.t_capture == last_t:
                     continue  # frozen: nothing new
                 last_t = frame.t_capture
@@ -169,16 +244,30 @@ class _SimRig(CameraRig):
                 if digest is not None and digest == last_digest:
                     continue  # a bit-identical repeat: never estimated (a stale pose, newly stamped)
                 last_digest = digest
+                c2 = time.thread_time()
                 smp = self.estimate(frame)
+                w3, c3 = self.clock(), time.thread_time()
             except Exception as exc:  # noqa: BLE001 - the camera thread must outlive a bad frame
                 # No frame is published, so the engine's freeze watchdog holds the arm; the
                 # thread keeps capturing so that the camera comes back by itself.
                 log.exception("simulated camera: frame failed")
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 continue
+            raw = smp.raw
+            smp.stages = {"late_s": late_s, "render_s": w1 - w0, "render_cpu_s": c1 - c0,
+                          "arrived_s": w_arrived - frame.t_capture, "estimate_s": w3 - w_arrived,
+                          "estimate_cpu_s": c3 - c2, "detect_s": float(getattr(raw, "detect_s", np.nan)),
+                          "register_s": float(getattr(raw, "register_s", np.nan))}
             smp.t_ready = self.clock()
             with self._lock:
                 self._published = smp
+            self.new_sample.set()
+            if self._realtime and w3 - w_arrived > 0.8 * period:
+                # a real-time thread that overran never takes the whole core: leave a fifth
+                self._stop.wait(0.25 * (w3 - w_arrived))
+
+    def _receive(self, camproc, timeout_s: float):
+        raise NotImplementedError  # only rigs that render in a camera process
 
     def poll_frames(self) -> list[float]:
         with self._lock:
@@ -219,8 +308,9 @@ class SimImageRig(_SimRig):
         # the camera stands where the OR layout puts it (vision's default is straight above the patch)
         # optics: None = the simple render (cheap enough for 30 fps on 2 cores); a preset name of
         # sim.optics.PRESETS ("photo", "degraded") = photo-like frames (~40 ms more per frame)
-        self.cam = SimulatedCamera(trajectory=self.motion, fps=fps, seed=seed, T_cam_world=self.layout.T_cam_ct0,
-                                   optics=optics)
+        self._cam_kwargs = dict(trajectory=self.motion, fps=fps, seed=seed, T_cam_world=self.layout.T_cam_ct0,
+                                optics=optics)
+        self.cam = SimulatedCamera(**self._cam_kwargs)
         self.camera_model = self.cam.camera
         self.K = self.camera_model.K
         self.dist = self.camera_model.dist
@@ -230,11 +320,40 @@ class SimImageRig(_SimRig):
                                    radius_mm=self.radius_mm, target_ct=self.target_ct)
 
     def capture(self, t: float) -> _ImageFrame:
-        import cv2
-
         if self.fault == "camera-freeze" and self._last_frame is not None:
             return self._frozen_frame(t)
         img, truth = self.cam.render(t)
+        return self._new_frame(img, t, truth)
+
+    def _receive(self, camproc, timeout_s: float):
+        """The newest frame from the camera process with the faults applied, and its render
+        time (s); None when none came within ``timeout_s``."""
+        got = camproc.next_frame(timeout_s)
+        if got is None:
+            return None
+        img, _index, t, truth, render_s = got
+        if self.fault == "camera-freeze" and self._last_frame is not None:
+            return self._frozen_frame(t), render_s
+        return self._new_frame(img, t, truth), render_s
+
+    def _start_camera_process(self):
+        from monotracker.engine.sim_camera_process import SimCameraProcess
+
+        proc = SimCameraProcess(self._cam_kwargs, self.image_size, self.fps, self.transport_delay_s, self.nice,
+                                self.rt_priority)
+        try:
+            proc.start()
+        except Exception as exc:  # noqa: BLE001 - the in-thread render still works, more slowly
+            log.warning("simulated camera process not started (%s: %s); rendering on the pose thread",
+                        type(exc).__name__, exc)
+            proc.close()
+            return None
+        return proc
+
+    def _new_frame(self, img: np.ndarray, t: float, truth) -> "_ImageFrame":
+        """A rendered image becomes the newest frame, with the injected occlusions drawn on it."""
+        import cv2
+
         centres = np.asarray(truth.ellipse_centres_px, float)
         radii = np.asarray(truth.radius_px, float)
         if self.fault == "occlude-all":
@@ -516,6 +635,14 @@ class StreamRig(CameraRig):
     set_ball_colour = _SimRig.set_ball_colour
 
 
+def _report_priority(session, text: str, nice: int) -> None:
+    """Say so (a warning, as for the control process) when the pose pipeline could not be
+    given the priority it asked for: on a loaded machine its poses may then arrive stale."""
+    if nice < 0 and not elevated(text):
+        session.alert("warning", "pose_priority", f"pose pipeline runs without raised priority ({text}): on a "
+                                                  "loaded machine poses may arrive stale and the arm hold")
+
+
 def make_vision_rig(source, calibration_path, plan, cfg, session) -> CameraRig:
     if source in ("sim", "sim-points"):
         if source == "sim":
@@ -524,6 +651,10 @@ def make_vision_rig(source, calibration_path, plan, cfg, session) -> CameraRig:
         else:
             rig = ProjectedFiducialRig(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps)
         rig.clock = session.clock
+        rig.nice = int(getattr(cfg, "pose_nice", 0))
+        rig.rt_priority = int(getattr(cfg, "pose_rt_priority", 0))
+        rig.camera_process = bool(getattr(cfg, "sim_camera_process", False)) and cfg.clock == "real"
+        rig.on_priority = lambda text: _report_priority(session, text, rig.nice)
         if getattr(rig, "tracker", None) is not None:
             rig.tracker.config.max_predicted_tre_mm = float(cfg.max_predicted_tre_mm)
     else:
