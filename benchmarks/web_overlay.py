@@ -29,12 +29,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
+import os as _os
+EXTRA_ARGS = _os.environ.get("MT_BENCH_ARGS", "").split()
+
 JS = """
 () => { window.__seen = []; const c = document.createElement('canvas'); const ctx = c.getContext('2d', {willReadFrequently: true});
-  let last = -1;
+  let last = -1, lastSrc = '';
   function tick() {
-    const imgs = [...document.querySelectorAll('img')].filter(i => i.naturalWidth >= 900);
-    if (imgs.length) { const im = imgs[0]; c.width = 320; c.height = 16;
+    const imgs = [...document.querySelectorAll('img')].filter(i => i.naturalWidth >= 320 && i.naturalHeight >= 180);
+    // read the frame number only when the live <img> shows a new, decoded frame (a new blob URL)
+    if (imgs.length && imgs[0].src !== lastSrc && imgs[0].complete) { const im = imgs[0]; lastSrc = im.src;
+      c.width = 320; c.height = 16;
       ctx.drawImage(im, 0, im.naturalHeight - 16, 320, 16, 0, 0, 320, 16);
       const d = ctx.getImageData(0, 0, 320, 16).data; let v = 0;
       for (let b = 0; b < 20; b++) { const x = b * 16 + 8, y = 8; const k = (y * 320 + x) * 4;
@@ -61,7 +66,7 @@ def camera_like_frame() -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def run(seconds: float, shared: bool, clients: int) -> list[dict]:
+def run(seconds: float, shared: bool, clients: int, display_width: int = 960) -> list[dict]:
     """One row: ``clients`` pages watch for ``seconds``; per-client fps and latency."""
     import socket
 
@@ -77,7 +82,7 @@ def run(seconds: float, shared: bool, clients: int) -> list[dict]:
     with socket.socket() as so:
         so.bind(("127.0.0.1", 0))
         port = so.getsockname()[1]
-    app = MonoTrackerApp(s, "127.0.0.1", port, stream_code=True)
+    app = MonoTrackerApp(s, "127.0.0.1", port, stream_code=True, display_width=display_width)
     app.start()
     base = camera_like_frame()
     stop = threading.Event()
@@ -111,7 +116,7 @@ def run(seconds: float, shared: bool, clients: int) -> list[dict]:
                               args=["--no-sandbox", "--disable-gpu", "--disable-background-networking",
                                     "--disable-component-update", "--disable-sync", "--no-first-run",
                                     "--disable-renderer-backgrounding", "--disable-background-timer-throttling",
-                                    "--disable-backgrounding-occluded-windows"])
+                                    "--disable-backgrounding-occluded-windows"] + EXTRA_ARGS)
         pages = []
         for _ in range(clients):
             page = b.new_context(viewport={"width": 1600, "height": 1000}).new_page()

@@ -26,10 +26,12 @@ import threading
 import time
 from collections import deque
 
+import numpy as np
 import viser
 
 from monotracker.ui.stream import OverlayStream
 from monotracker.ui.view import ClientView
+from monotracker.ui.viser_threads import protect_client, protect_server
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +71,7 @@ class MonoTrackerApp:
             from monotracker.ui.remote_login import LoginProxy
 
             self.proxy = LoginProxy(self.login, self.host, self.port, self.server.get_port()).start()
+        protect_server(self.server)  # viser's buffers are fed from several threads (ui/viser_threads.py)
         self.server.scene.world_axes.visible = False
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
@@ -102,6 +105,7 @@ class MonoTrackerApp:
             return list(self._history)
 
     def _connect(self, client) -> None:
+        protect_client(client)
         try:
             view = ClientView(self, client)
         except Exception:  # noqa: BLE001 - a tab that closes while its page is built
@@ -168,7 +172,10 @@ class MonoTrackerApp:
         return jpeg
 
     def push_jpeg(self, jpeg: bytes) -> None:
-        """The same encoded frame to every tab showing the live view."""
+        """The same encoded frame to every tab showing the live view. Handed over as a uint8 array
+        view of the bytes: viser sends arrays raw after its zstd-compressed message, where bytes
+        would be compressed again for every tab (and decompressed by every browser) for nothing."""
+        data = np.frombuffer(jpeg, np.uint8)
         for view in self.views():
             if view.wants_live:
-                view.show_frame(jpeg)
+                view.show_frame(data)
