@@ -11,7 +11,12 @@ notes Date.now(); latency = browser time seen - server time the frame was encode
 Rows, measured in the same run:
 * baseline (the per-client push before issue 14): the overlay drawn at 1280x720, then every
   client's image encoded from the full frame separately (N JPEG encodes of 1280x720 per frame);
-* web app: the overlay drawn, downscaled to 960x540 and encoded ONCE; the same bytes to all.
+* web app: the app's own overlay thread takes the newest camera frame, downscales it to 960x540,
+  draws the overlay at that size and encodes it ONCE; the same bytes go to all, raw (not
+  compressed again per tab); a frame is encoded only when some tab has taken the previous one
+  (or 0.25 s passed). "shown/pushed": frames a page showed / frames encoded.
+The probe reads the frame number only when the <img> shows a new decoded frame (not on every
+animation frame), the same for both rows.
 Target (issue 14): >= 15 fps per client with 3 clients on a loaded machine; >= 25 fps and
 <= 60 ms median with one client on a quiet one.
 """
@@ -86,6 +91,9 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960) ->
     app.start()
     base = camera_like_frame()
     stop = threading.Event()
+    newest = [None]
+    if shared:  # the app's own overlay thread takes the camera's newest frame, as with a real camera
+        s.latest_frame = lambda: newest[0]
 
     def pusher():
         i = 0
@@ -93,11 +101,10 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960) ->
             t0 = time.monotonic()
             img = np.roll(base, i * 7, axis=1)
             i += 1
-            snap = s.snapshot()
             if shared:
-                app.push_frame(img, None, snap)
+                newest[0] = (img, i, None)
             else:  # the per-client push: full-size frame, one encode per client
-                out = draw_overlay(img, None, snap)
+                out = draw_overlay(img, None, s.snapshot())
                 with app.stream._lock:
                     app.stream.count += 1
                     n = app.stream.count
@@ -158,11 +165,12 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--clients", type=int, default=1, help="browser tabs watching at once (default 1)")
     ap.add_argument("--quick", action="store_true", help="3 s per row")
+    ap.add_argument("--width", type=int, default=960, help="display width of the shared stream (px, default 960)")
     a = ap.parse_args()
     secs = 3.0 if a.quick else a.seconds
     load = os.getloadavg()[0]
     rows = [("baseline: per-client encode 1280x720", run(secs, shared=False, clients=a.clients)),
-            ("web app: encode once 960x540, shared", run(secs, shared=True, clients=a.clients))]
+            ("web app: encode once 960x540, shared", run(secs, shared=True, clients=a.clients, display_width=a.width))]
     print(f"machine: {os.cpu_count()} cores, load average {load:.1f} at start, {os.getloadavg()[0]:.1f} at end; "
           f"{a.clients} client(s), {secs:.0f} s per row, source 30 fps")
     print("target: >= 15 fps per client with 3 clients loaded; >= 25 fps, <= 60 ms median with 1 client quiet")

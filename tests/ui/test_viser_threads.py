@@ -197,3 +197,19 @@ def test_app_protects_its_buffers(tmp_path, port, browser):
     finally:
         app.stop()
         s.shutdown()
+
+
+def test_tab_caught_up_reads_the_tabs_buffer():
+    """The overlay encodes a new frame only when some tab has taken what was queued for it."""
+    from types import SimpleNamespace as NS
+
+    from monotracker.ui.viser_threads import tab_caught_up
+
+    def client(counter, cursor):
+        buf = NS(message_counter=counter, generator_cursors={} if cursor is None else {7: cursor})
+        return NS(client_id=7, _websock_connection=NS(get_message_buffer=lambda: buf))
+
+    assert tab_caught_up(client(10, 9))  # message ids 0..9 all taken
+    assert not tab_caught_up(client(10, 8))  # one still queued
+    assert not tab_caught_up(client(10, None))  # its sender has taken nothing yet
+    assert tab_caught_up(NS(client_id=7))  # unreadable (another viser): never wait on it

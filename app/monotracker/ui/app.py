@@ -31,12 +31,14 @@ import viser
 
 from monotracker.ui.stream import OverlayStream
 from monotracker.ui.view import ClientView
-from monotracker.ui.viser_threads import protect_client, protect_server
+from monotracker.ui.viser_threads import protect_client, protect_server, tab_caught_up
 
 log = logging.getLogger(__name__)
 
 
 class MonoTrackerApp:
+    #: the longest the overlay waits for a tab to catch up before sending the newest frame anyway (s)
+    MAX_HOLD_S = 0.25
     """The viser app. ``start()`` serves the page and starts the threads; ``stop()`` ends them
     (the session is shut down by its owner). ``stream_code``: stamp a frame-number barcode into
     the streamed image (benchmark only). ``display_width``: px width of the live overlay as sent
@@ -55,6 +57,7 @@ class MonoTrackerApp:
             self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
         self.stream = OverlayStream(display_width=display_width, jpeg_quality=jpeg_quality, stream_code=stream_code)
         self.max_stream_fps = float(max_stream_fps)
+        self.frames_held = 0  # overlay waits for a tab to catch up (benchmark, tests)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
@@ -143,6 +146,12 @@ class MonoTrackerApp:
 
     # ================================================================== overlay stream
     def _overlay_loop(self) -> None:
+        """Draw + encode the newest camera frame once for all watching tabs, at most
+        ``max_stream_fps``, and only when a watching tab has sent what was queued for it: a
+        frame encoded while every tab still has one waiting would only replace it unseen (viser
+        keeps the newest update per image), so that CPU goes to the tabs and the engine instead.
+        A frame still goes out at least every ``MAX_HOLD_S`` (a tab that stopped reading must not
+        freeze the others' view)."""
         last_index = None
         min_dt = 1.0 / self.max_stream_fps
         t_last = 0.0
@@ -156,6 +165,10 @@ class MonoTrackerApp:
                 now = time.monotonic()
                 if now - t_last < min_dt:
                     self._stop.wait(min_dt - (now - t_last))
+                    continue
+                if now - t_last < self.MAX_HOLD_S and not any(tab_caught_up(v.client) for v in watching):
+                    self.frames_held += 1
+                    self._stop.wait(0.004)
                     continue
                 image, index, est = fr
                 last_index = index

@@ -15,6 +15,9 @@ plain ``asyncio.Event``; from any other thread ``set()`` only marks the flag (wh
 synchronous readers look at) and leaves waking the waiters to the loop, which ``push()`` already
 asks for with ``call_soon_threadsafe(message_event.set)`` (or ``atomic_end()`` / ``set_done()``
 do).
+
+:func:`tab_caught_up` reads the same buffer: whether a tab's connection has taken everything
+queued for it (the overlay stream encodes a new frame only when some tab can take it).
 """
 
 from __future__ import annotations
@@ -76,3 +79,14 @@ def protect_client(client) -> bool:
     except AttributeError:
         log.warning("viser client layout changed: message buffer not found, thread-safety fix not applied")
         return False
+
+
+def tab_caught_up(client) -> bool:
+    """True when viser has handed everything queued for ``client`` (a ``viser.ClientHandle``) to
+    its connection (the tab is keeping up); True as well when that cannot be read (another
+    viser version), so the caller never waits on it."""
+    try:
+        buf = client._websock_connection.get_message_buffer()
+        return buf.generator_cursors.get(client.client_id, -1) >= buf.message_counter - 1
+    except (AttributeError, TypeError):
+        return True
