@@ -44,3 +44,58 @@ def test_marks_at_display_scale_match_camera_pixels():
     assert np.any(np.abs(ring - RED).max(axis=1) < 60)
     assert np.abs(out[v, u].astype(int) - GREEN).max() > 60
     assert frame.mean() == 90  # the camera frame itself is never drawn on
+
+
+def test_banner_and_panel_come_from_one_snapshot(tmp_path, port):
+    """The overlay's banner is drawn from the very snapshot the panels were rendered from (the
+    render thread's), never from a newer one that could disagree with the panel for a frame."""
+    import time
+
+    from monotracker.engine import Session, SessionConfig
+    from monotracker.ui.app import MonoTrackerApp
+
+    s = Session(SessionConfig(home=tmp_path, arm_pin="2468"))
+    app = MonoTrackerApp(s, "127.0.0.1", port)
+    rendered, drawn = [], []
+
+    class FakeTab:  # a tab on the Register step (what the render and overlay threads see of it)
+        client_id = "fake"
+        client = None  # unreadable buffer: the overlay never waits on it
+        wants_live = True
+
+        def render(self, snap):
+            rendered.append(snap)
+
+        def show_frame(self, data):
+            pass
+
+        def close(self):
+            pass
+
+    real_encode = app.stream.encode_frame
+
+    def encode(image, est, snap):
+        drawn.append(snap)
+        return real_encode(image, est, snap)
+
+    app.stream.encode_frame = encode
+    frame = np.full((720, 1280, 3), 90, np.uint8)
+    k = [0]
+
+    def latest_frame():
+        k[0] += 1
+        return frame, k[0], None
+
+    s.latest_frame = latest_frame
+    app._views["fake"] = FakeTab()
+    app.start()
+    try:
+        t0 = time.monotonic()
+        while len(drawn) < 20 and time.monotonic() - t0 < 120:
+            time.sleep(0.05)
+    finally:
+        app.stop()
+        s.shutdown()
+    assert len(drawn) >= 20
+    ids = {id(x) for x in rendered}
+    assert all(id(x) in ids for x in drawn[1:])  # (the first frame may precede the first render)

@@ -64,6 +64,7 @@ class MonoTrackerApp:
         self._views: dict[int, ClientView] = {}
         self._history = deque(maxlen=600)  # (wall time s, tip error mm, speed mm/s)
         self.notice = None
+        self._shown_snap = None  # the snapshot the tabs' panels show now (the overlay banner uses it too)
         snap = session.snapshot()
         if snap.fiducials or snap.plan.entry_lps_mm is not None:
             self.notice = f"Saved plan restored ({snap.plan_path}); robot starts DISARMED."
@@ -132,6 +133,8 @@ class MonoTrackerApp:
             t0 = time.monotonic()
             try:
                 snap = self.session.snapshot()
+                with self._lock:
+                    self._shown_snap = snap
                 if snap.robot.tip_error_mm is not None or snap.robot.state in ("tracking", "holding"):
                     with self._lock:
                         self._history.append((time.time(), snap.robot.tip_error_mm, snap.robot.speed_mm_s))
@@ -173,10 +176,17 @@ class MonoTrackerApp:
                 image, index, est = fr
                 last_index = index
                 t_last = time.monotonic()
-                self.push_frame(image, est, self.session.snapshot())
+                self.push_frame(image, est, self.shown_snapshot())
             except Exception:  # noqa: BLE001
                 log.exception("overlay failed")
                 self._stop.wait(0.2)
+
+    def shown_snapshot(self):
+        """The snapshot the panels show now (taken by the render thread), so the overlay's banner
+        never disagrees with the panel beside it; a fresh one before the first render."""
+        with self._lock:
+            snap = self._shown_snap
+        return snap if snap is not None else self.session.snapshot()
 
     def push_frame(self, image_bgr, estimate, snap) -> bytes:
         """Draw the overlay on one BGR frame, encode it once, show it on every tab watching."""
