@@ -34,9 +34,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
-import os as _os
-EXTRA_ARGS = _os.environ.get("MT_BENCH_ARGS", "").split()
-
 JS = """
 () => { window.__seen = []; const c = document.createElement('canvas'); const ctx = c.getContext('2d', {willReadFrequently: true});
   let last = -1, lastSrc = '';
@@ -123,7 +120,7 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960) ->
                               args=["--no-sandbox", "--disable-gpu", "--disable-background-networking",
                                     "--disable-component-update", "--disable-sync", "--no-first-run",
                                     "--disable-renderer-backgrounding", "--disable-background-timer-throttling",
-                                    "--disable-backgrounding-occluded-windows"] + EXTRA_ARGS)
+                                    "--disable-backgrounding-occluded-windows"])
         pages = []
         for _ in range(clients):
             page = b.new_context(viewport={"width": 1600, "height": 1000}).new_page()
