@@ -11,7 +11,12 @@ notes Date.now(); latency = browser time seen - server time the frame was encode
 Rows, measured in the same run:
 * baseline (the per-client push before issue 14): the overlay drawn at 1280x720, then every
   client's image encoded from the full frame separately (N JPEG encodes of 1280x720 per frame);
-* web app: the overlay drawn, downscaled to 960x540 and encoded ONCE; the same bytes to all.
+* web app: the app's own overlay thread takes the newest camera frame, downscales it to 960x540,
+  draws the overlay at that size and encodes it ONCE; the same bytes go to all, raw (not
+  compressed again per tab); a frame is encoded only when some tab has taken the previous one
+  (or 0.25 s passed). "shown/pushed": frames a page showed / frames encoded.
+The probe reads the frame number only when the <img> shows a new decoded frame (not on every
+animation frame), the same for both rows.
 Target (issue 14): >= 15 fps per client with 3 clients on a loaded machine; >= 25 fps and
 <= 60 ms median with one client on a quiet one.
 """
@@ -31,10 +36,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
 JS = """
 () => { window.__seen = []; const c = document.createElement('canvas'); const ctx = c.getContext('2d', {willReadFrequently: true});
-  let last = -1;
+  let last = -1, lastSrc = '';
   function tick() {
-    const imgs = [...document.querySelectorAll('img')].filter(i => i.naturalWidth >= 900);
-    if (imgs.length) { const im = imgs[0]; c.width = 320; c.height = 16;
+    const imgs = [...document.querySelectorAll('img')].filter(i => i.naturalWidth >= 320 && i.naturalHeight >= 180);
+    // read the frame number only when the live <img> shows a new, decoded frame (a new blob URL)
+    if (imgs.length && imgs[0].src !== lastSrc && imgs[0].complete) { const im = imgs[0]; lastSrc = im.src;
+      c.width = 320; c.height = 16;
       ctx.drawImage(im, 0, im.naturalHeight - 16, 320, 16, 0, 0, 320, 16);
       const d = ctx.getImageData(0, 0, 320, 16).data; let v = 0;
       for (let b = 0; b < 20; b++) { const x = b * 16 + 8, y = 8; const k = (y * 320 + x) * 4;
@@ -61,7 +68,7 @@ def camera_like_frame() -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def run(seconds: float, shared: bool, clients: int) -> list[dict]:
+def run(seconds: float, shared: bool, clients: int, display_width: int = 960) -> list[dict]:
     """One row: ``clients`` pages watch for ``seconds``; per-client fps and latency."""
     import socket
 
@@ -77,10 +84,13 @@ def run(seconds: float, shared: bool, clients: int) -> list[dict]:
     with socket.socket() as so:
         so.bind(("127.0.0.1", 0))
         port = so.getsockname()[1]
-    app = MonoTrackerApp(s, "127.0.0.1", port, stream_code=True)
+    app = MonoTrackerApp(s, "127.0.0.1", port, stream_code=True, display_width=display_width)
     app.start()
     base = camera_like_frame()
     stop = threading.Event()
+    newest = [None]
+    if shared:  # the app's own overlay thread takes the camera's newest frame, as with a real camera
+        s.latest_frame = lambda: newest[0]
 
     def pusher():
         i = 0
@@ -88,11 +98,10 @@ def run(seconds: float, shared: bool, clients: int) -> list[dict]:
             t0 = time.monotonic()
             img = np.roll(base, i * 7, axis=1)
             i += 1
-            snap = s.snapshot()
             if shared:
-                app.push_frame(img, None, snap)
+                newest[0] = (img, i, None)
             else:  # the per-client push: full-size frame, one encode per client
-                out = draw_overlay(img, None, snap)
+                out = draw_overlay(img, None, s.snapshot())
                 with app.stream._lock:
                     app.stream.count += 1
                     n = app.stream.count
@@ -153,11 +162,12 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--clients", type=int, default=1, help="browser tabs watching at once (default 1)")
     ap.add_argument("--quick", action="store_true", help="3 s per row")
+    ap.add_argument("--width", type=int, default=960, help="display width of the shared stream (px, default 960)")
     a = ap.parse_args()
     secs = 3.0 if a.quick else a.seconds
     load = os.getloadavg()[0]
     rows = [("baseline: per-client encode 1280x720", run(secs, shared=False, clients=a.clients)),
-            ("web app: encode once 960x540, shared", run(secs, shared=True, clients=a.clients))]
+            ("web app: encode once 960x540, shared", run(secs, shared=True, clients=a.clients, display_width=a.width))]
     print(f"machine: {os.cpu_count()} cores, load average {load:.1f} at start, {os.getloadavg()[0]:.1f} at end; "
           f"{a.clients} client(s), {secs:.0f} s per row, source 30 fps")
     print("target: >= 15 fps per client with 3 clients loaded; >= 25 fps, <= 60 ms median with 1 client quiet")

@@ -26,15 +26,19 @@ import threading
 import time
 from collections import deque
 
+import numpy as np
 import viser
 
 from monotracker.ui.stream import OverlayStream
 from monotracker.ui.view import ClientView
+from monotracker.ui.viser_threads import protect_client, protect_server, tab_caught_up
 
 log = logging.getLogger(__name__)
 
 
 class MonoTrackerApp:
+    #: the longest the overlay waits for a tab to catch up before sending the newest frame anyway (s)
+    MAX_HOLD_S = 0.25
     """The viser app. ``start()`` serves the page and starts the threads; ``stop()`` ends them
     (the session is shut down by its owner). ``stream_code``: stamp a frame-number barcode into
     the streamed image (benchmark only). ``display_width``: px width of the live overlay as sent
@@ -53,12 +57,14 @@ class MonoTrackerApp:
             self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
         self.stream = OverlayStream(display_width=display_width, jpeg_quality=jpeg_quality, stream_code=stream_code)
         self.max_stream_fps = float(max_stream_fps)
+        self.frames_held = 0  # overlay waits for a tab to catch up (benchmark, tests)
         self._lock = threading.RLock()
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._views: dict[int, ClientView] = {}
         self._history = deque(maxlen=600)  # (wall time s, tip error mm, speed mm/s)
         self.notice = None
+        self._shown_snap = None  # the snapshot the tabs' panels show now (the overlay banner uses it too)
         snap = session.snapshot()
         if snap.fiducials or snap.plan.entry_lps_mm is not None:
             self.notice = f"Saved plan restored ({snap.plan_path}); robot starts DISARMED."
@@ -69,6 +75,7 @@ class MonoTrackerApp:
             from monotracker.ui.remote_login import LoginProxy
 
             self.proxy = LoginProxy(self.login, self.host, self.port, self.server.get_port()).start()
+        protect_server(self.server)  # viser's buffers are fed from several threads (ui/viser_threads.py)
         self.server.scene.world_axes.visible = False
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
@@ -102,6 +109,7 @@ class MonoTrackerApp:
             return list(self._history)
 
     def _connect(self, client) -> None:
+        protect_client(client)
         try:
             view = ClientView(self, client)
         except Exception:  # noqa: BLE001 - a tab that closes while its page is built
@@ -125,6 +133,8 @@ class MonoTrackerApp:
             t0 = time.monotonic()
             try:
                 snap = self.session.snapshot()
+                with self._lock:
+                    self._shown_snap = snap
                 if snap.robot.tip_error_mm is not None or snap.robot.state in ("tracking", "holding"):
                     with self._lock:
                         self._history.append((time.time(), snap.robot.tip_error_mm, snap.robot.speed_mm_s))
@@ -139,6 +149,12 @@ class MonoTrackerApp:
 
     # ================================================================== overlay stream
     def _overlay_loop(self) -> None:
+        """Draw + encode the newest camera frame once for all watching tabs, at most
+        ``max_stream_fps``, and only when a watching tab has sent what was queued for it: a
+        frame encoded while every tab still has one waiting would only replace it unseen (viser
+        keeps the newest update per image), so that CPU goes to the tabs and the engine instead.
+        A frame still goes out at least every ``MAX_HOLD_S`` (a tab that stopped reading must not
+        freeze the others' view)."""
         last_index = None
         min_dt = 1.0 / self.max_stream_fps
         t_last = 0.0
@@ -153,13 +169,24 @@ class MonoTrackerApp:
                 if now - t_last < min_dt:
                     self._stop.wait(min_dt - (now - t_last))
                     continue
+                if now - t_last < self.MAX_HOLD_S and not any(tab_caught_up(v.client) for v in watching):
+                    self.frames_held += 1
+                    self._stop.wait(0.004)
+                    continue
                 image, index, est = fr
                 last_index = index
                 t_last = time.monotonic()
-                self.push_frame(image, est, self.session.snapshot())
+                self.push_frame(image, est, self.shown_snapshot())
             except Exception:  # noqa: BLE001
                 log.exception("overlay failed")
                 self._stop.wait(0.2)
+
+    def shown_snapshot(self):
+        """The snapshot the panels show now (taken by the render thread), so the overlay's banner
+        never disagrees with the panel beside it; a fresh one before the first render."""
+        with self._lock:
+            snap = self._shown_snap
+        return snap if snap is not None else self.session.snapshot()
 
     def push_frame(self, image_bgr, estimate, snap) -> bytes:
         """Draw the overlay on one BGR frame, encode it once, show it on every tab watching."""
@@ -168,7 +195,10 @@ class MonoTrackerApp:
         return jpeg
 
     def push_jpeg(self, jpeg: bytes) -> None:
-        """The same encoded frame to every tab showing the live view."""
+        """The same encoded frame to every tab showing the live view. Handed over as a uint8 array
+        view of the bytes: viser sends arrays raw after its zstd-compressed message, where bytes
+        would be compressed again for every tab (and decompressed by every browser) for nothing."""
+        data = np.frombuffer(jpeg, np.uint8)
         for view in self.views():
             if view.wants_live:
-                view.show_frame(jpeg)
+                view.show_frame(data)

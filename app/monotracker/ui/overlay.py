@@ -57,10 +57,12 @@ def _text(img, s, org, colour, scale=0.7, thick=2):
     cv2.putText(img, s, org, cv2.FONT_HERSHEY_SIMPLEX, scale, colour, thick, cv2.LINE_AA)
 
 
-def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False) -> np.ndarray:
+def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False, px_scale: float = 1.0) -> np.ndarray:
     """Draw the overlay for one frame. ``estimate``: vision's ``PoseEstimate`` for this frame
     (or None); ``snap``: the engine snapshot (fiducial ids, positions, plan, camera model,
-    engine's trust verdict). Returns the BGR image (a copy unless ``in_place``)."""
+    engine's trust verdict). ``px_scale``: display px per camera px when ``image`` is the frame
+    already downscaled for display (camera-pixel positions are scaled; marks and text are sized
+    for the image drawn on). Returns the BGR image (a copy unless ``in_place``)."""
     img = image if in_place else image.copy()
     h, w = img.shape[:2]
     pose = snap.pose
@@ -79,7 +81,7 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False) -
         status_by_id = dict(pose.fiducial_status) if pose is not None else {}
     # vision's PoseEstimate: arrays in fiducial order; the engine's PoseSample ("sim-points"):
     # dicts keyed by fiducial id and no image points
-    img_pts = np.asarray(getattr(estimate, "image_points_px", np.zeros((0, 2))), float).reshape(-1, 2)
+    img_pts = np.asarray(getattr(estimate, "image_points_px", np.zeros((0, 2))), float).reshape(-1, 2) * px_scale
     res_raw = getattr(estimate, "residuals_px", None)
     if isinstance(res_raw, dict):
         residuals = np.array([res_raw.get(i, np.nan) for i in ids], float)
@@ -94,11 +96,11 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False) -
         centres = np.array([by_id[i].centre_lps_mm for i in ids if i in by_id])
         known = [i for i in ids if i in by_id]
         if len(known):
-            uv = project_points(centres, T, cam.K, cam.dist)
+            uv = project_points(centres, T, cam.K, cam.dist) * px_scale
             proj = dict(zip(known, uv))
         plan = snap.plan
         if plan.entry_lps_mm is not None and plan.target_lps_mm is not None:
-            e, t = project_points(np.array([plan.entry_lps_mm, plan.target_lps_mm]), T, cam.K, cam.dist)
+            e, t = project_points(np.array([plan.entry_lps_mm, plan.target_lps_mm]), T, cam.K, cam.dist) * px_scale
             if _finite(e) and _finite(t):
                 cv2.line(img, _ipt(e), _ipt(t), MAGENTA, max(1, int(2 * scale)), cv2.LINE_AA)
                 cv2.drawMarker(img, _ipt(e), CYAN, cv2.MARKER_CROSS, int(24 * scale), max(1, int(2 * scale)))
