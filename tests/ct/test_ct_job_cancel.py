@@ -129,3 +129,34 @@ def test_detect_ct_ctrl_c_is_one_line(monkeypatch, capsys, patch_file):
     assert main(["detect-ct", str(patch_file)]) == 130
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "interrupted" in err[0] and "Traceback" not in err[0], err
+
+
+def test_cancelled_kit_detection_leaves_the_plans_kit_and_fiducials(tmp_path, patch_file, monkeypatch):
+    """A new kit with a CT loaded is committed together with the fiducials it finds: when that
+    detection is cancelled the plan keeps its old kit and fiducials (review finding)."""
+    s = Session(SessionConfig(home=tmp_path / "home", clock="sim"))
+    try:
+        assert s.load_ct(str(patch_file)).ok
+        assert _wait_done(s).error is None
+        before = _state(s)
+        gate, entered = threading.Event(), threading.Event()
+        real = ct_pkg.detect_fiducials
+
+        def slow(vol, **kw):
+            entered.set()
+            gate.wait(120)
+            return real(vol, **kw)
+
+        monkeypatch.setattr(ct_pkg, "detect_fiducials", slow)
+        assert s.set_fiducial_kit(2.5, 1700.0).ok
+        assert entered.wait(120)
+        assert s.plan_copy().fiducial_kit is None  # not yet: it comes with the fiducials
+        assert s.cancel_ct_job().ok
+        gate.set()
+        job = _wait_done(s)
+        assert job.done and job.error
+        s.wait_for_job(300)
+        assert s.plan_copy().fiducial_kit is None and _state(s) == before
+        assert not s.audit_entries(code="fiducial_kit_set")
+    finally:
+        s.shutdown()

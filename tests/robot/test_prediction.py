@@ -271,3 +271,18 @@ def test_the_roll_about_the_needle_is_never_extrapolated():
     quiet = _roll_follows_the_arm(TargetPredictor())
     spinning = _roll_follows_the_arm(TargetPredictor(free_roll=False))
     assert quiet < 0.05 and spinning > 4 * quiet
+
+
+def test_feedforward_over_the_speed_cap_is_never_used():
+    """The twist handed on as feed-forward is ``V + A h``: with a large acceleration estimate it
+    can be over the caps while ``V`` alone is not; then nothing is extrapolated (review finding)."""
+    p = TargetPredictor(max_speed_m_s=0.05)
+    t = _feed(p, 0.015, 30)
+    T_last = _pose(0.015 * t)
+    T, V = p.predict(T_last, t + 0.05)
+    assert p.active and np.any(V)  # an ordinary motion: extrapolated
+    p.A = np.zeros(6)
+    p.A[3] = 1.0  # 1 m/s^2: V + A h reaches ~0.165 m/s at h = 0.15 s, over the 0.05 m/s cap
+    assert not p._too_fast(p.V)
+    T, V = p.predict(T_last, t + 0.15)
+    assert np.array_equal(T, T_last) and not np.any(V)

@@ -128,14 +128,15 @@ def test_tip_maps_into_ct_through_hand_eye_and_registration():
     T_ct_tip = np.eye(4)
     T_ct_tip[:3, :3] = Rotation.align_vectors([axis_ct], [[0.0, 0.0, 1.0]])[0].as_matrix()
     T_ct_tip[:3, 3] = tip_ct
+    fresh = SimpleNamespace(trusted=True, stale=False, age_s=0.03, reason="pose trusted")
     snap = SimpleNamespace(scene=SimpleNamespace(T_base_ct=T_base_ct, T_base_tip=T_base_ct @ T_ct_tip),
-                           plan=SimpleNamespace(target_lps_mm=np.zeros(3)))
+                           plan=SimpleNamespace(target_lps_mm=np.zeros(3)), pose=fresh)
     p, a = nav.tip_in_ct(snap)
     assert np.allclose(p, tip_ct, atol=1e-9) and np.allclose(a, axis_ct, atol=1e-9)
     np_ = nav.nav_point(snap, np.zeros(3))
     assert np_.source == "tip" and np.allclose(np_.point, tip_ct)
     snap = SimpleNamespace(scene=SimpleNamespace(T_base_ct=None, T_base_tip=None),
-                           plan=SimpleNamespace(target_lps_mm=np.array([1.0, 2.0, 3.0])))
+                           plan=SimpleNamespace(target_lps_mm=np.array([1.0, 2.0, 3.0])), pose=None)
     np_ = nav.nav_point(snap, np.zeros(3))
     assert np_.source == "target" and np.allclose(np_.point, [1, 2, 3])
 

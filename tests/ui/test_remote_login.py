@@ -70,6 +70,21 @@ def test_gate_lockout_expiry_logout():
     assert rows[-1][0] == "logout"
 
 
+def test_lockout_is_per_address_so_a_guesser_cannot_lock_out_the_team():
+    """Wrong tries lock out the address they come from, not every station (review finding)."""
+    from monotracker.ui.remote_login import LoginGate
+
+    clock, alarms = FakeClock(), []
+    gate = LoginGate(PASSWORD, max_tries=3, lockout_s=30.0, clock=clock, lockout=lambda s, m: alarms.append(s))
+    for _ in range(3):
+        assert not gate.try_login("nope", "10.9.9.9")[0].ok
+    assert gate.locked_for("10.9.9.9") == pytest.approx(30.0) and gate.locked_for() == pytest.approx(30.0)
+    assert alarms and alarms[-1] > 0  # the alarm still shows someone is guessing
+    assert not gate.try_login(PASSWORD, "10.9.9.9")[0].ok  # the guesser stays locked
+    r, tok = gate.try_login(PASSWORD, "10.0.0.2")  # an OR station logs in meanwhile
+    assert r.ok and gate.valid(tok) and gate.locked_for("10.0.0.2") == 0
+
+
 def test_password_file_errors(tmp_path):
     from monotracker.errors import InputError
     from monotracker.ui.remote_login import read_password_file

@@ -81,9 +81,9 @@ class RecordingSession:
     def latest_frame(self):
         return self.s.latest_frame()
 
-    def learn_ball_colour(self, x, y):
-        self.calls.append((x, y))
-        return self.s.learn_ball_colour(x, y)
+    def learn_ball_colour(self, x, y, **kw):
+        self.calls.append((x, y, kw.get("frame"), kw.get("frame_index")))
+        return self.s.learn_ball_colour(x, y, **kw)
 
 
 class FakeView:
@@ -174,7 +174,7 @@ def test_click_on_a_ball_learns_its_colour_refusals_are_one_line(live):
     k, (x, y) = _ball_far_from_the_corner(truth)
     node.clicks[0](Event(cam.position, node.world_point((x + 0.5) / W, (y + 0.5) / H)))
     assert node.removed and len(rec.calls) == 1
-    assert np.allclose(rec.calls[0], (x, y), atol=0.05)
+    assert np.allclose(rec.calls[0][:2], (x, y), atol=0.05)
     assert view.lines[-1][0], view.lines[-1]
     col = rig.tracker.detector.colour
     assert col is not None and col.hue_lo < 60 < col.hue_hi                # the balls are green (hue ~58)
@@ -187,6 +187,34 @@ def test_click_on_a_ball_learns_its_colour_refusals_are_one_line(live):
     assert not view.lines[-1][0] and "\n" not in view.lines[-1][1]
     assert shown[-1].startswith("NOT LEARNED")
     assert rig.tracker.detector.colour == col
+
+
+def test_the_click_learns_from_the_shown_frame_never_a_newer_one(live, monkeypatch):
+    """Frame A is shown; before the click the camera's newest frame becomes one where the
+    clicked pixel is drape (the head moved). The colour is learned from A, never from the newer
+    frame (the engine side's refusal by frame index is in tests/engine/test_ball_colour_cmd.py)."""
+    cam = FakeCamera([350.0, -420.0, 380.0], [0.0, 0.0, 60.0])
+    rec = RecordingSession(live)
+    view = FakeView(rec, cam)
+    shown = []
+    picker = BallColourPicker(view, on_result=shown.append)
+    rig = live._loop.rig
+    img_a, idx_a, _ = live.latest_frame()
+    H, W = img_a.shape[:2]
+    k, (x, y) = _ball_far_from_the_corner(rig._last_frame.truth)
+    before = rig.tracker.detector.colour
+    assert picker.start()
+    node = view.scene.nodes[-1]
+
+    drape = np.empty_like(img_a)
+    drape[:] = img_a[3, 3]
+    monkeypatch.setattr(rig, "latest_frame", lambda: (drape, idx_a + 1, None))
+    node.clicks[0](Event(cam.position, node.world_point((x + 0.5) / W, (y + 0.5) / H)))
+    assert node.removed
+    assert len(rec.calls) == 1 and rec.calls[0][2] is img_a and rec.calls[0][3] == idx_a
+    assert view.lines[-1][0], view.lines[-1]
+    col = rig.tracker.detector.colour
+    assert col is not None and col.hue_lo < 60 < col.hue_hi                # green balls of frame A
 
 
 def test_no_frame_yet_is_one_line(tmp_path):
@@ -245,7 +273,7 @@ def test_register_step_wires_the_pick_and_the_typed_pixel(live):
     # typed pixel
     view.gui.widgets["Ball at x, y (px)"].value = (float(x), float(y))
     view.gui.widgets["Learn ball colour at x, y"].callbacks[0](None)
-    assert rec.calls[-1] == (float(x), float(y)) and view.lines[-1][0], view.lines[-1]
+    assert rec.calls[-1][:2] == (float(x), float(y)) and view.lines[-1][0], view.lines[-1]
     assert "hue" in step.h_colour.content
     # pick mode from the button group, then Cancel removes the picture
     grp = view.gui.widgets["Ball colour"]

@@ -284,39 +284,6 @@ def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_v
     else:  # a large volume: the first level is split on a coarse grid, each piece searched exactly
         refine_coarse(np.zeros(3, int), shape, None, 0, exact=True)
     return cands, rejected, stats
-    coarse = block_max(arr, b)
-    stats.block = b
-
-    def visit_coarse(clo: np.ndarray, chi: np.ndarray, crestrict: np.ndarray | None, level: int) -> bool:
-        T = float(ladder[level])
-        mask = coarse[clo[0]:chi[0], clo[1]:chi[1], clo[2]:chi[2]] > T
-        if crestrict is not None:
-            mask &= crestrict
-        stats.labelled_voxels += mask.size
-        labels, n = ndimage.label(mask, structure=_STRUCTURE)
-        if n == 0:
-            return False
-        counts = np.bincount(labels.ravel(), minlength=n + 1)
-        found = False
-        for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
-            if over_budget():
-                return found
-            if counts[lab] * b**3 < min_voxels:  # cannot hold a blob of min_voxels: a speck
-                stats.specks += 1
-                continue
-            c_lo = clo + np.array([s.start for s in sl])
-            c_hi = clo + np.array([s.stop for s in sl])
-            f_lo, f_hi = c_lo * b, np.minimum(c_hi * b, shape)
-            cmask = labels[sl] == lab
-            if np.prod(f_hi - f_lo) <= FINE_BOX_MAX or level + 1 == len(ladder):
-                idx = [np.arange(f_lo[a], f_hi[a]) // b - c_lo[a] for a in range(3)]
-                found |= visit(f_lo, f_hi, cmask[np.ix_(*idx)], level)
-            else:
-                found |= visit_coarse(c_lo, c_hi, cmask, level + 1)
-        return found
-
-    visit_coarse(np.zeros(3, int), np.array(coarse.shape), None, 0)
-    return cands, rejected, stats
 
 
 def _inside(p_lps: np.ndarray, volume: Volume, lo: np.ndarray, hi: np.ndarray) -> bool:

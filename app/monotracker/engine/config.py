@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -155,6 +156,9 @@ class SessionConfig:
             if self.camera != "sim":
                 raise InputError(f"camera_optics applies to the rendered simulated camera (camera='sim') only, "
                                  f"not camera={self.camera!r}")
+        for name in ("pose_rt_priority", "pose_nice"):
+            if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), (int, numbers.Integral)):
+                raise InputError(f"{name} must be a whole number, not {getattr(self, name)!r}")
         if not 0 <= int(self.pose_rt_priority) <= 99:
             raise InputError(f"pose_rt_priority must be a SCHED_FIFO priority 1-99, or 0 for none, not {self.pose_rt_priority!r}")
         if not -20 <= int(self.pose_nice) <= 19:

@@ -193,25 +193,29 @@ class CTCommands:
             if self._plan.fiducials_locked:
                 return _fail("fiducials are locked; unlock them first (a new kit re-runs the detection)")
             old = self._plan.fiducial_kit
-            plan = self._plan.copy()
-            plan.fiducial_kit = kit
-            err = self._commit_plan_locked(plan, "fiducial kit")
-            if err:
-                return _fail(err)
             vol = self._volume
-            th = None
-            if vol is not None:
+            if vol is None:  # no CT: the kit alone goes into the plan now
+                plan = self._plan.copy()
+                plan.fiducial_kit = kit
+                err = self._commit_plan_locked(plan, "fiducial kit")
+                if err:
+                    return _fail(err)
+                th = None
+            else:  # with a CT, the kit is committed with the fiducials it finds (a stopped job changes nothing)
                 self._job = Job("detect_fiducials", 0.0, "detecting fiducials with the new kit")
                 token = self._new_job_token()
                 th = threading.Thread(target=self._detect_job, args=(vol, kit, token), name="monotracker-ct", daemon=True)
                 self._job_thread = th
+        if th is None:
+            self._kit_set_event(kit, old)
+            return _ok("fiducial kit kept in the plan; it is used when a CT is loaded")
+        self._start_job(th, token)
+        return _ok("detecting the fiducials with the new kit; the plan takes the kit when the detection ends")
+
+    def _kit_set_event(self, kit, old) -> None:
         self._bus.event("fiducial_kit_set", f"fiducial kit: radius {kit.radius_mm:g} mm, density "
                         + ("unknown" if kit.density_hu is None else f"{kit.density_hu:g} HU"),
                         {"kit": kit.to_dict(), "previous": None if old is None else old.to_dict()})
-        if th is None:
-            return _ok("fiducial kit kept in the plan; it is used when a CT is loaded")
-        self._start_job(th, token)
-        return _ok("fiducial kit kept in the plan; detecting the fiducials again")
 
     def _detect_job(self, vol, kit, token: JobToken) -> None:
         """The CT job of :meth:`set_fiducial_kit`: detection on the loaded volume, then the plan."""
@@ -238,9 +242,12 @@ class CTCommands:
                 return
             token.committed = True
             if self._volume is not vol or self._plan.fiducials_locked:
-                self._job = Job("detect_fiducials", 1.0, "detection not used", "the CT or the plan changed meanwhile", True)
+                self._job = Job("detect_fiducials", 1.0, "detection not used; fiducial kit not changed",
+                                "the CT or the plan changed meanwhile", True)
                 return
             plan = self._plan.copy()
+            old_kit = plan.fiducial_kit
+            plan.fiducial_kit = kit
             new = detected_fiducials(det)
             kept = [f for f in plan.fiducials if f.status == "added"
                     and all(np.linalg.norm(np.asarray(f.centre_lps_mm) - g.centre_lps_mm) >= f.radius_mm + g.radius_mm for g in new)]
@@ -250,10 +257,12 @@ class CTCommands:
             plan.fiducials = new + kept
             err = self._commit_plan_locked(plan, "fiducials detected again (new kit)")
             if err:
-                self._job = Job("detect_fiducials", 1.0, "detection not used", f"the plan could not be saved: {err}", True)
+                self._job = Job("detect_fiducials", 1.0, "detection not used; fiducial kit not changed",
+                                f"the plan could not be saved: {err}", True)
                 return
             if self._ct is not None:
                 self._ct = replace(self._ct, rejected=rejected_summary(det, vol), detection=det.reason)
+        self._kit_set_event(kit, old_kit)
         self._loop.plan_changed("fiducials detected again (new kit)", restart_camera=False)
         extra = f"; {dropped} added fiducial(s) now detected" if dropped else ""
         self._set_job(1.0, ("fiducials detected again" if det.ok else f"fiducials: {det.reason}") + extra, None, True, token)

@@ -4,10 +4,13 @@ On a loaded machine (2 cores, CPU hogs beside the app) a thread at normal priori
 share of a core, about a third with 4 hogs, and one frame's ~25 ms of detection + registration
 then takes ~80 ms of wall time: trusted poses reach the control side older than
 ``max_pose_age_s`` and the arm (rightly) holds. The robot's control loop already runs in its own
-process at SCHED_FIFO (``robot/control_process.py``); the pose pipeline is raised with a lower
-*nice* value instead, per thread (Linux schedules threads individually): a CFS weight, not a
-real-time class, so a pipeline that overruns (e.g. photo-like optics at 30 fps) never starves the
-rest of the machine, yet a waking pipeline thread preempts the hogs and gets most of a core.
+process at SCHED_FIFO (``robot/control_process.py``); the pose pipeline is raised below it:
+the pipeline thread, the engine thread that feeds the target and the sim camera process at
+SCHED_FIFO ``pose_rt_priority`` (5; 0 = none), and every thread of the engine process at nice
+``pose_nice`` (-10; Linux schedules threads individually), because they share one GIL. A
+real-time thread that overruns its frame period (render + estimate, e.g. photo-like optics at
+30 fps) sleeps a quarter of its busy time (``vision_rig``; the camera process likewise), so it can
+never take a whole core, while a waking pipeline thread preempts the hogs.
 
 Lowering one's nice value needs CAP_SYS_NICE or an RLIMIT_NICE allowance; where the OS refuses,
 :func:`raise_thread_priority` says so in one line (the engine raises a ``pose_priority``
@@ -89,12 +92,12 @@ def raise_process_priority(nice: int) -> str:
 
 def raise_pipeline_priority(rt_priority: int, nice: int) -> str:
     """The calling pose-pipeline thread: SCHED_FIFO ``rt_priority`` where the OS allows (else nice
-    -10, else normal: the robot's ``elevate_priority``, one line saying which and why); with
-    ``rt_priority`` 0 only the nice value ``nice`` (:func:`raise_thread_priority`)."""
+    ``nice`` when that is < 0, else normal: the robot's ``elevate_priority``, one line saying
+    which and why); with ``rt_priority`` 0 only the nice value ``nice`` (:func:`raise_thread_priority`)."""
     if int(rt_priority) > 0:
         from monotracker.robot.control_process import elevate_priority
 
-        return elevate_priority(int(rt_priority))
+        return elevate_priority(int(rt_priority), fallback_nice=int(nice))
     return raise_thread_priority(nice)
 
 

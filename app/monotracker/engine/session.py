@@ -407,13 +407,16 @@ class Session(PlanCommands, CTCommands, ControlCommands):
         """``(image BGR uint8, frame_index, PoseEstimate)`` of the newest processed frame, or None."""
         return self._loop.latest_frame()
 
-    def learn_ball_colour(self, x_px: float, y_px: float) -> CommandResult:
-        """Learn the balls' colour from one click (pixel x, y) on a ball in the newest camera frame;
-        the running detector uses it at once and the camera's calibration file keeps it."""
+    def learn_ball_colour(self, x_px: float, y_px: float, *, frame=None, frame_index: int | None = None) -> CommandResult:
+        """Learn the balls' colour from one click (pixel x, y) on a ball; the running detector uses
+        it at once and the camera's calibration file keeps it. ``frame``: the BGR image the user
+        clicked on (the UI passes the one it showed); without it the newest camera frame, refused
+        when ``frame_index`` is given and the newest frame is no longer that one."""
         from monotracker.engine.ball_colour_cmd import learn_ball_colour_from_frame
 
         try:
-            got = learn_ball_colour_from_frame(self._loop.rig, self._loop.calibration_path, x_px, y_px)
+            got = learn_ball_colour_from_frame(self._loop.rig, self._loop.calibration_path, x_px, y_px,
+                                               frame=frame, frame_index=frame_index)
         except MonoTrackerError as exc:
             return _fail(str(exc))
         self._bus.event("ball_colour_learned", got.message, {**got.colour.to_dict(), "saved_to": got.saved_to})

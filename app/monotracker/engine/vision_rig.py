@@ -262,9 +262,11 @@ class _SimRig(CameraRig):
             with self._lock:
                 self._published = smp
             self.new_sample.set()
-            if self._realtime and w3 - w_arrived > 0.8 * period:
+            # this thread's busy time for the frame: the estimate, plus the render when it ran here
+            busy = (w3 - w_arrived) + ((w1 - w0) if camproc is None else 0.0)
+            if self._realtime and busy > 0.8 * period:
                 # a real-time thread that overran never takes the whole core: leave a fifth
-                self._stop.wait(0.25 * (w3 - w_arrived))
+                self._stop.wait(0.25 * busy)
 
     def _receive(self, camproc, timeout_s: float):
         raise NotImplementedError  # only rigs that render in a camera process

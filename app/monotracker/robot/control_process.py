@@ -133,20 +133,21 @@ def _decode_state(v: np.ndarray) -> ControlState:
 
 
 # ====================================================================== child side
-def elevate_priority(fifo_priority: int = 10) -> str:
-    """Ask for SCHED_FIFO (``fifo_priority``), else a lower nice value; returns what the OS
-    allowed, in words (with the refusal's reason)."""
+def elevate_priority(fifo_priority: int = 10, fallback_nice: int = -10) -> str:
+    """Ask for SCHED_FIFO (``fifo_priority``), else nice ``fallback_nice`` (skipped when >= 0);
+    returns what the OS allowed, in words (with the refusal's reason)."""
     why = []
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(fifo_priority)))
         return f"SCHED_FIFO priority {fifo_priority}"
     except (AttributeError, PermissionError, OSError) as exc:
         why.append(f"SCHED_FIFO refused ({exc.__class__.__name__}: {exc})")
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, -10)
-        return "nice -10; " + why[0]
-    except (AttributeError, PermissionError, OSError) as exc:
-        why.append(f"nice -10 refused ({exc.__class__.__name__})")
+    if int(fallback_nice) < 0:
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, int(fallback_nice))
+            return f"nice {int(fallback_nice)}; " + why[0]
+        except (AttributeError, PermissionError, OSError) as exc:
+            why.append(f"nice {int(fallback_nice)} refused ({exc.__class__.__name__})")
     return "normal priority; " + "; ".join(why)
 
 

@@ -216,7 +216,7 @@ class TargetPredictor:
         """``(T_predicted, V_feedforward)`` for the target ``T`` (the last one given to
         :meth:`update`): the filtered pose extrapolated by ``exp(V h)``, ``h = now - stamp``
         clipped to [0, horizon_s], its offset from ``T`` capped; ``(T, 0)`` while no velocity is
-        trusted, when the filtered twist is over the speed caps, or when ``T`` is not the
+        trusted, when the filtered twist or its extrapolation to ``now`` is over the speed caps, or when ``T`` is not the
         filter's last measurement."""
         from monotracker.robot.lie import exp6, log6, relative
 
@@ -230,6 +230,9 @@ class TargetPredictor:
             return T, np.zeros(6)
         h = float(np.clip(now + self.lead_s - stamp, 0.0, self.horizon_s))
         V = self.V + self.A * h
+        if self._too_fast(V):  # the extrapolated twist (with the acceleration) is over the caps too
+            self._out = self._blend = None
+            return T, np.zeros(6)
         T_raw = self._T @ exp6(self.V * h + 0.5 * self.A * h * h)
         if self._fresh and self._out is not None and 0.0 <= now - self._out[2] <= 0.05:
             # a new measurement moved the prediction: start from where the last output was

@@ -7,9 +7,13 @@ image node facing the tab's own viewpoint (filling ~80 % of the view's height, b
 viewpoint and what it looks at), the operator clicks a ball on it, and the click's ray is
 intersected with the image plane to give the pixel in the FULL-resolution frame, whatever size
 the image is shown at (the picture sent to the browser is downscaled to at most
-:data:`MAX_SEND_WIDTH` px). Then :meth:`Session.learn_ball_colour(x, y)` learns the hue band on
-the newest frame; the result (band, where it was saved) or the refusal is one line on this tab.
-A typed pixel (``learn_at``) does the same without the 3D view.
+:data:`MAX_SEND_WIDTH` px). Then :meth:`Session.learn_ball_colour` learns the hue band on THE FRAME
+SHOWN (kept with the pick), never on the camera's newest frame at click time, which may be seconds
+later with the head moved (the pixel then on skin or drape): a session that takes the frame
+(``frame=``, ``frame_index=``) learns from the shown image; one that takes only (x, y) is called
+only while its newest frame is still the shown one, else the click is refused in one line. The
+result (band, where it was saved) or the refusal is one line on this tab. A typed pixel
+(``learn_at``) learns on the newest frame, without the 3D view.
 
 Image node convention (viser's client, ``ThreeAssets.tsx``: a plane of ``render_width`` x
 ``render_height`` rotated by pi about x): in the node's frame the image lies in z = 0, centred
@@ -90,6 +94,7 @@ class BallColourPicker:
         self._node = None
         self._placement = None
         self._size = None
+        self._shown = None                       # (image BGR, frame_index) on the node
 
     @property
     def active(self) -> bool:
@@ -116,6 +121,7 @@ class BallColourPicker:
                                          wxyz=wxyz, position=pos, cast_shadow=False, receive_shadow=False)
         with self._lock:
             self._node, self._placement, self._size = node, (pos, wxyz, rw, rh), (W, H)
+            self._shown = (img, fr[1] if len(fr) > 1 else None)
         node.on_click(self._on_click)
         self._tell(True, f"click a ball in the camera image shown in the 3D view ({W}x{H} px frame); "
                          "'Cancel' to leave")
@@ -123,7 +129,7 @@ class BallColourPicker:
 
     def cancel(self) -> None:
         with self._lock:
-            node, self._node = self._node, None
+            node, self._node, self._shown = self._node, None, None
         if node is not None:
             node.remove()
 
@@ -132,17 +138,27 @@ class BallColourPicker:
             if self._node is None:
                 return
             pos, wxyz, rw, rh = self._placement
-            size = self._size
+            size, shown = self._size, self._shown
         px = click_to_pixel(event.ray_origin, event.ray_direction, pos, wxyz, rw, rh, size)
         if px is None:
             self._tell(False, "that click is off the camera image: click a ball on it")
             return
         self.cancel()
-        self.learn_at(*px)
+        self._learn_on_shown(px[0], px[1], *shown)
+
+    def _learn_on_shown(self, x_px: float, y_px: float, image, frame_index):
+        """Learn at (x, y) of the frame that was shown (``image``, ``frame_index``), never of a
+        newer one: the session learns from that image."""
+        session = self.view.session
+        fn = lambda x, y: session.learn_ball_colour(x, y, frame=image, frame_index=frame_index)  # noqa: E731
+        return self._learn(fn, x_px, y_px)
 
     def learn_at(self, x_px: float, y_px: float):
-        """Learn from pixel (x, y) of the full-resolution frame (the typed alternative too)."""
-        r = self.view.run("Ball colour", self.view.session.learn_ball_colour, float(x_px), float(y_px))
+        """Learn from pixel (x, y) of the camera's newest full-resolution frame (the typed pixel)."""
+        return self._learn(self.view.session.learn_ball_colour, x_px, y_px)
+
+    def _learn(self, fn, x_px: float, y_px: float):
+        r = self.view.run("Ball colour", fn, float(x_px), float(y_px))
         if r is not None:
             self.on_result(f"{'' if r.ok else 'NOT LEARNED: '}{r.message} (at x {x_px:.0f}, y {y_px:.0f} px)")
         return r

@@ -1,7 +1,7 @@
 """Navigation views of the CT: axial, coronal and sagittal slices through one LPS point (the
-needle tip when the robot's tip is known in CT, else the planned target) and two probe views
-of the planned path ("probe's eye": the plane perpendicular to the path at the tip's depth;
-"along path": the plane that contains the path).
+needle tip when the robot's tip is known in CT through a current trusted pose, else the planned
+target) and two probe views of the planned path ("probe's eye": the plane perpendicular to the
+path at the tip's depth; "along path": the plane that contains the path).
 
 Pure functions (numpy, scipy, OpenCV); no viser here (``navigation_panel`` shows them).
 
@@ -34,6 +34,7 @@ import cv2
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from monotracker.engine.config import SessionConfig
 from monotracker.ui.slices import STATUS_BGR, window_hu
 
 ORTHO = ("axial", "coronal", "sagittal")
@@ -150,7 +151,8 @@ def along_axes(direction) -> tuple[np.ndarray, np.ndarray]:
 def tip_in_ct(snap) -> tuple[np.ndarray | None, np.ndarray | None]:
     """The needle tip and its axis (unit, tip -> where it advances) in CT LPS mm, from the robot's
     tool pose ``T_base_tip`` through ``T_base_ct`` (hand-eye @ latest trusted T_cam_ct), or
-    (None, None) when either is unknown."""
+    (None, None) when either is unknown. Geometry only: whether that registration is still
+    current is :func:`tip_blocked`'s question (:func:`nav_point` asks both)."""
     sc = snap.scene
     if sc.T_base_tip is None or sc.T_base_ct is None:
         return None, None
@@ -158,29 +160,57 @@ def tip_in_ct(snap) -> tuple[np.ndarray | None, np.ndarray | None]:
     return T_ct_tip[:3, 3].copy(), _unit(T_ct_tip[:3, 2])
 
 
+def tip_blocked(snap, max_pose_age_s: float) -> str:
+    """Why the needle tip in CT must not be shown as live ("" when it may): ``scene.T_base_ct``
+    comes from the last *trusted* pose, which outlives occlusion, a frozen camera or a lost
+    registration; the tip is only current while the newest pose is trusted, not held as stale
+    and no older than ``max_pose_age_s`` (the session's limit, the same one the arm obeys)."""
+    if getattr(snap.scene, "T_base_tip", None) is None:
+        return "tip unknown: the robot reports no needle pose"
+    pose = getattr(snap, "pose", None)
+    if pose is None:
+        return "tip unknown: no pose estimate yet"
+    if getattr(pose, "stale", False):
+        return f"tip unknown: pose stale ({pose.reason})"
+    if not pose.trusted:
+        return f"tip unknown: pose not trusted ({pose.reason})"
+    if pose.age_s > max_pose_age_s:
+        return f"tip unknown: pose stale ({1000 * pose.age_s:.0f} ms old, limit {1000 * max_pose_age_s:.0f} ms)"
+    if snap.scene.T_base_ct is None:
+        return "tip unknown: no hand-eye calibration or registration"
+    return ""
+
+
 @dataclass(frozen=True)
 class NavPoint:
     """Where the views cut: ``point`` LPS mm; ``source`` "tip" | "target" | "picked" | "centre";
-    ``tip``/``tip_axis`` the live needle in CT (or None)."""
+    ``tip``/``tip_axis`` the live needle in CT (or None); ``note`` one line on why a live view
+    is not following the tip ("" when it is, or when it is not live)."""
 
     point: np.ndarray
     source: str
     tip: np.ndarray | None = None
     tip_axis: np.ndarray | None = None
+    note: str = ""
 
 
-def nav_point(snap, volume_centre, picked=None, live: bool = True) -> NavPoint:
-    """The slices' point: the live tip (when ``live`` and known), else ``picked`` (an operator's
-    "centre here"), else the planned target, else ``volume_centre``."""
-    tip, axis = tip_in_ct(snap) if live else (None, None)
+def nav_point(snap, volume_centre, picked=None, live: bool = True, *,
+              max_pose_age_s: float = SessionConfig.max_pose_age_s) -> NavPoint:
+    """The slices' point: the live tip (when ``live``, known and current: :func:`tip_blocked`),
+    else ``picked`` (an operator's "centre here"), else the planned target, else
+    ``volume_centre``. A live view that cannot use the tip says why in ``note``."""
+    note = tip_blocked(snap, max_pose_age_s) if live else ""
+    tip, axis = tip_in_ct(snap) if live and not note else (None, None)
+    if live and not note and tip is None:
+        note = "tip unknown"
     if tip is not None:
         return NavPoint(tip, "tip", tip, axis)
     if picked is not None:
-        return NavPoint(np.asarray(picked, float), "picked")
+        return NavPoint(np.asarray(picked, float), "picked", note=note)
     t = snap.plan.target_lps_mm
     if t is not None:
-        return NavPoint(np.asarray(t, float), "target")
-    return NavPoint(np.asarray(volume_centre, float), "centre")
+        return NavPoint(np.asarray(t, float), "target", note=note)
+    return NavPoint(np.asarray(volume_centre, float), "centre", note=note)
 
 
 def plane_views(point, entry=None, target=None, *, fov_mm: float = 180.0, pixel_mm: float = 0.8) -> dict:

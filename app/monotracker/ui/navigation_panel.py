@@ -12,13 +12,15 @@ image tiles in the tab's main (3D) canvas, clickable.
   flat in the canvas (world plane z = 0, camera looking along +z with -y up) so each looks like
   a 2D viewer; a click on one is a ray that meets that plane at one pixel, and the pixel is an
   LPS point (:meth:`PlaneView.to_lps`) that goes to the Session's plan commands (the engine
-  validates it).
+  validates it). The browser may still show an earlier image than the newest geometry: a click
+  is refused when the tile's recent geometries (:data:`CLICK_SETTLE_S`) disagree on its point.
 
 Scene units are viser's (metres) but only the layout matters: a tile is :data:`TILE` wide.
 """
 
 from __future__ import annotations
 
+import html
 import logging
 import math
 import threading
@@ -35,6 +37,11 @@ NAV_MAX_HZ = 4.0  # rendered sets per second per tab (sampling + JPEG of 5 image
 TILE = 0.2  # tile width in the canvas (scene units)
 GAP = 0.012
 CLICK_MODES = ("centre slices here", "set entry", "set target", "add fiducial", "nothing")
+#: a click may have landed on an image sent up to this long before the click arrived (the browser
+#: shows a new image a network round trip after it is sent): every geometry a tile had in that
+#: window must map the click to the same point (within :data:`CLICK_TOL_MM`) or it is refused
+CLICK_SETTLE_S = 1.0
+CLICK_TOL_MM = 1.0
 
 
 class NavigationPanel:
@@ -133,7 +140,11 @@ class NavigationScene:
         self._tiles: dict = {}  # name -> (handle, PlaneView, (x, y) centre)
         self._layout = None
         self._key = None
-        self._hu_cache: dict = {}
+        self._hu_cache: dict = {}  # keyed on _vol_gen: slices of this volume only
+        self._vol = None  # the volume sliced last (held: its identity, not a reusable id(), keys the cache)
+        self._vol_gen = 0  # +1 per new volume object
+        self._history: dict = {}  # name -> [(t sent, PlaneView, (x, y))], oldest first (clicks)
+        self._note = None  # the info line's tip note last shown
         self._seq = 0
         self._thread = threading.Thread(target=self._loop, name=f"monotracker-nav-{view.client_id}", daemon=True)
         self._thread.start()
@@ -157,6 +168,7 @@ class NavigationScene:
             self._tiles = {}
             self._layout = None
             self._key = None
+            self._history = {}
 
     def close(self) -> None:
         self._stop.set()
@@ -199,8 +211,11 @@ class NavigationScene:
             if not said:
                 panel.h_info.content = info_html(panel.key, self._seq, width, level, "", "No CT loaded: nothing to slice.")
             return
+        gen = self._volume_gen(vol)
         lo, hi = volume_bounds_lps(vol)
-        np_ = nav.nav_point(snap, (lo + hi) / 2, picked, live=panel.live)
+        max_age = getattr(getattr(self.view.session, "config", None), "max_pose_age_s", None)
+        max_age = nav.SessionConfig.max_pose_age_s if max_age is None else float(max_age)
+        np_ = nav.nav_point(snap, (lo + hi) / 2, picked, live=panel.live, max_pose_age_s=max_age)
         e, t = snap.plan.entry_lps_mm, snap.plan.target_lps_mm
         views = nav.plane_views(np_.point, e, t)
         try:
@@ -210,11 +225,17 @@ class NavigationScene:
             aspect = 1.5
         cols, rows = grid(len(views), aspect)
         r2 = lambda a: None if a is None else tuple(np.round(np.asarray(a, float), 2))  # noqa: E731
-        key = (id(vol), panel.key, r2(np_.point), r2(np_.tip_axis), np_.source, r2(e), r2(t), width, level, cols,
+        key = (gen, panel.key, r2(np_.point), r2(np_.tip_axis), np_.source, r2(e), r2(t), width, level, cols,
                tuple((f.id, f.status, r2(f.centre_lps_mm)) for f in snap.fiducials))
         with self._lock:
-            if key == self._key and self._shown == panel.key:
-                return
+            same = key == self._key and self._shown == panel.key
+            note_changed = np_.note != self._note
+            seq = self._seq
+        if same:
+            if note_changed:  # the images stand; only the line on why the tip is not followed changes
+                self._note = np_.note
+                panel.h_info.content = info_html(panel.key, seq, width, level, np_.source, describe(np_, e, t))
+            return
         images = {}
         for name, v in views.items():
             hu = self._hu(vol, v)
@@ -229,10 +250,21 @@ class NavigationScene:
             self._key = key
             self._seq += 1
             seq = self._seq
+        self._note = np_.note
         panel.h_info.content = info_html(panel.key, seq, width, level, np_.source, describe(np_, e, t))
 
+    def _volume_gen(self, vol) -> int:
+        """A number that changes whenever ``vol`` is not the volume sliced last (the reference is
+        held, so a new CT can never pass for the old one by reusing its ``id``); a new volume
+        empties the slice cache. Worker thread only."""
+        if vol is not self._vol:
+            self._vol = vol
+            self._vol_gen += 1
+            self._hu_cache.clear()
+        return self._vol_gen
+
     def _hu(self, vol, v):
-        k = (id(vol), v.name, tuple(np.round(v.centre_lps, 3)), tuple(np.round(v.u, 6)), tuple(np.round(v.v, 6)),
+        k = (self._volume_gen(vol), v.name, tuple(np.round(v.centre_lps, 3)), tuple(np.round(v.u, 6)), tuple(np.round(v.v, 6)),
              v.pixel_mm, v.size)
         hu = self._hu_cache.get(k)
         if hu is None:
@@ -261,6 +293,8 @@ class NavigationScene:
             self._aim(cols, rows, aspect)
             with self._lock:
                 self._tiles, self._shown, self._layout = tiles, panel.key, layout
+                for name, (_h, v, xy) in tiles.items():
+                    self._remember(name, v, xy)
             return
         with self._lock:
             tiles = dict(self._tiles)
@@ -268,6 +302,14 @@ class NavigationScene:
             h.image = images[name]
             with self._lock:
                 self._tiles[name] = (h, views[name], xy)
+                self._remember(name, views[name], xy)
+
+    def _remember(self, name, v, xy, now: float | None = None) -> None:
+        """Tile ``name`` was just sent with geometry ``v`` at ``xy``: keep the geometries a click
+        arriving now or soon may have been made on (caller holds ``_lock``)."""
+        now = time.monotonic() if now is None else now
+        hist = self._history.get(name, []) + [(now, v, xy)]
+        self._history[name] = hist[_window_start(hist, now):]
 
     def _aim(self, cols, rows, aspect) -> None:
         client = self.view.client
@@ -289,30 +331,43 @@ class NavigationScene:
         @handle.on_click
         @view.safe("Slice click")
         def _(event) -> None:
-            p = self.pick(name, event.ray_origin, event.ray_direction)
+            p, why = self.pick_checked(name, event.ray_origin, event.ray_direction)
             if p is None:
-                view.say(False, "Slice click: not on a slice")
+                view.say(False, f"Slice click: {why}")
                 return
             panel.on_pick(p)
 
-    def pick(self, name, ray_origin, ray_direction):
-        """The LPS point (mm) under a click ray (world coordinates) on tile ``name``, or None."""
+    def pick(self, name, ray_origin, ray_direction, now: float | None = None):
+        """The LPS point (mm) under a click ray (world coordinates) on tile ``name``, or None
+        (off the tile, or refused: :meth:`pick_checked`)."""
+        return self.pick_checked(name, ray_origin, ray_direction, now)[0]
+
+    def pick_checked(self, name, ray_origin, ray_direction, now: float | None = None):
+        """``(LPS point mm, "")`` under a click ray (world coordinates) on tile ``name``, or
+        ``(None, why)``: off the tile, or the tile's geometry changed within
+        :data:`CLICK_SETTLE_S` so much that an image the click may have landed on (the browser
+        may not have replaced it yet) puts another point under it than the newest one does."""
         with self._lock:
             tile = self._tiles.get(name)
+            hist = list(self._history.get(name, ()))
         if tile is None:
-            return None
-        _h, v, xy = tile
+            return None, "not on a slice"
         o, d = np.asarray(ray_origin, float), np.asarray(ray_direction, float)
         if abs(d[2]) < 1e-9:
-            return None
-        s = -o[2] / d[2]
-        hit = o + s * d
-        # image col grows with +x, row with +y (viser draws images x right, y down)
-        col = ((hit[0] - xy[0]) / TILE + 0.5) * v.size - 0.5
-        row = ((hit[1] - xy[1]) / TILE + 0.5) * v.size - 0.5
+            return None, "not on a slice"
+        hit = o + (-o[2] / d[2]) * d
+        _h, v, xy = tile
+        col, row = _pixel(v, xy, hit)
         if not (-0.5 <= col <= v.size - 0.5 and -0.5 <= row <= v.size - 0.5):
-            return None
-        return v.to_lps(col, row)
+            return None, "not on a slice"
+        p = v.to_lps(col, row)
+        now = time.monotonic() if now is None else now
+        for _t, v_old, xy_old in hist[_window_start(hist, now):]:
+            miss = float(np.linalg.norm(v_old.to_lps(*_pixel(v_old, xy_old, hit)) - p))
+            if miss > CLICK_TOL_MM:
+                return None, (f"ignored: the {nav.TITLES.get(name, name)} slice moved under the click "
+                              f"({miss:.1f} mm); click again once it stands still")
+        return p, ""
 
     def world_of(self, name, p_lps):
         """The canvas point (scene units) where LPS ``p_lps`` is drawn on tile ``name`` (tests)."""
@@ -320,6 +375,22 @@ class NavigationScene:
             _h, v, xy = self._tiles[name]
         col, row = v.to_pixel(p_lps)[0]
         return np.array([xy[0] + ((col + 0.5) / v.size - 0.5) * TILE, xy[1] + ((row + 0.5) / v.size - 0.5) * TILE, 0.0])
+
+
+def _window_start(hist, now: float) -> int:
+    """Index of the oldest entry of ``hist`` ([(t sent, ...)], oldest first) a click at ``now``
+    may have landed on: those sent within :data:`CLICK_SETTLE_S` and the one before them (on
+    screen when the window opened)."""
+    for i, h in enumerate(hist):
+        if h[0] >= now - CLICK_SETTLE_S:
+            return max(0, i - 1)
+    return max(0, len(hist) - 1)
+
+
+def _pixel(v, xy, hit) -> tuple[float, float]:
+    """(col, row) of canvas point ``hit`` on a tile of geometry ``v`` centred at ``xy``; image col
+    grows with +x, row with +y (viser draws images x right, y down)."""
+    return (((hit[0] - xy[0]) / TILE + 0.5) * v.size - 0.5, ((hit[1] - xy[1]) / TILE + 0.5) * v.size - 0.5)
 
 
 def describe(np_, entry, target) -> str:
@@ -335,4 +406,6 @@ def describe(np_, entry, target) -> str:
         depth = float((p - e) @ d)
         off = float(np.linalg.norm((p - e) - depth * d))
         line += f". Tip: {np.linalg.norm(t - p):.1f} mm to target, depth {depth:.1f} mm past entry, {off:.1f} mm off path"
+    if getattr(np_, "note", ""):
+        line += f". {html.escape(np_.note)}"  # the pose's reason goes into the info HTML
     return line

@@ -100,7 +100,12 @@ class LoginGate:
 
     def __init__(self, password: str, *, ttl_s: float = 12 * 3600.0, max_tries: int = 5, lockout_s: float = 30.0,
                  clock=time.monotonic, audit=None, lockout=None):
-        self._guard = PinGuard(password, max_tries=max_tries, lockout_s=lockout_s, noun="password")
+        # one wrong-try guard per peer address: a host that guesses locks itself out, never the
+        # OR team's stations (a global lockout would let anyone on the network deny them the page)
+        self._guard_args = dict(max_tries=max_tries, lockout_s=lockout_s, noun="password")
+        self._password = password
+        self._guards: dict[str, PinGuard] = {}
+        self.max_tries = int(max_tries)
         self.ttl_s = float(ttl_s)
         self._clock = clock
         self._audit = audit or (lambda code, message, level: None)
@@ -112,11 +117,12 @@ class LoginGate:
     def try_login(self, password: str, peer: str = "") -> tuple[CommandResult, str | None]:
         """One try: ``(ok result, session id)`` or ``(refusal with one line, None)``."""
         now = self._clock()
-        was_locked = self._guard.locked_for(now) > 0
-        r = self._guard.check(str(password or ""), now)
+        guard = self._guard_for(str(peer))
+        was_locked = guard.locked_for(now) > 0
+        r = guard.check(str(password or ""), now)
         if not r.ok:
             self._audit("login_refused", f"page login refused from {peer or 'unknown'}: {r.message}", "warning")
-            locked = self._guard.locked_for(now)
+            locked = guard.locked_for(now)
             if locked > 0 and not was_locked:
                 log.warning("page login locked for %.0f s after wrong passwords (last from %s)", locked, peer)
             self.sync_alarm()
@@ -154,15 +160,29 @@ class LoginGate:
             self._audit("login_expired", f"page login of {p or 'unknown'} expired after {self.ttl_s / 3600:.2f} h", "info")
         return gone
 
-    def locked_for(self) -> float:
-        return self._guard.locked_for(self._clock())
+    def _guard_for(self, peer: str) -> PinGuard:
+        with self._lock:
+            g = self._guards.get(peer)
+            if g is None:
+                if len(self._guards) >= 4096:  # bounded: forget the peers that are not locked out
+                    now = self._clock()
+                    self._guards = {p: x for p, x in self._guards.items() if x.locked_for(now) > 0}
+                g = self._guards[peer] = PinGuard(self._password, **self._guard_args)
+            return g
+
+    def locked_for(self, peer: str | None = None) -> float:
+        """Seconds the login stays locked for ``peer`` (an address); None: the longest over all peers."""
+        now = self._clock()
+        with self._lock:
+            guards = list(self._guards.values()) if peer is None else [self._guards.get(str(peer))]
+        return max([g.locked_for(now) for g in guards if g is not None], default=0.0)
 
     def sync_alarm(self) -> None:
         """Keep the ``login_lockout`` alarm on while locked, off after."""
         left = self.locked_for()
         if left > 0:
             self._alarm_on = True
-            self._lockout(left, f"page login locked for {left:.0f} s after {self._guard.max_tries} wrong passwords")
+            self._lockout(left, f"page login locked for {left:.0f} s for an address after {self.max_tries} wrong passwords")
         elif self._alarm_on:
             self._alarm_on = False
             self._lockout(0.0, "")
