@@ -101,7 +101,8 @@ def test_thread_priority_is_granted_or_refused_in_one_line():
     th.join()
     assert raise_thread_priority(0) == "normal priority (not requested)"
     if elevated(out["answer"]):
-        assert out["answer"] == "nice -5" and out["nice"] == -5
+        # -5, or the higher priority an earlier test in this process already gave its threads
+        assert out["nice"] <= -5 and out["answer"] == f"nice {out['nice']}"
     else:
         assert out["answer"].startswith("normal priority; ") and "\n" not in out["answer"]
 
@@ -158,7 +159,7 @@ def _run_child(tmp_path, as_nobody: bool):
         def pre():
             os.setgid(65534)
             os.setuid(65534)
-    p = subprocess.run([sys.executable, str(script), str(home)], capture_output=True, text=True, env=env, cwd=ROOT,
+    p = subprocess.run([sys.executable, str(script), str(home)], capture_output=True, text=True, encoding="utf-8", errors="replace", env=env, cwd=ROOT,
                        timeout=600, preexec_fn=pre)
     assert p.returncode == 0, p.stderr[-3000:]
     import json

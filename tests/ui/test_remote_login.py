@@ -120,7 +120,7 @@ def test_cli_one_line_errors(tmp_path, port):
         busy.listen()
         cases.append((["--allow-remote", "--port", str(busy.getsockname()[1])], "cannot listen on"))
         for extra, want in cases:
-            p = subprocess.run(exe + extra, capture_output=True, text=True, env=env, timeout=300)
+            p = subprocess.run(exe + extra, capture_output=True, text=True, encoding="utf-8", errors="replace", env=env, timeout=300)
             lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
             assert p.returncode == 2, p.stderr
             assert len(lines) == 1 and want in lines[0] and "Traceback" not in p.stderr, p.stderr
@@ -321,7 +321,7 @@ def test_serve_allow_remote_prints_password_and_gates(tmp_path, port):
            "HOME": str(tmp_path), "PYTHONUNBUFFERED": "1"}
     p = subprocess.Popen([sys.executable, "-m", "monotracker", "serve", "--home", str(tmp_path), "--port", str(port),
                           "--allow-remote", "--host", "127.0.0.1", "--pin", "2468"],
-                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, encoding="utf-8", errors="replace", env=env)
     try:
         lines = []
         while not any(ln.startswith("session password for the page:") for ln in lines):
