@@ -19,7 +19,12 @@ missing slices. Here every slice's real geometry is read and checked:
 
 Enhanced (multi-frame) CT objects are read frame by frame from their functional groups.
 Positions are LPS mm (DICOM's patient frame). Pixel values are HU (rescale slope/intercept).
+Localizers (scouts) and secondary captures filed under the series are left out with a note; a
+series that is not CT (Modality MR, PT, ...) is refused. Without ``series=`` a folder with
+several series gives the one that covers the most of the patient, with a note, when they all
+belong to one scan (one frame of reference); series of different scans are refused: choose one.
 """
+
 from __future__ import annotations
 
 import logging
@@ -35,7 +40,13 @@ from monotracker.ct.dicom_geometry import (  # noqa: F401 - public constants kep
     SPACING_RTOL,
     _check_geometry,
 )
-from monotracker.ct.dicom_headers import _files, _group_headers, _slices_of  # noqa: F401 - _files used by volume.py
+from monotracker.ct.dicom_headers import (  # noqa: F401 - _files used by volume.py
+    _files,
+    _group_headers,
+    _slices_of,
+    modality_refusal,
+    split_volume_images,
+)
 from monotracker.ct.dicom_pixels import _load_pixels, _stack
 from monotracker.errors import InputError
 
@@ -61,6 +72,14 @@ class SeriesInfo:
     ok: bool = True
     modality: str = ""
     files: list[str] = field(default_factory=list, repr=False)
+    #: FrameOfReferenceUID (else StudyInstanceUID): series with the same one are one scan.
+    frame_of_reference: str = field(default="", repr=False)
+    #: Volume the series covers, mm^3 (NaN when it cannot be loaded), and its voxel count.
+    extent_mm3: float = field(default=float("nan"), repr=False)
+    voxels: int = field(default=0, repr=False)
+    #: Slice grid (orientation, positions, pixel grid), rounded: equal for two reconstructions
+    #: of one acquisition (e.g. a soft-tissue and a bone kernel).
+    grid_key: tuple = field(default=(), repr=False)
 
     def to_dict(self) -> dict:
         return {
@@ -80,14 +99,16 @@ def list_series(path: str | Path) -> list[SeriesInfo]:
     """The DICOM series of a folder (or of one DICOM file), largest first.
 
     Args:
-        path: a folder (its files; sub-folders are not searched) or one DICOM file (``~`` expanded).
+        path: a folder (its files; sub-folders are not searched, except under a DICOMDIR) or
+            one DICOM file (``~`` expanded).
 
     Returns:
         list of :class:`SeriesInfo`, most slices first: ``uid`` (pass it as ``series=`` to
         :func:`~monotracker.ct.volume.load_volume`), ``description``, ``modality``,
         ``slices``, ``spacing_mm`` (column, row, slice) mm, ``tilt_deg`` (gantry tilt, deg),
         ``notes`` (what loading it would say), ``ok`` False with the refusal in ``notes`` for a
-        series that cannot be loaded. Empty when the folder holds no DICOM image.
+        series that cannot be loaded (not CT, only localizers, bad geometry). Empty when the
+        folder holds no DICOM image.
 
     Raises:
         InputError: ``path`` does not exist or cannot be read (permission denied).
@@ -95,28 +116,77 @@ def list_series(path: str | Path) -> list[SeriesInfo]:
     p = Path(path).expanduser()
     if not p.exists():
         raise InputError(f"no such file or folder: {p}")
+    if p.is_file() and p.name.upper() == "DICOMDIR":
+        p = p.parent
     paths = _files(p) if p.is_dir() else [p]
-    groups = _group_headers(paths)
-    out = []
-    for uid, items in groups.items():
-        ds0 = items[0][1]
-        desc = str(ds0.get("SeriesDescription", "") or "")
-        info = SeriesInfo(uid, desc, 0, (float("nan"),) * 3, float("nan"), modality=str(ds0.get("Modality", "")),
-                          files=[str(q) for q, _ in items])
-        try:
-            slices = [s for q, ds in items for s in _slices_of(ds, q)]
-            info.slices = len(slices)
-            geo = _check_geometry(slices, f"series {uid}")
-            info.spacing_mm = tuple(float(x) for x in geo.spacing)
-            info.tilt_deg = geo.tilt_deg
-            info.notes = geo.notes
-        except InputError as exc:
-            info.ok = False
-            info.notes = [str(exc)]
-            info.slices = info.slices or len(items)
-        out.append(info)
+    out = [_series_info(uid, items) for uid, items in _group_headers(paths).items()]
     out.sort(key=lambda s: -s.slices)
     return out
+
+
+def _series_info(uid: str, items: list) -> SeriesInfo:
+    """What loading series ``uid`` (its (path, header) items) would give, from the headers."""
+    ds0 = items[0][1]
+    info = SeriesInfo(uid, str(ds0.get("SeriesDescription", "") or ""), 0, (float("nan"),) * 3, float("nan"),
+                      modality=str(ds0.get("Modality", "")), files=[str(q) for q, _ in items],
+                      frame_of_reference=str(ds0.get("FrameOfReferenceUID", "") or ds0.get("StudyInstanceUID", "") or ""))
+    kept, left = split_volume_images(items)
+    try:
+        why = modality_refusal(items, f"series {uid}")
+        if why:
+            raise InputError(why)
+        if not kept:
+            raise InputError(f"series {uid} holds only localizer / secondary-capture images; not a CT volume")
+        slices = [s for q, ds in kept for s in _slices_of(ds, q)]
+        info.slices = len(slices)
+        geo = _check_geometry(slices, f"series {uid}")
+        info.spacing_mm = tuple(float(x) for x in geo.spacing)
+        info.tilt_deg = geo.tilt_deg
+        info.notes = left + geo.notes
+        s0 = geo.slices[0]
+        sx, sy, sz = geo.spacing
+        info.voxels = s0.rows * s0.cols * len(geo.slices)
+        info.extent_mm3 = float(s0.cols * sx * s0.rows * sy * (geo.d[-1] - geo.d[0] + sz))
+        info.grid_key = (s0.rows, s0.cols, tuple(np.round(s0.pixel_spacing, 3)), tuple(np.round(s0.iop, 3)),
+                         tuple(map(tuple, np.round([s.position for s in geo.slices], 1))))
+    except InputError as exc:
+        info.ok = False
+        info.notes = [str(exc)]
+        info.slices = info.slices or len(kept)
+    return info
+
+
+def _pick_series(path: Path, groups: dict, notes: list[str]) -> str:
+    """The series to load when none was named: the one covering the most of the patient among
+    the loadable CT series, with a note, when they all belong to one scan (one frame of
+    reference: they give the same fiducial positions); refused when they come from different
+    scans (which one has the fiducials is the operator's call) or none can be loaded."""
+    infos = [_series_info(uid, items) for uid, items in groups.items()]
+    good = [i for i in infos if i.ok]
+    hint = "choose with series=UID (CLI: --series UID, list them with --list-series)"
+    if not good:
+        big = max(infos, key=lambda i: i.slices)
+        raise InputError(f"none of the {len(infos)} DICOM series in {path} is a loadable CT volume; "
+                         f"the largest, {big.uid}: {big.notes[0] if big.notes else 'no slices'}")
+    scans = sorted({i.frame_of_reference for i in good})
+    if len(scans) > 1:
+        listed = "; ".join(f"{i.uid} ({i.description or 'no description'}, {i.slices} slices)" for i in good[:4])
+        raise InputError(f"{path} holds CT series of {len(scans)} different scans (frames of reference): {listed}; "
+                         f"which one has the fiducials cannot be guessed: {hint}")
+    pick = min(good, key=lambda i: (-i.extent_mm3, -i.voxels, i.uid))
+    same = [i.uid for i in good if i is not pick and i.grid_key == pick.grid_key]
+    others = [f"{i.uid} ({i.description or 'no description'}, {i.slices} slices{'' if i.ok else ', cannot be loaded'})"
+              for i in infos if i is not pick and i.uid not in same]
+    sp = " x ".join(f"{x:.3g}" for x in pick.spacing_mm)
+    text = (f"folder holds {len(infos)} DICOM series; picked the largest, {pick.uid} ({pick.description or 'no description'}, "
+            f"{pick.slices} slices, {sp} mm: the CT covering the most of the patient)")
+    if same:
+        text += (f"; {', '.join(same)} has the same slice grid (another reconstruction of the same scan, e.g. "
+                 "another kernel): the same fiducial positions")
+    if others:
+        text += f"; others: {', '.join(others)}"
+    notes.append(f"{text}; {hint}")
+    return pick.uid
 
 
 def read_dicom(path: Path, series: str | None, notes: list[str]):
@@ -125,6 +195,8 @@ def read_dicom(path: Path, series: str | None, notes: list[str]):
     DICOM image at all (the caller gives its own hint)."""
     import SimpleITK as sitk
 
+    if path.is_file() and path.name.upper() == "DICOMDIR":
+        path = path.parent
     paths = _files(path) if path.is_dir() else [path]
     groups = _group_headers(paths)
     if not groups:
@@ -133,15 +205,16 @@ def read_dicom(path: Path, series: str | None, notes: list[str]):
         if series not in groups:
             raise InputError(f"series {series} is not in {path}; it holds: {', '.join(groups)}")
         uid = series
+    elif len(groups) > 1:
+        uid = _pick_series(path, groups, notes)
     else:
-        uid = max(groups, key=lambda u: len(groups[u]))
-        if len(groups) > 1:
-            others = ", ".join(f"{u} ({len(v)} files)" for u, v in groups.items() if u != uid)
-            notes.append(
-                f"folder holds {len(groups)} DICOM series; picked the largest, {uid} ({len(groups[uid])} files); "
-                f"others: {others}; choose with series=UID (CLI: --series UID, list them with --list-series)"
-            )
+        uid = next(iter(groups))
     items = groups[uid]
+    why = modality_refusal(items, f"series {uid}")
+    if why:
+        raise InputError(why)
+    items, left = split_volume_images(items)
+    notes.extend(left)
     slices = [s for q, ds in items for s in _slices_of(ds, q)]
     if len(slices) < 2:
         return None if path.is_file() else _too_few(uid, len(slices))
