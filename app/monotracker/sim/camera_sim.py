@@ -31,6 +31,15 @@ colours and steel instruments, then lens blur, Bayer mosaic, raw-space sensor no
 demosaicing and JPEG (:mod:`monotracker.sim.optics`). The truth is computed from the geometry
 alone, so it is the same with and without optics.
 
+Edges mix in linear light: a sensor pixel integrates photons, so a pixel that a ball covers to a
+share ``a`` records ``a * ball + (1 - a) * background`` in linear radiance, and lens and motion
+blur mix linear radiance too. Photo-like frames draw everything from the balls on (balls, strays,
+gloves, instruments; then motion blur) in linear radiance (the optics' ``gamma``); the skin, hair
+and clip layers below them are still composited in display values. The simple render mixes the
+ball edges in linear light (gamma 2.2) and keeps display values for the rest (it is the fast
+render). Mixing gamma-encoded values instead made a dark ball's silhouette ~4 % too large in
+area (~0.2 px of radius; ``tests/sim/test_optics.py``).
+
 Camera placement (a choice; the paper says "about half a metre"): 520 mm from the mean of the
 fiducial centres along the phantom's view direction, looking at it, image top towards anterior.
 """
@@ -351,6 +360,14 @@ class SimulatedCamera(FrameSource):
             p0, p1 = (np.round(px * 16).astype(int))
             cv2.line(img, tuple(p0), tuple(p1), CLIP_BGR, thick, cv2.LINE_AA, shift=4)
 
+        # photo-like frames: from here on the scene is linear radiance (1.0 = white), so that
+        # every edge drawn below is anti-aliased, motion-blurred and defocused in linear light,
+        # as a sensor pixel integrates photons (mixing gamma-encoded values puts a dark ball's
+        # edge ~0.2 px outside its silhouette)
+        lin = self._chain is not None
+        if lin:
+            img = self._chain.to_linear(img)
+
         # --- fiducial spheres (exact, per ROI)
         C_all = apply_transform(T, self.fiducials_ct)
         rad = ph.fiducial_radius_mm
@@ -366,15 +383,21 @@ class SimulatedCamera(FrameSource):
             cov, col = self._render_sphere(C_all[k], rad, roi, R, tr)
             y0, y1, x0, x1 = roi
             patch = img[y0:y1, x0:x1]
-            patch *= (1.0 - cov)[..., None]
-            patch += (cov[..., None] * col)
+            if lin:
+                col = self._chain.to_linear(col)
+                patch *= (1.0 - cov)[..., None]
+                patch += (cov[..., None] * col)
+            else:       # simple render: mix the edge in linear light too (gamma 2.2), as a pixel does
+                mixed = (1.0 - cov)[..., None] * cv2.pow(patch * np.float32(1 / 255), 2.2) \
+                    + cov[..., None] * cv2.pow(np.maximum(col, 0.0) * np.float32(1 / 255), 2.2)
+                patch[:] = cv2.pow(mixed, 1 / 2.2) * np.float32(255.0)
             cov_store[k] = (roi, cov)
 
         # --- strays
         strays, active = [], []
         for s in self.events.strays:
             if s.t_start <= t < s.t_end:
-                self._draw_stray(img, s)
+                self._draw_stray(img, s, colour=self._paint(STRAY_BGR))
                 strays.append(s.centre_px)
                 active.append(s)
 
@@ -420,8 +443,8 @@ class SimulatedCamera(FrameSource):
             img = self._motion_blur(img, t, C_all, proj)
 
         # --- lighting gain, quantise, noise
-        if self._chain is not None:
-            out = self._chain.apply(img * np.float32(gain), key=t)
+        if lin:         # the lighting gain scales display values as before: gain^gamma in linear light
+            out = self._chain.apply(img * np.float32(gain ** self.optics.gamma), key=t, linear=True)
         else:
             out = cv2.convertScaleAbs(img, alpha=gain)
         if self._chain is None and self.noise_sigma > 0:
@@ -565,15 +588,20 @@ class SimulatedCamera(FrameSource):
             return
         if oc.kind == "hand":
             colour = _optics.GLOVE_BGR[(k + int(oc.t_start * 7)) % len(_optics.GLOVE_BGR)]
-            cv2.fillPoly(img, pts, colour, cv2.LINE_AA, shift=4)
+            cv2.fillPoly(img, pts, self._paint(colour), cv2.LINE_AA, shift=4)
             return
-        cv2.fillPoly(img, pts, _optics.STEEL_BGR, cv2.LINE_AA, shift=4)
+        cv2.fillPoly(img, pts, self._paint(_optics.STEEL_BGR), cv2.LINE_AA, shift=4)
         if len(poly) == 11:            # a _finger polygon: tip at index 4, shaft end between 9 and 10
             tip, end = poly[4], 0.5 * (poly[9] + poly[10])
             axis = (end - tip) / (np.linalg.norm(end - tip) + 1e-9)
             side = np.array([-axis[1], axis[0]]) * 0.2 * np.linalg.norm(poly[9] - poly[10]) / 2
             p0, p1 = np.round((tip + 4 * axis + side) * 16).astype(int), np.round((end + side) * 16).astype(int)
-            cv2.line(img, tuple(p0), tuple(p1), (245.0, 245.0, 245.0), 2, cv2.LINE_AA, shift=4)
+            cv2.line(img, tuple(p0), tuple(p1), self._paint((245.0, 245.0, 245.0)), 2, cv2.LINE_AA, shift=4)
+
+    def _paint(self, bgr) -> tuple:
+        """A display-space colour (BGR 0-255) in the space the scene is drawn in: linear
+        radiance for photo-like frames (see ``render``), else as it is."""
+        return self._chain.linear_colour(bgr) if self._chain is not None else tuple(bgr)
 
     def _draw_stray(self, img, s: Stray, offset=(0.0, 0.0), colour=STRAY_BGR):
         """Draw stray ``s`` (px) into ``img`` whose pixel (0, 0) is image pixel ``offset``."""
