@@ -17,7 +17,9 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    while trusted: must be 0), predicted/actual TRE (median ratio), detector ms (wall median)
    and CPU ms (process time, all threads); frame ms: CPU time of the whole frame through the pose
    tracker (detection + registration + trust checks). ``edge-v1``: the edge detector with its
-   settings before the JPEG work (colour as it is, integration window +-3.5 px), same run.
+   settings before the JPEG work (colour as it is, integration window +-3.5 px, edge blur
+   2 px), ``edge-2px``: the edge detector with a fixed edge blur of 2 px (the default before
+   the blur was measured per frame), same run.
 B. Scale: ball radius 5-30 px (camera 880-150 mm away), photo-like optics: recall, centre
    error, refusals and time for each detector (the learned detector's place).
 Full run only: 2. whole-frame timing, 3. pose over a 60 s trajectory, 4. occlusion alert latency
@@ -97,7 +99,9 @@ class EdgeSettings:
 
 
 #: the edge fit before the JPEG work (issue 13, round 2): colour as it is, window +-3.5 px
-EDGE_V1 = dict(CHROMA_SIGMA_PX=0.0, INTEGRATION_SHARE=1.75)
+EDGE_V1 = dict(CHROMA_SIGMA_PX=0.0, INTEGRATION_SHARE=1.75, MEASURE_BLUR=False)
+#: the edge fit before the edge blur was measured per frame: a fixed 2 px
+EDGE_2PX = dict(MEASURE_BLUR=False)
 
 CONDITIONS = ("clean", "OR", "degraded", "clutter")
 
@@ -162,7 +166,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
         except Exception as exc:  # noqa: BLE001 - report the refusal in the table
             colour, why = None, str(exc)
         dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")),
-                ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)), ("edge", ClassicalDetector(rules))]
+                ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)),
+                ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)), ("edge", ClassicalDetector(rules))]
         dets.append(("edge+colour", ClassicalDetector(rules, colour=colour) if colour is not None else None))
         if with_learned:
             dets.append(("learned", LearnedDetector(rules=rules)))
@@ -215,7 +220,8 @@ def scale_table(seed: int, n_frames: int, with_learned: bool = True):
         rules = BlobRules(radius_mm=4.0, focal_px=1100.0, min_distance_mm=min(250.0, 0.8 * dist),
                           max_distance_mm=max(1000.0, 1.2 * dist))
         dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")),
-                ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)), ("edge", ClassicalDetector(rules))]
+                ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)),
+                ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)), ("edge", ClassicalDetector(rules))]
         if with_learned:
             dets.append(("learned", LearnedDetector(rules=rules)))
         for name, det in dets:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from monotracker.vision.detection import refine_blob
-from monotracker.vision.edge_fit import fit_ball_edge
+from monotracker.vision.edge_fit import BLUR_PER_WIDTH, fit_ball_edge, measure_edge_blur
 
 SS = 8                       # supersampling factor
 BALL = np.array([40.0, 160.0, 45.0])      # BGR, display space
@@ -109,3 +109,38 @@ def test_ball_at_the_image_border_is_refused():
     img, truth = render_ball((8.0, 36.0), 9.0)
     fit = fit_ball_edge(img, (8.0, 36.0), (9, 9), 0.0)
     assert not fit.ok and "border" in fit.reason
+
+
+def test_measured_blur_follows_the_lens_blur():
+    """The 25-75 % rise of an edge blurred by a Gaussian of sigma is 1.349 sigma (the pixel's
+    box adds ~0.3 px in quadrature, negligible at sigma 2): the measured blur is
+    BLUR_PER_WIDTH x that width, and grows with the lens blur."""
+    def measured(sigma, radius):
+        size = int(2 * radius + 40)
+        img, truth = render_ball((size / 2 + 0.3, size / 2 + 0.6), radius, size=size, blur_sigma=sigma,
+                                 noise=0.002)
+        (cx, cy), ax, ang = coarse(img, truth, radius)
+        return measure_edge_blur(img, [((cx, cy), (2 * ax[0], 2 * ax[1]), ang)])
+
+    for radius in (9.0, 18.0):
+        b2, b1 = measured(2.0, radius), measured(1.0, radius)
+        expect = BLUR_PER_WIDTH * 1.349 * 2.0
+        assert abs(b2 - expect) < 0.12 * expect, (b2, expect)
+        assert b1 < 0.65 * b2, (b1, b2)
+
+
+@pytest.mark.parametrize("sigma", [0.5, 0.8, 2.0])
+def test_centres_hold_from_sharp_to_strongly_blurred_balls(sigma):
+    """The fit's windows follow the measured blur: centres hold on sharp and on strongly
+    blurred balls alike (glossy ball, drape and skin behind it)."""
+    errs = []
+    for radius in (6.0, 9.0, 18.0):
+        size = int(2 * radius + 40)
+        for k, off in enumerate([(0.13, 0.71), (0.5, 0.25), (0.87, 0.42)]):
+            img, truth = render_ball((size / 2 + off[0], size / 2 + off[1]), radius, size=size,
+                                     blur_sigma=sigma, noise=0.002, seed=k)
+            (cx, cy), ax, ang = coarse(img, truth, radius)
+            fit = fit_ball_edge(img, (cx, cy), ax, ang)
+            assert fit.ok, fit.reason
+            errs.append(np.linalg.norm(fit.centre_px - truth))
+    assert np.mean(errs) < 0.04 and max(errs) < 0.08, errs

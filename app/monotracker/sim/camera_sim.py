@@ -1,6 +1,6 @@
 """Simulated camera: renders the analytic head phantom as a calibrated camera would see it.
 
-Geometry is exact where it matters:
+Geometry is exact where it matters (the ray casting is in :mod:`.ray_geometry`):
 
 * Fiducials: an exact ray-sphere rasteriser. Each pixel centre's ray comes from the camera
   model with distortion (undistorted once at start-up), so every sphere's silhouette is the
@@ -14,8 +14,9 @@ Geometry is exact where it matters:
 * Skin clip: an anti-aliased grey bar along the projected clip axis (metal, not green).
 
 Scene effects (all deterministic for a given seed and frame index): head trajectory
-(:mod:`monotracker.sim.trajectories`), occluders (hand / instrument polygons sweeping over
-fiducials), stray green blobs (round and irregular), global lighting changes, motion blur from
+(:mod:`monotracker.sim.trajectories`), scripted events (:mod:`.scene_events`): occluders
+(hand / instrument polygons sweeping over fiducials), stray green blobs (round and irregular),
+global lighting changes; motion blur from
 the head's image motion during the exposure, sensor noise (a bank of precomputed Gaussian
 noise images, never the same one twice in a row). Faults for tests: ``freeze_at_frame``
 (the same image again and again) and ``disconnect_at_frame`` (``read()`` raises
@@ -30,6 +31,15 @@ simple, fast render): gloss on balls and skin, surgical drapes of several colour
 colours and steel instruments, then lens blur, Bayer mosaic, raw-space sensor noise,
 demosaicing and JPEG (:mod:`monotracker.sim.optics`). The truth is computed from the geometry
 alone, so it is the same with and without optics.
+
+Edges mix in linear light: a sensor pixel integrates photons, so a pixel that a ball covers to a
+share ``a`` records ``a * ball + (1 - a) * background`` in linear radiance, and lens and motion
+blur mix linear radiance too. Photo-like frames draw everything from the balls on (balls, strays,
+gloves, instruments; then motion blur) in linear radiance (the optics' ``gamma``); the skin, hair
+and clip layers below them are still composited in display values. The simple render mixes the
+ball edges in linear light (gamma 2.2) and keeps display values for the rest (it is the fast
+render). Mixing gamma-encoded values instead made a dark ball's silhouette ~4 % too large in
+area (~0.2 px of radius; ``tests/sim/test_optics.py``).
 
 Camera placement (a choice; the paper says "about half a metre"): 520 mm from the mean of the
 fiducial centres along the phantom's view direction, looking at it, image top towards anterior.
@@ -46,8 +56,11 @@ import numpy as np
 from monotracker.geometry import apply_transform, invert_transform, look_at
 from monotracker.sim import optics as _optics
 from monotracker.sim.phantom import HeadPhantom, default_phantom
+from monotracker.sim.ray_geometry import RayGeometry
+from monotracker.sim.scene_events import (Occluder, SceneEvents, Stray, _finger,  # noqa: F401 - public names
+                                          random_events)
 from monotracker.sim.trajectories import Still, Trajectory
-from monotracker.vision.camera_model import CameraModel, default_camera, distort_normalised
+from monotracker.vision.camera_model import CameraModel, default_camera
 from monotracker.vision.frames import CameraDisconnected, Frame, FrameSource
 
 #: A fiducial is "fully visible" when at least this fraction of its silhouette is unoccluded.
@@ -78,103 +91,7 @@ class FrameTruth:
     fiducial_mask: np.ndarray | None = None
 
 
-@dataclass
-class Occluder:
-    """A polygon (px, relative to its tip at (0, 0)) whose tip moves from ``start_px`` to
-    ``end_px`` during [t_start, t_start + sweep_s], stays, and leaves at ``t_end``."""
-
-    t_start: float
-    t_end: float
-    polygon: np.ndarray
-    start_px: np.ndarray
-    end_px: np.ndarray
-    sweep_s: float = 0.5
-    kind: str = "hand"
-
-    def at(self, t: float) -> np.ndarray | None:
-        if not (self.t_start <= t < self.t_end):
-            return None
-        f = np.clip((t - self.t_start) / self.sweep_s, 0.0, 1.0) if self.sweep_s > 0 else 1.0
-        tip = (1 - f) * np.asarray(self.start_px) + f * np.asarray(self.end_px)
-        return self.polygon + tip
-
-
-@dataclass
-class Stray:
-    """A bright green blob at a fixed image position during [t_start, t_end)."""
-
-    t_start: float
-    t_end: float
-    centre_px: tuple
-    size_px: float
-    shape: str = "round"      # "round" | "irregular" | "streak"
-    seed: int = 0
-
-
-@dataclass
-class SceneEvents:
-    occluders: list = field(default_factory=list)
-    strays: list = field(default_factory=list)
-    #: (t_s, gain) knots of the global lighting gain, linear in between (1.0 = nominal).
-    lighting: list = field(default_factory=list)
-
-    def gain(self, t: float) -> float:
-        if not self.lighting:
-            return 1.0
-        ts, gs = zip(*self.lighting)
-        return float(np.interp(t, ts, gs))
-
-
-def _finger(width: float, length: float, angle: float) -> np.ndarray:
-    """A finger/instrument polygon with its rounded tip at (0, 0) pointing along ``angle``."""
-    a = np.linspace(-np.pi / 2, np.pi / 2, 9)
-    tip = np.column_stack([-(width / 2) * np.cos(a) + width / 2, (width / 2) * np.sin(a)])
-    body = np.array([[length, width / 2 + 8], [length, -width / 2 - 8]])
-    poly = np.vstack([tip, body])
-    c, s = np.cos(angle), np.sin(angle)
-    # local +x points back along the finger; the finger enters from direction ``angle``
-    return poly @ np.array([[c, s], [-s, c]])
-
-
-def random_events(duration_s: float, fiducial_px: np.ndarray, image_size=(1280, 720), seed: int = 0,
-                  occlusions: int = 3, strays: int = 3, lighting: bool = True) -> SceneEvents:
-    """A reproducible mix of events over ``duration_s``: ``occlusions`` hand/instrument sweeps,
-    each covering 1-2 fiducials for 1.5-3 s; ``strays`` green blobs (one round and fiducial-sized,
-    the hardest case) for 2-6 s; a few lighting changes of +-25 %."""
-    rng = np.random.default_rng(seed)
-    ev = SceneEvents()
-    w, h = image_size
-    centre = fiducial_px.mean(axis=0)
-    slots = np.linspace(0.15, 0.85, occlusions + 2)[1:-1] * duration_s if occlusions else []
-    for k, ts in enumerate(slots):
-        f = fiducial_px[rng.integers(len(fiducial_px))]
-        out = f - centre
-        out = out / (np.linalg.norm(out) + 1e-9)
-        ang = np.arctan2(out[1], out[0]) + rng.uniform(-0.4, 0.4)
-        direction = np.array([np.cos(ang), np.sin(ang)])
-        kind = "hand" if k % 2 == 0 else "instrument"
-        width = rng.uniform(55, 80) if kind == "hand" else rng.uniform(14, 22)
-        poly = _finger(width, 900.0, ang)
-        ev.occluders.append(Occluder(ts, ts + rng.uniform(1.5, 3.0), poly, f + 260 * direction,
-                                     f - rng.uniform(5, 25) * direction, sweep_s=0.4, kind=kind))
-    for k in range(strays):
-        t0 = rng.uniform(0.05, 0.8) * duration_s
-        shape = ("round", "irregular", "streak")[k % 3]
-        if shape == "round":
-            c = centre + rng.uniform(-1, 1, 2) * [250, 150]
-        else:
-            c = rng.uniform([80, 60], [w - 80, h - 60])
-        ev.strays.append(Stray(t0, t0 + rng.uniform(2.0, 6.0), tuple(c), rng.uniform(7, 18), shape, seed + k))
-    if lighting and duration_s > 4:
-        knots = [(0.0, 1.0)]
-        for t in np.sort(rng.uniform(2, duration_s, 3)):
-            g = knots[-1][1]
-            knots += [(t, g), (t + 0.5, float(rng.uniform(0.75, 1.25)))]
-        ev.lighting = knots
-    return ev
-
-
-class SimulatedCamera(FrameSource):
+class SimulatedCamera(RayGeometry, FrameSource):
     """The default frame source. ``read()`` renders frame ``index`` at simulated time
     ``index / fps``; with ``realtime=True`` it also paces itself to ``fps``.
 
@@ -351,6 +268,14 @@ class SimulatedCamera(FrameSource):
             p0, p1 = (np.round(px * 16).astype(int))
             cv2.line(img, tuple(p0), tuple(p1), CLIP_BGR, thick, cv2.LINE_AA, shift=4)
 
+        # photo-like frames: from here on the scene is linear radiance (1.0 = white), so that
+        # every edge drawn below is anti-aliased, motion-blurred and defocused in linear light,
+        # as a sensor pixel integrates photons (mixing gamma-encoded values puts a dark ball's
+        # edge ~0.2 px outside its silhouette)
+        lin = self._chain is not None
+        if lin:
+            img = self._chain.to_linear(img)
+
         # --- fiducial spheres (exact, per ROI)
         C_all = apply_transform(T, self.fiducials_ct)
         rad = ph.fiducial_radius_mm
@@ -366,15 +291,21 @@ class SimulatedCamera(FrameSource):
             cov, col = self._render_sphere(C_all[k], rad, roi, R, tr)
             y0, y1, x0, x1 = roi
             patch = img[y0:y1, x0:x1]
-            patch *= (1.0 - cov)[..., None]
-            patch += (cov[..., None] * col)
+            if lin:
+                col = self._chain.to_linear(col)
+                patch *= (1.0 - cov)[..., None]
+                patch += (cov[..., None] * col)
+            else:       # simple render: mix the edge in linear light too (gamma 2.2), as a pixel does
+                mixed = (1.0 - cov)[..., None] * cv2.pow(patch * np.float32(1 / 255), 2.2) \
+                    + cov[..., None] * cv2.pow(np.maximum(col, 0.0) * np.float32(1 / 255), 2.2)
+                patch[:] = cv2.pow(mixed, 1 / 2.2) * np.float32(255.0)
             cov_store[k] = (roi, cov)
 
         # --- strays
         strays, active = [], []
         for s in self.events.strays:
             if s.t_start <= t < s.t_end:
-                self._draw_stray(img, s)
+                self._draw_stray(img, s, colour=self._paint(STRAY_BGR))
                 strays.append(s.centre_px)
                 active.append(s)
 
@@ -420,8 +351,8 @@ class SimulatedCamera(FrameSource):
             img = self._motion_blur(img, t, C_all, proj)
 
         # --- lighting gain, quantise, noise
-        if self._chain is not None:
-            out = self._chain.apply(img * np.float32(gain), key=t)
+        if lin:         # the lighting gain scales display values as before: gain^gamma in linear light
+            out = self._chain.apply(img * np.float32(gain ** self.optics.gamma), key=t, linear=True)
         else:
             out = cv2.convertScaleAbs(img, alpha=gain)
         if self._chain is None and self.noise_sigma > 0:
@@ -436,110 +367,6 @@ class SimulatedCamera(FrameSource):
             visible_fraction=vis, visible=vis >= FULLY_VISIBLE, radius_px=radius_px,
             stray_centres_px=np.array(strays, float).reshape(-1, 2), occluders=polys, fiducial_mask=label)
         return out, truth
-
-    def _skin(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray, px_per_rad: float):
-        """Skin coverage and shade for (n, 3) unit rays from the camera centre (low-res grid).
-        Returns (coverage (n,) in [0, 1], Lambert shade (n,), specular (n,) fraction of white or
-        None without optics). Coverage is anti-aliased with the
-        ray's closest approach to the ellipsoid in its unit-sphere coordinates (silhouette at
-        distance 1), converted to pixels; the neck cut is honoured (hard edge there)."""
-        ph = self.phantom
-        axes = ph.skin_semi_axes_mm
-        c_cam = R @ ph.centre_lps + tr
-        o = (R.T @ (-c_cam)) / axes                     # origin in unit-sphere coords
-        d = (rays @ R) / axes                           # (n, 3): R^T d per row
-        A = np.einsum("ij,ij->i", d, d)
-        B = 2.0 * (d @ o)
-        Cq = o @ o - 1.0
-        disc = B * B - 4 * A * Cq
-        hit = disc > 0
-        sq = np.sqrt(np.where(hit, disc, 0.0))
-        t_ca = -B / (2 * A)                             # closest approach
-        t = np.where(hit, (-B - sq) / (2 * A), t_ca)
-        local = (o[None, :] + t[:, None] * d)           # unit-sphere coords of the hit / approach
-        dmin = np.sqrt(np.maximum(Cq + 1.0 - B * B / (4 * A), 0.0))
-        # unit-sphere distance -> mm (mean semi-axis) -> rad (depth) -> px
-        scale = float(np.mean(axes)) / float(np.linalg.norm(c_cam)) * px_per_rad
-        cov = np.clip(0.5 - (dmin - 1.0) * scale, 0.0, 1.0)
-        cov[(t <= 0) | (local[:, 2] * axes[2] + ph.centre_lps[2] < ph.neck_cut_z_mm)] = 0.0
-        n_local = local / axes
-        n_cam = n_local @ R.T
-        n_cam /= np.linalg.norm(n_cam, axis=1, keepdims=True) + 1e-12
-        lam = np.clip(n_cam @ self._light_cam, 0, 1)
-        facing = np.clip(-np.einsum("ij,ij->i", n_cam, rays), 0, 1)
-        shade = 0.35 + 0.5 * lam + 0.15 * facing
-        spec = None
-        if self.optics is not None and self.optics.skin_specular > 0:
-            spec = self.optics.skin_specular * _optics.specular(n_cam, rays, self._light_cam, 12.0)
-        return cov, shade, spec
-
-    def _skin_depth(self, rays: np.ndarray, R: np.ndarray, tr: np.ndarray) -> np.ndarray:
-        """Distance along each unit ray (n, 3) to the skin (inf where it misses)."""
-        ph = self.phantom
-        axes = ph.skin_semi_axes_mm
-        c_cam = R @ ph.centre_lps + tr
-        o = (R.T @ (-c_cam)) / axes
-        d = (rays @ R) / axes
-        A = np.einsum("ij,ij->i", d, d)
-        B = 2.0 * (d @ o)
-        Cq = o @ o - 1.0
-        disc = B * B - 4 * A * Cq
-        t = np.full(len(rays), np.inf)
-        ok = disc > 0
-        t[ok] = (-B[ok] - np.sqrt(disc[ok])) / (2 * A[ok])
-        t[t <= 0] = np.inf
-        return t
-
-    @staticmethod
-    def _sphere_roi(c_px, r_px, w, h):
-        m = 1.35 * r_px + 3
-        x0, x1 = int(np.floor(c_px[0] - m)), int(np.ceil(c_px[0] + m)) + 1
-        y0, y1 = int(np.floor(c_px[1] - m)), int(np.ceil(c_px[1] + m)) + 1
-        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
-            return None  # touching the image border: not rendered as visible (documented)
-        return y0, y1, x0, x1
-
-    def _render_sphere(self, C, rad, roi, R, tr):
-        y0, y1, x0, x1 = roi
-        d = self._rays[y0:y1, x0:x1].astype(np.float64)          # (hh, ww, 3) unit rays
-        Cn = np.linalg.norm(C)
-        cos_t = d @ (C / Cn)
-        theta = np.arccos(np.clip(cos_t, -1, 1))
-        alpha = np.arcsin(rad / Cn)
-        px_per_rad = self.K[0, 0] / max(C[2] / Cn, 0.3)
-        cov = np.clip(0.5 - (theta - alpha) * px_per_rad, 0.0, 1.0)
-        # hit distance (closest approach where the ray misses: only used in the AA band)
-        along = Cn * cos_t
-        perp2 = np.maximum(Cn**2 - along**2, 0.0)
-        t_hit = along - np.sqrt(np.maximum(rad**2 - perp2, 0.0))
-        # the head may hide part of the sphere
-        flat = d.reshape(-1, 3)
-        skin_t = self._skin_depth(flat, R, tr).reshape(cov.shape)
-        cov = np.where(skin_t < t_hit - 1e-6, 0.0, cov)
-        nrm = (t_hit[..., None] * d - C) / rad
-        lam = np.clip(nrm @ self._light_cam, 0, 1)
-        shade = 0.3 + 0.6 * lam + 0.1 * np.clip(-(nrm * d).sum(-1), 0, 1)
-        col = shade[..., None] * self.ball_bgr
-        if self.optics is not None and self.optics.ball_specular > 0:
-            o = self.optics
-            col = col + 255.0 * o.ball_specular * _optics.specular(nrm, d, self._light_cam, o.ball_shininess)[..., None]
-        return cov.astype(np.float32), col.astype(np.float32)
-
-    def _full_coverage(self, C, rad, roi) -> float:
-        """Silhouette area (px) without any occlusion, on the same ROI grid."""
-        y0, y1, x0, x1 = roi
-        d = self._rays[y0:y1, x0:x1].astype(np.float64)
-        Cn = np.linalg.norm(C)
-        theta = np.arccos(np.clip(d @ (C / Cn), -1, 1))
-        px_per_rad = self.K[0, 0] / max(C[2] / Cn, 0.3)
-        return float(np.clip(0.5 - (theta - np.arcsin(rad / Cn)) * px_per_rad, 0, 1).sum())
-
-    def _ellipse_centres(self, C: np.ndarray, rad: float) -> np.ndarray:
-        """Exact centres of the spheres' image ellipses on the normalised plane,
-        (a c, b c) / (c^2 - R^2), then distorted into pixels."""
-        c = C[:, 2]
-        xn = C[:, :2] * (c / (c**2 - rad**2))[:, None]
-        return distort_normalised(xn, self.K, self.dist)
 
     def _add_hair(self, img: np.ndarray, cov_low: np.ndarray) -> None:
         """Blend the hair layer into ``img`` (in place) where the skin covers it; only inside
@@ -565,15 +392,20 @@ class SimulatedCamera(FrameSource):
             return
         if oc.kind == "hand":
             colour = _optics.GLOVE_BGR[(k + int(oc.t_start * 7)) % len(_optics.GLOVE_BGR)]
-            cv2.fillPoly(img, pts, colour, cv2.LINE_AA, shift=4)
+            cv2.fillPoly(img, pts, self._paint(colour), cv2.LINE_AA, shift=4)
             return
-        cv2.fillPoly(img, pts, _optics.STEEL_BGR, cv2.LINE_AA, shift=4)
+        cv2.fillPoly(img, pts, self._paint(_optics.STEEL_BGR), cv2.LINE_AA, shift=4)
         if len(poly) == 11:            # a _finger polygon: tip at index 4, shaft end between 9 and 10
             tip, end = poly[4], 0.5 * (poly[9] + poly[10])
             axis = (end - tip) / (np.linalg.norm(end - tip) + 1e-9)
             side = np.array([-axis[1], axis[0]]) * 0.2 * np.linalg.norm(poly[9] - poly[10]) / 2
             p0, p1 = np.round((tip + 4 * axis + side) * 16).astype(int), np.round((end + side) * 16).astype(int)
-            cv2.line(img, tuple(p0), tuple(p1), (245.0, 245.0, 245.0), 2, cv2.LINE_AA, shift=4)
+            cv2.line(img, tuple(p0), tuple(p1), self._paint((245.0, 245.0, 245.0)), 2, cv2.LINE_AA, shift=4)
+
+    def _paint(self, bgr) -> tuple:
+        """A display-space colour (BGR 0-255) in the space the scene is drawn in: linear
+        radiance for photo-like frames (see ``render``), else as it is."""
+        return self._chain.linear_colour(bgr) if self._chain is not None else tuple(bgr)
 
     def _draw_stray(self, img, s: Stray, offset=(0.0, 0.0), colour=STRAY_BGR):
         """Draw stray ``s`` (px) into ``img`` whose pixel (0, 0) is image pixel ``offset``."""

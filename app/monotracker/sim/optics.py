@@ -15,8 +15,9 @@ Scene appearance (used by the renderer in ``camera_sim``):
 * **gloves and steel**: hand occluders take glove colours from :data:`GLOVE_BGR` (latex, blue
   nitrile, green, brown), instruments are steel with a bright specular streak along the shaft.
 
-Imaging chain (:class:`OpticsChain`, applied to the rendered display-space image, BGR float
-0-255): display -> linear radiance (``gamma``), lens blur (a defocus disc PSF of radius
+Imaging chain (:class:`OpticsChain`, applied to the rendered image: display-space BGR float
+0-255, or linear radiance with ``linear=True``, as the renderer hands it over so that its edges
+mix in linear light): display -> linear radiance (``gamma``), lens blur (a defocus disc PSF of radius
 ``defocus_px``; the motion blur of the renderer comes before it), vignetting, an RGGB Bayer
 mosaic, sensor noise in raw electrons (shot noise with ``full_well_e`` electrons at white, read
 noise ``read_noise_e``), quantisation to 12 bits, edge-aware demosaicing (OpenCV ``_EA``),
@@ -114,11 +115,22 @@ class OpticsChain:
         self.vignette = cv2.merge([vig, vig, vig])
         self._enc = (np.linspace(0, 1, 4096) ** (1.0 / optics.gamma) * 255.0 + 0.5).astype(np.uint8)
 
-    def apply(self, img: np.ndarray, key: float = 0.0) -> np.ndarray:
-        """Display-space BGR float32 image (0-255, may exceed 255 in highlights) -> the camera's
-        8-bit BGR output. ``key`` (e.g. the frame time) seeds the noise of this frame."""
+    def to_linear(self, img: np.ndarray) -> np.ndarray:
+        """Display-space BGR (0-255, float32) -> linear radiance (1.0 = white; highlights may
+        exceed it)."""
+        return cv2.pow(cv2.max(np.asarray(img, np.float32), 0.0) * np.float32(1.0 / 255.0), self.optics.gamma)
+
+    def linear_colour(self, bgr) -> tuple:
+        """One display-space BGR colour (0-255) -> linear radiance (tuple of 3 floats)."""
+        return tuple(float(v) for v in (np.maximum(np.asarray(bgr, float), 0.0) / 255.0) ** self.optics.gamma)
+
+    def apply(self, img: np.ndarray, key: float = 0.0, linear: bool = False) -> np.ndarray:
+        """BGR float32 image -> the camera's 8-bit BGR output. ``img`` is display-space (0-255,
+        may exceed 255 in highlights), or with ``linear`` already linear radiance (1.0 = white:
+        the scene as the lens sees it, anti-aliased edges mixed in linear light as a pixel
+        integrates photons). ``key`` (e.g. the frame time) seeds the noise of this frame."""
         o = self.optics
-        lin = cv2.pow(cv2.max(np.asarray(img, np.float32), 0.0) * np.float32(1.0 / 255.0), o.gamma)
+        lin = np.asarray(img, np.float32) if linear else self.to_linear(img)
         if self.psf.size > 1:
             lin = cv2.filter2D(lin, -1, self.psf, borderType=cv2.BORDER_REPLICATE)
         if o.vignetting:

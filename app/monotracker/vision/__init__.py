@@ -7,7 +7,8 @@ Public API (see docs/vision.md):
 * :mod:`.camera_model`: ``CameraModel`` (K, dist, image_size; load/save OpenCV YAML / JSON).
 * :mod:`.detect_classical`: ``ClassicalDetector``; :mod:`.detect_learned`: ``LearnedDetector``;
   both return :class:`.detection.Detection` (centres px, axes px, angle, score).
-* :mod:`.pose_stream`: ``PoseStream`` and ``PoseEstimate``.
+* :mod:`.pose_stream`: ``PoseStream`` and ``PoseEstimate`` (the per-frame ``PoseTracker``
+  lives in :mod:`.pose_tracker`, re-exported by :mod:`.pose_stream`).
 """
 
 from .camera_model import CameraModel, default_camera

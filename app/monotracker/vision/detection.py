@@ -166,10 +166,13 @@ def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[floa
 
 
 def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detector: str,
-                  refine_image: np.ndarray | None = None, centre_method: str = "edge") -> tuple[list, list]:
+                  refine_image: np.ndarray | None = None, centre_method: str = "edge",
+                  edge_blur_px: float | None = None) -> tuple[list, list]:
     """Contours of a binary ``mask`` -> (accepted, rejected) :class:`ImageFiducial` lists.
     ``refine_image`` (default ``image``) is the full-resolution BGR image for sub-pixel centres;
-    ``centre_method`` one of :data:`CENTRE_METHODS` (see the module docstring)."""
+    ``centre_method`` one of :data:`CENTRE_METHODS` (see the module docstring);
+    ``edge_blur_px`` the edge fit's blur (px; None = measured in the frame, see
+    :func:`~.edge_fit.fit_ball_edges`)."""
     if centre_method not in CENTRE_METHODS:
         raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {centre_method!r}")
     refine_image = image if refine_image is None else refine_image
@@ -218,7 +221,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
     edge_fits = {}
     if centre_method == "edge":      # one batch for all candidates that passed the shape test
         good = [i for i, c in enumerate(cands) if c.score >= rules.min_score]
-        fits = fit_ball_edges(refine_image, [cands[i].features["contour_ellipse"] for i in good])
+        fits = fit_ball_edges(refine_image, [cands[i].features["contour_ellipse"] for i in good], edge_blur_px)
         edge_fits = dict(zip(good, fits))
     accepted = []
     for i, c in enumerate(cands):

@@ -1,0 +1,407 @@
+"""One frame of the live pose stream: detected balls -> registration -> gated, timestamped
+PoseEstimate (:class:`PoseTracker`, no threads; :mod:`.pose_stream` runs it on a frame source).
+
+Validity rules (the downstream controller holds whenever ``ok`` is False):
+* fewer than ``min_fiducials`` (4) matched balls -> "no valid pose";
+* reprojection RMS over ``max_rms_px`` (1.5 px) or any matched ball's residual over
+  ``max_residual_px`` (3 px) -> "no valid pose" (the match is suspect);
+* camera frozen / stalled / disconnected / ended, an unreadable frame -> "no valid pose";
+* a frame whose size differs from the calibration's ``image_size`` -> refused (``frame_size``;
+  adapt the calibration explicitly with ``CameraModel.adapted("bin:2")`` etc. when the camera
+  is the same sensor binned or cropped);
+* a pose that is not physical (head distance, fiducials behind the camera, ball size vs
+  distance; :mod:`.pose_checks`) -> ``pose_implausible``; matched balls too few, collinear or
+  coplanar -> ``weak_geometry``;
+* predicted TRE at the planned target over ``max_predicted_tre_mm`` (1 mm) -> ``tre_limit``.
+  The image noise behind it is estimated online from the residuals
+  (:class:`~monotracker.registration.noise.OnlineNoise`: pooled over frames, no floor); the
+  gate uses the noise's 95 % upper bound for its degrees of freedom (few balls or the first
+  frames: a wider bound), ``predicted_tre_mm`` the calibrated value. The same bound must keep
+  the probability that the error at the target exceeds ``wrong_mm`` (2 mm) below
+  ``max_wrong_probability`` (0.1 %): an RMS limit alone leaves a tail;
+* a fiducial whose position disagrees with the others (leave-one-out,
+  :mod:`monotracker.registration.consistency`) is excluded with a ``fiducial_moved`` alert
+  naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
+
+Every invalid estimate carries ``code``: the alert code that says what happened
+(``frame_size``, ``frame_unreadable``, ``camera_ended``, ``camera_freeze``,
+``camera_disconnected``, ``occlusion``, ``pose_lost``, ``pose_implausible``,
+``weak_geometry``, ``tre_limit``).
+
+Per-fiducial status (one entry per CT fiducial): ``"seen"`` (matched in this frame),
+``"newly_lost"`` (matched in the previous frame, not now: an alert is raised in this same
+frame), ``"occluded"`` (not matched now nor in the previous frame), ``"unknown"`` (no frame
+has matched it yet). When the registration fails, a ball counts as seen if a detection lies
+within ``status_gate_px`` of its projection under the last valid pose. ``"moved"``: the
+fiducial was found displaced relative to the others and is excluded.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from monotracker.geometry import apply_transform
+
+from .camera_model import CameraModel
+from .frames import Frame
+
+SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "unknown", "moved"
+
+#: camera state -> alert code of the invalid estimate it causes
+CAMERA_CODES = {"frozen": "camera_freeze", "stalled": "camera_freeze", "disconnected": "camera_disconnected",
+                "ended": "camera_ended", "unreadable": "frame_unreadable"}
+
+
+@dataclass
+class PoseEstimate:
+    """One published result. Times are ``time.monotonic()`` seconds; ``latency_s`` is
+    publication time minus capture time. ``T_cam_ct`` (4x4, mm) is None when ``ok`` is False.
+    ``status`` has one entry per CT fiducial (see module docstring); ``image_points_px`` holds
+    the matched detection per CT fiducial (NaN where none) and ``residuals_px`` its
+    reprojection error (NaN where none). ``predicted_tre_mm`` is at the planned target (NaN if
+    no target was given or no pose). ``alerts`` are one-line operator messages for this frame.
+    ``camera`` is "ok", "frozen", "stalled", "disconnected" or "ended". ``detect_s`` /
+    ``register_s`` are the stage times (s); ``truth`` is the simulator's ground truth of the
+    frame (None for real cameras), carried for overlays and benchmarks.
+
+    Attributes:
+        ok: True when the pose passed every gate of the module docstring; when False the
+            controller holds and ``code`` / ``reason`` say why.
+        reason: one line for the operator ("" when ok).
+        frame_index: index of the frame in its source.
+        t_capture, t_published: ``time.monotonic()`` s of capture and of publication.
+        T_cam_ct: (4, 4) float64, CT LPS mm -> OpenCV camera mm; None when not ok.
+        status: n strings, one per CT fiducial: "seen", "newly_lost", "occluded", "unknown",
+            "moved".
+        image_points_px: (n, 2) float, px: the matched detection per CT fiducial, NaN where none.
+        residuals_px: (n,) float, px: reprojection error per CT fiducial, NaN where none.
+        fre_mm: monocular FRE of the fit, mm (NaN without a pose).
+        reprojection_rms_px: RMS reprojection error of the fit, px (NaN without a pose).
+        predicted_tre_mm: predicted RMS error at the planned target, mm (NaN without a target
+            or a pose).
+        n_detected, n_matched: balls detected in the image; of those, matched to fiducials.
+        alerts: one-line operator messages raised in this frame.
+        camera: "ok", "frozen", "stalled", "disconnected" or "ended".
+        used_prior: the registration's prior fast path produced the pose.
+        detect_s, register_s: stage times, s.
+        truth: the simulator's ground truth of the frame, or None (real cameras).
+        code: alert code when not ok ("frame_size", "camera_freeze", "occlusion", "pose_lost",
+            "pose_implausible", "weak_geometry", "tre_limit", ...); "" when ok.
+        sigma_px, sigma_source: image noise (px) behind ``predicted_tre_mm`` and its origin.
+        moved: [(fiducial index, shift mm)] found moved in this frame.
+        excluded: indices of every fiducial excluded so far (moved).
+    """
+
+    ok: bool
+    reason: str
+    frame_index: int
+    t_capture: float
+    t_published: float
+    T_cam_ct: np.ndarray | None = None
+    status: list = field(default_factory=list)
+    image_points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    fre_mm: float = float("nan")
+    reprojection_rms_px: float = float("nan")
+    predicted_tre_mm: float = float("nan")
+    n_detected: int = 0
+    n_matched: int = 0
+    alerts: list = field(default_factory=list)
+    camera: str = "ok"
+    used_prior: bool = False
+    detect_s: float = float("nan")
+    register_s: float = float("nan")
+    truth: object = None
+    #: alert code when not ok (see the module docstring); "" when ok
+    code: str = ""
+    #: image noise (px) behind ``predicted_tre_mm`` and where it came from (OnlineNoise.source)
+    sigma_px: float = float("nan")
+    sigma_source: str = ""
+    #: fiducials found moved in this frame: [(fiducial index, shift mm)]
+    moved: list = field(default_factory=list)
+    #: all fiducials excluded so far (moved), by index
+    excluded: list = field(default_factory=list)
+
+    @property
+    def latency_s(self) -> float:
+        return self.t_published - self.t_capture
+
+    @property
+    def newly_lost(self) -> list[int]:
+        return [i for i, s in enumerate(self.status) if s == NEWLY_LOST]
+
+
+@dataclass
+class TrackerConfig:
+    """Gates of the pose stream (px, mm). See the module docstring."""
+
+    min_fiducials: int = 4
+    max_rms_px: float = 1.5
+    max_residual_px: float = 3.0
+    status_gate_px: float = 6.0
+    #: the previous valid pose is the registration prior when it came from the previous frame
+    #: or is younger than this (s)
+    prior_max_age_s: float = 0.5
+    method: str = "robust"
+    #: refuse a pose whose predicted TRE at the planned target exceeds this (mm)
+    max_predicted_tre_mm: float = 1.0
+    #: ... or whose error at the target may exceed ``wrong_mm`` with more than this probability
+    #: (the RMS alone leaves a tail: 1 mm RMS along one direction exceeds 2 mm 4.6 % of the time)
+    wrong_mm: float = 2.0
+    max_wrong_probability: float = 1e-3
+    #: moved-fiducial test: smallest shift (mm) that counts as moved; off with check_moved=False
+    check_moved: bool = True
+    moved_min_shift_mm: float = 1.0
+    #: physical plausibility (mm; see pose_checks.PhysicalLimits)
+    min_distance_mm: float = 150.0
+    max_distance_mm: float = 1500.0
+    #: online noise estimate: frames pooled, dof needed before the prior is dropped, prior (px)
+    noise_window: int = 30
+    noise_min_dof: int = 10
+    noise_prior_px: float = 0.3
+    #: the TRE gates use this one-sided upper confidence bound of the noise estimate (a sigma
+    #: from few dof may be low by chance); benchmarks/pose_trust.py table 5 measures the choice
+    noise_bound_confidence: float = 0.95
+
+
+class PoseTracker:
+    """Per-frame detect + register + status logic (no threads).
+
+    Args:
+        fiducials_ct: (n, 3) float, CT LPS mm: the fiducial centres (e.g. from
+            :func:`monotracker.ct.detect_fiducials`).
+        camera: the calibrated :class:`CameraModel`; frames of another size are refused.
+        detector: any object with ``detect(image) -> Detection`` (image points in px); None
+            builds the classical colour detector for ``radius_mm`` and the camera's focal length.
+        radius_mm: ball radius, mm (the registration corrects the ellipse-centre bias with it).
+        target_ct: (3,) float, CT LPS mm: planned target for ``predicted_tre_mm``, or None.
+        config: the gates (:class:`TrackerConfig`); defaults when None.
+
+    :meth:`process` never raises for a bad frame: it returns ``ok=False`` with a ``code``.
+    """
+
+    def __init__(self, fiducials_ct: np.ndarray, camera: CameraModel, detector=None, radius_mm: float = 4.0,
+                 target_ct: np.ndarray | None = None, config: TrackerConfig | None = None):
+        from .detect_classical import ClassicalDetector
+        from .detection import BlobRules
+
+        self.fiducials_ct = np.asarray(fiducials_ct, float).reshape(-1, 3)
+        self.camera = camera
+        self.radius_mm = float(radius_mm)
+        self.detector = detector or ClassicalDetector(BlobRules(radius_mm=radius_mm, focal_px=float(camera.K[0, 0])))
+        self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
+        self.config = config or TrackerConfig()
+        from monotracker.registration.noise import OnlineNoise
+
+        n = len(self.fiducials_ct)
+        self._prev_seen = np.zeros(n, bool)
+        self._ever_seen = np.zeros(n, bool)
+        self._last_T = None
+        self._last_T_time = -np.inf
+        self._last_T_index = -10
+        self._last_ok = None
+        self._last_code = ""
+        #: fiducial index -> estimated shift (mm) of the balls excluded as moved (persistent)
+        self.excluded: dict[int, float] = {}
+        c = self.config
+        self.noise = OnlineNoise(window=c.noise_window, min_dof=c.noise_min_dof, prior_px=c.noise_prior_px)
+
+    def reset(self) -> None:
+        """Forget the previous frames, the noise estimate and the excluded (moved) fiducials:
+        for a new registration after the operator re-checked the fiducials."""
+        self.__init__(self.fiducials_ct, self.camera, self.detector, self.radius_mm, self.target_ct, self.config)
+
+    def set_target(self, target_ct: np.ndarray | None) -> None:
+        """Planned target, (3,) CT LPS mm, for ``predicted_tre_mm`` (None: no target)."""
+        self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
+
+    def process(self, frame: Frame) -> PoseEstimate:
+        """Detect, register and gate one frame.
+
+        Args:
+            frame: a :class:`~monotracker.vision.frames.Frame` (``image`` of the calibrated
+                size, ``index``, ``t_capture`` monotonic s).
+
+        Returns:
+            the :class:`PoseEstimate` of this frame.
+
+        Refuses (ok=False, code): frame size differs from the calibration (``frame_size``);
+        the registration refused, or its RMS or a residual is over the gates (``pose_lost``);
+        fewer than ``min_fiducials`` matched (``occlusion``); an implausible pose
+        (``pose_implausible``); too few,
+        collinear or coplanar matched balls (``weak_geometry``); the predicted error at the
+        target over the gates of :class:`TrackerConfig` (``tre_limit``).
+        """
+        from monotracker.registration.consistency import register_screened
+        from monotracker.registration.report import exceed_probability, target_covariance
+
+        from .pose_checks import PhysicalLimits, physical_problem, weak_geometry
+
+        cfg = self.config
+        n = len(self.fiducials_ct)
+        size_problem = self.camera.frame_size_problem(frame.image.shape)
+        if size_problem:
+            return self._invalid(frame.index, frame.t_capture, "frame_size", size_problem, truth=frame.truth)
+        det = self.detector.detect(frame.image)
+        pts = det.centres
+        fresh = (frame.index == self._last_T_index + 1 or frame.t_capture - self._last_T_time <= cfg.prior_max_age_s)
+        prior = self._last_T if fresh else None
+        known_sigma = self.noise.peek(0.0, 0)
+        t0 = time.perf_counter()
+        scr = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
+                                method=cfg.method, prior=prior, excluded=tuple(self.excluded),
+                                sigma_px=known_sigma.sigma_px if known_sigma.source == "pooled" else None,
+                                sigma_dof=known_sigma.dof,
+                                min_shift_mm=cfg.moved_min_shift_mm,
+                                max_exclusions=2 if cfg.check_moved else 0)
+        reg = scr.registration
+        t_reg = time.perf_counter() - t0
+        alerts = []
+        new_moved = [(m.fiducial_index, round(m.shift_mm, 2)) for m in scr.moved]
+        for m in scr.moved:
+            self.excluded[m.fiducial_index] = m.shift_mm
+            alerts.append(f"fiducial {m.fiducial_index} moved about {m.shift_mm:.1f} mm relative to the others "
+                          "since the CT: excluded from registration (check that it is still firmly attached)")
+
+        img_pts = np.full((n, 2), np.nan)
+        res = np.full(n, np.nan)
+        seen = np.zeros(n, bool)
+        ok, reason, code = reg.ok, reg.reason, ("" if reg.ok else "pose_lost")
+        sigma = float("nan")
+        sigma_src = ""
+        tre = float("nan")
+        if reg.ok:
+            for k, (i, j) in enumerate(reg.pairs):
+                img_pts[j] = pts[i]
+                res[j] = reg.residuals_px[k] if k < len(reg.residuals_px) else np.nan
+                seen[j] = True
+            matched = [j for _, j in reg.pairs]
+            minor = [min(det.fiducials[i].axes_px) for i, _ in reg.pairs]
+            if len(reg.pairs) < cfg.min_fiducials:
+                ok, reason, code = False, f"only {len(reg.pairs)} fiducials matched (need {cfg.min_fiducials})", \
+                    "occlusion"
+            elif reg.reprojection_rms_px > cfg.max_rms_px:
+                ok, reason, code = False, (f"reprojection RMS {reg.reprojection_rms_px:.2f} px over the "
+                                           f"{cfg.max_rms_px:g} px gate"), "pose_lost"
+            elif np.nanmax(res) > cfg.max_residual_px:
+                j = int(np.nanargmax(res))
+                ok, reason, code = False, (f"fiducial {j} residual {res[j]:.2f} px over the "
+                                           f"{cfg.max_residual_px:g} px gate"), "pose_lost"
+            else:
+                why = physical_problem(reg.T_cam_ct, self.fiducials_ct, self.radius_mm, float(self.camera.K[0, 0]),
+                                       matched, np.array(minor),
+                                       PhysicalLimits(cfg.min_distance_mm, cfg.max_distance_mm))
+                if why:
+                    ok, reason, code = False, why, "pose_implausible"
+                else:
+                    why = weak_geometry(self.fiducials_ct, matched, cfg.min_fiducials)
+                    if why:
+                        ok, reason, code = False, why, "weak_geometry"
+            if code not in ("pose_implausible",):
+                # the fit passed the residual gates: its residuals are a noise sample
+                rss, dof = scr.noise_rss_px2, scr.noise_dof   # the fit's residuals (suspect ball trimmed)
+                ne = self.noise.update(rss, dof) if code in ("", "weak_geometry") else self.noise.peek(rss, dof)
+                sigma, sigma_src = ne.sigma_px, ne.source
+                if self.target_ct is not None:
+                    tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
+                    # gate on an upper bound of the noise (95 %): a sigma from few dof may be low by chance
+                    upper = ne.upper(cfg.noise_bound_confidence)
+                    upper = upper if np.isfinite(upper) else sigma
+                    tre_hi = tre * upper / sigma if sigma > 0 else tre
+                    if ok and not (tre_hi <= cfg.max_predicted_tre_mm):
+                        ok, code = False, "tre_limit"
+                        bound = (f"; up to {tre_hi:.2f} mm at {100 * cfg.noise_bound_confidence:.0f} % with {ne.dof} dof"
+                                 if tre_hi > tre + 0.005 else "")
+                        reason = (f"predicted error at the target {tre:.2f} mm{bound}: over the "
+                                  f"{cfg.max_predicted_tre_mm:g} mm limit (image noise {sigma:.2f} px, "
+                                  f"{len(reg.pairs)} fiducials)")
+                    elif ok and reg.pose_covariance is not None and reg.sigma_px > 0:
+                        cov3 = target_covariance(reg.T_cam_ct, reg.pose_covariance, self.target_ct)
+                        p_wrong = exceed_probability(cov3 * (upper / reg.sigma_px) ** 2, cfg.wrong_mm)
+                        if p_wrong > cfg.max_wrong_probability:
+                            ok, code = False, "tre_limit"
+                            reason = (f"predicted error at the target {tre:.2f} mm, but it may exceed "
+                                      f"{cfg.wrong_mm:g} mm (probability {100 * p_wrong:.2f} % > "
+                                      f"{100 * cfg.max_wrong_probability:g} %; image noise {sigma:.2f} px, "
+                                      f"{len(reg.pairs)} fiducials)")
+        else:
+            if len(pts) < cfg.min_fiducials:
+                reason = f"{len(pts)} fiducials detected (need {cfg.min_fiducials}): {reason}"
+                code = "occlusion"
+            # best-effort status from the last valid pose
+            if self._last_T is not None and len(pts):
+                proj = self.camera.project(apply_transform(self._last_T, self.fiducials_ct))
+                d = np.linalg.norm(proj[:, None] - pts[None], axis=2)
+                for j in range(n):
+                    if j in self.excluded:
+                        continue
+                    i = int(np.argmin(d[j]))
+                    if d[j, i] <= cfg.status_gate_px:
+                        seen[j] = True
+                        img_pts[j] = pts[i]
+        status = []
+        for j in range(n):
+            if j in self.excluded:
+                status.append(MOVED)
+            elif seen[j]:
+                status.append(SEEN)
+            elif self._prev_seen[j]:
+                status.append(NEWLY_LOST)
+            elif self._ever_seen[j]:
+                status.append(OCCLUDED)
+            else:
+                status.append(UNKNOWN)
+        lost = [j for j, s in enumerate(status) if s == NEWLY_LOST]
+        if lost:
+            alerts.append(f"fiducial{'s' if len(lost) > 1 else ''} {', '.join(map(str, lost))} lost "
+                          f"(occluded?) in frame {frame.index}")
+        if not ok and (self._last_ok or self._last_ok is None or code != self._last_code):
+            alerts.append(f"no valid pose: {reason}")
+        self._prev_seen = seen
+        self._ever_seen |= seen
+        self._last_ok = ok
+        self._last_code = code if not ok else ""
+
+        T = reg.T_cam_ct if ok else None
+        if ok:
+            self._last_T = reg.T_cam_ct
+            self._last_T_time = frame.t_capture
+            self._last_T_index = frame.index
+        return PoseEstimate(
+            ok=ok, reason="" if ok else reason, frame_index=frame.index, t_capture=frame.t_capture,
+            t_published=time.monotonic(), T_cam_ct=T, status=status, image_points_px=img_pts, residuals_px=res,
+            fre_mm=float(reg.fre_mm) if ok else float("nan"),
+            reprojection_rms_px=float(reg.reprojection_rms_px) if reg.ok else float("nan"),
+            predicted_tre_mm=tre, n_detected=len(pts), n_matched=int(seen.sum()) if reg.ok else 0,
+            alerts=alerts, used_prior=bool(reg.used_prior), detect_s=det.time_s, register_s=t_reg,
+            truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
+            moved=new_moved, excluded=sorted(self.excluded))
+
+    def _invalid(self, frame_index: int, t_capture: float, code: str, reason: str, camera: str = "ok",
+                 truth=None) -> PoseEstimate:
+        """An invalid estimate that saw nothing (camera fault, unusable frame); the alert is
+        raised once per episode (per code); the next good frame starts from a full search."""
+        n = len(self.fiducials_ct)
+        status = [MOVED if j in self.excluded else NEWLY_LOST if s else (OCCLUDED if e else UNKNOWN)
+                  for j, (s, e) in enumerate(zip(self._prev_seen, self._ever_seen))]
+        repeat = self._last_ok is False and self._last_code == code
+        self._prev_seen = np.zeros(n, bool)
+        self._last_T_time = -np.inf
+        self._last_T_index = -10
+        self._last_ok = False
+        self._last_code = code
+        return PoseEstimate(ok=False, reason=reason, frame_index=frame_index, t_capture=t_capture,
+                            t_published=time.monotonic(), status=status, image_points_px=np.full((n, 2), np.nan),
+                            residuals_px=np.full(n, np.nan), alerts=[] if repeat else [reason], camera=camera,
+                            code=code, truth=truth, excluded=sorted(self.excluded))
+
+    def camera_fault(self, frame_index: int, t_capture: float, camera: str, reason: str) -> PoseEstimate:
+        """An invalid estimate for a camera fault (``camera``: frozen, stalled, disconnected,
+        ended, unreadable; its alert code from ``CAMERA_CODES``); the next good frame starts
+        from a full search."""
+        est = self._invalid(frame_index, t_capture, CAMERA_CODES.get(camera, "camera_freeze"), reason, camera)
+        est.alerts = [reason]
+        return est
