@@ -223,6 +223,11 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries):
                                      f"(limit {1000 * limit:.0f} ms)")
         elif v.trusted:
             dwell = self._dwell_s
+            if holding and code == "camera_freeze" and self._camera_frozen(now):
+                # a pose captured before the freeze, still in flight when it was detected: the
+                # camera is still frozen, so it must not resume tracking (not even for a cycle)
+                self._run_pose_hooks(sample, v.trusted, now)
+                return
             if holding and code in FRESHNESS_CODES and fresh_for < dwell:
                 # hysteresis: after a stale/frozen stream, resume only once poses have been
                 # arriving fresh for resume_dwell_s (the arm keeps holding meanwhile)
@@ -334,15 +339,9 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries):
 
     def watchdogs(self, now: float) -> None:
         """Camera freeze, stale pose, robot state (every engine tick)."""
-        rig = self.rig
-        # a rig that watches its own camera (StreamRig) reports freezes as estimates with a code
-        if rig is not None and rig.running and not getattr(rig, "watches_itself", False):
-            seen = self._last_frame_seen_at
-            if self._repeat_frames:
-                self._hold("camera_freeze", f"camera frozen: {self._repeat_frames} frame(s) repeated bit for bit "
-                                            f"(last new frame {1000 * (now - seen):.0f} ms ago)")
-            elif seen is not None and now - seen > self.cfg.freeze_after_s:
-                self._hold("camera_freeze", f"camera frozen: no new frame for {1000 * (now - seen):.0f} ms")
+        frozen = self._camera_frozen(now)
+        if frozen:
+            self._hold("camera_freeze", frozen)
         rec = self._latest
         if rec is not None and rec.trusted:
             age = now - rec.sample.t_capture
@@ -352,6 +351,21 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries):
                 if self._holding_reason is None:
                     self._hold("pose_stale", f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old")
         self._refresh_robot_state()
+
+    def _camera_frozen(self, now: float) -> str | None:
+        """Why the camera counts as frozen now (the hold's reason), or None: its last frame(s)
+        repeated bit for bit, or no new frame for ``freeze_after_s``. A rig that watches its own
+        camera (StreamRig) reports freezes as estimates with a code instead: None here."""
+        rig = self.rig
+        if rig is None or not rig.running or getattr(rig, "watches_itself", False):
+            return None
+        seen = self._last_frame_seen_at
+        if self._repeat_frames:
+            return (f"camera frozen: {self._repeat_frames} frame(s) repeated bit for bit "
+                    f"(last new frame {1000 * (now - seen):.0f} ms ago)")
+        if seen is not None and now - seen > self.cfg.freeze_after_s:
+            return f"camera frozen: no new frame for {1000 * (now - seen):.0f} ms"
+        return None
 
     def note_frame(self, t_capture: float, now: float, digest=None) -> bool:
         """A frame with capture time ``t_capture`` arrived; True if it is new. Only new frames
