@@ -14,6 +14,10 @@ measurement variance) is learnt from the stream (third differences of evenly spa
 which a smooth head motion hardly enters), so a quiet stream is smoothed less and followed
 more closely than a noisy one.
 
+The jerk noise is chosen from the stream (``jerk_choices``): a bank of filters (1x, 3x, 10x the
+configured jerk) is fed every target and the prediction continues from the one whose
+one-frame-ahead innovations are smallest (:meth:`TargetPredictor._adopt_best`).
+
 Measured (``benchmarks/robot_control.py``, same run): tip RMS at 15 mm/s 1.87 mm without
 prediction, 0.56 mm with the earlier finite-difference predictor, 0.36 mm with this filter.
 
@@ -66,6 +70,8 @@ class TargetPredictor:
         learn_noise: learn the jitter from the stream (else ``meas_sigma`` throughout).
         blend_s: a new frame's correction of the prediction fades in with this time constant
             (s) instead of stepping the target (0: step).
+        jerk_choices: multipliers of ``jerk_sigma`` for the bank of filters the prediction
+            chooses from (see :meth:`_adopt_best`); one value or none: a single filter.
         free_roll: never extrapolate the roll about the needle axis (body z), neither in the
             pose nor in the feed-forward: a needle is symmetric, so the roll is a convention,
             and the engine chooses it to follow the arm's current roll (no needless wrist
