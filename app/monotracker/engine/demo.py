@@ -349,10 +349,10 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
             "tip_speed_before_fault_mm_s": v_fault,
             # the arm's own response to a stop (simulated UR10: command delay + velocity lag, s)
             "arm_response_s": response,
-            # the physics bound: an arm following the head at v_fault cannot know of the fault
-            # before the detection, and a stop reaches the tip only after the arm's response;
-            # a working stop travels less (the arm slows during its response)
-            "travel_bound_mm": (None if None in (v_fault, response, t_det)
+            # the physics: an arm following the head at v_fault cannot know of the fault before
+            # the detection, and a stop reaches the tip only after the arm's response (a
+            # first-order lag runs on v x tau); a stop that adds nothing of its own travels about this
+            "travel_physics_mm": (None if None in (v_fault, response, t_det)
                                 else v_fault * (t_det - fault_at + response)),
             "state_after": snap.robot.state,
             "plan_intact": s.plan_copy().to_dict() == plan_before,
@@ -414,7 +414,7 @@ def format_report(r: dict) -> str:
             f"    engine reported   : {fr['engine_reported']}",
             f"    tip travel        : {_mm(fr['arm_travel_after_fault_mm'])} after the fault, "
             f"{_mm(fr['arm_travel_after_detection_mm'])} after detection (tip at {_mm(fr['tip_speed_before_fault_mm_s'], 1)}/s "
-            f"before it; bound {_mm(fr['travel_bound_mm'])}: that speed x (detection + the arm's response "
+            f"before it; physics {_mm(fr['travel_physics_mm'])}: that speed x (detection + the arm's response "
             f"{ms(fr['arm_response_s'])}))",
             f"    state after       : {fr['state_after']}; plan intact: {fr['plan_intact']}",
         ]
