@@ -84,7 +84,8 @@ def main(argv=None) -> int:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"Closed loop on the digital twin: {secs:.0f} s tracking per run, simulated clock, "
           f"control 125 Hz, camera 30 fps (seed {args.seed}); {os.cpu_count()} CPUs, load average {load:.1f} "
-          "(only the RT x column depends on load: pose latency uses CPU time)\n")
+          "(pose latency uses CPU time, less load-dependent than wall time but not immune: if registration's "
+          "CPU time passes a frame period, frames drop to 15 fps and latency rises to ~70 ms; watch the lat columns)\n")
     print("Table 1: tracking (errors vs simulator truth, after 2 s settling)")
     hdr = (f"{'head motion':<11} {'method':<22} {'tip mean':>8} {'tip p95':>8} {'tip max':>8} "
            f"{'tip RMS':>8} {'reg RMS':>8} {'ang mean':>8} {'ang p95':>8} {'ang max':>8} {'TRE mean':>8} {'TRE p95':>8} "

@@ -4,6 +4,7 @@ content (issue 15). Detected at the first repeat; the arm stands still within 0.
 import time
 
 import numpy as np
+import pytest
 
 from monotracker.engine import Session, SessionConfig
 from monotracker.engine.demo import DemoOptions, run_demo
@@ -81,3 +82,29 @@ def test_frozen_camera_detected_at_the_first_repeat_and_arm_still_within_0_1_s(t
     assert fr["arm_travel_after_detection_mm"] < 0.5
     assert fr["arm_travel_after_fault_mm"] < 1.0
     assert fr["state_after"] == "holding" and fr["plan_intact"]
+    # the physics the report states: the tip speed x (detection + the simulated arm's 8 ms delay
+    # + 12 ms lag); the stop adds nothing of its own to it (measured 0.57-0.86 mm of travel
+    # against 0.71-1.03 mm of physics over five freeze phases at 19.8 mm/s)
+    assert fr["arm_response_s"] == pytest.approx(0.020)
+    assert fr["travel_physics_mm"] == pytest.approx(fr["tip_speed_before_fault_mm_s"] * (fr["detection_delay_s"] + 0.020))
+    assert fr["arm_travel_after_fault_mm"] < 1.1 * fr["travel_physics_mm"]
+
+
+def test_a_pose_in_flight_at_the_freeze_detection_does_not_resume_tracking(tmp_path):
+    """The rendered camera's registration takes longer than the 3 ms between a frame's 30 ms
+    transport and the next frame, so the last frame before the freeze is still being estimated
+    when its repeat is detected: its pose is trusted and fresh, but the camera is still frozen.
+    It resumed tracking for one control cycle (with a 'resumed' alert); the arm must hold."""
+    states = []
+
+    def watch(s):
+        s._loop.add_tick_hook(lambda loop, t: states.append((t, loop.robot.status().state)))
+
+    r = run_demo(DemoOptions(seconds=3.0, trajectory=Breathing(amplitude_mm=4.0, period_s=2.0), fault="camera-freeze",
+                             fault_at_s=1.5, home=_planned_home(tmp_path)), on_tracking=watch)
+    fr = r["fault_report"]
+    t_det = fr["detected_at_s"]
+    assert fr["engine_reported"].startswith("[alarm] camera_freeze")
+    assert not [a for a in r["alerts"] if a["code"] == "resumed" and a["t"] >= t_det - 1e-3]
+    after = [st for t, st in states if t >= t_det - 1e-9]
+    assert after and set(after) == {"holding"}

@@ -333,6 +333,8 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         travel = max(float(np.linalg.norm(p - after[0])) for p in after) if after else None
         after_det = [p for t, p in rec.tip_positions if t_det is not None and t >= t_det]
         travel_det = max(float(np.linalg.norm(p - after_det[0])) for p in after_det) if after_det else None
+        v_fault = max((r[4] for r in rec.rows if fault_at - 0.1 <= r[0] <= fault_at), default=None)
+        response = _arm_response_s(s)
         out["fault_report"] = {
             "injected_at_s": fault_at,
             "detected_at_s": t_det,
@@ -344,12 +346,27 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
             "arm_travel_after_fault_mm": travel,
             # from the detection on: what the stop itself cost (before it the arm follows the head)
             "arm_travel_after_detection_mm": travel_det,
-            "tip_speed_before_fault_mm_s": max((r[4] for r in rec.rows if fault_at - 0.1 <= r[0] <= fault_at),
-                                               default=None),
+            "tip_speed_before_fault_mm_s": v_fault,
+            # the arm's own response to a stop (simulated UR10: command delay + velocity lag, s)
+            "arm_response_s": response,
+            # the physics: an arm following the head at v_fault cannot know of the fault before
+            # the detection, and a stop reaches the tip only after the arm's response (a
+            # first-order lag runs on v x tau); a stop that adds nothing of its own travels about this
+            "travel_physics_mm": (None if None in (v_fault, response, t_det)
+                                else v_fault * (t_det - fault_at + response)),
             "state_after": snap.robot.state,
             "plan_intact": s.plan_copy().to_dict() == plan_before,
         }
     return out
+
+
+def _arm_response_s(s: Session) -> float | None:
+    """Command delay + velocity lag of the simulated arm (s); None for any other backend."""
+    robot = s._loop.robot
+    arm = getattr(getattr(robot, "tracker", None), "arm_backend", None)
+    if arm is None or not hasattr(arm, "delay_s") or not hasattr(arm, "tau_s"):
+        return None
+    return float(arm.delay_s + arm.tau_s)
 
 
 def format_report(r: dict) -> str:
@@ -386,12 +403,19 @@ def format_report(r: dict) -> str:
     if fr:
         def ms(v):
             return "never" if v is None else f"{1000 * v:.0f} ms"
+
+        def _mm(v, nd=2):
+            return "n/a" if v is None else f"{v:.{nd}f} mm"
         lines += [
             f"  fault {r['fault']} at t={fr['injected_at_s']:.3f}s:",
             f"    detected after    : {ms(fr['detection_delay_s'])}",
             f"    arm standstill    : {ms(fr['standstill_after_detection_s'])} after detection, "
             f"{ms(fr['standstill_after_fault_s'])} after the fault",
             f"    engine reported   : {fr['engine_reported']}",
+            f"    tip travel        : {_mm(fr['arm_travel_after_fault_mm'])} after the fault, "
+            f"{_mm(fr['arm_travel_after_detection_mm'])} after detection (tip at {_mm(fr['tip_speed_before_fault_mm_s'], 1)}/s "
+            f"before it; physics {_mm(fr['travel_physics_mm'])}: that speed x (detection + the arm's response "
+            f"{ms(fr['arm_response_s'])}))",
             f"    state after       : {fr['state_after']}; plan intact: {fr['plan_intact']}",
         ]
     return "\n".join(lines)

@@ -29,7 +29,6 @@ import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -39,51 +38,13 @@ from monotracker.robot.apff import APFFController, APFFParams
 from monotracker.robot.arm import Arm, ArmError, ArmProgramStopped
 from monotracker.robot.head import Corridor, HeadSphere
 from monotracker.robot.kinematics import Kinematics, NeedleTool, manipulability
+from monotracker.robot.pacing import run_paced
 from monotracker.robot.prediction import TargetPredictor  # noqa: F401  (re-exported: its old home)
 from monotracker.robot.safety import SafetyConfig, SafetyLayer, State, Transition
+from monotracker.robot.tracker_snapshot import CommandResult, TrackerSnapshot  # their old home: here
 from monotracker.robot.units import m_to_mm, mm_to_m, transform_m_to_mm, transform_mm_to_m
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class CommandResult:
-    ok: bool
-    reason: str
-
-
-@dataclass(frozen=True)
-class TrackerSnapshot:
-    """State at the end of the last control step. Poses in mm (base frame), angles in deg."""
-
-    t: float
-    state: str
-    connected: bool
-    variant: str
-    q: np.ndarray
-    dq: np.ndarray
-    dq_cmd: np.ndarray
-    T_base_tool0_mm: np.ndarray
-    T_base_tip_mm: np.ndarray
-    T_base_target_mm: np.ndarray | None
-    tip_error_mm: float
-    angle_error_deg: float
-    target_age_s: float
-    stage: str
-    sigma_min: float
-    last_transition: Transition | None
-    warnings: tuple = field(default_factory=tuple)
-    step_cost_ms: float = float("nan")
-    #: control cycles of the real-time thread that ended after their deadline (so far)
-    overruns: int = 0
-    #: a head sphere is known: the keep-out (and APF repulsion) can act this cycle
-    keepout_active: bool = False
-    #: link up but the arm's control program stopped (a UR's ur_rtde script): the cause
-    #: (``"watchdog" | "pendant" | "paused" | "protective_stop" | "emergency_stop" |
-    #: "safeguard_stop" | "not_running"``), "" while it runs; the operator's reset restarts it
-    program_fault: str = ""
-    #: one line saying why and what to do ("" while it runs)
-    program_fault_reason: str = ""
 
 
 class Tracker:
@@ -500,28 +461,16 @@ class Tracker:
                 self._emit_warnings()
 
     def _loop(self) -> None:
-        nxt = self.clock()
-        while self._run.is_set():
-            t_start = self.clock()
-            self.cycle_starts.append(t_start)
-            token = self._begin_cycle()
-            try:
-                self.step()
-            except Exception as exc:  # noqa: BLE001 - step() catches loop errors; this is the last guard
-                log.exception("tracker thread error")
-                with self._lock:
-                    self.safety.estop(self.clock(), f"internal error in tracker thread: {type(exc).__name__}: {exc}")
-                    self._stop_arm(self.safety.cfg.estop_decel)
-            nxt += self.period
-            t_end = self.clock()
-            self.worst_cycle_ms = max(self.worst_cycle_ms, (t_end - t_start) * 1e3)
-            delay = nxt - t_end
-            if delay < 0:
-                self._report_overrun(-delay)
-            if delay < -self.period:  # overrun: re-phase rather than bursting
-                nxt = self.clock()
-            elif delay > 0 and not self._wait_cycle(token):
-                time.sleep(delay)
+        run_paced(self, self._run.is_set, self._thread_cycle)
+
+    def _thread_cycle(self, t_start: float) -> None:
+        try:
+            self.step()
+        except Exception as exc:  # noqa: BLE001 - step() catches loop errors; this is the last guard
+            log.exception("tracker thread error")
+            with self._lock:
+                self.safety.estop(self.clock(), f"internal error in tracker thread: {type(exc).__name__}: {exc}")
+                self._stop_arm(self.safety.cfg.estop_decel)
 
     def _begin_cycle(self):
         try:
