@@ -146,6 +146,14 @@ class CameraRig:
         """Simulator truth: the head (CT) pose in the robot base at time t, mm (None if real)."""
         return None
 
+    def set_ball_colour(self, colour) -> str:
+        """Detect balls of ``colour`` (vision's BallColour) from the next frame on; '' or why not."""
+        det = getattr(getattr(self, "tracker", None), "detector", None)
+        if det is None or not hasattr(det, "set_colour"):
+            return "this camera source has no colour detector (sim-points works on points)"
+        det.set_colour(colour)
+        return ""
+
 
 class RobotRig:
     """Base class; see the module docstring."""
@@ -208,3 +216,21 @@ def make_robot_rig(cfg, session) -> RobotRig:
     from monotracker.engine.robot_rig import make_tracker_rig
 
     return make_tracker_rig(cfg, session)
+
+
+def _nan_to_none(v) -> float | None:
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def estimate_to_sample(est, fiducial_ids: list[int]) -> PoseSample:
+    """vision's PoseEstimate -> PoseSample (statuses and residuals keyed by plan fiducial id)."""
+    status = {fiducial_ids[j]: s for j, s in enumerate(est.status) if j < len(fiducial_ids)}
+    res = {fiducial_ids[j]: float(r) for j, r in enumerate(np.asarray(est.residuals_px, float))
+           if j < len(fiducial_ids) and np.isfinite(r)}
+    reason = est.reason or "ok"
+    return PoseSample(
+        t_capture=float(est.t_capture), frame_index=int(est.frame_index), ok=bool(est.ok), reason=reason,
+        T_cam_ct=None if est.T_cam_ct is None else np.array(est.T_cam_ct, float), n_matched=int(est.n_matched),
+        fiducial_status=status, residuals_px=res, fre_mm=_nan_to_none(est.fre_mm),
+        predicted_tre_mm=_nan_to_none(est.predicted_tre_mm), raw=est, code=getattr(est, "code", ""),
+        moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)})

@@ -1,0 +1,145 @@
+"""The rig for real frame sources: a camera device, a video file, an image folder or a session
+recording, through vision's :class:`~monotracker.vision.pose_stream.PoseStream` (real clock only).
+Chosen by :func:`monotracker.engine.vision_rig.make_vision_rig`. Moved verbatim from ``vision_rig.py``.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from monotracker.engine.components import CameraRig, PoseSample, estimate_to_sample
+from monotracker.engine.verification import KeepDetections, ValidationSet
+from monotracker.errors import MonoTrackerError
+
+
+class _KeepLatest:
+    """A frame-source proxy that remembers the newest frame (for the UI overlay)."""
+
+    def __init__(self, src):
+        self.src = src
+        self.latest = None
+
+    def read(self):
+        f = self.src.read()
+        if f is not None:
+            self.latest = f
+        return f
+
+    def close(self) -> None:
+        self.src.close()
+
+    def __getattr__(self, name):
+        return getattr(self.src, name)
+
+
+class StreamRig(CameraRig):
+    """A real frame source through vision's PoseStream (clock="real" only).
+
+    ``camera_adapt``: the user's explicit statement that the camera runs the calibrated sensor
+    binned or cropped (``"bin:2"``, ``"crop:X,Y,W,H"``; :meth:`CameraModel.adapted`); frames
+    whose size still differs from the calibration are refused by the tracker (``frame_size``).
+    The stream watches its own camera (identical frames, a blocked ``read()``, disconnection,
+    the end of a file, unreadable frames: each published with its alert code), so the engine's
+    frame-interval watchdog is not applied to it (``watches_itself``): a file or folder source
+    is read only as fast as frames are processed, which is no freeze."""
+
+    watches_itself = True
+
+    def __init__(self, source: str, calibration_path: str | None, plan, session, camera_adapt: str = "",
+                 max_predicted_tre_mm: float | None = None):
+        super().__init__()
+        from monotracker.vision.camera_model import CameraModel, default_camera
+        from monotracker.vision.frames import open_source
+        from monotracker.vision.pose_stream import PoseStream, PoseTracker
+
+        kind, _, arg = source.partition(":")
+        if kind == "device" and not arg.isdigit():
+            raise MonoTrackerError(f"camera device must be a number, as in device:0 (got {source!r})")
+        if kind == "replay":
+            from monotracker.vision.replay_source import ReplaySource, calibration_path as recorded_calibration
+
+            replay = ReplaySource(arg, realtime=True)  # refuses an incomplete/corrupt recording (one line)
+            calibration_path = calibration_path or str(recorded_calibration(arg))
+        if calibration_path:
+            model = CameraModel.load(calibration_path)
+        else:
+            model = default_camera()
+            session.alert("warning", "camera_uncalibrated",
+                          "no camera calibration given: using nominal intrinsics; registration accuracy is not assured")
+        model = model.adapted(camera_adapt)
+        self.K, self.dist, self.image_size = model.K, model.dist, tuple(model.image_size)
+        self.fiducial_ids = [f.id for f in plan.registration_fiducials()]
+        radius = float(np.median([f.radius_mm for f in plan.registration_fiducials()]))
+        self.validation = ValidationSet.from_plan(plan, radius)
+        try:
+            src = replay if kind == "replay" else open_source(int(arg) if kind == "device" else arg)
+        except MonoTrackerError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a camera that will not open is an operator problem
+            raise MonoTrackerError(f"cannot open camera {source}: {exc}") from exc
+        self.detector = KeepDetections(model.K, radius)  # keeps the blobs for the validation fiducials
+        tracker = PoseTracker(plan.registration_centres(), model, detector=self.detector, radius_mm=radius,
+                              target_ct=plan.target_lps_mm)
+        if max_predicted_tre_mm is not None:
+            tracker.config.max_predicted_tre_mm = float(max_predicted_tre_mm)
+        if model.ball_colour is not None:
+            self.detector.set_colour(model.ball_colour)      # learned earlier, saved with the calibration
+        self.tracker = tracker
+        self.source = _KeepLatest(src)
+        self.stream = PoseStream(source=self.source, tracker=tracker)
+        self._lock = threading.Lock()
+        self._frames: list[float] = []
+        self._last_image = None
+        self._sample_cache = None
+        self.stream.subscribe(self._on_estimate)
+
+    def _on_estimate(self, est) -> None:
+        # runs on the stream thread right after the frame was processed: the newest frame read is
+        # the one this estimate came from (kept with it for session recording)
+        fr = self.source.latest
+        img = fr.image if fr is not None and fr.index == est.frame_index and est.camera == "ok" else None
+        # validation on this thread too: the detector's last detections belong to this frame
+        val = self.validation.check(est.T_cam_ct, self.detector.last, est.image_points_px, self.K, self.dist)
+        with self._lock:
+            self._last_image = (est, img, val)
+            if est.camera == "ok":
+                self._frames.append(float(est.t_capture))
+
+    def start(self) -> None:
+        self.stream.start()
+
+    def stop(self) -> None:
+        self.stream.stop()
+
+    def capture(self, t: float):
+        raise MonoTrackerError("a real camera runs on the real clock (clock='real')")
+
+    def poll_frames(self) -> list[float]:
+        with self._lock:
+            out, self._frames = self._frames, []
+        return out
+
+    def latest_sample(self) -> PoseSample | None:
+        est = self.stream.latest()
+        if est is None:
+            return None
+        cached = self._sample_cache
+        if cached is not None and cached[0] is est:
+            return cached[1]  # the same estimate is the same sample (the loop handles each once)
+        with self._lock:
+            kept = self._last_image
+        if kept is None or kept[0] is not est:
+            # published but our subscriber (which pairs it with its image) has not run yet
+            return None if cached is None else cached[1]
+        smp = estimate_to_sample(est, self.fiducial_ids)
+        smp.t_ready = float(est.t_published)
+        smp.frame = kept[1]
+        smp.validation = kept[2]
+        self._sample_cache = (est, smp)
+        return smp
+
+    def latest_frame(self):
+        fr, est = self.source.latest, self.stream.latest()
+        return None if fr is None else (fr.image, fr.index, est)
