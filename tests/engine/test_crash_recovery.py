@@ -18,8 +18,6 @@ def test_kill_9_mid_tracking_then_restart(tmp_path):
     home = tmp_path / "home"
     env = dict(os.environ, PYTHONPATH=str(ROOT / "app"))
     args = [sys.executable, str(CHILD), str(home)]
-    if not _robot_available():
-        args.append("--robot-double")
     p = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
     try:
         line = p.stdout.readline()
@@ -47,11 +45,3 @@ def test_kill_9_mid_tracking_then_restart(tmp_path):
         assert [r.code for r in rows if r.session_id == s.session_id][:2] == ["plan_restored", "session_started"]
     finally:
         s.shutdown()
-
-
-def _robot_available() -> bool:
-    try:
-        from monotracker.engine.robot_rig import ROBOT_READY
-    except ImportError:
-        return False
-    return bool(ROBOT_READY)

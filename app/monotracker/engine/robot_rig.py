@@ -24,13 +24,6 @@ from monotracker.geometry import apply_transform, invert_transform
 
 log = logging.getLogger(__name__)
 
-try:  # the robot package lands in parallel; say so clearly if it is missing
-    from monotracker.robot.tracker import Tracker  # noqa: F401
-
-    ROBOT_READY = True
-except ImportError:  # pragma: no cover - depends on the build
-    ROBOT_READY = False
-
 STANDBY_MM = 60.0
 
 
@@ -61,8 +54,6 @@ def sim_arm_setup(cfg) -> tuple[dict, np.ndarray]:
 
 class TrackerRobotRig(RobotRig):
     def __init__(self, cfg, session):
-        if not ROBOT_READY:
-            raise MonoTrackerError("the robot package (Tracker, arms) is not available in this build yet")
         from monotracker.robot.tracker import Tracker
 
         self.s = session
