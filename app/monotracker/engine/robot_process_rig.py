@@ -20,7 +20,6 @@ from monotracker.engine.components import RobotStatus
 from monotracker.engine.robot_rig import TrackerRobotRig, sim_arm_setup
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
-from monotracker.geometry import apply_transform, invert_transform
 
 log = logging.getLogger(__name__)
 
@@ -99,15 +98,8 @@ class ProcessRobotRig(TrackerRobotRig):
         self._status_cache = None
         return CommandResult(bool(ok), str(reason))
 
-    def set_target(self, T_base_target_mm, stamp: float, valid: bool, T_base_ct=None) -> None:
-        if T_base_target_mm is None:
-            T_base_target_mm = np.full((4, 4), np.nan)
-        if valid and T_base_ct is not None and self._head_ct is not None:
-            c_ct, r = self._head_ct
-            c_target = apply_transform(invert_transform(np.asarray(T_base_target_mm, float)),
-                                       apply_transform(np.asarray(T_base_ct, float), c_ct))
-            self.proc.set_head_sphere(c_target, r, frame="target")
-        self.proc.set_target(np.asarray(T_base_target_mm, float), float(stamp), bool(valid))
+    def _controller(self):
+        return self.proc  # same set_target / set_head_sphere as the in-process Tracker
 
     def step(self, now: float) -> None:
         raise MonoTrackerError("the control process runs on its own clock; step() is for clock='sim' sessions")

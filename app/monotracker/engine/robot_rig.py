@@ -132,8 +132,13 @@ class TrackerRobotRig(RobotRig):
             c_ct, r = self._head_ct
             c_target = apply_transform(invert_transform(np.asarray(T_base_target_mm, float)),
                                        apply_transform(np.asarray(T_base_ct, float), c_ct))
-            self.tracker.set_head_sphere(c_target, r, frame="target")
-        self.tracker.set_target(np.asarray(T_base_target_mm, float), float(stamp), bool(valid))
+            self._controller().set_head_sphere(c_target, r, frame="target")
+        self._controller().set_target(np.asarray(T_base_target_mm, float), float(stamp), bool(valid))
+
+    def _controller(self):
+        """What runs the tracker: here the in-process :class:`~monotracker.robot.tracker.Tracker`
+        (the control process's proxy in :class:`~monotracker.engine.robot_process_rig.ProcessRobotRig`)."""
+        return self.tracker
 
     def _set_head_sphere(self) -> None:
         """Fit the head sphere (CT mm) to the plan's fiducials; placed with each target."""
