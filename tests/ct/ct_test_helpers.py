@@ -9,12 +9,26 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from monotracker.sim.ct_phantom import ScanParams, patch_scan_params
+from monotracker.sim.ct_phantom import DenseBlob, ScanParams, generate_ct, patch_scan_params
+from monotracker.sim.phantom import default_phantom
 
 
 def patch_params(phantom=None, margin_mm: float = 7.0, **kw) -> ScanParams:
     """A scan of only the fiducial patch (fast): 0.5 x 0.5 x 1.0 mm, oblique, noisy."""
     return patch_scan_params(phantom, margin_mm, **kw)
+
+
+def touching_ball_scan():
+    """The fiducial patch with a tenth ball touching ball 0 (centres 8 mm apart, along the scalp's
+    tangent): ``(ct, truth)``, truth = the nine fiducial centres then the extra ball's (LPS mm)."""
+    ph = default_phantom()
+    c = ph.fiducial_centres_lps
+    n = (c[0] - ph.centre_lps) / np.linalg.norm(c[0] - ph.centre_lps)
+    t = np.cross(n, [1.0, 0.0, 0.0])
+    t /= np.linalg.norm(t)
+    extra = c[0] + 8.0 * t
+    ct = generate_ct(ph, patch_params(ph, margin_mm=12.0, distractors=(DenseBlob(extra, np.full(3, 4.0), 3000.0, name="touching ball"),)))
+    return ct, np.vstack([ct.fiducial_centres_lps, extra])
 
 
 def write_dicom_series(image: sitk.Image, folder: Path, series_uid: str | None = None, description: str = "phantom") -> list[Path]:

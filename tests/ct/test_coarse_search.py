@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ct_test_helpers import patch_params
+from ct_test_helpers import patch_params, touching_ball_scan
 from scipy.spatial.distance import cdist
 from test_fiducials import match
 
@@ -62,14 +62,7 @@ def test_metal_scan_same_answers_on_the_coarse_grid(coarse, b):
 
 @pytest.mark.parametrize("b", [2, 4])
 def test_touching_balls_separate_on_the_coarse_grid(coarse, b):
-    ph = default_phantom()
-    c = ph.fiducial_centres_lps
-    n = (c[0] - ph.centre_lps) / np.linalg.norm(c[0] - ph.centre_lps)
-    t = np.cross(n, [1.0, 0.0, 0.0])
-    t /= np.linalg.norm(t)
-    extra = c[0] + 8.0 * t
-    ct = generate_ct(ph, patch_params(ph, margin_mm=12.0, distractors=(DenseBlob(extra, np.full(3, 4.0), 3000.0, name="touching ball"),)))
-    truth = np.vstack([ct.fiducial_centres_lps, extra])
+    ct, truth = touching_ball_scan()
     coarse(b)
     det = detect_fiducials(Volume.from_image(ct.to_sitk()), kit=FiducialKit(radius_mm=4.0))
     err, missed, false = match(det.centres, truth)

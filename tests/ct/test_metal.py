@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from ct_test_helpers import patch_params
+from ct_test_helpers import patch_params, touching_ball_scan
 from scipy.spatial.distance import cdist
 from test_fiducials import match
 
@@ -58,20 +58,12 @@ def test_kit_density_rejects_a_round_metal_ball_of_the_right_size():
 
 
 def test_touching_balls_are_separated_or_reported():
-    ph = default_phantom()
-    c = ph.fiducial_centres_lps
-    # a tenth ball touching ball 0 (centres 8 mm apart), along the scalp's tangent
-    n = (c[0] - ph.centre_lps) / np.linalg.norm(c[0] - ph.centre_lps)
-    t = np.cross(n, [1.0, 0.0, 0.0])
-    t /= np.linalg.norm(t)
-    extra = c[0] + 8.0 * t
-    ct = generate_ct(ph, patch_params(ph, margin_mm=12.0, distractors=(DenseBlob(extra, np.full(3, 4.0), 3000.0, name="touching ball"),)))
-    truth = np.vstack([ct.fiducial_centres_lps, extra])
+    ct, truth = touching_ball_scan()
     det = detect_fiducials(_vol(ct), kit=FiducialKit(radius_mm=4.0))
     err, missed, false = match(det.centres, truth)
     found_pair = cdist(det.centres, truth[[0, 9]]).min(axis=0) < 0.3 if len(det.centres) else np.zeros(2, bool)
     if not found_pair.all():  # not separated: then reported, never silently dropped
-        assert any(np.linalg.norm(r.centre_lps - (c[0] + extra) / 2) < 5.0 for r in det.rejected), [r.reason for r in det.rejected]
+        assert any(np.linalg.norm(r.centre_lps - (truth[0] + truth[9]) / 2) < 5.0 for r in det.rejected), [r.reason for r in det.rejected]
     assert false == 0 and missed <= 2
     assert found_pair.all(), "touching balls should be separated by the threshold ladder"
     assert err.max() < 0.15
