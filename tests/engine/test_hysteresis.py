@@ -183,3 +183,34 @@ def test_start_tracking_waits_for_the_next_fresh_pose_on_a_real_clock(make_sessi
     paused.clear()
     r = s.start_tracking()  # right away: inside the stale episode, but fresh poses flow again
     assert r.ok, r.message
+
+
+def test_a_short_camera_freeze_resumes_only_after_the_dwell(make_sim):
+    """A frozen camera is a gap in the fresh pose stream like a stale pose: a freeze of one frame
+    (caught at its first bit-identical repeat, before any pose is stale) must not let the
+    arm resume at the first new pose; it holds until poses have been fresh for resume_dwell_s
+    again (a camera flickering between frozen and live must not start and stop the arm)."""
+    rob = FollowerRobotRig()
+    s = make_sim(clock="sim", camera="sim-points", trajectory="still", robot_factory=lambda *a: rob)
+    plan_sample(s)
+    assert s.start_camera().ok
+    s.advance(0.5)
+    assert s.arm("1234").ok and s.start_tracking().ok
+    s.advance(1.0)
+    assert rob.state == "tracking"
+    ticks = []
+    s._loop.add_tick_hook(lambda loop, t: ticks.append((t, rob.state)))
+    t_fault = s.clock()
+    assert s.inject_fault("camera-freeze").ok
+    s.advance(1.2 / 30)  # the camera repeats one frame (measured: the arm resumed 64 ms after it)
+    assert s.inject_fault("none").ok
+    t_live = s.clock()
+    s.advance(1.5)
+    holding = [t for t, st in ticks if st == "holding"]
+    assert holding, "the freeze must hold the arm"
+    assert min(holding) <= t_fault + 2 / 30 + 0.01  # caught at the first repeated frame
+    resumed = [t for t, st in ticks if st == "tracking" and t > min(holding)]
+    assert resumed, "tracking resumes once the camera is live"
+    # the first pose of the live camera comes >= one frame period after t_live; the dwell follows it
+    assert min(resumed) >= t_live + 0.3, (t_live, min(resumed))
+    assert all(st == "tracking" for t, st in ticks if t >= min(resumed))  # one hold, no flapping

@@ -222,7 +222,10 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             dwell = self._dwell_s
             if holding and code == "camera_freeze" and self._camera_frozen(now):
                 # a pose captured before the freeze, still in flight when it was detected: the
-                # camera is still frozen, so it must not resume tracking (not even for a cycle)
+                # camera is still frozen, so it must not resume tracking (not even for a cycle),
+                # and it does not count towards the fresh run the resume dwell asks for
+                with self._lock:
+                    self._fresh_since = None
                 self._run_pose_hooks(sample, v.trusted, now)
                 return
             if holding and code in FRESHNESS_CODES and fresh_for < dwell:
@@ -338,6 +341,8 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
         """Camera freeze, stale pose, robot state (every engine tick)."""
         frozen = self._camera_frozen(now)
         if frozen:
+            with self._lock:
+                self._fresh_since = None  # a frozen camera is a gap: the resume dwell starts again after it
             self._hold("camera_freeze", frozen)
         rec = self._latest
         if rec is not None and rec.trusted:
