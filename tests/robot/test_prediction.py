@@ -320,3 +320,16 @@ def test_the_bank_follows_a_quick_motion_on_a_quiet_stream_and_smooths_a_noisy_o
     assert n["bank"] < 0.8 * n["10x"], results  # 0.27 vs 0.52 mm
     for r in (q, n):
         assert r["bank"] < 1.1 * min(r["1x"], r["3x"], r["10x"]), results
+
+
+def test_one_jerk_choice_is_that_multiple_and_reset_forgets_the_banks_choice():
+    one = TargetPredictor(jerk_choices=(3.0,))
+    plain = TargetPredictor(jerk_choices=())
+    assert np.allclose(one._q, 9.0 * plain._q)  # variance: the multiplier squared
+    bank = TargetPredictor()
+    bank.jerk_choice, bank.score = 2, 0.5
+    for f in bank._bank:
+        f.score = 0.7
+    bank.reset()
+    assert bank.jerk_choice == 0 and np.isnan(bank.score)
+    assert all(np.isnan(f.score) for f in bank._bank)

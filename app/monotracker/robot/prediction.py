@@ -71,7 +71,8 @@ class TargetPredictor:
         blend_s: a new frame's correction of the prediction fades in with this time constant
             (s) instead of stepping the target (0: step).
         jerk_choices: multipliers of ``jerk_sigma`` for the bank of filters the prediction
-            chooses from (see :meth:`_adopt_best`); one value or none: a single filter.
+            chooses from (see :meth:`_adopt_best`); one value: a single filter at that
+            multiple; none: a single filter at ``jerk_sigma``.
         free_roll: never extrapolate the roll about the needle axis (body z), neither in the
             pose nor in the feed-forward: a needle is symmetric, so the roll is a convention,
             and the engine chooses it to follow the arm's current roll (no needless wrist
@@ -108,6 +109,9 @@ class TargetPredictor:
         self.noise_frames = 30.0
         self.blend_s = float(blend_s)
         self.free_roll = bool(free_roll)
+        if len(jerk_choices) == 1:  # one filter, at that multiple of the configured jerk noise
+            jerk_sigma_m_s3, jerk_sigma_rad_s3 = (jerk_sigma_m_s3 * float(jerk_choices[0]),
+                                                  jerk_sigma_rad_s3 * float(jerk_choices[0]))
         self._q = np.array([jerk_sigma_rad_s3 ** 2, jerk_sigma_m_s3 ** 2], dtype=float)
         self._v0 = np.array([speed0_rad_s ** 2, speed0_m_s ** 2], dtype=float)
         self._a0 = np.array([accel0_rad_s2 ** 2, accel0_m_s2 ** 2], dtype=float)
@@ -122,12 +126,13 @@ class TargetPredictor:
                   free_roll=free_roll, jerk_choices=())
         self._bank = [TargetPredictor(jerk_sigma_m_s3=jerk_sigma_m_s3 * m, jerk_sigma_rad_s3=jerk_sigma_rad_s3 * m, **kw)
                       for m in jerk_choices] if len(jerk_choices) > 1 else []
-        self.score = float("nan")  # low-passed normalised innovation energy (one frame ahead)
-        self.jerk_choice = 0  # index into jerk_choices of the filter in use
         self.reset()
 
     def reset(self) -> None:
-        """Forget the history: the next targets are used as measured (no extrapolation)."""
+        """Forget the history: the next targets are used as measured (no extrapolation), and the
+        bank chooses its filter afresh from what follows."""
+        self.score = float("nan")  # low-passed normalised innovation energy (one frame ahead)
+        self.jerk_choice = 0  # index into jerk_choices of the filter in use
         self._last: tuple[np.ndarray, float] | None = None  # the last measurement (T, stamp)
         self._T: np.ndarray | None = None  # filtered pose at the last stamp
         self._P = np.zeros((2, 3, 3))  # [group][3x3] covariance of (pose, twist, accel) per component
