@@ -95,16 +95,20 @@ def test_a_pose_in_flight_at_the_freeze_detection_does_not_resume_tracking(tmp_p
     transport and the next frame, so the last frame before the freeze is still being estimated
     when its repeat is detected: its pose is trusted and fresh, but the camera is still frozen.
     It resumed tracking for one control cycle (with a 'resumed' alert); the arm must hold."""
-    states = []
+    states, poses = [], []
 
     def watch(s):
         s._loop.add_tick_hook(lambda loop, t: states.append((t, loop.robot.status().state)))
+        s._loop.add_pose_hook(lambda loop, smp, trusted, now: poses.append((now, trusted, smp.t_capture)))
 
     r = run_demo(DemoOptions(seconds=3.0, trajectory=Breathing(amplitude_mm=4.0, period_s=2.0), fault="camera-freeze",
                              fault_at_s=1.5, home=_planned_home(tmp_path)), on_tracking=watch)
     fr = r["fault_report"]
     t_det = fr["detected_at_s"]
     assert fr["engine_reported"].startswith("[alarm] camera_freeze")
+    # the premise: a trusted pose of a frame captured before the freeze arrived after its detection
+    assert [p for p in poses if p[1] and p[0] >= t_det - 1e-9 and p[2] < fr["injected_at_s"]], \
+        "no pose was in flight at the detection: this test no longer exercises the case"
     assert not [a for a in r["alerts"] if a["code"] == "resumed" and a["t"] >= t_det - 1e-3]
     after = [st for t, st in states if t >= t_det - 1e-9]
     assert after and set(after) == {"holding"}
