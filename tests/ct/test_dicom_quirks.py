@@ -173,7 +173,54 @@ def test_several_series_of_one_scan_pick_the_one_covering_most_of_the_patient(tm
     folder = _series_pair(tmp_path, same_scan=True)
     vol = load_volume(folder)
     assert vol.array.shape[0] == len(SPECS)          # 12 slices over 22 mm, not 20 over 9.5 mm
-    assert any("picked the largest, 1.2.3.1" in n and "1.2.3.2" in n for n in vol.notes)
+    assert any("picked 1.2.3.1" in n and "1.2.3.2" in n for n in vol.notes)
+
+
+def _retag(folder, pattern, **tags):
+    for p in folder.glob(pattern):
+        ds = pydicom.dcmread(p)
+        for k, v in tags.items():
+            if v is None:
+                delattr(ds, k)
+            else:
+                setattr(ds, k, v)
+        ds.save_as(p, enforce_file_format=True)
+
+
+def test_of_two_reconstructions_over_one_range_the_finer_slices_are_picked(tmp_path):
+    """A 5 mm and a 0.625 mm reconstruction of the same range (and a 0.5 mm derived series, e.g.
+    a MIP or reformat, labelled DERIVED): the fine original one is the CT to detect fiducials in,
+    whatever the thick one's slab adds to its nominal extent."""
+    folder = tmp_path / "recons"
+    write_series(folder, stack_specs(np.arange(4) * 5.0), _field, ROWS, COLS, PS, series_uid="1.2.3.1", description="thick")
+    write_series(folder, stack_specs(np.arange(25) * 0.625), _field, ROWS, COLS, PS, series_uid="1.2.3.2", description="fine")
+    write_series(folder, stack_specs(np.arange(31) * 0.5), _field, ROWS, COLS, PS, series_uid="1.2.3.3", description="mip")
+    _retag(folder, "mip*.dcm", ImageType=["DERIVED", "SECONDARY", "MIP"])
+    vol = load_volume(folder)
+    assert vol.array.shape[0] == 25 and np.allclose(sorted(vol.spacing_mm), (0.625, 1.0, 1.0))
+    assert any("picked 1.2.3.2" in n for n in vol.notes)
+
+
+def test_a_screen_capture_labelled_ot_does_not_make_the_ct_series_not_ct(tmp_path):
+    """Exports label dose screens Modality OT; left out with a note, never a reason to refuse the CT."""
+    folder = tmp_path / "s"
+    write_series(folder, SPECS, _field, ROWS, COLS, PS)
+    uid = pydicom.dcmread(next(iter(sorted(folder.glob("*.dcm"))))).SeriesInstanceUID
+    _add_screen_capture(folder, uid)
+    _retag(folder, "zz_dose.dcm", Modality="OT")
+    vol = load_volume(folder)
+    assert vol.array.shape[0] == len(SPECS) and any("secondary capture" in n for n in vol.notes)
+    info = list_series(folder)[0]
+    assert info.ok and info.slices == len(SPECS)
+
+
+def test_series_without_a_frame_of_reference_are_not_taken_for_one_scan(tmp_path):
+    """Nothing says two series without FrameOfReferenceUID share coordinates: refused until chosen."""
+    folder = _series_pair(tmp_path, same_scan=True)
+    _retag(folder, "*.dcm", FrameOfReferenceUID=None)
+    with pytest.raises(InputError) as exc:
+        load_volume(folder)
+    assert "different scans" in _one_line(exc)
 
 
 def test_series_of_different_scans_are_refused_until_one_is_chosen(tmp_path):

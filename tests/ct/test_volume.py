@@ -76,13 +76,13 @@ def test_index_lps_round_trip_on_the_sample():
 
 
 # ------------------------------------------------------------------ several series
-def test_folder_with_several_series_picks_the_largest_and_says_so(small_ct, tmp_path):
+def test_folder_with_several_series_picks_the_one_covering_the_patient_and_says_so(small_ct, tmp_path):
     img = small_ct.to_sitk()
     write_dicom_series(img, tmp_path, series_uid="1.2.826.0.1.3680043.2.1125.9.1")
     write_dicom_series(img[:, :, 10:20], tmp_path, series_uid="1.2.826.0.1.3680043.2.1125.9.2", description="scout")
     vol = load_volume(tmp_path)
     assert vol.array.shape[0] == img.GetDepth()
-    assert any("largest" in n and "1.2.826.0.1.3680043.2.1125.9.2" in n for n in vol.notes)
+    assert any("picked 1.2.826.0.1.3680043.2.1125.9.1" in n and "1.2.826.0.1.3680043.2.1125.9.2" in n for n in vol.notes)
     vol2 = load_volume(tmp_path, series="1.2.826.0.1.3680043.2.1125.9.2")
     assert vol2.array.shape[0] == 10
     # the smaller series starts at slice 10 of the same geometry

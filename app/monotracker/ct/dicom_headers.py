@@ -266,14 +266,6 @@ def _plain_files(folder: Path) -> list[Path]:
     return out
 
 
-def _subfolders(folder: Path) -> list[str]:
-    """Names of the visible sub-folders of ``folder`` (for a hint), by name."""
-    try:
-        return sorted(p.name for p in folder.iterdir() if not p.name.startswith(".") and p.is_dir())
-    except OSError:
-        return []
-
-
 def _group_headers(paths: list[Path]) -> dict[str, list]:
     """Series UID -> list of (path, header dataset), in file-name order."""
     groups: dict[str, list] = {}
@@ -302,7 +294,7 @@ def _non_volume_kind(ds) -> str | None:
     if "LOCALIZER" in _image_type(ds):
         return "localizer"
     sop = str(ds.get("SOPClassUID", "") or getattr(getattr(ds, "file_meta", None), "MediaStorageSOPClassUID", "") or "")
-    if sop.startswith(NON_VOLUME_SOP_PREFIX):
+    if sop == NON_VOLUME_SOP_PREFIX or sop.startswith(NON_VOLUME_SOP_PREFIX + "."):  # not the VL classes ...1.1.77.x
         return "secondary capture"
     return None
 

@@ -21,8 +21,9 @@ Enhanced (multi-frame) CT objects are read frame by frame from their functional 
 Positions are LPS mm (DICOM's patient frame). Pixel values are HU (rescale slope/intercept).
 Localizers (scouts) and secondary captures filed under the series are left out with a note; a
 series that is not CT (Modality MR, PT, ...) is refused. Without ``series=`` a folder with
-several series gives the one that covers the most of the patient, with a note, when they all
-belong to one scan (one frame of reference); series of different scans are refused: choose one.
+several series gives, with a note, the finest original (not derived) series among those covering
+the patient (>= 90 % of the widest), when they all belong to one scan (one FrameOfReferenceUID);
+series of different scans, or without a frame of reference, are refused: choose one.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from monotracker.ct.dicom_geometry import (  # noqa: F401 - public constants kep
 from monotracker.ct.dicom_headers import (  # noqa: F401 - _files used by volume.py
     _files,
     _group_headers,
+    _image_type,
     _slices_of,
     modality_refusal,
     split_volume_images,
@@ -72,10 +74,14 @@ class SeriesInfo:
     ok: bool = True
     modality: str = ""
     files: list[str] = field(default_factory=list, repr=False)
-    #: FrameOfReferenceUID (else StudyInstanceUID): series with the same one are one scan.
+    #: FrameOfReferenceUID: series with the same one are one scan (a series without one is a
+    #: scan of its own: nothing says it shares the others' coordinates).
     frame_of_reference: str = field(default="", repr=False)
-    #: Volume the series covers, mm^3 (NaN when it cannot be loaded), and its voxel count.
+    #: Volume the series covers (pixel grid x first to last slice position), mm^3 (NaN when it
+    #: cannot be loaded), and its voxel count.
     extent_mm3: float = field(default=float("nan"), repr=False)
+    #: ImageType DERIVED (a reformat, MIP or thick slab made from the original slices).
+    derived: bool = field(default=False, repr=False)
     voxels: int = field(default=0, repr=False)
     #: Slice grid (orientation, positions, pixel grid), rounded: equal for two reconstructions
     #: of one acquisition (e.g. a soft-tissue and a bone kernel).
@@ -129,10 +135,11 @@ def _series_info(uid: str, items: list) -> SeriesInfo:
     ds0 = items[0][1]
     info = SeriesInfo(uid, str(ds0.get("SeriesDescription", "") or ""), 0, (float("nan"),) * 3, float("nan"),
                       modality=str(ds0.get("Modality", "")), files=[str(q) for q, _ in items],
-                      frame_of_reference=str(ds0.get("FrameOfReferenceUID", "") or ds0.get("StudyInstanceUID", "") or ""))
+                      # no frame of reference: nothing says it is the same scan as another series
+                      frame_of_reference=str(ds0.get("FrameOfReferenceUID", "") or "") or f"(none: series {uid})")
     kept, left = split_volume_images(items)
     try:
-        why = modality_refusal(items, f"series {uid}")
+        why = modality_refusal(kept, f"series {uid}")  # the CT's slices; a screen save may say OT
         if why:
             raise InputError(why)
         if not kept:
@@ -146,7 +153,8 @@ def _series_info(uid: str, items: list) -> SeriesInfo:
         s0 = geo.slices[0]
         sx, sy, sz = geo.spacing
         info.voxels = s0.rows * s0.cols * len(geo.slices)
-        info.extent_mm3 = float(s0.cols * sx * s0.rows * sy * (geo.d[-1] - geo.d[0] + sz))
+        info.extent_mm3 = float(s0.cols * sx * s0.rows * sy * (geo.d[-1] - geo.d[0]))
+        info.derived = any(_image_type(ds)[:1] == ["DERIVED"] for _, ds in kept)
         info.grid_key = (s0.rows, s0.cols, tuple(np.round(s0.pixel_spacing, 3)), tuple(np.round(s0.iop, 3)),
                          tuple(map(tuple, np.round([s.position for s in geo.slices], 1))))
     except InputError as exc:
@@ -157,10 +165,12 @@ def _series_info(uid: str, items: list) -> SeriesInfo:
 
 
 def _pick_series(path: Path, groups: dict, notes: list[str]) -> str:
-    """The series to load when none was named: the one covering the most of the patient among
-    the loadable CT series, with a note, when they all belong to one scan (one frame of
-    reference: they give the same fiducial positions); refused when they come from different
-    scans (which one has the fiducials is the operator's call) or none can be loaded."""
+    """The series to load when none was named: among the loadable CT series that cover the
+    patient (>= 90 % of the widest extent), the original one (not a DERIVED reformat, MIP or
+    slab) with the finest slices, then the finest pixels, with a note, when they all belong to
+    one scan (one frame of reference: they give the same fiducial positions); refused when they
+    come from different scans or have no frame of reference (which one has the fiducials is the
+    operator's call), or when none can be loaded."""
     infos = [_series_info(uid, items) for uid, items in groups.items()]
     good = [i for i in infos if i.ok]
     hint = "choose with series=UID (CLI: --series UID, list them with --list-series)"
@@ -173,13 +183,18 @@ def _pick_series(path: Path, groups: dict, notes: list[str]) -> str:
         listed = "; ".join(f"{i.uid} ({i.description or 'no description'}, {i.slices} slices)" for i in good[:4])
         raise InputError(f"{path} holds CT series of {len(scans)} different scans (frames of reference): {listed}; "
                          f"which one has the fiducials cannot be guessed: {hint}")
-    pick = min(good, key=lambda i: (-i.extent_mm3, -i.voxels, i.uid))
+    # the original (not derived: no reformat, MIP or thick slab) series among those that cover
+    # the patient (>= 90 % of the largest extent), the finest slices first, then the finest pixels
+    widest = max(i.extent_mm3 for i in good)
+    covering = [i for i in good if i.extent_mm3 >= 0.9 * widest]
+    pick = min(covering, key=lambda i: (i.derived, round(i.spacing_mm[2], 3), round(i.spacing_mm[0] * i.spacing_mm[1], 4),
+                                        -i.extent_mm3, i.uid))
     same = [i.uid for i in good if i is not pick and i.grid_key == pick.grid_key]
     others = [f"{i.uid} ({i.description or 'no description'}, {i.slices} slices{'' if i.ok else ', cannot be loaded'})"
               for i in infos if i is not pick and i.uid not in same]
     sp = " x ".join(f"{x:.3g}" for x in pick.spacing_mm)
-    text = (f"folder holds {len(infos)} DICOM series; picked the largest, {pick.uid} ({pick.description or 'no description'}, "
-            f"{pick.slices} slices, {sp} mm: the CT covering the most of the patient)")
+    text = (f"folder holds {len(infos)} DICOM series of one scan; picked {pick.uid} ({pick.description or 'no description'}, "
+            f"{pick.slices} slices, {sp} mm: the finest original series covering the patient)")
     if same:
         text += (f"; {', '.join(same)} has the same slice grid (another reconstruction of the same scan, e.g. "
                  "another kernel): the same fiducial positions")
@@ -209,11 +224,10 @@ def read_dicom(path: Path, series: str | None, notes: list[str]):
         uid = _pick_series(path, groups, notes)
     else:
         uid = next(iter(groups))
-    items = groups[uid]
-    why = modality_refusal(items, f"series {uid}")
+    items, left = split_volume_images(groups[uid])
+    why = modality_refusal(items, f"series {uid}")  # the CT's slices; a screen save may say OT
     if why:
         raise InputError(why)
-    items, left = split_volume_images(items)
     notes.extend(left)
     slices = [s for q, ds in items for s in _slices_of(ds, q)]
     if len(slices) < 2:

@@ -73,6 +73,8 @@ def _base_dataset(series_uid: str, description: str, rows: int, cols: int, sop_c
     ds.PatientName = "PHANTOM^HEAD"
     ds.PatientID = "PHANTOM"
     ds.StudyInstanceUID = UID_ROOT + "1"
+    ds.FrameOfReferenceUID = UID_ROOT + "2"  # one scan (type 1 in the CT image IOD: scanners always write it)
+    ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL"]
     ds.SeriesInstanceUID = series_uid
     ds.SeriesDescription = description
     ds.Rows, ds.Columns = rows, cols
