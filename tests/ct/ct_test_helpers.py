@@ -3,6 +3,7 @@ imports another folder's ``conftest`` in its place)."""
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -46,6 +47,7 @@ def write_dicom_series(image: sitk.Image, folder: Path, series_uid: str | None =
         ("0008|0008", "ORIGINAL\\PRIMARY\\AXIAL"),
         ("0020|000d", study_uid),
         ("0020|000e", series_uid),
+        ("0020|0052", f"{uid_root}.3.1"),  # FrameOfReferenceUID: one scan (scanners always write it)
         ("0020|0037", "\\".join(f"{x:.10f}" for x in (d[0], d[3], d[6], d[1], d[4], d[7]))),
         ("0008|103e", description),
         ("0028|1052", "0"),
@@ -67,3 +69,20 @@ def write_dicom_series(image: sitk.Image, folder: Path, series_uid: str | None =
         writer.Execute(sl)
         paths.append(p)
     return paths
+
+
+def gated_load(monkeypatch):
+    """``monotracker.ct.load_volume`` waits on ``gate`` (released by the test) before loading;
+    ``entered`` is set once a load is inside. Returns ``(gate, entered)`` (threading.Event)."""
+    import monotracker.ct as ct_pkg
+
+    gate, entered = threading.Event(), threading.Event()
+    real = ct_pkg.load_volume
+
+    def slow(path, series=None):
+        entered.set()
+        gate.wait(120)
+        return real(path, series=series)
+
+    monkeypatch.setattr(ct_pkg, "load_volume", slow)
+    return gate, entered

@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from ct_test_helpers import patch_params
+from ct_test_helpers import gated_load, patch_params
 
 import monotracker.ct as ct_pkg
 from monotracker.engine import Session, SessionConfig
@@ -39,20 +39,6 @@ def _wait_done(s, limit_s=300.0):
     raise AssertionError("the CT job never ended")
 
 
-def _gated_load(monkeypatch):
-    """load_volume waits on ``gate`` (released by the test); ``entered`` is set once inside."""
-    gate, entered = threading.Event(), threading.Event()
-    real = ct_pkg.load_volume
-
-    def slow(path, series=None):
-        entered.set()
-        gate.wait(120)
-        return real(path, series=series)
-
-    monkeypatch.setattr(ct_pkg, "load_volume", slow)
-    return gate, entered
-
-
 def _state(s):
     snap = s.snapshot()
     plan = s.plan_copy()
@@ -70,7 +56,7 @@ def test_stopped_ct_job_keeps_the_previous_ct_and_plan(tmp_path, patch_file, mon
         assert len(before[1]) == 9
         other = tmp_path / "other.nii.gz"
         other.write_bytes(patch_file.read_bytes())
-        gate, entered = _gated_load(monkeypatch)
+        gate, entered = gated_load(monkeypatch)
         if how == "timeout":  # only for this job: the first load may take long on a loaded machine
             s.config.ct_job_timeout_s = 2.0
         assert s.load_ct(str(other)).ok

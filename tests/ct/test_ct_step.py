@@ -10,6 +10,8 @@ from contextlib import nullcontext
 import numpy as np
 import pytest
 
+from ct_test_helpers import gated_load
+
 from monotracker.engine import Session, SessionConfig
 from monotracker.sim.dicom_writer import stack_specs, write_series
 from monotracker.ui import step_ct
@@ -171,18 +173,8 @@ def test_rejected_blobs_are_listed():
 
 
 def test_cancel_button_stops_a_running_load(tmp_path, step, monkeypatch):
-    import monotracker.ct as ct_pkg
-
     ui, view, s = step
-    gate, entered = threading.Event(), threading.Event()
-    real = ct_pkg.load_volume
-
-    def slow(path, series=None):
-        entered.set()
-        gate.wait(120)
-        return real(path, series=series)
-
-    monkeypatch.setattr(ct_pkg, "load_volume", slow)
+    gate, entered = gated_load(monkeypatch)
     folder = tmp_path / "one"
     write_series(folder, stack_specs(np.arange(16) * 1.0), _field, series_uid="1.2.3.9", description="only")
     view.gui.h["CT file or folder"].value = str(folder)

@@ -4,6 +4,7 @@ viser's inputs by label, the result line and its sequence number, the PIN pad.""
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 
 # Every wait is on state (the session's or the page's) with a generous limit: on a loaded 2-core
 # machine the same step can take 10x longer than on a quiet one, and that is not a bug.
@@ -66,3 +67,39 @@ def _take_control(page, pin: str) -> str:
 
 def _state(page):
     return page.locator("#mt-robot-state").first.get_attribute("data-state")
+
+
+def _sample_ct_ready(s) -> bool:
+    snap = s.snapshot()
+    return snap.job is not None and snap.job.done and snap.head_mesh is not None
+
+
+@contextmanager
+def served_locked_sample(tmp_path, monkeypatch, port, config: dict | None = None, camera_factory=None,
+                         sample_plan: bool = False):
+    """A started session (home ``tmp_path``, sim robot, PIN 2468, plus ``config``) with the sample
+    CT loaded and all its fiducials confirmed and locked (the local operator did it), and with
+    ``sample_plan`` the sample path; served by the web app on ``port``. Yields ``(session, app)``."""
+    from monotracker.engine import Session, SessionConfig
+    from monotracker.ui.app import MonoTrackerApp
+
+    monkeypatch.setenv("MONOTRACKER_HOME", str(tmp_path))
+    s = Session(SessionConfig(home=tmp_path, **{"robot": "sim", "arm_pin": "2468", **(config or {})}),
+                camera_factory=camera_factory)
+    s.start()
+    try:
+        assert s.load_sample_ct().ok
+        _wait(lambda: _sample_ct_ready(s), what="sample CT")
+        for f in s.snapshot().fiducials:
+            assert s.set_fiducial_status(f.id, "confirmed").ok
+        assert s.confirm_fiducials().ok
+        if sample_plan:
+            assert s.use_sample_plan().ok
+        app = MonoTrackerApp(s, "127.0.0.1", port)
+        app.start()
+        try:
+            yield s, app
+        finally:
+            app.stop()
+    finally:
+        s.shutdown()

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from browser_helpers import T_PAGE_MS, T_STATE, _click, _command, _input, _take_control, _wait
-
+from browser_helpers import (T_PAGE_MS, _click, _command, _input, _take_control, _wait,
+                             served_locked_sample)
 pytestmark = pytest.mark.timeout(900)
 
 PATTERN, SQUARE = (7, 5), 20.0
@@ -104,26 +104,11 @@ def _set(page, app, label, handle_name, text, value):
 
 @pytest.fixture
 def served(tmp_path, monkeypatch, port):
-    from monotracker.engine import Session, SessionConfig
-    from monotracker.ui.app import MonoTrackerApp
-
-    monkeypatch.setenv("MONOTRACKER_HOME", str(tmp_path))
     feed = BoardFeed()
-    s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="still", robot="sim", arm_pin="2468",
-                              control_process=False),  # the sim arm in this process: the test moves it
-                camera_factory=_board_rig_factory(feed))
-    s.start()
-    assert s.load_sample_ct().ok
-    _wait(lambda: s.snapshot().job is not None and s.snapshot().job.done and s.snapshot().head_mesh is not None,
-          what="sample CT")
-    for f in s.snapshot().fiducials:
-        assert s.set_fiducial_status(f.id, "confirmed").ok
-    assert s.confirm_fiducials().ok
-    app = MonoTrackerApp(s, "127.0.0.1", port)
-    app.start()
-    yield s, app, feed
-    app.stop()
-    s.shutdown()
+    config = dict(camera="sim", trajectory="still",
+                  control_process=False)  # the sim arm in this process: the test moves it
+    with served_locked_sample(tmp_path, monkeypatch, port, config, camera_factory=_board_rig_factory(feed)) as (s, app):
+        yield s, app, feed
 
 
 def test_calibration_step_in_browser(served, browser, artifacts, tmp_path):

@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from browser_helpers import T_PAGE_MS, T_STATE, _click, _input, _msg, _take_control, _wait
+from browser_helpers import T_PAGE_MS, T_STATE, _click, _input, _msg, _take_control, _wait, served_locked_sample
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -22,24 +22,8 @@ pytestmark = pytest.mark.timeout(900)
 @pytest.fixture
 def served_plan(tmp_path, monkeypatch, port):
     """A session with the sample CT, its fiducials locked and the sample plan (the local operator)."""
-    from monotracker.engine import Session, SessionConfig
-    from monotracker.ui.app import MonoTrackerApp
-
-    monkeypatch.setenv("MONOTRACKER_HOME", str(tmp_path))
-    s = Session(SessionConfig(home=tmp_path, robot="sim", arm_pin="2468"))
-    s.start()
-    assert s.load_sample_ct().ok
-    _wait(lambda: s.snapshot().job is not None and s.snapshot().job.done and s.snapshot().head_mesh is not None,
-          what="sample CT")
-    for f in s.snapshot().fiducials:
-        assert s.set_fiducial_status(f.id, "confirmed").ok
-    assert s.confirm_fiducials().ok
-    assert s.use_sample_plan().ok
-    app = MonoTrackerApp(s, "127.0.0.1", port)
-    app.start()
-    yield s, app
-    app.stop()
-    s.shutdown()
+    with served_locked_sample(tmp_path, monkeypatch, port, sample_plan=True) as served:
+        yield served
 
 
 def _nav(page, attr):

@@ -14,31 +14,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from browser_helpers import T_PAGE_MS, T_STATE, _click, _command, _input, _msg, _pin_pad, _seq, _take_control, _wait
-
+from browser_helpers import (T_PAGE_MS, T_STATE, _click, _command, _input, _msg, _pin_pad, _seq, _take_control,
+                             _wait, served_locked_sample)
 pytestmark = pytest.mark.timeout(1800)  # the whole two-tab flow took > 900 s at load 25-30 on 2 cores (each wait is on state)
 
 
 @pytest.fixture
 def served_ct(tmp_path, monkeypatch, port):
     """A session with the sample CT loaded and its fiducials locked (the local operator did it)."""
-    from monotracker.engine import Session, SessionConfig
-    from monotracker.ui.app import MonoTrackerApp
-
-    monkeypatch.setenv("MONOTRACKER_HOME", str(tmp_path))
-    s = Session(SessionConfig(home=tmp_path, robot="sim", arm_pin="2468"))
-    s.start()
-    assert s.load_sample_ct().ok
-    _wait(lambda: s.snapshot().job is not None and s.snapshot().job.done and s.snapshot().head_mesh is not None,
-          what="sample CT")
-    for f in s.snapshot().fiducials:
-        assert s.set_fiducial_status(f.id, "confirmed").ok
-    assert s.confirm_fiducials().ok
-    app = MonoTrackerApp(s, "127.0.0.1", port)
-    app.start()
-    yield s, app
-    app.stop()
-    s.shutdown()
+    with served_locked_sample(tmp_path, monkeypatch, port) as served:
+        yield served
 
 
 def _open(browser, app, size=(1600, 1000)):
