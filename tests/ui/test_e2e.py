@@ -6,7 +6,6 @@ Screenshots of each step go to test-artifacts/ui/.
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -14,8 +13,6 @@ import pytest
 from browser_helpers import T_PAGE_MS, T_STATE, _click, _command, _input, _msg, _pin_pad, _state, _take_control, _wait
 
 pytestmark = pytest.mark.timeout(900)
-#: the engine's own freshness limits and a breathing head (see the ``served`` fixture)
-STRICT = os.environ.get("MONOTRACKER_E2E_STRICT", "") == "1"
 
 
 @pytest.fixture
@@ -24,18 +21,13 @@ def served(tmp_path, monkeypatch, port):
     from monotracker.ui.app import MonoTrackerApp
 
     monkeypatch.setenv("MONOTRACKER_HOME", str(tmp_path))
-    # MONOTRACKER_E2E_STRICT=1: the engine's own limits (a trusted pose older than 0.15 s holds the
-    # arm, a camera silent for 0.1 s is frozen) and a breathing head, and the arm must reach the
-    # entry while tracking. The pose pipeline is built to hold them beside 4 CPU hogs
-    # (engine/pipeline_priority.py, engine/sim_camera_process.py, benchmarks/pose_latency.py;
-    # MONOTRACKER_TEST_HOGS=4, tests/conftest.py). Default: the budget is 1 s and the head still,
-    # because on a machine loaded far beyond that (load 20-35 on 2 cores) trusted poses arrive
-    # with gaps over the control process's own 100 ms frame-gap limit and Start tracking is
-    # refused ("no fresh valid target pose"): the page must follow the session whatever the load,
-    # which is what this test is about; the pipeline's freshness is measured by the benchmark.
-    limits = {} if STRICT else {"max_pose_age_s": 1.0, "freeze_after_s": 1.0}
-    s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="breathing" if STRICT else "still", robot="sim",
-                              arm_pin="2468", **limits))
+    # the engine's own limits (a trusted pose older than 0.15 s holds the arm, a camera silent for
+    # 0.1 s is frozen) and a breathing head, and the arm must reach the entry while tracking. It
+    # holds beside 4 CPU hogs (MONOTRACKER_TEST_HOGS=4, tests/conftest.py; measured 3 of 3 runs,
+    # 250-360 s, with Start tracking refused up to 6 times first, as the engine must while poses
+    # arrive stale): the pose pipeline runs at raised priority (engine/pipeline_priority.py,
+    # engine/sim_camera_process.py) and every wait below is on state.
+    s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="breathing", robot="sim", arm_pin="2468"))
     s.start()
     app = MonoTrackerApp(s, "127.0.0.1", port)
     app.start()
@@ -139,13 +131,12 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
             assert "Start tracking" in msg and page.locator("#mt-msg").last.get_attribute("data-ok") == "0"
             _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="trusted pose again")
     page.wait_for_function("['tracking','holding'].includes(document.querySelector('#mt-robot-state').dataset.state)")
-    # strict: the arm follows the breathing head onto the entry (the robot's truth, not the page):
-    # poses arriving older than max_pose_age_s would keep it holding short of it
-    if STRICT:
-        _wait(lambda: s.snapshot().robot.state == "tracking" and (s.snapshot().robot.tip_error_mm or 1e9) < 2.0,
-              what=lambda: f"the tip on the entry while tracking (last: {s.snapshot().robot.state}, "
-                           f"{s.snapshot().robot.tip_error_mm} mm, pose {s.snapshot().pose})")
-        print(f"tracking: tip on the entry; {len(s.audit_entries(code='pose_stale'))} stale-pose holds so far")
+    # the arm follows the breathing head onto the entry (the robot's truth, not the page): poses
+    # arriving older than max_pose_age_s would keep it holding short of it
+    _wait(lambda: s.snapshot().robot.state == "tracking" and (s.snapshot().robot.tip_error_mm or 1e9) < 2.0,
+          what=lambda: f"the tip on the entry while tracking (last: {s.snapshot().robot.state}, "
+                       f"{s.snapshot().robot.tip_error_mm} mm, pose {s.snapshot().pose})")
+    print(f"tracking: tip on the entry; {len(s.audit_entries(code='pose_stale'))} stale-pose holds so far")
     time.sleep(1.0)
     page.screenshot(path=str(artifacts / "4_robot_tracking.png"))
 
