@@ -24,11 +24,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing as mp
 import os
 import socket
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -36,35 +34,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
-
-def _hog():  # a CPU hog: a busy loop at normal priority
-    x = 0
-    while True:
-        x += 1
+from _hogs import hogs, planned_home  # noqa: E402
 
 
 def _free_port() -> int:
     with socket.socket() as so:
         so.bind(("127.0.0.1", 0))
         return so.getsockname()[1]
-
-
-def make_home() -> Path:
-    """A session folder with a confirmed plan (the phantom's fiducials, the sample path)."""
-    from monotracker.engine import Session, SessionConfig
-    from monotracker.sim.phantom import default_phantom
-
-    home = Path(tempfile.mkdtemp(prefix="robot-jitter-"))
-    s = Session(SessionConfig(home=home, clock="sim"))
-    try:
-        ph = default_phantom()
-        for c in ph.fiducial_centres_lps:
-            assert s.add_fiducial(c, ph.fiducial_radius_mm).ok
-        assert s.confirm_fiducials().ok
-        assert s.use_sample_plan().ok
-    finally:
-        s.shutdown()
-    return home
 
 
 def _wait(pred, timeout):
@@ -162,24 +138,15 @@ def main() -> int:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    home = make_home()
-    ctx = mp.get_context("spawn")
-    hogs = [ctx.Process(target=_hog, daemon=True, name=f"hog-{i}") for i in range(a.hogs)]
+    home = planned_home("robot-jitter-")
     rows = []
-    try:
-        for h in hogs:
-            h.start()
+    with hogs(a.hogs):
         for rate in rates:
             for isolated in (False, True):  # the baseline first, then ours, same hogs
                 row = run_one(home, rate, isolated, seconds, not a.no_web)
                 rows.append(row)
                 if not a.json:
                     print(_fmt(row), flush=True)
-    finally:
-        for h in hogs:
-            h.kill()
-        for h in hogs:
-            h.join(10)
 
     ours = [r for r in rows if r["placement"] == "process" and "p99_ms" in r]
     base = [r for r in rows if r["placement"] == "in-process" and "p99_ms" in r]

@@ -3,7 +3,7 @@
     python benchmarks/hold_flapping.py [--quick] [--seconds S] [--hogs N]
 
 Runs the web app's engine (clock="real": camera, registration, control and engine threads) on
-the digital twin with a still head, ``N`` CPU hogs (``python -c 'while 1: pass'``) beside it,
+the digital twin with a still head, ``N`` CPU hogs (busy loops, ``_hogs.py``) beside it,
 and counts, while tracking: TRACKING<->HOLDING transitions, ``pose_stale`` and ``resumed`` audit
 rows, Start-tracking refusals (one try every 0.5 s while not tracking), and the pose age at
 arrival (capture -> the engine sees it). Each configuration in ``--configs`` runs in the same
@@ -14,13 +14,14 @@ invocation, one after the other on the same load: ``baseline`` is the loop witho
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from _hogs import hogs
 
 from monotracker.engine import Session, SessionConfig
 from monotracker.sim.phantom import default_phantom
@@ -113,8 +114,7 @@ def main() -> int:
     ap.add_argument("--configs", default="baseline,hysteresis")
     args = ap.parse_args()
     seconds = args.seconds or (20.0 if args.quick else 60.0)
-    hogs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(args.hogs)]
-    try:
+    with hogs(args.hogs):
         time.sleep(1.0)
         with open("/proc/loadavg") as f:
             load = f.read().split()[0]
@@ -128,10 +128,6 @@ def main() -> int:
                 print(f"{name} | {r['error']}")
                 continue
             print(" | ".join(f"{r[c]:.2f}" if isinstance(r[c], float) else str(r[c]) for c in cols), flush=True)
-    finally:
-        for p in hogs:
-            p.kill()
-            p.wait()
     return 0
 
 

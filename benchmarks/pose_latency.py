@@ -44,9 +44,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -55,36 +53,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
+from _hogs import planned_home, start_hogs, stop_hogs  # noqa: E402
+
 LIMIT_S = 0.15
-
-
-def make_home() -> Path:
-    """A session folder with a confirmed plan (the phantom's fiducials, the sample path)."""
-    from monotracker.engine import Session, SessionConfig
-    from monotracker.sim.phantom import default_phantom
-
-    home = Path(tempfile.mkdtemp(prefix="perf-pose-latency-"))
-    s = Session(SessionConfig(home=home, clock="sim"))
-    try:
-        ph = default_phantom()
-        for c in ph.fiducial_centres_lps:
-            assert s.add_fiducial(c, ph.fiducial_radius_mm).ok
-        assert s.confirm_fiducials().ok
-        assert s.use_sample_plan().ok
-    finally:
-        s.shutdown()
-    return home
-
-
-#: a busy loop at nice 0 that ends when its parent (this script) is gone
-HOG = ("import os\nos.setpriority(os.PRIO_PROCESS, 0, 0)\nparent = os.getppid()\n"
-       "while os.getppid() == parent:\n    for _ in range(1000000):\n        pass\n")
-
-
-def start_hogs(n: int) -> list[subprocess.Popen]:
-    """``n`` busy loops at normal priority (nice 0 whatever ours is), tagged so that only ours are
-    ever killed."""
-    return [subprocess.Popen([sys.executable, "-c", HOG, "hog-perf-bench"]) for _ in range(n)]
 
 
 def reset_priority() -> None:
@@ -95,13 +66,6 @@ def reset_priority() -> None:
             os.setpriority(os.PRIO_PROCESS, int(tid), 0)
         except OSError:
             pass
-
-
-def stop_hogs(hogs: list[subprocess.Popen]) -> None:
-    for h in hogs:
-        h.kill()
-    for h in hogs:
-        h.wait(10)
 
 
 def _wait(pred, timeout):
@@ -307,7 +271,7 @@ def main(argv=None) -> int:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    home = make_home()
+    home = planned_home("perf-pose-latency-")
     modes = a.only.split(",") if a.only else ["baseline", "ours"]
     rows = []
     if not a.json:

@@ -1,7 +1,7 @@
 """Overlay streaming to real headless browsers: frames per second per client and frame-to-screen
 latency, with 1 or more clients (tabs) watching the live view at once.
 
-    python benchmarks/web_overlay.py [--seconds 10] [--clients 3] [--quick]
+    python benchmarks/web_overlay.py [--seconds 10] [--clients 3] [--hogs 4] [--quick]
 
 The web app (MonoTrackerApp, every tab on its Register step) gets 1280x720 camera-like frames at
 30 fps with a 20-bit frame number stamped in a corner. Debian's chromium (Playwright, headless,
@@ -14,11 +14,15 @@ Rows, measured in the same run:
 * web app: the app's own overlay thread takes the newest camera frame, downscales it to 960x540,
   draws the overlay at that size and encodes it ONCE; the same bytes go to all, raw (not
   compressed again per tab); a frame is encoded only when some tab has taken the previous one
-  (or 0.25 s passed). "shown/pushed": frames a page showed / frames encoded.
+  (or 0.25 s passed). "shown/pushed": frames a page showed / frames encoded;
+* baseline / web app + live sim camera: the same two, on the whole app's own frames (the
+  simulated camera in its own process, detection and registration at their raised priority, a
+  planned session): what the overlay gets when the pose pipeline takes its share first.
 The probe reads the frame number only when the <img> shows a new decoded frame (not on every
 animation frame), the same for both rows.
-Target (issue 14): >= 15 fps per client with 3 clients on a loaded machine; >= 25 fps and
-<= 60 ms median with one client on a quiet one.
+Target (issue 14): >= 15 fps per client with 3 clients on a loaded machine (``--hogs 4``: four
+busy loops at nice 0 beside the app and the browsers, ``_hogs.py``); >= 25 fps and <= 60 ms
+median with one client on a quiet one.
 """
 
 from __future__ import annotations
@@ -34,11 +38,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
+from _hogs import hogs, planned_home  # noqa: E402
+
 JS = """
-() => { window.__seen = []; const c = document.createElement('canvas'); const ctx = c.getContext('2d', {willReadFrequently: true});
+(w) => { window.__seen = []; const c = document.createElement('canvas'); const ctx = c.getContext('2d', {willReadFrequently: true});
   let last = -1, lastSrc = '';
   function tick() {
-    const imgs = [...document.querySelectorAll('img')].filter(i => i.naturalWidth >= 320 && i.naturalHeight >= 180);
+    // the live view: the <img> as wide as the stream (a loaded CT's slice images are others)
+    const imgs = [...document.querySelectorAll('img')].filter(i => i.naturalWidth === w);
     // read the frame number only when the live <img> shows a new, decoded frame (a new blob URL)
     if (imgs.length && imgs[0].src !== lastSrc && imgs[0].complete) { const im = imgs[0]; lastSrc = im.src;
       c.width = 320; c.height = 16;
@@ -68,8 +75,10 @@ def camera_like_frame() -> np.ndarray:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def run(seconds: float, shared: bool, clients: int, display_width: int = 960) -> list[dict]:
-    """One row: ``clients`` pages watch for ``seconds``; per-client fps and latency."""
+def run(seconds: float, shared: bool, clients: int, display_width: int = 960, live_camera: bool = False) -> list[dict]:
+    """One row: ``clients`` pages watch for ``seconds``; per-client fps and latency. With
+    ``live_camera`` the frames are the whole app's own: the simulated camera (its own process),
+    detection and registration at their priorities, as in the OR (``shared`` implied)."""
     import socket
 
     import cv2
@@ -79,8 +88,12 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960) ->
     from monotracker.ui.app import MonoTrackerApp
     from monotracker.ui.overlay import draw_overlay
 
-    home = Path(tempfile.mkdtemp())
-    s = Session(SessionConfig(home=home))
+    if live_camera:
+        s = Session(SessionConfig(home=planned_home("web-overlay-"), camera="sim"))
+        s.start()
+        assert s.start_camera().ok
+    else:
+        s = Session(SessionConfig(home=Path(tempfile.mkdtemp())))
     with socket.socket() as so:
         so.bind(("127.0.0.1", 0))
         port = so.getsockname()[1]
@@ -89,19 +102,30 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960) ->
     base = camera_like_frame()
     stop = threading.Event()
     newest = [None]
-    if shared:  # the app's own overlay thread takes the camera's newest frame, as with a real camera
+    if shared and not live_camera:  # the app's own overlay thread takes the newest frame, as from a camera
         s.latest_frame = lambda: newest[0]
 
+    camera_frame = s.latest_frame
+    if not shared:  # the per-client push below replaces the app's overlay thread
+        s.latest_frame = lambda: None
+
     def pusher():
-        i = 0
+        i, last = 0, None
         while not stop.is_set():
             t0 = time.monotonic()
-            img = np.roll(base, i * 7, axis=1)
-            i += 1
+            if live_camera:  # the newest frame the app's pipeline processed, each once
+                fr = camera_frame()
+                if fr is None or fr[1] == last:
+                    stop.wait(0.005)
+                    continue
+                img, last, est = fr
+            else:
+                img, est = np.roll(base, i * 7, axis=1), None
+                i += 1
             if shared:
                 newest[0] = (img, i, None)
             else:  # the per-client push: full-size frame, one encode per client
-                out = draw_overlay(img, None, s.snapshot())
+                out = draw_overlay(img, est, s.snapshot())
                 with app.stream._lock:
                     app.stream.count += 1
                     n = app.stream.count
@@ -111,7 +135,8 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960) ->
                 rgb = cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
                 for v in app.views():
                     v.steps["register"].h_live.image = rgb
-            stop.wait(max(0.0, 1 / 30 - (time.monotonic() - t0)))
+            if not live_camera:
+                stop.wait(max(0.0, 1 / 30 - (time.monotonic() - t0)))
 
     from monotracker.ui.overlay import frame_code_strip
 
@@ -133,14 +158,16 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960) ->
         for v in app.views():
             v.goto("register")
         th = threading.Thread(target=pusher, daemon=True)
-        th.start()
+        if not (shared and live_camera):  # there the app's own overlay thread does it all
+            th.start()
         time.sleep(2.0)
         for page in pages:
-            page.evaluate(JS)
+            page.evaluate(JS, display_width if shared else 1280)
         time.sleep(seconds)
         seen_all = [page.evaluate("window.__seen") for page in pages]
         stop.set()
-        th.join(timeout=5)
+        if th.is_alive():
+            th.join(timeout=5)
         b.close()
     app.stop()
     s.shutdown()
@@ -162,19 +189,25 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=10.0)
     ap.add_argument("--clients", type=int, default=1, help="browser tabs watching at once (default 1)")
     ap.add_argument("--quick", action="store_true", help="3 s per row")
+    ap.add_argument("--hogs", type=int, default=0, help="CPU hogs beside app and browsers (default 0; 4: loaded)")
     ap.add_argument("--width", type=int, default=960, help="display width of the shared stream (px, default 960)")
     a = ap.parse_args()
     secs = 3.0 if a.quick else a.seconds
     load = os.getloadavg()[0]
-    rows = [("baseline: per-client encode 1280x720", run(secs, shared=False, clients=a.clients)),
-            ("web app: encode once 960x540, shared", run(secs, shared=True, clients=a.clients, display_width=a.width))]
-    print(f"machine: {os.cpu_count()} cores, load average {load:.1f} at start, {os.getloadavg()[0]:.1f} at end; "
+    with hogs(a.hogs):
+        rows = [("baseline: per-client encode 1280x720", run(secs, shared=False, clients=a.clients)),
+                ("web app: encode once 960x540, shared", run(secs, shared=True, clients=a.clients, display_width=a.width)),
+                ("baseline + live sim camera, registration", run(secs, shared=False, clients=a.clients, live_camera=True)),
+                ("web app + live sim camera, registration", run(secs, shared=True, clients=a.clients, display_width=a.width,
+                                                                live_camera=True))]
+        load_end = os.getloadavg()[0]
+    print(f"machine: {os.cpu_count()} cores, {a.hogs} CPU hogs, load average {load:.1f} at start, {load_end:.1f} at end; "
           f"{a.clients} client(s), {secs:.0f} s per row, source 30 fps")
     print("target: >= 15 fps per client with 3 clients loaded; >= 25 fps, <= 60 ms median with 1 client quiet")
-    print(f"{'path':40s} {'client':>6s} {'fps':>6s} {'lat med ms':>11s} {'lat p95 ms':>11s} {'shown/pushed':>13s}")
+    print(f"{'path':42s} {'client':>6s} {'fps':>6s} {'lat med ms':>11s} {'lat p95 ms':>11s} {'shown/pushed':>13s}")
     for name, per in rows:
         for k, r in enumerate(per):
-            print(f"{name:40s} {k:6d} {r['fps']:6.1f} {r['lat_median']:11.1f} {r['lat_p95']:11.1f} "
+            print(f"{name:42s} {k:6d} {r['fps']:6.1f} {r['lat_median']:11.1f} {r['lat_p95']:11.1f} "
                   f"{r['frames']:6d}/{r['pushed']:<6d}")
     return 0
 
