@@ -121,57 +121,63 @@ def test_snapshot_says_stale_whenever_the_engine_holds_for_staleness(make_sim):
             assert pose.trusted and not pose.stale
 
 
+class StreamRig(TruthCameraRig):
+    """Real-clock double: a thread publishes a pose every 20 ms, 30 ms after capture, unless
+    ``paused`` is set."""
+
+    def __init__(self, clock, paused: threading.Event):
+        super().__init__("still", noise_mm=0.05)
+        self.clock, self._sample, self._frames, self._lock = clock, None, [], threading.Lock()
+        self._stop, self.paused = threading.Event(), paused
+
+    def start(self):
+        threading.Thread(target=self._run, daemon=True).start()
+
+    def stop(self):
+        self._stop.set()
+
+    def _run(self):
+        while not self._stop.is_set():
+            if not self.paused.is_set():
+                t = self.clock() - 0.03
+                smp = self.estimate(self.capture(t))
+                with self._lock:
+                    self._sample = smp
+                    self._frames.append(t)
+            time.sleep(0.02)
+
+    def poll_frames(self):
+        with self._lock:
+            out, self._frames = self._frames, []
+        return out
+
+    def latest_sample(self) -> PoseSample | None:
+        return self._sample
+
+
+def _wait_for(s, pred, timeout=30.0):
+    """Until ``pred(snapshot)`` (polled every 10 ms), or False after the generous ``timeout`` s."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if pred(s.snapshot()):
+            return True
+        time.sleep(0.01)
+    return False
+
+
 def test_start_tracking_waits_for_the_next_fresh_pose_on_a_real_clock(make_session):
     """A click that lands inside a short stale episode succeeds once fresh poses flow again; a
     stopped stream is refused with the reason (stale), after the bounded wait."""
     paused = threading.Event()
-
-    class StreamRig(TruthCameraRig):
-        """Real-clock double: a thread publishes a pose every 20 ms, 30 ms after capture."""
-
-        def __init__(self, clock):
-            super().__init__("still", noise_mm=0.05)
-            self.clock, self._sample, self._frames, self._lock = clock, None, [], threading.Lock()
-            self._stop = threading.Event()
-
-        def start(self):
-            threading.Thread(target=self._run, daemon=True).start()
-
-        def stop(self):
-            self._stop.set()
-
-        def _run(self):
-            while not self._stop.is_set():
-                if not paused.is_set():
-                    t = self.clock() - 0.03
-                    smp = self.estimate(self.capture(t))
-                    with self._lock:
-                        self._sample = smp
-                        self._frames.append(t)
-                time.sleep(0.02)
-
-        def poll_frames(self):
-            with self._lock:
-                out, self._frames = self._frames, []
-            return out
-
-        def latest_sample(self) -> PoseSample | None:
-            return self._sample
-
     # a generous wait: on a loaded test machine the double's own thread is late too
-    s = make_session(clock="real", camera_factory=lambda *a: StreamRig(a[4].clock),
+    s = make_session(clock="real", camera_factory=lambda *a: StreamRig(a[4].clock, paused),
                      robot_factory=lambda *a: FollowerRobotRig(), start_wait_s=5.0)
     s.start()
     plan_sample(s)
     assert s.start_camera().ok
 
     def wait_for(pred, timeout=30.0):
-        t_end = time.monotonic() + timeout
-        while time.monotonic() < t_end:
-            if pred(s.snapshot()):
-                return True
-            time.sleep(0.01)
-        return False
+        return _wait_for(s, pred, timeout)
 
     assert wait_for(lambda snap: snap.pose is not None and snap.pose.trusted)
     r = s.arm("1234")
@@ -214,3 +220,51 @@ def test_a_short_camera_freeze_resumes_only_after_the_dwell(make_sim):
     # the first pose of the live camera comes >= one frame period after t_live; the dwell follows it
     assert min(resumed) >= t_live + 0.3, (t_live, min(resumed))
     assert all(st == "tracking" for t, st in ticks if t >= min(resumed))  # one hold, no flapping
+
+
+class StartRecordingRobotRig(FollowerRobotRig):
+    """Records the capture stamp of the newest target it had when each start arrived."""
+
+    def __init__(self):
+        super().__init__()
+        self.start_stamps = []
+
+    def start_tracking(self):
+        self.start_stamps.append(self.stamp)
+        return super().start_tracking()
+
+
+def test_start_tracking_is_sent_only_on_a_pose_that_just_arrived(make_session):
+    """The arm's safety layer starts only on a target that *arrived* within its frame gap
+    (``SafetyConfig.stale_s``, 0.1 s), a rule apart from the engine's capture-age limit: on a
+    loaded machine a pose still young enough for the engine had often arrived too long ago for
+    the arm, which refused ("no fresh valid target pose") beside "Pose: VALID". With the age
+    limit out of the way (30 s), a pose that arrived longer ago than half the gap is refused
+    with the reason, and a Start while poses flow again goes out on a newer pose."""
+    from monotracker.engine.loop_robot import START_ARRIVAL_S
+    from monotracker.robot.safety import SafetyConfig
+
+    assert START_ARRIVAL_S == SafetyConfig().stale_s / 2
+    paused = threading.Event()
+    rob = StartRecordingRobotRig()
+    s = make_session(clock="real", camera_factory=lambda *a: StreamRig(a[4].clock, paused),
+                     robot_factory=lambda *a: rob, max_pose_age_s=30.0, freeze_after_s=30.0, start_wait_s=0.3)
+    s.start()
+    plan_sample(s)
+    assert s.start_camera().ok
+    assert _wait_for(s, lambda snap: snap.pose is not None and snap.pose.trusted)
+    assert s.arm("1234").ok
+    paused.set()
+    loop = s._loop
+    old = loop._latest.sample.t_capture
+    # no pose arrives any more: wait until the newest arrived longer ago than the start allows
+    assert _wait_for(s, lambda snap: loop.now() - loop._latest_arrival > START_ARRIVAL_S + 0.02)
+    assert s.snapshot().pose.trusted  # the engine's own age limit still passes it
+    r = s.start_tracking()
+    assert not r.ok and "the arm needs poses at most 100 ms apart" in r.message, r.message
+    assert rob.start_stamps == [] and rob.state == "armed"  # the arm was never asked
+    s.config.start_wait_s = 30.0  # generous: the double's own thread is late on a loaded machine
+    paused.clear()
+    r = s.start_tracking()
+    assert r.ok, r.message
+    assert len(rob.start_stamps) == 1 and rob.start_stamps[0] > old

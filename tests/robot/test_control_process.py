@@ -234,3 +234,22 @@ def test_killed_engine_process_child_stops_the_arm_and_exits(tmp_path):
 
 def test_target_slot_layout_matches():
     assert TARGET_N == 23
+
+
+def test_a_start_is_judged_on_the_target_written_just_before_it():
+    """The engine writes the target it checked into the slot, then sends Start: the child judges
+    the start on that target even when no control cycle has read the slot yet (a 1 Hz loop here,
+    so the next cycle is far away), instead of refusing on the older one ("no fresh valid target
+    pose", the refusals beside "Pose: VALID" on a loaded machine)."""
+    p = ControlProcess(functools.partial(SimulatedArm, q0=kin.Q_READY), {"rate_hz": 1.0},
+                       opts={"heartbeat_timeout_s": 5.0})
+    try:
+        assert p.command("arm") == (True, "armed")
+        T = to_mm(offset_target())
+        for _ in range(3):
+            p.set_target(T, time.monotonic(), True)
+            assert p.command("start_tracking") == (True, "tracking")
+            assert p.command("stop_tracking") == (True, "armed")
+    finally:
+        p.close()
+    assert not p.proc.is_alive()

@@ -15,6 +15,16 @@ from monotracker.engine import components
 from monotracker.engine.alarms import FRESHNESS_CODES
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
+from monotracker.robot.safety import SafetyConfig
+
+#: The robot's safety layer starts tracking only while its newest target *arrived* within its
+#: frame-gap limit (``SafetyConfig.stale_s``, 0.1 s), a rule apart from the engine's age limit
+#: (``max_pose_age_s``, capture -> now): a pose captured 140 ms ago is fresh for the engine but,
+#: arrived 100 ms ago, stale for the arm, which refused the start ("no fresh valid target pose")
+#: next to "Pose: VALID" on a loaded machine. On a real clock Start is therefore sent only while
+#: the newest pose arrived within half that gap (the other half for the start command's way to
+#: the control process), waiting for the next pose up to ``start_wait_s``.
+START_ARRIVAL_S = SafetyConfig().stale_s / 2
 
 
 class RobotCommands:
@@ -130,7 +140,7 @@ class RobotCommands:
         plan = self.s.plan_copy()
         if plan.T_base_cam is None:
             return self._refuse("start_tracking", "no hand-eye calibration (T_base_cam)")
-        rec, now, why = self._wait_for_fresh_pose()
+        rec, now, why = self._wait_for_fresh_pose(START_ARRIVAL_S if self.cfg.clock == "real" else None)
         if why is not None:
             return self._refuse("start_tracking", f"no trusted, fresh pose ({why})")
         with self._lock:
@@ -148,15 +158,17 @@ class RobotCommands:
             self.s.record("tracking_refused", f"tracking refused: {r.message}", level="warning")
         return r
 
-    def _fresh_pose_now(self):
-        """``(record, now, None)`` when the newest pose is trusted and younger than max_pose_age_s;
-        else ``(record, now, why)``. Inside the resume dwell after a stale episode a fresh pose is
+    def _fresh_pose_now(self, arrival_within_s: float | None = None):
+        """``(record, now, None)`` when the newest pose is trusted and younger than max_pose_age_s
+        (and, with ``arrival_within_s``, reached the loop at most that long ago, s); else
+        ``(record, now, why)``. Inside the resume dwell after a stale episode a fresh pose is
         enough: the operator's Start confirms it (the dwell only keeps *automatic* resumes from
         flapping; the age limit is the same)."""
         rec, now = self._latest, self.now()
         with self._lock:
             code, reason = self._holding_code, self._holding_reason
-            new_since_hold = self._latest_arrival > self._hold_began
+            arrival = self._latest_arrival
+            new_since_hold = arrival > self._hold_began
         if rec is None:
             return rec, now, "no pose yet"
         if not rec.trusted:
@@ -167,21 +179,24 @@ class RobotCommands:
         if age > self.cfg.max_pose_age_s:
             return rec, now, (reason if code in FRESHNESS_CODES and reason else
                               f"pose is stale ({1000 * age:.0f} ms old)")
+        if arrival_within_s is not None and now - arrival > arrival_within_s:
+            return rec, now, (f"no pose for {1000 * (now - arrival):.0f} ms: the arm needs poses at most "
+                              f"{1000 * 2 * arrival_within_s:.0f} ms apart")
         return rec, now, None
 
-    def _wait_for_fresh_pose(self):
+    def _wait_for_fresh_pose(self, arrival_within_s: float | None = None):
         """Start tracking on a loaded machine: while trusted poses keep arriving (or the gate is
         confirming a new lock), a click that lands between two of them (or inside a short stale
-        episode) waits for the next fresh one,
-        up to ``start_wait_s`` (real clock only; the simulated clock cannot advance here)."""
-        rec, now, why = self._fresh_pose_now()
+        episode) waits for the next fresh one (arrived within ``arrival_within_s``, s, when
+        given), up to ``start_wait_s`` (real clock only; the simulated clock cannot advance here)."""
+        rec, now, why = self._fresh_pose_now(arrival_within_s)
         if why is None or self.cfg.clock != "real" or self.cfg.start_wait_s <= 0:
             return rec, now, why
         deadline = time.monotonic() + self.cfg.start_wait_s
         while (why is not None and time.monotonic() < deadline and rec is not None
                and (rec.trusted or rec.code == "acquiring")):  # poses flow (or are being confirmed)
-            time.sleep(0.01)
-            rec, now, why = self._fresh_pose_now()
+            time.sleep(0.005 if arrival_within_s is not None else 0.01)
+            rec, now, why = self._fresh_pose_now(arrival_within_s)
         return rec, now, why
 
     def _refuse(self, code: str, msg: str) -> CommandResult:

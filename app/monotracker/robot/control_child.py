@@ -56,6 +56,7 @@ class _Child:
         self.tracker = Tracker(arm, clock=self.clock, on_event=self._on_event, **tracker_kwargs)
         self.period = self.tracker.period
         self._seen_target = 0.0
+        self._target_lock = threading.Lock()  # the slot is applied by the cycle and before a start
         self._parent_gone = threading.Event()
         self._quit = threading.Event()
         self._heart_lost = False
@@ -101,6 +102,10 @@ class _Child:
                 elif name == "estop":
                     res = tr.estop(*args)
                 elif name in ("arm", "disarm", "start_tracking", "stop_tracking", "reset", "connect"):
+                    if name == "start_tracking":
+                        # the engine writes the target it checked, then sends the start: judge
+                        # the start on that target, not on one the next cycle has not applied yet
+                        self._apply_target(self.clock())
                     res = getattr(tr, name)()
                 elif name == "set_head_sphere":
                     res = tr.set_head_sphere(*args)
@@ -135,14 +140,17 @@ class _Child:
 
     # ------------------------------------------------------------------ inputs per cycle
     def _apply_target(self, now):
-        got = self.target_slot.read()
-        if got is None or got[0] == self._seen_target:
-            return
-        self._seen_target, v = got
-        head = int(v[18])
-        if head in (1, 2):
-            self.tracker.set_head_sphere(v[19:22], float(v[22]), frame="target" if head == 1 else "base")
-        self.tracker.set_target(v[:16].reshape(4, 4), float(v[16]), bool(v[17] > 0.5), now=now)
+        """The newest target the engine wrote into the slot, once (control cycle; command thread
+        before a start)."""
+        with self._target_lock:  # in slot order: a late older write must never follow a newer one
+            got = self.target_slot.read()
+            if got is None or got[0] == self._seen_target:
+                return
+            self._seen_target, v = got
+            head = int(v[18])
+            if head in (1, 2):
+                self.tracker.set_head_sphere(v[19:22], float(v[22]), frame="target" if head == 1 else "base")
+            self.tracker.set_target(v[:16].reshape(4, 4), float(v[16]), bool(v[17] > 0.5), now=now)
 
     def _check_engine(self, now) -> bool:
         """False when the engine process is gone."""
