@@ -1,27 +1,29 @@
 """Test-wide fixtures.
 
 CPU hogs beside the tests: ``MONOTRACKER_TEST_HOGS=4 .venv/bin/python -m pytest tests/ui/test_e2e.py``
-runs 4 busy loops (nice 0, whatever priority the engine gave the test process) for the whole
-pytest session, as a loaded machine would. The tests must hold on such a machine (they wait on
-state, never on wall-clock guesses); this is how to check it. The hogs are killed when the
+runs 4 busy loops (``benchmarks/_hogs.py``: nice 0, whatever priority the engine gave the test
+process) for the whole pytest session, as a loaded machine would. The tests must hold on such a
+machine (they wait on state, never on wall-clock guesses); this is how to check it. The hogs are killed when the
 session ends and end by themselves if pytest dies (each watches its parent). Default: none.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import os
-import subprocess
-import sys
+from pathlib import Path
 
 import pytest
 
-#: a busy loop at nice 0 that ends when its parent (pytest) is gone
-HOG = ("import os\n"
-       "os.setpriority(os.PRIO_PROCESS, 0, 0)\n"
-       "parent = os.getppid()\n"
-       "while os.getppid() == parent:\n"
-       "    for _ in range(1000000):\n"
-       "        pass\n")
+
+def _hogs_module():
+    """``benchmarks/_hogs.py``: the one way the benchmarks and the tests start CPU hogs (loaded by
+    path: ``benchmarks/`` is no package)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "_hogs.py"
+    spec = importlib.util.spec_from_file_location("monotracker_bench_hogs", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
 
 
 def _hog_count() -> int:
@@ -38,14 +40,8 @@ def _hog_count() -> int:
 @pytest.fixture(scope="session", autouse=True)
 def cpu_hogs():
     """The hog processes (empty without ``MONOTRACKER_TEST_HOGS``)."""
-    procs = [subprocess.Popen([sys.executable, "-c", HOG, "hog-monotracker-test"]) for _ in range(_hog_count())]
-    try:
+    with _hogs_module().hogs(_hog_count()) as procs:
         yield procs
-    finally:
-        for p in procs:
-            p.kill()
-        for p in procs:
-            p.wait(10)
 
 
 def pytest_report_header(config):

@@ -71,18 +71,19 @@ def write_dicom_series(image: sitk.Image, folder: Path, series_uid: str | None =
     return paths
 
 
-def gated_load(monkeypatch):
-    """``monotracker.ct.load_volume`` waits on ``gate`` (released by the test) before loading;
-    ``entered`` is set once a load is inside. Returns ``(gate, entered)`` (threading.Event)."""
+def gated_load(monkeypatch, name: str = "load_volume"):
+    """``monotracker.ct.<name>`` (``load_volume``; ``detect_fiducials`` for a kit's detection)
+    waits on ``gate`` (released by the test) before doing its work; ``entered`` is set once a
+    call is inside. Returns ``(gate, entered)`` (threading.Event)."""
     import monotracker.ct as ct_pkg
 
     gate, entered = threading.Event(), threading.Event()
-    real = ct_pkg.load_volume
+    real = getattr(ct_pkg, name)
 
-    def slow(path, series=None):
+    def slow(*args, **kw):
         entered.set()
         gate.wait(120)
-        return real(path, series=series)
+        return real(*args, **kw)
 
-    monkeypatch.setattr(ct_pkg, "load_volume", slow)
+    monkeypatch.setattr(ct_pkg, name, slow)
     return gate, entered

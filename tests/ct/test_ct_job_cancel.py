@@ -5,7 +5,6 @@ stopped job leaves the previous CT, fiducials and plan exactly as they were. Ctr
 from __future__ import annotations
 
 import math
-import threading
 import time
 
 import numpy as np
@@ -125,15 +124,7 @@ def test_cancelled_kit_detection_leaves_the_plans_kit_and_fiducials(tmp_path, pa
         assert s.load_ct(str(patch_file)).ok
         assert _wait_done(s).error is None
         before = _state(s)
-        gate, entered = threading.Event(), threading.Event()
-        real = ct_pkg.detect_fiducials
-
-        def slow(vol, **kw):
-            entered.set()
-            gate.wait(120)
-            return real(vol, **kw)
-
-        monkeypatch.setattr(ct_pkg, "detect_fiducials", slow)
+        gate, entered = gated_load(monkeypatch, "detect_fiducials")
         assert s.set_fiducial_kit(2.5, 1700.0).ok
         assert entered.wait(120)
         assert s.plan_copy().fiducial_kit is None  # not yet: it comes with the fiducials
