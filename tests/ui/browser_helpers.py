@@ -69,6 +69,16 @@ def _state(page):
     return page.locator("#mt-robot-state").first.get_attribute("data-state")
 
 
+def open_page(browser, app, size=(1600, 1000), ready: str = "#mt-control"):
+    """A new tab of ``size`` (width, height px) on the app, once the element ``ready`` (a CSS
+    selector) is there; every page wait in it has the generous :data:`T_PAGE_MS` limit."""
+    page = browser.new_page(viewport={"width": size[0], "height": size[1]})
+    page.set_default_timeout(T_PAGE_MS)
+    page.goto(app.url)
+    page.locator(ready).wait_for()
+    return page
+
+
 def _sample_ct_ready(s) -> bool:
     snap = s.snapshot()
     return snap.job is not None and snap.job.done and snap.head_mesh is not None

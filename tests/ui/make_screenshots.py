@@ -8,7 +8,7 @@ import sys, tempfile, time
 from pathlib import Path
 sys.path.insert(0, "tests/ui")
 from conftest import chromium_path, CHROMIUM_ARGS, free_port
-from browser_helpers import _click, _take_control, _wait, _pin_pad, _command
+from browser_helpers import _click, _take_control, _wait, _command, open_page
 from monotracker.engine import Session, SessionConfig
 from monotracker.ui.app import MonoTrackerApp
 from playwright.sync_api import sync_playwright
@@ -28,10 +28,7 @@ try:
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=chromium_path(), headless=True, args=CHROMIUM_ARGS)
         for w, h in ((1280, 800), (1920, 1080)):
-            page = b.new_page(viewport={"width": w, "height": h})
-            page.set_default_timeout(120000)
-            page.goto(app.url)
-            page.locator("#mt-control").wait_for()
+            page = open_page(b, app, (w, h))
             if s.snapshot().control.controller is None:
                 _take_control(page, "2468")
             page.wait_for_function("document.querySelector('#mt-control').dataset.mine === '1'")

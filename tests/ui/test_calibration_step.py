@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from browser_helpers import (T_PAGE_MS, _click, _command, _input, _take_control, _wait,
-                             served_locked_sample)
+from browser_helpers import _click, _command, _input, _take_control, _wait, open_page, served_locked_sample
+
 pytestmark = pytest.mark.timeout(900)
 
 PATTERN, SQUARE = (7, 5), 20.0
@@ -117,9 +117,7 @@ def test_calibration_step_in_browser(served, browser, artifacts, tmp_path):
     from monotracker.vision.camera_model import CameraModel
 
     s, app, feed = served
-    page = browser.new_page(viewport={"width": 1600, "height": 1000})
-    page.set_default_timeout(T_PAGE_MS)
-    page.goto(app.url)
+    page = open_page(browser, app)
     page.get_by_role("button", name="Take control (PIN)").wait_for()
     assert "in control" in _take_control(page, "2468")
     _click(page, "3 Register")
@@ -243,9 +241,7 @@ def test_calibration_step_in_browser(served, browser, artifacts, tmp_path):
 def test_viewing_tab_cannot_apply_calibration(served, browser):
     """A tab not in control may look but cannot connect the arm or change the session camera."""
     s, app, feed = served
-    page = browser.new_page(viewport={"width": 1600, "height": 1000})
-    page.set_default_timeout(T_PAGE_MS)
-    page.goto(app.url)
+    page = open_page(browser, app)
     page.get_by_role("button", name="Take control (PIN)").wait_for()
     _click(page, "3 Register")
     _click(page, "Calibrate camera / hand-eye")

@@ -5,7 +5,7 @@ the stylesheet shows the banner then)."""
 from __future__ import annotations
 
 import pytest
-from browser_helpers import T_PAGE_MS
+from browser_helpers import open_page
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -18,10 +18,7 @@ def test_connection_lost_banner(tmp_path, port, browser):
     app = MonoTrackerApp(s, "127.0.0.1", port)
     app.start()
     try:
-        page = browser.new_page(viewport={"width": 1280, "height": 800})
-        page.set_default_timeout(T_PAGE_MS)
-        page.goto(app.url)
-        page.locator("#mt-robot-state").wait_for()
+        page = open_page(browser, app, (1280, 800), ready="#mt-robot-state")
         assert not page.locator("#mt-conn-lost").is_visible()  # connected: no banner
         app.stop()
         page.locator("#mt-conn-lost").wait_for(state="visible")

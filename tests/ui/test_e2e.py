@@ -6,11 +6,13 @@ Screenshots of each step go to test-artifacts/ui/.
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
 import pytest
-from browser_helpers import T_PAGE_MS, T_STATE, _click, _command, _input, _msg, _pin_pad, _state, _take_control, _wait
+from browser_helpers import (T_STATE, _click, _command, _input, _msg, _pin_pad, _state, _take_control, _wait,
+                             open_page)
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -23,25 +25,55 @@ def served(tmp_path, monkeypatch, port):
     monkeypatch.setenv("MONOTRACKER_HOME", str(tmp_path))
     # the engine's own limits (a trusted pose older than 0.15 s holds the arm, a camera silent for
     # 0.1 s is frozen) and a breathing head, and the arm must reach the entry while tracking. It
-    # holds beside 4 CPU hogs (MONOTRACKER_TEST_HOGS=4, tests/conftest.py; measured 3 of 3 runs,
-    # 250-360 s, with Start tracking refused up to 6 times first, as the engine must while poses
-    # arrive stale): the pose pipeline runs at raised priority (engine/pipeline_priority.py,
-    # engine/sim_camera_process.py) and every wait below is on state.
+    # holds beside 4 CPU hogs (MONOTRACKER_TEST_HOGS=4, tests/conftest.py): the pose pipeline runs
+    # at raised priority (engine/pipeline_priority.py, engine/sim_camera_process.py), Start is
+    # sent right after a pose arrived (engine/loop_robot.START_ARRIVAL_S) and every wait below is
+    # on state. The pose ages as the engine sees them arrive are printed at each step.
     s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="breathing", robot="sim", arm_pin="2468"))
+    ages = _record_pose_ages(s)
     s.start()
     app = MonoTrackerApp(s, "127.0.0.1", port)
     app.start()
-    yield s, app
+    yield s, app, ages
     app.stop()
     s.shutdown()
 
 
+def _record_pose_ages(s) -> list:
+    """Measure only: ``(now, age_s)`` of every estimate as the engine sees it arrive (capture ->
+    engine, s), so that a failure says how old the poses were against the limit."""
+    ages: list = []
+    orig = s._loop.on_pose
+
+    def on_pose(sample, now):
+        ages.append((now, now - sample.t_capture))
+        orig(sample, now)
+
+    s._loop.on_pose = on_pose
+    return ages
+
+
+def _pose_age_report(s, ages: list) -> str:
+    """One line: the pose age at arrival (ms) against the session's limit, the gaps between
+    arrivals, the stale/frozen holds so far and the load."""
+    rows = list(ages)
+    if not rows:
+        return "no pose arrived"
+    age = 1000 * np.array([a for _, a in rows])
+    gaps = 1000 * np.diff([n for n, _ in rows]) if len(rows) > 1 else np.zeros(1)
+    lim = 1000 * s.config.max_pose_age_s
+    return (f"{len(rows)} poses, age at arrival p50/p95/p99/max {np.percentile(age, 50):.0f}/"
+            f"{np.percentile(age, 95):.0f}/{np.percentile(age, 99):.0f}/{age.max():.0f} ms, "
+            f"{100 * np.mean(age > lim):.1f}% over the {lim:.0f} ms limit; arrival gap p95/max "
+            f"{np.percentile(gaps, 95):.0f}/{gaps.max():.0f} ms; holds: "
+            f"{len(s.audit_entries(code='pose_stale'))} pose_stale, {len(s.audit_entries(code='camera_freeze'))} "
+            f"camera_freeze; load {os.getloadavg()[0]:.1f}")
+
+
 def test_whole_workflow_in_browser(served, browser, artifacts):
-    s, app = served
+    s, app, ages = served
     t_start = time.monotonic()
-    page = browser.new_page(viewport={"width": 1600, "height": 1000})
-    page.set_default_timeout(T_PAGE_MS)
-    page.goto(app.url)
+    page = open_page(browser, app)
     page.get_by_role("button", name="Load sample CT").wait_for()
     assert _state(page) == "disarmed"
     # a tab views until it takes control with the PIN
@@ -115,9 +147,18 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     _click(page, "Arm (PIN)")
     assert "wrong PIN" in _pin_pad(page, "0000")
     assert s.snapshot().robot.state == "disarmed"
-    _click(page, "Arm (PIN)")
-    _pin_pad(page, "2468")
-    _wait(lambda: s.snapshot().robot.state == "armed", what="armed")
+    # arming needs a fresh trusted pose too: a refusal says why in the page and the operator
+    # arms again (the right PIN is no wrong try), each press waiting for its own result
+    t0 = time.monotonic()
+    while s.snapshot().robot.state != "armed":
+        assert time.monotonic() - t0 < T_STATE, f"timed out waiting for arming (last: {_msg(page)})"
+        _click(page, "Arm (PIN)")
+        msg = _pin_pad(page, "2468")
+        if s.snapshot().robot.state != "armed":
+            print("arming refused:", msg)
+            assert "no trusted, fresh pose" in msg and page.locator("#mt-msg").last.get_attribute("data-ok") == "0"
+            _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="trusted pose again")
+    print(f"[{time.monotonic() - t_start:5.1f} s] armed; {_pose_age_report(s, ages)}")
     page.wait_for_function("document.querySelector('#mt-robot-state').dataset.state === 'armed'")
     # tracking needs a fresh trusted pose; on a loaded machine a start can be refused ("pose is
     # stale", with the reason in the page): the operator presses again, as the test does, each
@@ -131,12 +172,13 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
             assert "Start tracking" in msg and page.locator("#mt-msg").last.get_attribute("data-ok") == "0"
             _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="trusted pose again")
     page.wait_for_function("['tracking','holding'].includes(document.querySelector('#mt-robot-state').dataset.state)")
+    print(f"[{time.monotonic() - t_start:5.1f} s] tracking started; {_pose_age_report(s, ages)}")
     # the arm follows the breathing head onto the entry (the robot's truth, not the page): poses
     # arriving older than max_pose_age_s would keep it holding short of it
     _wait(lambda: s.snapshot().robot.state == "tracking" and (s.snapshot().robot.tip_error_mm or 1e9) < 2.0,
           what=lambda: f"the tip on the entry while tracking (last: {s.snapshot().robot.state}, "
-                       f"{s.snapshot().robot.tip_error_mm} mm, pose {s.snapshot().pose})")
-    print(f"tracking: tip on the entry; {len(s.audit_entries(code='pose_stale'))} stale-pose holds so far")
+                       f"{s.snapshot().robot.tip_error_mm} mm, pose {s.snapshot().pose}; {_pose_age_report(s, ages)})")
+    print(f"[{time.monotonic() - t_start:5.1f} s] tracking: tip on the entry; {_pose_age_report(s, ages)}")
     time.sleep(1.0)
     page.screenshot(path=str(artifacts / "4_robot_tracking.png"))
 
@@ -167,5 +209,5 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     page.wait_for_function("document.querySelector('#mt-robot-state').dataset.state === 'estopped'")
     page.screenshot(path=str(artifacts / "6_estop.png"))
     assert "Traceback" not in page.content()
-    print(f"e2e workflow took {time.monotonic() - t_start:.0f} s")
+    print(f"e2e workflow took {time.monotonic() - t_start:.0f} s; {_pose_age_report(s, ages)}")
     page.close()

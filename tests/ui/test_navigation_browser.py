@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 
-from browser_helpers import T_PAGE_MS, T_STATE, _click, _input, _msg, _take_control, _wait, served_locked_sample
+from browser_helpers import T_STATE, _click, _input, _msg, _take_control, _wait, open_page, served_locked_sample
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -58,10 +58,7 @@ def _grey(page, box):
 
 def test_navigation_slices_show_are_clickable_and_windowed(served_plan, browser, artifacts):
     s, app = served_plan
-    page = browser.new_page(viewport={"width": 1280, "height": 800})
-    page.set_default_timeout(T_PAGE_MS)
-    page.goto(app.url)
-    page.locator("#mt-control").wait_for()
+    page = open_page(browser, app, (1280, 800))
     assert "in control" in _take_control(page, "2468")
     _click(page, "2 Plan")
     page.get_by_text("Slices in main view").first.click()

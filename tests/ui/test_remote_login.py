@@ -171,7 +171,7 @@ def _raw_ws(port: int, cookie: str | None = None, origin: str | None = None, rea
     """A websocket upgrade by hand; every byte the server sends within ``read_s`` (or until it closes)."""
     import viser
 
-    hdr = [f"GET / HTTP/1.1", f"Host: 127.0.0.1:{port}", "Upgrade: websocket", "Connection: Upgrade",
+    hdr = ["GET / HTTP/1.1", f"Host: 127.0.0.1:{port}", "Upgrade: websocket", "Connection: Upgrade",
            "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==", "Sec-WebSocket-Version: 13",
            f"Sec-WebSocket-Protocol: viser-v{viser.__version__}"]
     if cookie:

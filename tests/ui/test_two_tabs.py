@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from browser_helpers import (T_PAGE_MS, T_STATE, _click, _command, _input, _msg, _pin_pad, _seq, _take_control,
-                             _wait, served_locked_sample)
+                             _wait, open_page, served_locked_sample)
 pytestmark = pytest.mark.timeout(1800)  # the whole two-tab flow took > 900 s at load 25-30 on 2 cores (each wait is on state)
 
 
@@ -27,10 +27,7 @@ def served_ct(tmp_path, monkeypatch, port):
 
 
 def _open(browser, app, size=(1600, 1000)):
-    page = browser.new_page(viewport={"width": size[0], "height": size[1]})
-    page.set_default_timeout(T_PAGE_MS)
-    page.goto(app.url)
-    page.locator("#mt-control").wait_for()
+    page = open_page(browser, app, size)
     page.get_by_role("button", name="1 CT", exact=True).first.wait_for()
     return page
 

@@ -17,6 +17,7 @@ import threading
 import time
 
 import pytest
+from browser_helpers import open_page
 
 pytestmark = pytest.mark.timeout(300)
 CLIENTS = 6
@@ -181,9 +182,7 @@ def test_app_protects_its_buffers(tmp_path, port, browser):
     app.start()
     try:
         assert isinstance(app.server._websock_server._broadcast_buffer.message_event, LoopSafeEvent)
-        page = browser.new_page(viewport={"width": 1280, "height": 800})
-        page.goto(app.url)
-        page.locator("#mt-robot-state").wait_for(timeout=120_000)
+        page = open_page(browser, app, (1280, 800), ready="#mt-robot-state")
         views = app.views()
         assert len(views) == 1
         buf = views[0].client._websock_connection.get_message_buffer()
