@@ -74,9 +74,9 @@ def test_banner_and_panel_come_from_one_snapshot(tmp_path, port):
 
     real_encode = app.stream.encode_frame
 
-    def encode(image, est, snap):
+    def encode(image, est, snap, **kw):
         drawn.append(snap)
-        return real_encode(image, est, snap)
+        return real_encode(image, est, snap, **kw)
 
     app.stream.encode_frame = encode
     frame = np.full((720, 1280, 3), 90, np.uint8)
@@ -99,3 +99,65 @@ def test_banner_and_panel_come_from_one_snapshot(tmp_path, port):
     assert len(drawn) >= 20
     ids = {id(x) for x in rendered}
     assert all(id(x) in ids for x in drawn[1:])  # (the first frame may precede the first render)
+
+
+def test_one_encode_per_display_width_shared_by_tabs(tmp_path, port):
+    """Tabs that show the live image at the same width share one JPEG (the same bytes); a tab
+    with a wider panel gets its own, at its width; no tab gets more pixels than it shows."""
+    from monotracker.engine import Session, SessionConfig
+    from monotracker.ui.app import MonoTrackerApp
+
+    s = Session(SessionConfig(home=tmp_path, arm_pin="2468"))
+    app = MonoTrackerApp(s, "127.0.0.1", port, display_width=960)
+    got = {}
+
+    class FakeTab:
+        wants_live = True
+
+        def __init__(self, name, width):
+            self.name, self.live_width = name, width
+
+        def show_frame(self, data):
+            got[self.name] = data
+
+    tabs = [FakeTab("a", 480), FakeTab("b", 640), FakeTab("c", 480), FakeTab("d", 2000)]
+    calls = []
+    real_encode = app.stream.encode_frame
+
+    def encode(image, est, snap, width=None):
+        calls.append(width)
+        return real_encode(image, est, snap, width=width)
+
+    app.stream.encode_frame = encode
+    try:
+        frame = np.full((720, 1280, 3), 90, np.uint8)
+        out = app.push_frame(frame, None, s.snapshot(), tabs)
+    finally:
+        s.shutdown()
+    assert sorted(calls) == [480, 640, 960]  # one encode per width; 2000 px capped at display_width
+    assert got["a"] is got["c"]  # the very same buffer for both 480 px tabs
+    for name, w in (("a", 480), ("b", 640), ("d", 960)):
+        img = cv2.imdecode(np.asarray(got[name]), cv2.IMREAD_COLOR)
+        assert img.shape == (round(720 * w / 1280), w, 3)
+    assert set(out) == {480, 640, 960}
+
+
+def test_frame_comment_leaves_the_image_unchanged():
+    """The benchmark's frame number rides in a JPEG comment: decoders give the same pixels and a
+    third-party reader (Pillow) finds the comment."""
+    import io
+
+    from PIL import Image
+
+    from monotracker.ui.stream import with_frame_comment
+
+    img = (np.random.default_rng(1).random((48, 64, 3)) * 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", img)
+    plain = buf.tobytes()
+    tagged = with_frame_comment(plain, 98765)
+    a = cv2.imdecode(np.frombuffer(plain, np.uint8), cv2.IMREAD_COLOR)
+    b = cv2.imdecode(np.frombuffer(tagged, np.uint8), cv2.IMREAD_COLOR)
+    assert np.array_equal(a, b)
+    im = Image.open(io.BytesIO(tagged))
+    im.load()
+    assert im.info.get("comment") == b"MTFRAME 98765"

@@ -15,7 +15,9 @@ change anything (STOP works from every tab). The page of one tab:
 Threads: viser runs callbacks on its worker threads; they only call Session commands (which
 return at once). One render thread takes one ``session.snapshot()`` per tick (~8 Hz) and brings
 every tab up to date; one overlay thread draws, downscales and JPEG-encodes each new camera frame
-once (:mod:`~monotracker.ui.stream`) and hands the same bytes to every tab showing the live view.
+once per display width the tabs need (:mod:`~monotracker.ui.stream`: the width the page shows it
+at, so no browser decodes pixels it cannot show) and hands the same bytes to every tab of that
+width showing the live view.
 Nothing here decides anything the headless demo does not: every decision is a Session method.
 """
 
@@ -176,7 +178,7 @@ class MonoTrackerApp:
                 image, index, est = fr
                 last_index = index
                 t_last = time.monotonic()
-                self.push_frame(image, est, self.shown_snapshot())
+                self.push_frame(image, est, self.shown_snapshot(), watching)
             except Exception:  # noqa: BLE001
                 log.exception("overlay failed")
                 self._stop.wait(0.2)
@@ -188,17 +190,28 @@ class MonoTrackerApp:
             snap = self._shown_snap
         return snap if snap is not None else self.session.snapshot()
 
-    def push_frame(self, image_bgr, estimate, snap) -> bytes:
-        """Draw the overlay on one BGR frame, encode it once, show it on every tab watching."""
-        jpeg = self.stream.encode_frame(image_bgr, estimate, snap)
-        self.push_jpeg(jpeg)
-        return jpeg
+    def push_frame(self, image_bgr, estimate, snap, tabs=None) -> dict[int, bytes]:
+        """Draw the overlay on one BGR frame and encode it once per display width the watching
+        tabs need (``ClientView.live_width``: the width their page shows it at; tabs with the
+        same layout share one encode), and show it on every tab watching (``tabs``, default:
+        every tab on a live step). Returns {width px: JPEG bytes}."""
+        if tabs is None:
+            tabs = [v for v in self.views() if v.wants_live]
+        groups: dict[int, list] = {}
+        for view in tabs:
+            groups.setdefault(self.stream.width_for(getattr(view, "live_width", None)), []).append(view)
+        out = {}
+        for width, group in groups.items():
+            out[width] = self.stream.encode_frame(image_bgr, estimate, snap, width=width)
+            self.push_jpeg(out[width], group)
+        return out
 
-    def push_jpeg(self, jpeg: bytes) -> None:
-        """The same encoded frame to every tab showing the live view. Handed over as a uint8 array
-        view of the bytes: viser sends arrays raw after its zstd-compressed message, where bytes
-        would be compressed again for every tab (and decompressed by every browser) for nothing."""
+    def push_jpeg(self, jpeg: bytes, tabs=None) -> None:
+        """The same encoded frame to ``tabs`` (default: every tab showing the live view). Handed
+        over as a uint8 array view of the bytes: viser sends arrays raw after its zstd-compressed
+        message, where bytes would be compressed again for every tab (and decompressed by every
+        browser) for nothing."""
         data = np.frombuffer(jpeg, np.uint8)
-        for view in self.views():
+        for view in (self.views() if tabs is None else tabs):
             if view.wants_live:
                 view.show_frame(data)

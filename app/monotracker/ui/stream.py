@@ -2,8 +2,10 @@
 once, and the same bytes go to every tab that shows it (so 3 tabs cost one encode, not 3).
 
 ``encode_frame(image_bgr, estimate, snap)`` -> JPEG bytes (``display_width`` px wide, default 960,
-aspect kept). With ``stream_code`` a 20-bit frame number is stamped into the bottom-left corner
-of the *displayed* image (benchmark only; ``pushed`` maps it to the wall time it was encoded).
+aspect kept). With ``stream_code`` (benchmark only) the frame number is written twice: a 20-bit
+barcode stamped into the bottom-left corner of the *displayed* image, and a JPEG comment
+(:func:`with_frame_comment`) the browser can read without decoding pixels; ``pushed`` maps it to
+the wall time it was encoded.
 """
 
 from __future__ import annotations
@@ -17,6 +19,21 @@ import numpy as np
 from monotracker.ui.overlay import draw_overlay, frame_code_strip
 
 
+#: the JPEG comment (COM segment) payload that carries a benchmark frame number
+FRAME_COMMENT = b"MTFRAME "
+
+
+def with_frame_comment(jpeg: bytes, index: int) -> bytes:
+    """``jpeg`` with a COM segment ``MTFRAME <index>`` inserted right after its JFIF APP0 segment
+    (or after SOI when there is none): the same image, decoders ignore comments."""
+    payload = FRAME_COMMENT + str(int(index)).encode()
+    seg = b"\xff\xfe" + (len(payload) + 2).to_bytes(2, "big") + payload
+    at = 2
+    if jpeg[2:4] == b"\xff\xe0":
+        at = 4 + int.from_bytes(jpeg[4:6], "big")
+    return jpeg[:at] + seg + jpeg[at:]
+
+
 class OverlayStream:
     def __init__(self, *, display_width: int = 960, jpeg_quality: int = 80, stream_code: bool = False):
         self.display_width = int(display_width)
@@ -26,18 +43,27 @@ class OverlayStream:
         self.pushed: dict[int, float] = {}  # frame code -> wall time encoded (benchmark)
         self._lock = threading.Lock()
 
-    def downscale(self, img: np.ndarray) -> np.ndarray:
-        """``img`` at ``display_width`` px wide (never upscaled)."""
-        h, w = img.shape[:2]
-        if w <= self.display_width:
-            return img
-        return cv2.resize(img, (self.display_width, round(h * self.display_width / w)), interpolation=cv2.INTER_AREA)
+    def width_for(self, shown_px: int | None) -> int:
+        """The width (px) to encode for a tab that shows the image ``shown_px`` CSS px wide:
+        that width, at most ``display_width`` (None: ``display_width``). Pixels beyond what the
+        tab shows only cost the server's encode and every browser's decode."""
+        if shown_px is None or shown_px <= 0:
+            return self.display_width
+        return min(self.display_width, int(shown_px))
 
-    def encode_frame(self, image_bgr: np.ndarray, estimate, snap) -> bytes:
-        """Downscale one BGR camera frame for display, draw the overlay on it at display size
-        (marks and text crisp, a third of the pixels to copy and draw at 960 px), stamp
-        (benchmark), encode JPEG once."""
-        small = self.downscale(image_bgr)
+    def downscale(self, img: np.ndarray, width: int | None = None) -> np.ndarray:
+        """``img`` at ``width`` (default ``display_width``) px wide (never upscaled)."""
+        width = self.display_width if width is None else int(width)
+        h, w = img.shape[:2]
+        if w <= width:
+            return img
+        return cv2.resize(img, (width, round(h * width / w)), interpolation=cv2.INTER_AREA)
+
+    def encode_frame(self, image_bgr: np.ndarray, estimate, snap, width: int | None = None) -> bytes:
+        """Downscale one BGR camera frame for display (``width`` px, default ``display_width``),
+        draw the overlay on it at that size (marks and text crisp, far fewer pixels to copy and
+        draw), stamp (benchmark), encode JPEG once."""
+        small = self.downscale(image_bgr, width)
         scale = small.shape[1] / image_bgr.shape[1]
         img = draw_overlay(small, estimate, snap, in_place=small is not image_bgr, px_scale=scale)
         return self.encode(img)
@@ -56,4 +82,5 @@ class OverlayStream:
             raise RuntimeError("JPEG encoding failed")
         if self.stream_code:
             self.pushed[n] = time.time()
+            return with_frame_comment(buf.tobytes(), n)
         return buf.tobytes()

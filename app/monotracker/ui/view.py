@@ -246,6 +246,14 @@ class ClientView:
         return getattr(self.steps.get(step), "nav", None)
 
     @property
+    def live_width(self) -> int:
+        """The width (CSS px) this page shows the live image at: its step panel's width on a
+        live step (compact or wide layout, ``PANEL_PX`` / ``PANEL_PX_WIDE``)."""
+        with self.lock:
+            wide = self._wide
+        return (PANEL_PX_WIDE if wide else PANEL_PX)["steps_live"]
+
+    @property
     def wants_live(self) -> bool:
         with self.lock:
             return self.step in LIVE_STEPS
