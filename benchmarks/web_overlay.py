@@ -204,8 +204,9 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960, li
         width = app.stream.width_for(app.views()[0].live_width) if shared else 1280  # of the live <img>
         for page in pages:
             page.evaluate(JS, [probe, width])
-        cpu0, t_cpu0 = proc_cpu.snapshot(), time.monotonic()
+        cpu0, t_cpu0, w0 = proc_cpu.snapshot(), time.monotonic(), time.time()
         time.sleep(seconds)
+        w1 = time.time()
         cpu = proc_cpu.cpu_use(cpu0, proc_cpu.snapshot(), time.monotonic() - t_cpu0)
         seen_all = [page.evaluate("window.__seen") for page in pages]
         checks = [page.evaluate("window.__check") for page in pages]
@@ -222,7 +223,9 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960, li
         n = len(seen)
         span = (seen[-1][1] - seen[0][1]) / 1000 if n > 1 else float("nan")
         out.append({"fps": (n - 1) / span if n > 1 else 0.0, "lat_median": float(np.median(lat)) if lat else float("nan"),
-                    "lat_p95": float(np.percentile(lat, 95)) if lat else float("nan"), "frames": n, "pushed": len(pushed)})
+                    "lat_p95": float(np.percentile(lat, 95)) if lat else float("nan"), "frames": n,
+                    "pushed": sum(w0 <= t <= w1 for t in pushed.values()), "frames_in": sum(w0 <= t <= w1 for _, t in
+                                                                                               ((v, t / 1000) for v, t in seen))})
     for r, (n_checked, n_agree) in zip(out, checks):
         r["check"] = (n_checked, n_agree)
     return out, cpu
@@ -262,11 +265,12 @@ def main() -> int:
                                  "barcode read from the pixels agrees)" if a.probe == "marker" else ""))
     print(f"{'path':42s} {'client':>6s} {'fps':>6s} {'lat med ms':>11s} {'lat p95 ms':>11s} {'shown/pushed':>13s}"
           f" {'pixel check':>12s}")
+    print("(shown/pushed: frames a page showed / frames the server encoded, both in the measured window)")
     for name, (per, _cpu) in rows:
         for k, r in enumerate(per):
             chk = f"{r['check'][1]}/{r['check'][0]}" if a.probe == "marker" else "-"
             print(f"{name:42s} {k:6d} {r['fps']:6.1f} {r['lat_median']:11.1f} {r['lat_p95']:11.1f} "
-                  f"{r['frames']:6d}/{r['pushed']:<6d} {chk:>12s}")
+                  f"{r['frames_in']:6d}/{r['pushed']:<6d} {chk:>12s}")
     print(f"\nCPU use during the measured window (cores; 1.0 = one core busy; the machine has {os.cpu_count()}):")
     for name, (_per, (by_class, by_thread)) in rows:
         cls = ", ".join(f"{k} {v:.2f}" for k, v in sorted(by_class.items(), key=lambda kv: -kv[1]) if v >= 0.005)

@@ -79,6 +79,9 @@ class MonoTrackerApp:
             self.proxy = LoginProxy(self.login, self.host, self.port, self.server.get_port()).start()
         protect_server(self.server)  # viser's buffers are fed from several threads (ui/viser_threads.py)
         self.server.scene.world_axes.visible = False
+        # no shadow pass: every 3D redraw costs a browser without a GPU one pass less (the live
+        # image beside it gets the time; benchmarks/web_overlay.py)
+        self.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
         for name, fn in (("render", self._render_loop), ("overlay", self._overlay_loop)):

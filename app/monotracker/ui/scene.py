@@ -9,11 +9,19 @@
   and path (``T_base_ct``), the needle.
 
 Units: the scene is in metres (viser's unit); CT/camera millimetres are scaled by ``MM``.
+
+On a live step the page's main view is the camera overlay; the 3D view beside it is context, and
+what moves in it (the head placed by the newest pose, the arm, the needle) is sent at most every
+:data:`LIVE_SCENE_PERIOD_S`. Every change makes the browser draw the whole 3D view again; at the
+pose rate (~8 Hz) that starved the live image in a browser without a GPU (one tab on the live
+frames, quiet 2-core machine, ``benchmarks/web_overlay.py``: 4-9 fps, 110-170 ms median at 8 Hz;
+20.5 fps, 34 ms at 1 Hz; 26 fps, 30 ms with no 3D updates at all).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 
@@ -23,6 +31,11 @@ from monotracker.ui.step_ct import FID_RGB
 log = logging.getLogger(__name__)
 
 MM = 1e-3  # scene metres per millimetre
+
+#: on a live step, the moving parts of the 3D context view are sent at most this often (s)
+LIVE_SCENE_PERIOD_S = 1.0
+#: the steps whose main view is the live camera overlay (``view.LIVE_STEPS`` with a 3D view)
+LIVE_SCENE_STEPS = ("register", "robot")
 
 
 def wxyz(R: np.ndarray) -> np.ndarray:
@@ -140,20 +153,27 @@ class SceneView:
             self.aim(step, snap)
         if keys.get("view") != step:
             keys["view"] = step
-            for k in ("mesh", "fids", "path", "robot_q", "frustum"):
+            for k in ("mesh", "fids", "path", "robot_q", "frustum", "moved_t"):
                 keys.pop(k, None)
             self.view.nav_scene.leave()  # no slice tile stays in the 3D view
             scene.reset()
             self._ct_frame = scene.add_frame("/ct", show_axes=False)
             self._cam_frame = scene.add_frame("/cam", show_axes=False, visible=step in ("register", "robot"))
             self._robot_frame = scene.add_frame("/robot", show_axes=False, visible=step == "robot")
-        self._ct_frame.visible = T_wc is not None
-        if T_wc is not None:
-            self._set_pose(self._ct_frame, T_wc)
+        now = time.monotonic()
+        # what moves is sent on every tick off the live steps; on them at most every
+        # LIVE_SCENE_PERIOD_S, and at once when the head appears or vanishes
+        move = (step not in LIVE_SCENE_STEPS or now - keys.get("moved_t", -1e9) >= LIVE_SCENE_PERIOD_S
+                or self._ct_frame.visible != (T_wc is not None))
+        if move:
+            keys["moved_t"] = now
+            self._ct_frame.visible = T_wc is not None
+            if T_wc is not None:
+                self._set_pose(self._ct_frame, T_wc)
         self._render_ct_group(scene, keys, snap, step)
         if step in ("register", "robot"):
-            self._render_camera(scene, keys, snap, step)
-        if step == "robot":
+            self._render_camera(scene, keys, snap, step, move)
+        if step == "robot" and move:
             self._render_robot(scene, keys, snap)
 
     def _render_ct_group(self, scene, keys, snap, step) -> None:
@@ -196,12 +216,15 @@ class SceneView:
                 cols = np.array([[[255, 0, 255], [0, 200, 255]], [[0, 200, 255], [0, 200, 255]]], np.uint8)
                 scene.add_line_segments("/ct/path/line", pts, cols, thickness=4.0, thickness_units="screen")
 
-    def _render_camera(self, scene, keys, snap, step) -> None:
+    def _render_camera(self, scene, keys, snap, step, move: bool = True) -> None:
+        """The camera (frustum) in the step's world; its pose only when ``move`` or just shown."""
         T_w_cam = np.eye(4) if step == "register" else (None if snap.scene.T_base_cam is None else np.asarray(snap.scene.T_base_cam))
+        shown = self._cam_frame.visible
         self._cam_frame.visible = T_w_cam is not None
         if T_w_cam is None:
             return
-        self._set_pose(self._cam_frame, T_w_cam)
+        if move or not shown:
+            self._set_pose(self._cam_frame, T_w_cam)
         if "frustum" not in keys:
             keys["frustum"] = True
             K, size = snap.camera.K, snap.camera.image_size
