@@ -104,7 +104,8 @@ def test_centres_hold_under_jpeg_with_realistic_blur(monkeypatch):
     85 (4:2:0): edge centres within 0.08 px mean of the exact ellipse centres, on two scenes (one
     with a green-blue drape all round the head, inside the default green band). JPEG keeps luma
     sharp but subsamples and block-quantises colour; without the colour smoothing along the rays
-    (edge_fit.CHROMA_SIGMA_PX = 0) the same frames give ~0.12 px."""
+    (edge_fit.CHROMA_SIGMA_PX = 0) the same frames give 0.083 px vs 0.073 px with it (the edge
+    fit before the near background, edge_fit.NEAR_BACKGROUND: ~0.12 px vs ~0.08 px)."""
     from monotracker.sim.optics import PRESETS
     from monotracker.sim.or_layout import default_layout
     from monotracker.vision import edge_fit
@@ -130,7 +131,7 @@ def test_centres_hold_under_jpeg_with_realistic_blur(monkeypatch):
     assert recall > 0.6, recall          # balls on the outline against drape are refused, not biased
     monkeypatch.setattr(edge_fit, "CHROMA_SIGMA_PX", 0.0)
     errs_off, _ = errors()
-    assert np.mean(errs_off) > 1.3 * np.mean(errs), (np.mean(errs_off), np.mean(errs))
+    assert np.mean(errs_off) > 1.05 * np.mean(errs), (np.mean(errs_off), np.mean(errs))
 
 
 def test_balls_inside_a_ball_coloured_drape_are_found():
