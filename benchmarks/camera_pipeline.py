@@ -19,7 +19,9 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    tracker (detection + registration + trust checks). ``edge-v1``: the edge detector with its
    settings before the JPEG work (colour as it is, integration window +-3.5 px, edge blur
    2 px), ``edge-2px``: the edge detector with a fixed edge blur of 2 px (the default before
-   the blur was measured per frame), same run.
+   the blur was measured per frame), ``edge-r5``: the edge detector before the unmixing's
+   residual tolerance followed the edge blur (0.12 whatever the blur; see
+   ``edge_fit.SHARP_UNMIX_RESIDUAL``), same run.
 B. Scale: ball radius 5-30 px (camera 880-150 mm away), photo-like optics: recall, centre
    error, refusals and time for each detector (the learned detector's place).
 Full run only: 2. whole-frame timing, 3. pose over a 60 s trajectory, 4. occlusion alert latency
@@ -102,6 +104,8 @@ class EdgeSettings:
 EDGE_V1 = dict(CHROMA_SIGMA_PX=0.0, INTEGRATION_SHARE=1.75, MEASURE_BLUR=False)
 #: the edge fit before the edge blur was measured per frame: a fixed 2 px
 EDGE_2PX = dict(MEASURE_BLUR=False)
+#: the edge fit of issue 13's round 5: the unmixing's residual tolerance 0.12 in sharp frames too
+EDGE_R5 = dict(SHARP_UNMIX_RESIDUAL=0.12)
 
 CONDITIONS = ("clean", "OR", "degraded", "clutter")
 
@@ -167,7 +171,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
             colour, why = None, str(exc)
         dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")),
                 ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)),
-                ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)), ("edge", ClassicalDetector(rules))]
+                ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)),
+                ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge", ClassicalDetector(rules))]
         dets.append(("edge+colour", ClassicalDetector(rules, colour=colour) if colour is not None else None))
         if with_learned:
             dets.append(("learned", LearnedDetector(rules=rules)))

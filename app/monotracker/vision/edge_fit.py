@@ -75,8 +75,29 @@ CUT_SHARE = 0.15
 MIN_AXIS_RATIO = 0.8
 MAX_EDGE_RMS_PX = 0.5
 
-#: largest relative residual of the ball/background unmixing inside a ray's edge window
+#: largest relative residual of the ball/background unmixing inside a ray's edge window, in a
+#: blurred frame (measured edge blur >= ``SHARP_BLUR_PX[1]``) ...
 MAX_UNMIX_RESIDUAL = 0.12
+#: ... and in a sharp one (blur <= ``SHARP_BLUR_PX[0]``; linear in between). Demosaicing a Bayer
+#: mosaic puts false colour on a sharp edge (R and B are interpolated across it from pixels 1-2 px
+#: away), which no mix of ball and background explains; blur spreads the edge over more than the
+#: mosaic's period and the fringe goes. On the independent renders (a sharp lens, bilinear
+#: demosaicing, measured blur 1.1 px; ``benchmarks/independent_optics.py``, 150 balls per cell,
+#: same run): recall 0.62 -> 0.81 (one background colour) and 0.61 -> 0.74 (two: the outline),
+#: mean error 0.065 -> 0.060 and 0.095 -> 0.094 px; such balls without the mosaic: recall 0.96
+#: at 0.12. Blurred frames keep 0.12 (0.18 there adds one ball in 150 per cell, 0.4-0.7 px
+#: off); their cells and our simulator's (``camera_pipeline.py --quick``) are unchanged within
+#: a ball. The blur measurement itself uses the sharp tolerance (:func:`measure_edge_blur`).
+SHARP_UNMIX_RESIDUAL = 0.18
+SHARP_BLUR_PX = (1.2, 1.6)
+
+
+def unmix_residual_limit(blur_px: float) -> float:
+    """The unmixing residual a usable ray may reach (relative), for an edge blur of ``blur_px``
+    (px, as :func:`measure_edge_blur` gives it): see :data:`SHARP_UNMIX_RESIDUAL`."""
+    lo, hi = SHARP_BLUR_PX
+    w = float(np.clip((hi - float(blur_px)) / (hi - lo), 0.0, 1.0))
+    return MAX_UNMIX_RESIDUAL + w * (SHARP_UNMIX_RESIDUAL - MAX_UNMIX_RESIDUAL)
 
 #: a usable ray needs at least this share of the rays (else the fit is refused)
 MIN_RAY_SHARE = 0.6
@@ -323,18 +344,22 @@ def measure_edge_blur(image_bgr: np.ndarray, ellipses: list) -> float | None:
     widths: list = []
     balls = [e for e in ellipses if min(e[1]) >= 3.0]
     if balls:
-        _edge_points(image_bgr, balls, BLUR_PROBE_PX, widths)
+        # the blur is not known yet: the sharp frame's tolerance, or a sharp frame's fringes
+        # leave too few rays to measure it (and the fit falls back to the blurred one's)
+        _edge_points(image_bgr, balls, BLUR_PROBE_PX, widths, max_resid=SHARP_UNMIX_RESIDUAL)
     w = np.concatenate(widths) if widths else np.zeros(0)
     if len(w) < 16:
         return None
     return float(np.clip(BLUR_PER_WIDTH * _median(w), *BLUR_RANGE_PX))
 
 
-def _edge_points(image_bgr, balls, blur_px, widths: list | None = None):
+def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resid: float | None = None):
     """Edge points of several balls at once. ``balls``: list of coarse OpenCV ellipses
     ((cx, cy), (d1, d2), angle_deg). Returns per ball (points (n, 2) px, usable (n,) bool), or None
     for a ball too close to the image border. With ``widths`` (a list), the 25-75 % rise
-    widths (px) of the coverage along the usable rays are appended to it (one array)."""
+    widths (px) of the coverage along the usable rays are appended to it (one array).
+    ``max_resid``: the unmixing residual a usable ray may reach (None: for ``blur_px``, see
+    :func:`unmix_residual_limit`)."""
     h, w = image_bgr.shape[:2]
     k = SAMPLES
     profs, sprofs, geo, out = [], [], [], [None] * len(balls)
@@ -430,7 +455,9 @@ def _edge_points(image_bgr, balls, blur_px, widths: list | None = None):
     resid = np.sqrt(np.clip(pp - proj, 0.0, None) / np.maximum(pp, 1e-12))
     jj = np.arange(k)[None, :]
     win = (jj >= j_lo[:, None]) & (jj < j_hi[:, None])
-    usable &= np.where(win, resid, 0.0).max(axis=1) < MAX_UNMIX_RESIDUAL
+    if max_resid is None:
+        max_resid = unmix_residual_limit(blur_px)
+    usable &= np.where(win, resid, 0.0).max(axis=1) < max_resid
     if widths is not None:
         widths.append(((_crossing(gamma, 0.75) - _crossing(gamma, 0.25)) * step)[usable])
     cum_e = cum if gamma_e is gamma else np.concatenate(
