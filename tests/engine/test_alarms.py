@@ -1,5 +1,7 @@
 """Alarms that cannot hide: active conditions, most important first, until they clear."""
 
+import pytest
+
 from monotracker.engine.alarms import AlarmBoard
 
 from .conftest import plan_sample
@@ -131,3 +133,56 @@ def test_camera_start_failure_is_shown_until_a_start_succeeds(make_session):
     assert [a.code for a in s.snapshot().alarms] == ["camera_failed"]
     assert s.set_camera("sim-points").ok and s.start_camera().ok
     assert "camera_failed" not in [a.code for a in s.snapshot().alarms]
+
+
+def test_uncalibrated_camera_stays_shown_while_it_runs(make_session, tmp_path):
+    """A real source started without a calibration runs on nominal intrinsics: the warning is an
+    active condition for as long as that camera runs (before, the start that raised it cleared
+    it at once), and goes with the camera."""
+    import time
+
+    import cv2
+    import numpy as np
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(frames / f"f{i}.png"), np.full((720, 1280, 3), 90 + i, np.uint8))
+    s = make_session(clock="real")
+    s.start()
+    plan_sample(s)
+    assert s.set_camera(f"folder:{frames}").ok
+    assert s.start_camera().ok
+
+    def codes():
+        return [a.code for a in s.snapshot().alarms]
+
+    assert "camera_uncalibrated" in codes()
+    t_end = time.monotonic() + 60.0          # the folder is read: its frames, then its end
+    while "camera_ended" not in codes() and time.monotonic() < t_end:
+        time.sleep(0.01)
+    assert "camera_ended" in codes() and "camera_uncalibrated" in codes()
+    assert s.stop_camera().ok
+    assert "camera_uncalibrated" not in codes()
+
+
+@pytest.mark.parametrize("suffix, flagged", [(".jpg", True), (".png", False)])
+def test_jpeg_frames_are_flagged_while_the_camera_runs(make_session, tmp_path, suffix, flagged):
+    """Frames that come as JPEG files are a setup warning (centres err ~2.5x more), PNG ones not."""
+    import cv2
+    import numpy as np
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / f"f0{suffix}"), np.full((720, 1280, 3), 90, np.uint8))
+    s = make_session(clock="real")
+    s.start()
+    plan_sample(s)
+    assert s.set_camera(f"folder:{frames}").ok
+    assert s.start_camera().ok
+    alarms = {a.code: a.message for a in s.snapshot().alarms}
+    assert ("camera_compressed" in alarms) is flagged, alarms
+    if flagged:
+        assert "JPEG files" in alarms["camera_compressed"] and "uncompressed" in alarms["camera_compressed"]
+    assert s.stop_camera().ok
+    assert "camera_compressed" not in [a.code for a in s.snapshot().alarms]

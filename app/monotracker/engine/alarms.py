@@ -79,6 +79,7 @@ CATALOGUE: dict[str, AlarmKind] = {
     "loop_overrun": AlarmKind("warning", 20, technical=True, linger_s=10.0),
     "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0),
     "camera_uncalibrated": AlarmKind("warning", 22, linger_s=0.0),
+    "camera_compressed": AlarmKind("warning", 22, linger_s=0.0),  # frames through JPEG/lossy video
     "plan_unreadable": AlarmKind("warning", 23, linger_s=0.0),
     "ct_failed": AlarmKind("warning", 24, linger_s=0.0),
     "acquiring": AlarmKind("info", 30, technical=True),
@@ -90,6 +91,8 @@ POSE_CODES = ("pose_lost", "bad_pose", "pose_jump", "occlusion", "acquiring", "p
               "frame_unreadable", "tre_limit", "weak_geometry", "pose_implausible")
 #: holds about a pose stream that stopped being fresh; resuming from them needs resume_dwell_s
 FRESHNESS_CODES = ("pose_stale", "camera_freeze")
+#: conditions of the running camera's setup: raised by its rig as it starts, shown while it runs
+CAMERA_SETUP_CODES = ("camera_uncalibrated", "camera_compressed")
 LEVEL_RANK = {"alarm": 0, "warning": 1, "info": 2}
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from monotracker.engine import components
-from monotracker.engine.alarms import POSE_CODES
+from monotracker.engine.alarms import CAMERA_SETUP_CODES, POSE_CODES
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
 
@@ -40,11 +40,13 @@ class CameraCommands:
             rig = components.make_camera_rig(self.camera_source, self.calibration_path, plan, self.cfg, self.s)
         except MonoTrackerError as exc:
             self.camera_error = str(exc)
+            self.s._alarm_board.clear_all(CAMERA_SETUP_CODES, self.now())   # raised by the rig that failed
             self.invalidate_pose("camera could not start")
             self.s._alarm_board.set("camera_failed", f"camera could not start: {exc}", self.now())
             self.s.alert("alarm", "camera_failed", f"camera could not start: {exc}")
             return CommandResult(False, str(exc))
-        self.s._alarm_board.clear_all(("camera_failed", "camera_stopped", "camera_uncalibrated"), self.now())
+        # (not CAMERA_SETUP_CODES: the new rig raised them, and they hold while this camera runs)
+        self.s._alarm_board.clear_all(("camera_failed", "camera_stopped"), self.now())
         with self._lock:
             self.rig = rig
             self._rig_fiducials = plan.fiducial_centres().copy()  # the set this rig registers against
@@ -58,6 +60,7 @@ class CameraCommands:
         why = self.s._store_camera(self.camera_source, self.calibration_path, rig.K, rig.dist, rig.image_size)
         if why:
             rig.stop()
+            self.s._alarm_board.clear_all(CAMERA_SETUP_CODES, self.now())
             with self._lock:
                 self.rig = None
                 self.camera_error = why
@@ -78,7 +81,7 @@ class CameraCommands:
         rig.running = False
         rig.stop()
         self.s.record("camera_stopped", "camera stopped")
-        self.s._alarm_board.clear_all(POSE_CODES + ("camera_uncalibrated",), self.now())
+        self.s._alarm_board.clear_all(POSE_CODES + CAMERA_SETUP_CODES, self.now())
         self._hold("camera_stopped", "camera stopped")
         self.invalidate_pose("camera stopped", hold=False)
         return CommandResult(True, "camera stopped")

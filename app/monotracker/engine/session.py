@@ -87,6 +87,8 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 ``robot_disconnected`` [alarm] /
 ``robot_connected`` [info]; real cameras: ``camera_ended`` [warning] the video/folder ended,
 ``frame_unreadable`` [warning] a corrupt frame (skipped), ``camera_disconnected`` [alarm],
+``camera_uncalibrated`` / ``camera_compressed`` [warning] nominal intrinsics / lossy frames
+(MJPEG, JPEG files, a lossy video codec), shown while that camera runs,
 ``frame_size`` [warning] frame size differs from the calibration; poses: ``tre_limit``
 [warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
 ``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
@@ -142,7 +144,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monotracker.engine.alarms import AlarmBoard
+from monotracker.engine.alarms import CAMERA_SETUP_CODES, AlarmBoard
 from monotracker.engine.audit import AuditEntry, AuditLog
 from monotracker.engine.control_commands import ControlCommands
 from monotracker.engine.ct_commands import CTCommands
@@ -308,7 +310,8 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
     def alert(self, level: str, code: str, message: str, data: dict | None = None) -> Event | None:
         """Raise an alert (to subscribers and the audit log). Used by the engine's parts.
 
-        Warnings from the robot's safety layer and an uncalibrated camera are also active
+        Warnings from the robot's safety layer and the camera's setup (uncalibrated, lossy
+        frames: :data:`~.alarms.CAMERA_SETUP_CODES`) are also active
         conditions in ``snap.alarms``; repeated robot warnings (a loaded machine overrunning the
         control period) are reported at most once per quiet time (returns None when held back)."""
         if code == "robot_warning":
@@ -319,7 +322,7 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
             if not report:
                 log.info("robot warning (not re-reported): %s", message)
                 return None
-        elif code == "camera_uncalibrated":
+        elif code in CAMERA_SETUP_CODES:
             self._alarm_board.set(code, message, float(self.clock()))
         return self._bus.alert(level, code, message, data)
 

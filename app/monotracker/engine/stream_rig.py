@@ -79,6 +79,11 @@ class StreamRig(CameraRig):
             raise
         except Exception as exc:  # noqa: BLE001 - a camera that will not open is an operator problem
             raise MonoTrackerError(f"cannot open camera {source}: {exc}") from exc
+        if getattr(src, "compression", ""):
+            session.alert("warning", "camera_compressed",
+                          f"{src.name} delivers lossy frames ({src.compression}): ball centres err ~2.5x more "
+                          "than uncompressed; choose an uncompressed format (e.g. YUYV) or JPEG quality >= 95 "
+                          "if the frame rate allows")
         self.detector = KeepDetections(model.K, radius)  # keeps the blobs for the validation fiducials
         tracker = PoseTracker(plan.registration_centres(), model, detector=self.detector, radius_mm=radius,
                               target_ct=plan.target_lps_mm)

@@ -10,6 +10,11 @@ Opening problems (no such camera, unreadable video, empty folder) raise :class:`
 with one line; one bad frame later on raises :class:`FrameUnreadable` (an ``InputError``) and
 the source continues with the next frame. :class:`FrameWatchdog` turns "frames stopped coming" or "the same frame again
 and again" into a clear status within 0.1 s (see its docstring).
+
+``compression`` says when the frames come through a lossy coding (a camera sending MJPEG, JPEG
+files, a lossy video codec): ball centres then err ~2.5x more (independent renders, 1.5 px
+defocus, Bayer: 0.06 px uncompressed, 0.09 px at JPEG 95, 0.15 px at JPEG 85;
+``benchmarks/independent_optics.py``), so the engine shows it as a warning while the camera runs.
 """
 
 from __future__ import annotations
@@ -53,6 +58,9 @@ class FrameSource:
     #: a live source delivers frames in real time (a camera): reading it may stall. A file or a
     #: folder is read as fast as the reader asks, so a slow read is no camera fault.
     live = True
+    #: "" (uncompressed, or not known) or the lossy coding the frames come through, as the user
+    #: would name it ("MJPEG", "JPEG files", "video codec 'avc1'")
+    compression = ""
 
     def __init__(self):
         self._index = 0
@@ -105,6 +113,31 @@ def _as_bgr(img: np.ndarray) -> np.ndarray:
     return img
 
 
+#: FourCC codes of lossless or uncompressed video (raw YUV/RGB, FFV1, HuffYUV, PNG, Lagarith)
+LOSSLESS_FOURCC = frozenset({"FFV1", "HFYU", "FFVH", "PNG ", "MPNG", "LAGS", "RGB ", "RGBA", "BGR ", "BGRA",
+                             "I420", "IYUV", "YV12", "NV12", "YUY2", "YUYV", "UYVY", "Y800", "GREY", "Y16 ",
+                             "DIB ", "RAW "})
+#: FourCC codes of JPEG-coded frames (what most USB cameras send at 720p and 30 fps)
+JPEG_FOURCC = frozenset({"MJPG", "JPEG", "AVDJ", "DMB1"})
+
+
+def fourcc_name(code: float) -> str:
+    """The four characters of OpenCV's ``CAP_PROP_FOURCC`` value ('' when 0 or not printable)."""
+    n = int(code) if np.isfinite(code) else 0
+    chars = "".join(chr((n >> (8 * i)) & 0xFF) for i in range(4))
+    return chars if n and chars.isprintable() else ""
+
+
+def lossy_coding(fourcc: str) -> str:
+    """'' when ``fourcc`` (four characters) is uncompressed, lossless or unknown; else the name
+    of the lossy coding for a message ("MJPEG" or "video codec 'avc1'")."""
+    if not fourcc or fourcc.upper() in LOSSLESS_FOURCC:
+        return ""
+    if fourcc.upper() in JPEG_FOURCC:
+        return "MJPEG"
+    return f"video codec {fourcc.strip()!r}"
+
+
 class OpenCVCamera(FrameSource):
     """A live camera by OpenCV device index. ``read()`` raises :class:`CameraDisconnected` when
     the device stops answering (``cv2.VideoCapture.read`` fails)."""
@@ -121,6 +154,7 @@ class OpenCVCamera(FrameSource):
         if width and height:
             self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
             self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        self.compression = lossy_coding(fourcc_name(self._cap.get(cv2.CAP_PROP_FOURCC)))
 
     def _read_image(self):
         ok, img = self._cap.read()
@@ -155,6 +189,7 @@ class VideoFileSource(FrameSource):
             raise InputError(f"video {path.name} holds no readable frame (corrupt or empty file)")
         self._pending = first
         self.fps = float(self._cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        self.compression = lossy_coding(fourcc_name(self._cap.get(cv2.CAP_PROP_FOURCC)))
 
     def _read_image(self):
         if self._pending is not None:
@@ -196,6 +231,8 @@ class ImageFolderSource(FrameSource):
         if not self.paths:
             raise InputError(f"image folder {folder} holds no .png/.jpg/.bmp/.tif images")
         self._next = 0
+        if any(p.suffix.lower() in (".jpg", ".jpeg") for p in self.paths):
+            self.compression = "JPEG files"
 
     def _read_image(self):
         if self._next >= len(self.paths):
