@@ -14,7 +14,9 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    (what a detector must report; the registration corrects ellipse -> sphere centre), recall
    of fully visible balls, partly hidden balls accepted, and per frame through the pose
    tracker: right (TRE < 1 mm at the planned deep target), refused, wrong-but-valid (TRE > 2 mm
-   while trusted: must be 0), predicted/actual TRE (median ratio), detector ms (wall median)
+   while trusted: must be 0), predicted/actual TRE (median of the per-frame ratios; and
+   ``pred/rms``: the median predicted TRE over the RMS of the actual ones, the quantity the
+   prediction estimates), detector ms (wall median)
    and CPU ms (process time, all threads); frame ms: CPU time of the whole frame through the pose
    tracker (detection + registration + trust checks). ``edge-v1``: the edge detector with its
    settings before the JPEG work (colour as it is, integration window +-3.5 px, edge blur
@@ -155,7 +157,7 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
     print(f"\nA. Conditions x detectors, OR-layout camera, {n_frames} frames over {seconds:.0f} s each "
           "(error vs exact ellipse centre; TRE at the planned deep target)")
     print(f"{'condition':<9} {'detector':<11} {'err mean':>8} {'err p95':>7} {'recall':>6} {'partial':>7} "
-          f"{'right %':>7} {'refused %':>9} {'wrong-valid':>11} {'pred/act':>8} {'det ms':>6} {'cpu ms':>6} "
+          f"{'right %':>7} {'refused %':>9} {'wrong-valid':>11} {'pred/act':>8} {'pred/rms':>8} {'det ms':>6} {'cpu ms':>6} "
           f"{'frame ms':>8}")
     for cond in CONDITIONS:
         cam = condition_camera(cond, seconds, seed)
@@ -184,6 +186,7 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
             trk = PoseTracker(cam.fiducials_ct, cam.camera, detector=rec, radius_mm=ph.fiducial_radius_mm,
                               target_ct=ph.sample_target_lps)
             errs, found, vis, partial, right, refused, wrong, ratio, wall = [], 0, 0, 0, 0, 0, 0, [], []
+            pred, act = [], []
             frame_cpu = []
             for i, (img, tr) in enumerate(frames):
                 c0 = time.process_time()
@@ -205,11 +208,14 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 wrong += tre > 2.0
                 if np.isfinite(e.predicted_tre_mm) and tre > 0:
                     ratio.append(e.predicted_tre_mm / tre)
+                    pred.append(e.predicted_tre_mm)
+                    act.append(tre)
             n = len(frames)
             ea = np.array(errs) if errs else np.array([np.nan])
             print(f"{cond:<9} {name:<11} {np.nanmean(ea):8.3f} {np.nanpercentile(ea, 95):7.3f} "
                   f"{found / max(vis, 1):6.3f} {partial:7d} {100 * right / n:7.1f} {100 * refused / n:9.1f} "
                   f"{wrong:11d} {np.median(ratio) if ratio else float('nan'):8.2f} "
+                  f"{np.median(pred) / np.sqrt(np.mean(np.square(act))) if act else float('nan'):8.2f} "
                   f"{1000 * np.median(wall):6.1f} {1000 * np.median(rec.cpu):6.1f} {1000 * np.median(frame_cpu):8.1f}")
 
 
