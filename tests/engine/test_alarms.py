@@ -186,3 +186,64 @@ def test_jpeg_frames_are_flagged_while_the_camera_runs(make_session, tmp_path, s
         assert "JPEG files" in alarms["camera_compressed"] and "uncompressed" in alarms["camera_compressed"]
     assert s.stop_camera().ok
     assert "camera_compressed" not in [a.code for a in s.snapshot().alarms]
+
+
+@pytest.mark.parametrize("drapes, flagged", [("green-blue", True), (None, False)])
+def test_a_drape_of_the_balls_colour_is_flagged(make_session, tmp_path, drapes, flagged):
+    """Frames where a drape of the balls' hue (inside the default green band) fills much of the
+    image raise ``colour_clash`` (learn the ball colour); the simple render's frames do not."""
+    import time
+
+    import cv2
+
+    from monotracker.sim.camera_sim import SimulatedCamera
+    from monotracker.sim.optics import Optics
+
+    cam = SimulatedCamera(seed=1, optics=Optics(drapes=drapes, jpeg_quality=95) if drapes else None)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(frames / f"f{i}.png"), cam.render(0.1 * i)[0])
+    s = make_session(clock="real")
+    s.start()
+    plan_sample(s)
+    assert s.set_camera(f"folder:{frames}").ok and s.start_camera().ok
+
+    def codes():
+        return [a.code for a in s.snapshot().alarms]
+
+    t_end = time.monotonic() + 60.0
+    while "camera_ended" not in codes() and time.monotonic() < t_end:
+        time.sleep(0.01)
+    assert "camera_ended" in codes()
+    assert ("colour_clash" in codes()) is flagged, codes()
+    assert s.stop_camera().ok and "colour_clash" not in codes()
+
+
+def test_colour_clash_needs_frames_in_a_row_to_rise_and_to_clear():
+    from monotracker.engine import stream_rig
+
+    calls = []
+
+    class FakeSession:
+        def alert(self, level, code, message):
+            calls.append(("alert", code))
+
+        def clear_condition(self, code):
+            calls.append(("clear", code))
+
+    rig = stream_rig.StreamRig.__new__(stream_rig.StreamRig)
+    rig._session, rig._clash = FakeSession(), (False, 0)
+    for share in (0.3, 0.3, 0.0, 0.3, 0.3):          # interrupted: not yet
+        rig._watch_colour_clash(share)
+    assert calls == []
+    rig._watch_colour_clash(0.3)                      # the third in a row
+    assert calls == [("alert", "colour_clash")]
+    for _ in range(stream_rig.CLASH_CLEAR_FRAMES - 1):
+        rig._watch_colour_clash(0.0)
+    rig._watch_colour_clash(0.5)                      # seen again: the count starts over
+    for _ in range(stream_rig.CLASH_CLEAR_FRAMES - 1):
+        rig._watch_colour_clash(0.0)
+    assert calls == [("alert", "colour_clash")]
+    rig._watch_colour_clash(0.0)
+    assert calls == [("alert", "colour_clash"), ("clear", "colour_clash")]

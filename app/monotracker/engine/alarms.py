@@ -80,6 +80,7 @@ CATALOGUE: dict[str, AlarmKind] = {
     "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0),
     "camera_uncalibrated": AlarmKind("warning", 22, linger_s=0.0),
     "camera_compressed": AlarmKind("warning", 22, linger_s=0.0),  # frames through JPEG/lossy video
+    "colour_clash": AlarmKind("warning", 22, linger_s=0.0),  # a drape of the balls' hue: learn the colour
     "plan_unreadable": AlarmKind("warning", 23, linger_s=0.0),
     "ct_failed": AlarmKind("warning", 24, linger_s=0.0),
     "acquiring": AlarmKind("info", 30, technical=True),
@@ -92,7 +93,7 @@ POSE_CODES = ("pose_lost", "bad_pose", "pose_jump", "occlusion", "acquiring", "p
 #: holds about a pose stream that stopped being fresh; resuming from them needs resume_dwell_s
 FRESHNESS_CODES = ("pose_stale", "camera_freeze")
 #: conditions of the running camera's setup: raised by its rig as it starts, shown while it runs
-CAMERA_SETUP_CODES = ("camera_uncalibrated", "camera_compressed")
+CAMERA_SETUP_CODES = ("camera_uncalibrated", "camera_compressed", "colour_clash")
 LEVEL_RANK = {"alarm": 0, "warning": 1, "info": 2}
 
 

@@ -87,8 +87,9 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 ``robot_disconnected`` [alarm] /
 ``robot_connected`` [info]; real cameras: ``camera_ended`` [warning] the video/folder ended,
 ``frame_unreadable`` [warning] a corrupt frame (skipped), ``camera_disconnected`` [alarm],
-``camera_uncalibrated`` / ``camera_compressed`` [warning] nominal intrinsics / lossy frames
-(MJPEG, JPEG files, a lossy video codec), shown while that camera runs,
+``camera_uncalibrated`` / ``camera_compressed`` / ``colour_clash`` [warning] nominal
+intrinsics / lossy frames (MJPEG, JPEG files, a lossy video codec) / a large area of the balls'
+colour (learn the colour), shown while that camera runs (the last while the area is seen),
 ``frame_size`` [warning] frame size differs from the calibration; poses: ``tre_limit``
 [warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
 ``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
@@ -325,6 +326,11 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         elif code in CAMERA_SETUP_CODES:
             self._alarm_board.set(code, message, float(self.clock()))
         return self._bus.alert(level, code, message, data)
+
+    def clear_condition(self, code: str) -> None:
+        """A camera setup condition (:data:`~.alarms.CAMERA_SETUP_CODES`) raised with
+        :meth:`alert` no longer holds (thread-safe)."""
+        self._alarm_board.clear(code, float(self.clock()))
 
     def _persistent_alarm(self, level: str, code: str, message: str, data: dict | None = None) -> Event:
         """An alert that is also an active condition (``snap.alarms``) until it is cleared."""

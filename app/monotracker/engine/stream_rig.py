@@ -34,6 +34,15 @@ class _KeepLatest:
         return getattr(self.src, name)
 
 
+#: ``colour_clash``: raised when ball-coloured areas too large for a ball cover at least this
+#: share of the frame for ``CLASH_FRAMES`` frames in a row, cleared after ``CLASH_CLEAR_FRAMES``
+#: frames without (our simulator's OR frames: 0 with blue drapes, 0.26-0.74 with a teal or
+#: green-blue one inside the default band)
+CLASH_SHARE = 0.02
+CLASH_FRAMES = 3
+CLASH_CLEAR_FRAMES = 30
+
+
 class StreamRig(CameraRig):
     """A real frame source through vision's PoseStream (clock="real" only).
 
@@ -98,6 +107,8 @@ class StreamRig(CameraRig):
         self._frames: list[float] = []
         self._last_image = None
         self._sample_cache = None
+        self._session = session
+        self._clash = (False, 0)          # (raised, frames in a row that disagree with it)
         self.stream.subscribe(self._on_estimate)
 
     def _on_estimate(self, est) -> None:
@@ -107,10 +118,32 @@ class StreamRig(CameraRig):
         img = fr.image if fr is not None and fr.index == est.frame_index and est.camera == "ok" else None
         # validation on this thread too: the detector's last detections belong to this frame
         val = self.validation.check(est.T_cam_ct, self.detector.last, est.image_points_px, self.K, self.dist)
+        if est.camera == "ok":
+            self._watch_colour_clash(self.detector.colour_share)
         with self._lock:
             self._last_image = (est, img, val)
             if est.camera == "ok":
                 self._frames.append(float(est.t_capture))
+
+    def _watch_colour_clash(self, share: float) -> None:
+        """Raise / clear ``colour_clash`` from this frame's oversized ball-coloured share (0-1);
+        on the stream thread (the alarm board and the event bus are thread-safe)."""
+        raised, run = self._clash
+        if (share >= CLASH_SHARE) == raised:
+            self._clash = (raised, 0)
+            return
+        run += 1
+        if not raised and run >= CLASH_FRAMES:
+            self._session.alert("warning", "colour_clash",
+                                f"{100 * share:.0f} % of the image is the balls' colour but larger than a ball "
+                                "(a drape or cover of their hue?): balls next to it can be lost; learn the ball "
+                                "colour (click a ball)")
+            self._clash = (True, 0)
+        elif raised and run >= CLASH_CLEAR_FRAMES:
+            self._session.clear_condition("colour_clash")
+            self._clash = (False, 0)
+        else:
+            self._clash = (raised, run)
 
     def start(self) -> None:
         self.stream.start()

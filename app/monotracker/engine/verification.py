@@ -27,7 +27,9 @@ VERIFICATION_FILE = "verification.json"
 
 class KeepDetections:
     """The detector the pose tracker uses by default (classical, same rules), remembering the last
-    frame's blob centres (px) so that validation fiducials, which the fit ignores, can be found."""
+    frame's blob centres (px) so that validation fiducials, which the fit ignores, can be found,
+    and the share of that frame covered by ball-coloured areas too large for a ball
+    (``colour_share``, 0-1; :func:`~monotracker.vision.detection.oversized_colour_share`)."""
 
     def __init__(self, K: np.ndarray, radius_mm: float):
         from monotracker.vision.detect_classical import ClassicalDetector
@@ -35,10 +37,14 @@ class KeepDetections:
 
         self.inner = ClassicalDetector(BlobRules(radius_mm=radius_mm, focal_px=float(np.asarray(K)[0, 0])))
         self.last = np.zeros((0, 2))
+        self.colour_share = 0.0
 
     def detect(self, image):
+        from monotracker.vision.detection import oversized_colour_share
+
         det = self.inner.detect(image)
         self.last = np.asarray(det.centres, float).reshape(-1, 2)
+        self.colour_share = oversized_colour_share(det, self.inner.rules, image.shape)
         return det
 
     def __getattr__(self, name):

@@ -82,6 +82,17 @@ class Detection:
         return np.array([f.score for f in self.fiducials], float)
 
 
+def oversized_colour_share(det: "Detection", rules: "BlobRules", image_shape) -> float:
+    """Share (0-1) of the image covered by ball-coloured blobs larger than any ball can image
+    (area over that of a disc of 1.5 x the largest ball radius, ``rules``): a drape, a cover or a
+    wall of the balls' hue. Balls next to such an area merge with it in the mask (they are lost,
+    or analysed as holes in it), so a share over a few percent means the colour band is not
+    selective here (learn the ball colour from a click)."""
+    big = np.pi * (1.5 * rules.radius_range_px[1]) ** 2
+    area = sum(float(r.area_px) for r in det.rejected if float(r.area_px) > big)
+    return area / float(image_shape[0] * image_shape[1])
+
+
 @dataclass
 class BlobRules:
     """Plausibility limits of a ball's image. Units: mm, px."""
