@@ -233,7 +233,7 @@ def test_colour_clash_needs_frames_in_a_row_to_rise_and_to_clear():
             calls.append(("clear", code))
 
     rig = stream_rig.StreamRig.__new__(stream_rig.StreamRig)
-    rig._session, rig._clash = FakeSession(), (False, 0)
+    rig._session, rig._clash, rig.running = FakeSession(), (False, 0), True
     for share in (0.3, 0.3, 0.0, 0.3, 0.3):          # interrupted: not yet
         rig._watch_colour_clash(share)
     assert calls == []
@@ -247,3 +247,32 @@ def test_colour_clash_needs_frames_in_a_row_to_rise_and_to_clear():
     assert calls == [("alert", "colour_clash")]
     rig._watch_colour_clash(0.0)
     assert calls == [("alert", "colour_clash"), ("clear", "colour_clash")]
+    rig.running = False                               # a stopping rig raises nothing more
+    for _ in range(5):
+        rig._watch_colour_clash(0.9)
+    assert calls == [("alert", "colour_clash"), ("clear", "colour_clash")]
+
+
+def test_setup_warnings_go_with_a_camera_a_plan_change_stopped(make_session, tmp_path):
+    """A plan change stops the camera: its setup warnings (uncalibrated, JPEG frames) go with it,
+    and the next camera does not show them (they stayed, on the sim camera, before)."""
+    import cv2
+    import numpy as np
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "f0.jpg"), np.full((720, 1280, 3), 90, np.uint8))
+    s = make_session(clock="real")
+    s.start()
+    plan_sample(s)
+    assert s.set_camera(f"folder:{frames}").ok and s.start_camera().ok
+
+    def codes():
+        return [a.code for a in s.snapshot().alarms]
+
+    assert {"camera_uncalibrated", "camera_compressed"} <= set(codes())
+    assert s.unlock_fiducials().ok                       # the plan changed: the camera stops
+    assert not {"camera_uncalibrated", "camera_compressed"} & set(codes()), codes()
+    assert s.confirm_fiducials().ok
+    assert s.set_camera("sim-points").ok and s.start_camera().ok
+    assert not {"camera_uncalibrated", "camera_compressed"} & set(codes()), codes()

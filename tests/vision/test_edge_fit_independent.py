@@ -56,7 +56,7 @@ def test_sharp_lens_bayer_fringes_do_not_refuse_balls():
     recall 0.70 here with the residual tolerance 0.12 of round 5 (seeds 0-5: 0.63-0.73), 0.96
     for such balls without the mosaic. The tolerance now follows the measured edge blur
     (``edge_fit.SHARP_UNMIX_RESIDUAL``): recall 0.82 here (seeds 0-5: 0.75-0.88), mean error
-    0.065 px (0.069 before)."""
+    0.065 px (0.072 before). The bound equals the worst seed's recall: little margin."""
     e = _errors(split=False, imaging=SHARP_RAW)
     found = ~np.isnan(e)
     assert found.mean() >= 0.75

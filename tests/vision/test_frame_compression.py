@@ -45,4 +45,9 @@ def test_fourcc_decoding():
     code = float(cv2.VideoWriter_fourcc(*"MJPG"))
     assert fourcc_name(code) == "MJPG" and lossy_coding("MJPG") == "MJPEG"
     assert fourcc_name(0.0) == "" and lossy_coding("") == ""       # unknown: no claim
+    assert fourcc_name(-1.0) == "" and fourcc_name(float("nan")) == ""   # a backend without it
+    assert fourcc_name(float(0xFF_FF_FF_7F)) == ""                 # not ASCII
     assert lossy_coding("YUYV") == "" and lossy_coding("avc1") == "video codec 'avc1'"
+    assert lossy_coding("mjpg") == "MJPEG"
+    for raw in ("RGB3", "BA81", "NV21", "YU12", "Y10 ", "FFV1"):   # raw V4L2 / lossless: no claim
+        assert lossy_coding(raw) == "", raw

@@ -36,6 +36,9 @@ class CameraCommands:
             return CommandResult(False, "confirm the CT fiducials before starting the camera")
         if self.rig is not None and self.rig.running:
             return CommandResult(True, "camera already running")
+        # setup conditions belong to one camera: the one before (stopped by a plan change, say)
+        # leaves none behind; the new rig raises its own
+        self.s._alarm_board.clear_all(CAMERA_SETUP_CODES, self.now())
         try:
             rig = components.make_camera_rig(self.camera_source, self.calibration_path, plan, self.cfg, self.s)
         except MonoTrackerError as exc:
@@ -111,6 +114,7 @@ class CameraCommands:
         if was_running:
             rig.running = False
             rig.stop()
+            self.s._alarm_board.clear_all(CAMERA_SETUP_CODES, self.now())
             self.s.record("camera_stopped", f"camera stopped: {why}")
         self.invalidate_pose(why)
         if was_running and restart_camera:

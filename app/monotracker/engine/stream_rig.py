@@ -89,10 +89,11 @@ class StreamRig(CameraRig):
         except Exception as exc:  # noqa: BLE001 - a camera that will not open is an operator problem
             raise MonoTrackerError(f"cannot open camera {source}: {exc}") from exc
         if getattr(src, "compression", ""):
+            advice = ("choose an uncompressed format (e.g. YUYV) or JPEG quality >= 95 if the frame rate allows"
+                      if kind == "device" else "record or export the frames losslessly (PNG, FFV1)")
             session.alert("warning", "camera_compressed",
-                          f"{src.name} delivers lossy frames ({src.compression}): ball centres err ~2.5x more "
-                          "than uncompressed; choose an uncompressed format (e.g. YUYV) or JPEG quality >= 95 "
-                          "if the frame rate allows")
+                          f"{src.name} delivers lossy frames ({src.compression}): ball centres err up to ~2.5x "
+                          f"more than uncompressed (JPEG 85); {advice}")
         self.detector = KeepDetections(model.K, radius)  # keeps the blobs for the validation fiducials
         tracker = PoseTracker(plan.registration_centres(), model, detector=self.detector, radius_mm=radius,
                               target_ct=plan.target_lps_mm)
@@ -128,6 +129,8 @@ class StreamRig(CameraRig):
     def _watch_colour_clash(self, share: float) -> None:
         """Raise / clear ``colour_clash`` from this frame's oversized ball-coloured share (0-1);
         on the stream thread (the alarm board and the event bus are thread-safe)."""
+        if not self.running:
+            return                        # stopping: the stop clears the setup conditions
         raised, run = self._clash
         if (share >= CLASH_SHARE) == raised:
             self._clash = (raised, 0)
@@ -139,6 +142,8 @@ class StreamRig(CameraRig):
                                 "(a drape or cover of their hue?): balls next to it can be lost; learn the ball "
                                 "colour (click a ball)")
             self._clash = (True, 0)
+            if not self.running:          # stopped meanwhile (its clear may have come first)
+                self._session.clear_condition("colour_clash")
         elif raised and run >= CLASH_CLEAR_FRAMES:
             self._session.clear_condition("colour_clash")
             self._clash = (False, 0)

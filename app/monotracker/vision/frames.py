@@ -12,8 +12,8 @@ the source continues with the next frame. :class:`FrameWatchdog` turns "frames s
 and again" into a clear status within 0.1 s (see its docstring).
 
 ``compression`` says when the frames come through a lossy coding (a camera sending MJPEG, JPEG
-files, a lossy video codec): ball centres then err ~2.5x more (independent renders, 1.5 px
-defocus, Bayer: 0.06 px uncompressed, 0.09 px at JPEG 95, 0.15 px at JPEG 85;
+files, a known lossy video codec): ball centres then err up to ~2.5x more (independent renders,
+1.5 px defocus, Bayer: 0.06 px uncompressed, 0.09 px at JPEG 95, 0.15 px at JPEG 85;
 ``benchmarks/independent_optics.py``), so the engine shows it as a warning while the camera runs.
 """
 
@@ -113,29 +113,36 @@ def _as_bgr(img: np.ndarray) -> np.ndarray:
     return img
 
 
-#: FourCC codes of lossless or uncompressed video (raw YUV/RGB, FFV1, HuffYUV, PNG, Lagarith)
-LOSSLESS_FOURCC = frozenset({"FFV1", "HFYU", "FFVH", "PNG ", "MPNG", "LAGS", "RGB ", "RGBA", "BGR ", "BGRA",
-                             "I420", "IYUV", "YV12", "NV12", "YUY2", "YUYV", "UYVY", "Y800", "GREY", "Y16 ",
-                             "DIB ", "RAW "})
 #: FourCC codes of JPEG-coded frames (what most USB cameras send at 720p and 30 fps)
 JPEG_FOURCC = frozenset({"MJPG", "JPEG", "AVDJ", "DMB1"})
+#: FourCC codes of lossy video codecs (H.264/5, MPEG-4 part 2, VP8/9, AV1, WMV, Theora). Only
+#: these are named: a code not listed (raw V4L2 formats such as RGB3, BA81, NV21, lossless FFV1)
+#: makes no claim
+LOSSY_VIDEO_FOURCC = frozenset({"H264", "AVC1", "X264", "DAVC", "HEVC", "H265", "HVC1", "HEV1", "X265",
+                                "MP4V", "FMP4", "XVID", "DIVX", "DX50", "MP42", "MP43", "MPG4", "MPG1",
+                                "MPG2", "PIM1", "VP80", "VP90", "VP08", "VP09", "AV01", "WMV1", "WMV2",
+                                "WMV3", "WVC1", "THEO", "H263", "FLV1"})
 
 
 def fourcc_name(code: float) -> str:
-    """The four characters of OpenCV's ``CAP_PROP_FOURCC`` value ('' when 0 or not printable)."""
+    """The four characters of OpenCV's ``CAP_PROP_FOURCC`` value ('' when 0, negative (a
+    backend without the property gives -1) or not printable ASCII)."""
     n = int(code) if np.isfinite(code) else 0
+    if n <= 0:
+        return ""
     chars = "".join(chr((n >> (8 * i)) & 0xFF) for i in range(4))
-    return chars if n and chars.isprintable() else ""
+    return chars if chars.isascii() and chars.isprintable() else ""
 
 
 def lossy_coding(fourcc: str) -> str:
-    """'' when ``fourcc`` (four characters) is uncompressed, lossless or unknown; else the name
-    of the lossy coding for a message ("MJPEG" or "video codec 'avc1'")."""
-    if not fourcc or fourcc.upper() in LOSSLESS_FOURCC:
-        return ""
-    if fourcc.upper() in JPEG_FOURCC:
+    """The name of the lossy coding behind FourCC ``fourcc`` for a message ("MJPEG" or "video
+    codec 'avc1'"); '' when it is uncompressed, lossless or not known to be lossy."""
+    code = (fourcc or "").upper()
+    if code in JPEG_FOURCC:
         return "MJPEG"
-    return f"video codec {fourcc.strip()!r}"
+    if code in LOSSY_VIDEO_FOURCC:
+        return f"video codec {fourcc.strip()!r}"
+    return ""
 
 
 class OpenCVCamera(FrameSource):
