@@ -135,33 +135,44 @@ def test_camera_start_failure_is_shown_until_a_start_succeeds(make_session):
     assert "camera_failed" not in [a.code for a in s.snapshot().alarms]
 
 
+def _folder_camera(make_session, folder, images: dict):
+    """A real-clock session with the sample plan, its camera a folder of ``images`` (file name ->
+    BGR uint8 array), started without a calibration. Returns (session, codes()) where
+    ``codes()`` lists the active alarm codes."""
+    import cv2
+
+    folder.mkdir()
+    for name, img in images.items():
+        cv2.imwrite(str(folder / name), img)
+    s = make_session(clock="real")
+    s.start()
+    plan_sample(s)
+    assert s.set_camera(f"folder:{folder}").ok
+    assert s.start_camera().ok
+    return s, lambda: [a.code for a in s.snapshot().alarms]
+
+
+def _wait_for_code(codes, code: str, timeout_s: float = 60.0) -> bool:
+    """Until ``code`` is active (the generous timeout only bounds a failing test)."""
+    import time
+
+    t_end = time.monotonic() + timeout_s
+    while code not in codes() and time.monotonic() < t_end:
+        time.sleep(0.01)
+    return code in codes()
+
+
 def test_uncalibrated_camera_stays_shown_while_it_runs(make_session, tmp_path):
     """A real source started without a calibration runs on nominal intrinsics: the warning is an
     active condition for as long as that camera runs (before, the start that raised it cleared
     it at once), and goes with the camera."""
-    import time
-
-    import cv2
     import numpy as np
 
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for i in range(3):
-        cv2.imwrite(str(frames / f"f{i}.png"), np.full((720, 1280, 3), 90 + i, np.uint8))
-    s = make_session(clock="real")
-    s.start()
-    plan_sample(s)
-    assert s.set_camera(f"folder:{frames}").ok
-    assert s.start_camera().ok
-
-    def codes():
-        return [a.code for a in s.snapshot().alarms]
-
+    s, codes = _folder_camera(make_session, tmp_path / "frames",
+                              {f"f{i}.png": np.full((720, 1280, 3), 90 + i, np.uint8) for i in range(3)})
     assert "camera_uncalibrated" in codes()
-    t_end = time.monotonic() + 60.0          # the folder is read: its frames, then its end
-    while "camera_ended" not in codes() and time.monotonic() < t_end:
-        time.sleep(0.01)
-    assert "camera_ended" in codes() and "camera_uncalibrated" in codes()
+    assert _wait_for_code(codes, "camera_ended")     # the folder is read: its frames, then its end
+    assert "camera_uncalibrated" in codes()
     assert s.stop_camera().ok
     assert "camera_uncalibrated" not in codes()
 
@@ -169,53 +180,28 @@ def test_uncalibrated_camera_stays_shown_while_it_runs(make_session, tmp_path):
 @pytest.mark.parametrize("suffix, flagged", [(".jpg", True), (".png", False)])
 def test_jpeg_frames_are_flagged_while_the_camera_runs(make_session, tmp_path, suffix, flagged):
     """Frames that come as JPEG files are a setup warning (centres err ~2.5x more), PNG ones not."""
-    import cv2
     import numpy as np
 
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    cv2.imwrite(str(frames / f"f0{suffix}"), np.full((720, 1280, 3), 90, np.uint8))
-    s = make_session(clock="real")
-    s.start()
-    plan_sample(s)
-    assert s.set_camera(f"folder:{frames}").ok
-    assert s.start_camera().ok
+    s, codes = _folder_camera(make_session, tmp_path / "frames", {f"f0{suffix}": np.full((720, 1280, 3), 90, np.uint8)})
     alarms = {a.code: a.message for a in s.snapshot().alarms}
     assert ("camera_compressed" in alarms) is flagged, alarms
     if flagged:
         assert "JPEG files" in alarms["camera_compressed"] and "uncompressed" in alarms["camera_compressed"]
     assert s.stop_camera().ok
-    assert "camera_compressed" not in [a.code for a in s.snapshot().alarms]
+    assert "camera_compressed" not in codes()
 
 
 @pytest.mark.parametrize("drapes, flagged", [("green-blue", True), (None, False)])
 def test_a_drape_of_the_balls_colour_is_flagged(make_session, tmp_path, drapes, flagged):
     """Frames where a drape of the balls' hue (inside the default green band) fills much of the
     image raise ``colour_clash`` (learn the ball colour); the simple render's frames do not."""
-    import time
-
-    import cv2
-
     from monotracker.sim.camera_sim import SimulatedCamera
     from monotracker.sim.optics import Optics
 
     cam = SimulatedCamera(seed=1, optics=Optics(drapes=drapes, jpeg_quality=95) if drapes else None)
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    for i in range(5):
-        cv2.imwrite(str(frames / f"f{i}.png"), cam.render(0.1 * i)[0])
-    s = make_session(clock="real")
-    s.start()
-    plan_sample(s)
-    assert s.set_camera(f"folder:{frames}").ok and s.start_camera().ok
-
-    def codes():
-        return [a.code for a in s.snapshot().alarms]
-
-    t_end = time.monotonic() + 60.0
-    while "camera_ended" not in codes() and time.monotonic() < t_end:
-        time.sleep(0.01)
-    assert "camera_ended" in codes()
+    s, codes = _folder_camera(make_session, tmp_path / "frames",
+                              {f"f{i}.png": cam.render(0.1 * i)[0] for i in range(5)})
+    assert _wait_for_code(codes, "camera_ended")
     assert ("colour_clash" in codes()) is flagged, codes()
     assert s.stop_camera().ok and "colour_clash" not in codes()
 
@@ -256,20 +242,9 @@ def test_colour_clash_needs_frames_in_a_row_to_rise_and_to_clear():
 def test_setup_warnings_go_with_a_camera_a_plan_change_stopped(make_session, tmp_path):
     """A plan change stops the camera: its setup warnings (uncalibrated, JPEG frames) go with it,
     and the next camera does not show them (they stayed, on the sim camera, before)."""
-    import cv2
     import numpy as np
 
-    frames = tmp_path / "frames"
-    frames.mkdir()
-    cv2.imwrite(str(frames / "f0.jpg"), np.full((720, 1280, 3), 90, np.uint8))
-    s = make_session(clock="real")
-    s.start()
-    plan_sample(s)
-    assert s.set_camera(f"folder:{frames}").ok and s.start_camera().ok
-
-    def codes():
-        return [a.code for a in s.snapshot().alarms]
-
+    s, codes = _folder_camera(make_session, tmp_path / "frames", {"f0.jpg": np.full((720, 1280, 3), 90, np.uint8)})
     assert {"camera_uncalibrated", "camera_compressed"} <= set(codes())
     assert s.unlock_fiducials().ok                       # the plan changed: the camera stops
     assert not {"camera_uncalibrated", "camera_compressed"} & set(codes()), codes()
