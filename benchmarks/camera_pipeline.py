@@ -23,7 +23,10 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    2 px), ``edge-2px``: the edge detector with a fixed edge blur of 2 px (the default before
    the blur was measured per frame), ``edge-r5``: the edge detector before the unmixing's
    residual tolerance followed the edge blur (0.12 whatever the blur; see
-   ``edge_fit.SHARP_UNMIX_RESIDUAL``), same run.
+   ``edge_fit.SHARP_UNMIX_RESIDUAL``), ``edge-r6``: the edge detector without the camera, a
+   free ellipse per ball (before each ball's outline was taken from the camera,
+   ``vision/sphere_outline.py``), same run; ``edge``, ``edge+colour`` and ``learned`` know the
+   camera, as the pose tracker's detectors do.
 B. Scale: ball radius 5-30 px (camera 880-150 mm away), photo-like optics: recall, centre
    error, refusals and time for each detector (the learned detector's place).
 Full run only: 2. whole-frame timing, 3. pose over a 60 s trajectory, 4. occlusion alert latency
@@ -37,6 +40,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -165,6 +169,7 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
         times = np.linspace(0.0, seconds - 1e-3, n_frames)
         frames = [cam.render(t) for t in times]
         rules = BlobRules(radius_mm=ph.fiducial_radius_mm, focal_px=float(cam.K[0, 0]))
+        with_camera = replace(rules, camera=cam.camera)   # outline of a whole sphere known (round 7)
         img0, tr0 = frames[0]
         k = int(np.argmax(tr0.visible))
         try:
@@ -174,10 +179,11 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
         dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")),
                 ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)),
                 ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)),
-                ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge", ClassicalDetector(rules))]
-        dets.append(("edge+colour", ClassicalDetector(rules, colour=colour) if colour is not None else None))
+                ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge-r6", ClassicalDetector(rules)),
+                ("edge", ClassicalDetector(with_camera))]
+        dets.append(("edge+colour", ClassicalDetector(with_camera, colour=colour) if colour is not None else None))
         if with_learned:
-            dets.append(("learned", LearnedDetector(rules=rules)))
+            dets.append(("learned", LearnedDetector(rules=with_camera)))
         for name, det in dets:
             if det is None:
                 print(f"{cond:<9} {name:<11} colour not learned: {why}")
@@ -232,9 +238,10 @@ def scale_table(seed: int, n_frames: int, with_learned: bool = True):
                           max_distance_mm=max(1000.0, 1.2 * dist))
         dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")),
                 ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)),
-                ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)), ("edge", ClassicalDetector(rules))]
+                ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)), ("edge-r6", ClassicalDetector(rules)),
+                ("edge", ClassicalDetector(replace(rules, camera=cam.camera)))]
         if with_learned:
-            dets.append(("learned", LearnedDetector(rules=rules)))
+            dets.append(("learned", LearnedDetector(rules=replace(rules, camera=cam.camera))))
         for name, det in dets:
             errs, found, vis, nrej, ts = [], 0, 0, 0, []
             for img, tr in frames:

@@ -13,7 +13,12 @@ background, see ``edge_fit.NEAR_BACKGROUND``; ``edge-r5``: that fit with the unm
 tolerance 0.12 whatever the blur, before ``edge_fit.SHARP_UNMIX_RESIDUAL``), mean and p95 centre error (px) of the balls found
 within 3 px, recall, the mean error on the balls all edge fits accept (``common``), and the
 edge blur the fit measured. Then the edge fit with the blur-per-width factor at other values
-(see ``edge_fit.BLUR_PER_WIDTH``), over both backgrounds.
+(see ``edge_fit.BLUR_PER_WIDTH``), over both backgrounds. Then balls cut by a straight occluder
+(15-35 % of the radius hidden: a glove, an instrument, gauze, skin, drapes) and whole balls, each
+pasted into a 1280 x 720 frame at a random place with the outline a sphere has there
+(``independent_render.render_in_frame``): ``edge-free`` the detector without the camera (a free
+ellipse per ball, the fit before ``vision/sphere_outline.py``) vs ``edge`` with it, same frames:
+balls accepted, accepted more than 0.5 px off, worst and mean error.
 
 Usage: PYTHONPATH=app python benchmarks/independent_optics.py [--quick] [--n N]
 """
@@ -32,10 +37,15 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from camera_pipeline import EDGE_R5, EdgeSettings  # noqa: E402
-from independent_render import Imaging, render_ball  # noqa: E402
+from independent_render import (FRAME_F_PX, FRAME_PRINCIPAL_PX, FRAME_SIZE, Imaging, Occluder,  # noqa: E402
+                                render_ball, render_in_frame)
 
 from monotracker.vision import edge_fit  # noqa: E402
+from monotracker.vision.camera_model import CameraModel  # noqa: E402
 from monotracker.vision.detect_classical import ClassicalDetector  # noqa: E402
+from monotracker.vision.detection import BlobRules  # noqa: E402
+
+OCCLUDERS = ("blue glove", "steel", "white gauze", "fair skin", "blue drape", "teal drape")
 
 CONDITIONS = {
     "sharp, raw": Imaging(defocus_px=0.0, gauss_px=0.4, jpeg_quality=0),
@@ -128,7 +138,34 @@ def main(argv=None):
             mean, _p95, rec = _stats(evaluate(EdgeSettings(ClassicalDetector(), BLUR_PER_WIDTH=f), frames)[0])
             cells.append(f"{mean:6.3f} / {rec:4.2f}")
         print(f"{cname:<26} " + " ".join(f"{c:>13}" for c in cells))
+    cut_table(n, a.seed)
     print(f"(load at the end {os.getloadavg()[0]:.1f})")
+
+
+def cut_table(n: int, seed: int) -> None:
+    """Cut and whole balls in frames, the detector without and with the camera (see the module
+    docstring)."""
+    cam = CameraModel(np.array([[FRAME_F_PX, 0, FRAME_PRINCIPAL_PX[0]], [0, FRAME_F_PX, FRAME_PRINCIPAL_PX[1]],
+                                [0, 0, 1]]), np.zeros(5), FRAME_SIZE)
+    rules = BlobRules(radius_mm=4.0, focal_px=FRAME_F_PX, min_distance_mm=250.0)
+    dets = (("edge-free", ClassicalDetector(rules)),
+            ("edge", ClassicalDetector(BlobRules(radius_mm=4.0, focal_px=FRAME_F_PX, min_distance_mm=250.0,
+                                                 camera=cam))))
+    print(f"\nCut balls (15-35 % of the radius hidden) and whole balls in 1280 x 720 frames, {n} per cell")
+    print(f"{'condition':<26} {'balls':<6} {'detector':<9} {'accepted':>8} {'> 0.5 px':>8} {'worst px':>8} "
+          f"{'mean px':>7}")
+    for ci, (cname, im) in enumerate(CONDITIONS.items()):
+        for cut in (True, False):
+            rng = np.random.default_rng(seed + 100 + 10 * ci + cut)
+            frames = [render_in_frame(rng, im, Occluder(float(rng.uniform(0.15, 0.35)), OCCLUDERS[i % len(OCCLUDERS)])
+                                      if cut else None) for i in range(n)]
+            for dname, det in dets:
+                e = evaluate(det, frames)[0]
+                ok = ~np.isnan(e)
+                worst = f"{e[ok].max():8.2f}" if ok.any() else f"{'-':>8}"
+                mean = f"{e[ok].mean():7.3f}" if ok.any() else f"{'-':>7}"
+                print(f"{cname:<26} {'cut' if cut else 'whole':<6} {dname:<9} {int(ok.sum()):8d} "
+                      f"{int(np.sum(e[ok] > 0.5)):8d} {worst} {mean}")
 
 
 if __name__ == "__main__":

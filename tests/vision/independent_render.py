@@ -82,16 +82,33 @@ def _srgb_encode(lin: np.ndarray) -> np.ndarray:
     return np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
 
 
+@dataclass(frozen=True)
+class Occluder:
+    """A straight-edged object in front of the ball (a glove's finger, an instrument, a drape's
+    fold): it hides the cap of the ball beyond a chord ``depth`` (share of the ball's radius
+    along the chord's normal, 0-1) from the edge, at an angle drawn at random, and everything
+    behind it beyond that line. ``colour``: a name from :data:`BACKGROUNDS`."""
+
+    depth: float = 0.25
+    colour: str = "blue glove"
+
+
 def render_ball(rng: np.random.Generator, radius_px: float, imaging: Imaging = Imaging(),
                 split: bool = True, size: int = 96, backgrounds: tuple | None = None,
-                gradient_per_px: float = 0.004) -> tuple[np.ndarray, np.ndarray]:
+                gradient_per_px: float = 0.004, occluder: Occluder | None = None,
+                truth: dict | None = None, shape: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One uint8 BGR image (size x size) with one ball of ``radius_px`` (semi-major axis, px)
     within 8 px of its middle (size >= 2 * radius + 40 leaves room for the edge fit's rays);
     returns (image, true ellipse centre (2,) px). ``split``: two background colours with their
     boundary through the ball or up to :data:`OUTLINE_BEYOND_PX` beyond its edge (else one
     colour); ``backgrounds``: the two names from :data:`BACKGROUNDS` (default: drawn at
     random); ``gradient_per_px``: the largest brightness gradient of each background along x
-    and y (relative change per px; each drawn uniformly within +-this)."""
+    and y (relative change per px; each drawn uniformly within +-this); ``occluder``: an
+    :class:`Occluder` in front of the ball (None: none); ``truth``: a dict that receives the true
+    ellipse ``axes`` (semi-major, semi-minor px), ``angle_rad`` (of the major axis, from +x
+    towards +y) and, with an occluder, ``cut_normal`` (unit 2-vector from the centre towards the
+    hidden cap); ``shape``: (minor / major, major axis angle rad from +x towards +y) of the
+    ball's ellipse (e.g. a sphere's at some place in a camera's image; None: drawn at random)."""
     names = list(BACKGROUNDS)
     if backgrounds is None:
         i, j = rng.choice(len(names), 2, replace=False)
@@ -102,6 +119,8 @@ def render_ball(rng: np.random.Generator, radius_px: float, imaging: Imaging = I
     a = radius_px
     b = a * rng.uniform(0.88, 1.0)
     th = rng.uniform(0, np.pi)
+    if shape is not None:
+        b, th = a * float(shape[0]), float(shape[1])
     n = size * SS
     g = (np.arange(n) + 0.5) / SS - 0.5                     # hi-res sample -> image px
     xx, yy = np.meshgrid(g, g)
@@ -134,6 +153,22 @@ def render_ball(rng: np.random.Generator, radius_px: float, imaging: Imaging = I
         grad2 = 1.0 + rng.uniform(-gm, gm) * (xx - c[0]) + rng.uniform(-gm, gm) * (yy - c[1])
         bg = np.where(side[..., None], (grad2 * (1.0 + 0.03 * tex))[..., None] * col2, bg)
     scene = np.where(inside[..., None], ball, bg).astype(np.float32)
+    if truth is not None:
+        truth.update(axes=(a, b), angle_rad=th)
+    if occluder is not None:
+        # the chord lies ``depth`` of the radius (along its normal) inside the ball's edge: the
+        # ellipse's extent along the normal n is sqrt((a n_u)^2 + (b n_v)^2)
+        psi = rng.uniform(0, 2 * np.pi)
+        nrm = np.array([np.cos(psi), np.sin(psi)])
+        nu, nv = nrm[0] * np.cos(th) + nrm[1] * np.sin(th), -nrm[0] * np.sin(th) + nrm[1] * np.cos(th)
+        extent = np.hypot(a * nu, b * nv)
+        hidden = (dx * nrm[0] + dy * nrm[1]) > (1.0 - occluder.depth) * extent
+        col = np.array(BACKGROUNDS[occluder.colour])
+        grad3 = 1.0 + rng.uniform(-gm, gm) * (xx - c[0]) + rng.uniform(-gm, gm) * (yy - c[1])
+        scene = np.where(hidden[..., None], ((grad3 * (1.0 + 0.03 * tex))[..., None] * col).astype(np.float32),
+                         scene)
+        if truth is not None:
+            truth.update(cut_normal=nrm)
     # optics on the supersampled grid (linear light), then pixel integration
     if imaging.defocus_px > 0:
         scene = cv2.filter2D(scene, -1, _disc_kernel(imaging.defocus_px * SS), borderType=cv2.BORDER_REFLECT)
@@ -160,3 +195,38 @@ def render_ball(rng: np.random.Generator, radius_px: float, imaging: Imaging = I
         ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(imaging.jpeg_quality)])
         img = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     return img, c
+
+
+#: the pinhole camera of :func:`render_in_frame` (no distortion): focal length (px), principal
+#: point (px), image size (w, h px)
+FRAME_F_PX = 1100.0
+FRAME_PRINCIPAL_PX = (640.0, 360.0)
+FRAME_SIZE = (1280, 720)
+
+
+def sphere_shape(xy_px, minor_px: float) -> tuple[float, float]:
+    """(minor / major, major axis angle rad from +x towards +y) of a sphere's image ellipse at
+    ``xy_px`` with minor semi-axis ``minor_px`` under the camera of :func:`render_in_frame`:
+    the cone-plane formula, minor / major = sqrt(cos^2 theta - sin^2 alpha) / cos alpha with
+    theta the angle of the ball's ray from the optical axis and alpha its angular radius (from
+    b = f sin(alpha) / sqrt(cos^2 theta - sin^2 alpha)); the major axis is radial."""
+    dx, dy = xy_px[0] - FRAME_PRINCIPAL_PX[0], xy_px[1] - FRAME_PRINCIPAL_PX[1]
+    theta = np.arctan(np.hypot(dx, dy) / FRAME_F_PX)
+    q = (minor_px / FRAME_F_PX) ** 2
+    s2 = q * np.cos(theta) ** 2 / (1 + q)                   # sin^2 alpha
+    return float(np.sqrt(np.cos(theta) ** 2 - s2) / np.sqrt(1 - s2)), float(np.arctan2(dy, dx))
+
+
+def render_in_frame(rng: np.random.Generator, imaging: Imaging = Imaging(), occluder: Occluder | None = None,
+                    radius_px: tuple = (7.0, 13.0)) -> tuple[np.ndarray, np.ndarray]:
+    """A FRAME_SIZE uint8 BGR frame, plain grey but for one :func:`render_ball` image (96 x 96,
+    one background colour) pasted at a random place, its ball drawn with the outline a sphere
+    has there (:func:`sphere_shape`), of semi-major axis uniform in ``radius_px``; returns
+    (frame, true ellipse centre (2,) px)."""
+    radius = float(rng.uniform(*radius_px))
+    ox, oy = int(rng.integers(0, FRAME_SIZE[0] - 96)), int(rng.integers(0, FRAME_SIZE[1] - 96))
+    shape = sphere_shape((ox + 48, oy + 48), radius * 0.95)
+    patch, c = render_ball(rng, radius, imaging, split=False, occluder=occluder, shape=shape)
+    frame = np.full((FRAME_SIZE[1], FRAME_SIZE[0], 3), 128, np.uint8)
+    frame[oy:oy + 96, ox:ox + 96] = patch
+    return frame, c + [ox, oy]

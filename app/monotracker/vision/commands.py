@@ -83,7 +83,7 @@ def _detect(args) -> int:
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise InputError(f"cannot read image {path.name} (corrupt or not an image)")
-    focal = args.focal_px
+    focal, model = args.focal_px, None
     if args.camera:
         from .camera_model import CameraModel
 
@@ -96,7 +96,8 @@ def _detect(args) -> int:
         raise InputError("--adapt needs --camera (the calibration to adapt)")
     if focal is None:
         focal = 1100.0 * img.shape[1] / 1280.0
-    rules = BlobRules(radius_mm=args.radius_mm, focal_px=focal)
+    # with a calibration, each ball's outline is a whole sphere's at its place (sphere_outline)
+    rules = BlobRules(radius_mm=args.radius_mm, focal_px=focal, camera=model)
     if args.detector == "learned":
         from .detect_learned import LearnedDetector
 

@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from .edge_fit import fit_ball_edges
+from .sphere_outline import expected_shapes
 
 #: sub-pixel centre methods of :func:`analyse_blobs`
 CENTRE_METHODS = ("edge", "chroma")
@@ -103,6 +104,11 @@ class BlobRules:
     max_distance_mm: float = 1000.0
     min_score: float = 0.5
     min_area_px: float = 12.0
+    #: the calibrated camera (:class:`~.camera_model.CameraModel`) of the images, or None: with
+    #: it each ball's edge is fitted with the outline a whole sphere has at its place in the
+    #: image (:mod:`.sphere_outline`), which keeps a ball cut by an occluder from a biased centre;
+    #: :class:`~.pose_tracker.PoseTracker` sets it
+    camera: object = None
 
     @property
     def radius_range_px(self) -> tuple[float, float]:
@@ -232,7 +238,11 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
     edge_fits = {}
     if centre_method == "edge":      # one batch for all candidates that passed the shape test
         good = [i for i, c in enumerate(cands) if c.score >= rules.min_score]
-        fits = fit_ball_edges(refine_image, [cands[i].features["contour_ellipse"] for i in good], edge_blur_px)
+        ells = [cands[i].features["contour_ellipse"] for i in good]
+        shapes = None
+        if rules.camera is not None:
+            shapes = expected_shapes(rules.camera, [e[0] for e in ells], [min(e[1]) / 2.0 for e in ells])
+        fits = fit_ball_edges(refine_image, ells, edge_blur_px, shapes)
         edge_fits = dict(zip(good, fits))
     accepted = []
     for i, c in enumerate(cands):

@@ -176,6 +176,8 @@ class PoseTracker:
         camera: the calibrated :class:`CameraModel`; frames of another size are refused.
         detector: any object with ``detect(image) -> Detection`` (image points in px); None
             builds the classical colour detector for ``radius_mm`` and the camera's focal length.
+            A detector with :class:`~.detection.BlobRules` (``rules``) gets ``camera`` there:
+            its edge fits then take each ball's outline from the camera (:mod:`.sphere_outline`).
         radius_mm: ball radius, mm (the registration corrects the ellipse-centre bias with it).
         target_ct: (3,) float, CT LPS mm: planned target for ``predicted_tre_mm``, or None.
         config: the gates (:class:`TrackerConfig`); defaults when None.
@@ -192,6 +194,9 @@ class PoseTracker:
         self.camera = camera
         self.radius_mm = float(radius_mm)
         self.detector = detector or ClassicalDetector(BlobRules(radius_mm=radius_mm, focal_px=float(camera.K[0, 0])))
+        rules = getattr(self.detector, "rules", None)
+        if isinstance(rules, BlobRules):
+            rules.camera = camera   # ball edges fitted with a whole sphere's outline (sphere_outline)
         self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
         self.config = config or TrackerConfig()
         from monotracker.registration.noise import OnlineNoise

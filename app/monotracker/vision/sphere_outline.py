@@ -1,0 +1,60 @@
+"""The outline a whole sphere images as, at a given place in the image.
+
+A sphere seen by a pinhole camera images as an ellipse whose major axis points away from the
+principal point; its axis ratio depends only on the angle theta between the ball's viewing ray
+and the optical axis and on the sphere's angular radius alpha (minor / major =
+sqrt(cos^2 theta - sin^2 alpha) / cos alpha, ~cos theta), and lens distortion bends it a little
+more. So the shape of a whole ball's outline is known from where it lies in the image, before
+any pose, and the edge fit (:mod:`.edge_fit`) needs to find only its centre and size.
+
+Why it matters: with a free ellipse (five parameters) a ball partly hidden behind a straight edge
+(a glove's finger, an instrument, a drape's fold) was fitted with its ellipse squeezed onto the
+chord and its centre pushed away from the hidden cap, 0.5-1.2 px, and passed every check of the
+edge fit; with the shape known (three parameters) the chord's rays are outliers to a circle and
+either drop out (an unbiased centre from the rest of the edge) or refuse the ball.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+#: silhouette samples per expected outline
+_N_OUTLINE = 48
+
+
+def expected_outlines(camera, centres_px, minors_px) -> list:
+    """The image outlines of whole spheres seen at ``centres_px`` (m, 2) distorted px with minor
+    semi-axes of about ``minors_px`` (m,) px (they set the angular radii): per sphere
+    ((semi-major, semi-minor) px, angle of the major axis in deg from +x towards +y).
+    ``camera``: a :class:`CameraModel` (intrinsics and distortion). ~25 us per sphere."""
+    c = np.asarray(centres_px, float).reshape(-1, 2)
+    if len(c) == 0:
+        return []
+    xn = camera.undistort_points(c)
+    d = np.column_stack([xn, np.ones(len(xn))])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
+    alpha = np.arctan2(np.maximum(np.asarray(minors_px, float).reshape(-1), 0.5), f)
+    # the silhouette circle of a sphere at distance 1: centre cos^2(alpha) d, radius sin cos
+    ref = np.where(np.abs(d[:, 1:2]) < 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    u = np.cross(d, ref)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(d, u)
+    t = np.linspace(0, 2 * np.pi, _N_OUTLINE, endpoint=False)
+    ca, sa = np.cos(alpha)[:, None, None], np.sin(alpha)[:, None, None]
+    ring = ca**2 * d[:, None, :] + sa * ca * (np.cos(t)[None, :, None] * u[:, None, :]
+                                             + np.sin(t)[None, :, None] * v[:, None, :])
+    px = camera.project(ring.reshape(-1, 3)).reshape(len(c), _N_OUTLINE, 2).astype(np.float32)
+    out = []
+    for ring_px in px:
+        (_, _), (d1, d2), ang = cv2.fitEllipse(ring_px)
+        major = float(ang) if d1 >= d2 else float(ang) + 90.0
+        out.append(((max(d1, d2) / 2.0, min(d1, d2) / 2.0), major))
+    return out
+
+
+def expected_shapes(camera, centres_px, minors_px) -> list:
+    """Per sphere (minor / major, major axis angle deg) of :func:`expected_outlines`: the
+    ``shapes`` the edge fit takes (:func:`~.edge_fit.fit_ball_edges`)."""
+    return [(b / a, major) for (a, b), major in expected_outlines(camera, centres_px, minors_px)]
