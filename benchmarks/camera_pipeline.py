@@ -304,7 +304,9 @@ def detection_table(cam, seconds, detectors, n_frames):
 
 
 def frame_table(cam, seconds, n_frames, X, K, dist):
-    det = ClassicalDetector()
+    from monotracker.vision.detection import BlobRules
+
+    det = ClassicalDetector(BlobRules(camera=cam.camera))   # as the pose tracker's: outlines known
     times = np.linspace(0, seconds - 1e-3, n_frames)
     res = {"prior (product)": [], "full search (baseline)": []}
     render = []

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from monotracker.vision.detection import refine_blob
-from monotracker.vision.edge_fit import BLUR_PER_WIDTH, fit_ball_edge, measure_edge_blur
+from monotracker.vision.edge_fit import BLUR_PER_WIDTH, fit_ball_edge, fit_ball_edges, measure_edge_blur
 
 SS = 8                       # supersampling factor
 BALL = np.array([40.0, 160.0, 45.0])      # BGR, display space
@@ -144,3 +144,13 @@ def test_centres_hold_from_sharp_to_strongly_blurred_balls(sigma):
             assert fit.ok, fit.reason
             errs.append(np.linalg.norm(fit.centre_px - truth))
     assert np.mean(errs) < 0.04 and max(errs) < 0.08, errs
+
+
+def test_degenerate_edge_points_are_refused_not_raised():
+    """Edge points all alike (no outline to fit) with a known shape: no fit, no exception."""
+    from monotracker.vision.edge_fit import _robust_ellipse
+
+    pts = np.full((16, 2), 30.0)
+    assert _robust_ellipse(pts, np.ones(16, bool), (0.9, 10.0)) is None
+    with pytest.raises(ValueError, match="shapes"):
+        fit_ball_edges(np.zeros((60, 60, 3), np.uint8), [((30, 30), (18, 18), 0.0)], 1.5, [])

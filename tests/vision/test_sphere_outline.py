@@ -12,10 +12,13 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
+import pytest
 from independent_render import (FRAME_F_PX, FRAME_PRINCIPAL_PX, FRAME_SIZE, Imaging, Occluder, render_in_frame,
                                 sphere_shape)
 
+from monotracker.engine.verification import KeepDetections
 from monotracker.vision.camera_model import CameraModel
 from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detection import BlobRules
@@ -39,6 +42,56 @@ def test_expected_outline_is_the_cone_section_of_a_sphere():
         if ratio < 0.995:          # a circle has no major axis
             d = np.degrees(ang) - major_deg
             assert abs((d + 90) % 180 - 90) < 0.5
+
+
+def _silhouette_px(camera, X, R, n=360):
+    """The exact silhouette of a sphere (centre ``X`` camera frame mm, radius ``R`` mm): the
+    circle where its tangent cone from the camera touches it, projected through the camera's
+    distortion."""
+    D = np.linalg.norm(X)
+    d = X / D
+    sa, ca = R / D, np.sqrt(1 - (R / D) ** 2)
+    u = np.cross(d, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(d, u)
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return camera.project((D - R * sa) * d + R * ca * (np.cos(t)[:, None] * u + np.sin(t)[:, None] * v))
+
+
+def test_expected_outline_follows_lens_distortion():
+    """A 4 mm sphere at 250-900 mm anywhere in the image (corners included) under strong barrel
+    distortion: the outline expected from its image centre and size has the shape of its exact
+    projected silhouette (free ellipse through 360 silhouette points)."""
+    cam = CameraModel(np.array([[1100.0, 0, 641.3], [0, 1100.0, 358.2], [0, 0, 1]]),
+                      np.array([-0.35, 0.12, 0.001, -0.001, 0.0]), (1280, 720))
+    rng = np.random.default_rng(1)
+    for k in range(60):
+        px = np.array([rng.uniform(15, 1265), rng.uniform(15, 705)])
+        if k < 12:
+            px = np.array([rng.choice([20.0, 1260.0]), rng.choice([20.0, 700.0])])
+        xn = cam.undistort_points(px[None])[0]
+        X = np.array([xn[0], xn[1], 1.0]) * rng.uniform(250, 900)
+        (cx, cy), (d1, d2), ang = cv2.fitEllipse(_silhouette_px(cam, X, 4.0).astype(np.float32))
+        a, b, major = max(d1, d2) / 2, min(d1, d2) / 2, (ang if d1 >= d2 else ang + 90)
+        (ea, eb), emajor = expected_outlines(cam, [[cx, cy]], [b])[0]
+        assert abs(b / a - eb / ea) < 0.005
+        if b / a < 0.99:
+            assert abs((major - emajor + 90) % 180 - 90) < 0.5
+
+
+def test_no_outline_where_the_distortion_model_folds():
+    """A wide lens whose polynomial folds before the image corners: no outline is claimed there
+    (the edge fit falls back to a free ellipse), one is near the middle."""
+    cam = CameraModel(np.array([[600.0, 0, 640], [0, 600.0, 360], [0, 0, 1]]), np.array([-0.3, 0.08, 0, 0, -0.01]),
+                      (1280, 720))
+    out = expected_outlines(cam, [[640.0, 360.0], [5.0, 5.0]], [8.0, 8.0])
+    assert out[0] is not None and out[1] is None
+
+
+def test_a_detector_refuses_images_its_camera_does_not_fit():
+    det = ClassicalDetector(BlobRules(camera=CAMERA))
+    with pytest.raises(ValueError, match="ball outlines"):
+        det.detect(np.zeros((360, 640, 3), np.uint8))
 
 
 def _errors(imaging, cut: bool, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -90,7 +143,13 @@ def test_whole_balls_keep_their_recall_and_accuracy():
 
 
 def test_the_pose_tracker_gives_its_detector_the_camera():
+    """Also through the engine's detector wrapper (``KeepDetections``, which the simulated and
+    the streaming rigs hand to the tracker)."""
     rules = BlobRules(radius_mm=4.0, focal_px=FRAME_F_PX)
     det = ClassicalDetector(rules)
-    PoseTracker(np.random.default_rng(0).normal(0, 50, (6, 3)), CAMERA, detector=det)
+    X = np.random.default_rng(0).normal(0, 50, (6, 3))
+    PoseTracker(X, CAMERA, detector=det)
     assert det.rules.camera is CAMERA
+    keep = KeepDetections(CAMERA.K, 4.0)
+    PoseTracker(X, CAMERA, detector=keep)
+    assert keep.inner.rules.camera is CAMERA

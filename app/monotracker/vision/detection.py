@@ -106,8 +106,10 @@ class BlobRules:
     min_area_px: float = 12.0
     #: the calibrated camera (:class:`~.camera_model.CameraModel`) of the images, or None: with
     #: it each ball's edge is fitted with the outline a whole sphere has at its place in the
-    #: image (:mod:`.sphere_outline`), which keeps a ball cut by an occluder from a biased centre;
-    #: :class:`~.pose_tracker.PoseTracker` sets it
+    #: image (:mod:`.sphere_outline`), which keeps a ball cut by an occluder from a biased centre.
+    #: :class:`~.pose_tracker.PoseTracker` sets (replaces) it on its detector's rules: do not
+    #: share one BlobRules between detectors of different cameras. Images of another size than
+    #: the camera's are refused (ValueError)
     camera: object = None
 
     @property
@@ -241,6 +243,9 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
         ells = [cands[i].features["contour_ellipse"] for i in good]
         shapes = None
         if rules.camera is not None:
+            problem = rules.camera.frame_size_problem(refine_image.shape)
+            if problem:   # the pose tracker refuses such frames first: reaching here is a bug
+                raise ValueError(f"ball outlines: {problem}")
             shapes = expected_shapes(rules.camera, [e[0] for e in ells], [min(e[1]) / 2.0 for e in ells])
         fits = fit_ball_edges(refine_image, ells, edge_blur_px, shapes)
         edge_fits = dict(zip(good, fits))

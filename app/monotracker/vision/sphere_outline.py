@@ -23,15 +23,24 @@ import numpy as np
 _N_OUTLINE = 48
 
 
+#: a centre whose undistorted ray does not project back within this (px) lies where the
+#: calibration's distortion model folds (outside its valid field): no outline is claimed there
+ROUND_TRIP_PX = 0.1
+
+
 def expected_outlines(camera, centres_px, minors_px) -> list:
     """The image outlines of whole spheres seen at ``centres_px`` (m, 2) distorted px with minor
     semi-axes of about ``minors_px`` (m,) px (they set the angular radii): per sphere
-    ((semi-major, semi-minor) px, angle of the major axis in deg from +x towards +y).
-    ``camera``: a :class:`CameraModel` (intrinsics and distortion). ~25 us per sphere."""
+    ((semi-major, semi-minor) px, angle of the major axis in deg from +x towards +y), or None
+    where the calibration's distortion does not invert there (:data:`ROUND_TRIP_PX`) or the
+    outline is not finite. ``camera``: a :class:`CameraModel` (intrinsics and distortion).
+    ~25 us per sphere."""
     c = np.asarray(centres_px, float).reshape(-1, 2)
     if len(c) == 0:
         return []
     xn = camera.undistort_points(c)
+    back = camera.project(np.column_stack([xn, np.ones(len(xn))]))
+    valid = np.all(np.isfinite(back), axis=1) & (np.linalg.norm(back - c, axis=1) <= ROUND_TRIP_PX)
     d = np.column_stack([xn, np.ones(len(xn))])
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
@@ -47,14 +56,19 @@ def expected_outlines(camera, centres_px, minors_px) -> list:
                                              + np.sin(t)[None, :, None] * v[:, None, :])
     px = camera.project(ring.reshape(-1, 3)).reshape(len(c), _N_OUTLINE, 2).astype(np.float32)
     out = []
-    for ring_px in px:
+    for ok, ring_px in zip(valid, px):
+        if not ok or not np.all(np.isfinite(ring_px)):
+            out.append(None)
+            continue
         (_, _), (d1, d2), ang = cv2.fitEllipse(ring_px)
         major = float(ang) if d1 >= d2 else float(ang) + 90.0
-        out.append(((max(d1, d2) / 2.0, min(d1, d2) / 2.0), major))
+        out.append(((max(d1, d2) / 2.0, min(d1, d2) / 2.0), major) if min(d1, d2) > 0 else None)
     return out
 
 
 def expected_shapes(camera, centres_px, minors_px) -> list:
-    """Per sphere (minor / major, major axis angle deg) of :func:`expected_outlines`: the
-    ``shapes`` the edge fit takes (:func:`~.edge_fit.fit_ball_edges`)."""
-    return [(b / a, major) for (a, b), major in expected_outlines(camera, centres_px, minors_px)]
+    """Per sphere (minor / major, major axis angle deg) of :func:`expected_outlines`, or None
+    (no outline claimed: the edge fit fits a free ellipse there): the ``shapes`` the edge fit
+    takes (:func:`~.edge_fit.fit_ball_edges`)."""
+    return [None if o is None else (o[0][1] / o[0][0], o[1])
+            for o in expected_outlines(camera, centres_px, minors_px)]
