@@ -16,7 +16,11 @@ few choices with ``monotracker.sim``:
 * **sensor**: RGGB Bayer mosaic, shot noise (full well in electrons) and read noise, 12-bit
   quantisation, OpenCV's bilinear demosaicing (the simulator uses the edge-aware one), the sRGB
   transfer curve (piecewise; the simulator and the edge fit use a pure 2.2 power law);
-* **JPEG** through ``cv2.imencode`` (4:2:0 chroma) at a given quality.
+* **JPEG** through ``cv2.imencode`` (4:2:0 chroma) at a given quality;
+* optionally a straight-edged **occluder** in front of the ball (:class:`Occluder`), the
+  ellipse's shape given (a sphere's at its place, :func:`sphere_shape`), and whole frames:
+  :func:`render_in_frame` (one ball somewhere in a 1280 x 720 frame) and :func:`render_scene`
+  (spheres at their exact image ellipses, :func:`sphere_image_ellipse`, for the pose pipeline).
 
 The truth is the ellipse's centre (px, OpenCV convention: pixel centres at integers; a sample
 of the supersampled grid at (i + 0.5) / 8 - 0.5), which is what a detector must report: the
@@ -96,7 +100,8 @@ class Occluder:
 def render_ball(rng: np.random.Generator, radius_px: float, imaging: Imaging = Imaging(),
                 split: bool = True, size: int = 96, backgrounds: tuple | None = None,
                 gradient_per_px: float = 0.004, occluder: Occluder | None = None,
-                truth: dict | None = None, shape: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+                truth: dict | None = None, shape: tuple | None = None,
+                centre_px: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One uint8 BGR image (size x size) with one ball of ``radius_px`` (semi-major axis, px)
     within 8 px of its middle (size >= 2 * radius + 40 leaves room for the edge fit's rays);
     returns (image, true ellipse centre (2,) px). ``split``: two background colours with their
@@ -108,7 +113,8 @@ def render_ball(rng: np.random.Generator, radius_px: float, imaging: Imaging = I
     ellipse ``axes`` (semi-major, semi-minor px), ``angle_rad`` (of the major axis, from +x
     towards +y) and, with an occluder, ``cut_normal`` (unit 2-vector from the centre towards the
     hidden cap); ``shape``: (minor / major, major axis angle rad from +x towards +y) of the
-    ball's ellipse (e.g. a sphere's at some place in a camera's image; None: drawn at random)."""
+    ball's ellipse (e.g. a sphere's at some place in a camera's image; None: drawn at random);
+    ``centre_px``: the ellipse's centre in the image (px; None: drawn within 8 px of the middle)."""
     names = list(BACKGROUNDS)
     if backgrounds is None:
         i, j = rng.choice(len(names), 2, replace=False)
@@ -116,6 +122,8 @@ def render_ball(rng: np.random.Generator, radius_px: float, imaging: Imaging = I
     # anywhere within one JPEG MCU (16 px) and Bayer period of the middle: the ball must not sit
     # at the same place on the 8 x 8 / 16 x 16 block grid in every render
     c = size / 2 + rng.uniform(-8.0, 8.0, 2)
+    if centre_px is not None:
+        c = np.asarray(centre_px, float)
     a = radius_px
     b = a * rng.uniform(0.88, 1.0)
     th = rng.uniform(0, np.pi)
@@ -230,3 +238,41 @@ def render_in_frame(rng: np.random.Generator, imaging: Imaging = Imaging(), occl
     frame = np.full((FRAME_SIZE[1], FRAME_SIZE[0], 3), 128, np.uint8)
     frame[oy:oy + 96, ox:ox + 96] = patch
     return frame, c + [ox, oy]
+
+
+def sphere_image_ellipse(X_cam, radius_mm: float) -> tuple[np.ndarray, float, float, float]:
+    """The exact image ellipse of a sphere (centre ``X_cam`` camera frame mm, z > 0, radius mm)
+    under the camera of :func:`render_in_frame`: (centre (2,) px, semi-major px, semi-minor px,
+    major axis angle rad). The rays p = (x, y, 1) tangent to the sphere satisfy
+    (p . X)^2 = |p|^2 (|X|^2 - R^2): a conic in the normalised image plane; its centre and axes
+    are mapped to pixels with the focal length and principal point."""
+    X = np.asarray(X_cam, float)
+    C = np.outer(X, X) - (X @ X - radius_mm**2) * np.eye(3)   # p^T C p = 0
+    A2, b2, c0 = C[:2, :2], C[:2, 2], C[2, 2]
+    centre = -np.linalg.solve(A2, b2)
+    k = centre @ A2 @ centre + 2 * b2 @ centre + c0             # conic at its centre
+    w, V = np.linalg.eigh(-A2 / k)                               # (q - c)^T (-A2 / k) (q - c) = 1
+    axes = 1.0 / np.sqrt(w)                                      # w ascending: major first
+    major = V[:, 0]
+    f, (cx, cy) = FRAME_F_PX, FRAME_PRINCIPAL_PX
+    return (np.array([cx, cy]) + f * centre, float(f * axes[0]), float(f * axes[1]),
+            float(np.arctan2(major[1], major[0])))
+
+
+def render_scene(rng: np.random.Generator, X_cam: np.ndarray, radius_mm: float, imaging: Imaging = Imaging(),
+                 occluders: dict | None = None, background: str = "fair skin") -> tuple[np.ndarray, np.ndarray]:
+    """A FRAME_SIZE uint8 BGR frame of spheres (centres ``X_cam`` (n, 3) camera frame mm, radius
+    mm) seen by the camera of :func:`render_in_frame`, each rendered by :func:`render_ball` at its
+    exact image ellipse (:func:`sphere_image_ellipse`) in a 96 x 96 patch of ``background``
+    pasted into a plain frame; ``occluders``: {ball index: :class:`Occluder`}. Returns (frame,
+    true ellipse centres (n, 2) px). Balls must be >= 48 px inside the frame and >= 96 px apart."""
+    frame = np.full((FRAME_SIZE[1], FRAME_SIZE[0], 3), 128, np.uint8)
+    centres = []
+    for i, X in enumerate(np.asarray(X_cam, float)):
+        c, a, b, th = sphere_image_ellipse(X, radius_mm)
+        o = np.floor(c).astype(int) - 48
+        patch, cc = render_ball(rng, a, imaging, split=False, backgrounds=(background, background),
+                                occluder=(occluders or {}).get(i), shape=(b / a, th), centre_px=c - o)
+        frame[o[1]:o[1] + 96, o[0]:o[0] + 96] = patch
+        centres.append(cc + o)
+    return frame, np.array(centres)
