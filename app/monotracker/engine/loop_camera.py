@@ -62,8 +62,7 @@ class CameraCommands:
             self.gate.set_anchor(anchor)
         why = self.s._store_camera(self.camera_source, self.calibration_path, rig.K, rig.dist, rig.image_size)
         if why:
-            rig.stop()
-            self.s._alarm_board.clear_all(CAMERA_SETUP_CODES, self.now())
+            self._stop_rig(rig)
             with self._lock:
                 self.rig = None
                 self.camera_error = why
@@ -81,13 +80,18 @@ class CameraCommands:
         rig = self.rig
         if rig is None or not rig.running:
             return CommandResult(True, "camera not running")
-        rig.running = False
-        rig.stop()
+        self._stop_rig(rig)
         self.s.record("camera_stopped", "camera stopped")
-        self.s._alarm_board.clear_all(POSE_CODES + CAMERA_SETUP_CODES, self.now())
+        self.s._alarm_board.clear_all(POSE_CODES, self.now())
         self._hold("camera_stopped", "camera stopped")
         self.invalidate_pose("camera stopped", hold=False)
         return CommandResult(True, "camera stopped")
+
+    def _stop_rig(self, rig) -> None:
+        """Stop ``rig``; the conditions of its setup (:data:`~.alarms.CAMERA_SETUP_CODES`) go with it."""
+        rig.running = False
+        rig.stop()
+        self.s._alarm_board.clear_all(CAMERA_SETUP_CODES, self.now())
 
     def invalidate_pose(self, why: str, hold: bool = True) -> None:
         """Forget the pose: it no longer belongs to the current plan/camera (new CT, new plan,
@@ -112,9 +116,7 @@ class CameraCommands:
         rig = self.rig
         was_running = rig is not None and rig.running
         if was_running:
-            rig.running = False
-            rig.stop()
-            self.s._alarm_board.clear_all(CAMERA_SETUP_CODES, self.now())
+            self._stop_rig(rig)
             self.s.record("camera_stopped", f"camera stopped: {why}")
         self.invalidate_pose(why)
         if was_running and restart_camera:
