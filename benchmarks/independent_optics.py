@@ -29,6 +29,7 @@ import argparse
 import os
 import sys
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -37,8 +38,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from camera_pipeline import EDGE_R5, EdgeSettings  # noqa: E402
-from independent_render import (FRAME_F_PX, FRAME_PRINCIPAL_PX, FRAME_SIZE, Imaging, Occluder,  # noqa: E402
-                                render_ball, render_in_frame)
+from independent_render import (FRAME_F_PX, FRAME_K, FRAME_SIZE, Imaging, Occluder, render_ball,  # noqa: E402
+                                render_in_frame)
 
 from monotracker.vision import edge_fit  # noqa: E402
 from monotracker.vision.camera_model import CameraModel  # noqa: E402
@@ -145,12 +146,10 @@ def main(argv=None):
 def cut_table(n: int, seed: int) -> None:
     """Cut and whole balls in frames, the detector without and with the camera (see the module
     docstring)."""
-    cam = CameraModel(np.array([[FRAME_F_PX, 0, FRAME_PRINCIPAL_PX[0]], [0, FRAME_F_PX, FRAME_PRINCIPAL_PX[1]],
-                                [0, 0, 1]]), np.zeros(5), FRAME_SIZE)
+    cam = CameraModel(FRAME_K, np.zeros(5), FRAME_SIZE)
     rules = BlobRules(radius_mm=4.0, focal_px=FRAME_F_PX, min_distance_mm=250.0)
     dets = (("edge-free", ClassicalDetector(rules)),
-            ("edge", ClassicalDetector(BlobRules(radius_mm=4.0, focal_px=FRAME_F_PX, min_distance_mm=250.0,
-                                                 camera=cam))))
+            ("edge", ClassicalDetector(replace(rules, camera=cam))))
     print(f"\nCut balls (15-35 % of the radius hidden) and whole balls in 1280 x 720 frames, {n} per cell")
     print(f"{'condition':<26} {'balls':<6} {'detector':<9} {'accepted':>8} {'> 0.5 px':>8} {'worst px':>8} "
           f"{'mean px':>7}")

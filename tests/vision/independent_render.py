@@ -210,6 +210,9 @@ def render_ball(rng: np.random.Generator, radius_px: float, imaging: Imaging = I
 FRAME_F_PX = 1100.0
 FRAME_PRINCIPAL_PX = (640.0, 360.0)
 FRAME_SIZE = (1280, 720)
+#: its intrinsic matrix (px; no distortion): ``CameraModel(FRAME_K, np.zeros(5), FRAME_SIZE)``
+FRAME_K = np.array([[FRAME_F_PX, 0.0, FRAME_PRINCIPAL_PX[0]], [0.0, FRAME_F_PX, FRAME_PRINCIPAL_PX[1]],
+                    [0.0, 0.0, 1.0]])
 
 
 def sphere_shape(xy_px, minor_px: float) -> tuple[float, float]:

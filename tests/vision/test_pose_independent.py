@@ -11,16 +11,14 @@ never happen; whole-ball frames must be trusted and right (< 1 mm)."""
 from __future__ import annotations
 
 import numpy as np
-from independent_render import (FRAME_F_PX, FRAME_PRINCIPAL_PX, FRAME_SIZE, Imaging, Occluder, render_scene,
-                                sphere_image_ellipse)
+from independent_render import FRAME_K, FRAME_SIZE, Imaging, Occluder, render_scene, sphere_image_ellipse
 
 from monotracker.geometry import apply_transform
 from monotracker.vision.camera_model import CameraModel
 from monotracker.vision.frames import Frame
 from monotracker.vision.pose_tracker import PoseTracker
 
-CAMERA = CameraModel(np.array([[FRAME_F_PX, 0, FRAME_PRINCIPAL_PX[0]], [0, FRAME_F_PX, FRAME_PRINCIPAL_PX[1]],
-                               [0, 0, 1]]), np.zeros(5), FRAME_SIZE)
+CAMERA = CameraModel(FRAME_K, np.zeros(5), FRAME_SIZE)
 RADIUS_MM = 4.0
 SHARP_RAW = Imaging(defocus_px=0.0, gauss_px=0.4, jpeg_quality=0)
 BLURRED_JPEG = Imaging(defocus_px=1.5, gauss_px=0.5, jpeg_quality=85)

@@ -15,8 +15,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
-from independent_render import (FRAME_F_PX, FRAME_PRINCIPAL_PX, FRAME_SIZE, Imaging, Occluder, render_in_frame,
-                                sphere_shape)
+from independent_render import FRAME_F_PX, FRAME_K, FRAME_SIZE, Imaging, Occluder, render_in_frame, sphere_shape
 
 from monotracker.engine.verification import KeepDetections
 from monotracker.vision.camera_model import CameraModel
@@ -25,8 +24,7 @@ from monotracker.vision.detection import BlobRules
 from monotracker.vision.pose_tracker import PoseTracker
 from monotracker.vision.sphere_outline import expected_outlines
 
-CAMERA = CameraModel(np.array([[FRAME_F_PX, 0, FRAME_PRINCIPAL_PX[0]], [0, FRAME_F_PX, FRAME_PRINCIPAL_PX[1]],
-                               [0, 0, 1]]), np.zeros(5), FRAME_SIZE)
+CAMERA = CameraModel(FRAME_K, np.zeros(5), FRAME_SIZE)
 SHARP_RAW = Imaging(defocus_px=0.0, gauss_px=0.4, jpeg_quality=0)
 BLURRED_JPEG = Imaging(defocus_px=1.5, gauss_px=0.5, jpeg_quality=85)
 OCCLUDERS = ("blue glove", "steel", "white gauze", "fair skin", "blue drape", "teal drape")
