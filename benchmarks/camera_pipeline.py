@@ -64,7 +64,7 @@ class BaselineDetector:
     def __init__(self):
         self._c = ClassicalDetector()
 
-    def detect(self, image):
+    def detect(self, image, hint=None):
         t0 = time.perf_counter()
         m = self._c.mask(image)
         n, _, stats, cents = cv2.connectedComponentsWithStats(m, connectivity=8)
@@ -79,9 +79,9 @@ class Recording:
     def __init__(self, det, name):
         self.det, self.name, self.last, self.cpu = det, name, None, []
 
-    def detect(self, image):
+    def detect(self, image, hint=None):
         c0 = time.process_time()
-        self.last = self.det.detect(image)
+        self.last = self.det.detect(image, hint)
         self.cpu.append(time.process_time() - c0)
         return self.last
 
@@ -93,14 +93,14 @@ class EdgeSettings:
     def __init__(self, det, **settings):
         self.det, self.settings, self.name = det, settings, det.name
 
-    def detect(self, image):
+    def detect(self, image, hint=None):
         from monotracker.vision import edge_fit
 
         old = {k: getattr(edge_fit, k) for k in self.settings}
         for k, v in self.settings.items():
             setattr(edge_fit, k, v)
         try:
-            return self.det.detect(image)
+            return self.det.detect(image, hint)
         finally:
             for k, v in old.items():
                 setattr(edge_fit, k, v)

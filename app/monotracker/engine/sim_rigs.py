@@ -293,7 +293,8 @@ class SimImageRig(_SimRig):
         self.image_size = tuple(self.camera_model.image_size)
         self.detector = KeepDetections(self.K, self.radius_mm)
         self.tracker = PoseTracker(self.fiducials_ct, self.camera_model, detector=self.detector,
-                                   radius_mm=self.radius_mm, target_ct=self.target_ct)
+                                   radius_mm=self.radius_mm, target_ct=self.target_ct,
+                                   watch_ct=self.validation.centres_ct)   # validation balls searched too
 
     def capture(self, t: float) -> _ImageFrame:
         if self.fault == "camera-freeze" and self._last_frame is not None:

@@ -96,7 +96,7 @@ class StreamRig(CameraRig):
                           f"more than uncompressed (JPEG 85); {advice}")
         self.detector = KeepDetections(model.K, radius)  # keeps the blobs for the validation fiducials
         tracker = PoseTracker(plan.registration_centres(), model, detector=self.detector, radius_mm=radius,
-                              target_ct=plan.target_lps_mm)
+                              target_ct=plan.target_lps_mm, watch_ct=self.validation.centres_ct)
         if max_predicted_tre_mm is not None:
             tracker.config.max_predicted_tre_mm = float(max_predicted_tre_mm)
         if model.ball_colour is not None:

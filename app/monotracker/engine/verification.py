@@ -27,9 +27,11 @@ VERIFICATION_FILE = "verification.json"
 
 class KeepDetections:
     """The detector the pose tracker uses by default (classical, same rules), remembering the last
-    frame's blob centres (px) so that validation fiducials, which the fit ignores, can be found,
-    and the share of that frame covered by ball-coloured areas too large for a ball
-    (``colour_share``, 0-1; :func:`~monotracker.vision.detection.oversized_colour_share`)."""
+    frame's blob centres (px) so that validation fiducials, which the fit ignores, can be found
+    (the pose tracker puts them in the detector's hint: ``PoseTracker(watch_ct=...)``), and the
+    share of the image covered by ball-coloured areas too large for a ball (``colour_share``,
+    0-1; :func:`~monotracker.vision.detection.oversized_colour_share`), as of the last
+    full-frame search (a search of windows around the predicted balls cannot measure it)."""
 
     def __init__(self, K: np.ndarray, radius_mm: float):
         from monotracker.vision.detect_classical import ClassicalDetector
@@ -39,12 +41,13 @@ class KeepDetections:
         self.last = np.zeros((0, 2))
         self.colour_share = 0.0
 
-    def detect(self, image):
+    def detect(self, image, hint=None):
         from monotracker.vision.detection import oversized_colour_share
 
-        det = self.inner.detect(image)
+        det = self.inner.detect(image, hint)
         self.last = np.asarray(det.centres, float).reshape(-1, 2)
-        self.colour_share = oversized_colour_share(det, self.inner.rules, image.shape)
+        if hint is None:
+            self.colour_share = oversized_colour_share(det, self.inner.rules, image.shape)
         return det
 
     def __getattr__(self, name):

@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from .ball_colour import BallColour
-from .detection import BlobRules, Detection, analyse_blobs
+from .detection import BlobRules, Detection, DetectionHint, analyse_blobs
 
 
 @dataclass
@@ -56,7 +56,9 @@ class ClassicalDetector:
         band = BallColour(self.hue_lo, self.hue_hi, self.sat_min, self.val_min)
         return cv2.morphologyEx(band.mask(image), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
 
-    def detect(self, image: np.ndarray) -> Detection:
+    def detect(self, image: np.ndarray, hint: DetectionHint | None = None) -> Detection:
+        """Balls in ``image`` (BGR uint8). ``hint``: the balls' predicted ellipses
+        (:class:`~.detection.DetectionHint`) or None; (this step: always a full-frame search)."""
         t0 = time.perf_counter()
         accepted, rejected = analyse_blobs(image, self.mask(image), self.rules, self.name,
                                            centre_method=self.centre_method)

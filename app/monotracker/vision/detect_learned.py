@@ -116,9 +116,10 @@ class LearnedDetector:
             out[y0:y1, x0:x1] |= m.astype(np.uint8) * 255
         return out
 
-    def detect(self, image: np.ndarray) -> Detection:
+    def detect(self, image: np.ndarray, hint=None) -> Detection:
         """Balls in ``image``; a refusal (``Detection.refusal``, no fiducials) instead of a guess
-        when the network outputs rings (balls larger than it was trained on) or nothing."""
+        when the network outputs rings (balls larger than it was trained on) or nothing.
+        ``hint`` (:class:`~.detection.DetectionHint`) is ignored: the network sees the whole frame."""
         t0 = time.perf_counter()
         mask = self.mask(image)
         rings = _ring_blobs(mask)

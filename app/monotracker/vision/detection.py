@@ -83,6 +83,60 @@ class Detection:
         return np.array([f.score for f in self.fiducials], float)
 
 
+@dataclass(frozen=True)
+class DetectionHint:
+    """Where the balls should be in the next frame: their image ellipses predicted from the last
+    trusted pose (:meth:`from_pose`). A detector given one (``detect(image, hint)``) may search
+    windows around these ellipses only; ``hint=None`` means a full-frame search. A hint is a
+    prediction, not a measurement: a detector must still find and fit every ball in the image,
+    and report nothing where it finds none.
+
+    Attributes:
+        centres_px: (n, 2) float, distorted px: predicted ellipse centres (the image of each
+            sphere's silhouette, not the projected sphere centre).
+        axes_px: (n, 2) float, px: predicted semi-axes (semi-major, semi-minor).
+        angles_deg: (n,) float, deg: major axis direction, from +x towards +y (image axes).
+        fiducial_indices: (n,) int: which fiducial (index into the pose tracker's CT array; the
+            tracker's watched extra balls follow after its registration fiducials) each row is.
+        frame_index: index of the frame whose trusted pose made the prediction.
+        age_frames: frames between that pose and the frame to search (>= 1): the balls may have
+            moved further the older the pose, so a detector widens its windows with it.
+    """
+
+    centres_px: np.ndarray
+    axes_px: np.ndarray
+    angles_deg: np.ndarray
+    fiducial_indices: np.ndarray
+    frame_index: int = -1
+    age_frames: int = 1
+
+    def __post_init__(self):
+        c = np.asarray(self.centres_px, float).reshape(-1, 2)
+        n = len(c)
+        object.__setattr__(self, "centres_px", c)
+        object.__setattr__(self, "axes_px", np.asarray(self.axes_px, float).reshape(n, 2))
+        object.__setattr__(self, "angles_deg", np.asarray(self.angles_deg, float).reshape(n))
+        object.__setattr__(self, "fiducial_indices", np.asarray(self.fiducial_indices, int).reshape(n))
+
+    def __len__(self) -> int:
+        return len(self.centres_px)
+
+    @classmethod
+    def from_pose(cls, camera, T_cam_ct: np.ndarray, centres_ct, radius_mm: float, frame_index: int = -1,
+                  age_frames: int = 1, fiducial_indices=None) -> "DetectionHint":
+        """The image ellipses of spheres of ``radius_mm`` (mm) at ``centres_ct`` ((n, 3) CT mm)
+        under the pose ``T_cam_ct`` (4x4, CT mm -> camera mm) seen by ``camera`` (a
+        :class:`~.camera_model.CameraModel`, lens distortion included). Balls behind the camera,
+        or where the distortion model does not invert, are left out."""
+        from .sphere_outline import sphere_ellipses
+
+        X = np.asarray(centres_ct, float).reshape(-1, 3)
+        idx = np.arange(len(X)) if fiducial_indices is None else np.asarray(fiducial_indices, int).reshape(-1)
+        Xc = X @ np.asarray(T_cam_ct, float)[:3, :3].T + np.asarray(T_cam_ct, float)[:3, 3]
+        cen, axes, ang, ok = sphere_ellipses(camera, Xc, radius_mm)
+        return cls(cen[ok], axes[ok], ang[ok], idx[ok], int(frame_index), max(int(age_frames), 1))
+
+
 def oversized_colour_share(det: "Detection", rules: "BlobRules", image_shape) -> float:
     """Share (0-1) of the image covered by ball-coloured blobs larger than any ball can image
     (area over that of a disc of 1.5 x the largest ball radius, ``rules``): a drape, a cover or a

@@ -1,6 +1,6 @@
 """A detector that hands over given points: replaying recorded detections, tests, benchmarks.
 
-:class:`PointDetector` has the detectors' interface (``detect(image) -> Detection``) but ignores
+:class:`PointDetector` has the detectors' interface (``detect(image, hint=None) -> Detection``) but ignores
 the image: it returns the ball centres (px) and minor semi-axes (px) set with :meth:`set`. With
 it, the pose stream's trust logic runs on point-level scenes with exact ground truth
 (``monotracker.sim.scenes``) or on detections recorded elsewhere.
@@ -26,7 +26,8 @@ class PointDetector:
         self.points = np.asarray(points_px, float).reshape(-1, 2)
         self.minor = np.asarray(minor_axes_px, float).reshape(-1)
 
-    def detect(self, image) -> Detection:
+    def detect(self, image, hint=None) -> Detection:
+        """The points set with :meth:`set` (``image`` and ``hint`` are ignored)."""
         fids = [ImageFiducial(np.array(p, float), (float(b), float(b)), 0.0, 1.0, float(np.pi * b * b))
                 for p, b in zip(self.points, self.minor)]
         return Detection(fids, [], 0.0, self.name)

@@ -165,6 +165,13 @@ class TrackerConfig:
     #: the TRE gates use this one-sided upper confidence bound of the noise estimate (a sigma
     #: from few dof may be low by chance); benchmarks/pose_trust.py table 5 measures the choice
     noise_bound_confidence: float = 0.95
+    #: the detector gets a :class:`~.detection.DetectionHint` (the balls' predicted ellipses)
+    #: while the last trusted pose is at most this many frames old (and within
+    #: ``prior_max_age_s``); 0 = never (every frame a full-frame search)
+    hint_max_age_frames: int = 3
+    #: ... and every this many frames it searches the whole frame all the same (new balls,
+    #: strays, a drape of the balls' colour); 0 = only when no trusted pose is fresh
+    full_search_every: int = 30
 
 
 class PoseTracker:
@@ -181,12 +188,21 @@ class PoseTracker:
         radius_mm: ball radius, mm (the registration corrects the ellipse-centre bias with it).
         target_ct: (3,) float, CT LPS mm: planned target for ``predicted_tre_mm``, or None.
         config: the gates (:class:`TrackerConfig`); defaults when None.
+        watch_ct: (m, 3) float, CT LPS mm, or None: further balls (validation fiducials) that are
+            not registered but whose predicted ellipses go into the detector's hint (indices
+            n .. n+m-1), so that a detector searching windows finds them too.
+
+    The detector is called ``detect(image, hint)`` (a detector whose ``detect`` takes no
+    ``hint`` is called ``detect(image)``): ``hint`` is a :class:`~.detection.DetectionHint`
+    from the last trusted pose while it is fresh (:attr:`TrackerConfig.hint_max_age_frames`),
+    None (a full-frame search) otherwise and every :attr:`TrackerConfig.full_search_every` frames.
 
     :meth:`process` never raises for a bad frame: it returns ``ok=False`` with a ``code``.
     """
 
     def __init__(self, fiducials_ct: np.ndarray, camera: CameraModel, detector=None, radius_mm: float = 4.0,
-                 target_ct: np.ndarray | None = None, config: TrackerConfig | None = None):
+                 target_ct: np.ndarray | None = None, config: TrackerConfig | None = None,
+                 watch_ct: np.ndarray | None = None):
         from .detect_classical import ClassicalDetector
         from .detection import BlobRules
 
@@ -199,6 +215,9 @@ class PoseTracker:
             rules.camera = camera   # ball edges fitted with a whole sphere's outline (sphere_outline)
         self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
         self.config = config or TrackerConfig()
+        self.watch_ct = np.zeros((0, 3)) if watch_ct is None else np.asarray(watch_ct, float).reshape(-1, 3)
+        self._takes_hint = _takes_hint(self.detector)
+        self._last_full_index = -(10**9)
         from monotracker.registration.noise import OnlineNoise
 
         n = len(self.fiducials_ct)
@@ -217,7 +236,8 @@ class PoseTracker:
     def reset(self) -> None:
         """Forget the previous frames, the noise estimate and the excluded (moved) fiducials:
         for a new registration after the operator re-checked the fiducials."""
-        self.__init__(self.fiducials_ct, self.camera, self.detector, self.radius_mm, self.target_ct, self.config)
+        self.__init__(self.fiducials_ct, self.camera, self.detector, self.radius_mm, self.target_ct, self.config,
+                      self.watch_ct)
 
     def set_target(self, target_ct: np.ndarray | None) -> None:
         """Planned target, (3,) CT LPS mm, for ``predicted_tre_mm`` (None: no target)."""
@@ -250,10 +270,13 @@ class PoseTracker:
         size_problem = self.camera.frame_size_problem(frame.image.shape)
         if size_problem:
             return self._invalid(frame.index, frame.t_capture, "frame_size", size_problem, truth=frame.truth)
-        det = self.detector.detect(frame.image)
-        pts = det.centres
         fresh = (frame.index == self._last_T_index + 1 or frame.t_capture - self._last_T_time <= cfg.prior_max_age_s)
         prior = self._last_T if fresh else None
+        hint = self.hint(frame.index, frame.t_capture) if self._takes_hint else None
+        if hint is None:
+            self._last_full_index = frame.index
+        det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
+        pts = det.centres
         known_sigma = self.noise.peek(0.0, 0)
         t0 = time.perf_counter()
         scr = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
@@ -385,6 +408,24 @@ class PoseTracker:
             truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
             moved=new_moved, excluded=sorted(self.excluded))
 
+    def hint(self, frame_index: int, t_capture: float):
+        """The :class:`~.detection.DetectionHint` for frame ``frame_index`` (captured at
+        ``t_capture``, monotonic s): the registration and watched balls' ellipses predicted from
+        the last trusted pose, or None (a full-frame search) when that pose is older than
+        :attr:`TrackerConfig.hint_max_age_frames` frames or ``prior_max_age_s``, or a full search
+        is due (:attr:`TrackerConfig.full_search_every`)."""
+        from .detection import DetectionHint
+
+        cfg = self.config
+        age = frame_index - self._last_T_index
+        if (self._last_T is None or cfg.hint_max_age_frames <= 0 or not 1 <= age <= cfg.hint_max_age_frames
+                or t_capture - self._last_T_time > cfg.prior_max_age_s):
+            return None
+        if cfg.full_search_every > 0 and frame_index - self._last_full_index >= cfg.full_search_every:
+            return None
+        X = np.vstack([self.fiducials_ct, self.watch_ct])
+        return DetectionHint.from_pose(self.camera, self._last_T, X, self.radius_mm, self._last_T_index, age)
+
     def _invalid(self, frame_index: int, t_capture: float, code: str, reason: str, camera: str = "ok",
                  truth=None) -> PoseEstimate:
         """An invalid estimate that saw nothing (camera fault, unusable frame); the alert is
@@ -410,3 +451,14 @@ class PoseTracker:
         est = self._invalid(frame_index, t_capture, CAMERA_CODES.get(camera, "camera_freeze"), reason, camera)
         est.alerts = [reason]
         return est
+
+
+def _takes_hint(detector) -> bool:
+    """True when ``detector.detect`` accepts a second argument (the hint)."""
+    import inspect
+
+    try:
+        params = list(inspect.signature(detector.detect).parameters.values())
+    except (TypeError, ValueError):
+        return False
+    return len(params) >= 2 or any(p.kind == p.VAR_POSITIONAL for p in params)

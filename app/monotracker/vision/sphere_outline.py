@@ -28,6 +28,58 @@ _N_OUTLINE = 48
 ROUND_TRIP_PX = 0.1
 
 
+def _silhouette_rings(camera, centres_cam: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """(m, N, 2) float32 distorted px: :data:`_N_OUTLINE` points of the silhouette (tangent
+    circle) of spheres centred at ``centres_cam`` ((m, 3), camera frame, any length unit) with
+    angular radii ``alpha`` ((m,) rad). The silhouette circle of a sphere at distance D along
+    the unit direction d: centre cos^2(alpha) D d, radius sin(alpha) cos(alpha) D."""
+    C = np.asarray(centres_cam, float).reshape(-1, 3)
+    dist = np.linalg.norm(C, axis=1, keepdims=True)
+    d = C / np.maximum(dist, 1e-12)
+    ref = np.where(np.abs(d[:, 1:2]) < 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    u = np.cross(d, ref)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(d, u)
+    t = np.linspace(0, 2 * np.pi, _N_OUTLINE, endpoint=False)
+    ca, sa = np.cos(alpha)[:, None, None], np.sin(alpha)[:, None, None]
+    ring = dist[:, None, :] * (ca**2 * d[:, None, :] + sa * ca * (np.cos(t)[None, :, None] * u[:, None, :]
+                                                               + np.sin(t)[None, :, None] * v[:, None, :]))
+    return camera.project(ring.reshape(-1, 3)).reshape(len(C), _N_OUTLINE, 2).astype(np.float32)
+
+
+def _fit_ring(ring_px: np.ndarray):
+    """((cx, cy), (semi-major, semi-minor), major axis deg) of an outline's points, or None."""
+    if not np.all(np.isfinite(ring_px)):
+        return None
+    (cx, cy), (d1, d2), ang = cv2.fitEllipse(ring_px)
+    if not min(d1, d2) > 0:
+        return None
+    major = float(ang) if d1 >= d2 else float(ang) + 90.0
+    return (float(cx), float(cy)), (max(d1, d2) / 2.0, min(d1, d2) / 2.0), major
+
+
+def sphere_ellipses(camera, centres_cam_mm, radius_mm: float):
+    """The image ellipses of spheres of ``radius_mm`` centred at ``centres_cam_mm`` ((m, 3) mm,
+    OpenCV camera frame), lens distortion included: (centres (m, 2) distorted px, semi-axes
+    (m, 2) px (major, minor), major axis angles (m,) deg from +x towards +y, ok (m,) bool).
+    Not ok: a sphere not fully in front of the camera, or whose outline does not project to
+    finite points. ~25 us per sphere."""
+    C = np.asarray(centres_cam_mm, float).reshape(-1, 3)
+    m = len(C)
+    cen, axes, ang, ok = np.full((m, 2), np.nan), np.full((m, 2), np.nan), np.zeros(m), np.zeros(m, bool)
+    if m == 0:
+        return cen, axes, ang, ok
+    dist = np.linalg.norm(C, axis=1)
+    front = C[:, 2] > 1.5 * float(radius_mm)
+    alpha = np.arcsin(np.clip(float(radius_mm) / np.maximum(dist, 1e-9), 0.0, 0.999))
+    rings = _silhouette_rings(camera, C, alpha)
+    for i in np.flatnonzero(front):
+        e = _fit_ring(rings[i])
+        if e is not None:
+            cen[i], axes[i], ang[i], ok[i] = e[0], e[1], e[2], True
+    return cen, axes, ang, ok
+
+
 def expected_outlines(camera, centres_px, minors_px) -> list:
     """The image outlines of whole spheres seen at ``centres_px`` (m, 2) distorted px with minor
     semi-axes of about ``minors_px`` (m,) px (they set the angular radii): per sphere
@@ -45,24 +97,11 @@ def expected_outlines(camera, centres_px, minors_px) -> list:
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     f = float(np.sqrt(camera.K[0, 0] * camera.K[1, 1]))
     alpha = np.arctan2(np.maximum(np.asarray(minors_px, float).reshape(-1), 0.5), f)
-    # the silhouette circle of a sphere at distance 1: centre cos^2(alpha) d, radius sin cos
-    ref = np.where(np.abs(d[:, 1:2]) < 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
-    u = np.cross(d, ref)
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    v = np.cross(d, u)
-    t = np.linspace(0, 2 * np.pi, _N_OUTLINE, endpoint=False)
-    ca, sa = np.cos(alpha)[:, None, None], np.sin(alpha)[:, None, None]
-    ring = ca**2 * d[:, None, :] + sa * ca * (np.cos(t)[None, :, None] * u[:, None, :]
-                                             + np.sin(t)[None, :, None] * v[:, None, :])
-    px = camera.project(ring.reshape(-1, 3)).reshape(len(c), _N_OUTLINE, 2).astype(np.float32)
+    px = _silhouette_rings(camera, d, alpha)
     out = []
     for ok, ring_px in zip(valid, px):
-        if not ok or not np.all(np.isfinite(ring_px)):
-            out.append(None)
-            continue
-        (_, _), (d1, d2), ang = cv2.fitEllipse(ring_px)
-        major = float(ang) if d1 >= d2 else float(ang) + 90.0
-        out.append(((max(d1, d2) / 2.0, min(d1, d2) / 2.0), major) if min(d1, d2) > 0 else None)
+        e = _fit_ring(ring_px) if ok else None
+        out.append(None if e is None else (e[1], e[2]))
     return out
 
 
