@@ -11,7 +11,7 @@ from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detection import DetectionHint
 from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
 
-from .independent_render import FRAME_K, FRAME_SIZE, sphere_image_ellipse
+from independent_render import FRAME_K, FRAME_SIZE, sphere_image_ellipse
 
 PH = default_phantom()
 
@@ -100,3 +100,65 @@ def test_tracker_calls_a_detector_without_a_hint_parameter():
     cam = SimulatedCamera(seed=1, max_frames=3)
     trk = PoseTracker(PH.fiducial_centres_lps, cam.camera, detector=Old(), radius_mm=PH.fiducial_radius_mm)
     assert all(trk.process(f).ok for f in cam) and len(calls) == 3
+
+
+def _truth_hint(cam, tr, age=1):
+    return DetectionHint.from_pose(cam.camera, tr.T_cam_ct, cam.fiducials_ct, cam.phantom.fiducial_radius_mm,
+                                   frame_index=0, age_frames=age)
+
+
+def test_window_search_finds_the_balls_of_a_full_search_and_no_stray_outside():
+    """With the balls' ellipses predicted, only windows around them are searched: the same balls
+    at the same centres as a full-frame search, and a round ball-sized green stray far from
+    them (which the full search accepts as a ball) is not reported."""
+    from monotracker.sim.camera_sim import SceneEvents, Stray
+
+    cam = SimulatedCamera(seed=0, events=SceneEvents(strays=[Stray(0, 5, (900.0, 380.0), 9.0, "round", 5)]))
+    img, tr = cam.render(0.5)
+    from monotracker.vision.detection import BlobRules
+
+    det = ClassicalDetector(BlobRules(camera=cam.camera))
+    full = det.detect(img)
+    stray = np.array([900.0, 380.0])
+    assert np.linalg.norm(full.centres - stray, axis=1).min() < 3     # the full search takes it
+    win = det.detect(img, _truth_hint(cam, tr))
+    assert len(win.fiducials) == 9
+    assert np.linalg.norm(win.centres - stray, axis=1).min() > 100
+    d = np.linalg.norm(win.centres[:, None] - tr.ellipse_centres_px[None], axis=2)
+    assert sorted(d.argmin(1)) == list(range(9)) and d.min(1).max() < 0.3
+    near = np.linalg.norm(full.centres[:, None] - win.centres[None], axis=2).min(0)
+    assert near.max() < 0.02, near
+
+
+def test_window_search_refuses_a_blob_larger_than_its_window():
+    """A ball-coloured patch reaching into a ball's window from outside it (a drape of the balls'
+    hue) is refused as extending beyond the window, not cut down to a ball-sized blob."""
+    cam = SimulatedCamera(seed=0)
+    img, tr = cam.render(0.5)
+    det = ClassicalDetector()
+    det.detect(img)                                   # a full search first (measures the blur)
+    hint = _truth_hint(cam, tr)
+    k = 4
+    c = tr.ellipse_centres_px[k]
+    a = hint.axes_px[k, 0]
+    img = img.copy()
+    # a green strip from 2 radii right of ball k (inside its window) to far beyond the window
+    x0 = int(c[0] + 2 * a)
+    img[int(c[1] - a):int(c[1] + a), x0:x0 + 300] = (40, 160, 40)
+    d = det.detect(img, hint)
+    assert np.linalg.norm(d.centres - [x0 + 10, c[1]], axis=1).min() > 20
+    assert any(r.reason.startswith("extends beyond its search window") for r in d.rejected)
+    assert np.linalg.norm(d.centres - c, axis=1).min() < 0.5        # the ball itself is still found
+
+
+def test_window_search_finds_nothing_where_the_prediction_is_wrong():
+    """A hint that is 60 px off (a stale pose): the balls are not reported at the predicted
+    places (no guessing), so the pose fails and the tracker returns to a full search."""
+    cam = SimulatedCamera(seed=0)
+    img, tr = cam.render(0.5)
+    hint = _truth_hint(cam, tr)
+    off = DetectionHint(hint.centres_px + [60.0, 0.0], hint.axes_px, hint.angles_deg, hint.fiducial_indices)
+    d = ClassicalDetector().detect(img, off)
+    for p in d.centres:
+        assert np.linalg.norm(tr.ellipse_centres_px - p, axis=1).min() < 0.5   # only true balls, if any
+    assert len(d.fiducials) < 9

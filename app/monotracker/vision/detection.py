@@ -35,12 +35,14 @@ Candidates scoring below ``min_score`` are rejected with their reason.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from .edge_fit import fit_ball_edges
+from . import edge_fit
+from .edge_fit import fit_ball_edges, measure_edge_blur
 from .sphere_outline import expected_shapes
 
 #: sub-pixel centre methods of :func:`analyse_blobs`
@@ -73,6 +75,11 @@ class Detection:
     #: '' or why this detector declines the frame (one line; e.g. the learned detector seeing
     #: rings or nothing); its ``fiducials`` are then empty
     refusal: str = ""
+    #: wall time (s) per stage of the detector (e.g. mask, contours, shape, outline, blur,
+    #: edge_fit; what a detector reports), for profiles and the pose-rate benchmark
+    stages_s: dict = field(default_factory=dict)
+    #: True when the detector searched windows around a hint only, False for a full-frame search
+    windowed: bool = False
 
     @property
     def centres(self) -> np.ndarray:
@@ -238,22 +245,49 @@ def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[floa
     return f_fit * f_round * f_fill * f_range, factors, ((ex, ey), (a, b), ang)
 
 
-def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detector: str,
+class _Stages:
+    """Wall time (s) per named stage, measured between successive :meth:`lap` calls."""
+
+    def __init__(self):
+        self.stages: dict = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        t = time.perf_counter()
+        self.stages[name] = self.stages.get(name, 0.0) + t - self._t
+        self._t = t
+
+
+def blob_contours(mask: np.ndarray, offset=(0, 0)) -> list:
+    """Outer boundaries (OpenCV contours, int32 (m, 1, 2) px) of the blobs of a binary uint8
+    ``mask``, shifted by ``offset`` (x, y) px (a window's origin in the image): also those of
+    blobs inside a hole of another one (balls on the head seen through a ball-coloured drape
+    around it: RETR_EXTERNAL would drop them unseen)."""
+    contours, hier = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE,
+                                      offset=(int(offset[0]), int(offset[1])))
+    return [c for c, hh in zip(contours, hier[0] if hier is not None else []) if hh[3] < 0]
+
+
+def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, detector: str,
                   refine_image: np.ndarray | None = None, centre_method: str = "edge",
-                  edge_blur_px: float | None = None) -> tuple[list, list]:
+                  edge_blur_px: float | None = None, contours: list | None = None,
+                  info: dict | None = None) -> tuple[list, list]:
     """Contours of a binary ``mask`` -> (accepted, rejected) :class:`ImageFiducial` lists.
     ``refine_image`` (default ``image``) is the full-resolution BGR image for sub-pixel centres;
     ``centre_method`` one of :data:`CENTRE_METHODS` (see the module docstring);
     ``edge_blur_px`` the edge fit's blur (px; None = measured in the frame, see
-    :func:`~.edge_fit.fit_ball_edges`)."""
+    :func:`~.edge_fit.fit_ball_edges`); ``contours``: the blobs' contours in image px
+    (:func:`blob_contours`) instead of ``mask`` (e.g. found in windows only); ``info``: a dict
+    that receives ``edge_blur_px`` (the blur the edge fit used, px; None without a fit) and
+    ``stages_s`` (wall time s per stage: contours, shape, outline, blur, edge_fit)."""
     if centre_method not in CENTRE_METHODS:
         raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {centre_method!r}")
     refine_image = image if refine_image is None else refine_image
-    h, w = mask.shape[:2]
-    # outer boundaries of every blob, also of blobs inside a hole of another one (balls on the
-    # head seen through a ball-coloured drape around it: RETR_EXTERNAL would drop them unseen)
-    contours, hier = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
-    contours = [c for c, hh in zip(contours, hier[0] if hier is not None else []) if hh[3] < 0]
+    h, w = refine_image.shape[:2]
+    clock = _Stages()
+    if contours is None:
+        contours = blob_contours(mask)
+    clock.lap("contours")
     cands, rejected = [], []
     for cnt in contours:
         inner_area = cv2.contourArea(cnt)              # area inside the pixel-centre contour
@@ -291,6 +325,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
             f_size = float(np.exp(-(max(rel - 0.12, 0.0) / 0.12) ** 2))
             c.features["f_size"] = f_size
             c.score *= f_size
+    clock.lap("shape")
     edge_fits = {}
     if centre_method == "edge":      # one batch for all candidates that passed the shape test
         good = [i for i, c in enumerate(cands) if c.score >= rules.min_score]
@@ -301,8 +336,17 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray, rules: BlobRules, detecto
             if problem:   # the pose tracker refuses such frames first: reaching here is a bug
                 raise ValueError(f"ball outlines: {problem}")
             shapes = expected_shapes(rules.camera, [e[0] for e in ells], [min(e[1]) / 2.0 for e in ells])
+        clock.lap("outline")
+        if edge_blur_px is None and ells:
+            edge_blur_px = (measure_edge_blur(refine_image, ells) if edge_fit.MEASURE_BLUR else None) \
+                or edge_fit.BLUR_PROBE_PX
+        clock.lap("blur")
         fits = fit_ball_edges(refine_image, ells, edge_blur_px, shapes)
         edge_fits = dict(zip(good, fits))
+        clock.lap("edge_fit")
+    if info is not None:
+        info["edge_blur_px"] = edge_blur_px
+        info["stages_s"] = clock.stages
     accepted = []
     for i, c in enumerate(cands):
         c.features.pop("contour_ellipse")
