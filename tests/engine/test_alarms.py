@@ -251,3 +251,21 @@ def test_setup_warnings_go_with_a_camera_a_plan_change_stopped(make_session, tmp
     assert s.confirm_fiducials().ok
     assert s.set_camera("sim-points").ok and s.start_camera().ok
     assert not {"camera_uncalibrated", "camera_compressed"} & set(codes()), codes()
+
+
+def test_grayscale_frames_raise_their_own_alarm(make_session, tmp_path):
+    """A folder of grayscale frames: the active alarm says the frames are grayscale and what to
+    do (before: ``occlusion``, "0 fiducials detected")."""
+    import cv2
+
+    from monotracker.sim.camera_sim import SimulatedCamera
+
+    cam = SimulatedCamera(seed=1)
+    s, codes = _folder_camera(make_session, tmp_path / "frames",
+                              {f"f{i}.png": cv2.cvtColor(cam.render(0.1 * i)[0], cv2.COLOR_BGR2GRAY)
+                               for i in range(3)})
+    assert _wait_for_code(codes, "frame_grayscale")
+    msg = {a.code: a.message for a in s.snapshot().alarms}["frame_grayscale"]
+    assert "grayscale" in msg and "colour camera" in msg
+    assert "occlusion" not in codes()
+    assert s.stop_camera().ok

@@ -239,3 +239,68 @@ def test_cli_detect_image_refuses_a_size_mismatch_unless_adapted(sim_frames, tmp
     import json
 
     assert len(json.loads(r.stdout)["fiducials"]) == 9
+
+
+# ---------------------------------------------------------------- grayscale frames
+class _MonoDevice:
+    """A monochrome camera as OpenCV may hand it over: 2-D frames (no colour conversion)."""
+
+    def __init__(self, frames):
+        from monotracker.vision.frames import FrameSource
+
+        class _Src(FrameSource):
+            name = "camera 0"
+
+            def __init__(self, imgs):
+                super().__init__()
+                self.imgs = list(imgs)
+
+            def _read_image(self):
+                return self.imgs.pop(0) if self.imgs else None
+
+        self.src = _Src(frames)
+
+
+def test_grayscale_frames_are_refused_with_what_to_do(sim_frames, tmp_path):
+    """Grayscale frames from a folder (3 equal channels once read), a video and a monochrome
+    device (one channel) are refused as grayscale, one line; before, they ran as frames in
+    which "0 fiducials" were detected (code ``occlusion``), which sends the operator looking
+    for a covered patch."""
+    model, frames = sim_frames
+    greys = [cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) for f in frames]
+    folder = tmp_path / "grey"
+    folder.mkdir()
+    for i, g in enumerate(greys):
+        cv2.imwrite(str(folder / f"f{i}.png"), g)
+    video = tmp_path / "grey.avi"
+    vw = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30, (1280, 720))
+    for g in greys:
+        vw.write(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR))
+    vw.release()
+    for src in (ImageFolderSource(folder), VideoFileSource(video), _MonoDevice(greys).src):
+        tr = _tracker(model)
+        with src:
+            ests = [tr.process(f) for f in src]
+        assert len(ests) == len(frames) and not any(e.ok for e in ests)
+        assert all(e.code == "frame_grayscale" for e in ests), [e.code for e in ests]
+        assert "grayscale" in ests[0].reason and "colour camera" in ests[0].reason
+        assert len(ests[0].alerts) == 1 and not ests[1].alerts       # one alert per episode
+
+
+def test_colour_frames_are_not_taken_for_grayscale(sim_frames):
+    """No false refusal: the simple and the photo-like render, a dark (lens-capped) and a blank
+    frame, and the independent renderer's frames."""
+    from independent_render import FRAME_K, FRAME_SIZE, render_scene
+
+    from monotracker.vision.frames import grayscale_problem
+
+    model, frames = sim_frames
+    assert not any(grayscale_problem(f.image) for f in frames)
+    photo, _ = SimulatedCamera(seed=3, optics="photo").render(0.0)
+    assert grayscale_problem(photo) == ""
+    assert grayscale_problem(np.zeros((720, 1280, 3), np.uint8)) == ""
+    assert grayscale_problem(np.full((720, 1280, 3), 128, np.uint8)) == ""
+    X = np.array([[0.0, 0, 420], [40, 10, 430], [-45, 30, 410]])
+    img, _ = render_scene(np.random.default_rng(0), X, 4.0)
+    assert img.shape[:2] == FRAME_SIZE[::-1] and FRAME_K[0, 0] > 0
+    assert grayscale_problem(img) == ""

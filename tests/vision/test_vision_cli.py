@@ -44,3 +44,27 @@ def test_detect_image_errors(tmp_path):
     cv2.imwrite(str(tmp_path / "ok.png"), np.zeros((20, 20, 3), np.uint8))
     r = _run(["detect-image", "ok.png", "--camera", "cam.json"], tmp_path)
     assert r.returncode == 2 and "lacks camera_matrix" in r.stderr
+
+
+def test_detect_image_refuses_grayscale_and_absurd_calibrations(tmp_path):
+    """A grayscale picture and a calibration with fx = 1e9 / image_width = inf each give one line
+    saying what is wrong (before: "0 fiducials" for the grey picture, an OverflowError traceback
+    for the infinite width)."""
+    import cv2
+
+    from monotracker.sim.camera_sim import SimulatedCamera
+
+    img, _ = SimulatedCamera(seed=1).render(0.0)
+    cv2.imwrite(str(tmp_path / "grey.png"), cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+    r = _run(["detect-image", "grey.png"], tmp_path)
+    assert r.returncode == 2 and "grayscale" in r.stderr and "colour camera" in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    cv2.imwrite(str(tmp_path / "colour.png"), img)
+    good = {"camera_matrix": [[1100, 0, 641.3], [0, 1100, 358.2], [0, 0, 1]],
+            "distortion_coefficients": [-0.12, 0.09, 0.0004, -0.0003, 0.0], "image_width": 1280, "image_height": 720}
+    for change, needle in (({"image_width": float("inf")}, "image_width is inf"),
+                           ({"camera_matrix": [[1e9, 0, 640], [0, 1e9, 360], [0, 0, 1]]}, "field of view")):
+        (tmp_path / "cam.json").write_text(json.dumps({**good, **change}))
+        r = _run(["detect-image", "colour.png", "--camera", "cam.json"], tmp_path)
+        assert r.returncode == 2 and needle in r.stderr, r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr

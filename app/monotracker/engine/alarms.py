@@ -55,6 +55,7 @@ CATALOGUE: dict[str, AlarmKind] = {
     "camera_disconnected": AlarmKind("alarm", 5, linger_s=0.0),
     "camera_ended": AlarmKind("warning", 6, linger_s=0.0),
     "frame_size": AlarmKind("alarm", 5, linger_s=0.0),  # frames do not match the calibration
+    "frame_grayscale": AlarmKind("alarm", 5, linger_s=0.0),  # a monochrome camera or grayscale files
     "frame_unreadable": AlarmKind("warning", 6),
     "tre_limit": AlarmKind("warning", 3),  # predicted error at the target over the limit
     "weak_geometry": AlarmKind("warning", 3),
@@ -89,7 +90,7 @@ _UNKNOWN = AlarmKind("warning", 90, technical=True)
 #: the conditions under which the arm holds for the pose (one at a time)
 POSE_CODES = ("pose_lost", "bad_pose", "pose_jump", "occlusion", "acquiring", "pose_stale", "camera_freeze",
               "camera_stopped", "engine_error", "camera_disconnected", "camera_ended", "frame_size",
-              "frame_unreadable", "tre_limit", "weak_geometry", "pose_implausible")
+              "frame_grayscale", "frame_unreadable", "tre_limit", "weak_geometry", "pose_implausible")
 #: holds about a pose stream that stopped being fresh; resuming from them needs resume_dwell_s
 FRESHNESS_CODES = ("pose_stale", "camera_freeze")
 #: conditions of the running camera's setup: raised by its rig as it starts, shown while it runs

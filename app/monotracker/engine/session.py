@@ -90,7 +90,8 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 ``camera_uncalibrated`` / ``camera_compressed`` / ``colour_clash`` [warning] nominal
 intrinsics / lossy frames (MJPEG, JPEG files, a lossy video codec) / a large area of the balls'
 colour (learn the colour), shown while that camera runs (the last while the area is seen),
-``frame_size`` [warning] frame size differs from the calibration; poses: ``tre_limit``
+``frame_size`` [warning] frame size differs from the calibration, ``frame_grayscale`` [alarm] the
+frames are grayscale (a monochrome camera or grayscale files: no ball can be found); poses: ``tre_limit``
 [warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
 ``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
 with its shift in mm; excluded from then on); ``robot_warning`` [warning] from the robot's safety layer; integrity

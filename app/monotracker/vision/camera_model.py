@@ -62,7 +62,11 @@ class CameraModel:
     def __post_init__(self):
         self.K = np.asarray(self.K, dtype=float)
         self.dist = np.asarray(self.dist, dtype=float).reshape(-1)
-        self.image_size = (int(self.image_size[0]), int(self.image_size[1]))
+        for side, key in zip(self.image_size, ("image width", "image height")):
+            why = image_side_problem(side)
+            if why:
+                raise InputError(f"invalid camera model: {key} {why}")
+        self.image_size = (int(float(self.image_size[0])), int(float(self.image_size[1])))
         problem = validate_intrinsics(self.K, self.dist, self.image_size)
         if problem:
             raise InputError(f"invalid camera model: {problem}")
@@ -281,9 +285,15 @@ class CameraModel:
         try:
             K = np.asarray(data["camera_matrix"], dtype=float)
             dist = np.asarray(data["distortion_coefficients"], dtype=float).reshape(-1)
-            size = (int(data["image_width"]), int(data["image_height"]))
         except (TypeError, ValueError):
             raise InputError(f"camera file {name}: camera_matrix/distortion_coefficients are not numbers") from None
+        size = []
+        for key in ("image_width", "image_height"):
+            why = image_side_problem(data[key])
+            if why:
+                raise InputError(f"camera file {name}: {key} {why}")
+            size.append(int(float(data[key])))
+        size = tuple(size)
         problem = validate_intrinsics(K, dist, size)
         if problem:
             raise InputError(f"camera file {name}: {problem}")
@@ -295,17 +305,104 @@ class CameraModel:
         return cls(K, dist, size, colour)
 
 
+#: largest image side (px) a calibration may claim (an 8K sensor is 7680 px wide); beyond it a
+#: size is a typing or unit mistake, and the pixel grids built from it would not fit in memory
+MAX_IMAGE_SIDE_PX = 20000
+#: horizontal field of view (deg) a calibration may imply (fx and the image width, distortion
+#: aside). A surgical camera 0.15-1.5 m from a head sees it with 5-120 deg; below 2 deg or above
+#: 170 deg the focal length is in another unit (mm, or a value meant for another resolution)
+FOV_LIMITS_DEG = (2.0, 170.0)
+#: the lens distortion's local scale (singular values of its Jacobian on the normalised plane)
+#: must stay within these bounds in the middle of the image: real lenses stay within ~0.3-1.3
+#: (strong barrel squeezes the edges; tele lenses stretch a little); k1 = 50 stretches by ~6x
+DISTORTION_SCALE_LIMITS = (0.15, 3.0)
+#: undistorting then distorting an image point must give it back within this (px): otherwise the
+#: distortion folds over there and a ball there has no single viewing ray
+ROUND_TRIP_PX = 0.05
+#: ... everywhere inside the ellipse of this share of the image's half width and half height.
+#: Beyond it a fold is tolerated: a polynomial fitted to a wide lens often turns back near the
+#: corners no board reached, and the detector claims no ball outline there (sphere_outline)
+INVERTIBLE_SHARE = 0.8
+
+
+def image_side_problem(value) -> str:
+    """'' when ``value`` is a usable image side (a whole number of px, 1..MAX_IMAGE_SIDE_PX),
+    else the rest of a one-line reason ("is infinite", ...)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return f"{value!r} is not a number"
+    if not np.isfinite(v):
+        return f"is {value!r}: must be a finite whole number of pixels"
+    if v != int(v):
+        return f"{v:g} is not a whole number of pixels"
+    if v < 1:
+        return f"{v:g} px is not positive"
+    if v > MAX_IMAGE_SIDE_PX:
+        return f"{v:g} px is outside 1-{MAX_IMAGE_SIDE_PX} px (a typing or unit mistake?)"
+    return ""
+
+
+def distortion_problem(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, int]) -> str:
+    """'' when the distortion coefficients describe a lens over the middle of the image, else one
+    line. Points on the ellipse of ``INVERTIBLE_SHARE`` of the image's half width and height and
+    on its middle lines are undistorted (OpenCV's iteration) and distorted again: a miss of more
+    than ``ROUND_TRIP_PX`` means the model folds over or cannot be inverted there. At the same
+    points the distortion's local scale must stay within ``DISTORTION_SCALE_LIMITS``."""
+    dist = np.asarray(dist, float).reshape(-1)
+    if not np.any(dist):
+        return ""
+    w, h = image_size
+    cx0, cy0 = (w - 1) / 2, (h - 1) / 2
+    a, b = INVERTIBLE_SHARE * (w - 1) / 2, INVERTIBLE_SHARE * (h - 1) / 2
+    ang = np.linspace(0.0, 2 * np.pi, 48, endpoint=False)
+    t = np.linspace(-1.0, 1.0, 17)
+    pts = np.concatenate([np.column_stack([cx0 + a * np.cos(ang), cy0 + b * np.sin(ang)]),
+                          np.column_stack([cx0 + a * t, np.full_like(t, cy0)]),
+                          np.column_stack([np.full_like(t, cx0), cy0 + b * t])])
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    coeffs = ", ".join(f"{v:g}" for v in dist[:5])
+    what = "check the order k1, k2, p1, p2, k3 and recalibrate"
+    with np.errstate(all="ignore"):
+        try:
+            xn = cv2.undistortPointsIter(pts.reshape(-1, 1, 2), K, dist, None, None, crit).reshape(-1, 2)
+            miss = np.linalg.norm(distort_normalised(xn, K, dist) - pts, axis=1)
+        except cv2.error:
+            xn, miss = np.full_like(pts, np.nan), np.full(len(pts), np.nan)
+        if not np.all(np.isfinite(miss)) or miss.max() > ROUND_TRIP_PX:
+            bad = int(np.argmax(np.where(np.isfinite(miss), miss, np.inf)))
+            return (f"distortion_coefficients ({coeffs}) cannot be inverted in the middle of the {w}x{h} image "
+                    f"(near pixel {pts[bad, 0]:.0f}, {pts[bad, 1]:.0f}): not a lens; {what}")
+        e = 1e-6
+        J = np.stack([(registration_distort(xn + [e, 0], dist) - registration_distort(xn - [e, 0], dist)) / (2 * e),
+                      (registration_distort(xn + [0, e], dist) - registration_distort(xn - [0, e], dist)) / (2 * e)],
+                     axis=2)                                    # (n, 2, 2): d distorted / d undistorted
+        sv = np.linalg.svd(J, compute_uv=False)
+    lo, hi = DISTORTION_SCALE_LIMITS
+    if not np.all(np.isfinite(sv)) or sv.max() > hi or sv.min() < lo:
+        k = int(np.argmax(sv.max(axis=1))) if sv.max() > hi else int(np.argmin(sv.min(axis=1)))
+        s_bad = sv.max() if sv.max() > hi else sv.min()
+        return (f"distortion_coefficients ({coeffs}) {'stretch' if s_bad > 1 else 'squeeze'} the image "
+                f"{s_bad:.2g}x near pixel {pts[k, 0]:.0f}, {pts[k, 1]:.0f} (a lens stays within {lo:g}-{hi:g}x): "
+                f"not a lens this model describes; {what}")
+    return ""
+
+
 def validate_intrinsics(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, int]) -> str:
-    """Return '' when the intrinsics are usable, else a one-line reason."""
+    """Return '' when the intrinsics are usable, else a one-line reason (what is wrong and
+    what to do): see :class:`CameraModel`, :func:`image_side_problem`, ``FOV_LIMITS_DEG`` and
+    :func:`distortion_problem`."""
     K = np.asarray(K, dtype=float)
     dist = np.asarray(dist, dtype=float).reshape(-1)
     if K.shape != (3, 3):
         return f"camera_matrix must be 3x3, got shape {K.shape}"
     if not np.all(np.isfinite(K)) or not np.all(np.isfinite(dist)):
         return "camera_matrix/distortion_coefficients contain NaN or infinity"
-    w, h = image_size
-    if w <= 0 or h <= 0:
-        return f"image size {w}x{h} is not positive"
+    for side, key in zip(image_size, ("image width", "image height")):
+        why = image_side_problem(side)
+        if why:
+            return f"{key} {why}"
+    w, h = (int(float(v)) for v in image_size)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     if fx <= 0 or fy <= 0:
         return f"focal lengths must be positive (fx={fx:g}, fy={fy:g})"
@@ -317,7 +414,12 @@ def validate_intrinsics(K: np.ndarray, dist: np.ndarray, image_size: tuple[int, 
         return f"fx={fx:g} and fy={fy:g} differ more than 3x (wrong units or a swapped matrix?)"
     if len(dist) not in (0, 4, 5, 8, 12, 14):
         return f"distortion_coefficients must have 4, 5, 8, 12 or 14 values, got {len(dist)}"
-    return ""
+    fov = float(np.degrees(2.0 * np.arctan2(w / 2.0, fx)))
+    lo, hi = FOV_LIMITS_DEG
+    if not (lo <= fov <= hi):
+        return (f"fx={fx:g} px gives a {fov:.3g} deg field of view across {w} px (a camera that sees a head "
+                f"has {lo:g}-{hi:g} deg): fx must be in pixels of this image size; recalibrate or fix the file")
+    return distortion_problem(K, dist, (w, h))
 
 
 def distort_normalised(xn: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

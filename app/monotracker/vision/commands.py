@@ -83,6 +83,11 @@ def _detect(args) -> int:
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise InputError(f"cannot read image {path.name} (corrupt or not an image)")
+    from .frames import grayscale_problem
+
+    grey = grayscale_problem(img)
+    if grey:
+        raise InputError(f"{path.name}: {grey}")
     focal, model = args.focal_px, None
     if args.camera:
         from .camera_model import CameraModel

@@ -103,6 +103,38 @@ class FrameSource:
             yield f
 
 
+#: a frame is grayscale when no sampled pixel's colour channels differ by more than this (grey
+#: levels; JPEG's chroma rounding of a grey picture stays within 2) while the frame has content
+#: (its 1-99 % grey-level spread at least ``GREY_MIN_CONTRAST``: a black or blank frame says nothing)
+GREY_CHANNEL_SPREAD = 3
+GREY_MIN_CONTRAST = 20
+
+
+def grayscale_problem(image: np.ndarray) -> str:
+    """'' for a colour frame, else one line saying that the frame is grayscale and what to do.
+
+    The fiducial detectors find the balls by their colour; a monochrome (or IR) camera, a
+    grayscale video or a folder of grayscale images gives frames with one channel, or three
+    equal ones after conversion, in which no ball can ever be found: without this check the
+    operator sees "0 fiducials detected" and looks for a covered patch. Cost: a 1-in-4 pixel
+    sample (~0.1 ms at 1280x720)."""
+    img = np.asarray(image)
+    why = ("frames are grayscale ({}): the balls are found by their colour, so none can be found; "
+           "use a colour camera (not a monochrome or infrared one) or colour frames")
+    if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
+        return why.format("one channel")
+    if img.ndim != 3 or img.shape[2] < 3:
+        return ""
+    s = img[::4, ::4, :3].astype(np.int16)
+    spread = np.maximum(np.abs(s[..., 0] - s[..., 1]), np.abs(s[..., 1] - s[..., 2]))
+    if spread.max() > GREY_CHANNEL_SPREAD:
+        return ""
+    lo, hi = np.percentile(s[..., 1], (1, 99))
+    if hi - lo < GREY_MIN_CONTRAST:
+        return ""                   # black, blank or saturated: nothing to say about its colour
+    return why.format("the three colour channels are equal")
+
+
 def _as_bgr(img: np.ndarray) -> np.ndarray:
     if img.dtype != np.uint8:
         raise FrameUnreadable(f"frame has dtype {img.dtype}, expected 8-bit images")

@@ -9,6 +9,9 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
 * a frame whose size differs from the calibration's ``image_size`` -> refused (``frame_size``;
   adapt the calibration explicitly with ``CameraModel.adapted("bin:2")`` etc. when the camera
   is the same sensor binned or cropped);
+* a grayscale frame (one channel, or three equal ones: a monochrome camera, a grayscale file)
+  -> refused (``frame_grayscale``, :func:`.frames.grayscale_problem`): the balls are found by
+  their colour;
 * a pose that is not physical (head distance, fiducials behind the camera, ball size vs
   distance; :mod:`.pose_checks`) -> ``pose_implausible``; matched balls too few, collinear or
   coplanar -> ``weak_geometry``;
@@ -24,7 +27,7 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
   naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
 
 Every invalid estimate carries ``code``: the alert code that says what happened
-(``frame_size``, ``frame_unreadable``, ``camera_ended``, ``camera_freeze``,
+(``frame_size``, ``frame_grayscale``, ``frame_unreadable``, ``camera_ended``, ``camera_freeze``,
 ``camera_disconnected``, ``occlusion``, ``pose_lost``, ``pose_implausible``,
 ``weak_geometry``, ``tre_limit``).
 
@@ -46,7 +49,7 @@ import numpy as np
 from monotracker.geometry import apply_transform
 
 from .camera_model import CameraModel
-from .frames import Frame
+from .frames import Frame, grayscale_problem
 
 SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "unknown", "moved"
 
@@ -254,6 +257,7 @@ class PoseTracker:
             the :class:`PoseEstimate` of this frame.
 
         Refuses (ok=False, code): frame size differs from the calibration (``frame_size``);
+        a grayscale frame (``frame_grayscale``);
         the registration refused, or its RMS or a residual is over the gates (``pose_lost``);
         fewer than ``min_fiducials`` matched (``occlusion``); an implausible pose
         (``pose_implausible``); too few,
@@ -270,6 +274,9 @@ class PoseTracker:
         size_problem = self.camera.frame_size_problem(frame.image.shape)
         if size_problem:
             return self._invalid(frame.index, frame.t_capture, "frame_size", size_problem, truth=frame.truth)
+        grey = grayscale_problem(frame.image)
+        if grey:
+            return self._invalid(frame.index, frame.t_capture, "frame_grayscale", grey, truth=frame.truth)
         fresh = (frame.index == self._last_T_index + 1 or frame.t_capture - self._last_T_time <= cfg.prior_max_age_s)
         prior = self._last_T if fresh else None
         hint = self.hint(frame.index, frame.t_capture) if self._takes_hint else None
