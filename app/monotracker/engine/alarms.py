@@ -43,6 +43,8 @@ class AlarmKind:
 CATALOGUE: dict[str, AlarmKind] = {
     # safety: the arm and what it follows
     "estop": AlarmKind("alarm", 0, linger_s=0.0),
+    # STOP signalled but the robot's controller did not confirm it: use the robot's own e-stop
+    "estop_unconfirmed": AlarmKind("alarm", 0, linger_s=0.0),
     "robot_disconnected": AlarmKind("alarm", 1, linger_s=0.0),
     "engine_error": AlarmKind("alarm", 2, linger_s=2.0),
     "pose_lost": AlarmKind("warning", 3),  # the estimator failed
@@ -76,6 +78,7 @@ CATALOGUE: dict[str, AlarmKind] = {
     "plan_changed_outside": AlarmKind("alarm", 12, linger_s=0.0),
     "plan_reconfirm_pending": AlarmKind("alarm", 12, linger_s=0.0),
     "plan_field_rejected": AlarmKind("alarm", 13, linger_s=0.0),
+    "session_unlocked": AlarmKind("warning", 14, linger_s=0.0),  # the session folder could not be locked
     # technical
     "loop_overrun": AlarmKind("warning", 20, technical=True, linger_s=10.0),
     "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0),

@@ -173,7 +173,20 @@ class RobotRig:
         raise NotImplementedError
 
     def estop(self) -> CommandResult:
+        """Latch the e-stop and wait (bounded) for the controller to confirm it."""
         raise NotImplementedError
+
+    def signal_estop(self) -> None:
+        """The stop channel: latch the e-stop without waiting for anything the engine or vision
+        may hold (safe on the web server's event loop; ``engine/pipeline_priority.py``). Rigs
+        whose controller runs elsewhere override it; here it is :meth:`estop`."""
+        self.estop()
+
+    def drain_transitions(self) -> list | None:
+        """The state transitions (``engine.robot_transitions.RobotTransition``) since the last
+        call, in the order the controller made them, each with its own reason; None when this
+        rig does not report them (the engine then records the state changes it sees)."""
+        return None
 
     def reset(self) -> CommandResult:
         raise NotImplementedError

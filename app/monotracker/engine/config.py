@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,11 +71,10 @@ class SessionConfig:
     (``"photo"``: gloss, lens blur, Bayer mosaic, raw sensor noise, JPEG 85, drapes and gloves;
     ``"degraded"``: more blur and noise, JPEG 70; ``"sharp"``) = photo-like frames, ~40 ms more
     per frame (``docs/vision.md``). Refused for any other camera (it would change nothing).
-    ``pose_nice`` (-10): with clock="real", the pose pipeline's threads (camera, detection,
-    registration, the engine loop that feeds the target) ask for this nice value so that CPU
-    load beside the app cannot age the poses past ``max_pose_age_s``
-    (``engine/pipeline_priority.py``; a ``pose_priority`` warning where the OS refuses; 0 =
-    leave the priority alone).
+    ``pose_nice`` (0): with clock="real", the nice value of the pose pipeline's thread and of the
+    simulated camera process: 0 (normal) or higher (below the web server); never negative, and
+    ``pose_rt_priority`` only 0: real-time scheduling is for the robot's control process only
+    (the policy: ``engine/pipeline_priority.py``; other values are refused with that reason).
     ``extra``: free-form settings for experiments; nothing in the engine reads it.
 
     Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
@@ -113,8 +111,8 @@ class SessionConfig:
     #: Longest a CT job (load + fiducial detection + surface) may run, s; then it is stopped
     #: with a one-line message and the previous CT and plan stay (engine/ct_commands.py).
     ct_job_timeout_s: float = 600.0
-    pose_nice: int = -10
-    pose_rt_priority: int = 5
+    pose_nice: int = 0
+    pose_rt_priority: int = 0
     sim_camera_process: bool = True
     extra: dict = field(default_factory=dict)
 
@@ -156,13 +154,11 @@ class SessionConfig:
             if self.camera != "sim":
                 raise InputError(f"camera_optics applies to the rendered simulated camera (camera='sim') only, "
                                  f"not camera={self.camera!r}")
-        for name in ("pose_rt_priority", "pose_nice"):
-            if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), (int, numbers.Integral)):
-                raise InputError(f"{name} must be a whole number, not {getattr(self, name)!r}")
-        if not 0 <= int(self.pose_rt_priority) <= 99:
-            raise InputError(f"pose_rt_priority must be a SCHED_FIFO priority 1-99, or 0 for none, not {self.pose_rt_priority!r}")
-        if not -20 <= int(self.pose_nice) <= 19:
-            raise InputError(f"pose_nice must be a nice value from -20 to 19, not {self.pose_nice!r}")
+        from monotracker.engine.pipeline_priority import pose_priority_problem
+
+        why = pose_priority_problem(self.pose_nice, self.pose_rt_priority)
+        if why:
+            raise InputError(why)
         if self.resume_dwell_s < 0 or self.start_wait_s < 0:
             raise InputError("resume_dwell_s and start_wait_s must be >= 0 s")
         if not str(self.arm_pin):

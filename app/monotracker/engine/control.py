@@ -159,7 +159,7 @@ class ClientSession:
         "plan_path", "session_id", "home", "clock", "control_summary", "is_in_control",
     })
     #: commands every client may always run
-    ALWAYS = frozenset({"estop"})
+    ALWAYS = frozenset({"estop", "request_estop"})
 
     def __init__(self, session: "Session", client_id: str):
         object.__setattr__(self, "_session", session)
@@ -203,6 +203,10 @@ class ClientSession:
     def estop(self) -> CommandResult:
         """Emergency stop: always allowed, from every client."""
         return self._session.estop()
+
+    def request_estop(self) -> None:
+        """The stop channel alone (see ``Session.request_estop``): always allowed, from every client."""
+        self._session.request_estop()
 
     def __getattr__(self, name: str):
         if name.startswith("_"):

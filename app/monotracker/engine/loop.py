@@ -101,6 +101,8 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
         self._pending_latency_set_at = 0.0
         self.latencies_s: deque[float] = deque(maxlen=5000)
         self._robot_state = "disarmed"
+        self._audited_state = "disarmed"  # the state the newest robot_state audit row went to
+        self._robot_audit_lock = threading.Lock()  # robot_state rows are written in order, one writer at a time
         self._robot_connected = True
         self._robot_message = "not connected"
         self._tick_hooks: list = []

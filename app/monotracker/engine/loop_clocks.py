@@ -10,8 +10,7 @@ import logging
 import threading
 import time
 
-from monotracker.engine.pipeline_priority import (raise_pipeline_priority, raise_process_priority,
-                                                   set_gil_switch_interval)
+from monotracker.engine.pipeline_priority import normal_priority, set_gil_switch_interval
 from monotracker.errors import MonoTrackerError
 
 log = logging.getLogger("monotracker.engine.loop")
@@ -64,12 +63,11 @@ class LoopClocks:
         self._threads_wanted = True
         if self.cfg.clock != "real" or self._thread is not None:
             return
-        # the engine process shares one GIL: its threads are raised together so that a thread
-        # holding the GIL is not preempted by load beside the app while the pipeline waits for it
-        self.process_priority = raise_process_priority(int(getattr(self.cfg, "pose_nice", 0)))
-        if int(getattr(self.cfg, "pose_rt_priority", 0)) > 0:
-            set_gil_switch_interval()
-        log.info("engine process threads: %s", self.process_priority)
+        # the priority policy (engine/pipeline_priority.py): every engine-process thread keeps the
+        # priority the server was started with; a waking web-server thread (a STOP) gets the GIL
+        # within ~1 ms of asking
+        set_gil_switch_interval()
+        self.process_priority = "normal priority (the engine process is never raised)"
         if self.robot is not None:
             self.robot.start_thread()
         self._stop.clear()
@@ -77,9 +75,8 @@ class LoopClocks:
         self._thread.start()
 
     def _run(self) -> None:
-        # the engine thread is part of the pose pipeline (estimate -> trust -> target): same priority
-        self.priority = raise_pipeline_priority(int(getattr(self.cfg, "pose_rt_priority", 0)),
-                                                int(getattr(self.cfg, "pose_nice", 0)))
+        # the engine thread (estimate -> trust -> target, watchdogs): normal, like the web server
+        self.priority = normal_priority(int(getattr(self.cfg, "pose_nice", 0)))
         period = 1.0 / 250.0
         last_seen = None
         while not self._stop.is_set():

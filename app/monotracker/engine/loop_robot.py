@@ -6,6 +6,7 @@ state (``self.s`` the session, ``self.robot``, the pose records) these methods u
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 
@@ -16,6 +17,8 @@ from monotracker.engine.alarms import FRESHNESS_CODES
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
 from monotracker.robot.safety import SafetyConfig
+
+log = logging.getLogger(__name__)
 
 #: The robot's safety layer starts tracking only while its newest target *arrived* within its
 #: frame-gap limit (``SafetyConfig.stale_s``, 0.1 s), a rule apart from the engine's age limit
@@ -62,7 +65,7 @@ class RobotCommands:
             return
         st = self.robot.status()
         with self._lock:
-            old, self._robot_state = self._robot_state, st.state
+            self._robot_state = st.state
             was_conn, self._robot_connected = self._robot_connected, st.connected
             self._robot_message = st.message
         if not st.connected and was_conn:
@@ -73,9 +76,32 @@ class RobotCommands:
             self._clear_alert("robot_disconnected")
             self.s.alert("info", "robot_connected", "robot connection restored")
         self._sync_robot_alarms(st)
-        if st.state != old:
-            self.s.record("robot_state", f"robot {old} -> {st.state}" + (f" ({st.message})" if st.message else ""),
-                          {"from": old, "to": st.state})
+        self._audit_robot_states(st)
+
+    def _audit_robot_states(self, st) -> None:
+        """One ``robot_state`` audit row per state change, in the order the controller made them,
+        each with the reason of its own transition (``engine/robot_transitions.py``); the rows
+        follow each other (``from`` = the previous row's ``to``; ``monotracker audit verify``
+        checks it). A rig that reports no transitions (a test double): the changes seen here."""
+        with self._robot_audit_lock:
+            rows = self.robot.drain_transitions()
+            if rows is None:
+                if st.state == self._audited_state:
+                    return
+                from monotracker.engine.robot_transitions import RobotTransition
+
+                rows = [RobotTransition(self._audited_state, st.state, st.message)]
+            for tr in rows:
+                if tr.from_state != self._audited_state:
+                    # never expected (every transition is reported): say so rather than break the chain
+                    self.s.record("robot_state", f"robot {self._audited_state} -> {tr.from_state} (a change the "
+                                  "controller did not report)", {"from": self._audited_state, "to": tr.from_state,
+                                                                 "reason": "unreported", "t_control": None, "seq": None},
+                                  level="warning")
+                self.s.record("robot_state", f"robot {tr.from_state} -> {tr.to_state}" + (f" ({tr.reason})" if tr.reason else ""),
+                              {"from": tr.from_state, "to": tr.to_state, "reason": tr.reason, "t_control": tr.t,
+                               "seq": tr.seq})
+                self._audited_state = tr.to_state
 
     def _sync_robot_alarms(self, st) -> None:
         """Active conditions that mirror the robot's state: e-stop latched, connection lost."""
@@ -211,13 +237,34 @@ class RobotCommands:
         self.s.record("tracking_stopped", "tracking stopped by the operator")
         return r
 
+    def signal_estop(self) -> None:
+        """The stop channel (``engine/pipeline_priority.py``): straight to the robot's controller,
+        before anything else, without the loop's lock; never raises (a failure is logged; the
+        full :meth:`estop` that follows reports it)."""
+        rob = self.robot
+        if rob is None:
+            return
+        try:
+            rob.signal_estop()
+        except Exception:  # noqa: BLE001 - the STOP handler must survive; estop() says what failed
+            log.exception("signalling the e-stop failed")
+
     def estop(self) -> CommandResult:
+        """Signal the stop, wait (bounded) for the controller's acknowledgement, then record it.
+        Without an acknowledgement the ``estop_unconfirmed`` alarm stands until a later stop is
+        confirmed."""
         if self.robot is None:
             self.s.alert("alarm", "estop", "EMERGENCY STOP (no robot connected)")
             return CommandResult(True, "e-stop (no robot)")
-        r = self.robot.estop()
+        r = self.robot.estop()  # signals first, then waits for the acknowledgement
         self._refresh_robot_state()
-        self.s.alert("alarm", "estop", "EMERGENCY STOP pressed; arm stopped and latched")
+        board, now = self.s._alarm_board, self.now()
+        if r.ok:
+            board.clear("estop_unconfirmed", now)
+            self.s.alert("alarm", "estop", f"EMERGENCY STOP pressed; arm stopped and latched: {r.message}")
+        else:
+            board.set("estop_unconfirmed", r.message, now, level="alarm")
+            self.s.alert("alarm", "estop_unconfirmed", r.message)
         return r
 
     def reset_estop(self) -> CommandResult:

@@ -113,8 +113,18 @@ class RigCommands:
 
     def estop(self) -> CommandResult:
         """Emergency stop: the arm stops at once and the stop is latched (``alarm`` ``estop``)
-        until :meth:`reset_estop`. Never refused, also without a robot."""
+        until :meth:`reset_estop`. Never refused, also without a robot. The stop goes first,
+        straight to the robot's controller (:meth:`request_estop`); the call then waits (about a
+        second at most) for the controller's acknowledgement: ``ok`` when it confirmed the stop,
+        else ``ok=False`` with the ``estop_unconfirmed`` alarm (use the robot's own e-stop)."""
         return self._loop.estop()
+
+    def request_estop(self) -> None:
+        """The stop channel alone: latch the e-stop in the robot's controller and return at once,
+        without a lock the engine or vision may hold, without waiting for the acknowledgement or
+        writing the audit (:meth:`estop` does both). For a web server's event loop, so a STOP is
+        never queued behind other work (``engine/pipeline_priority.py``). Never raises."""
+        self._loop.signal_estop()
 
     def reset_estop(self) -> CommandResult:
         """Release a latched e-stop; the arm is left disarmed (arm again to move it). Refused

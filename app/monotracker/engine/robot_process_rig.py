@@ -17,7 +17,9 @@ import threading
 import numpy as np
 
 from monotracker.engine.components import RobotStatus
+from monotracker.engine.pipeline_priority import CONTROL_FALLBACK_NICE, CONTROL_FIFO_PRIORITY
 from monotracker.engine.robot_rig import TrackerRobotRig, sim_arm_setup
+from monotracker.engine.robot_transitions import TransitionLog
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
 
@@ -35,6 +37,8 @@ class ProcessRobotRig(TrackerRobotRig):
         self.clock = session.clock
         self.sim_arm = None  # lives in the child; its truth comes back through the state slot
         self.tracker = None
+        self.transitions = TransitionLog()  # the child's reports, back in order (the audit's robot_state rows)
+        self._exit_noted = False
         if cfg.robot == "sim":
             from monotracker.robot.sim_arm import SimulatedArm
 
@@ -47,6 +51,8 @@ class ProcessRobotRig(TrackerRobotRig):
             factory = functools.partial(URRTDEArm, cfg.robot.split(":", 1)[1], rate_hz=cfg.control_hz)
             self._is_sim = False
         self._kin, self._tool = Kinematics(), NeedleTool()
+        # the only real-time code of the app (the priority policy: engine/pipeline_priority.py)
+        opts = {"fifo_priority": CONTROL_FIFO_PRIORITY, "fallback_nice": CONTROL_FALLBACK_NICE, **(opts or {})}
         try:
             self.proc = ControlProcess(factory, {"variant": cfg.controller, "rate_hz": cfg.control_hz,
                                                  "predict_target": cfg.predict_target},
@@ -89,14 +95,21 @@ class ProcessRobotRig(TrackerRobotRig):
         return self._cmd("stop_tracking")
 
     def estop(self) -> CommandResult:
+        """Signal the stop and wait for the control process's acknowledgement (bounded)."""
         ok, reason = self.proc.estop("operator e-stop")
         self._status_cache = None
         return CommandResult(bool(ok), str(reason))
+
+    def signal_estop(self) -> None:
+        self.proc.signal_estop()
 
     def reset(self) -> CommandResult:
         ok, reason = self.proc.reset()
         self._status_cache = None
         return CommandResult(bool(ok), str(reason))
+
+    def drain_transitions(self) -> list:
+        return self.transitions.drain()
 
     def _controller(self):
         return self.proc  # same set_target / set_head_sphere as the in-process Tracker
@@ -123,6 +136,9 @@ class ProcessRobotRig(TrackerRobotRig):
         if not self.proc.alive:
             rep = self.proc.exit_report or {}
             msg = f"robot control process exited ({rep.get('reason') or 'exit code ' + str(self.proc.proc.exitcode)})"
+            if not self._exit_noted:
+                self._exit_noted = True  # a change the engine decides: no report from the child explains it
+                self.transitions.add_local("estopped", msg)
             return RobotStatus("estopped", False, msg, control=self.control)
         key = (st.t_published, st.state, self.proc.live_state())
         if self._status_cache is not None and self._status_cache[0] == key:
@@ -155,8 +171,11 @@ class ProcessRobotRig(TrackerRobotRig):
     def _on_event(self, kind: str, payload) -> None:
         try:
             if kind == "transition":
+                self.transitions.add(payload["from"], payload["to"], payload["reason"], payload.get("t"),
+                                     payload.get("seq"))
                 self.s.record("robot_transition", f"robot {payload['from']} -> {payload['to']}: {payload['reason']}",
-                              {"from": payload["from"], "to": payload["to"], "reason": payload["reason"]})
+                              {"from": payload["from"], "to": payload["to"], "reason": payload["reason"],
+                               "seq": payload.get("seq"), "t_control": payload.get("t")})
             elif kind == "warning":
                 self.s.alert("warning", "robot_warning", str(payload))
         except Exception:  # noqa: BLE001

@@ -18,6 +18,7 @@ import threading
 import numpy as np
 
 from monotracker.engine.components import RobotRig, RobotStatus
+from monotracker.engine.robot_transitions import TransitionLog
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
 from monotracker.geometry import apply_transform, invert_transform
@@ -59,6 +60,7 @@ class TrackerRobotRig(RobotRig):
         self.s = session
         self.clock = session.clock
         self._events: list = []
+        self.transitions = TransitionLog(clock=session.clock)  # the audit's robot_state rows, in order
         self.sim_arm = None
         if cfg.robot == "sim":
             from monotracker.robot.sim_arm import SimulatedArm
@@ -92,9 +94,11 @@ class TrackerRobotRig(RobotRig):
         # runs on the control thread: keep it short, publish through the session bus
         try:
             if kind == "transition":
+                self.transitions.add(payload.from_state.value, payload.to_state.value, payload.reason, payload.t,
+                                     payload.seq)
                 self.s.record("robot_transition", f"robot {payload.from_state.value} -> {payload.to_state.value}: "
                               f"{payload.reason}", {"from": payload.from_state.value, "to": payload.to_state.value,
-                                                    "reason": payload.reason})
+                                                    "reason": payload.reason, "seq": payload.seq})
             elif kind == "warning":
                 self.s.alert("warning", "robot_warning", str(payload))
         except Exception:  # noqa: BLE001
@@ -120,6 +124,14 @@ class TrackerRobotRig(RobotRig):
 
     def estop(self) -> CommandResult:
         return self._r(self.tracker.estop("operator e-stop"))
+
+    def signal_estop(self) -> None:
+        # in-process: the tracker latches the state lock-free and stops the arm (its lock is
+        # waited for at most Tracker.ESTOP_LOCK_WAIT_S)
+        self.tracker.estop("operator e-stop")
+
+    def drain_transitions(self) -> list:
+        return self.transitions.drain()
 
     def reset(self) -> CommandResult:
         return self._r(self.tracker.reset())

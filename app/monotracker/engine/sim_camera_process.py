@@ -16,8 +16,8 @@ camera rate on the shared monotonic clock (``time.monotonic`` is system-wide on 
   of reading a torn image); a pipe carries ``(slot, index, t_capture, truth)``;
 * the reader (:meth:`SimCameraProcess.next_frame`) always takes the newest frame and drops older
   ones, like a camera driver's ring buffer;
-* the child runs at the pose pipeline's nice value where the OS allows, and ends when its parent
-  closes the pipe or dies.
+* the child runs at normal priority or below (``nice`` >= 0; never real-time: the priority
+  policy, ``engine/pipeline_priority.py``), and ends when its parent closes the pipe or dies.
 
 Faults that the engine injects (freeze, occlusion) are applied by the rig to the frame it reads,
 as before; the child renders the scene only.
@@ -54,19 +54,18 @@ def _total_size(size: int) -> int:
     return _CTRL + SLOTS * (_META + _TRUTH_MAX + size + 8)
 
 
-def _child(wake_fd_holder, shm_name: str, shape: tuple, cam_kwargs: dict, fps: float, delay_s: float, nice: int,
-           rt_priority: int) -> None:
+def _child(wake_fd_holder, shm_name: str, shape: tuple, cam_kwargs: dict, fps: float, delay_s: float,
+           nice: int) -> None:
     """The camera process: render at ``fps`` on the monotonic clock until the parent says stop
     (control flag) or dies. It never waits on the parent: the wake-up byte is written without
     blocking (a reader that is behind wants only the newest frame anyway)."""
     import pickle
     from multiprocessing import shared_memory
 
-    from monotracker.engine.pipeline_priority import raise_pipeline_priority
+    from monotracker.engine.pipeline_priority import normal_priority
     from monotracker.sim.camera_sim import SimulatedCamera
 
-    priority = raise_pipeline_priority(rt_priority, nice)
-    realtime = priority.startswith("SCHED_FIFO")
+    priority = normal_priority(nice)  # hardware's stand-in: never above the web server or the STOP path
     parent = os.getppid()
     shm = shared_memory.SharedMemory(name=shm_name)
     # (the spawn-ed child shares its parent's resource tracker: the parent's unlink unregisters it)
@@ -122,8 +121,6 @@ def _child(wake_fd_holder, shm_name: str, shape: tuple, cam_kwargs: dict, fps: f
                 os.write(fd, b"f")
             except BlockingIOError:
                 pass  # the reader is behind: it takes the newest frame when it comes back
-            if realtime and w1 - w0 > 0.8 * period:
-                time.sleep(0.25 * (w1 - w0))  # a real-time renderer that overran leaves a fifth of the core
     except (EOFError, BrokenPipeError, OSError):
         return  # the parent went away
     finally:
@@ -139,17 +136,15 @@ class SimCameraProcess:
 
     ``cam_kwargs``: the camera's constructor arguments (picklable: trajectory object, fps, seed,
     ``T_cam_world``, optics); ``image_size`` (w, h) px; ``delay_s`` the modelled transport delay;
-    ``rt_priority`` / ``nice`` the child's priority (``pipeline_priority.raise_pipeline_priority``).
+    ``nice`` the child's nice value (>= 0, ``pipeline_priority.normal_priority``).
     :meth:`start` waits until the child renders (``ready_timeout_s``) and raises
     :class:`MonoTrackerError` with one line when it cannot."""
 
-    def __init__(self, cam_kwargs: dict, image_size: tuple, fps: float, delay_s: float, nice: int = 0,
-                 rt_priority: int = 0):
+    def __init__(self, cam_kwargs: dict, image_size: tuple, fps: float, delay_s: float, nice: int = 0):
         w, h = int(image_size[0]), int(image_size[1])
         self.shape = (h, w, 3)
         self.size = h * w * 3
         self.cam_kwargs, self.fps, self.delay_s, self.nice = cam_kwargs, float(fps), float(delay_s), int(nice)
-        self.rt_priority = int(rt_priority)
         self.pid: int | None = None
         self.priority = ""
         self._shm = None
@@ -167,7 +162,7 @@ class SimCameraProcess:
         parent, child = ctx.Pipe(duplex=True)
         self._proc = ctx.Process(target=_child, name="monotracker-simcam-render", daemon=True,
                                  args=(child, self._shm.name, self.shape, self.cam_kwargs, self.fps, self.delay_s,
-                                       self.nice, self.rt_priority))
+                                       self.nice))
         try:
             self._proc.start()
             child.close()

@@ -19,8 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monotracker.engine.components import CameraRig, PoseSample, estimate_to_sample
-from monotracker.engine.pipeline_priority import (DEFAULT_POSE_NICE, DEFAULT_POSE_RT_PRIORITY,
-                                                   raise_pipeline_priority)
+from monotracker.engine.pipeline_priority import DEFAULT_POSE_NICE, normal_priority
 from monotracker.engine.verification import KeepDetections, ValidationSet
 from monotracker.geometry import apply_transform
 
@@ -68,12 +67,10 @@ class _SimRig(CameraRig):
         self._new_frame_info: list[tuple[float, int | None]] = []  # (t_capture, content digest)
         self._published: PoseSample | None = None
         self.last_error: str | None = None  # newest frame failure (camera thread), for diagnosis
-        #: the pipeline thread's nice value (``SessionConfig.pose_nice``; 0 = leave it) and what
-        #: the OS granted ("" until the thread started); ``on_priority(text)`` is told once
+        #: the pipeline thread's and camera process's nice value (``SessionConfig.pose_nice``,
+        #: >= 0: normal or below the web server, :mod:`~monotracker.engine.pipeline_priority`) and
+        #: what it runs at ("" until the thread started); ``on_priority(text)`` is told once
         self.nice = DEFAULT_POSE_NICE
-        #: SCHED_FIFO priority of the pipeline thread (``SessionConfig.pose_rt_priority``; 0 = none)
-        self.rt_priority = DEFAULT_POSE_RT_PRIORITY
-        self._realtime = False
         #: render the twin camera in its own process (real clock; ``SessionConfig.sim_camera_process``)
         self.camera_process = False
         self._camproc = None
@@ -158,8 +155,8 @@ class _SimRig(CameraRig):
 
     def _run(self) -> None:
         """The simulated camera + pose pipeline thread: one frame per camera period, always the
-        newest (a late thread drops frames rather than queueing them), at the pipeline's raised
-        priority (:mod:`~monotracker.engine.pipeline_priority`).
+        newest (a late thread drops frames rather than queueing them), at normal priority, never
+        above the web server and the STOP path (:mod:`~monotracker.engine.pipeline_priority`).
 
         The render is the simulated camera's hardware at work: with ``render_in_transport``
         (default) it runs inside the frame's modelled transport delay, as a real camera's
@@ -168,8 +165,7 @@ class _SimRig(CameraRig):
         camera would deliver it; later when the render overruns, and that lateness is pose
         age). Without it (the baseline) the render starts ``transport_delay_s`` after the
         exposure it shows, so its time adds to the pose age."""
-        self.priority = raise_pipeline_priority(self.rt_priority, self.nice)
-        self._realtime = self.priority.startswith("SCHED_FIFO")
+        self.priority = normal_priority(self.nice)
         if self._camproc is not None:
             self.priority += f"; camera process pid {self._camproc.pid}: {self._camproc.priority}"
         log.info("simulated camera pipeline thread: %s", self.priority)
@@ -244,11 +240,6 @@ class _SimRig(CameraRig):
             with self._lock:
                 self._published = smp
             self.new_sample.set()
-            # this thread's busy time for the frame: the estimate, plus the render when it ran here
-            busy = (w3 - w_arrived) + ((w1 - w0) if camproc is None else 0.0)
-            if self._realtime and busy > 0.8 * period:
-                # a real-time thread that overran never takes the whole core: leave a fifth
-                self._stop.wait(0.25 * busy)
 
     def _receive(self, camproc, timeout_s: float):
         raise NotImplementedError  # only rigs that render in a camera process
@@ -316,8 +307,7 @@ class SimImageRig(_SimRig):
     def _start_camera_process(self):
         from monotracker.engine.sim_camera_process import SimCameraProcess
 
-        proc = SimCameraProcess(self._cam_kwargs, self.image_size, self.fps, self.transport_delay_s, self.nice,
-                                self.rt_priority)
+        proc = SimCameraProcess(self._cam_kwargs, self.image_size, self.fps, self.transport_delay_s, self.nice)
         try:
             proc.start()
         except Exception as exc:  # noqa: BLE001 - the in-thread render still works, more slowly

@@ -25,7 +25,6 @@ are applied to the simulated hardware here.
 from __future__ import annotations
 
 from monotracker.engine.components import CameraRig, estimate_to_sample
-from monotracker.engine.pipeline_priority import elevated
 from monotracker.engine.sim_rigs import (DRAPE_BGR, SIM_DIST, SIM_FOCAL_PX, SIM_IMAGE_SIZE,
                                          SIM_TRANSPORT_DELAY_S, SKIN_BGR, ProjectedFiducialRig, SimFrame,
                                          SimImageRig)
@@ -36,14 +35,6 @@ __all__ = ["DRAPE_BGR", "SIM_DIST", "SIM_FOCAL_PX", "SIM_IMAGE_SIZE", "SIM_TRANS
            "ProjectedFiducialRig", "SimFrame", "SimImageRig", "StreamRig", "estimate_to_sample", "make_vision_rig"]
 
 
-def _report_priority(session, text: str, nice: int) -> None:
-    """Say so (a warning, as for the control process) when the pose pipeline could not be
-    given the priority it asked for: on a loaded machine its poses may then arrive stale."""
-    if nice < 0 and not elevated(text):
-        session.alert("warning", "pose_priority", f"pose pipeline runs without raised priority ({text}): on a "
-                                                  "loaded machine poses may arrive stale and the arm hold")
-
-
 def make_vision_rig(source, calibration_path, plan, cfg, session) -> CameraRig:
     if source in ("sim", "sim-points"):
         if source == "sim":
@@ -52,10 +43,8 @@ def make_vision_rig(source, calibration_path, plan, cfg, session) -> CameraRig:
         else:
             rig = ProjectedFiducialRig(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps)
         rig.clock = session.clock
-        rig.nice = int(getattr(cfg, "pose_nice", 0))
-        rig.rt_priority = int(getattr(cfg, "pose_rt_priority", 0))
+        rig.nice = int(getattr(cfg, "pose_nice", 0))  # >= 0 (SessionConfig.validate): never above the web server
         rig.camera_process = bool(getattr(cfg, "sim_camera_process", False)) and cfg.clock == "real"
-        rig.on_priority = lambda text: _report_priority(session, text, rig.nice)
         if getattr(rig, "tracker", None) is not None:
             rig.tracker.config.max_predicted_tre_mm = float(cfg.max_predicted_tre_mm)
     else:

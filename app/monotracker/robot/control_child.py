@@ -18,6 +18,9 @@ from monotracker.robot.pacing import run_paced
 
 log = logging.getLogger(__name__)
 
+#: joint speed (rad/s, every joint) under which the arm counts as standing still after a STOP
+STILL_RAD_S = 1e-3
+
 
 def elevate_priority(fifo_priority: int = 10, fallback_nice: int = -10) -> str:
     """Ask for SCHED_FIFO (``fifo_priority``), else nice ``fallback_nice`` (skipped when >= 0);
@@ -41,12 +44,16 @@ class _Child:
     """Runs in the control process. See the module docstring."""
 
     def __init__(self, arm_factory, tracker_kwargs, conn, target_slot, state_slot, heart_slot, estop_ev,
-                 parent_pid, opts):
+                 parent_pid, opts, stop_slot=None):
         from monotracker.robot.tracker import Tracker
 
         self.conn = conn
         self.target_slot, self.state_slot, self.heart_slot = target_slot, state_slot, heart_slot
         self.estop_ev = estop_ev
+        self.stop_slot = stop_slot  # the engine's stop requests: [number, time signalled]
+        self._ack = (0, float("nan"))  # (newest stop request latched, when), published with the state
+        self._still_t = float("nan")  # first cycle with the arm standing still after that stop
+        self._pub_lock = threading.Lock()
         self.parent_pid = parent_pid
         self.opts = opts
         self.clock = time.monotonic
@@ -68,7 +75,7 @@ class _Child:
     def _on_event(self, kind, payload):
         if kind == "transition":
             payload = {"from": payload.from_state.value, "to": payload.to_state.value, "reason": payload.reason,
-                       "t": payload.t}
+                       "t": payload.t, "seq": payload.seq}
         else:
             payload = str(payload)
         self.outbox.put(("event", kind, payload))
@@ -99,8 +106,10 @@ class _Child:
                     self.exit_reason = "engine asked the control process to stop"
                     self._quit.set()
                     res = (True, "stopping")
-                elif name == "estop":
-                    res = tr.estop(*args)
+                elif name == "estop":  # the stop channel's second route: (reason, request number)
+                    res = tr.estop(args[0] if args else "operator e-stop")
+                    if len(args) > 1:
+                        self._acknowledge(int(args[1]))
                 elif name in ("arm", "disarm", "start_tracking", "stop_tracking", "reset", "connect"):
                     if name == "start_tracking":
                         # the engine writes the target it checked, then sends the start: judge
@@ -133,10 +142,35 @@ class _Child:
 
     # ------------------------------------------------------------------ e-stop watcher
     def _estop_watch(self):
+        """The stop channel's receiving end (this process's priority, SCHED_FIFO where allowed):
+        wakes on the shared event, latches the tracker's e-stop (state first, then the arm's stop
+        command; lock-free for the state, also while the loop is busy in an arm call) and publishes
+        the acknowledgement at once, with the request number the engine wrote."""
         while not self._quit.is_set():
             if self.estop_ev.wait(0.2):
+                self.estop_ev.clear()  # a request after this point sets it again: none is lost
+                got = self.stop_slot.read() if self.stop_slot is not None else None
                 self.tracker.estop("operator e-stop")
-                self.estop_ev.clear()
+                self._acknowledge(int(got[1][0]) if got is not None else self._ack[0])
+
+    def _acknowledge(self, request: int) -> None:
+        """The stop request ``request`` is latched: publish it (with the time) at once."""
+        now = self.clock()
+        with self._pub_lock:
+            if request >= self._ack[0]:
+                self._ack = (int(request), now)
+                self._still_t = float("nan")
+        self._publish(now)
+
+    def _note_still(self, now) -> None:
+        """After an acknowledged stop: the first cycle in which the arm stands still."""
+        if self._ack[0] <= 0 or self._still_t == self._still_t or self.tracker.state.value != "estopped":
+            return
+        snap = self.tracker.snapshot()
+        dq = self.sim_arm.true_dq if self.sim_arm is not None else (snap.dq if snap is not None else None)
+        if dq is not None and np.all(np.isfinite(dq)) and float(np.max(np.abs(dq))) < STILL_RAD_S:
+            with self._pub_lock:
+                self._still_t = float(now)
 
     # ------------------------------------------------------------------ inputs per cycle
     def _apply_target(self, now):
@@ -168,41 +202,44 @@ class _Child:
 
     # ------------------------------------------------------------------ state out
     def _publish(self, now):
-        snap = self.tracker.snapshot()
-        if snap is None:
-            return
-        v = np.full(STATE_N, np.nan)
-
-        def put(name, val):
-            i, n = _OFF[name]
-            v[i:i + n] = np.asarray(val, dtype=float).reshape(-1)
-
-        put("t", snap.t)
-        put("state", STATES.index(self.tracker.state.value))  # the live state, not the step's
-        put("connected", snap.connected)
-        put("q", snap.q); put("dq", snap.dq); put("dq_cmd", snap.dq_cmd)
-        put("T_tip", snap.T_base_tip_mm)
-        put("has_target", snap.T_base_target_mm is not None)
-        if snap.T_base_target_mm is not None:
-            put("T_target", snap.T_base_target_mm)
-        put("tip_error_mm", snap.tip_error_mm); put("angle_error_deg", snap.angle_error_deg)
-        put("target_age_s", snap.target_age_s); put("sigma_min", snap.sigma_min)
-        put("step_cost_ms", snap.step_cost_ms); put("overruns", self.tracker.overruns)
-        put("keepout", snap.keepout_active)
-        put("program_fault", PROGRAM_FAULTS.index(snap.program_fault) if snap.program_fault in PROGRAM_FAULTS else 7)
-        put("target_stamp", self.tracker.safety.target_stamp)
-        put("worst_cycle_ms", self.tracker.worst_cycle_ms)
-        if self.sim_arm is not None:
-            put("true_q", self.sim_arm.true_q); put("true_dq", self.sim_arm.true_dq)
-        put("cycles", self.cycles); put("t_published", now)
-        put("stopping", 0.0)
+        """Write the state slot (loop, command and e-stop threads; one at a time, so a newer
+        state is never overwritten by an older one)."""
         with self._pub_lock:
+            snap = self.tracker.snapshot()
+            if snap is None:
+                return
+            v = np.full(STATE_N, np.nan)
+
+            def put(name, val):
+                i, n = _OFF[name]
+                v[i:i + n] = np.asarray(val, dtype=float).reshape(-1)
+
+            put("t", snap.t)
+            put("state", STATES.index(self.tracker.state.value))  # the live state, not the step's
+            put("connected", snap.connected)
+            put("q", snap.q); put("dq", snap.dq); put("dq_cmd", snap.dq_cmd)
+            put("T_tip", snap.T_base_tip_mm)
+            put("has_target", snap.T_base_target_mm is not None)
+            if snap.T_base_target_mm is not None:
+                put("T_target", snap.T_base_target_mm)
+            put("tip_error_mm", snap.tip_error_mm); put("angle_error_deg", snap.angle_error_deg)
+            put("target_age_s", snap.target_age_s); put("sigma_min", snap.sigma_min)
+            put("step_cost_ms", snap.step_cost_ms); put("overruns", self.tracker.overruns)
+            put("keepout", snap.keepout_active)
+            put("program_fault", PROGRAM_FAULTS.index(snap.program_fault) if snap.program_fault in PROGRAM_FAULTS else 7)
+            put("target_stamp", self.tracker.safety.target_stamp)
+            put("worst_cycle_ms", self.tracker.worst_cycle_ms)
+            if self.sim_arm is not None:
+                put("true_q", self.sim_arm.true_q); put("true_dq", self.sim_arm.true_dq)
+            put("cycles", self.cycles); put("t_published", now)
+            put("stopping", 0.0)
+            put("estop_ack", self._ack[0]); put("estop_ack_t", self._ack[1]); put("still_t", self._still_t)
             self.state_slot.write(v)
 
     # ------------------------------------------------------------------ main loop
     def run(self):
-        self._pub_lock = threading.Lock()
-        self.priority = elevate_priority(int(self.opts.get("fifo_priority", 10))) if self.opts.get("elevate", True) \
+        self.priority = elevate_priority(int(self.opts.get("fifo_priority", 10)),
+                                         int(self.opts.get("fallback_nice", -10))) if self.opts.get("elevate", True) \
             else "normal priority (not requested)"
         res = self.tracker.connect()
         self.tracker.step(self.clock())
@@ -233,6 +270,7 @@ class _Child:
         try:
             self._apply_target(t_start)
             tr.step(t_start)
+            self._note_still(t_start)
         except Exception as exc:  # noqa: BLE001 - step() catches loop errors; last guard
             log.exception("control process error")
             tr.estop(f"internal error in control process: {type(exc).__name__}: {exc}")
@@ -275,8 +313,10 @@ class _Child:
         self.outbox.put(None)
 
 
-def _child_main(arm_factory, tracker_kwargs, conn, target_slot, state_slot, heart_slot, estop_ev, parent_pid, opts):
+def _child_main(arm_factory, tracker_kwargs, conn, target_slot, state_slot, heart_slot, estop_ev, parent_pid, opts,
+                stop_slot=None):
     logging.basicConfig(level=logging.WARNING, format="control-process %(levelname)s %(name)s: %(message)s")
-    child = _Child(arm_factory, tracker_kwargs, conn, target_slot, state_slot, heart_slot, estop_ev, parent_pid, opts)
+    child = _Child(arm_factory, tracker_kwargs, conn, target_slot, state_slot, heart_slot, estop_ev, parent_pid, opts,
+                   stop_slot)
     child.run()
     time.sleep(0.05)  # let the sender flush the exit report

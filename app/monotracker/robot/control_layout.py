@@ -16,6 +16,9 @@ PROGRAM_FAULTS = ("", "watchdog", "pendant", "paused", "protective_stop", "emerg
 TARGET_N = 16 + 2 + 1 + 3 + 1
 #: the engine's heartbeat slot: [monotonic time of the last beat]
 HEART_N = 1
+#: the stop channel's request slot: [request number, monotonic time the engine signalled it];
+#: written by :meth:`ControlProcess.signal_estop` just before it sets the shared e-stop event
+STOP_N = 2
 #: state slot fields (name, size), in order
 STATE_FIELDS = (
     ("t", 1), ("state", 1), ("connected", 1), ("q", 6), ("dq", 6), ("dq_cmd", 6), ("T_tip", 16),
@@ -23,6 +26,10 @@ STATE_FIELDS = (
     ("target_age_s", 1), ("sigma_min", 1), ("step_cost_ms", 1), ("overruns", 1), ("keepout", 1),
     ("program_fault", 1), ("target_stamp", 1), ("worst_cycle_ms", 1), ("true_q", 6), ("true_dq", 6),
     ("cycles", 1), ("t_published", 1), ("stopping", 1),
+    # the stop channel's acknowledgement: the newest request number latched by the e-stop
+    # watcher, when it latched it (the stop command sent to the arm), and the first control
+    # cycle after it with the arm standing still (NaN until then); monotonic s
+    ("estop_ack", 1), ("estop_ack_t", 1), ("still_t", 1),
 )
 STATE_N = sum(n for _, n in STATE_FIELDS)
 
@@ -43,7 +50,10 @@ class ControlState:
     """One consistent state published by the control process (see :data:`STATE_FIELDS`).
     Poses mm (base frame); ``q`` rad, ``dq`` rad/s; ``true_q``/``true_dq`` the simulated arm's
     truth (NaN for a real arm); ``t`` the child's clock (s) at the cycle; ``state`` one of
-    :data:`STATES`; ``program_fault`` one of :data:`PROGRAM_FAULTS`."""
+    :data:`STATES`; ``program_fault`` one of :data:`PROGRAM_FAULTS`. ``estop_ack``: the newest
+    stop request number the control process latched (0: none yet); ``estop_ack_t`` when it did
+    (its clock, ``time.monotonic``); ``still_t`` the first control cycle after it in which the arm
+    stood still (NaN until then)."""
 
     t: float
     state: str
@@ -67,6 +77,9 @@ class ControlState:
     true_dq: np.ndarray
     cycles: int
     t_published: float
+    estop_ack: int = 0
+    estop_ack_t: float = float("nan")
+    still_t: float = float("nan")
 
 
 def _decode_state(v: np.ndarray) -> ControlState:
@@ -85,4 +98,6 @@ def _decode_state(v: np.ndarray) -> ControlState:
         program_fault=PROGRAM_FAULTS[int(g("program_fault"))], target_stamp=float(g("target_stamp")),
         worst_cycle_ms=float(g("worst_cycle_ms")), true_q=g("true_q"), true_dq=g("true_dq"),
         cycles=int(g("cycles")), t_published=float(g("t_published")),
+        estop_ack=int(g("estop_ack")) if np.isfinite(g("estop_ack")) else 0,
+        estop_ack_t=float(g("estop_ack_t")), still_t=float(g("still_t")),
     )

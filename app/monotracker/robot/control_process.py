@@ -15,9 +15,15 @@ value, else normal; :attr:`ControlProcess.priority` says which and why), with:
   executed in the child by a command thread under the tracker's lock, answered with
   ``(ok, reason)``; events (transitions, warnings) come back the same way, sent by a sender thread
   so that a stalled engine can never block the control loop on a full pipe;
-* **e-stop** through a shared ``multiprocessing.Event``: a watcher thread in the child wakes on
-  it and latches the tracker's e-stop at once (lock-free, also while the loop is busy in an arm
-  call); the engine side latches its own view too, so the UI shows ``estopped`` immediately;
+* **e-stop** (the stop channel) through shared memory and a shared ``multiprocessing.Event``:
+  :meth:`ControlProcess.signal_estop` writes a request number into the stop slot and sets the
+  event (no pipe, no lock the control process holds, microseconds: callable from a web server's
+  event loop); a watcher thread in the child, at the child's priority, wakes on it, latches the
+  tracker's e-stop (lock-free, also while the loop is busy in an arm call), commands the arm to
+  stop and publishes the request number as its acknowledgement in the state slot at once.
+  :meth:`ControlProcess.estop` waits for that acknowledgement (the state the engine and the page
+  show is the child's, never the engine's wish); if it does not come, the command pipe is tried
+  as a second route and the answer says the stop is unconfirmed;
 * **engine gone**: the child checks every cycle that its parent is alive (``os.getppid``) and
   that the engine's heartbeat (a parent thread, 20 Hz) is fresh. Parent dead: e-stop, stop
   the arm until it stands still (at most ``exit_stop_s``), disconnect, exit. Heartbeat older than
@@ -47,10 +53,32 @@ import numpy as np
 # the slot layout and the child side live in their own modules; re-exported (their old home)
 from monotracker.robot.control_child import _child_main, _Child, elevate_priority  # noqa: F401
 from monotracker.robot.control_layout import (_OFF, HEART_N, PROGRAM_FAULTS, STATE_FIELDS, STATE_N,  # noqa: F401
-                                              STATES, TARGET_N, ControlState, _decode_state, _offsets)
+                                              STATES, STOP_N, TARGET_N, ControlState, _decode_state, _offsets)
 from monotracker.robot.shm_channel import SeqlockSlot
 
 log = logging.getLogger(__name__)
+
+#: the control process runs its linear algebra in its own threads: a BLAS worker pool, created when
+#: numpy is imported (before the process turns real-time), would stay at normal priority, and a
+#: control cycle waiting on it would wait behind the load beside the app (priority inversion)
+CHILD_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+_env_lock = threading.Lock()
+
+
+def _start_with_env(proc, env: dict) -> None:
+    """Start ``proc`` (spawn: a new interpreter inheriting ``os.environ``) with ``env`` set."""
+    with _env_lock:
+        saved = {k: os.environ.get(k) for k in env}
+        os.environ.update(env)
+        try:
+            proc.start()
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+
 
 # ====================================================================== engine side
 class ControlProcessError(RuntimeError):
@@ -65,11 +93,15 @@ class ControlProcess:
     :class:`Tracker` (``variant``, ``rate_hz``, ``predict_target``, ...; not ``clock``/``arm``).
     ``on_event(kind, payload)``: ``"transition"`` (dict from/to/reason/t) and ``"warning"`` (str),
     called on the handle's reader thread. ``opts``: ``heartbeat_timeout_s`` (2.0),
-    ``exit_stop_s`` (2.0), ``elevate`` (True), ``fifo_priority`` (10), ``exit_report`` (path).
+    ``exit_stop_s`` (2.0), ``elevate`` (True), ``fifo_priority`` (10), ``fallback_nice`` (-10),
+    ``exit_report`` (path).
     Raises :class:`ControlProcessError` (one line) if the child does not come up within
     ``start_timeout_s``."""
 
     COMMAND_TIMEOUT_S = 10.0
+    #: how long :meth:`estop` waits for the control process's acknowledgement before it tries the
+    #: command pipe as well (s)
+    ESTOP_ACK_TIMEOUT_S = 1.0
 
     def __init__(self, arm_factory: Callable, tracker_kwargs: dict | None = None,
                  on_event: Callable[[str, object], None] | None = None, opts: dict | None = None,
@@ -80,13 +112,15 @@ class ControlProcess:
         self.target_slot = SeqlockSlot(TARGET_N)
         self.state_slot = SeqlockSlot(STATE_N)
         self.heart_slot = SeqlockSlot(HEART_N)
+        self.stop_slot = SeqlockSlot(STOP_N)
+        self._stop_lock = threading.Lock()  # one writer of the stop slot at a time (two tabs may press STOP)
+        self._stop_n = 0
         self.estop_ev = ctx.Event()
         self._conn, child_conn = ctx.Pipe(duplex=True)
         self._send_lock = threading.Lock()
         self._ids = count(1)
         self._pending: dict[int, list] = {}
         self._pending_lock = threading.Lock()
-        self._estop_latched = False
         self._head = (0, np.zeros(3), 0.0)
         self.last_reason = ""
         self.program_fault_reason = ""
@@ -98,9 +132,10 @@ class ControlProcess:
         self.heart_slot.write([time.monotonic()])
         self.proc = ctx.Process(target=_child_main, name="monotracker-control",
                                 args=(arm_factory, dict(tracker_kwargs or {}), child_conn, self.target_slot,
-                                      self.state_slot, self.heart_slot, self.estop_ev, os.getpid(), self.opts),
+                                      self.state_slot, self.heart_slot, self.estop_ev, os.getpid(), self.opts,
+                                      self.stop_slot),
                                 daemon=True)
-        self.proc.start()
+        _start_with_env(self.proc, CHILD_ENV)
         child_conn.close()
         self._reader = threading.Thread(target=self._read_loop, name="monotracker-control-reader", daemon=True)
         self._reader.start()
@@ -183,21 +218,41 @@ class ControlProcess:
             return False, f"the robot control process did not answer {name!r} in time"
         return slot[1]
 
-    def estop(self, reason: str = "operator e-stop"):
-        """Latched at once on both sides: the shared event wakes the child's e-stop watcher
-        (milliseconds, also while its loop is busy); then confirmed over the pipe."""
-        self._estop_latched = True
+    def signal_estop(self) -> int:
+        """The stop channel: write the next request number into the stop slot and set the shared
+        event the control process's e-stop watcher waits on; returns the request number. Never
+        blocks on the control process (a lock held only here, for two floats), never raises:
+        safe on a web server's event loop. The child's acknowledgement is ``state().estop_ack``."""
+        with self._stop_lock:
+            self._stop_n += 1
+            n = self._stop_n
+            self.stop_slot.write([float(n), time.monotonic()])
         self.estop_ev.set()
-        ok, why = self.command("estop", reason, timeout=2.0)
-        if not ok:
-            return True, f"e-stop signalled ({why})"
-        return True, "e-stopped"
+        return n
+
+    def estop(self, reason: str = "operator e-stop", timeout_s: float | None = None):
+        """Signal the stop (:meth:`signal_estop`) and wait (up to ``timeout_s``, default
+        :data:`ESTOP_ACK_TIMEOUT_S`) until the control process acknowledges it; without an
+        acknowledgement the command pipe is tried too. Returns ``(confirmed, one line)``."""
+        t0 = time.monotonic()
+        n = self.signal_estop()
+        limit = self.ESTOP_ACK_TIMEOUT_S if timeout_s is None else float(timeout_s)
+        while True:
+            st = self.state()
+            if st is not None and st.estop_ack >= n:
+                return True, f"e-stopped (the control process confirmed in {1000 * (time.monotonic() - t0):.0f} ms)"
+            if not self.alive or time.monotonic() - t0 > limit:
+                break
+            time.sleep(0.001)
+        ok, why = self.command("estop", reason, n, timeout=2.0)
+        if ok:
+            return True, ("e-stopped (confirmed over the command pipe; the stop channel did not answer within "
+                          f"{1000 * limit:.0f} ms)")
+        return False, (f"STOP signalled but the robot control process has not confirmed it ({why}): "
+                       "use the robot's own emergency stop")
 
     def reset(self):
-        ok, reason = self.command("reset")
-        if ok:
-            self._estop_latched = False
-        return ok, reason
+        return self.command("reset")
 
     def set_head_sphere(self, centre_mm, radius_mm: float, frame: str = "target"):
         c = np.asarray(centre_mm, dtype=float).reshape(-1)
@@ -226,9 +281,9 @@ class ControlProcess:
         return None if got is None else _decode_state(got[1])
 
     def live_state(self) -> str:
-        """The state as the engine should show it: ``estopped`` at once after :meth:`estop`,
-        or when the child is gone."""
-        if self._estop_latched or not self.alive:
+        """The state as the engine should show it: the control process's own (its published
+        state; a stop shows once the child has latched it), ``estopped`` when the child is gone."""
+        if not self.alive:
             return "estopped"
         st = self.state()
         return "disarmed" if st is None else st.state

@@ -64,12 +64,15 @@ class State(str, enum.Enum):
 
 @dataclass(frozen=True)
 class Transition:
-    """One state change: time ``t`` (s, the safety clock), from/to state, and why."""
+    """One state change: time ``t`` (s, the safety clock), from/to state, and why. ``seq``: its
+    number in this safety layer's history (1, 2, ...; given under the layer's lock, so listeners
+    called from different threads can put the transitions back in the order they happened)."""
 
     t: float
     from_state: State
     to_state: State
     reason: str
+    seq: int = 0
 
 
 @dataclass
@@ -146,7 +149,7 @@ class SafetyLayer:
                 return None
             if self.state == State.ESTOPPED and not reset:
                 return None
-            tr = Transition(float(now), self.state, to, reason)
+            tr = Transition(float(now), self.state, to, reason, len(self.history) + 1)
             self.state = to
             self._hold_auto = auto
             self.history.append(tr)

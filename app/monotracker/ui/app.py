@@ -62,6 +62,8 @@ class MonoTrackerApp:
         self.frames_held = 0  # overlay waits for a tab to catch up (benchmark, tests)
         self._lock = threading.RLock()
         self._stop = threading.Event()
+        self._redraw = threading.Event()  # redraw every tab now (the robot's state changed)
+        self._unsubscribe = None
         self._threads: list[threading.Thread] = []
         self._views: dict[int, ClientView] = {}
         self._history = deque(maxlen=600)  # (wall time s, tip error mm, speed mm/s)
@@ -84,6 +86,10 @@ class MonoTrackerApp:
         self.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
+        # a robot state change (a STOP acknowledged by the controller, from any tab or cause)
+        # reaches every tab at once, not at the next render tick
+        self._unsubscribe = self.session.subscribe(
+            lambda ev: self.redraw_now() if getattr(ev, "code", "") in ("robot_state", "estop") else None)
         for name, fn in (("render", self._render_loop), ("overlay", self._overlay_loop)):
             th = threading.Thread(target=fn, name=f"monotracker-ui-{name}", daemon=True)
             th.start()
@@ -91,6 +97,9 @@ class MonoTrackerApp:
 
     def stop(self) -> None:
         self._stop.set()
+        self._redraw.set()
+        if self._unsubscribe is not None:
+            self._unsubscribe()
         for th in self._threads:
             th.join(timeout=2.0)
         if self.proxy is not None:
@@ -132,10 +141,15 @@ class MonoTrackerApp:
             self.session.release_control(str(client.client_id))
 
     # ================================================================== render loop
+    def redraw_now(self) -> None:
+        """Bring every tab up to date now rather than at the next tick (any thread)."""
+        self._redraw.set()
+
     def _render_loop(self) -> None:
         period = 0.125
         while not self._stop.is_set():
             t0 = time.monotonic()
+            self._redraw.clear()
             try:
                 snap = self.session.snapshot()
                 with self._lock:
@@ -150,7 +164,7 @@ class MonoTrackerApp:
                         log.exception("render failed for client %s", view.client_id)
             except Exception:  # noqa: BLE001
                 log.exception("render failed")
-            self._stop.wait(max(0.01, period - (time.monotonic() - t0)))
+            self._redraw.wait(max(0.01, period - (time.monotonic() - t0)))
 
     # ================================================================== overlay stream
     def _overlay_loop(self) -> None:

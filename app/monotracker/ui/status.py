@@ -41,6 +41,10 @@ div[style*="pointer-events: none"] .mt-conn-lost { display: block; position: fix
   z-index: 10000; background: #000; color: #ff4040; font: 800 2.2rem system-ui, sans-serif; text-align: center;
   padding: 18px; border-bottom: 6px solid #ff4040; }
 div[style*="pointer-events: none"] .mt-state { filter: grayscale(1); }
+/* STOP first: the status panel (robot state, STOP) stays above any modal (a PIN pad): its dock
+   region over the modal's overlay (viser draws modals at z-index 100+), so a gloved press on STOP is
+   never swallowed by an open pad (issue 34; tests/ui/test_stop_with_modal.py) */
+[data-dock-region]:has(#mt-robot-state) { z-index: 1000 !important; }
 .mt-control { border-radius: 6px; padding: 8px 12px; font-size: 1.15rem; font-weight: 700; margin: 4px 0; }
 .mt-control.mine { background: #e6fffa; color: #234e52; border: 2px solid #38a169; }
 .mt-control.viewing { background: #fffbea; color: #744210; border: 2px solid #d69e2e; }
