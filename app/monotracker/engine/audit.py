@@ -398,7 +398,8 @@ class VerifyResult:
 
 def verify(path) -> VerifyResult:
     """Check the audit database at ``path``: protective triggers present, ids consecutive, every
-    row's hash chained to the previous one. Opens it read-only; never modifies it."""
+    row's hash chained to the previous one, the ``robot_state`` rows following each other
+    (``engine/audit_states.py``). Opens it read-only; never modifies it."""
     path = Path(path)
     if not path.is_file():
         return VerifyResult(False, 0, 0, None, f"no audit database at {path}")
@@ -444,9 +445,15 @@ def verify(path) -> VerifyResult:
             prev = h
         if missing:
             return VerifyResult(False, n, legacy, None, f"protective trigger(s) removed: {', '.join(missing)}", spilled)
+        from monotracker.engine.audit_states import state_rows_problem
+
+        bad = state_rows_problem(db)  # the robot_state rows follow each other
+        if bad is not None:
+            return VerifyResult(False, n, legacy, bad[0], bad[1], spilled)
         note = f"; {legacy} older rows before the chain began are not covered" if legacy else ""
         note += f"; {spilled} rows wait in {spill.name}" if spilled else ""
-        return VerifyResult(True, n, legacy, None, f"{n} rows, hash chain intact, triggers present{note}", spilled)
+        return VerifyResult(True, n, legacy, None, f"{n} rows, hash chain intact, triggers present, robot state "
+                                                   f"rows follow each other{note}", spilled)
     except sqlite3.Error as exc:
         return VerifyResult(False, 0, 0, None, f"cannot read {path}: {exc}", spilled)
     finally:
