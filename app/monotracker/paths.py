@@ -2,7 +2,10 @@
 
 * ``repo_root()``: the checkout (``sample_data/`` and ``static/`` sit there).
 * ``data_dir()``: the operator's working folder for saved plans, the audit log and logs;
-  ``$MONOTRACKER_HOME`` or ``~/.monotracker``. Created on first use.
+  ``$MONOTRACKER_HOME``, else ``.monotracker`` in the home folder of the user running it (from
+  the user database, not ``$HOME``: ``sudo`` or a shared ``$HOME`` never makes two users share
+  one folder; :func:`default_home`). Created on first use. A running session locks its folder
+  (``engine/session_lock.py``).
 """
 
 from __future__ import annotations
@@ -28,7 +31,33 @@ def sample_ct_path() -> Path:
     return sample_data_dir() / "phantom_ct.nii.gz"
 
 
+def default_home() -> Path:
+    """``$MONOTRACKER_HOME``, else ``<this user's home>/.monotracker`` (the home folder of the
+    process's user id in the user database; ``$HOME`` only where there is none)."""
+    env = os.environ.get("MONOTRACKER_HOME")
+    if env:
+        return Path(env)
+    home = None
+    try:
+        import pwd
+
+        home = pwd.getpwuid(os.getuid()).pw_dir
+    except (ImportError, KeyError, AttributeError):
+        pass
+    return Path(home or Path.home()) / ".monotracker"
+
+
 def data_dir() -> Path:
-    d = Path(os.environ.get("MONOTRACKER_HOME", Path.home() / ".monotracker"))
+    """:func:`default_home`, created if missing. The per-user default must belong to this user:
+    one owned by another user (made by ``sudo`` with a kept ``$HOME``, say) is refused with one
+    line (``InputError``) rather than shared."""
+    from monotracker.errors import InputError
+
+    d = default_home()
     d.mkdir(parents=True, exist_ok=True)
+    if not os.environ.get("MONOTRACKER_HOME") and hasattr(os, "getuid"):
+        owner = d.stat().st_uid
+        if owner != os.getuid():
+            raise InputError(f"the default session folder {d} belongs to another user (uid {owner}); "
+                             "use your own with --home or MONOTRACKER_HOME")
     return d

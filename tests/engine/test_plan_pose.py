@@ -72,6 +72,7 @@ def test_stopped_or_failed_camera_clears_the_pose(make_session):
     r = s.arm("1234")
     assert not r.ok and "no pose yet" in r.message
     # a start that fails leaves no pose either
+    s.shutdown()  # one session per folder (engine/session_lock.py)
     s2 = make_session(clock="sim", robot_factory=lambda *a: FollowerRobotRig())
     assert s2.new_plan().ok  # (same home folder: start from an empty plan)
     plan_sample(s2)

@@ -19,7 +19,8 @@ def test_restart_restores_plan_and_shows_disarmed(tmp_path, port):
     assert s1.confirm_fiducials().ok
     assert s1.set_entry(ph.sample_entry_lps).ok and s1.set_target(ph.sample_target_lps).ok
     assert s1.arm("2468").ok or True  # armed or not, a crash must come back disarmed
-    del s1  # a crash: no shutdown
+    s1._folder_lock.release()  # a crash: no shutdown; the OS drops a dead process's folder lock
+    del s1
 
     s2 = Session(SessionConfig(home=tmp_path, arm_pin="2468"))
     try:

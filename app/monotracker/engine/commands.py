@@ -12,9 +12,10 @@ is intact; 1 otherwise (the summary says why).
 
     monotracker audit verify [HOME]
 
-Checks the audit log of a session folder (default ``$MONOTRACKER_HOME`` or ``~/.monotracker``):
-the protective triggers are present and every row's hash chains to the one before. Exit 0 when
-intact, 1 naming the first bad row.
+Checks the audit log of a session folder (default ``$MONOTRACKER_HOME``, else your
+``~/.monotracker``): the protective triggers are present, every row's hash chains to the one
+before, and the ``robot_state`` rows follow each other (each goes from the state the one before
+went to). Exit 0 when intact, 1 naming the first bad row.
 """
 
 from __future__ import annotations
@@ -54,9 +55,9 @@ def register(subparsers) -> None:
     a = subparsers.add_parser("audit", help="the session's audit log: verify its hash chain",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     asub = a.add_subparsers(dest="audit_command", metavar="ACTION", required=True)
-    v = asub.add_parser("verify", help="check the audit log's hash chain and protective triggers")
+    v = asub.add_parser("verify", help="check the audit log's hash chain, protective triggers and robot state rows")
     v.add_argument("home", nargs="?", type=home_folder, default=None,
-                   help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
+                   help="session folder (default $MONOTRACKER_HOME, else your ~/.monotracker)")
     v.add_argument("--json", action="store_true", help="print one JSON object")
     v.set_defaults(func=_audit_verify)
 
@@ -69,9 +70,9 @@ def _audit_verify(args) -> int:
     from monotracker.engine.session import AUDIT_FILE
 
     if args.home is None:
-        import os
+        from monotracker.paths import default_home
 
-        home = Path(os.environ.get("MONOTRACKER_HOME", Path.home() / ".monotracker"))
+        home = default_home()
     else:
         home = args.home
     if not (home / AUDIT_FILE).is_file():

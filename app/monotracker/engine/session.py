@@ -42,7 +42,9 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.claim_control(client_id, pin, label=""); s.release_control(client_id)   # one browser client in control
     s.for_client(client_id) -> ClientSession    # reads as is; commands only while in control; estop() always
     s.start_tracking(); s.stop_tracking()   # needs armed + plan + trusted fresh pose + hand-eye
-    s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed
+    s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed; estop() waits
+                                        #   (~1 s at most) for the robot controller's acknowledgement
+    s.request_estop()                   # the stop channel alone: never blocks (a web server's event loop)
     s.inject_fault(name)                # sim only: "camera-freeze"|"occlude-all"|"robot-disconnect"|"bad-pose"|"none"
     s.export_slicer_markups(folder) -> list[Path]   # .mrk.json, LPS
     s.start_recording(folder); s.stop_recording()   # frames + detections + poses + robot + alerts
@@ -99,11 +101,17 @@ with its shift in mm; excluded from then on); ``robot_warning`` [warning] from t
 ``plan_reconfirm_pending`` / ``plan_ct_changed`` / ``plan_ct_missing`` / ``calibration_changed`` /
 ``plan_path_invalid`` / ``home_unwritable`` / ``audit_unavailable`` / ``audit_delayed`` / ``audit_lost``
 [alarm], ``home_writable`` / ``audit_recovered`` [info], ``fiducial_unverified`` [warning]; ``estop``
-[alarm]; ``pin_lockout`` [alarm] too many wrong PIN tries, arming and taking control locked (each
+[alarm]; ``estop_unconfirmed`` [alarm] STOP signalled but the robot controller did not confirm it;
+``session_unlocked`` [warning] the session folder could not be locked (read-only); ``pin_lockout`` [alarm] too many wrong PIN tries, arming and taking control locked (each
 wrong try is an ``arm_refused`` / ``control_refused`` *event*, never an alert, never the PIN); ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
 / ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
 state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
-``arm``, ``tracking_started``, ``robot_state``, ``fault_injected``, ...); all of them are in the audit log.
+``arm``, ``tracking_started``, ``robot_state`` (one per robot transition, in order, with its own
+reason), ``session_lock_recovered`` (this session took over the folder lock of a process that was
+killed), ``fault_injected``, ...); all of them are in the audit log.
+
+One session per folder: the session locks its ``home`` (``engine/session_lock.py``); a second
+session on it raises :class:`~monotracker.engine.session_lock.SessionFolderBusy` naming the holder.
 
 Camera sources (``engine/vision_rig.py``): ``"sim"`` the rendered digital-twin camera (vision's
 SimulatedCamera + classical detector + PoseTracker), ``"sim-points"`` the twin at the level of
@@ -162,6 +170,7 @@ from monotracker.engine.plan import (
     distance_segment_to_points_mm,
     path_length_mm,
 )
+from monotracker.engine.session_lock import SessionFolderLock
 from monotracker.engine.snapshot import (
     CommandResult,
     CTSummary,
@@ -214,6 +223,8 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         self.config.validate()
         self.home = Path(self.config.home) if self.config.home is not None else data_dir()
         _prepare_home(self.home)
+        # one session per folder: a second one is refused naming the holder (engine/session_lock.py)
+        self._folder_lock = SessionFolderLock(self.home).acquire()
         self.session_id = uuid.uuid4().hex[:12]
         self.clock = SimClock() if self.config.clock == "sim" else time.monotonic
         self._lock = threading.RLock()
@@ -258,6 +269,7 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         self._bus.event("session_started", f"session {self.session_id} started, disarmed",
                         {"home": str(self.home), "camera": self.config.camera, "robot": self.config.robot,
                          "clock": self.config.clock, "plan_revision": self._plan.revision})
+        self._note_folder_lock()
 
     # ================================================================== lifecycle
     def start(self) -> CommandResult:
@@ -291,6 +303,20 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
             self._bus.event("session_shutdown", "session shut down")
             self._bus.stop()
             self._audit.close()
+            self._folder_lock.release()
+
+    def _note_folder_lock(self) -> None:
+        """The audit log says when this session took over a lock its holder never released (it
+        was killed or crashed), and when the folder could not be locked at all."""
+        lock = self._folder_lock
+        if lock.took_over:
+            h = lock.took_over
+            self._bus.event("session_lock_recovered", f"session folder lock taken over from MonoTracker pid "
+                            f"{h.get('pid', '?')} on host {h.get('host', '?')} (since {h.get('since_iso', '?')}), "
+                            "which ended without releasing it (killed or crashed)", {"previous": h}, level="warning")
+        if lock.note:
+            self._bus.alert("warning", "session_unlocked", f"{lock.note}: another server could use {self.home} "
+                            "at the same time")
 
     def __enter__(self) -> "Session":
         return self

@@ -53,7 +53,7 @@ def register(subparsers) -> None:
     p.add_argument("--robot", type=robot_spec, default="sim", help="sim | ur:IP (default sim; an IP address, no host names)")
     p.add_argument("--pin", default=None, help="operator PIN for arming (default $MONOTRACKER_PIN, else a random one)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
-    p.add_argument("--home", type=home_folder, default=None, help="session folder (default $MONOTRACKER_HOME or ~/.monotracker)")
+    p.add_argument("--home", type=home_folder, default=None, help="session folder, locked while the server runs (default $MONOTRACKER_HOME, else your ~/.monotracker)")
     p.add_argument("--record", type=home_folder, default=None, metavar="DIR",
                    help="record frames, detections, poses, robot and alerts into DIR (`monotracker replay DIR`)")
     p.add_argument("--igtl-port", type=int_range(1, 65535), default=None, metavar="PORT",
@@ -132,6 +132,25 @@ class StopSignals:
         return self.got[0] if self.got else 0
 
 
+def restored_plan_line(session) -> str | None:
+    """One plain line for the console when the session folder held an earlier plan, which the
+    session restored (robot disarmed); None for a fresh folder."""
+    from pathlib import Path
+
+    snap = session.snapshot()
+    if not (snap.fiducials or snap.plan.entry_lps_mm is not None or snap.plan.target_lps_mm is not None):
+        return None
+    path = Path(snap.plan_path)
+    try:
+        when = time.strftime("%Y-%m-%d %H:%M", time.localtime(path.stat().st_mtime))
+    except OSError:
+        when = "unknown"
+    what = (f"{len(snap.fiducials)} fiducials {'locked' if snap.fiducials_locked else 'not locked yet'}, "
+            f"{'entry and target set' if snap.plan.complete else 'no complete path'}")
+    return (f"Restored the earlier plan in {path} (saved {when}: {what}); the robot starts DISARMED. "
+            "To start afresh: 'New plan' on the page, or another folder with --home DIR.")
+
+
 def _serve(args) -> int:
     from monotracker.engine import Session, SessionConfig
 
@@ -151,9 +170,13 @@ def _serve(args) -> int:
         from monotracker.vision.camera_model import CameraModel
 
         CameraModel.load(args.calibration)  # InputError with the reason
-    session = Session(cfg)
+    session = Session(cfg)  # refused with one line while another session holds the folder
     app = streamer = None
     try:
+        print(f"session folder: {session.home} (locked while this server runs)", flush=True)
+        restored = restored_plan_line(session)
+        if restored:
+            print(restored, flush=True)
         if args.calibration is not None:
             r = session.set_camera(args.camera, str(args.calibration))
             if not r.ok:
