@@ -55,12 +55,15 @@ def test_plan_round_trip_is_exact(tmp_path):
     plan = Plan(ct_path="/x/ct.nii.gz",
                 fiducials=[PlanFiducial(i, c, 4.0, 0.9, "confirmed") for i, c in enumerate(ph.fiducial_centres_lps)],
                 fiducials_locked=True, entry_lps_mm=ph.sample_entry_lps, target_lps_mm=ph.sample_target_lps,
-                K=np.eye(3), dist=np.zeros(5), image_size=(1280, 720), T_base_cam=np.eye(4), camera_source="sim")
+                K=np.array([[1100.0, 0, 640.3], [0, 1098.5, 359.7], [0, 0, 1]]),
+                dist=np.array([-0.12, 0.05, 1e-4, -2e-4, 0.0]), image_size=(1280, 720),
+                T_base_cam=np.eye(4), camera_source="sim")
     plan.save(tmp_path / "p.json")
     back = Plan.load(tmp_path / "p.json")
     assert np.array_equal(back.fiducial_centres(), plan.fiducial_centres())
     assert np.array_equal(back.entry_lps_mm, plan.entry_lps_mm) and np.array_equal(back.target_lps_mm, plan.target_lps_mm)
     assert back.image_size == (1280, 720) and back.fiducials_locked
+    assert np.array_equal(back.K, plan.K) and np.array_equal(back.dist, plan.dist)
 
 
 def test_restart_restores_plan_and_starts_disarmed(make_session):
