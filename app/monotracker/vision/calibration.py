@@ -84,9 +84,12 @@ def _calibrate(obj, img, names, size, skipped, min_views) -> CalibrationResult:
     return CalibrationResult(CameraModel(K, dist.reshape(-1), size), float(rms), per_view, skipped)
 
 
-def calibrate_chessboard(images, pattern: tuple[int, int], square_mm: float, min_views: int = 4) -> CalibrationResult:
-    """Calibrate from chessboard images (paths or arrays); see the module docstring."""
-    if square_mm <= 0:
+def chessboard_views(images, pattern: tuple[int, int], square_mm: float):
+    """The chessboard's corners in each image (paths or arrays): ``(obj, img, names, skipped,
+    (w, h))`` with ``obj`` a list of (n, 3) float32 board points (mm, z = 0), ``img`` the matching
+    (n, 1, 2) float32 corners (px, sub-pixel), ``skipped`` image name -> why. Raises
+    :class:`InputError` for a non-positive square or unreadable images."""
+    if not (square_mm > 0):
         raise InputError(f"square size must be positive, got {square_mm} mm")
     cols, rows = pattern
     grid = np.zeros((cols * rows, 3), np.float32)
@@ -105,7 +108,13 @@ def calibrate_chessboard(images, pattern: tuple[int, int], square_mm: float, min
         img.append(corners)
         names.append(name)
     h, w = loaded[0][1].shape
-    return _calibrate(obj, img, names, (w, h), skipped, min_views)
+    return obj, img, names, skipped, (w, h)
+
+
+def calibrate_chessboard(images, pattern: tuple[int, int], square_mm: float, min_views: int = 4) -> CalibrationResult:
+    """Calibrate from chessboard images (paths or arrays); see the module docstring."""
+    obj, img, names, skipped, size = chessboard_views(images, pattern, square_mm)
+    return _calibrate(obj, img, names, size, skipped, min_views)
 
 
 def calibrate_charuco(images, squares: tuple[int, int], square_mm: float, marker_mm: float,

@@ -3,6 +3,9 @@
 * ``calibrate-camera IMAGES... --chessboard 9x6 --square-mm 25 [--out camera.yml]`` (or
   ``--charuco 7x5 --square-mm 30 --marker-mm 22 [--dictionary DICT_5X5_100]``): prints the RMS
   reprojection error and writes OpenCV YAML or JSON intrinsics.
+* ``check-camera IMAGES... --camera camera.yml --chessboard 9x6 --square-mm 25``: checks a
+  calibration against views of a known board taken now (focal length and principal point with
+  their uncertainty; :func:`.calibration_check.check_with_board`); exit 0 when it agrees.
 * ``detect-image IMAGE [--detector classical|learned] [--radius-mm 4] [--focal-px F | --camera FILE
   [--adapt bin:N|crop:X,Y,W,H]] [--annotate out.png] [--json]``: detects the fiducial balls in one
   image; with ``--camera`` an image whose size differs from the calibration is refused (one line)
@@ -30,6 +33,15 @@ def register(subparsers) -> None:
     p.add_argument("--dictionary", default="DICT_5X5_100", help="ArUco dictionary (ChArUco only)")
     p.add_argument("--out", default="camera.yml", help="output .yml/.yaml/.xml (OpenCV) or .json")
     p.set_defaults(func=_calibrate)
+
+    c = subparsers.add_parser("check-camera", help="check a camera calibration against images of a known board")
+    c.add_argument("images", nargs="+", help="images of the board, taken now with the camera as it is set up")
+    c.add_argument("--camera", required=True, help="the calibration file to check (.yml/.yaml/.xml/.json)")
+    c.add_argument("--chessboard", metavar="COLSxROWS", required=True, help="inner corners, e.g. 9x6")
+    c.add_argument("--square-mm", type=float, required=True, help="square side in mm")
+    c.add_argument("--adapt", default="", metavar="bin:N|scale:F|crop:X,Y,W,H",
+                   help="the images come from the calibrated sensor binned or cropped")
+    c.set_defaults(func=_check_camera)
 
     d = subparsers.add_parser("detect-image", help="detect the fiducial balls in one image")
     d.add_argument("image")
@@ -70,6 +82,27 @@ def _calibrate(args) -> int:
     out = res.camera.save(args.out)
     print(f"wrote {out}")
     return 0
+
+
+def _check_camera(args) -> int:
+    """Exit 0 when the calibration agrees with the board, 1 when it does not or the views cannot
+    tell (the line says which and what to do), 2 for bad input."""
+    from .calibration import chessboard_views, parse_pattern
+    from .calibration_check import check_with_board
+    from .camera_model import CameraModel
+
+    model = CameraModel.load(args.camera).adapted(args.adapt)
+    obj, img, names, skipped, size = chessboard_views(args.images, parse_pattern(args.chessboard), args.square_mm)
+    if tuple(size) != tuple(model.image_size):
+        raise InputError(f"the images are {size[0]}x{size[1]} px but the calibration is for "
+                         f"{model.width}x{model.height}: take them with the camera as it is set up, or use --adapt")
+    for name, why in skipped.items():
+        print(f"skipped {name}: {why}")
+    if not obj:
+        raise InputError("the board was found in none of the images")
+    res = check_with_board(model, obj, img)
+    print(res.message)
+    return 0 if res.ok else 1
 
 
 def _detect(args) -> int:
