@@ -105,7 +105,10 @@ class SimulatedCamera(RayGeometry, FrameSource):
     ``seed``, ``optics`` (None = the simple render; an :class:`~monotracker.sim.optics.Optics`
     or a preset name of :data:`~monotracker.sim.optics.PRESETS` such as ``"photo"`` or
     ``"degraded"`` = photo-like frames; ``noise_sigma`` is then unused, the sensor model makes
-    the noise), ``ball_bgr`` (the balls' dye, BGR 0-255; default matte green).
+    the noise), ``ball_bgr`` (the balls' dye, BGR 0-255; default matte green),
+    ``camera_motion`` (the camera moving in the room after calibration, a fault:
+    :class:`monotracker.sim.faults.CameraMotion`; the drape background is a room-fixed plane
+    ``background_depth_mm`` away, so it moves in the image with the camera).
     """
 
     name = "simulated camera"
@@ -117,7 +120,7 @@ class SimulatedCamera(RayGeometry, FrameSource):
                  freeze_at_frame: int | None = None, disconnect_at_frame: int | None = None,
                  stall_at_frame: int | None = None, seed: int = 0, start_index: int = 0,
                  T_cam_world: np.ndarray | None = None, optics: "_optics.Optics | str | None" = None,
-                 ball_bgr=None):
+                 ball_bgr=None, camera_motion=None):
         super().__init__()
         if isinstance(optics, str):
             if optics not in _optics.PRESETS:
@@ -164,6 +167,11 @@ class SimulatedCamera(RayGeometry, FrameSource):
         self._light_cam = np.array([-0.3, -0.5, -1.0]) / np.linalg.norm([-0.3, -0.5, -1.0])  # towards light
         self._chain = self._hair = None
         self._skin_cache = None       # (pose bytes, skin render) of the last frame
+        #: the camera's own motion in the room (a fault: ``sim.faults.CameraMotion``) or None
+        self.camera_motion = camera_motion
+        #: the drape behind the head: a room-fixed plane this far (mm) along the resting optical axis
+        self.background_depth_mm = float(apply_transform(self.T_cam_world, ph.centre_lps)[2]) + 150.0
+        self._bg_cache = None         # (camera motion bytes, background) of the last moved frame
         if optics is not None:
             orng = np.random.default_rng(seed + 777)
             self._background_low = _optics.drape_background(optics, self._low_shape, orng).astype(np.float32)
@@ -191,8 +199,37 @@ class SimulatedCamera(RayGeometry, FrameSource):
 
     # ------------------------------------------------------------------ geometry helpers
     def T_cam_ct_at(self, t: float) -> np.ndarray:
-        """True CT-to-camera transform at simulated time ``t`` (s)."""
-        return self.T_cam_world @ self.trajectory.pose(t)
+        """True CT-to-camera transform at simulated time ``t`` (s), with the camera's own motion
+        (``camera_motion``, a fault) when it moved."""
+        T = self.T_cam_world @ self.trajectory.pose(t)
+        if self.camera_motion is not None:
+            T = self.camera_motion.T_now_rest(t) @ T
+        return T
+
+    def _room_background(self, t: float) -> np.ndarray:
+        """The low-resolution drape background as the camera sees it at time ``t``: the drape is
+        a plane fixed in the room (``background_depth_mm`` from the camera at rest, facing it),
+        so when the camera moves (``camera_motion``) it moves in the image like the head does.
+        At rest this is the background image itself; moved, each low-resolution pixel's ray
+        meets the plane and reads the texture where the camera at rest saw that point."""
+        M = np.eye(4) if self.camera_motion is None else self.camera_motion.T_now_rest(t)
+        if np.array_equal(M, np.eye(4)):
+            return self._background_low
+        key = M.tobytes()
+        if self._bg_cache is not None and self._bg_cache[0] == key:
+            return self._bg_cache[1]
+        R, tr = M[:3, :3], M[:3, 3]
+        o = -R.T @ tr                               # camera centre now, in the rest camera frame
+        d = self._rays_low @ R                      # ray directions now -> rest frame (R^T d)
+        s = (self.background_depth_mm - o[2]) / np.where(np.abs(d[:, 2]) > 1e-9, d[:, 2], 1e-9)
+        X = o + d * s[:, None]
+        px = self.camera.project(X)                 # where the camera at rest saw that drape point
+        sc = self._low_scale
+        mx = ((px[:, 0] + 0.5) * sc - 0.5).reshape(self._low_shape).astype(np.float32)
+        my = ((px[:, 1] + 0.5) * sc - 0.5).reshape(self._low_shape).astype(np.float32)
+        bg = cv2.remap(self._background_low, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        self._bg_cache = (key, bg)
+        return bg
 
     def rest_projection(self) -> np.ndarray:
         """(9, 2) projected fiducial centres at t = 0 (for placing scripted events)."""
@@ -243,7 +280,7 @@ class SimulatedCamera(RayGeometry, FrameSource):
         h, w = self.camera.image_size[1], self.camera.image_size[0]
 
         # --- skin at low resolution, composited on the background, then upsampled
-        low = self._background_low.copy()
+        low = self._room_background(t).copy()
         key = T.tobytes()
         if self._skin_cache is not None and self._skin_cache[0] == key:
             cov, shade, spec = self._skin_cache[1]        # a still head: same skin as last frame

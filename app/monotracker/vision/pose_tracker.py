@@ -9,6 +9,9 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
 * a frame whose size differs from the calibration's ``image_size`` -> refused (``frame_size``;
   adapt the calibration explicitly with ``CameraModel.adapted("bin:2")`` etc. when the camera
   is the same sensor binned or cropped);
+* the camera moved since tracking started (``camera_motion``, a
+  :class:`~.camera_motion.CameraMotionMonitor` watching the static background; off when None)
+  -> refused until that monitor is reset (``camera_moved``): the hand-eye no longer holds;
 * a grayscale frame (one channel, or three equal ones: a monochrome camera, a grayscale file)
   -> refused (``frame_grayscale``, :func:`.frames.grayscale_problem`): the balls are found by
   their colour;
@@ -27,7 +30,7 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
   naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
 
 Every invalid estimate carries ``code``: the alert code that says what happened
-(``frame_size``, ``frame_grayscale``, ``frame_unreadable``, ``camera_ended``, ``camera_freeze``,
+(``frame_size``, ``frame_grayscale``, ``camera_moved``, ``frame_unreadable``, ``camera_ended``, ``camera_freeze``,
 ``camera_disconnected``, ``occlusion``, ``pose_lost``, ``pose_implausible``,
 ``weak_geometry``, ``tre_limit``).
 
@@ -194,6 +197,8 @@ class PoseTracker:
         watch_ct: (m, 3) float, CT LPS mm, or None: further balls (validation fiducials) that are
             not registered but whose predicted ellipses go into the detector's hint (indices
             n .. n+m-1), so that a detector searching windows finds them too.
+        camera_motion: a :class:`~.camera_motion.CameraMotionMonitor` (the camera must not move
+            after the hand-eye calibration) or None (not watched).
 
     The detector is called ``detect(image, hint)`` (a detector whose ``detect`` takes no
     ``hint`` is called ``detect(image)``): ``hint`` is a :class:`~.detection.DetectionHint`
@@ -205,7 +210,7 @@ class PoseTracker:
 
     def __init__(self, fiducials_ct: np.ndarray, camera: CameraModel, detector=None, radius_mm: float = 4.0,
                  target_ct: np.ndarray | None = None, config: TrackerConfig | None = None,
-                 watch_ct: np.ndarray | None = None):
+                 watch_ct: np.ndarray | None = None, camera_motion=None):
         from .detect_classical import ClassicalDetector
         from .detection import BlobRules
 
@@ -218,6 +223,8 @@ class PoseTracker:
             rules.camera = camera   # ball edges fitted with a whole sphere's outline (sphere_outline)
         self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
         self.config = config or TrackerConfig()
+        #: the static-background watch (:class:`~.camera_motion.CameraMotionMonitor`) or None
+        self.camera_motion = camera_motion
         self.watch_ct = np.zeros((0, 3)) if watch_ct is None else np.asarray(watch_ct, float).reshape(-1, 3)
         self._takes_hint = _takes_hint(self.detector)
         self._last_full_index = -(10**9)
@@ -238,9 +245,10 @@ class PoseTracker:
 
     def reset(self) -> None:
         """Forget the previous frames, the noise estimate and the excluded (moved) fiducials:
-        for a new registration after the operator re-checked the fiducials."""
+        for a new registration after the operator re-checked the fiducials. The camera-motion
+        watch keeps its reference (only a new hand-eye clears it: ``camera_motion.reset()``)."""
         self.__init__(self.fiducials_ct, self.camera, self.detector, self.radius_mm, self.target_ct, self.config,
-                      self.watch_ct)
+                      self.watch_ct, self.camera_motion)
 
     def set_target(self, target_ct: np.ndarray | None) -> None:
         """Planned target, (3,) CT LPS mm, for ``predicted_tre_mm`` (None: no target)."""
@@ -284,6 +292,11 @@ class PoseTracker:
             self._last_full_index = frame.index
         det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
         pts = det.centres
+        if self.camera_motion is not None:
+            self.camera_motion.update(frame.image, pts)
+            if self.camera_motion.moved:
+                return self._invalid(frame.index, frame.t_capture, "camera_moved", self.camera_motion.last.reason,
+                                     truth=frame.truth)
         known_sigma = self.noise.peek(0.0, 0)
         t0 = time.perf_counter()
         scr = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
