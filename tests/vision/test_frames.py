@@ -87,3 +87,46 @@ def test_watchdog_detects_stall():
     wd.feed(Frame(np.zeros((4, 4, 3), np.uint8), time.monotonic(), 0))
     assert wd.check() == ""
     assert "stalled" in wd.check(time.monotonic() + 0.15)
+
+
+class _FakeCapture:
+    """A camera device as OpenCV's VideoCapture shows it: properties that may refuse a change."""
+
+    refuse_autofocus_off = False
+    image = np.zeros((720, 1280, 3), np.uint8)
+
+    def __init__(self, *_args):
+        self.props = {cv2.CAP_PROP_AUTOFOCUS: 1.0, cv2.CAP_PROP_FOURCC: float(cv2.VideoWriter_fourcc(*"YUYV"))}
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        if prop == cv2.CAP_PROP_AUTOFOCUS and self.refuse_autofocus_off:
+            return False
+        self.props[prop] = float(value)
+        return True
+
+    def get(self, prop):
+        return self.props.get(prop, -1.0)
+
+    def read(self):
+        return True, self.image.copy()
+
+    def release(self):
+        pass
+
+
+@pytest.mark.parametrize("refuse, expected", [(False, ""), (True, "on")])
+def test_a_camera_device_gets_its_autofocus_turned_off(monkeypatch, refuse, expected):
+    """Refocusing changes the focal length (2 % = ~10 mm at the target, unseen): the device's
+    autofocus is turned off at open, and a device that refuses says so (``autofocus == "on"``;
+    the engine shows ``camera_autofocus``). Before: autofocus was left as the driver had it."""
+    monkeypatch.setattr(_FakeCapture, "refuse_autofocus_off", refuse)
+    monkeypatch.setattr(cv2, "VideoCapture", _FakeCapture)
+    cam = OpenCVCamera(0)
+    try:
+        assert cam.autofocus == expected
+        assert cam._cap.get(cv2.CAP_PROP_AUTOFOCUS) == (1.0 if refuse else 0.0)
+    finally:
+        cam.close()

@@ -61,6 +61,9 @@ class FrameSource:
     #: "" (uncompressed, or not known) or the lossy coding the frames come through, as the user
     #: would name it ("MJPEG", "JPEG files", "video codec 'avc1'")
     compression = ""
+    #: "on" when the camera's autofocus is on and could not be turned off (its focal length, and
+    #: so the calibration, changes whenever it refocuses); "" otherwise
+    autofocus = ""
 
     def __init__(self):
         self._index = 0
@@ -179,7 +182,8 @@ def lossy_coding(fourcc: str) -> str:
 
 class OpenCVCamera(FrameSource):
     """A live camera by OpenCV device index. ``read()`` raises :class:`CameraDisconnected` when
-    the device stops answering (``cv2.VideoCapture.read`` fails)."""
+    the device stops answering (``cv2.VideoCapture.read`` fails). At open its autofocus is turned
+    off (:func:`lock_focus`); ``autofocus`` is "on" when the camera refused."""
 
     def __init__(self, device: int = 0, width: int | None = 1280, height: int | None = 720,
                  backend: int = cv2.CAP_ANY):
@@ -194,6 +198,7 @@ class OpenCVCamera(FrameSource):
             self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
             self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
         self.compression = lossy_coding(fourcc_name(self._cap.get(cv2.CAP_PROP_FOURCC)))
+        self.autofocus = lock_focus(self._cap)
 
     def _read_image(self):
         ok, img = self._cap.read()
@@ -203,6 +208,22 @@ class OpenCVCamera(FrameSource):
 
     def _release(self):
         self._cap.release()
+
+
+def lock_focus(cap) -> str:
+    """Turn a camera's autofocus off (``cv2.CAP_PROP_AUTOFOCUS`` = 0) and say what came of it:
+    "" (off now, or the camera reports no autofocus: a fixed-focus camera) or "on" (the camera
+    reports autofocus on after the request: the driver refused).
+
+    Why: refocusing changes the focal length (focus breathing, ~1-3 % on webcam lenses), and a
+    focal length 2 % off puts the target ~10 mm off with nothing in the residuals to show it
+    (``vision/calibration_check.py``); the calibration only holds at the focus it was made at."""
+    try:
+        cap.set(cv2.CAP_PROP_AUTOFOCUS, 0)
+        now = float(cap.get(cv2.CAP_PROP_AUTOFOCUS))
+    except cv2.error:
+        return ""
+    return "on" if now > 0 else ""
 
 
 class VideoFileSource(FrameSource):
