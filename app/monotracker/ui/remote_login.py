@@ -8,7 +8,8 @@ page, its websocket, nor any scene/GUI message (CT, camera image, controls).
 
 * :class:`LoginGate` (no network, no threads): the session password behind the shared
   :class:`~monotracker.engine.control.PinGuard` (5 wrong tries, then a 30 s lockout that doubles
-  while wrong tries go on; while locked even the right password is refused), and the sessions:
+  while wrong tries go on; while locked even the right password is refused; one guard for every
+  address, so many addresses do not multiply the tries), and the sessions:
   a random 256-bit id per login, kept server side with an absolute expiry (``ttl_s``), revoked
   by logout. The cookie carries only that id (``HttpOnly``, ``SameSite=Strict``, ``Path=/``,
   ``Max-Age``); an id the server does not hold (forged, expired, logged out) is worth nothing,
@@ -100,11 +101,13 @@ class LoginGate:
 
     def __init__(self, password: str, *, ttl_s: float = 12 * 3600.0, max_tries: int = 5, lockout_s: float = 30.0,
                  clock=time.monotonic, audit=None, lockout=None):
-        # one wrong-try guard per peer address: a host that guesses locks itself out, never the
-        # OR team's stations (a global lockout would let anyone on the network deny them the page)
-        self._guard_args = dict(max_tries=max_tries, lockout_s=lockout_s, noun="password")
-        self._password = password
-        self._guards: dict[str, PinGuard] = {}
+        # one wrong-try guard for the whole page, whatever address the tries come from: per address,
+        # an attacker with many addresses (or one that rotates them) multiplies the tries (issue 36:
+        # 33 guesses from several addresses, then in). The price: a flood of wrong tries also locks
+        # out new logins from the staff (not the logged-in stations, whose sessions stay valid),
+        # which the login_lockout alarm makes visible on every station.
+        self._guard = PinGuard(password, max_tries=max_tries, lockout_s=lockout_s, noun="password")
+        self._last_wrong_peer = ""
         self.max_tries = int(max_tries)
         self.ttl_s = float(ttl_s)
         self._clock = clock
@@ -117,10 +120,11 @@ class LoginGate:
     def try_login(self, password: str, peer: str = "") -> tuple[CommandResult, str | None]:
         """One try: ``(ok result, session id)`` or ``(refusal with one line, None)``."""
         now = self._clock()
-        guard = self._guard_for(str(peer))
+        guard = self._guard
         was_locked = guard.locked_for(now) > 0
         r = guard.check(str(password or ""), now)
         if not r.ok:
+            self._last_wrong_peer = str(peer)
             self._audit("login_refused", f"page login refused from {peer or 'unknown'}: {r.message}", "warning")
             locked = guard.locked_for(now)
             if locked > 0 and not was_locked:
@@ -160,29 +164,19 @@ class LoginGate:
             self._audit("login_expired", f"page login of {p or 'unknown'} expired after {self.ttl_s / 3600:.2f} h", "info")
         return gone
 
-    def _guard_for(self, peer: str) -> PinGuard:
-        with self._lock:
-            g = self._guards.get(peer)
-            if g is None:
-                if len(self._guards) >= 4096:  # bounded: forget the peers that are not locked out
-                    now = self._clock()
-                    self._guards = {p: x for p, x in self._guards.items() if x.locked_for(now) > 0}
-                g = self._guards[peer] = PinGuard(self._password, **self._guard_args)
-            return g
-
     def locked_for(self, peer: str | None = None) -> float:
-        """Seconds the login stays locked for ``peer`` (an address); None: the longest over all peers."""
-        now = self._clock()
-        with self._lock:
-            guards = list(self._guards.values()) if peer is None else [self._guards.get(str(peer))]
-        return max([g.locked_for(now) for g in guards if g is not None], default=0.0)
+        """Seconds the page login stays locked (one lockout for every address; ``peer`` is
+        accepted for callers that name one and changes nothing)."""
+        return self._guard.locked_for(self._clock())
 
     def sync_alarm(self) -> None:
         """Keep the ``login_lockout`` alarm on while locked, off after."""
         left = self.locked_for()
         if left > 0:
             self._alarm_on = True
-            self._lockout(left, f"page login locked for {left:.0f} s for an address after {self.max_tries} wrong passwords")
+            last = f" (the last from {self._last_wrong_peer})" if self._last_wrong_peer else ""
+            self._lockout(left, f"page login locked for {left:.0f} s after {self.max_tries} wrong passwords{last}: "
+                          "new logins from every address are refused meanwhile")
         elif self._alarm_on:
             self._alarm_on = False
             self._lockout(0.0, "")
