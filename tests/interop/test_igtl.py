@@ -6,6 +6,7 @@ Rates: the messages carry the frame's capture time (simulated clock in the headl
 is a benchmark number (benchmarks/interop.py), not asserted here."""
 
 import socket
+import time
 
 import numpy as np
 import pyigtl
@@ -155,3 +156,179 @@ def test_wrong_poses_the_engine_distrusts_are_never_sent(fresh_home):
     assert len(cam) > 30 and max(errs) < 1.0, max(errs)
     status = [m.string for m in msgs if m.device_name == "Status" and m.timestamp - epoch0 > fault_at]
     assert any("pose=INVALID" in s for s in status)
+
+
+# ---------------------------------------------------------------------------------------------
+# hostile clients (issue 36): a client declaring a huge body, one that never reads, and the bind
+def _abuser(port, declared: int):
+    """Connect and send one OpenIGTLink header declaring a ``declared``-byte body, then junk."""
+    import struct
+
+    so = socket.create_connection(("127.0.0.1", port), timeout=30)
+    header = (struct.pack(">H", 1) + b"STRING".ljust(12, b"\0") + b"Evil".ljust(20, b"\0")
+              + struct.pack(">Q", 0) + struct.pack(">Q", declared) + struct.pack(">Q", 0))
+    assert len(header) == 58
+    so.sendall(header)
+    return so
+
+
+def test_a_client_declaring_a_1_gb_body_is_dropped_and_the_real_client_is_served(fresh_home):
+    """pyigtl's server read a declared 1 GB body into a growing bytes (the GIL held: tracking fell
+    to 10 %) and served nobody else while one client was connected. The abuser connects first
+    and keeps trickling its body; the real client connects after it and must get the stream."""
+    import threading
+
+    from monotracker.engine.audit import AuditLog
+
+    port = free_port()
+    stop, state = threading.Event(), {}
+
+    def abuse():
+        while not stop.is_set():
+            try:
+                so = _abuser(port, 1 << 30)
+                break
+            except OSError:
+                time.sleep(0.01)
+        else:
+            return
+        state["client"] = _client(port)  # the real client, after the abuser
+        try:
+            while not stop.is_set():
+                so.sendall(b"x" * 1024)  # keep the declared body coming
+                time.sleep(0.2)
+        except OSError:
+            state["abuser_closed"] = True
+        finally:
+            so.close()
+
+    th = threading.Thread(target=abuse, daemon=True)
+    th.start()
+    try:
+        r = run_demo(DemoOptions(seconds=3.0, home=fresh_home, igtl_port=port))
+    finally:
+        stop.set()
+        th.join(30)
+        if "client" in state:
+            state["client"].stop()
+    assert "client" in state
+    cam = [m for m in state["client"].incoming_messages.all if m.device_name == "CTToCamera"]
+    assert len(cam) >= 30, len(cam)  # from when it connected (after the abuser) to the end; before: none
+    log = AuditLog(fresh_home / "audit.sqlite", "reader")
+    try:
+        rows = log.entries(code="igtl_client_dropped")
+    finally:
+        log.close()
+    assert rows and "1073741824 bytes" in rows[0].message, rows
+
+
+def test_an_idle_client_connected_first_does_not_block_the_real_client(fresh_home):
+    """pyigtl's server served one connection at a time: a client that connected and then did
+    nothing kept every later client waiting for the whole session (issue 36)."""
+    import threading
+
+    port = free_port()
+    stop, state = threading.Event(), {}
+
+    def idle_first():
+        while not stop.is_set():
+            try:
+                state["idle"] = socket.create_connection(("127.0.0.1", port), timeout=30)  # never reads
+                break
+            except OSError:
+                time.sleep(0.01)
+        else:
+            return
+        state["client"] = _client(port)
+
+    th = threading.Thread(target=idle_first, daemon=True)
+    th.start()
+    try:
+        run_demo(DemoOptions(seconds=3.0, home=fresh_home, igtl_port=port))
+    finally:
+        stop.set()
+        th.join(30)
+        if "client" in state:
+            state["client"].stop()
+        if "idle" in state:
+            state["idle"].close()
+    assert "client" in state
+    cam = [m for m in state["client"].incoming_messages.all if m.device_name == "CTToCamera"]
+    assert len(cam) >= 30, len(cam)
+
+
+def test_a_client_that_never_reads_neither_blocks_the_others_nor_stays(tmp_path):
+    """A connected client that reads nothing is dropped once it accepts no bytes for the send
+    timeout; the reading client gets every message meanwhile (its own queue)."""
+    from monotracker.interop.igtl_server import IGTLServer
+
+    events = []
+    srv = IGTLServer("127.0.0.1", 0, send_timeout_s=0.5, queue_len=64,
+                     on_event=lambda code, msg, data: events.append((code, msg))).start()
+    try:
+        idle = socket.socket()
+        idle.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        idle.connect(("127.0.0.1", srv.port))
+        reader = socket.create_connection(("127.0.0.1", srv.port), timeout=30)
+        deadline = time.monotonic() + 30
+        while srv.clients < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert srv.clients == 2
+        msg = b"m" * 65536
+        got = 0
+        reader.settimeout(0.05)
+        sent = 0
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and not any(c == "igtl_client_dropped" for c, _ in events):
+            if sent < 400:
+                srv.broadcast(msg)
+                sent += 1
+            try:
+                got += len(reader.recv(1 << 20))
+            except socket.timeout:
+                pass
+        dropped = [m for c, m in events if c == "igtl_client_dropped"]
+        assert dropped and "accepted no data" in dropped[0], events
+        assert srv.clients == 1  # the reader stays
+        srv.broadcast(b"last")
+        reader.settimeout(30)
+        tail = b""
+        while not tail.endswith(b"last"):
+            tail = (tail + reader.recv(1 << 20))[-8:]
+        assert got > 0
+        idle.close()
+        reader.close()
+    finally:
+        srv.stop()
+
+
+def test_serve_allow_remote_does_not_expose_openigtlink(tmp_path):
+    """``serve --allow-remote`` puts the page behind a login; OpenIGTLink has none, so it stays on
+    127.0.0.1 unless --igtl-allow-remote asks for every interface."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    (tmp_path / "pw.txt").write_text("correct-horse-7\n")
+    igtl, web = free_port(), free_port()
+    env = dict(os.environ, PYTHONPATH=str(root / "app"), HOME=str(tmp_path))
+    cmd = [sys.executable, "-m", "monotracker", "serve", "--home", str(tmp_path / "home"), "--port", str(web),
+           "--allow-remote", "--host", "0.0.0.0", "--password-file", str(tmp_path / "pw.txt"), "--igtl-port", str(igtl)]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=root)
+    try:
+        line = ""
+        for line in p.stdout:
+            if line.startswith("OpenIGTLink:"):
+                break
+        assert line.startswith(f"OpenIGTLink: 127.0.0.1:{igtl} "), line
+    finally:
+        p.terminate()
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+    bad = subprocess.run(cmd[:-2] + ["--igtl-allow-remote"], capture_output=True, text=True, env=env, cwd=root,
+                         timeout=300)
+    assert bad.returncode == 2 and "--igtl-allow-remote needs --igtl-port" in bad.stderr

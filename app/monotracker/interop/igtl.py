@@ -32,10 +32,14 @@ starts; with the simulated clock this is simulated time, so rates read from the 
 camera's rate, not the speed of the machine). Fiducials and path are sent on every new connection,
 when the plan changes and every 2 s of session time.
 
-pyigtl serves one client at a time; messages are only queued while a client is connected, and the
-send queue is cleared on a new connection (a client never receives poses from before it connected).
-The engine thread only copies a few matrices into a short queue; a streamer thread builds and sends
-the messages, so a slow or absent client never delays the engine.
+Clients (``interop/igtl_server.py``): several at a time (at most 8), each with its own bounded
+queue: a client receives only what was sent after it connected; one that stops reading for 2 s
+is dropped, one that declares a message body over 64 KiB is disconnected (the server reads
+nothing it needs from clients), and neither slows the engine or the other clients. The engine
+thread only copies a few matrices into a short queue; a streamer thread builds the messages and
+the server's own thread sends them. Connections, departures and drops are audit rows. OpenIGTLink
+has no authentication: anyone who reaches the port receives the stream, which is why it is served
+on 127.0.0.1 unless every interface is asked for explicitly.
 """
 
 from __future__ import annotations
@@ -57,52 +61,14 @@ DEVICES = ("CTToCamera", "NeedleTipToCT", "Status", "Fiducials", "Path")
 STATIC_EVERY_S = 2.0
 
 
-def _make_server(port: int, allow_remote: bool):
-    """A pyigtl server bound to 127.0.0.1, or to every interface with ``allow_remote``.
-
-    Built without pyigtl's own constructor, which installs SIGINT/SIGTERM handlers that kill the
-    process (bypassing the app's orderly shutdown; they also fail outside the main thread) and, for
-    a remote server, guesses one interface (eth0, else loopback)."""
-    import socketserver
-
-    from pyigtl import comm
-
-    class _Handler(socketserver.BaseRequestHandler):
-        """pyigtl's connection loop, but a client that leaves is logged, not a printed traceback."""
-
-        def handle(self):
-            srv = self.server
-            srv._connected = True
-            self.request.settimeout(0.01)
-            try:
-                while not srv.communication_thread_stop_requested:
-                    while srv._receive_message_from_socket(self.request):
-                        if srv.communication_thread_stop_requested:
-                            break
-                    while srv._send_queued_message_from_socket(self.request):
-                        pass
-            except OSError as exc:
-                log.info("OpenIGTLink client disconnected (%s)", exc)
-            except Exception:  # noqa: BLE001 - a bad client must not take the server down
-                log.exception("OpenIGTLink connection failed")
-            finally:
-                srv._communication_error_occurred()
-
-    class _Server(comm.OpenIGTLinkServer):
-        allow_reuse_address = True
-
-        def __init__(self, host: str, port: int):
-            comm.OpenIGTLinkBase.__init__(self)
-            self.port, self.host = port, host
-            socketserver.TCPServer.__init__(self, (host, port), _Handler)
-            self.start()
+def _make_server(port: int, allow_remote: bool, on_event=None):
+    """The OpenIGTLink server (:class:`~monotracker.interop.igtl_server.IGTLServer`) bound to
+    127.0.0.1, or to every interface with ``allow_remote``; started. OpenIGTLink has no
+    authentication: every client that reaches the port receives the stream."""
+    from monotracker.interop.igtl_server import IGTLServer
 
     host = "0.0.0.0" if allow_remote else "127.0.0.1"
-    try:
-        return _Server(host, int(port))
-    except OSError as exc:
-        raise InputError(f"cannot serve OpenIGTLink on {host}:{port}: {exc.strerror or exc}; choose another "
-                         "--igtl-port") from None
+    return IGTLServer(host, int(port), on_event=on_event).start()
 
 
 class IGTLStreamer:
@@ -125,7 +91,6 @@ class IGTLStreamer:
         self._server = None
         self._thread: threading.Thread | None = None
         self._remove_hook = None
-        self._was_connected = False
         self._static_sent_at = None
         self._static_revision = None
         self._last_valid_t = None
@@ -136,7 +101,8 @@ class IGTLStreamer:
         return None if self._server is None else self._server.host
 
     def start(self) -> "IGTLStreamer":
-        self._server = _make_server(self.port, self.allow_remote)
+        self._server = _make_server(self.port, self.allow_remote, self._on_server_event)
+        self._server.on_connect = self._on_connect
         self.epoch0 = time.time() - float(self.s.clock())
         self._remove_hook = self.s._loop.add_pose_hook(self._on_pose)
         self._thread = threading.Thread(target=self._run, name="monotracker-igtl", daemon=True)
@@ -166,6 +132,18 @@ class IGTLStreamer:
 
     def __exit__(self, *exc):
         self.stop()
+
+    def _on_server_event(self, code: str, message: str, data: dict) -> None:
+        """Connections, departures and dropped clients, to the audit log (who received the stream)."""
+        level = data.pop("level", "info") if code != "igtl_client_refused" else "warning"
+        try:
+            self.s.record(code, message, data, level=level)
+        except Exception:  # noqa: BLE001 - the stream must never take the engine down
+            log.exception("OpenIGTLink event not recorded")
+
+    def _on_connect(self) -> None:
+        self._static_sent_at = None  # fiducials and path go to the new client with the next frame
+        self._wake.set()
 
     # ------------------------------------------------------------------ engine thread
     def _on_pose(self, loop, smp, trusted: bool, now: float) -> None:
@@ -202,20 +180,14 @@ class IGTLStreamer:
         srv = self._server
         if srv is None:
             return
-        connected = srv.is_connected()
-        if connected and not self._was_connected:
-            with srv.lock_outgoing_messages:
-                srv.outgoing_messages.clear()  # nothing from before this client connected
-            self._static_sent_at = None
-        self._was_connected = connected
-        if not connected:
+        if not srv.is_connected():
             self._q.clear()
             return
         while self._q:
             self._send_frame(self._q.popleft())
 
     def _send(self, msg) -> None:
-        self._server.send_message(msg, wait=False)
+        self._server.broadcast(msg.pack())
         self.sent[msg.device_name] += 1
 
     def _send_frame(self, d: dict) -> None:

@@ -58,7 +58,10 @@ def register(subparsers) -> None:
                    help="record frames, detections, poses, robot and alerts into DIR (`monotracker replay DIR`)")
     p.add_argument("--igtl-port", type=int_range(1, 65535), default=None, metavar="PORT",
                    help="stream pose, needle, fiducials, path and status over OpenIGTLink (3D Slicer) on PORT "
-                        "(127.0.0.1 unless --allow-remote)")
+                        "(127.0.0.1 unless --igtl-allow-remote)")
+    p.add_argument("--igtl-allow-remote", action="store_true",
+                   help="serve OpenIGTLink on every interface: it has no login, so anyone who reaches the port "
+                        "receives the patient's registration and plan (--allow-remote does not imply it)")
     p.set_defaults(func=_serve)
 
 
@@ -162,6 +165,8 @@ def _serve(args) -> int:
         password, password_generated = resolve_password(args.password_file)
     elif args.password_file is not None:
         raise InputError("--password-file is for --allow-remote (on this machine only the page has no login)")
+    if args.igtl_allow_remote and args.igtl_port is None:
+        raise InputError("--igtl-allow-remote needs --igtl-port PORT")
     cfg = SessionConfig(home=args.home, camera=args.camera, robot=args.robot, arm_pin=pin,
                         trajectory=args.trajectory, clock="real")
     cfg.validate()
@@ -189,7 +194,7 @@ def _serve(args) -> int:
         if args.igtl_port is not None:
             from monotracker.interop.igtl import IGTLStreamer
 
-            streamer = IGTLStreamer(session, args.igtl_port, args.allow_remote).start()
+            streamer = IGTLStreamer(session, args.igtl_port, args.igtl_allow_remote).start()
             print(f"OpenIGTLink: {streamer.host}:{streamer.port} (CTToCamera, NeedleTipToCT, Status, "
                   "Fiducials, Path)", flush=True)
         if args.sample:
