@@ -27,8 +27,16 @@ Nothing slow sits on the engine thread: the hook only queues references; a write
 PNGs and writes lines. clock="sim" sessions wait for the writer when its queue is full (a complete
 recording; the simulated clock does not care); clock="real" sessions never wait: a frame that does
 not fit is dropped, counted in the manifest (``frames_dropped``), and the recording is then refused
-by replay as incomplete. A disk error stops the recording with an alert; the manifest stays
-``complete: false``.
+by replay as incomplete.
+
+A full disk keeps what was written: every stream is flushed after each frame and the offsets of
+the last whole frame are kept; when a write fails (``ENOSPC``, a quota, an I/O error) the
+recording stops, every stream is cut back to that frame (truncating needs no space), the
+partial frame's image is removed, a small reserve file made at the start (:data:`RESERVE_BYTES`)
+is deleted to make room, and the manifest is written with ``complete: false``, ``truncated:
+true``, the frames kept and the error; ``recording_failed`` says so once. Replay accepts such a
+recording up to where it stops. A folder without :data:`MIN_FREE_BYTES` free is refused at the
+start with one line.
 """
 
 from __future__ import annotations
@@ -38,7 +46,9 @@ import hashlib
 import json
 import logging
 import math
+import os
 import queue
+import shutil
 import threading
 from pathlib import Path
 
@@ -55,6 +65,11 @@ STREAMS = ("frames", "detections", "poses", "robot", "targets", "alerts", "event
 #: PNG compression 1: fast (the rendered 1280x720 frames carry sensor noise, so higher levels gain little)
 PNG_LEVEL = 1
 QUEUE_FRAMES = 64
+#: made at the start and deleted when the disk fills, so the final manifest can still be written
+RESERVE_FILE = ".reserve"
+RESERVE_BYTES = 1 << 20
+#: free space a recording needs to start (the rendered twin writes ~45 MB/s at 30 fps)
+MIN_FREE_BYTES = 256 << 20
 
 
 def _num(v):
@@ -88,6 +103,14 @@ def _mat(a):
     return None if a is None else [[_num(x) for x in row] for row in np.asarray(a, float).reshape(-1, np.asarray(a).shape[-1])]
 
 
+def _write_reserve(path: Path) -> None:
+    """:data:`RESERVE_BYTES` of zeros, on disk (fsync'ed): freed when the disk fills."""
+    with open(path, "wb") as fh:
+        fh.write(b"\0" * RESERVE_BYTES)
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
 def _write_json(path: Path, data: dict) -> None:
     from monotracker.engine.persistence import atomic_write_json
 
@@ -96,30 +119,41 @@ def _write_json(path: Path, data: dict) -> None:
 
 class RecordingWriter:
     """The files of one recording (see the module docstring). ``block``: wait when the queue is
-    full (simulated clock) instead of dropping the frame (real clock)."""
+    full (simulated clock) instead of dropping the frame (real clock). ``min_free_bytes``: the
+    free space the folder needs to start (:class:`InputError` otherwise)."""
 
-    def __init__(self, folder: str | Path, manifest: dict, block: bool):
+    def __init__(self, folder: str | Path, manifest: dict, block: bool, min_free_bytes: int = MIN_FREE_BYTES):
         self.folder = Path(folder)
         if (self.folder / MANIFEST).exists():
             raise InputError(f"{self.folder} already holds a recording; choose an empty folder")
         if self.folder.exists() and not self.folder.is_dir():
             raise InputError(f"--record {self.folder}: not a folder")
-        try:
-            (self.folder / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
-            self._files = {k: open(self.folder / f"{k}.jsonl", "a", encoding="utf-8") for k in STREAMS}
-        except OSError as exc:
-            raise InputError(f"cannot record to {self.folder}: {exc.strerror or exc}") from None
         self.manifest = dict(manifest)
         self.manifest.update(format=FORMAT, version=VERSION, complete=False, frames=0, frames_dropped=0)
+        self._files = {}
+        try:
+            (self.folder / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+            free = shutil.disk_usage(self.folder).free
+            if free < min_free_bytes:
+                raise InputError(f"cannot record to {self.folder}: only {free >> 20} MiB free (a recording needs "
+                                 f"at least {min_free_bytes >> 20} MiB to start; about 45 MB per second of "
+                                 "rendered frames)")
+            _write_reserve(self.folder / RESERVE_FILE)
+            self._files = {k: open(self.folder / f"{k}.jsonl", "a", encoding="utf-8") for k in STREAMS}
+            _write_json(self.folder / MANIFEST, self.manifest)
+        except OSError as exc:
+            self._close_files()
+            raise InputError(f"cannot record to {self.folder}: {exc.strerror or exc}") from None
         self.block = bool(block)
         self.frames = 0           # frames accepted (queued)
         self.dropped = 0
         self.error: str | None = None
+        self.truncated = False
         self._counts = {k: 0 for k in STREAMS}
+        self._good = {k: (self._files[k].buffer.tell(), 0) for k in STREAMS}  # (offset, rows) after the last whole item
         self._q: queue.Queue = queue.Queue(maxsize=QUEUE_FRAMES)
         self._lock = threading.Lock()
         self._closed = False
-        _write_json(self.folder / MANIFEST, self.manifest)
         self._thread = threading.Thread(target=self._run, name="monotracker-recorder", daemon=True)
         self._thread.start()
 
@@ -169,9 +203,16 @@ class RecordingWriter:
                 continue  # failed: drain without writing
             try:
                 self._handle(item)
+                self._commit()
             except Exception as exc:  # noqa: BLE001 - a full disk must not kill the engine
-                log.exception("recording failed")
-                self.error = f"{type(exc).__name__}: {exc}"
+                if isinstance(exc, OSError):
+                    log.warning("recording to %s stopped: %s", self.folder, exc)
+                    self.error = f"{exc.strerror or exc}" + (f" (errno {exc.errno})" if exc.errno else "")
+                else:
+                    log.exception("recording failed")
+                    self.error = f"{type(exc).__name__}: {exc}"
+                self._cut_back(item)
+                self._write_final_manifest()  # now, not at close: a crash later must not lose the rest
 
     def _handle(self, item) -> None:
         kind = item[0]
@@ -196,6 +237,46 @@ class RecordingWriter:
         self._files[stream].write(json.dumps(_clean(row), allow_nan=False) + "\n")
         self._counts[stream] += 1
 
+    def _commit(self) -> None:
+        """Flush every stream: the item just handled is on disk whole; remember where it ends."""
+        for fh in self._files.values():
+            fh.flush()
+        self._good = {k: (fh.buffer.tell(), self._counts[k]) for k, fh in self._files.items()}
+
+    def _cut_back(self, item) -> None:
+        """A write failed: cut every stream back to the end of the last whole item (truncating
+        needs no free space), remove the failed frame's image, free the reserve."""
+        self.truncated = True
+        for k, fh in self._files.items():
+            off, rows = self._good[k]
+            try:
+                fh.close()  # may fail to flush its buffer: the cut below discards it anyway
+            except OSError:
+                pass
+            try:
+                os.truncate(self.folder / f"{k}.jsonl", off)
+            except OSError as exc:
+                log.warning("recording stream %s not cut back: %s", k, exc)
+            self._counts[k] = rows
+        self._files = {}
+        if item[0] == "frame" and item[1].get("file"):
+            try:
+                (self.folder / item[1]["file"]).unlink()
+            except OSError:
+                pass
+        try:
+            (self.folder / RESERVE_FILE).unlink()
+        except OSError:
+            pass
+
+    def _close_files(self) -> None:
+        for fh in self._files.values():
+            try:
+                fh.close()
+            except OSError as exc:
+                self.error = getattr(self, "error", None) or str(exc)
+        self._files = {}
+
     def close(self, extra: dict | None = None) -> dict:
         """Flush, close, and mark the manifest complete (unless a write failed). Idempotent."""
         with self._lock:
@@ -204,22 +285,34 @@ class RecordingWriter:
             self._closed = True
         self._q.put(None)
         self._thread.join()
-        for fh in self._files.values():
+        if self._files:
             try:
-                fh.flush()
-                fh.close()
+                self._commit()
             except OSError as exc:
-                self.error = self.error or str(exc)
+                self.error = self.error or f"{exc.strerror or exc}"
+                self._cut_back(("close",))
+        self._close_files()
+        try:
+            (self.folder / RESERVE_FILE).unlink()
+        except OSError:
+            pass
         self.manifest.update(extra or {})
+        self._write_final_manifest()
+        return self.manifest
+
+    def _write_final_manifest(self) -> None:
+        """The manifest with the counts of what is on disk (``truncated`` after a failed write)."""
         self.manifest.update(frames=self._counts["frames"], frames_dropped=self.dropped,
                              counts=dict(self._counts), error=self.error,
                              closed_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="milliseconds"))
         self.manifest["complete"] = self.error is None
+        if self.truncated:
+            self.manifest["truncated"] = True  # what is there is whole: replayable up to here
         try:
             _write_json(self.folder / MANIFEST, self.manifest)
         except OSError as exc:
             self.error = self.error or str(exc)
-        return self.manifest
+            self.manifest["manifest_error"] = str(exc)
 
 
 def _versions() -> dict:
@@ -260,6 +353,7 @@ class SessionRecorder:
         self._last_target_stamp = None
         self._fids: list[int] = []
         self._closed = False
+        self._failure_reported = False
         self._remove_hook = session._loop.add_pose_hook(self._on_pose)
         self._unsubscribe = session.subscribe(self._on_event)
 
@@ -310,6 +404,15 @@ class SessionRecorder:
 
     def _on_pose(self, loop, smp, trusted: bool, now: float) -> None:
         if self._closed:
+            return
+        if self.writer.error is not None:
+            if not self._failure_reported:
+                self._failure_reported = True
+                kept = self.writer._counts["frames"]
+                self.s.alert("alarm", "recording_failed",
+                             f"recording to {self.folder} stopped: {self.writer.error}; the {kept} frames before are "
+                             "kept and replay (the manifest marks it truncated)",
+                             {"folder": str(self.folder), "frames_kept": kept, "error": self.writer.error})
             return
         rig = loop.rig
         if rig is not None and rig is not self._rig:
@@ -399,8 +502,10 @@ def stop_session_recording(session):
     m = rec.close()
     if not m.get("complete"):
         why = m.get("error") or f"{m.get('frames_dropped')} frames dropped"
-        session.alert("warning", "recording_failed", f"recording {rec.folder} is incomplete: {why}")
-        return CommandResult(False, f"recording {rec.folder} is incomplete ({why})")
+        kept = f"; the {m.get('frames')} frames before the failure are kept" if m.get("truncated") else ""
+        if not rec._failure_reported:
+            session.alert("warning", "recording_failed", f"recording {rec.folder} is incomplete: {why}{kept}")
+        return CommandResult(False, f"recording {rec.folder} is incomplete ({why}){kept}")
     session.record("recording_stopped", f"recording closed: {m['frames']} frames in {rec.folder}",
                    {"folder": str(rec.folder), "frames": m["frames"]})
     return CommandResult(True, f"recording closed: {m['frames']} frames")

@@ -8,8 +8,9 @@ the lossless PNG images. Point-level recordings (``kind`` ``"points"``, from the
 camera) have no images and are refused as a camera source.
 
 A recording is read only when it is complete and intact: the manifest says ``complete: true`` (it
-is rewritten so only when the recording was closed), the frame count matches, every PNG exists and
-matches its checksum. Anything else raises :class:`InputError` with one line saying what is wrong,
+is rewritten so only when the recording was closed) or ``truncated: true`` (a full disk stopped it;
+every stream was cut back to the last whole frame, which is where the replay ends), the frame
+count matches, every PNG exists and matches its checksum. Anything else raises :class:`InputError` with one line saying what is wrong,
 never a partial or silently different stream.
 """
 
@@ -71,7 +72,7 @@ def read_manifest(folder: str | Path) -> dict:
         raise InputError(f"{p} is not a MonoTracker recording manifest")
     if int(m.get("version", -1)) > VERSION:
         raise InputError(f"recording version {m.get('version')} is newer than this program ({VERSION})")
-    if not m.get("complete"):
+    if not m.get("complete") and not m.get("truncated"):
         raise InputError(f"recording {folder} is incomplete: it was never closed (the session ended "
                          "abnormally while recording)")
     if m.get("frames_dropped"):
