@@ -205,7 +205,7 @@ def test_a_client_declaring_a_1_gb_body_is_dropped_and_the_real_client_is_served
     th = threading.Thread(target=abuse, daemon=True)
     th.start()
     try:
-        r = run_demo(DemoOptions(seconds=3.0, home=fresh_home, igtl_port=port))
+        run_demo(DemoOptions(seconds=3.0, home=fresh_home, igtl_port=port))
     finally:
         stop.set()
         th.join(30)

@@ -138,7 +138,7 @@ class IGTLStreamer:
         level = data.pop("level", "info") if code != "igtl_client_refused" else "warning"
         try:
             self.s.record(code, message, data, level=level)
-        except Exception:  # noqa: BLE001 - the stream must never take the engine down
+        except Exception:  # the stream must never take the engine down
             log.exception("OpenIGTLink event not recorded")
 
     def _on_connect(self) -> None:

@@ -115,7 +115,7 @@ class IGTLServer:
 
         try:
             asyncio.run_coroutine_threadsafe(shutdown(), loop).result(5.0)
-        except Exception:  # noqa: BLE001 - closing must not raise at shutdown
+        except Exception:  # closing must not raise at shutdown
             log.exception("stopping the OpenIGTLink server failed")
         loop.call_soon_threadsafe(loop.stop)
         if self._thread is not None:

@@ -204,7 +204,7 @@ class RecordingWriter:
             try:
                 self._handle(item)
                 self._commit()
-            except Exception as exc:  # noqa: BLE001 - a full disk must not kill the engine
+            except Exception as exc:  # a full disk must not kill the engine
                 if isinstance(exc, OSError):
                     log.warning("recording to %s stopped: %s", self.folder, exc)
                     self.error = f"{exc.strerror or exc}" + (f" (errno {exc.errno})" if exc.errno else "")
