@@ -7,7 +7,7 @@ docs/img/ui_navigation_<step>_<size>.jpg.
 import sys, tempfile, time
 from pathlib import Path
 sys.path.insert(0, "tests/ui")
-from conftest import chromium_path, CHROMIUM_ARGS, free_port
+from conftest import display_browser_path, CHROMIUM_ARGS, free_port
 from browser_helpers import _click, _take_control, _wait, _command, open_page
 from monotracker.engine import Session, SessionConfig
 from monotracker.ui.app import MonoTrackerApp
@@ -26,7 +26,7 @@ for f in s.snapshot().fiducials:
 app = MonoTrackerApp(s, "127.0.0.1", free_port()); app.start()
 try:
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=chromium_path(), headless=True, args=CHROMIUM_ARGS)
+        b = p.chromium.launch(executable_path=display_browser_path(), headless=True, args=CHROMIUM_ARGS)
         for w, h in ((1280, 800), (1920, 1080)):
             page = open_page(b, app, (w, h))
             if s.snapshot().control.controller is None:
