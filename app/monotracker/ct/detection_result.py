@@ -38,6 +38,10 @@ class RejectedBlob:
     reason: str
     n_voxels: int = 0
     radius_mm: float = float("nan")
+    #: What kind of refusal, for code that acts on it: "" (other), "round" (a ball of another
+    #: size than searched for), "wrong_size" (fitted ball, radius off), "cut" (cut by the edge
+    #: of the scan or by missing slices).
+    kind: str = ""
 
     def to_dict(self) -> dict:
         return {

@@ -4,7 +4,7 @@ resampled (tilt, uneven spacing, a few missing slices) or refused (see
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -36,6 +36,14 @@ class _Geometry:
     tilt_deg: float
     regular: bool
     notes: list[str]
+    #: Slabs along the normal between two slices with slices missing between them (interpolated
+    #: across on loading): (d_lo, d_hi) mm and the number of slices missing.
+    missing: list = field(default_factory=list)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(n, 3) ImagePositionPatient of the slices, LPS mm, in ``d`` order."""
+        return np.array([s.position for s in self.slices], float)
 
 
 def _check_geometry(slices: list[_Slice], what: str) -> _Geometry:
@@ -140,5 +148,9 @@ def _check_geometry(slices: list[_Slice], what: str) -> _Geometry:
             where = ", ".join(f"{dd[i]:.1f}-{dd[i + 1]:.1f} mm" for i in np.flatnonzero(gapped)[:3])
             notes.append(f"{n_miss} missing slice(s) (at {where} along the slice normal): interpolated across the gap "
                          f"on a regular {step:.3g} mm grid")
+    missing = []
+    if not regular_spacing and gapped.any():
+        missing = [(float(dd[i]), float(dd[i + 1]), int(round(ratio[i])) - 1) for i in np.flatnonzero(gapped)]
     spacing = np.array([slices[0].pixel_spacing[1], slices[0].pixel_spacing[0], step], float)
-    return _Geometry(slices, row, col, normal, dd, off, spacing, tilt_deg, bool(regular_spacing and tilt_deg == 0.0), notes)
+    return _Geometry(slices, row, col, normal, dd, off, spacing, tilt_deg, bool(regular_spacing and tilt_deg == 0.0), notes,
+                     missing)

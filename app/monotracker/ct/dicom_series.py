@@ -49,7 +49,9 @@ from monotracker.ct.dicom_headers import (  # noqa: F401 - _files used by volume
     modality_refusal,
     split_volume_images,
 )
+from monotracker.ct.coverage import Coverage, MissingSlab
 from monotracker.ct.dicom_pixels import _load_pixels, _stack
+from monotracker.ct.memory import check_fits
 from monotracker.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -204,10 +206,11 @@ def _pick_series(path: Path, groups: dict, notes: list[str]) -> str:
     return pick.uid
 
 
-def read_dicom(path: Path, series: str | None, notes: list[str]):
+def read_dicom(path: Path, series: str | None, notes: list[str], coverage: Coverage | None = None):
     """Read a DICOM series (folder) or one DICOM file into a SimpleITK image (HU, LPS geometry),
-    appending what the operator should know to ``notes``. Returns None when ``path`` holds no
-    DICOM image at all (the caller gives its own hint)."""
+    appending what the operator should know to ``notes`` and, into ``coverage``, where the
+    grid holds no acquired data (resampling's padding value, slabs of missing slices). Returns
+    None when ``path`` holds no DICOM image at all (the caller gives its own hint)."""
     import SimpleITK as sitk
 
     if path.is_file() and path.name.upper() == "DICOMDIR":
@@ -232,15 +235,23 @@ def read_dicom(path: Path, series: str | None, notes: list[str]):
     slices = [s for q, ds in items for s in _slices_of(ds, q)]
     if len(slices) < 2:
         return None if path.is_file() else _too_few(uid, len(slices))
+    s0 = slices[0]
+    # pixels read as int32 per slice, stacked, then int16, the ITK image and its NumPy copy
+    check_fits(f"series {uid}", (s0.cols, s0.rows, len(slices)), "int16", 2, copies=7.0)
     _load_pixels(slices)
     geo = _check_geometry(slices, f"series {uid}")
-    arr, origin = _stack(geo)
-    img = sitk.GetImageFromArray(arr)
-    img.SetSpacing([float(x) for x in geo.spacing])
-    img.SetOrigin([float(x) for x in origin])
-    img.SetDirection([float(x) for x in np.column_stack([geo.row, geo.col, geo.normal]).ravel()])
+    st = _stack(geo)
+    img = sitk.GetImageFromArray(st.array)
+    img.SetSpacing([float(x) for x in st.spacing])
+    img.SetOrigin([float(x) for x in st.origin])
+    img.SetDirection([float(x) for x in st.direction.ravel()])
     notes.append(f"DICOM series {uid}, {len(geo.slices)} slices")
     notes.extend(geo.notes)
+    notes.extend(st.notes)
+    if coverage is not None:
+        coverage.pad_hu = st.pad_hu
+        coverage.lattice = st.lattice
+        coverage.missing = [MissingSlab(geo.normal.copy(), lo, hi, k) for lo, hi, k in geo.missing]
     return img
 
 

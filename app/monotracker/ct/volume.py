@@ -6,8 +6,11 @@ SimpleITK's ``(i, j, k)`` order (i along x / columns, fastest); the NumPy ``arra
 ``[k, j, i]`` (z, y, x).
 
 Every bad input raises :class:`~monotracker.errors.InputError` with one line saying what is
-wrong: missing path, empty folder, unknown series, a 2D image, a truncated or unreadable file,
-intensities that are not CT Hounsfield units, absurd spacing or a non-orthonormal direction.
+wrong and what to do: missing path, empty folder, unknown series, a 2D image, a truncated file, a
+file or folder this user may not read (owner, mode, the user we run as), a volume larger than the
+memory left (checked before reading), intensities that are not CT Hounsfield units (the file's
+rescale named), spacing written in cm, absurd spacing or sheared axes. A NIfTI without
+orientation loads with a ``WARNING`` note (:mod:`.nifti_header` says why it is not refused).
 """
 
 from __future__ import annotations
@@ -19,6 +22,10 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from monotracker.ct.coverage import Coverage
+from monotracker.ct.file_access import check_readable, permission_error
+from monotracker.ct.memory import check_fits, is_allocation_failure, too_big
+from monotracker.ct.nifti_header import NiftiHeader, check_data, orientation_notes, read_header, scale_hint
 from monotracker.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -39,7 +46,9 @@ class Volume:
     ``array`` is (z, y, x) = [k, j, i], native dtype of the file (usually int16 HU).
     ``spacing_mm`` is (i, j, k); ``origin_mm`` the LPS position of voxel (0, 0, 0);
     ``direction`` the 3x3 matrix whose columns are the i, j, k axes in LPS.
-    ``notes`` lists things the operator should know (e.g. which series was picked).
+    ``notes`` lists things the operator should know (e.g. which series was picked); a note
+    starting with ``WARNING`` is one the operator must act on (e.g. no orientation in the file).
+    ``coverage`` says where the grid holds no acquired data (:mod:`.coverage`).
     """
 
     image: sitk.Image
@@ -49,9 +58,12 @@ class Volume:
     direction: np.ndarray
     source: str = ""
     notes: list[str] = field(default_factory=list)
+    #: Where the grid holds no acquired data (padding value, missing slices): see :mod:`.coverage`.
+    coverage: Coverage = field(default_factory=Coverage)
 
     @classmethod
-    def from_image(cls, image: sitk.Image, source: str = "", notes: list[str] | None = None) -> "Volume":
+    def from_image(cls, image: sitk.Image, source: str = "", notes: list[str] | None = None,
+                   coverage: Coverage | None = None) -> "Volume":
         return cls(
             image=image,
             array=sitk.GetArrayFromImage(image),
@@ -60,6 +72,7 @@ class Volume:
             direction=np.array(image.GetDirection(), float).reshape(3, 3),
             source=source,
             notes=list(notes or []),
+            coverage=coverage or Coverage(),
         )
 
     @property
@@ -97,86 +110,75 @@ class Volume:
 
 
 # ---------------------------------------------------------------------------- reading
-def _one_line(exc: BaseException) -> str:
-    text = " ".join(str(exc).split())
-    # ITK messages are long and multi-line; keep the part after the last "): " if any
-    if "Description:" in text:
-        text = text.split("Description:")[-1].strip()
-    return text[:200]
+def _pixel_bytes(pixel_id: int) -> tuple[int, str]:
+    """(bytes per voxel, NumPy type name) of an ITK pixel type."""
+    a = sitk.GetArrayViewFromImage(sitk.Image([1, 1, 1], pixel_id))
+    return a.dtype.itemsize, a.dtype.name
 
 
-def _check_nifti_complete(path: Path) -> None:
-    """ITK reads a truncated NIfTI without complaint (the missing voxels come back as zeros),
-    so check the data length against the NIfTI-1 header ourselves."""
-    import gzip
-    import struct
-
-    opener = gzip.open if path.name.lower().endswith(".gz") else open
+def _check_memory(path: Path) -> None:
+    """Refuse, before ITK reads a voxel, a volume that does not fit in the memory this process
+    may still use (:mod:`.memory`): the ITK image and its NumPy copy are both held."""
+    r = sitk.ImageFileReader()
+    r.SetFileName(str(path))
     try:
-        with opener(path, "rb") as fh:
-            hdr = fh.read(348)
-            if len(hdr) < 348:
-                raise InputError(f"{path.name} is truncated (incomplete NIfTI header)")
-            endian = "<" if struct.unpack("<i", hdr[:4])[0] == 348 else ">"
-            if struct.unpack(endian + "i", hdr[:4])[0] != 348:
-                return  # NIfTI-2 or not NIfTI: leave it to ITK
-            dims = struct.unpack(endian + "8h", hdr[40:56])
-            bitpix = struct.unpack(endian + "h", hdr[72:74])[0]
-            vox_offset = int(struct.unpack(endian + "f", hdr[108:112])[0])
-            n = int(np.prod([max(1, d) for d in dims[1 : 1 + max(1, min(dims[0], 7))]], dtype=np.int64))
-            need = vox_offset + n * bitpix // 8
-            datatype = struct.unpack(endian + "h", hdr[70:72])[0]
-            # ITK reads NaN/inf float voxels as 0 without a word: scan every float voxel here
-            ftype = {16: np.dtype(endian + "f4"), 64: np.dtype(endian + "f8")}.get(datatype)
-            have = 348
-            skip = max(0, vox_offset - 348)
-            bad = 0
-            rest = b""
-            while True:
-                chunk = fh.read(1 << 22)
-                if not chunk:
-                    break
-                have += len(chunk)
-                if ftype is None:
-                    continue
-                if skip:
-                    cut = min(skip, len(chunk))
-                    chunk, skip = chunk[cut:], skip - cut
-                buf = rest + chunk
-                usable = len(buf) - len(buf) % ftype.itemsize
-                bad += int(np.count_nonzero(~np.isfinite(np.frombuffer(buf[:usable], ftype))))
-                rest = buf[usable:]
-    except (EOFError, OSError, struct.error) as exc:
-        raise InputError(f"{path.name} is truncated or corrupt ({_one_line(exc)})") from None
-    if have < need:
-        raise InputError(f"{path.name} is truncated: {have} of {need} bytes of image data")
-    if bad:
-        raise InputError(f"{path.name} contains {bad} NaN or infinite voxels; its values cannot be trusted")
+        r.ReadImageInformation()
+    except RuntimeError:
+        return  # ITK's own read says what is wrong
+    nbytes, dtype = _pixel_bytes(r.GetPixelID())
+    nbytes *= max(1, r.GetNumberOfComponents())
+    check_fits(path.name, r.GetSize(), dtype, nbytes, copies=2.0)
 
 
-def _read_file(path: Path) -> sitk.Image:
+def _read_file(path: Path, notes: list[str]) -> tuple[sitk.Image, NiftiHeader | None]:
+    """The image of a volume file, and its NIfTI header (None for other formats): the NIfTI
+    checks of :mod:`.nifti_header` first (their notes appended to ``notes``), then the memory
+    check, then ITK."""
+    hdr = None
     if path.name.lower().endswith((".nii", ".nii.gz")):
-        _check_nifti_complete(path)
+        hdr = read_header(path)
+        if hdr is not None:
+            check_data(path, hdr)
+            notes.extend(orientation_notes(hdr, path.name))
+    _check_memory(path)
     try:
-        return sitk.ReadImage(str(path))
+        return sitk.ReadImage(str(path)), hdr
     except RuntimeError as exc:
         text = str(exc)
+        if is_allocation_failure(exc):
+            raise _memory_refusal(path) from None
         if "Unable to determine ImageIO reader" in text:
             raise InputError(
                 f"cannot read {path.name}: not a recognised volume (use a DICOM folder, .nii/.nii.gz, .nrrd, .mha/.mhd) or a damaged file"
             ) from None
+        if "orthonormal" in text:
+            raise InputError(f"{path.name}: its orientation is not a rotation (sheared or degenerate axes); a CT's grid has "
+                             "perpendicular axes: resample it onto a regular grid first, or load the original CT") from None
         log.debug("ITK could not read %s: %s", path, text)
         raise InputError(f"cannot read {path.name}: the file is truncated or corrupt") from None
 
 
-def _read_dicom_folder(folder: Path, series: str | None, notes: list[str]) -> sitk.Image:
+def _memory_refusal(path: Path) -> InputError:
+    r = sitk.ImageFileReader()
+    r.SetFileName(str(path))
+    try:
+        r.ReadImageInformation()
+        nbytes, dtype = _pixel_bytes(r.GetPixelID())
+        size = r.GetSize()
+    except RuntimeError:
+        return InputError(f"{path.name} is too large for this machine's memory: crop or resample it, or use a machine with more memory")
+    n = float(np.prod(size, dtype=np.float64))
+    return too_big(path.name, size, dtype, nbytes, 2.0 * n * nbytes)
+
+
+def _read_dicom_folder(folder: Path, series: str | None, notes: list[str], coverage: Coverage) -> sitk.Image:
     """Every slice's own geometry read and checked with pydicom (see :mod:`.dicom_series`)."""
     from monotracker.ct.dicom_series import _files, read_dicom
 
     entries = _files(folder)
     if not entries:
         raise InputError(f"folder {folder} is empty: point to a DICOM series folder or a volume file")
-    img = read_dicom(folder, series, notes)
+    img = read_dicom(folder, series, notes, coverage)
     if img is None:
         vols = [p.name for p in entries if p.name.lower().endswith(VOLUME_SUFFIXES[:-1])]
         hint = f" (it holds {vols[0]}: pass that file instead)" if vols else ""
@@ -197,6 +199,7 @@ def _check_image(img: sitk.Image, name: str) -> sitk.Image:
     if dim != 3:
         raise InputError(f"{name} is a {dim}D image; a 3D CT volume is needed")
     sp = np.array(img.GetSpacing(), float)
+    _check_spacing_units(sp, np.array(img.GetSize()), name)
     if not np.all(np.isfinite(sp)) or sp.min() < MIN_SPACING_MM or sp.max() > MAX_SPACING_MM:
         raise InputError(
             f"{name} has implausible voxel spacing {tuple(round(float(s), 4) for s in sp)} mm "
@@ -204,12 +207,52 @@ def _check_image(img: sitk.Image, name: str) -> sitk.Image:
         )
     D = np.array(img.GetDirection(), float).reshape(3, 3)
     if not np.allclose(D.T @ D, np.eye(3), atol=1e-3):
-        raise InputError(f"{name} has a non-orthonormal direction matrix; its geometry cannot be trusted")
+        u = D / np.maximum(np.linalg.norm(D, axis=0), 1e-12)
+        ang = np.degrees(np.arccos(np.clip([u[:, 0] @ u[:, 1], u[:, 0] @ u[:, 2], u[:, 1] @ u[:, 2]], -1, 1)))
+        raise InputError(f"{name}: its voxel axes are not perpendicular (sheared: {ang[0]:.1f}, {ang[1]:.1f}, {ang[2]:.1f} deg "
+                         "apart, not 90); a CT's grid is not sheared (an affine registration's output?): resample it onto a "
+                         "regular grid first, or load the original CT")
     return img
 
 
-def _check_hounsfield(arr: np.ndarray, name: str) -> None:
-    """Reject volumes whose values are not Hounsfield units (no air, 8-bit, unscaled 12-bit)."""
+#: A head CT is at least this wide across its slices, mm (a scan of only the fiducial patch is
+#: ~80 mm); smaller with sub-:data:`CM_SUSPECT_SPACING_MM` voxels reads as spacing in cm.
+MIN_HEAD_FOV_MM = 60.0
+CM_SUSPECT_SPACING_MM = 0.25
+
+
+def _check_spacing_units(sp: np.ndarray, size: np.ndarray, name: str) -> None:
+    """Refuse spacing that was written in cm (DICOM PixelSpacing and NIfTI pixdim are mm): the
+    scan would then be a few cm across, and ten times that a usual head CT."""
+    if not np.all(np.isfinite(sp)) or sp.min() <= 0:
+        return
+    fov = sp * np.maximum(size - 1, 1)
+    small = (fov < MIN_HEAD_FOV_MM) & (sp < CM_SUSPECT_SPACING_MM)
+    # in-plane (i, j): both axes together; along the slices (k): alone (a short scan is fine)
+    inplane = bool(small[0] and small[1]) or bool(small[2] and fov[2] < 0.5 * MIN_HEAD_FOV_MM)
+    if not inplane:
+        return
+    x10 = sp * 10.0
+    raise InputError(
+        f"{name}: voxel spacing {' x '.join(f'{v:.3g}' for v in sp)} mm makes the scan "
+        f"{' x '.join(f'{v:.0f}' for v in fov)} mm, far too small for a head; ten times that "
+        f"({' x '.join(f'{v:.3g}' for v in x10)} mm voxels) is a usual head CT: the spacing was probably written in cm. "
+        "DICOM PixelSpacing and slice positions, and NIfTI pixdim, are in mm: correct the header (or export the CT again) "
+        "and load it again")
+
+
+#: Largest magnitude of a Hounsfield value (metal in extended-range CT reaches ~30000 HU).
+MAX_ABS_HU = 100_000.0
+
+
+def _check_hounsfield(arr: np.ndarray, name: str, scale_hint: str = "") -> None:
+    """Reject volumes whose values are not Hounsfield units (no air, 8-bit, unscaled 12-bit,
+    absurd magnitudes from a wrong rescale). ``scale_hint``: words naming the file's rescale."""
+    vmin, vmax = float(np.min(arr)), float(np.max(arr))  # every voxel: one wild value is enough
+    if max(abs(vmin), abs(vmax)) > MAX_ABS_HU:
+        raise InputError(
+            f"{name}: values are not Hounsfield units (from {vmin:.3g} to {vmax:.3g}; a CT spans about -1024 to 3071, "
+            f"and up to ~30000 HU for metal){scale_hint or '; is the rescale slope/intercept wrong?'}")
     sample = arr[:: max(1, arr.shape[0] // 32), ::4, ::4]
     if sample.size == 0:
         sample = arr
@@ -219,10 +262,10 @@ def _check_hounsfield(arr: np.ndarray, name: str) -> None:
     if lo > -500:
         raise InputError(
             f"{name} does not look like a CT in Hounsfield units: no air around the head "
-            f"(lowest values ~{lo:.0f}, air is -1000 HU); is the rescale slope/intercept missing?"
+            f"(lowest values ~{lo:.0f}, air is -1000 HU){scale_hint or '; is the rescale slope/intercept missing?'}"
         )
     if hi < 200:
-        raise InputError(f"{name} does not look like a head CT: no bone or denser values (highest ~{hi:.0f} HU)")
+        raise InputError(f"{name} does not look like a head CT: no bone or denser values (highest ~{hi:.0f} HU){scale_hint}")
 
 
 def load_volume(path: str | Path, series: str | None = None) -> Volume:
@@ -243,22 +286,28 @@ def load_volume(path: str | Path, series: str | None = None) -> Volume:
 
     Raises:
         InputError: one line, for every input that cannot be used: missing, empty or
-            unreadable path; no image in it; an unknown ``series``; inconsistent slice
-            geometry; NaN/infinite voxels; values that are not Hounsfield units.
+            unreadable path (permission: owner, mode and the user we run as); no image in it;
+            an unknown ``series``; inconsistent slice geometry; more voxels than the memory
+            left holds; NaN/infinite voxels; values that are not Hounsfield units; spacing in
+            cm; sheared axes. A NIfTI without orientation loads, with a ``WARNING`` note.
     """
     p = Path(path).expanduser()
     try:
         return _load_volume(p, series)
     except PermissionError as exc:
-        raise InputError(f"cannot read {exc.filename or p}: permission denied") from None
+        raise permission_error(Path(exc.filename or p)) from None
+    except MemoryError:
+        raise InputError(f"{p.name} is too large for this machine's memory: crop it to the head or resample it to a "
+                         "coarser grid, or use a machine with more memory") from None
 
 
 def _load_volume(p: Path, series: str | None) -> Volume:
     notes: list[str] = []
-    if not p.exists():
-        raise InputError(f"no such file or folder: {p}")
+    coverage = Coverage()
+    check_readable(p)
+    hdr = None
     if p.is_dir():
-        img = _read_dicom_folder(p, series, notes)
+        img = _read_dicom_folder(p, series, notes, coverage)
     else:
         if p.stat().st_size == 0:
             raise InputError(f"{p.name} is empty (0 bytes)")
@@ -266,18 +315,19 @@ def _load_volume(p: Path, series: str | None) -> Volume:
         if not p.name.lower().endswith(VOLUME_SUFFIXES[:-1]):
             from monotracker.ct.dicom_series import read_dicom
 
-            img = read_dicom(p, series, notes)  # multi-frame (enhanced) CT; None for other files
+            img = read_dicom(p, series, notes, coverage)  # multi-frame (enhanced) CT; None for other files
         if img is None:
-            img = _read_file(p)
-        if series is not None and not notes:
-            notes.append("series= ignored: the input is a single file")
+            img, hdr = _read_file(p, notes)
+            if series is not None:
+                notes.append("series= ignored: the input is a single file")
     name = p.name or str(p)
     img = _check_image(img, name)
-    vol = Volume.from_image(img, source=str(p), notes=notes)
+    vol = Volume.from_image(img, source=str(p), notes=notes, coverage=coverage)
+    hint = scale_hint(hdr)
     if vol.array.dtype.kind == "f":
         bad = int(np.count_nonzero(~np.isfinite(vol.array)))  # every voxel, not a sample
         if bad:
-            raise InputError(f"{name} contains {bad} NaN or infinite voxels; its values cannot be trusted")
-    _check_hounsfield(vol.array, name)
+            raise InputError(f"{name} contains {bad} NaN or infinite voxels; its values cannot be trusted{hint}")
+    _check_hounsfield(vol.array, name, hint)
     log.info("loaded %s: %s", p, vol.describe())
     return vol
