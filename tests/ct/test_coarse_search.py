@@ -20,7 +20,8 @@ from monotracker.sim.phantom import default_phantom
 
 @pytest.fixture
 def coarse(monkeypatch):
-    """Force the coarse grid with blocks of ``b`` voxels; counts the coarse passes."""
+    """Force the coarse grid with blocks of about ``b`` voxels (``blob_search._blocks``: near
+    cubic in mm); records the blocks of each coarse pass."""
     calls = []
     real = blob_search.block_max
 
@@ -51,7 +52,7 @@ def test_metal_scan_same_answers_on_the_coarse_grid(coarse, b):
                                       distractors=metal_distractors(ph, streak_hu=300.0)))
     calls = coarse(b)
     det = detect_fiducials(Volume.from_image(ct.to_sitk()))
-    assert calls and set(calls) == {b}  # the coarse grid was used
+    assert calls and max(calls[0]) >= b  # the coarse grid was used
     err, missed, false = match(det.centres, ct.fiducial_centres_lps)
     assert det.ok and (missed, false) == (0, 0), det.reason
     assert err.max() < 0.1
@@ -92,7 +93,7 @@ def test_whole_head_sample_uses_the_coarse_grid_and_finds_every_ball(monkeypatch
     vol = load_volume(sample_ct_path())
     assert vol.array.size > blob_search.FINE_BOX_MAX
     det = detect_fiducials(vol)
-    assert calls and calls[0] >= 2
+    assert calls and max(calls[0]) >= 2
     err, missed, false = match(det.centres, default_phantom().fiducial_centres_lps)
     assert (missed, false) == (0, 0) and err.max() < 0.1
     clip = np.mean(default_phantom().clip_segment_lps, axis=0)

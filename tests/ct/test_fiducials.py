@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from monotracker.ct import detect_fiducials, detect_fiducials_paper, load_volume
+from monotracker.ct import FiducialKit, detect_fiducials, detect_fiducials_paper, load_volume
 from monotracker.paths import sample_ct_path
 from monotracker.sim.phantom import default_phantom
 
@@ -97,8 +97,22 @@ def test_no_fiducials_is_not_an_error():
 
 def test_wrong_nominal_radius_rejects_with_reason(patch_volume):
     det = detect_fiducials(patch_volume, radius_mm=2.0)
-    assert not det.ok and "none is a sphere of the expected size" in det.reason
+    assert not det.ok and "the kit's radius is 2 mm but the scan holds 9 round balls of radius 4.0 mm" in det.reason, det.reason
     assert sum("wrong size" in r.reason for r in det.rejected) == 9
+
+
+def test_a_kit_radius_far_too_small_is_named_not_blamed_on_bone_or_touching_balls(patch_volume, patch_ct):
+    """Issue 36: a kit radius of 0.6 mm (a typo for 6, or mm for cm) on a scan of 4 mm balls
+    said the balls were "too large: bone, implant or metal" and the steel clip "touching balls
+    that could not be separated?"; the reason now names the kit's radius and the scan's."""
+    det = detect_fiducials(patch_volume, kit=FiducialKit(radius_mm=0.6))
+    assert not det.ok and not det.fiducials
+    assert "kit's radius is 0.6 mm" in det.reason and "9 round balls of radius 4.0 mm" in det.reason, det.reason
+    truth = patch_ct.fiducial_centres_lps
+    at_balls = [r for r in det.rejected if cdist([r.centre_lps], truth).min() < 1.0]
+    assert len(at_balls) == 9 and all("round ball of radius 4.0" in r.reason for r in at_balls), [r.reason for r in at_balls]
+    assert not any("touching balls" in r.reason or "bone, implant or metal" in r.reason for r in det.rejected), \
+        [r.reason for r in det.rejected]
 
 
 def test_estimated_radius_for_other_ball_sizes():

@@ -19,20 +19,28 @@ The ladder is a handful of levels (:data:`LADDER_LEVELS`), so the work is bounde
 labels at most the boxes of the components it refines, fits are capped (``max_fits``) and a
 time budget stops the search with a note instead of running for minutes on a head full of metal.
 
-**Large components** (a box of more than :data:`FINE_BOX_MAX` voxels: the skull of a whole
-head, a dental arch): relabelling the skull's box on the full grid at every threshold cost seconds
-per level on a 512 x 512 x 300 head. The first level is labelled on the full grid, as above (so
-every ball apart from bone and metal at that level is found exactly as on a small scan); a large
-component is then refined on a coarse grid (the maximum of its voxels over ``b x b x b`` blocks,
-``b`` from :func:`block_size`): at each higher level, a coarse piece whose box on the full grid
-holds at most ``FINE_BOX_MAX`` voxels goes to the full-resolution search above, from that level
-on, restricted to its own voxels; a larger one is split again on the coarse grid one level up,
-and searched on the full grid at the last level. Every full-grid component above a threshold
-lies inside exactly one coarse piece of that threshold (a block is above it when any of its
-voxels is, and 26-neighbouring voxels lie in 26-neighbouring blocks), so nothing is lost or seen
-twice; the one difference to a full-grid ladder: inside such a large component, a ball-sized
-piece closer than about one block to the rest is first looked at one level higher, once the two
-have separated on the coarse grid too (at the last level at full resolution in any case).
+**Large volumes** (more than :data:`FINE_BOX_MAX` voxels: a whole head). Labelling a whole
+head on the full grid costs ~20 passes over its voxels, so it is never done. One pass builds a
+coarse grid (:func:`coarse_grid`: the maximum over blocks of about 2.5 mm, :func:`block_max`),
+which also gives the densest value for the ladder. The coarse grid is labelled at the first
+level; every coarse piece whose box on the full grid is small (a ball, a clip, a filling) is
+searched on the full grid in a crop: its box plus :data:`SIBLING_MARGIN_MM` (so that its
+neighbours are there to be left out of its fit), from the first level up, exactly as above, but
+only the components whose densest voxel lies in the piece (the others belong to another piece)
+and, of those, the ones that run out of the crop (parts of something larger) are searched
+higher up without being listed. Every full-grid component above a threshold lies inside exactly
+one coarse piece of that threshold (a block is above it when any of its voxels is, and
+26-neighbouring voxels lie in 26-neighbouring blocks), so nothing is lost or seen twice.
+
+A large piece (the skull, and what lies within a block or two of it) is refined on a grid of
+at most :data:`REFINE_TARGET` blocks (twice the edge for a whole head) at rising thresholds, in steps of a few noise sigmas (and at
+every ladder level; ``_LadderSearch._next_level``): some step falls just above the bone's
+block maxima, where the bulk of the skull goes and what is denser than bone stands alone.
+Small pieces are searched in crops as above, until the ladder ends (what is still large is then
+searched on the full grid at the top level). The difference to a full-grid ladder: a ball not
+denser than the bone it lies within about two blocks (~5 mm) of, or one standing out from bone
+by less than its speck margin (very noisy scans), is found only if that last full-grid search
+reaches it.
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from monotracker.ct.detection_result import RejectedBlob
 from monotracker.ct.volume import Volume
 
 #: Number of thresholds from the lowest level to 85 % of the densest (or the kit's density).
@@ -52,33 +61,81 @@ LADDER_LEVELS = 7
 FINE_BOX_MAX = 2_000_000
 #: About this many voxels in the coarse grid of a large volume.
 COARSE_TARGET = 1_500_000
+#: Steps of the thresholds at which large coarse pieces are refined: this many noise sigmas,
+#: at least :data:`SUB_STEP_MIN_HU` (see ``_LadderSearch._next_level``).
+SUB_STEP_NOISE = 3.0
+SUB_STEP_MIN_HU = 50.0
+#: Largest grid (voxels) on which large pieces are refined level by level (``refine_large``).
+REFINE_TARGET = 200_000
+#: A crop reaches this far (mm) beyond its coarse piece: a blob's neighbours within it are left
+#: out of its fit window (the fit looks at most ~6 mm beyond a ball's centre).
+SIBLING_MARGIN_MM = 6.0
 _STRUCTURE = np.ones((3, 3, 3), bool)
 
 
 def block_size(shape) -> int:
-    """Edge (voxels) of the coarse grid's blocks for a box of ``shape``: 1 (no coarse grid) up
-    to :data:`FINE_BOX_MAX` voxels, else about ``(voxels / COARSE_TARGET) ** (1/3)``, at least 2."""
+    """Edge (voxels, of a cubic block of as many voxels) of the coarse grid's blocks for a box
+    of ``shape``: 1 (no coarse grid) up to :data:`FINE_BOX_MAX` voxels, else about
+    ``(voxels / COARSE_TARGET) ** (1/3)``, at least 2."""
     n = float(np.prod(shape))
     if n <= FINE_BOX_MAX:
         return 1
     return max(2, int(round((n / COARSE_TARGET) ** (1.0 / 3.0))))
 
 
-def block_max(arr: np.ndarray, b: int) -> np.ndarray:
-    """Maximum over ``b x b x b`` blocks (the last block along an axis may be shorter)."""
+def _blocks(b: int | tuple, spacing_ijk: np.ndarray) -> tuple:
+    """Per-axis block edges (k, j, i) for ``b`` (:func:`block_size`): blocks of about
+    ``b**3`` voxels that are as near cubic in mm as the voxels allow (1 x 1 x 2 mm voxels:
+    twice as many voxels in-plane as along the slices). A tuple is taken as it is."""
+    if isinstance(b, tuple):
+        return tuple(int(x) for x in b)
+    sp = np.asarray(spacing_ijk, float)[::-1]
+    edge = b * float(np.prod(sp)) ** (1.0 / 3.0)
+    return tuple(max(1, int(round(edge / s))) for s in sp)
+
+
+def block_max(arr: np.ndarray, b) -> np.ndarray:
+    """Maximum over blocks of ``b`` voxels (an int: cubic; a tuple: per axis k, j, i; the last
+    block along an axis may be shorter). Element-wise maxima of strided views: about one pass
+    over ``arr`` (a reshape-and-reduce over the short block axes is several times slower)."""
+    bb = (int(b),) * 3 if np.isscalar(b) else tuple(int(x) for x in b)
     out = arr
-    for ax in range(3):  # the slowest axis first: later passes read less
-        n = out.shape[ax]
-        m = n // b
-        whole = out[(slice(None),) * ax + (slice(0, m * b),)]
-        shape = list(whole.shape)
-        shape[ax:ax + 1] = [m, b]
-        red = whole.reshape(shape).max(axis=ax + 1)  # far faster than np.maximum.reduceat
-        if n > m * b:
-            rest = out[(slice(None),) * ax + (slice(m * b, n),)].max(axis=ax, keepdims=True)
-            red = np.concatenate([red, rest], axis=ax)
-        out = red
+    for ax, f in enumerate(bb):  # the slowest axis first: later passes read less
+        if f <= 1:
+            continue
+        idx = [slice(None)] * 3
+        idx[ax] = slice(0, None, f)
+        res = out[tuple(idx)].copy()
+        for o in range(1, f):
+            idx[ax] = slice(o, None, f)
+            part = out[tuple(idx)]
+            sl = [slice(None)] * 3
+            sl[ax] = slice(0, part.shape[ax])
+            np.maximum(res[tuple(sl)], part, out=res[tuple(sl)])
+        out = res
     return out
+
+
+@dataclass
+class CoarseGrid:
+    """A large volume's coarse grid: ``values`` the maximum over blocks of ``blocks`` voxels
+    (k, j, i), and ``vmax`` the volume's densest value (HU)."""
+
+    values: np.ndarray
+    blocks: tuple
+    vmax: float
+
+
+def coarse_grid(volume: Volume, block: int | tuple | None = None) -> CoarseGrid | None:
+    """The coarse grid of ``volume`` (one pass over its voxels), or None for a volume small
+    enough to be searched on the full grid (``block`` None and at most :data:`FINE_BOX_MAX`
+    voxels). ``block``: force the blocks (an int edge or a (k, j, i) tuple)."""
+    arr = volume.array
+    if block is None and arr.size <= FINE_BOX_MAX:
+        return None
+    b = _blocks(block_size(arr.shape) if block is None else block, volume.spacing_mm)
+    values = block_max(arr, b)
+    return CoarseGrid(values, b, float(values.max()))
 
 
 def threshold_ladder(levels: dict, vmax: float, density_hu: float | None = None) -> np.ndarray:
@@ -106,6 +163,8 @@ class SearchStats:
     accepted_at: list = field(default_factory=list)
     #: Largest edge of the coarse grid's blocks used, voxels (1: the full grid only).
     block: int = 1
+    #: Full-grid crops searched for the pieces of a coarse grid.
+    crops: int = 0
 
 
 @dataclass
@@ -117,173 +176,318 @@ class Sibling:
     radius: float
 
 
-def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_voxels: int, fit,
-                 max_fits: int = 400, time_budget_s: float = 60.0, tissue_hu: float = 0.0, noise_hu: float = 20.0,
-                 block: int | None = None, cancel=None):
-    """Run the ladder search (module docstring). ``fit(kji, T, siblings)`` returns
-    ``(candidate, None)`` or ``(None, RejectedBlob)``. Returns (candidates, rejected, stats).
-    ``block``: edge of the coarse grid's blocks for large components (voxels), None =
-    :func:`block_size` of the component's box. ``cancel``: a callable; once it returns True
-    the search stops (``stats.stopped`` says so).
+@dataclass
+class _Crop:
+    """A full-grid crop for one coarse piece: the box ``lo``..``hi`` (k, j, i) and ``core``, the
+    piece's voxels in it (bool, the crop's shape); ``open_lo``/``open_hi`` which faces of the
+    box lie inside the scan (a component reaching one runs on outside the crop)."""
 
-    A component whose densest voxel barely passes its threshold (by less than
-    ``max(6 noise, 15 % of T - tissue)``) is a fragment of something at about that level (bone
-    at a threshold just above it, a streak), not a ball: counted as a speck, not fitted."""
-    arr = volume.array
-    voxel_mm3 = float(np.prod(volume.spacing_mm))
-    t_end = time.perf_counter() + time_budget_s
-    cands: list = []
-    rejected: list = []
-    stats = SearchStats()
+    lo: np.ndarray
+    hi: np.ndarray
+    core: np.ndarray
+    open_lo: np.ndarray
+    open_hi: np.ndarray
 
-    def over_budget() -> bool:
-        if stats.stopped:
+
+class _LadderSearch:
+    """The ladder search's state and steps (module docstring); see :func:`search_blobs`."""
+
+    def __init__(self, volume: Volume, ladder, min_voxels: int, max_ball_voxels: int, fit, max_fits: int,
+                 time_budget_s: float, tissue_hu: float, noise_hu: float, cancel, describe_large):
+        self.volume = volume
+        self.arr = volume.array
+        self.ladder = np.asarray(ladder, float)
+        self.min_voxels, self.max_ball_voxels = int(min_voxels), int(max_ball_voxels)
+        self.fit, self.max_fits, self.cancel = fit, int(max_fits), cancel
+        self.tissue, self.noise = float(tissue_hu), float(noise_hu)
+        self.describe_large = describe_large
+        self.voxel_mm3 = float(np.prod(volume.spacing_mm))
+        self.t_end = time.perf_counter() + time_budget_s
+        self.time_budget_s = time_budget_s
+        self.cands: list = []
+        self.rejected: list = []
+        self.stats = SearchStats()
+        self.low = np.asarray(-np.inf if self.arr.dtype.kind == "f" else np.iinfo(self.arr.dtype).min, self.arr.dtype)
+
+    def over_budget(self) -> bool:
+        st = self.stats
+        if st.stopped:
             return True
-        if cancel is not None and cancel():
-            stats.stopped = "search cancelled: results incomplete"
-        elif time.perf_counter() > t_end:
-            stats.stopped = f"search stopped after {time_budget_s:.0f} s: results may be incomplete"
-        elif stats.fits >= max_fits:
-            stats.stopped = f"search stopped after {max_fits} blob fits (a scan full of dense objects?): results may be incomplete"
-        return bool(stats.stopped)
+        if self.cancel is not None and self.cancel():
+            st.stopped = "search cancelled: results incomplete"
+        elif time.perf_counter() > self.t_end:
+            st.stopped = f"search stopped after {self.time_budget_s:.0f} s: results may be incomplete"
+        elif st.fits >= self.max_fits:
+            st.stopped = f"search stopped after {self.max_fits} blob fits (a scan full of dense objects?): results may be incomplete"
+        return bool(st.stopped)
 
-    def visit(lo: np.ndarray, hi: np.ndarray, restrict: np.ndarray | None, level: int) -> bool:
+    def faint(self, peak: float, T: float) -> bool:
+        """A component whose densest voxel barely passes ``T``: a fragment of something at about
+        that level (bone just above a threshold, a streak), not a ball."""
+        return peak < T + max(6.0 * self.noise, 0.15 * (T - self.tissue))
+
+    # ------------------------------------------------------------------ the full grid
+    def visit(self, lo: np.ndarray, hi: np.ndarray, restrict: np.ndarray | None, level: int, crop: _Crop | None = None) -> bool:
+        """Search the box ``lo``..``hi`` (restricted to ``restrict``) at ``ladder[level]`` and up.
+        ``crop``: the box lies in a crop (module docstring): only components whose densest voxel
+        is in its core are handled, those running out of it are searched higher up unlisted."""
+        arr, ladder, st = self.arr, self.ladder, self.stats
         T = float(ladder[level])
         sub = arr[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
         mask = sub > T
         if restrict is not None:
             mask &= restrict
-        stats.labelled_voxels += mask.size
+        st.labelled_voxels += mask.size
         labels, n = ndimage.label(mask, structure=_STRUCTURE)
         if n == 0:
             return False
         counts = np.bincount(labels.ravel(), minlength=n + 1)
-        stats.components += n
-        sizable = np.flatnonzero(counts >= min_voxels)
+        st.components += n
+        sizable = np.flatnonzero(counts >= self.min_voxels)
         sizable = sizable[sizable > 0]
-        stats.specks += n - len(sizable)
+        st.specks += n - len(sizable)
         if len(sizable) == 0:
             return False
-        # a component whose densest voxel barely passes T is a fragment of something at about
-        # that level (bone just above a threshold, a streak): counted, not fitted. Peaks only of
-        # the ball-sized ones, each in its own box (a pass over a whole head's labels is slow)
         objs = ndimage.find_objects(labels)
-        small = counts[sizable] <= max_ball_voxels
+        small = counts[sizable] <= self.max_ball_voxels
         peaks = np.full(len(sizable), np.inf)
-        for q in np.flatnonzero(small):
-            sl = objs[sizable[q] - 1]
-            peaks[q] = float(sub[sl][labels[sl] == sizable[q]].max())
-        faint = small & (peaks < T + max(6.0 * noise_hu, 0.15 * (T - tissue_hu)))
-        stats.specks += int(faint.sum())
-        todo = sizable[~faint]
+        keep = np.ones(len(sizable), bool)
+        running_out = np.zeros(len(sizable), bool)
+        for q, lab in enumerate(sizable):
+            sl = objs[lab - 1]
+            if not small[q] and crop is None:
+                continue  # peaks only of the ball-sized ones (a pass over a whole head's labels is slow)
+            vals = np.where(labels[sl] == lab, sub[sl], self.low)
+            at = np.unravel_index(int(np.argmax(vals)), vals.shape)
+            peaks[q] = float(vals[at])
+            if crop is not None:
+                g = lo + np.array([s.start for s in sl]) + np.array(at)  # the peak, full grid
+                keep[q] = bool(crop.core[tuple(g - crop.lo)])
+                glo = lo + np.array([s.start for s in sl])
+                ghi = lo + np.array([s.stop for s in sl])
+                running_out[q] = bool(np.any((glo <= crop.lo) & crop.open_lo) or np.any((ghi >= crop.hi) & crop.open_hi))
+        faint = small & (peaks < T + max(6.0 * self.noise, 0.15 * (T - self.tissue)))
+        st.specks += int((faint & keep).sum())
+        sel = keep & ~faint
+        todo = sizable[sel]
+        running_out = running_out[sel]
         if len(todo) == 0:
             return False
         # blobs that could be (or hold) balls, for the neighbour masks of each other's fits
-        idx = [lab for lab in todo if counts[lab] <= 3 * max_ball_voxels]
         comps = {}
-        for lab in idx:
+        for lab in sizable[~faint]:
+            if counts[lab] > 3 * self.max_ball_voxels:
+                continue
             sl = objs[lab - 1]
             comp = labels[sl] == lab
-            kji = np.argwhere(comp) + lo + np.array([s.start for s in sl])
-            comps[lab] = (sl, comp, kji)
-        cents = {lab: volume.zyx_to_lps(kji.mean(axis=0)[None])[0] for lab, (_, _, kji) in comps.items()}
-        radii = {lab: float((3.0 * counts[lab] * voxel_mm3 / (4.0 * np.pi)) ** (1.0 / 3.0)) for lab in comps}
+            comps[lab] = (sl, comp, np.argwhere(comp) + lo + np.array([s.start for s in sl]))
+        cents = {lab: self.volume.zyx_to_lps(kji.mean(axis=0)[None])[0] for lab, (_, _, kji) in comps.items()}
+        radii = {lab: float((3.0 * counts[lab] * self.voxel_mm3 / (4.0 * np.pi)) ** (1.0 / 3.0)) for lab in comps}
         found = False
-        for lab in todo:
+        for lab, out_of_crop in zip(todo, running_out):
             c = int(counts[lab])
-            if over_budget():
+            if self.over_budget():
                 return found
             sl = objs[lab - 1]
             glo = lo + np.array([s.start for s in sl])
             ghi = lo + np.array([s.stop for s in sl])
-            if c > max_ball_voxels:
+            if out_of_crop:  # part of something larger outside the crop: only what separates higher up
+                if level + 1 < len(ladder):
+                    found |= self.visit(glo, ghi, labels[sl] == lab, level + 1, crop)
+                continue
+            if c > self.max_ball_voxels:
                 comp = labels[sl] == lab
-                if level + 1 < len(ladder) and np.prod(ghi - glo) > FINE_BOX_MAX:
-                    found |= refine_coarse(glo, ghi, comp, level + 1)
-                elif level + 1 < len(ladder):
-                    found |= visit(glo, ghi, comp, level + 1)
-                elif not any(_inside(r.centre_lps, volume, glo, ghi) for r in rejected):
-                    kji = np.argwhere(comp) + glo
-                    rejected.append(_too_large(volume, kji, c))
+                if level + 1 < len(ladder):
+                    found |= self.visit(glo, ghi, comp, level + 1, crop)
+                elif not any(_inside(r.centre_lps, self.volume, glo, ghi) for r in self.rejected):
+                    self.rejected.append(self.describe_large(np.argwhere(comp) + glo, c))
                 continue
             _, comp, kji = comps[lab]
             sibs = [Sibling(cents[o], radii[o]) for o in comps if o != lab]
-            stats.fits += 1
-            cand, rej = fit(kji, T, sibs)
+            st.fits += 1
+            cand, rej = self.fit(kji, T, sibs)
             if cand is not None:
-                cands.append(cand)
-                stats.accepted_at.append(T)
+                self.cands.append(cand)
+                st.accepted_at.append(T)
                 found = True
                 continue
             # not a ball as one piece: it may hold balls that separate at a higher threshold
-            n_rej = len(rejected)
-            if level + 1 < len(ladder) and visit(glo, ghi, comp, level + 1):
+            n_rej = len(self.rejected)
+            if level + 1 < len(ladder) and self.visit(glo, ghi, comp, level + 1, crop):
                 found = True
                 continue
-            del rejected[n_rej:]  # the same object seen again higher up: list it once
-            rejected.append(rej)
+            del self.rejected[n_rej:]  # the same object seen again higher up: list it once
+            self.rejected.append(rej)
         return found
 
-    min_sp = float(np.min(volume.spacing_mm))
+    # ------------------------------------------------------------------ coarse grids
+    def crop_visit(self, f_lo: np.ndarray, f_hi: np.ndarray, core_blocks: np.ndarray, c_lo: np.ndarray, blocks: tuple) -> bool:
+        """Search, on the full grid from the first level, the crop of one coarse piece: its box
+        ``f_lo``..``f_hi`` (full grid) plus :data:`SIBLING_MARGIN_MM`; ``core_blocks`` the
+        piece's blocks (coarse grid of ``blocks`` voxels, from coarse index ``c_lo``)."""
+        shape = np.array(self.arr.shape)
+        # less a hair: spacings that differ in the 7th digit (DICOM's decimal strings against a
+        # float header) must give the same crop, hence the same neighbours and the same fits
+        margin = np.ceil(SIBLING_MARGIN_MM / self.volume.spacing_mm[::-1] - 1e-6).astype(int)
+        lo = np.maximum(f_lo - margin, 0)
+        hi = np.minimum(f_hi + margin, shape)
+        idx = [np.arange(lo[a], hi[a]) // blocks[a] - c_lo[a] for a in range(3)]
+        valid = [(ix >= 0) & (ix < core_blocks.shape[a]) for a, ix in enumerate(idx)]
+        core = core_blocks[np.ix_(*[np.clip(ix, 0, core_blocks.shape[a] - 1) for a, ix in enumerate(idx)])]
+        core &= valid[0][:, None, None] & valid[1][None, :, None] & valid[2][None, None, :]
+        self.stats.crops += 1
+        return self.visit(lo, hi, None, 0, _Crop(lo, hi, core, lo > 0, hi < shape))
 
-    def refine_coarse(lo: np.ndarray, hi: np.ndarray, comp: np.ndarray | None, level: int, exact: bool = False) -> bool:
-        """Search the box lo..hi (restricted to the full-grid mask ``comp``, None = all of it)
-        from ``level`` on, split on a coarse grid first (module docstring). ``exact``: a
-        piece too large for one full-grid box is still searched on the full grid at ``level``
-        (the first level), else split again on the coarse grid one level up."""
-        b = block_size(hi - lo) if block is None else int(block)
-        sub = arr[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-        if comp is not None:
-            low = np.asarray(-np.inf if sub.dtype.kind == "f" else np.iinfo(sub.dtype).min, sub.dtype)
-            sub = np.where(comp, sub, low)
-        coarse = block_max(sub, b)
-        stats.block = max(stats.block, b)
-        # pieces closer than ~6 mm are searched together: they are each other's fit siblings
-        grow = int(np.ceil(3.0 / (b * min_sp)))
+    def coarse_search(self, grid: CoarseGrid) -> bool:
+        """Search a large volume on its coarse grid (module docstring): the first level's
+        small pieces in crops, the large ones refined by :meth:`refine_large`."""
+        lo, hi = np.zeros(3, int), np.array(self.arr.shape)
+        b = grid.blocks
+        self.stats.block = max(self.stats.block, max(b))
+        values = grid.values
+        T = float(self.ladder[0])
+        groups, n = ndimage.label(values > T, structure=_STRUCTURE)
+        self.stats.labelled_voxels += values.size
+        big = np.zeros(values.shape, bool)
+        found = False
+        for g, sl in enumerate(ndimage.find_objects(groups), start=1):
+            if sl is None:
+                continue
+            if self.over_budget():
+                return found
+            gm = groups[sl] == g
+            piece = values[sl][gm]
+            if len(piece) * int(np.prod(b)) < self.min_voxels or self.faint(float(piece.max()), T):
+                self.stats.specks += 1
+                continue
+            c_lo = np.array([s.start for s in sl])
+            f_lo = lo + c_lo * b
+            f_hi = np.minimum(lo + np.array([s.stop for s in sl]) * b, hi)
+            if np.prod(f_hi - f_lo) <= FINE_BOX_MAX or len(self.ladder) == 1:
+                found |= self.crop_visit(f_lo, f_hi, gm, c_lo, b)
+            else:
+                big[sl] |= gm
+        if big.any():
+            found |= self.refine_large(values, b, big, T)
+        return found
 
-        def visit_coarse(clo: np.ndarray, chi: np.ndarray, crestrict: np.ndarray | None, level: int) -> bool:
-            T = float(ladder[level])
-            mask = coarse[clo[0]:chi[0], clo[1]:chi[1], clo[2]:chi[2]] > T
-            if crestrict is not None:
-                mask &= crestrict
-            stats.labelled_voxels += mask.size
-            groups, n = ndimage.label(ndimage.binary_dilation(mask, _STRUCTURE, iterations=grow) if grow else mask,
-                                      structure=_STRUCTURE)
-            found = False
+    def refine_large(self, values: np.ndarray, b: tuple, big: np.ndarray, T: float) -> bool:
+        """Large coarse pieces (``big``, on the coarse grid ``values`` of blocks ``b``, above
+        ``T``): refined on a grid of at most :data:`REFINE_TARGET` blocks (twice the edge for a
+        whole head) at rising thresholds (:meth:`_next_level`)
+        until their pieces are small, each searched in a crop; what is still large at the
+        ladder's top is searched on the full grid."""
+        hi = np.array(self.arr.shape)
+        f = (1, 1, 1)  # coarser, by two along every axis, until a level's labelling is cheap
+        while np.prod(np.ceil(np.array(values.shape) / f)) > REFINE_TARGET and min(values.shape[a] // f[a] for a in range(3)) > 2:
+            f = tuple(2 * x for x in f)
+        vals2 = block_max(np.where(big, values, np.asarray(self.low, values.dtype)), f)
+        b2 = tuple(b[a] * f[a] for a in range(3))
+        self.stats.block = max(self.stats.block, max(b2))
+        current = block_max(big, f)
+        found = False
+        while current.any():
+            if self.over_budget():
+                return found
+            T = self._next_level(T)
+            if T > self.ladder[-1] + 1e-6:  # the top: what is still large, on the full grid
+                found |= self._full_grid_rest(current, b2)
+                break
+            # only the box of what is still large is labelled
+            nz = np.nonzero(current)
+            blo = np.array([x.min() for x in nz])
+            bhi = np.array([x.max() + 1 for x in nz])
+            box = tuple(slice(blo[a], bhi[a]) for a in range(3))
+            groups = np.zeros(current.shape, np.int32)
+            groups[box], n = ndimage.label((vals2[box] > T) & current[box], structure=_STRUCTURE)
+            self.stats.labelled_voxels += int(np.prod(bhi - blo))
+            nxt = np.zeros_like(current)
             for g, sl in enumerate(ndimage.find_objects(groups), start=1):
                 if sl is None:
                     continue
-                if over_budget():
-                    return found
-                gmask = (groups[sl] == g) & mask[sl]
-                nz = np.nonzero(gmask)
-                if len(nz[0]) * b**3 < min_voxels:  # cannot hold a blob of min_voxels: a speck
-                    stats.specks += 1 if len(nz[0]) else 0
+                gm = groups[sl] == g
+                piece = vals2[sl][gm]
+                if len(piece) * int(np.prod(b2)) < self.min_voxels or self.faint(float(piece.max()), T):
+                    self.stats.specks += 1
                     continue
-                g_lo = np.array([x.min() for x in nz])
-                g_hi = np.array([x.max() + 1 for x in nz])
-                cmask = gmask[g_lo[0]:g_hi[0], g_lo[1]:g_hi[1], g_lo[2]:g_hi[2]]
-                c_lo = clo + np.array([x.start for x in sl]) + g_lo
-                c_hi = c_lo + (g_hi - g_lo)
-                f_lo, f_hi = c_lo * b, np.minimum(c_hi * b, hi - lo)  # full grid, relative to lo
-                if exact or np.prod(f_hi - f_lo) <= FINE_BOX_MAX or level + 1 == len(ladder):
-                    idx = [np.arange(f_lo[a], f_hi[a]) // b - c_lo[a] for a in range(3)]
-                    restrict = cmask[np.ix_(*idx)]
-                    if comp is not None:
-                        restrict &= comp[f_lo[0]:f_hi[0], f_lo[1]:f_hi[1], f_lo[2]:f_hi[2]]
-                    found |= visit(lo + f_lo, lo + f_hi, restrict, level)
-                else:
-                    found |= visit_coarse(c_lo, c_hi, cmask, level + 1)
-            return found
+                c_lo = np.array([s.start for s in sl])
+                f_lo = c_lo * b2
+                f_hi = np.minimum(np.array([s.stop for s in sl]) * b2, hi)
+                if np.prod(f_hi - f_lo) > FINE_BOX_MAX:
+                    nxt[sl] |= gm
+                    continue
+                # the crop's core: the piece's blocks, on the finer grid, of the large pieces only
+                # (a coarser block may also hold a small piece already searched)
+                k_lo = c_lo * f
+                k_hi = np.minimum((c_lo + np.array(gm.shape)) * f, values.shape)
+                ix = [np.arange(k_lo[a], k_hi[a]) // f[a] - c_lo[a] for a in range(3)]
+                fine = gm[np.ix_(*ix)] & big[k_lo[0]:k_hi[0], k_lo[1]:k_hi[1], k_lo[2]:k_hi[2]]
+                if fine.any():
+                    found |= self.crop_visit(k_lo * b, np.minimum(k_hi * b, hi), fine, k_lo, b)
+            current = nxt
+        return found
 
-        return visit_coarse(np.zeros(3, int), np.array(coarse.shape), None, level)
+    def _next_level(self, T: float) -> float:
+        """The next threshold for large pieces: the next ladder level, or, sooner, ``T`` plus
+        :data:`SUB_STEP_NOISE` noise sigmas (at least :data:`SUB_STEP_MIN_HU`): fine enough that
+        some level lies above the bone's block maxima and below a denser ball's peak, less its
+        speck margin (bone 1200 HU in 18 HU noise: blocks up to ~1260; a 1500 HU ball: a
+        window of ~100 HU), where the ball stands alone on the coarse grid."""
+        above = self.ladder[self.ladder > T + 1e-6]
+        nxt = float(above[0]) if len(above) else np.inf
+        return min(nxt, T + max(SUB_STEP_NOISE * self.noise, SUB_STEP_MIN_HU))
 
-    shape = np.array(arr.shape)
-    if arr.size <= FINE_BOX_MAX and block is None:
-        visit(np.zeros(3, int), shape, None, 0)
-    else:  # a large volume: the first level is split on a coarse grid, each piece searched exactly
-        refine_coarse(np.zeros(3, int), shape, None, 0, exact=True)
-    return cands, rejected, stats
+    def _full_grid_rest(self, current: np.ndarray, b2: tuple) -> bool:
+        """What is still large at the ladder's top, searched on the full grid at the top level
+        (restricted to its blocks): as the full-grid ladder would, slowly (a scan whose balls
+        are fainter than the bone they lie near, or a head full of metal)."""
+        hi = np.array(self.arr.shape)
+        found = False
+        groups, _ = ndimage.label(current, structure=_STRUCTURE)
+        for g, sl in enumerate(ndimage.find_objects(groups), start=1):
+            if sl is None or self.over_budget():
+                continue
+            gm = groups[sl] == g
+            c_lo = np.array([s.start for s in sl])
+            f_lo = c_lo * b2
+            f_hi = np.minimum(np.array([s.stop for s in sl]) * b2, hi)
+            idx = [np.arange(f_lo[a], f_hi[a]) // b2[a] - c_lo[a] for a in range(3)]
+            restrict = gm[np.ix_(*[np.clip(ix, 0, gm.shape[a] - 1) for a, ix in enumerate(idx)])]
+            found |= self.visit(f_lo, f_hi, restrict, len(self.ladder) - 1)
+        return found
+
+
+def search_blobs(volume: Volume, ladder: np.ndarray, min_voxels: int, max_ball_voxels: int, fit,
+                 max_fits: int = 400, time_budget_s: float = 60.0, tissue_hu: float = 0.0, noise_hu: float = 20.0,
+                 block: int | tuple | None = None, cancel=None, describe_large=None, grid: CoarseGrid | None = None):
+    """Run the ladder search (module docstring). ``fit(kji, T, siblings)`` returns
+    ``(candidate, None)`` or ``(None, RejectedBlob)``. Returns (candidates, rejected, stats).
+    ``block``: the coarse grid's blocks (an int edge or a (k, j, i) tuple; forces the coarse
+    search even on a small volume), None = :func:`block_size`. ``grid``: the volume's coarse
+    grid when already built (:func:`coarse_grid`). ``cancel``: a callable; once it returns
+    True the search stops (``stats.stopped`` says so). ``describe_large(kji, n) ->
+    RejectedBlob``: the rejection of a component too large for a ball at every threshold
+    (default :func:`too_large_blob`).
+
+    A component whose densest voxel barely passes its threshold (by less than
+    ``max(6 noise, 15 % of T - tissue)``) is a fragment of something at about that level (bone
+    at a threshold just above it, a streak), not a ball: counted as a speck, not fitted."""
+    if describe_large is None:
+        def describe_large(kji, n):
+            return too_large_blob(volume, kji, n)
+
+    s = _LadderSearch(volume, ladder, min_voxels, max_ball_voxels, fit, max_fits, time_budget_s, tissue_hu, noise_hu,
+                      cancel, describe_large)
+    shape = np.array(volume.array.shape)
+    if grid is None and block is not None:
+        grid = coarse_grid(volume, block)
+    if grid is None and volume.array.size > FINE_BOX_MAX:
+        grid = coarse_grid(volume)
+    if grid is None:
+        s.visit(np.zeros(3, int), shape, None, 0)
+    else:
+        s.coarse_search(grid)
+    return s.cands, s.rejected, s.stats
 
 
 def _inside(p_lps: np.ndarray, volume: Volume, lo: np.ndarray, hi: np.ndarray) -> bool:
@@ -291,10 +495,33 @@ def _inside(p_lps: np.ndarray, volume: Volume, lo: np.ndarray, hi: np.ndarray) -
     return bool(np.all(kji >= lo - 0.5) and np.all(kji <= hi - 0.5))
 
 
-def _too_large(volume: Volume, kji: np.ndarray, n: int):
-    from monotracker.ct.fiducials import RejectedBlob
+def principal_axes(pts: np.ndarray, volume: Volume) -> np.ndarray:
+    """Semi-axis lengths (mm, descending) of the solid ellipsoid with the covariance of the
+    voxels at ``pts`` (LPS mm). Each voxel counts as its box, not its centre (adds
+    ``w**2 / 12`` along each grid axis), so thick slices do not make a ball look flat."""
+    if len(pts) < 4:
+        return np.zeros(3)
+    D, w = volume.direction, volume.spacing_mm
+    cov = np.cov(pts.T) + (D * (w**2 / 12.0)) @ D.T
+    ev = np.linalg.eigvalsh(cov)[::-1]
+    return np.sqrt(np.maximum(5.0 * ev, 0.0))
 
+
+#: A blob too large for the balls searched for, this round (ratio of its principal axes), is
+#: reported as a round ball of another size (the kit's radius is probably wrong).
+ROUND_ELONGATION = 1.35
+
+
+def too_large_blob(volume: Volume, kji: np.ndarray, n: int) -> RejectedBlob:
+    """The rejection of a component too large for a ball at every threshold: a round one is
+    named a ball of its own radius (``kind`` "round", ``radius_mm`` from its volume) so that a
+    wrong kit radius can be told apart from bone, implants or metal."""
     pts = volume.zyx_to_lps(kji[:: max(1, len(kji) // 20000)])
     ext = pts.max(axis=0) - pts.min(axis=0)
+    axes = principal_axes(pts, volume)
+    if axes[2] > 0 and axes[0] / axes[2] <= ROUND_ELONGATION:
+        r_eq = float((3.0 * n * float(np.prod(volume.spacing_mm)) / (4.0 * np.pi)) ** (1.0 / 3.0))
+        return RejectedBlob(pts.mean(axis=0), f"round, radius {r_eq:.1f} mm (from its volume): a ball larger than the ones "
+                                              "searched for", n, r_eq, kind="round")
     return RejectedBlob(pts.mean(axis=0), f"too large for a fiducial ({ext[0]:.0f} x {ext[1]:.0f} x {ext[2]:.0f} mm, "
                                           f"dense at every threshold): bone, implant or metal", n)

@@ -42,11 +42,13 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from monotracker.ct.blob_search import search_blobs, threshold_ladder
+from monotracker.ct.blob_search import principal_axes as _principal_axes
+from monotracker.ct.blob_search import coarse_grid, search_blobs, threshold_ladder, too_large_blob
+from monotracker.ct.coverage import blob_touches_border, cut_reason, pad_value
 from monotracker.ct.detection_result import Fiducial, FiducialDetection, RejectedBlob
 from monotracker.ct.fiducials_paper import MAX_CANDIDATES, detect_fiducials_paper
 from monotracker.ct.kit import FiducialKit
-from monotracker.ct.levels import estimate_levels
+from monotracker.ct.levels import _strided_sample, estimate_levels, soft_tissue_levels
 from monotracker.ct.sphere_fit import fit_ball_on_surface, fit_blurred_sphere, refine_on_surface
 from monotracker.ct.volume import Volume
 
@@ -71,18 +73,6 @@ MAX_ELONGATION = 1.35
 RADIUS_TOLERANCE = 0.2
 #: Largest fit residual (RMS of inliers / contrast) for a sphere.
 MAX_REL_RESIDUAL = 0.08
-
-
-def _principal_axes(pts: np.ndarray, volume: Volume) -> np.ndarray:
-    """Semi-axis lengths (mm, descending) of the solid ellipsoid with the covariance of the
-    voxels at ``pts`` (LPS mm). Each voxel counts as its box, not its centre (adds
-    ``w**2 / 12`` along each grid axis), so thick slices do not make a ball look flat."""
-    if len(pts) < 4:
-        return np.zeros(3)
-    D, w = volume.direction, volume.spacing_mm
-    cov = np.cov(pts.T) + (D * (w**2 / 12.0)) @ D.T
-    ev = np.linalg.eigvalsh(cov)[::-1]
-    return np.sqrt(np.maximum(5.0 * ev, 0.0))
 
 
 def _window(volume: Volume, kji: np.ndarray, pad_mm: float):
@@ -123,9 +113,11 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
     kit = kit or FiducialKit()
     if radius_mm is None:
         radius_mm = kit.radius_mm
-    levels = estimate_levels(volume)
+    sample = _strided_sample(volume.array)
+    levels = soft_tissue_levels(sample)
     out = FiducialDetection(ok=False, reason="", levels=levels, method="robust")
-    vmax = float(np.max(volume.array))
+    grid = coarse_grid(volume)  # a large volume: one pass, which also gives the densest value
+    vmax = grid.vmax if grid is not None else float(np.max(volume.array))
     ladder = threshold_ladder(levels, min(vmax, 3071.0) if kit.density_hu is None else vmax, kit.density_hu)
     out.threshold_hu = float(ladder[0])
     out.thresholds_hu = [float(t) for t in ladder]
@@ -139,14 +131,28 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
         out.elapsed_s = time.perf_counter() - t0
         return out
 
+    pad_hu = pad_value(volume, float(np.min(sample)))
+
     def fit(kji, T, sibs):
-        return _fit_blob(volume, kji, T, sibs, levels, kit)
+        return _fit_blob(volume, kji, T, sibs, levels, kit, pad_hu)
+
+    def describe_large(kji, n):
+        """A round blob too large for the kit's balls is fitted for its true radius (a wrong
+        kit radius is then named with the scan's; only round ones, so this is rare)."""
+        rej = too_large_blob(volume, kji, n)
+        if rej.kind == "round":
+            cand, _ = _fit_blob(volume, kji, float(ladder[0]), [], levels, FiducialKit(), pad_hu)
+            if cand is not None:
+                rej = RejectedBlob(cand["c"], f"round ball of radius {cand['r']:.2f} mm: larger than the ones searched for",
+                                   n, cand["r"], kind="round")
+        return rej
 
     # The fits solve tiny (n x 11) problems: BLAS threads only add contention (seen: 0.06 s ->
     # 4.5 s of SVD on a loaded 2-core machine), so run them single-threaded.
     with threadpool_limits(limits=1, user_api="blas"):
         candidates, rejected, stats = search_blobs(volume, ladder, min_vox, max_vox, fit, time_budget_s=time_budget_s,
-                                                    tissue_hu=levels["tissue"], noise_hu=levels["noise"], cancel=cancel)
+                                                    tissue_hu=levels["tissue"], noise_hu=levels["noise"], cancel=cancel,
+                                                    describe_large=describe_large, grid=grid)
     out.rejected.extend(rejected)
     _size_gate(out, candidates, radius_mm)
     out.fiducials.sort(key=lambda f: -f.centre_lps[2])
@@ -154,8 +160,9 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
         out.notes.append(f"{stats.specks} small or faint fragments ignored (noise, streaks, bone edges)")
     if stats.stopped:
         out.notes.append(stats.stopped)
+    mismatch = _kit_radius_mismatch(out, radius_mm)
     out.ok = bool(out.fiducials)
-    out.reason = (
+    out.reason = mismatch or (
         f"{len(out.fiducials)} fiducials found" + (f", {len(out.rejected)} dense blobs rejected" if out.rejected else "")
         if out.ok
         else ("dense blobs found but none is a sphere of the expected size" if out.rejected
@@ -167,17 +174,45 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
     return out
 
 
-def _touching_hint(n: int, voxel_mm3: float, radius_mm: float | None, elong: float) -> str:
-    if radius_mm is None or elong < 1.5:
+def _kit_radius_mismatch(out: FiducialDetection, radius_mm: float | None) -> str:
+    """The detection's reason when the scan's balls are of another size than the kit's: at
+    least 3 round balls (fitted, or too large to be searched) agree on a radius more than
+    :data:`RADIUS_TOLERANCE` off the kit's and outnumber the balls of the kit's size. Those
+    few are then not trusted either (fragments of something else at that size, e.g. of a
+    clip): moved to ``rejected``. '' when the kit fits (or no radius was given)."""
+    if radius_mm is None:
+        return ""
+    other = [r for r in out.rejected if r.kind in ("round", "wrong_size") and np.isfinite(r.radius_mm)
+             and RADIUS_RANGE_MM[0] <= r.radius_mm <= RADIUS_RANGE_MM[1]]
+    if len(other) < 3:
+        return ""
+    med = float(np.median([r.radius_mm for r in other]))
+    agree = [r for r in other if abs(r.radius_mm - med) <= 0.15 * med]
+    if len(agree) < 3 or len(agree) <= len(out.fiducials) or abs(med - radius_mm) <= RADIUS_TOLERANCE * radius_mm:
+        return ""
+    for f in out.fiducials:
+        out.rejected.append(RejectedBlob(f.centre_lps, f"radius {f.radius_mm:.2f} mm like the kit's, but the scan's "
+                                         f"{len(agree)} round balls are {med:.1f} mm: not trusted while the kit's radius is wrong",
+                                         f.n_voxels, f.radius_mm))
+    out.fiducials = []
+    return (f"no fiducials: the kit's radius is {radius_mm:.2g} mm but the scan holds {len(agree)} round balls of radius "
+            f"{med:.1f} mm: is the kit's radius right? Set it to {med:.1f} mm, or leave it blank to estimate it")
+
+
+def _touching_hint(n: int, voxel_mm3: float, radius_mm: float | None, elong: float, minor_mm: float) -> str:
+    """A hint that a blob may be 2-4 touching balls: as large as that, elongated like a row of
+    balls (1.5-4.5) and as thick as one (smallest semi-axis within 35 % of the radius)."""
+    if radius_mm is None or not 1.5 <= elong <= 4.5 or abs(minor_mm - radius_mm) > 0.35 * radius_mm:
         return ""
     k = n * voxel_mm3 / ((4.0 / 3.0) * np.pi * radius_mm**3)
     return f"; as large as {k:.1f} balls: touching balls that could not be separated?" if 1.6 <= k <= 4.5 else ""
 
 
-def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, kit: FiducialKit):
-    """Shape gate and sphere fit of one blob (voxel indices ``ckji`` (n, 3) k, j, i).
+def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, kit: FiducialKit, pad_hu: float | None = None):
+    """Edge, shape gate and sphere fit of one blob (voxel indices ``ckji`` (n, 3) k, j, i).
     Returns ``(candidate dict, None)`` or ``(None, RejectedBlob)``. ``sibs``: neighbouring
-    blobs whose voxels are kept out of the fit window."""
+    blobs whose voxels are kept out of the fit window. ``pad_hu``: the scan's padding value
+    (outside the field of view; None: none), for :func:`~.coverage.cut_reason`."""
     sp = volume.spacing_mm
     voxel_mm3 = float(np.prod(sp))
     arr = volume.array
@@ -185,18 +220,25 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
     n = len(ckji)
     cpts = volume.zyx_to_lps(ckji)
     centroid = cpts.mean(axis=0)
-    axes = _principal_axes(cpts, volume)
-    elong = float(axes[0] / max(axes[2], 1e-6))
-    if elong > MAX_ELONGATION:
-        return None, RejectedBlob(
-            centroid, f"not round: {2 * axes[0]:.1f} x {2 * axes[2]:.1f} mm (elongation {elong:.2f}), e.g. clip, rod, "
-                      f"streak or bone{_touching_hint(n, voxel_mm3, kit.radius_mm, elong)}", n)
     r0 = float((3.0 * n * voxel_mm3 / (4.0 * np.pi)) ** (1.0 / 3.0))
+    edge = blob_touches_border(ckji, arr.shape)
+    if edge:
+        return None, RejectedBlob(centroid, f"cut by the edge of the scan ({edge})", n, kind="cut")
     lo, hi = _window(volume, ckji, pad_mm=2.5 + 2.0 * float(sp.max()))
     sub = arr[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(float)
     grid = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
     wpts = volume.zyx_to_lps(grid)
     vals = sub.ravel()
+    all_pts, all_vals = wpts, vals
+    cut = cut_reason(volume, centroid, r0, all_pts, all_vals, pad_hu)
+    if cut:
+        return None, RejectedBlob(centroid, cut, n, kind="cut")
+    axes = _principal_axes(cpts, volume)
+    elong = float(axes[0] / max(axes[2], 1e-6))
+    if elong > MAX_ELONGATION:
+        return None, RejectedBlob(
+            centroid, f"not round: {2 * axes[0]:.1f} x {2 * axes[2]:.1f} mm (elongation {elong:.2f}), e.g. clip, rod, "
+                      f"streak or bone{_touching_hint(n, voxel_mm3, kit.radius_mm, elong, float(axes[2]))}", n)
     rel0 = wpts - centroid
     dist = np.linalg.norm(rel0, axis=1)
     # window: the ball plus ~2.5 edge sigmas of the slice profile in each direction (thick slices
@@ -243,6 +285,9 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
     rel = rms / max(contrast, 1.0)
     if not success or contrast <= 0 or H < T:
         return None, RejectedBlob(centroid, "no sphere fits this blob", n, r)
+    cut = cut_reason(volume, c, r, all_pts, all_vals, pad_hu)
+    if cut:
+        return None, RejectedBlob(c, cut, n, r, kind="cut")
     if rel > MAX_REL_RESIDUAL:
         return None, RejectedBlob(c, f"not a sphere: fit residual {100 * rel:.0f}% of contrast", n, r)
     if kit.density_hu is not None:
@@ -269,7 +314,8 @@ def _size_gate(out, candidates, radius_mm) -> None:
         dev = abs(r - expected) / expected
         if dev > RADIUS_TOLERANCE:
             what = "expected" if radius_mm is not None else "the other balls have"
-            out.rejected.append(RejectedBlob(d["c"], f"wrong size: radius {r:.2f} mm, {what} {expected:.2f} mm", d["n"], r))
+            out.rejected.append(RejectedBlob(d["c"], f"wrong size: radius {r:.2f} mm, {what} {expected:.2f} mm", d["n"], r,
+                                             kind="wrong_size"))
             continue
         score = float(np.exp(-d["rel"] / 0.04) * np.exp(-((dev / 0.1) ** 2)) * min(1.0, 1.0 / d["elong"] ** 2))
         out.fiducials.append(Fiducial(d["c"], r, score, d["peak"], d["n"], d["elong"], d["rel"]))
