@@ -97,6 +97,23 @@ def test_added_fiducial_is_checked_in_the_ct(ct_session):
         assert s.confirm_fiducials().ok
 
 
+def test_a_fiducial_added_inside_the_skull_is_not_verified(ct_session):
+    """Issue 36: a point in the middle of the skull shell (1200 HU inside, less around) passed
+    the old mean-contrast check as a "verified ball"; it is refused, and only a manual add
+    (marked unverified) takes it."""
+    s, ph = ct_session, default_phantom()
+    assert s.unlock_fiducials().ok
+    try:
+        c = ph.fiducial_centres_lps[4]
+        p, _ = ph.skin_point(c - ph.centre_lps, inset_mm=8.5)  # 5 mm scalp + half the 7 mm skull
+        n0 = len(s.plan_copy().fiducials)
+        r = s.add_fiducial(p, ph.fiducial_radius_mm)
+        assert not r.ok and "bone" in r.message, r.message
+        assert len(s.plan_copy().fiducials) == n0
+    finally:
+        assert s.confirm_fiducials().ok
+
+
 @pytest.mark.parametrize("T,word", [
     (lambda T: T @ np.diag([1.05, 1.05, 1.05, 1.0]), "rigid"),
     (lambda T: T @ np.diag([-1.0, 1.0, 1.0, 1.0]), "reflection"),

@@ -243,15 +243,14 @@ def check_added_fiducial(anatomy: Anatomy | None, centre, radius_mm: float,
     ``(None, why)`` not checkable (no CT loaded, the ball leaves the volume)."""
     if anatomy is None:
         return None, "no CT loaded to check it against"
-    mc = anatomy.ball_contrast(centre, radius_mm)
-    if mc is None:
-        return None, "the ball is not inside the CT volume"
-    inside, around = mc
-    tissue = float(anatomy.levels.get("tissue", 0.0))
-    if inside - around >= limits.ball_contrast_hu and inside >= tissue + limits.ball_contrast_hu:
-        return True, f"dense ball in the CT (mean {inside:.0f} HU inside vs {around:.0f} HU around)"
-    return False, (f"no dense ball of radius {radius_mm:g} mm there in the CT "
-                   f"(mean {inside:.0f} HU inside vs {around:.0f} HU around)")
+    # the CT's own judgement (a ball that the detection would accept there), not a mean contrast:
+    # a point inside the skull passed that as a "verified ball" (issue 36)
+    from monotracker.ct.ball_check import check_ball_at
+
+    res = check_ball_at(anatomy.volume, centre, radius_mm, anatomy.levels, limits.ball_contrast_hu)
+    if res.outside:
+        return None, res.why
+    return res.verified, res.why
 
 
 # ---------------------------------------------------------------------- path
