@@ -31,7 +31,7 @@ def _wrong(f_scale=1.0, dcx=0.0) -> CameraModel:
 
 
 @pytest.fixture(scope="module")
-def views():
+def board_images():
     """Five views of the board where the patient's head would be (380-520 mm), tilted 20-40 deg,
     blurred (0.8 px) and noisy (2 grey levels)."""
     rng = np.random.default_rng(11)
@@ -44,7 +44,12 @@ def views():
         img = render_chessboard(TRUE, make_transform(R, t), PATTERN, SQUARE, rays=rays)
         img = cv2.GaussianBlur(img, (0, 0), 0.8).astype(np.float32) + rng.normal(0, 2.0, img.shape)
         imgs.append(np.clip(np.round(img), 0, 255).astype(np.uint8))
-    obj, img, names, skipped, _ = chessboard_views(imgs, PATTERN, SQUARE)
+    return imgs
+
+
+@pytest.fixture(scope="module")
+def views(board_images):
+    obj, img, names, skipped, _ = chessboard_views(board_images, PATTERN, SQUARE)
     assert len(obj) == 5, skipped
     return obj, img
 
@@ -75,6 +80,9 @@ def test_one_view_checks_the_focal_length_only(views):
     keeps it and says so; a 1 % focal error is still caught."""
     r = check_with_board(TRUE, views[0][:1], views[1][:1])
     assert np.all(r.dc_px == 0)
+    # the focal length's standard error is real (it came back 0 with the aspect ratio fixed, and
+    # a one-view check was then sure of anything), and covers the right calibration's own error
+    assert 0 < r.f_std < 0.005 and abs(r.f_ratio - 1) <= 3 * r.f_std, (r.f_ratio, r.f_std)
     if r.verdict == "agrees":
         assert "principal point not checked" in r.message
     else:
@@ -82,7 +90,7 @@ def test_one_view_checks_the_focal_length_only(views):
     assert check_with_board(_wrong(1.01), views[0][:1], views[1][:1]).verdict == "disagrees"
 
 
-def test_cli_check_camera(tmp_path):
+def test_cli_check_camera(tmp_path, board_images):
     """``monotracker check-camera``: exit 0 and "agrees" for the right file, exit 1 and the
     mismatch for a file whose focal length is 2 % off (one line each)."""
     import os
@@ -90,15 +98,10 @@ def test_cli_check_camera(tmp_path):
     import sys
     from pathlib import Path
 
-    rng = np.random.default_rng(5)
-    rays = TRUE.pixel_rays(2)
     paths = []
-    for k in range(3):
-        R = rotation_about_axis(rng.normal(size=3), np.radians(25 + 5 * k))
-        centre = np.array([(PATTERN[0] - 1) * SQUARE / 2, (PATTERN[1] - 1) * SQUARE / 2, 0])
-        t = np.array([rng.uniform(-60, 60), rng.uniform(-30, 30), 420 + 40 * k]) - R @ centre
+    for k, im in enumerate(board_images):
         p = tmp_path / f"b{k}.png"
-        cv2.imwrite(str(p), render_chessboard(TRUE, make_transform(R, t), PATTERN, SQUARE, rays=rays))
+        cv2.imwrite(str(p), im)
         paths.append(str(p))
     TRUE.save(tmp_path / "right.yml")
     _wrong(1.02).save(tmp_path / "wrong.yml")

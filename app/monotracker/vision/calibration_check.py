@@ -238,7 +238,8 @@ def check_with_board(camera, obj_points, img_points, f_tolerance: float = F_TOLE
         obj, img, tuple(camera.image_size), K0.copy(), dist_in.copy(), flags=flags)
     std_in = np.asarray(std_in, float).ravel()
     f_ratio = float(K[0, 0] / K0[0, 0])
-    f_std = float(std_in[0] / K[0, 0]) if std_in.size else float("nan")
+    # with the aspect ratio fixed OpenCV fits fy and derives fx: fx's deviation comes back 0, fy's is the one
+    f_std = float(max(std_in[0], std_in[1]) / K[1, 1]) if std_in.size >= 2 else float("nan")
     dc = np.array([K[0, 2] - K0[0, 2], K[1, 2] - K0[1, 2]]) if free_c else np.zeros(2)
     dc_std = np.array([std_in[2], std_in[3]]) if free_c else np.zeros(2)
     dist_mm = float(np.mean([np.linalg.norm(t) for t in tvecs]))
