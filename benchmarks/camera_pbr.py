@@ -1,0 +1,370 @@
+"""The camera path judged on physically rendered frames (issue 28).
+
+Frames: Mitsuba 3 path-traced scenes (``monotracker.sim.pbr``: the sample head with textured skin,
+the kit's green balls matte or glossy, OR lamps, drapes of several colours, gloved fingers, steel,
+hair, green strays) through the calibrated lens, exact truth from the scene geometry. Each scene is
+a still head streamed for ``--frames`` frames at 30 fps: the clean render through the
+condition's camera chain, new sensor noise every frame (``sim.pbr.frameset.camera_frames``).
+
+**Which frames** (printed in the header):
+* default: the **tuning** set (``$MONOTRACKER_PBR/tuning``, default /work/pbr/tuning): anyone may
+  look at it and tune on it;
+* ``--held-out``: the **held-out** set (``$MONOTRACKER_PBR/held_out``): other seeds, other lamps
+  (two, 5000 K + 4000 K, more ambient), other skin (olive-brown, shinier), other hair. Only ever
+  scored: never tune a detector or a gate on it, never commit it; a threshold changed after
+  looking at its numbers is said so in the commit;
+* ``--quick``: the committed tuning crops (``tests/data/pbr``; a few scenes per kind, no Mitsuba
+  needed) unless ``--root`` says otherwise.
+Render a set first: ``python -m monotracker.sim.pbr render --split tuning|held_out`` (cached by
+scene hash; needs the ``render`` extra).
+
+Conditions: ``clean`` (clean scenes, sharp lens, a good uncompressed sensor), ``OR`` (scenes with
+gloved fingers, steel and hair; 1.5 px defocus, Bayer, raw noise, JPEG 85), ``degraded`` (the
+clean scenes at 60 % light, 2.5 px defocus, noisier sensor, JPEG 70), ``clutter`` (OR + green
+strays, dense and loose hair). Detectors: ``edge`` (today's default, with the camera's ball
+outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid baseline),
+``learned`` (the ONNX segmenter). Each runs through the product's own chain: vision's
+``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
+
+Columns, per condition x detector x trust model (``today``: this checkout's defaults; further
+models, when listed, see the same frames and the same detections):
+* recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
+  detections that are a ball; partial: accepted balls that were partly hidden;
+* centre err: mean / p95 px between the detected centre, carried to the sphere centre with the
+  true depth (the registration's own ellipse -> sphere correction), and the true projected sphere
+  centre; whole balls;
+* trusted@1 / trusted@N: scenes whose pose at frame 1 / frame N is trusted and within 1 mm of the
+  truth at the 80 mm deep target (80 mm below the fiducials' centroid along the patch normal);
+* err med / p99 / max: error at that target of every trusted pose (mm);
+* >2mm and 1-2mm: trusted poses that far off (wrong-but-valid), count and share of trusted;
+* pred/act: RMS predicted TRE over RMS actual error, trusted poses (< 1: over-confident).
+Last line: one JSON object with every figure.
+
+Usage: PYTHONPATH=app python benchmarks/camera_pbr.py [--quick] [--held-out] [--json] [--frames N]
+       [--root DIR] [--scenes N] [--detectors edge,chroma,learned]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from monotracker.errors import InputError
+from monotracker.registration.report import tre_mm
+from monotracker.sim.pbr.frameset import CONDITIONS, camera_frames, committed_root, default_root, list_scenes
+from monotracker.sim.pbr.truth import sphere_centre_px
+from monotracker.vision.frames import Frame
+from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
+
+FPS = 30.0
+
+
+def make_detector(name: str, radius_mm: float, focal_px: float):
+    from monotracker.vision.detect_classical import ClassicalDetector
+    from monotracker.vision.detection import BlobRules
+
+    rules = BlobRules(radius_mm=radius_mm, focal_px=focal_px)
+    if name == "edge":
+        return ClassicalDetector(rules)
+    if name == "chroma":
+        return ClassicalDetector(rules, centre_method="chroma")
+    if name == "learned":
+        from monotracker.vision.detect_learned import LearnedDetector
+
+        return LearnedDetector(rules=rules)
+    raise InputError(f"unknown detector {name!r} (edge, chroma, learned)")
+
+
+class Recording:
+    """Wraps a detector: keeps every Detection (the tracker calls ``detect``); ``rules`` shared
+    so that the tracker gives the detector the camera's outlines as in the product."""
+
+    def __init__(self, det):
+        self.det, self.log = det, []
+        self.rules = getattr(det, "rules", None)
+
+    def detect(self, image, hint=None):
+        d = self.det.detect(image) if hint is None else self.det.detect(image, hint)
+        self.log.append(d)
+        return d
+
+
+class Replay:
+    """Gives back recorded detections in order (the same frames through another trust model);
+    ``det`` is the detector that made them (the tracker's trust model looks it up)."""
+
+    def __init__(self, log, det=None):
+        self._it = iter(log)
+        self.det = det
+
+    def detect(self, image, hint=None):
+        return next(self._it)
+
+
+def trust_models() -> dict:
+    """Trust models compared in one run: name -> TrackerConfig. ``today``: this checkout's
+    defaults (the baseline every later trust model is measured against in the same run)."""
+    return {"today": TrackerConfig()}
+
+
+def detection_stats(dets, truth, cam) -> dict:
+    """Detection figures of a scene's frames against its truth (see the module docstring);
+    ``cam`` the frames' CameraModel."""
+    out = {"whole": 0, "found": 0, "accepted": 0, "true": 0, "partial": 0, "errs": []}
+    ell = truth.ellipse_centres_px
+    vf = truth.visible_fraction
+    for d in dets:
+        c = d.centres
+        out["whole"] += int(truth.whole.sum())
+        out["accepted"] += len(c)
+        found = np.zeros(len(ell), bool)
+        for p in c:
+            dist = np.linalg.norm(ell - p, axis=1)
+            j = int(np.argmin(dist))
+            if dist[j] > max(2.0, 0.5 * truth.radius_px[j]) or vf[j] <= 0.0:
+                continue
+            out["true"] += 1
+            if truth.whole[j] and not found[j]:
+                found[j] = True
+                s = sphere_centre_px(p[None], truth.fiducials_cam[j, 2:3], truth.radius_mm, cam.K, cam.dist)[0]
+                out["errs"].append(float(np.linalg.norm(s - truth.projected_centres_px[j])))
+            elif not truth.whole[j]:
+                out["partial"] += 1
+        out["found"] += int(found.sum())
+    return out
+
+
+def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) -> dict:
+    """One scene streamed through each trust model with one detector: per-model per-frame (ok,
+    error mm, predicted TRE mm), and the detection figures."""
+    cam = scene.camera_model()
+    tr = scene.truth
+    frames = frames if frames is not None else camera_frames(scene, condition, n_frames)
+    rec = Recording(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
+    res = {}
+    for m, (name, cfg) in enumerate(trust_models().items()):
+        det = rec if m == 0 else Replay(list(rec.log), rec.det)
+        trk = PoseTracker(tr.fiducials_ct, cam, detector=det, radius_mm=tr.radius_mm, target_ct=tr.target_ct,
+                          config=cfg)
+        rows = []
+        for k, img in enumerate(frames):
+            e = trk.process(Frame(img, k / FPS, k, None))
+            err = float(tre_mm(e.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]) if e.ok else float("nan")
+            rows.append((bool(e.ok), err, float(e.predicted_tre_mm), e.code))
+        res[name] = rows
+    res["_det"] = detection_stats(rec.log, tr, cam)
+    return res
+
+
+def summarise(per_scene: list, n_frames: int) -> dict:
+    """Figures of one condition x detector x trust model over its scenes."""
+    ok1 = [r[0][0] and r[0][1] <= 1.0 for r in per_scene]
+    okN = [r[n_frames - 1][0] and r[n_frames - 1][1] <= 1.0 for r in per_scene]
+    trusted = [(e, p) for r in per_scene for ok, e, p, _ in r if ok]
+    errs = np.array([e for e, _ in trusted])
+    preds = np.array([p for _, p in trusted])
+    out = {"scenes": len(per_scene), "trusted_at_1_pct": 100.0 * float(np.mean(ok1)) if ok1 else float("nan"),
+           f"trusted_at_{n_frames}_pct": 100.0 * float(np.mean(okN)) if okN else float("nan"),
+           "trusted_frames": int(len(errs)), "frames": int(sum(len(r) for r in per_scene))}
+    if len(errs):
+        out.update(err_median_mm=float(np.median(errs)), err_p99_mm=float(np.percentile(errs, 99)),
+                   err_max_mm=float(errs.max()), over_2mm=int(np.sum(errs > 2.0)),
+                   between_1_2mm=int(np.sum((errs > 1.0) & (errs <= 2.0))),
+                   between_1_2mm_pct=100.0 * float(np.mean((errs > 1.0) & (errs <= 2.0))),
+                   pred_over_act=float(np.sqrt(np.mean(preds**2)) / max(np.sqrt(np.mean(errs**2)), 1e-9)))
+    else:
+        out.update(err_median_mm=float("nan"), err_p99_mm=float("nan"), err_max_mm=float("nan"), over_2mm=0,
+                   between_1_2mm=0, between_1_2mm_pct=float("nan"), pred_over_act=float("nan"))
+    return out
+
+
+def det_summary(stats: list) -> dict:
+    whole = sum(s["whole"] for s in stats)
+    acc = sum(s["accepted"] for s in stats)
+    errs = np.array([e for s in stats for e in s["errs"]])
+    return {"recall": sum(s["found"] for s in stats) / whole if whole else float("nan"),
+            "precision": sum(s["true"] for s in stats) / acc if acc else float("nan"),
+            "partial_accepted": int(sum(s["partial"] for s in stats)),
+            "centre_err_mean_px": float(errs.mean()) if len(errs) else float("nan"),
+            "centre_err_p95_px": float(np.percentile(errs, 95)) if len(errs) else float("nan")}
+
+
+def fit_bias(scenes, conds, n_frames: int, say=print, detector: str = "edge") -> dict:
+    """Measure the centre bias of the default detector on the (tuning) scenes: per scene and
+    condition, each whole ball's mean error over ``n_frames`` frames (balls found in at least half
+    of them) against the true ellipse centre; its common part c (the mean over the balls) and the
+    per-ball rest u; the frame-to-frame noise from the scatter (its share removed from both).
+    Returns the figures per condition and the centre bias they give: per coordinate,
+    ``sigma = per_radius * r`` with ``per_radius`` the RMS over scenes of (bias / radius) / sqrt(2)
+    (a calibrated variance, not a bound: the pooled residuals adapt the per-ball part per scene;
+    the common part is only ever this prior)."""
+    from monotracker.vision.detection import BlobRules
+
+    rows = {}
+    for cond in conds:
+        cs = [s for s in scenes if s.spec.kind == CONDITIONS[cond]["kind"]]
+        for s in cs:
+            cam, tr = s.camera_model(), s.truth
+            det = make_detector(detector, tr.radius_mm, float(cam.K[0, 0]))
+            if isinstance(getattr(det, "rules", None), BlobRules):
+                det.rules.camera = cam       # the camera's outlines, as the pose tracker sets them
+            E = np.full((len(tr.fiducials_ct), n_frames, 2), np.nan)
+            for k, img in enumerate(camera_frames(s, cond, n_frames)):
+                for p in det.detect(img).centres:
+                    d = np.linalg.norm(tr.ellipse_centres_px - p, axis=1)
+                    j = int(np.argmin(d))
+                    if d[j] < max(2.0, 0.5 * tr.radius_px[j]) and tr.whole[j]:
+                        E[j, k] = p - tr.ellipse_centres_px[j]
+            cnt = np.sum(np.isfinite(E[:, :, 0]), axis=1)
+            use = cnt >= max(2, n_frames // 2)
+            if use.sum() < 4:
+                continue
+            m = np.nanmean(E[use], axis=1)
+            n = cnt[use].astype(float)
+            noise2 = float(np.nansum((E[use] - m[:, None]) ** 2) / (2 * np.sum(n - 1)))
+            r = tr.radius_px[use]
+            c = m.mean(axis=0)
+            k = int(use.sum())
+            c_var = max(float(c @ c) / 2 - noise2 / (k * np.mean(n)), 0.0)
+            u = m - c
+            u_var = max(float(np.sum(u**2)) / (2 * (k - 1)) - noise2 / float(np.mean(n)), 0.0)
+            rows.setdefault(cond, []).append((float(np.mean(r)), noise2, c_var, u_var))
+    out = {"conditions": {}}
+    allc, allu, allcpx, allupx = [], [], [], []
+    for cond, rs in rows.items():
+        r = np.array([x[0] for x in rs])
+        cr = np.array([x[2] for x in rs]) / r**2
+        ur = np.array([x[3] for x in rs]) / r**2
+        cpx = np.array([x[2] for x in rs])
+        upx = np.array([x[3] for x in rs])
+        allc += list(cr)
+        allu += list(ur)
+        allcpx += list(cpx)
+        allupx += list(upx)
+        out["conditions"][cond] = {"scenes": len(rs), "radius_px": float(np.mean(r)),
+                                   "common_px": float(np.sqrt(np.mean(cpx))), "ball_px": float(np.sqrt(np.mean(upx))),
+                                   "noise_px": float(np.sqrt(np.mean([x[1] for x in rs]))),
+                                   "common_per_radius": float(np.sqrt(np.mean(cr))),
+                                   "common_per_radius_p90": float(np.sqrt(np.percentile(cr, 90))),
+                                   "ball_per_radius": float(np.sqrt(np.mean(ur))),
+                                   "ball_per_radius_p90": float(np.sqrt(np.percentile(ur, 90)))}
+        o = out["conditions"][cond]
+        say(f"{cond:<9} {o['scenes']:>3} scenes  radius {o['radius_px']:5.1f} px  noise {o['noise_px']:.3f} px  "
+            f"common {o['common_px']:.3f} px  ball {o['ball_px']:.3f} px  "
+            f"common {o['common_per_radius']:.4f} r (p90 {o['common_per_radius_p90']:.4f})  "
+            f"ball {o['ball_per_radius']:.4f} r (p90 {o['ball_per_radius_p90']:.4f})")
+    if allc:
+        out["common_px"] = float(np.sqrt(np.mean(allcpx)))
+        out["ball_px"] = float(np.sqrt(np.mean(allupx)))
+        say(f"all: bias (ball_px={out['ball_px']:.3f}, common_px={out['common_px']:.3f}) per coordinate")
+        out["common_per_radius"] = float(np.sqrt(np.mean(allc)))
+        out["ball_per_radius"] = float(np.sqrt(np.mean(allu)))
+        say(f"all: bias (ball_per_radius={out['ball_per_radius']:.4f}, "
+            f"common_per_radius={out['common_per_radius']:.4f}) per coordinate")
+    return out
+
+
+def _finite(obj):
+    """NaN / inf -> None, so the JSON line is valid JSON."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description="camera path on physically rendered frames (issue 28)")
+    ap.add_argument("--quick", action="store_true", help="the committed tuning crops (tests/data/pbr)")
+    ap.add_argument("--held-out", action="store_true", help="score the held-out set (never tune on it)")
+    ap.add_argument("--json", action="store_true", help="print only the JSON line")
+    ap.add_argument("--frames", type=int, default=8, help="frames streamed per still scene (default 8)")
+    ap.add_argument("--root", type=Path, default=None, help="folder holding tuning/ and held_out/")
+    ap.add_argument("--scenes", type=int, default=0, help="at most this many scenes per kind (0 = all)")
+    ap.add_argument("--detectors", default="edge,chroma,learned")
+    ap.add_argument("--conditions", default=",".join(CONDITIONS))
+    ap.add_argument("--fit-bias", action="store_true",
+                    help="measure the detectors' centre bias on the tuning set (px per coordinate)")
+    a = ap.parse_args(argv)
+    if a.fit_bias and a.held_out:
+        print("error: the centre bias is fitted on the tuning set only, never on the held-out set", file=sys.stderr)
+        return 2
+    split = "held_out" if a.held_out else "tuning"
+    if a.quick and a.held_out:
+        print("error: --quick reads the committed tuning crops; the held-out set is never committed", file=sys.stderr)
+        return 2
+    root = a.root or (committed_root() if a.quick else default_root())
+    folder = root / split
+    try:
+        scenes = list_scenes(folder) if folder.is_dir() else []
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if not scenes:
+        print(f"error: no rendered {split} set in {folder}: python -m monotracker.sim.pbr render --split {split} "
+              "(needs pip install -e '.[render]')", file=sys.stderr)
+        return 2
+    dets = [d.strip() for d in a.detectors.split(",") if d.strip()]
+    conds = [c.strip() for c in a.conditions.split(",") if c.strip()]
+    bad = [c for c in conds if c not in CONDITIONS]
+    if bad:
+        print(f"error: unknown condition(s) {bad} (have {list(CONDITIONS)})", file=sys.stderr)
+        return 2
+    say = (lambda *x, **k: None) if a.json else print
+    if a.fit_bias:
+        fits = {}
+        for dn in dets:
+            say(f"centre bias of the {dn} detector, {folder} ({len(scenes)} scenes), {a.frames} frames per scene")
+            fits[dn] = fit_bias(scenes, conds, a.frames, say, dn)
+        print(json.dumps(_finite(fits)))
+        return 0
+    label = ("HELD-OUT set: only ever scored, never tuned on" if a.held_out else
+             "TUNING set: may be looked at and tuned on")
+    say(f"camera path on physically rendered frames (Mitsuba 3) - {label}")
+    say(f"frames: {folder} ({len(scenes)} scenes), a still head streamed {a.frames} frames at {FPS:g} fps; "
+        f"target 80 mm deep; trust models: {', '.join(trust_models())}")
+    hdr = (f"{'condition':<9} {'detector':<8} {'trust':<7} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
+           f"{'err px':>6} {'p95 px':>6} {'tr@1 %':>6} {'tr@' + str(a.frames) + ' %':>6} {'med mm':>6} "
+           f"{'p99 mm':>6} {'max mm':>6} {'>2mm':>4} {'1-2mm':>9} {'pred/act':>8}")
+    say(hdr)
+    result = {"set": split, "folder": str(folder), "frames": a.frames, "conditions": {}}
+    t0 = time.perf_counter()
+    for cond in conds:
+        kind = CONDITIONS[cond]["kind"]
+        cs = [s for s in scenes if s.spec.kind == kind]
+        if a.scenes:
+            cs = cs[: a.scenes]
+        if not cs:
+            continue
+        streams = {s.hash: camera_frames(s, cond, a.frames) for s in cs}
+        result["conditions"][cond] = {}
+        for dn in dets:
+            runs = [run_scene(s, cond, dn, a.frames, streams[s.hash]) for s in cs]
+            ds = det_summary([r["_det"] for r in runs])
+            result["conditions"][cond][dn] = {"detection": ds}
+            for tm in trust_models():
+                sm = summarise([r[tm] for r in runs], a.frames)
+                result["conditions"][cond][dn][tm] = sm
+                say(f"{cond:<9} {dn:<8} {tm:<7} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
+                    f"{ds['partial_accepted']:>7} {ds['centre_err_mean_px']:>6.3f} {ds['centre_err_p95_px']:>6.2f} "
+                    f"{sm['trusted_at_1_pct']:>6.0f} {sm[f'trusted_at_{a.frames}_pct']:>6.0f} "
+                    f"{sm['err_median_mm']:>6.2f} {sm['err_p99_mm']:>6.2f} {sm['err_max_mm']:>6.2f} "
+                    f"{sm['over_2mm']:>4} {sm['between_1_2mm']:>3} ({sm['between_1_2mm_pct']:>3.0f}%) "
+                    f"{sm['pred_over_act']:>8.2f}")
+    result["seconds"] = round(time.perf_counter() - t0, 1)
+    say(f"({result['seconds']:.0f} s)")
+    print(json.dumps(_finite(result)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
