@@ -71,3 +71,18 @@ def test_exceed_probability_matches_closed_forms():
     R = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))[0]       # rotation-invariant
     C = np.diag([0.5, 0.2, 0.05])
     assert abs(exceed_probability(R @ C @ R.T, 1.5) - exceed_probability(C, 1.5)) < 1e-12
+
+
+def test_exceed_probability_counts_the_same_draws_as_all_of_them():
+    """The estimate looks only at the draws that can exceed the radius: the same count as the
+    whole set of draws gives (the brute-force form), for covariances from tiny to large."""
+    from monotracker.registration import report
+
+    rng = np.random.default_rng(7)
+    for scale in (1e-4, 0.01, 0.1, 0.3, 1.0, 4.0):
+        A = rng.normal(size=(3, 3)) * scale
+        C = A @ A.T
+        w = np.linalg.eigh(C)[0]
+        brute = float(np.mean(((report._STD_NORMAL_3D * np.sqrt(np.clip(w, 0, None))) ** 2).sum(1) > 1.5**2))
+        assert report.exceed_probability(C, 1.5) == brute
+    assert report.exceed_probability(np.zeros((3, 3)), 1.0) == 0.0

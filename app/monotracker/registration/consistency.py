@@ -33,6 +33,7 @@ caller's full fiducial array; ``excluded`` fiducials are never used.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -80,6 +81,10 @@ class Screened:
     #: enough to be named, must not inflate the pooled noise); (nan, 0) without a fit
     noise_rss_px2: float = float("nan")
     noise_dof: int = 0
+    #: wall time (s) of the first registration (``register``) and of the screening after it
+    #: (leave-one-out tests, re-solves, near misses, noise sample)
+    register_s: float = 0.0
+    screen_s: float = 0.0
 
 
 def _pick_sigma(s_loo: float, dof_loo: int, sigma_px: float | None, sigma_dof: int) -> tuple[float, int]:
@@ -279,9 +284,11 @@ def register_screened(fiducials_ct, image_points, K, dist=None, radius_mm=None, 
         r = register(X_all[active], pts, K, dist, radius_mm=radius_mm, method=method, prior=prior_T)
         return _remap(r, active, n, excl)
 
+    t0 = time.perf_counter()
     reg = solve(prior)
+    t_reg = time.perf_counter() - t0
     if len(pts) == 0 or not np.all(np.isfinite(pts)):
-        return Screened(reg, moved, sorted(excl))
+        return Screened(reg, moved, sorted(excl), register_s=t_reg, screen_s=time.perf_counter() - t0 - t_reg)
     xn = undistort_to_normalised(pts, K, dist)
     for _ in range(max_exclusions + 1):
         if reg.ok:
@@ -312,4 +319,4 @@ def register_screened(fiducials_ct, image_points, K, dist=None, radius_mm=None, 
         reg.stats["excluded_fiducials"] = sorted(excl)
     rss, dof = (noise_sample(reg.T_cam_ct, X_all, xn, fxy, radius, reg.pairs) if reg.ok
                 else (float("nan"), 0))
-    return Screened(reg, moved, sorted(excl), rss, dof)
+    return Screened(reg, moved, sorted(excl), rss, dof, t_reg, time.perf_counter() - t0 - t_reg)
