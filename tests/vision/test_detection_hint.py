@@ -59,8 +59,9 @@ class _Recorder:
 
 def test_tracker_hands_the_detector_the_predicted_balls():
     """Frame 0: full search; then the balls predicted from the last trusted pose, within a pixel
-    of the simulator's exact ellipse centres of the new frame (a breathing head); a full-frame
-    search every ``full_search_every`` frames; after a camera fault a full search again."""
+    of the simulator's exact ellipse centres of the new frame (a breathing head); the whole frame
+    searched every ``full_search_every`` frames (``search_all``); after a camera fault a cold
+    full search (no hint)."""
     cam = SimulatedCamera(trajectory=make_trajectory("breathing"), seed=2, max_frames=12)
     rec = _Recorder()
     trk = PoseTracker(PH.fiducial_centres_lps, cam.camera, detector=rec, radius_mm=PH.fiducial_radius_mm,
@@ -73,8 +74,8 @@ def test_tracker_hands_the_detector_the_predicted_balls():
     assert all(e.ok for e in ests), [e.reason for e in ests]
     hints = rec.hints
     assert hints[0] is None
-    full = [i for i, h in enumerate(hints) if h is None]
-    assert full == [0, 5, 8], full
+    assert [i for i, h in enumerate(hints) if h is None] == [0, 8]              # cold: first, after the fault
+    assert [i for i, h in enumerate(hints) if h is not None and h.search_all] == [5]
     for i, h in enumerate(hints):
         if h is None:
             continue

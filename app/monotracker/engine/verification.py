@@ -46,7 +46,7 @@ class KeepDetections:
 
         det = self.inner.detect(image, hint)
         self.last = np.asarray(det.centres, float).reshape(-1, 2)
-        if hint is None:
+        if hint is None or hint.search_all:
             self.colour_share = oversized_colour_share(det, self.inner.rules, image.shape)
         return det
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from . import edge_fit, edge_kernels
 from .ball_colour import BallColour
 from .detection import BlobRules, Detection, DetectionHint, ImageFiducial, analyse_blobs, blob_contours
 
@@ -40,12 +41,17 @@ class ClassicalDetector:
     #: the balls' colour band; None = the four fields above (default green). Set by
     #: :meth:`set_colour` (e.g. learned from a click, or loaded with the camera calibration).
     colour: BallColour | None = None
-    #: the edge blur (px) measured in the last full-frame search, reused by windowed searches
-    _blur_px: float | None = field(default=None, init=False, repr=False, compare=False)
+    #: what the last searches measured of the imaging (``blur_px``: the edge blur, px;
+    #: ``chroma_band_limited``: bool), reused by the next search with a hint
+    _imaging: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         if self.colour is not None:
             self.set_colour(self.colour)
+        if edge_fit.COMPILED:
+            # compile (first use after an install, ~10-20 s) or load the edge-fit kernels now,
+            # not in the first frame's budget
+            edge_kernels.warm_up()
 
     def set_colour(self, colour: BallColour) -> None:
         """Threshold ``colour`` from now on (hue band may wrap through 0 for red balls)."""
@@ -61,27 +67,34 @@ class ClassicalDetector:
     def detect(self, image: np.ndarray, hint: DetectionHint | None = None) -> Detection:
         """Balls in ``image`` (BGR uint8, the camera's full frame). ``hint``: the balls'
         predicted ellipses (:class:`~.detection.DetectionHint`): only windows around them are
-        searched (:func:`search_windows`); None: the whole frame. The edge blur measured in the
-        last full-frame search is reused in windowed searches (optics change slowly; a window
-        search measures it itself when none is known)."""
+        searched (:func:`search_windows`), or the whole frame when ``hint.search_all``; None: a
+        cold full-frame search. What a search learns of the imaging (the edge blur measured
+        from the balls' edges, whether the colour is band-limited) carries over to the next
+        searches with a hint, so that they need no blur probe of their own (a cold search
+        probes the blur first, as a single image needs)."""
         t0 = time.perf_counter()
         info: dict = {}
-        windowed = hint is not None and len(hint) > 0
-        if not windowed:
-            mask = self.mask(image)
-            t_mask = time.perf_counter() - t0
-            accepted, rejected = analyse_blobs(image, mask, self.rules, self.name,
-                                               centre_method=self.centre_method, info=info)
-            if info.get("edge_blur_px") is not None:
-                self._blur_px = info["edge_blur_px"]
-        else:
+        windowed = hint is not None and len(hint) > 0 and not hint.search_all
+        warm = hint is not None and self._imaging.get("blur_px") is not None
+        frame = {"chroma_band_limited": self._imaging["chroma_band_limited"]} \
+            if warm and "chroma_band_limited" in self._imaging else {}
+        blur = self._imaging["blur_px"] if warm else None
+        cut = []
+        if windowed:
             contours, cut = self._window_contours(image, hint)
-            t_mask = time.perf_counter() - t0
-            accepted, rejected = analyse_blobs(image, None, self.rules, self.name, centre_method=self.centre_method,
-                                               edge_blur_px=self._blur_px, contours=contours, info=info)
-            rejected += cut
-            if self._blur_px is None and info.get("edge_blur_px") is not None:
-                self._blur_px = info["edge_blur_px"]
+            mask = None
+        else:
+            contours, mask = None, self.mask(image)
+        t_mask = time.perf_counter() - t0
+        accepted, rejected = analyse_blobs(image, mask, self.rules, self.name, centre_method=self.centre_method,
+                                           edge_blur_px=blur, contours=contours, info=info, frame=frame,
+                                           hint=hint)
+        rejected += cut
+        new_blur = frame.get("blur_px_measured") or info.get("edge_blur_px")
+        if new_blur is not None:
+            self._imaging["blur_px"] = float(new_blur)
+        if "chroma_band_limited" in frame:
+            self._imaging["chroma_band_limited"] = frame["chroma_band_limited"]
         stages = {"mask": t_mask, **info.get("stages_s", {})}
         return Detection(accepted, rejected, time.perf_counter() - t0, self.name, stages_s=stages, windowed=windowed)
 
@@ -116,12 +129,21 @@ class ClassicalDetector:
         X0, Y0, X1, Y1 = int(b[:, 0].min()), int(b[:, 1].min()), int(b[:, 2].max()), int(b[:, 3].max())
         mask = np.zeros((Y1 - Y0, X1 - X0), np.uint8)
         inner = np.zeros_like(mask)          # window pixels that are not on a window's inner edge
+        inside = np.zeros_like(mask)         # window pixels
+        area = 0
         for x0, y0, x1, y1 in boxes:
-            sub = self.mask(image[y0:y1, x0:x1])
-            np.maximum(mask[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0], sub, out=mask[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0])
+            inside[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0] = 255
             ix0, iy0 = x0 + (x0 > 0), y0 + (y0 > 0)
             ix1, iy1 = x1 - (x1 < w), y1 - (y1 < h)
             inner[iy0 - Y0:iy1 - Y0, ix0 - X0:ix1 - X0] = 1
+            area += (x1 - x0) * (y1 - y0)
+        if mask.size <= WINDOW_BBOX_FACTOR * area + WINDOW_BBOX_PX * len(boxes):
+            # one colour conversion of the windows' bounding box costs less than one per window
+            cv2.bitwise_and(self.mask(image[Y0:Y1, X0:X1]), inside, dst=mask)
+        else:
+            for x0, y0, x1, y1 in boxes:
+                sub = self.mask(image[y0:y1, x0:x1])
+                np.maximum(mask[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0], sub, out=mask[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0])
         whole, cut, cut_boxes = [], [], set()
         for cnt in blob_contours(mask, (X0, Y0)):
             pts = cnt.reshape(-1, 2)
@@ -143,6 +165,11 @@ class ClassicalDetector:
 WINDOW_MARGIN_PX = 8.0
 WINDOW_MARGIN_PER_RADIUS = 0.5
 WINDOW_MARGIN_PER_AGE_PX = 6.0
+#: the windows' colour mask is made from their bounding box in one go (then cut to the windows)
+#: when that box is smaller than this many times their area + this many px per window (one
+#: colour conversion per window costs ~40-80 us of overhead, ~2-5 ns per pixel)
+WINDOW_BBOX_FACTOR = 3.0
+WINDOW_BBOX_PX = 10000
 
 
 def search_windows(hint: DetectionHint, shape) -> list:

@@ -108,6 +108,7 @@ class DetectionHint:
         frame_index: index of the frame whose trusted pose made the prediction.
         age_frames: frames between that pose and the frame to search (>= 1): the balls may have
             moved further the older the pose, so a detector widens its windows with it.
+        search_all: the whole frame is to be searched all the same (see the field).
     """
 
     centres_px: np.ndarray
@@ -116,6 +117,10 @@ class DetectionHint:
     fiducial_indices: np.ndarray
     frame_index: int = -1
     age_frames: int = 1
+    #: search the whole frame all the same (new balls, strays, a drape of the balls' colour),
+    #: the predictions still valid: what the imaging of the last frames taught the detector
+    #: (the edge blur, the colour's bandwidth) still holds
+    search_all: bool = False
 
     def __post_init__(self):
         c = np.asarray(self.centres_px, float).reshape(-1, 2)
@@ -130,7 +135,7 @@ class DetectionHint:
 
     @classmethod
     def from_pose(cls, camera, T_cam_ct: np.ndarray, centres_ct, radius_mm: float, frame_index: int = -1,
-                  age_frames: int = 1, fiducial_indices=None) -> "DetectionHint":
+                  age_frames: int = 1, fiducial_indices=None, search_all: bool = False) -> "DetectionHint":
         """The image ellipses of spheres of ``radius_mm`` (mm) at ``centres_ct`` ((n, 3) CT mm)
         under the pose ``T_cam_ct`` (4x4, CT mm -> camera mm) seen by ``camera`` (a
         :class:`~.camera_model.CameraModel`, lens distortion included). Balls behind the camera,
@@ -141,7 +146,7 @@ class DetectionHint:
         idx = np.arange(len(X)) if fiducial_indices is None else np.asarray(fiducial_indices, int).reshape(-1)
         Xc = X @ np.asarray(T_cam_ct, float)[:3, :3].T + np.asarray(T_cam_ct, float)[:3, 3]
         cen, axes, ang, ok = sphere_ellipses(camera, Xc, radius_mm)
-        return cls(cen[ok], axes[ok], ang[ok], idx[ok], int(frame_index), max(int(age_frames), 1))
+        return cls(cen[ok], axes[ok], ang[ok], idx[ok], int(frame_index), max(int(age_frames), 1), bool(search_all))
 
 
 def oversized_colour_share(det: "Detection", rules: "BlobRules", image_shape) -> float:
@@ -219,7 +224,8 @@ def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[floa
     pts = contour.reshape(-1, 2).astype(np.float64)
     if len(pts) < 5:
         return 0.0, {"why": "too few contour points"}, None
-    (ex, ey), (d1, d2), ang = cv2.fitEllipse(contour)
+    raw = cv2.fitEllipse(contour)
+    (ex, ey), (d1, d2), ang = raw
     a, b = max(d1, d2) / 2, min(d1, d2) / 2
     if b <= 0.5:
         return 0.0, {"why": "degenerate ellipse"}, None
@@ -241,8 +247,28 @@ def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[floa
     f_fill = float(np.exp(-((fill - 1.0) / 0.12) ** 2))
     f_range = 1.0 if lo * 0.8 <= b + 0.5 <= hi * 1.2 else 0.0
     factors = {"fit_rms_px": rms, "axis_ratio": ratio, "fill": fill, "f_fit": f_fit, "f_round": f_round,
-               "f_fill": f_fill, "f_range": f_range}
+               "f_fill": f_fill, "f_range": f_range, "contour_ellipse": raw}
     return f_fit * f_round * f_fill * f_range, factors, ((ex, ey), (a, b), ang)
+
+
+#: a blob takes a predicted ball's outline shape when its centre lies within this share of its
+#: minor semi-axis (at least 2 px) of the predicted centre (the head moves a few px per frame;
+#: the shape changes by ~1e-4 per px across the image)
+HINT_SHAPE_SHARE = 0.5
+
+
+def _hinted_shapes(hint, ells: list) -> list:
+    """Per coarse ellipse ((cx, cy), (d1, d2), angle), the outline shape (minor / major, major
+    axis deg) of the predicted ball it lies on (:data:`HINT_SHAPE_SHARE`), or None."""
+    out: list = [None] * len(ells)
+    if hint is None or len(hint) == 0:
+        return out
+    for j, ((cx, cy), (d1, d2), _a) in enumerate(ells):
+        d = np.hypot(hint.centres_px[:, 0] - cx, hint.centres_px[:, 1] - cy)
+        q = int(np.argmin(d))
+        if d[q] <= max(2.0, HINT_SHAPE_SHARE * min(d1, d2) / 2.0):
+            out[j] = (float(hint.axes_px[q, 1] / hint.axes_px[q, 0]), float(hint.angles_deg[q]))
+    return out
 
 
 class _Stages:
@@ -271,7 +297,8 @@ def blob_contours(mask: np.ndarray, offset=(0, 0)) -> list:
 def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, detector: str,
                   refine_image: np.ndarray | None = None, centre_method: str = "edge",
                   edge_blur_px: float | None = None, contours: list | None = None,
-                  info: dict | None = None) -> tuple[list, list]:
+                  info: dict | None = None, frame: dict | None = None,
+                  hint: "DetectionHint | None" = None) -> tuple[list, list]:
     """Contours of a binary ``mask`` -> (accepted, rejected) :class:`ImageFiducial` lists.
     ``refine_image`` (default ``image``) is the full-resolution BGR image for sub-pixel centres;
     ``centre_method`` one of :data:`CENTRE_METHODS` (see the module docstring);
@@ -279,7 +306,11 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
     :func:`~.edge_fit.fit_ball_edges`); ``contours``: the blobs' contours in image px
     (:func:`blob_contours`) instead of ``mask`` (e.g. found in windows only); ``info``: a dict
     that receives ``edge_blur_px`` (the blur the edge fit used, px; None without a fit) and
-    ``stages_s`` (wall time s per stage: contours, shape, outline, blur, edge_fit)."""
+    ``stages_s`` (wall time s per stage: contours, shape, outline, blur, edge_fit); ``frame``:
+    what is known of the frame's imaging, passed to :func:`~.edge_fit.fit_ball_edges` (which
+    also stores what it measured there); ``hint``: the balls' predicted ellipses
+    (:class:`DetectionHint`): a blob lying on a predicted ball takes that ball's outline shape
+    (from the pose: no need to compute it from the blob, :func:`_hinted_shapes`)."""
     if centre_method not in CENTRE_METHODS:
         raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {centre_method!r}")
     refine_image = image if refine_image is None else refine_image
@@ -314,7 +345,6 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                                           feats.get("why", "no contrast")))
             continue
         centre, soft_area, _ = ref
-        feats["contour_ellipse"] = cv2.fitEllipse(cnt)
         cands.append(ImageFiducial(centre, ell[1], float(ell[2]), score, soft_area, "", feats))
     # size consensus: balls lie at similar depths, so their minor axes agree
     good = [c.axes_px[1] for c in cands if c.score >= rules.min_score]
@@ -335,13 +365,18 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
             problem = rules.camera.frame_size_problem(refine_image.shape)
             if problem:   # the pose tracker refuses such frames first: reaching here is a bug
                 raise ValueError(f"ball outlines: {problem}")
-            shapes = expected_shapes(rules.camera, [e[0] for e in ells], [min(e[1]) / 2.0 for e in ells])
+            shapes = _hinted_shapes(hint, ells)
+            rest = [j for j, sh in enumerate(shapes) if sh is None]
+            if rest:
+                for j, sh in zip(rest, expected_shapes(rules.camera, [ells[j][0] for j in rest],
+                                                       [min(ells[j][1]) / 2.0 for j in rest])):
+                    shapes[j] = sh
         clock.lap("outline")
         if edge_blur_px is None and ells:
             edge_blur_px = (measure_edge_blur(refine_image, ells) if edge_fit.MEASURE_BLUR else None) \
                 or edge_fit.BLUR_PROBE_PX
         clock.lap("blur")
-        fits = fit_ball_edges(refine_image, ells, edge_blur_px, shapes)
+        fits = fit_ball_edges(refine_image, ells, edge_blur_px, shapes, frame=frame)
         edge_fits = dict(zip(good, fits))
         clock.lap("edge_fit")
     if info is not None:

@@ -73,6 +73,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from . import edge_kernels
+
 #: 8-bit display value -> linear radiance (gamma 2.2), float32
 LINEAR_LUT = ((np.arange(256, dtype=np.float64) / 255.0) ** 2.2).astype(np.float32)
 
@@ -120,6 +122,11 @@ def unmix_residual_limit(blur_px: float) -> float:
 
 #: a usable ray needs at least this share of the rays (else the fit is refused)
 MIN_RAY_SHARE = 0.6
+
+#: True: the per-ray analysis and the known-shape fits run compiled (:mod:`.edge_kernels`, the
+#: same arithmetic); False: the NumPy code of this module (the reference the kernels are tested
+#: against, and the detector before issue 29)
+COMPILED = True
 
 
 @dataclass
@@ -366,20 +373,31 @@ def measure_edge_blur(image_bgr: np.ndarray, ellipses: list) -> float | None:
         # the blur is not known yet: the sharp frame's tolerance, or a sharp frame's fringes
         # leave too few rays to measure it (and the fit falls back to the blurred one's)
         _edge_points(image_bgr, balls, BLUR_PROBE_PX, widths, max_resid=SHARP_UNMIX_RESIDUAL)
+    return blur_from_widths(widths)
+
+
+def blur_from_widths(widths: list) -> float | None:
+    """The edge blur (px) from 25-75 % rise widths (a list of px arrays, as :func:`_edge_points`
+    appends them): :data:`BLUR_PER_WIDTH` x their median, clipped to :data:`BLUR_RANGE_PX`; None
+    when fewer than 16 rays were measured."""
     w = np.concatenate(widths) if widths else np.zeros(0)
     if len(w) < 16:
         return None
     return float(np.clip(BLUR_PER_WIDTH * _median(w), *BLUR_RANGE_PX))
 
 
-def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resid: float | None = None):
+def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resid: float | None = None,
+                 chroma_limited: bool | None = None, frame: dict | None = None):
     """Edge points of several balls at once. ``balls``: list of coarse OpenCV ellipses
     ((cx, cy), (d1, d2), angle_deg). Returns per ball (points (n, 2) px, usable (n,) bool), or None
     for a ball too close to the image border. With ``widths`` (a list), the 25-75 % rise
     widths (px) of the coverage along the usable rays are appended to it (one array).
     ``max_resid``: the unmixing residual a usable ray may reach (None: for ``blur_px``, see
-    :func:`unmix_residual_limit`)."""
+    :func:`unmix_residual_limit`). ``chroma_limited``: whether the frame's colour is band-limited
+    (:func:`chroma_is_band_limited`), None = measured on these balls' neighbourhoods (the
+    decision is then stored in ``frame["chroma_band_limited"]`` when ``frame`` is a dict)."""
     h, w = image_bgr.shape[:2]
+    measure_chroma = chroma_limited is None
     k = SAMPLES
     profs, sprofs, geo, out = [], [], [], [None] * len(balls)
     hf = np.zeros(3)
@@ -405,7 +423,8 @@ def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resi
         my = (cy - y0 + s * u[:, 1:2]).astype(np.float32)
         profs.append(cv2.remap(lin, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
         if CHROMA_SIGMA_PX > 0:
-            hf += _detail_energy(roi)
+            if measure_chroma:
+                hf += _detail_energy(roi)
             sprofs.append((roi, mx, my, step))
         geo.append((i, n_rays, np.array([cx, cy]), u, r - w_in, step))
     if not profs:
@@ -413,17 +432,38 @@ def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resi
     prof = np.concatenate(profs, 0) @ COLOUR_WEIGHTS.T                          # (N, k, 3)
     N = len(prof)
     counts = [g[1] for g in geo]
+    if measure_chroma and sprofs:
+        chroma_limited = chroma_is_band_limited(hf)
+        if frame is not None:
+            frame["chroma_band_limited"] = chroma_limited
+    if COMPILED:
+        prof_e = prof
+        if sprofs and chroma_limited:
+            enc = [_smooth_chroma_along_rays(cv2.remap(roi.astype(np.float32), mx, my, cv2.INTER_LINEAR,
+                                                       borderMode=cv2.BORDER_REPLICATE), CHROMA_SIGMA_PX / st)
+                   for roi, mx, my, st in sprofs]
+            prof_e = np.ascontiguousarray(np.concatenate(enc, 0) @ COLOUR_WEIGHTS.T)
+        step = np.repeat([g[5] for g in geo], counts).astype(np.float64)
+        starts = np.cumsum([0] + counts[:-1]).astype(np.int64)
+        edge_rel, usable, wid = edge_kernels.ray_edges(
+            np.ascontiguousarray(prof), prof_e, starts, np.asarray(counts, np.int64), step, float(blur_px),
+            float(unmix_residual_limit(blur_px) if max_resid is None else max_resid), bool(NEAR_BACKGROUND),
+            float(INTEGRATION_SHARE), float(CROSSING_AGREE_PX), float(NEAR_BG_MARGIN_PX), float(NEAR_BG_WINDOW_PX),
+            float(1.0 / (BLUR_PER_WIDTH * DISC_WIDTH_PER_RADIUS)))
+        if widths is not None:
+            widths.append(wid[usable])
+        return _points_out(out, geo, counts, edge_rel, usable)
     step = np.repeat([g[5] for g in geo], counts)                               # (N,)
     edge_k = max(k // 10, 3)
     half = k // 8
     t = (np.arange(k) - (k - 1.5 * half - 0.5)).astype(np.float32)[None, :]    # G(t) = G1 + t slope
     gamma, U = _unmix(prof, counts, t)
-    bdir, G1, G2, slope = U["bdir"], U["G1"], U["G2"], U["slope"]
+    bdir, G1, G2 = U["bdir"], U["G1"], U["G2"]
     bg, gg, pb, pg, det, good_det = U["bg"], U["gg"], U["pb"], U["pg"], U["det"], U["good_det"]
     # the edge's position comes from the chroma-smoothed profile (same geometry); the checks
     # below from the pixels as they are
     gamma_e, prof_e = gamma, prof
-    if sprofs and chroma_is_band_limited(hf):
+    if sprofs and chroma_limited:
         enc = [_smooth_chroma_along_rays(cv2.remap(roi.astype(np.float32), mx, my, cv2.INTER_LINEAR,
                                                    borderMode=cv2.BORDER_REPLICATE), CHROMA_SIGMA_PX / st)
                for roi, mx, my, st in sprofs]
@@ -482,8 +522,14 @@ def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resi
     cum_e = cum if gamma_e is gamma else np.concatenate(
         [np.zeros((N, 1), np.float32), np.cumsum(1.0 - gamma_e, axis=1)], axis=1)
     edge_rel = (j_lo_i - 0.5 + (cum_e[rows, j_hi_i] - cum_e[rows, j_lo_i])) * step  # from the ray start
+    return _points_out(out, geo, counts, edge_rel, usable)
+
+
+def _points_out(out: list, geo: list, counts: list, edge_rel: np.ndarray, usable: np.ndarray) -> list:
+    """Fill ``out`` (per ball) with (edge points (n, 2) px, usable (n,)) from the edges' positions
+    ``edge_rel`` (px from each ray's start) and the rays' geometry."""
     start = 0
-    for (i, n, c, u, s0, _st), cnt in zip(geo, counts):
+    for (i, _n, c, u, s0, _st), cnt in zip(geo, counts):
         e = s0 + edge_rel[start:start + cnt]
         out[i] = (c[None, :] + e[:, None] * u, usable[start:start + cnt])
         start += cnt
@@ -620,14 +666,20 @@ def _robust_ellipse(pts, usable, shape=None, min_share: float = MIN_RAY_SHARE):
 
 
 def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None = None,
-                   shapes: list | None = None) -> list:
+                   shapes: list | None = None, frame: dict | None = None) -> list:
     """Fit the edges of several balls (see the module docstring): ``ellipses`` the coarse
     OpenCV ellipses ((cx, cy), (d1, d2), angle_deg) in px (full axes, as cv2.fitEllipse gives
     them); ``blur_px`` the edge blur (px); None = measured from these balls' edges
     (:func:`measure_edge_blur`, :data:`BLUR_PROBE_PX` if too few rays); ``shapes``: per
     ellipse None or the outline's known shape (minor / major, major axis deg: a whole sphere's
     at that place, :func:`~.sphere_outline.expected_shapes`), fitting only centre and size
-    (:func:`_fit_outline`). One :class:`EdgeFit` per ellipse."""
+    (:func:`_fit_outline`). One :class:`EdgeFit` per ellipse.
+
+    ``frame``: None, or a dict of what is known of the frame's imaging and receives what was
+    measured: ``chroma_band_limited`` (bool; measured and stored when absent, see
+    :func:`chroma_is_band_limited`) and, out, ``blur_px_measured`` (the edge blur, px, measured
+    from this fit's own rays, :func:`blur_from_widths`; None when too few): a stream of frames
+    passes it on, and the next frame's fit needs no blur probe of its own."""
     if shapes is not None and len(shapes) != len(ellipses):
         raise ValueError(f"fit_ball_edges: {len(shapes)} shapes for {len(ellipses)} ellipses")
     if blur_px is None:
@@ -644,7 +696,16 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None 
         ids = list(current)
         if not ids:
             break
-        pts_all = _edge_points(image_bgr, [current[i] for i in ids], blur_px)
+        widths = [] if (frame is not None and it == 0) else None
+        pts_all = _edge_points(image_bgr, [current[i] for i in ids], blur_px, widths,
+                               chroma_limited=None if frame is None else frame.get("chroma_band_limited"),
+                               frame=frame)
+        if widths is not None:
+            frame["blur_px_measured"] = blur_from_widths(widths)
+        # the balls of known shape: their robust fits and cut tests all at once (edge_kernels)
+        shaped = {i: got for i, got in zip(ids, pts_all) if got is not None and shapes is not None
+                  and shapes[i] is not None and got[1].sum() >= MIN_RAY_SHARE * len(got[0])}
+        batch = _shaped_fits(shaped, shapes, blur_px)
         again = {}
         for i, got in zip(ids, pts_all):
             if got is None:
@@ -655,7 +716,7 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None 
                 res[i] = EdgeFit(False, "ball edge has too little contrast against its background")
                 continue
             shape = None if shapes is None else shapes[i]
-            fit = _robust_ellipse(pts, usable, shape)
+            fit = batch[i][0] if i in batch else _robust_ellipse(pts, usable, shape)
             if fit is None:
                 res[i] = EdgeFit(False, "ball edge not elliptic (cut by an occluder?)")
                 continue
@@ -676,7 +737,7 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None 
             if shape is None and _coherent_arc(_ellipse_residuals(pts, ell), usable, min(d1, d2) / 2):
                 res[i] = EdgeFit(False, "ball edge has a flat or dented arc (cut by an occluder?)")
                 continue
-            if shape is not None and _hidden_arc(pts, usable, ell, shape, blur_px):
+            if shape is not None and (batch[i][1] if i in batch else _hidden_arc(pts, usable, ell, shape, blur_px)):
                 res[i] = EdgeFit(False, "ball edge has an arc inside a whole ball's outline (cut by an occluder?)")
                 continue
             if rms > MAX_EDGE_RMS_PX:
@@ -694,6 +755,46 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None 
                 again[i] = ell   # re-centre the rays once (an oblique ray still finds the edge)
         current = again
     return res
+
+
+def _shaped_fits(balls: dict, shapes: list, blur_px: float) -> dict:
+    """Robust fits (:func:`_robust_ellipse`) and cut tests (:func:`_hidden_arc`) of the balls of
+    known shape: ``balls`` {index: (edge points (n, 2) px, usable (n,) bool)}, ``shapes`` per
+    index (minor / major, major axis deg). Returns {index: (None or (ellipse, keep, rms px) as
+    :func:`_robust_ellipse` gives it, cut bool)}; compiled (:mod:`.edge_kernels`) unless
+    :data:`COMPILED` is False. Only the cut test of a fitted ball is meaningful."""
+    if not balls:
+        return {}
+    ids = list(balls)
+    if not COMPILED:
+        out = {}
+        for i in ids:
+            pts, usable = balls[i]
+            fit = _robust_ellipse(pts, usable, shapes[i])
+            out[i] = (fit, fit is not None and _hidden_arc(pts, usable, fit[0], shapes[i], blur_px))
+        return out
+    m = len(ids)
+    R = max(len(balls[i][0]) for i in ids)
+    P = np.zeros((m, R, 2))
+    valid = np.zeros((m, R), bool)
+    use = np.zeros((m, R), bool)
+    for b, i in enumerate(ids):
+        pts, usable = balls[i]
+        P[b, :len(pts)] = pts
+        valid[b, :len(pts)] = True
+        use[b, :len(pts)] = usable
+    ratio = np.array([float(shapes[i][0]) for i in ids])
+    major = np.array([float(shapes[i][1]) for i in ids])
+    ok, c, d1, d2, keep, rms, cut = edge_kernels.shaped_fits(
+        P, valid, use, ratio, major, float(MIN_RAY_SHARE), float(blur_px), float(CUT_WINDOW_SHARE),
+        float(CUT_DEPTH_PX), float(CUT_DEPTH_PER_RADIUS), float(CUT_DEPTH_PER_BLUR))
+    out = {}
+    for b, i in enumerate(ids):
+        n = len(balls[i][0])
+        fit = ((((float(c[b, 0]), float(c[b, 1])), (float(d1[b]), float(d2[b])), float(major[b])), keep[b, :n].copy(),
+                float(rms[b])) if ok[b] else None)
+        out[i] = (fit, bool(cut[b]))
+    return out
 
 
 def fit_ball_edge(image_bgr: np.ndarray, centre_px, axes_px, angle_deg: float,

@@ -92,7 +92,12 @@ class PoseEstimate:
         alerts: one-line operator messages raised in this frame.
         camera: "ok", "frozen", "stalled", "disconnected" or "ended".
         used_prior: the registration's prior fast path produced the pose.
-        detect_s, register_s: stage times, s.
+        detect_s, register_s: stage times, s (``register_s``: registration and screening).
+        stages_s: wall time (s) per stage of this frame: ``hint`` (the balls' predicted
+            ellipses for the detector), ``detect``, ``register`` (the first
+            registration), ``screen`` (the moved-fiducial screening after it), ``gates`` (the
+            checks after the registration, to the estimate); and ``detect.<stage>`` for the
+            detector's own stages (:attr:`~.detection.Detection.stages_s`).
         truth: the simulator's ground truth of the frame, or None (real cameras).
         code: alert code when not ok ("frame_size", "camera_freeze", "occlusion", "pose_lost",
             "pose_implausible", "weak_geometry", "tre_limit", ...); "" when ok.
@@ -120,6 +125,7 @@ class PoseEstimate:
     used_prior: bool = False
     detect_s: float = float("nan")
     register_s: float = float("nan")
+    stages_s: dict = field(default_factory=dict)
     truth: object = None
     #: alert code when not ok (see the module docstring); "" when ok
     code: str = ""
@@ -175,8 +181,8 @@ class TrackerConfig:
     #: while the last trusted pose is at most this many frames old (and within
     #: ``prior_max_age_s``); 0 = never (every frame a full-frame search)
     hint_max_age_frames: int = 3
-    #: ... and every this many frames it searches the whole frame all the same (new balls,
-    #: strays, a drape of the balls' colour); 0 = only when no trusted pose is fresh
+    #: ... and every this many frames that hint asks for the whole frame all the same
+    #: (``search_all``: new balls, strays, a drape of the balls' colour); 0 = never
     full_search_every: int = 30
 
 
@@ -202,8 +208,9 @@ class PoseTracker:
 
     The detector is called ``detect(image, hint)`` (a detector whose ``detect`` takes no
     ``hint`` is called ``detect(image)``): ``hint`` is a :class:`~.detection.DetectionHint`
-    from the last trusted pose while it is fresh (:attr:`TrackerConfig.hint_max_age_frames`),
-    None (a full-frame search) otherwise and every :attr:`TrackerConfig.full_search_every` frames.
+    from the last trusted pose while it is fresh (:attr:`TrackerConfig.hint_max_age_frames`;
+    every :attr:`TrackerConfig.full_search_every` frames with ``search_all``: the whole frame
+    searched), None (a cold full-frame search) otherwise.
 
     :meth:`process` never raises for a bad frame: it returns ``ok=False`` with a ``code``.
     """
@@ -287,8 +294,10 @@ class PoseTracker:
             return self._invalid(frame.index, frame.t_capture, "frame_grayscale", grey, truth=frame.truth)
         fresh = (frame.index == self._last_T_index + 1 or frame.t_capture - self._last_T_time <= cfg.prior_max_age_s)
         prior = self._last_T if fresh else None
+        t_start = time.perf_counter()
         hint = self.hint(frame.index, frame.t_capture) if self._takes_hint else None
-        if hint is None:
+        t_hint = time.perf_counter() - t_start
+        if hint is None or hint.search_all:
             self._last_full_index = frame.index
         det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
         pts = det.centres
@@ -306,7 +315,8 @@ class PoseTracker:
                                 min_shift_mm=cfg.moved_min_shift_mm,
                                 max_exclusions=2 if cfg.check_moved else 0)
         reg = scr.registration
-        t_reg = time.perf_counter() - t0
+        t_gates0 = time.perf_counter()
+        t_reg = t_gates0 - t0
         alerts = []
         new_moved = [(m.fiducial_index, round(m.shift_mm, 2)) for m in scr.moved]
         for m in scr.moved:
@@ -414,6 +424,9 @@ class PoseTracker:
         self._last_code = code if not ok else ""
 
         T = reg.T_cam_ct if ok else None
+        stages = {"hint": t_hint, "detect": det.time_s, "register": scr.register_s, "screen": scr.screen_s,
+                  "gates": time.perf_counter() - t_gates0}
+        stages.update({f"detect.{k}": v for k, v in getattr(det, "stages_s", {}).items()})
         if ok:
             self._last_T = reg.T_cam_ct
             self._last_T_time = frame.t_capture
@@ -426,14 +439,14 @@ class PoseTracker:
             predicted_tre_mm=tre, n_detected=len(pts), n_matched=int(seen.sum()) if reg.ok else 0,
             alerts=alerts, used_prior=bool(reg.used_prior), detect_s=det.time_s, register_s=t_reg,
             truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
-            moved=new_moved, excluded=sorted(self.excluded))
+            moved=new_moved, excluded=sorted(self.excluded), stages_s=stages)
 
     def hint(self, frame_index: int, t_capture: float):
         """The :class:`~.detection.DetectionHint` for frame ``frame_index`` (captured at
         ``t_capture``, monotonic s): the registration and watched balls' ellipses predicted from
-        the last trusted pose, or None (a full-frame search) when that pose is older than
-        :attr:`TrackerConfig.hint_max_age_frames` frames or ``prior_max_age_s``, or a full search
-        is due (:attr:`TrackerConfig.full_search_every`)."""
+        the last trusted pose (``search_all`` set when a full-frame search is due,
+        :attr:`TrackerConfig.full_search_every`), or None (a cold full-frame search) when that pose
+        is older than :attr:`TrackerConfig.hint_max_age_frames` frames or ``prior_max_age_s``."""
         from .detection import DetectionHint
 
         cfg = self.config
@@ -441,10 +454,10 @@ class PoseTracker:
         if (self._last_T is None or cfg.hint_max_age_frames <= 0 or not 1 <= age <= cfg.hint_max_age_frames
                 or t_capture - self._last_T_time > cfg.prior_max_age_s):
             return None
-        if cfg.full_search_every > 0 and frame_index - self._last_full_index >= cfg.full_search_every:
-            return None
+        search_all = cfg.full_search_every > 0 and frame_index - self._last_full_index >= cfg.full_search_every
         X = np.vstack([self.fiducials_ct, self.watch_ct])
-        return DetectionHint.from_pose(self.camera, self._last_T, X, self.radius_mm, self._last_T_index, age)
+        return DetectionHint.from_pose(self.camera, self._last_T, X, self.radius_mm, self._last_T_index, age,
+                                       search_all=search_all)
 
     def _invalid(self, frame_index: int, t_capture: float, code: str, reason: str, camera: str = "ok",
                  truth=None) -> PoseEstimate:

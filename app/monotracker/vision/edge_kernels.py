@@ -1,0 +1,541 @@
+"""The edge fit's inner loops, compiled (numba): per-ray unmixing and edge, known-shape outline fits.
+
+:mod:`.edge_fit` documents what is computed and why; this module computes the same per ray and
+per ball in compiled loops, because the NumPy form spends its time in the overhead of hundreds
+of small array operations per frame (~1.2 ms per ball of 20 px radius per pass, ~1 ms of Python
+per ball's fits; the pose pipeline's budget is 10 ms per frame for everything). The NumPy
+functions of :mod:`.edge_fit` stay the reference: ``tests/vision/test_edge_kernels.py`` checks
+that both give the same edges, usable rays, fits and refusals on rendered frames and random
+balls (arithmetic in float64 here, partly float32 there: edges agree to ~1e-4 px).
+
+Why numba (a dependency): these loops are a few hundred lines of arithmetic on arrays of tens of
+thousands of samples; numba compiles them from Python source with no build step and caches the
+machine code next to the module (``cache=True``; the first use after an install compiles for
+~10-20 s, :func:`warm_up` does it ahead of the first frame).
+
+Layouts: ray profiles ``prof`` (N, k, 3) float32, the rays of ball b are rows
+``starts[b] : starts[b] + counts[b]``; ``step`` (N,) px per sample. Edge points of m balls padded
+to (m, R, 2) with ``valid`` (m, R) (a ball of n rays fills its first n rows).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _ball_directions(P, starts, counts, edge_k):
+    """(N, 3): per ray its ball's colour direction, the component-wise median (upper middle for an
+    even count, as ``np.partition(v, len(v) // 2)``) of the unit colour vectors of the inner
+    ``edge_k`` samples of all its rays, normalised."""
+    N = P.shape[0]
+    out = np.zeros((N, 3))
+    for b in range(len(starts)):
+        s, c = starts[b], counts[b]
+        m = c * edge_k
+        v = np.empty((3, m))
+        q = 0
+        for n in range(s, s + c):
+            for j in range(edge_k):
+                nn = math.sqrt(P[n, j, 0] ** 2 + P[n, j, 1] ** 2 + P[n, j, 2] ** 2) + 1e-9
+                for ch in range(3):
+                    v[ch, q] = P[n, j, ch] / nn
+                q += 1
+        bd = np.empty(3)
+        for ch in range(3):
+            srt = np.sort(v[ch])
+            bd[ch] = srt[m // 2]
+        nb = math.sqrt(bd[0] ** 2 + bd[1] ** 2 + bd[2] ** 2) + 1e-12
+        for n in range(s, s + c):
+            for ch in range(3):
+                out[n, ch] = bd[ch] / nb
+    return out
+
+
+@njit(cache=True)
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True)
+def _gamma_row(Pn, bd, G1, slope, t, gamma_n):
+    """One ray: the background share per sample (clipped to [0, 1]) of ``p = alpha b + gamma
+    (G1 + t slope)``; returns True when every sample's 2 x 2 system is regular."""
+    k = Pn.shape[0]
+    g1b, sb = _dot3(G1, bd), _dot3(slope, bd)
+    g11, g1s, ss = _dot3(G1, G1), _dot3(G1, slope), _dot3(slope, slope)
+    good_all = True
+    for j in range(k):
+        tj = t[j]
+        bg = g1b + tj * sb
+        gg = g11 + 2 * tj * g1s + tj * tj * ss
+        pb = Pn[j, 0] * bd[0] + Pn[j, 1] * bd[1] + Pn[j, 2] * bd[2]
+        pg = (Pn[j, 0] * G1[0] + Pn[j, 1] * G1[1] + Pn[j, 2] * G1[2]
+              + tj * (Pn[j, 0] * slope[0] + Pn[j, 1] * slope[1] + Pn[j, 2] * slope[2]))
+        det = gg - bg * bg
+        good = det > 1e-12
+        good_all = good_all and good
+        g = (pg - bg * pb) / (det if good else 1.0)
+        gamma_n[j] = min(max(g, 0.0), 1.0)
+    return good_all
+
+
+@njit(cache=True)
+def _last_below(row, level):
+    """Index of the last sample below ``level``; k - 1 when none is (``np.argmax`` of all False)."""
+    k = row.shape[0]
+    for j in range(k - 1, -1, -1):
+        if row[j] < level:
+            return j, True
+    return k - 1, False
+
+
+@njit(cache=True)
+def _crossing(row, level):
+    """Fractional sample index where the row last rises through ``level`` (edge_fit._crossing)."""
+    k = row.shape[0]
+    j, _ = _last_below(row, level)
+    j = min(max(j, 0), k - 2)
+    g0, g1 = row[j], row[j + 1]
+    return j + min(max((level - g0) / max(g1 - g0, 1e-6), 0.0), 1.0)
+
+
+@njit(cache=True)
+def _median(x):
+    s = np.sort(x)
+    n = len(s)
+    return 0.5 * (s[(n - 1) // 2] + s[n // 2])
+
+
+@njit(cache=True)
+def ray_edges(prof, prof_e, starts, counts, step, blur_px, max_resid, near_background, integration_share,
+              crossing_agree_px, near_bg_margin_px, near_bg_window_px, psf_radius_per_blur):
+    """Per ray of ``prof`` (N, k, 3) (and ``prof_e``: the same rays with colour smoothed along
+    them, or ``prof`` itself): (edge position from the ray's start, px (N,); usable (N,) bool;
+    25-75 % rise width px (N,), NaN where not usable), as :func:`.edge_fit._edge_points`
+    computes them for blur ``blur_px`` px and the unmixing residual limit ``max_resid``."""
+    N, k, _ = prof.shape
+    edge_k = max(k // 10, 3)
+    half = k // 8
+    t = np.empty(k)
+    for j in range(k):
+        t[j] = j - (k - 1.5 * half - 0.5)
+    zero3 = np.zeros(3)
+    bdir = _ball_directions(prof, starts, counts, edge_k)
+    smoothed = prof_e is not prof
+    bdir_e = _ball_directions(prof_e, starts, counts, edge_k) if smoothed else bdir
+    gamma = np.empty((N, k))
+    gamma_e = np.empty((N, k))
+    edge = np.zeros(N)
+    usable = np.zeros(N, np.bool_)
+    widths = np.full(N, np.nan)
+    g_noise = np.empty(N)
+    G1 = np.empty(3)
+    G2 = np.empty(3)
+    slope = np.empty(3)
+    Ge1 = np.empty(3)
+    Ge2 = np.empty(3)
+    slope_e = np.empty(3)
+    Gn = np.empty(3)
+    j_lo = np.zeros(N, np.int64)
+    j_hi = np.zeros(N, np.int64)
+    ball_side = np.zeros(N)
+    for n in range(N):
+        for ch in range(3):
+            a = 0.0
+            for j in range(k - 2 * half, k - half):
+                a += prof[n, j, ch]
+            G1[ch] = a / half
+            a = 0.0
+            for j in range(k - half, k):
+                a += prof[n, j, ch]
+            G2[ch] = a / half
+            slope[ch] = (G2[ch] - G1[ch]) / half
+        good_all = _gamma_row(prof[n], bdir[n], G1, slope, t, gamma[n])
+        gm0, gm1, gm2 = 0.5 * (G1[0] + G2[0]), 0.5 * (G1[1] + G2[1]), 0.5 * (G1[2] + G2[2])
+        gnorm = math.sqrt(gm0 * gm0 + gm1 * gm1 + gm2 * gm2)
+        ok = (gm0 * bdir[n, 0] + gm1 * bdir[n, 1] + gm2 * bdir[n, 2] < 0.995 * gnorm) and gnorm > 1e-4 and good_all
+        dev = 0.0
+        mean = 0.0
+        for j in range(k - 2 * half, k):
+            dev = max(dev, abs(gamma[n, j] - 1.0))
+            mean += gamma[n, j]
+        ok = ok and dev < 0.2
+        mean /= 2 * half
+        var = 0.0
+        for j in range(k - 2 * half, k):
+            var += (gamma[n, j] - mean) ** 2
+        g_noise[n] = math.sqrt(var / (2 * half))
+        st = step[n]
+        jh, any_below = _last_below(gamma[n], 0.5)
+        half_w = int(math.ceil((1.5 + blur_px) / st))
+        jl = max(jh - half_w, 0)
+        half_i = int(math.ceil(max(integration_share * blur_px, 1.0) / st))
+        if smoothed:
+            for ch in range(3):
+                a = 0.0
+                for j in range(k - 2 * half, k - half):
+                    a += prof_e[n, j, ch]
+                Ge1[ch] = a / half
+                a = 0.0
+                for j in range(k - half, k):
+                    a += prof_e[n, j, ch]
+                Ge2[ch] = a / half
+                slope_e[ch] = (Ge2[ch] - Ge1[ch]) / half
+            _gamma_row(prof_e[n], bdir_e[n], Ge1, slope_e, t, gamma_e[n])
+        else:
+            gamma_e[n] = gamma[n]
+        jhe, any_e = _last_below(gamma_e[n], 0.5)
+        ok = ok and any_e and abs(jhe - jh) * st <= crossing_agree_px
+        if near_background:
+            js = min(jhe + int(math.ceil((blur_px * psf_radius_per_blur + near_bg_margin_px) / st)),
+                     k - max(k // 8, 3))
+            je = js + max(int(math.ceil(near_bg_window_px / st)), 3)
+            je = min(je, k)
+            for ch in range(3):
+                a = 0.0
+                for j in range(js, je):
+                    a += prof_e[n, j, ch]
+                Gn[ch] = a / (je - js)
+            _gamma_row(prof_e[n], bdir_e[n], Gn, zero3, t, gamma_e[n])
+            jhe, any_e = _last_below(gamma_e[n], 0.5)
+            ok = ok and any_e
+        ok = ok and any_below
+        j_lo[n] = jl
+        j_hi[n] = min(jh + half_w + 1, k)
+        # the ball side of the window must be ball
+        a = 0.0
+        for j in range(jl, min(jl + edge_k, k)):
+            a += 1.0 - gamma[n, j]
+        ball_side[n] = a / edge_k
+        # edge: integral of (1 - gamma_e) over the integration window
+        jli = max(jhe - half_i, 0)
+        jhi = min(jhe + half_i + 1, k)
+        a = 0.0
+        for j in range(jli, jhi):
+            a += 1.0 - gamma_e[n, j]
+        edge[n] = (jli - 0.5 + a) * st
+        usable[n] = ok
+    # per ball: the noise of gamma on the clean background, and the checks that need it
+    for b in range(len(starts)):
+        s, c = starts[b], counts[b]
+        nb = _median(g_noise[s:s + c])
+        lim = 1.0 - min(max(0.08 + 2.0 * nb, 0.08), 0.25)
+        for n in range(s, s + c):
+            if usable[n] and not ball_side[n] > lim:
+                usable[n] = False
+    # a third colour in the edge window: the unmixing's relative residual (line background)
+    for n in range(N):
+        if not usable[n]:
+            continue
+        for ch in range(3):
+            a = 0.0
+            for j in range(k - 2 * half, k - half):
+                a += prof[n, j, ch]
+            G1[ch] = a / half
+            a = 0.0
+            for j in range(k - half, k):
+                a += prof[n, j, ch]
+            slope[ch] = (a / half - G1[ch]) / half
+        bd = bdir[n]
+        g1b, sb = _dot3(G1, bd), _dot3(slope, bd)
+        g11, g1s, ss = _dot3(G1, G1), _dot3(G1, slope), _dot3(slope, slope)
+        worst = 0.0
+        for j in range(j_lo[n], j_hi[n]):
+            tj = t[j]
+            bg = g1b + tj * sb
+            gg = g11 + 2 * tj * g1s + tj * tj * ss
+            p0, p1, p2 = prof[n, j, 0], prof[n, j, 1], prof[n, j, 2]
+            pb = p0 * bd[0] + p1 * bd[1] + p2 * bd[2]
+            pg = p0 * G1[0] + p1 * G1[1] + p2 * G1[2] + tj * (p0 * slope[0] + p1 * slope[1] + p2 * slope[2])
+            det = gg - bg * bg
+            pp = p0 * p0 + p1 * p1 + p2 * p2
+            proj = (gg * pb * pb - 2.0 * bg * pb * pg + pg * pg) / (det if det > 1e-12 else 1.0)
+            r = math.sqrt(max(pp - proj, 0.0) / max(pp, 1e-12))
+            worst = max(worst, r)
+        if not worst < max_resid:
+            usable[n] = False
+            continue
+        widths[n] = (_crossing(gamma[n], 0.75) - _crossing(gamma[n], 0.25)) * step[n]
+    return edge, usable, widths
+
+
+# --- known-shape outline fits (edge_fit._fit_outline, _robust_ellipse, _hidden_arc) ----------
+
+
+@njit(cache=True)
+def _solve3(A, b):
+    """x of A x = b (3 x 3, Gaussian elimination with partial pivoting); ok False if singular."""
+    M = np.empty((3, 4))
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = A[i, j]
+        M[i, 3] = b[i]
+    for c in range(3):
+        p = c
+        for r in range(c + 1, 3):
+            if abs(M[r, c]) > abs(M[p, c]):
+                p = r
+        if M[p, c] == 0.0:
+            return np.zeros(3), False
+        if p != c:
+            for j in range(4):
+                M[c, j], M[p, j] = M[p, j], M[c, j]
+        for r in range(c + 1, 3):
+            f = M[r, c] / M[c, c]
+            for j in range(c, 4):
+                M[r, j] -= f * M[c, j]
+    x = np.zeros(3)
+    for i in range(2, -1, -1):
+        a = M[i, 3]
+        for j in range(i + 1, 3):
+            a -= M[i, j] * x[j]
+        x[i] = a / M[i, i]
+    ok = np.isfinite(x[0]) and np.isfinite(x[1]) and np.isfinite(x[2])
+    return x, ok
+
+
+@njit(cache=True)
+def fit_outline(px, py, keep, ratio, major_deg):
+    """The ellipse of shape (``ratio`` minor / major, major axis ``major_deg``) through the
+    ``keep`` points (px, py): (cx, cy, d1, d2, ok), as :func:`.edge_fit._fit_outline`."""
+    n = len(px)
+    ca, sa = math.cos(math.radians(major_deg)), math.sin(math.radians(major_deg))
+    cnt = 0
+    mx = 0.0
+    my = 0.0
+    for i in range(n):
+        if keep[i]:
+            mx += px[i]
+            my += py[i]
+            cnt += 1
+    if cnt < 3:
+        return 0.0, 0.0, 1.0, 1.0, False
+    mx /= cnt
+    my /= cnt
+    u = np.empty(n)
+    v = np.empty(n)
+    for i in range(n):
+        dx, dy = px[i] - mx, py[i] - my
+        u[i] = (dx * ca + dy * sa) * ratio
+        v[i] = -dx * sa + dy * ca
+    A = np.zeros((3, 3))
+    bb = np.zeros(3)
+    for i in range(n):
+        if keep[i]:
+            a0, a1 = u[i], v[i]
+            w = a0 * a0 + a1 * a1
+            A[0, 0] += a0 * a0
+            A[0, 1] += a0 * a1
+            A[0, 2] += a0
+            A[1, 1] += a1 * a1
+            A[1, 2] += a1
+            A[2, 2] += 1.0
+            bb[0] += a0 * w
+            bb[1] += a1 * w
+            bb[2] += w
+    A[1, 0], A[2, 0], A[2, 1] = A[0, 1], A[0, 2], A[1, 2]
+    sol, ok = _solve3(A, bb)
+    if not ok:
+        return 0.0, 0.0, 1.0, 1.0, False
+    cu, cv = 0.5 * sol[0], 0.5 * sol[1]
+    r = math.sqrt(max(sol[2] + cu * cu + cv * cv, 1e-12))
+    for _ in range(2):
+        JJ = np.zeros((3, 3))
+        Jr = np.zeros(3)
+        for i in range(n):
+            if keep[i]:
+                du, dv = u[i] - cu, v[i] - cv
+                rho = max(math.hypot(du, dv), 1e-9)
+                j0, j1 = -du / rho, -dv / rho
+                res = rho - r
+                JJ[0, 0] += j0 * j0
+                JJ[0, 1] += j0 * j1
+                JJ[0, 2] -= j0
+                JJ[1, 1] += j1 * j1
+                JJ[1, 2] -= j1
+                JJ[2, 2] += 1.0
+                Jr[0] -= j0 * res
+                Jr[1] -= j1 * res
+                Jr[2] += res
+        JJ[1, 0], JJ[2, 0], JJ[2, 1] = JJ[0, 1], JJ[0, 2], JJ[1, 2]
+        stp, ok = _solve3(JJ, Jr)
+        if not ok:
+            return 0.0, 0.0, 1.0, 1.0, False
+        cu += stp[0]
+        cv += stp[1]
+        r += stp[2]
+    cu /= ratio
+    return mx + cu * ca - cv * sa, my + cu * sa + cv * ca, 2.0 * r / ratio, 2.0 * r, True
+
+
+@njit(cache=True)
+def ellipse_residuals(px, py, cx, cy, d1, d2, angle_deg, out):
+    """Signed distances (px, > 0 outside) of the points from the ellipse, into ``out``, as
+    :func:`.edge_fit._ellipse_residuals`."""
+    th = math.radians(angle_deg)
+    c, s = math.cos(th), math.sin(th)
+    au, av = d1 / 2, d2 / 2
+    for i in range(len(px)):
+        qx, qy = px[i] - cx, py[i] - cy
+        u = qx * c + qy * s
+        v = -qx * s + qy * c
+        rho = math.sqrt((u / au) ** 2 + (v / av) ** 2)
+        grad = math.sqrt((u / au ** 2) ** 2 + (v / av ** 2) ** 2) / max(rho, 1e-9)
+        out[i] = (rho - 1.0) / max(grad, 1e-9)
+
+
+@njit(cache=True)
+def _masked_median(x, mask):
+    cnt = 0
+    for i in range(len(x)):
+        if mask[i]:
+            cnt += 1
+    y = np.empty(cnt)
+    q = 0
+    for i in range(len(x)):
+        if mask[i]:
+            y[q] = x[i]
+            q += 1
+    return _median(y)
+
+
+@njit(cache=True)
+def robust_outline(px, py, usable, ratio, major_deg, min_share):
+    """As :func:`.edge_fit._robust_ellipse` with a known shape: (ok, cx, cy, d1, d2, keep, rms)."""
+    n = len(px)
+    need = max(min_share * n, 6.0)
+    keep = usable.copy()
+    res = np.empty(n)
+    cx = cy = d1 = d2 = 0.0
+    converged = False
+    for _ in range(3):
+        if keep.sum() < need:
+            return False, 0.0, 0.0, 1.0, 1.0, keep, 0.0
+        cx, cy, d1, d2, ok = fit_outline(px, py, keep, ratio, major_deg)
+        if not ok:
+            return False, 0.0, 0.0, 1.0, 1.0, keep, 0.0
+        ellipse_residuals(px, py, cx, cy, d1, d2, major_deg, res)
+        med = _masked_median(res, keep)
+        dev = np.abs(res - med)
+        scale = max(1.4826 * _masked_median(dev, keep), 0.08)
+        keep_next = usable & (dev < 3.0 * scale)
+        same = True
+        for i in range(n):
+            if keep_next[i] != keep[i]:
+                same = False
+                break
+        if same:
+            converged = True
+            break
+        keep = keep_next
+    if not converged:
+        if keep.sum() < need:
+            return False, 0.0, 0.0, 1.0, 1.0, keep, 0.0
+        cx, cy, d1, d2, ok = fit_outline(px, py, keep, ratio, major_deg)
+        if not ok:
+            return False, 0.0, 0.0, 1.0, 1.0, keep, 0.0
+        ellipse_residuals(px, py, cx, cy, d1, d2, major_deg, res)
+    a = 0.0
+    cnt = 0
+    for i in range(n):
+        if keep[i]:
+            a += res[i] ** 2
+            cnt += 1
+    return True, cx, cy, d1, d2, keep, math.sqrt(a / max(cnt, 1))
+
+
+@njit(cache=True)
+def hidden_arc(px, py, usable, cx, cy, d1, d2, angle_deg, ratio, major_deg, blur_px, window_share, depth_px,
+               depth_per_radius, depth_per_blur, min_share):
+    """As :func:`.edge_fit._hidden_arc`: True when the deepest arc of ``window_share`` of the
+    rays lies inside the outline refitted without it by more than the depth limit."""
+    n = len(px)
+    width = max(4, int(round(window_share * n)))
+    res = np.empty(n)
+    ellipse_residuals(px, py, cx, cy, d1, d2, angle_deg, res)
+    best = np.inf
+    jbest = -1
+    for j in range(n):
+        rs = 0.0
+        ws = 0.0
+        for q in range(width):
+            i = (j + q) % n
+            if usable[i]:
+                rs += res[i]
+                ws += 1.0
+        if ws >= max(3, width // 2):
+            m = rs / max(ws, 1.0)
+            if m < best:
+                best = m
+                jbest = j
+    if jbest < 0:
+        return False
+    window = np.zeros(n, np.bool_)
+    for q in range(width):
+        window[(jbest + q) % n] = True
+    ok, c1x, c1y, e1, e2, _keep, rms1 = robust_outline(px, py, usable & ~window, ratio, major_deg, min_share)
+    if not ok:
+        return False
+    ellipse_residuals(px, py, c1x, c1y, e1, e2, major_deg, res)
+    a = 0.0
+    cnt = 0
+    for i in range(n):
+        if window[i] and usable[i]:
+            a -= res[i]
+            cnt += 1
+    if cnt == 0:
+        return False
+    depth = a / cnt
+    radius = min(e1, e2) / 2.0
+    limit = max(max(depth_px, depth_per_radius * radius), depth_per_blur * blur_px)
+    return depth > limit and depth > 3.0 * rms1 / math.sqrt(cnt)
+
+
+@njit(cache=True)
+def shaped_fits(P, valid, usable, ratio, major_deg, min_share, blur_px, window_share, depth_px, depth_per_radius,
+                depth_per_blur):
+    """:func:`robust_outline` and :func:`hidden_arc` for m balls (padded ``P`` (m, R, 2)):
+    (ok (m,), centre (m, 2), d1 (m,), d2 (m,), keep (m, R), rms (m,), cut (m,))."""
+    m, R, _ = P.shape
+    ok = np.zeros(m, np.bool_)
+    cut = np.zeros(m, np.bool_)
+    centre = np.zeros((m, 2))
+    d1 = np.ones(m)
+    d2 = np.ones(m)
+    rms = np.zeros(m)
+    keep = np.zeros((m, R), np.bool_)
+    for b in range(m):
+        n = 0
+        for i in range(R):
+            if valid[b, i]:
+                n += 1
+        px = P[b, :n, 0].copy()
+        py = P[b, :n, 1].copy()
+        use = usable[b, :n].copy()
+        good, cx, cy, a1, a2, kp, r = robust_outline(px, py, use, ratio[b], major_deg[b], min_share)
+        if not good:
+            continue
+        ok[b] = True
+        centre[b, 0], centre[b, 1], d1[b], d2[b], rms[b] = cx, cy, a1, a2, r
+        keep[b, :n] = kp
+        cut[b] = hidden_arc(px, py, use, cx, cy, a1, a2, major_deg[b], ratio[b], major_deg[b], blur_px,
+                            window_share, depth_px, depth_per_radius, depth_per_blur, min_share - window_share)
+    return ok, centre, d1, d2, keep, rms, cut
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel on a tiny input: call it before the first
+    frame, off the time-critical path (a first compile takes ~10-20 s)."""
+    k = 48
+    prof = np.random.default_rng(0).random((4, k, 3)).astype(np.float32)
+    starts, counts = np.array([0], np.int64), np.array([4], np.int64)
+    ray_edges(prof, prof, starts, counts, np.full(4, 0.3), 1.5, 0.12, True, 0.75, 1.0, 0.5, 2.0, 1.45)
+    ray_edges(prof, prof.copy(), starts, counts, np.full(4, 0.3), 1.5, 0.12, False, 0.75, 1.0, 0.5, 2.0, 1.45)
+    phi = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+    P = np.stack([10 * np.cos(phi), 10 * np.sin(phi)], -1)[None]
+    shaped_fits(P, np.ones((1, 32), np.bool_), np.ones((1, 32), np.bool_), np.ones(1), np.zeros(1), 0.6, 1.5,
+                0.125, 0.3, 0.04, 0.5)

@@ -1,0 +1,99 @@
+"""The compiled edge-fit kernels (edge_kernels) give the NumPy reference's edges, fits and
+refusals (edge_fit.COMPILED = False), on rendered frames and on random balls."""
+
+import numpy as np
+import pytest
+
+from monotracker.sim.camera_sim import SimulatedCamera
+from monotracker.vision import edge_fit
+from monotracker.vision.detect_classical import ClassicalDetector
+from monotracker.vision.detection import BlobRules
+
+from independent_render import Imaging, Occluder, render_in_frame
+
+
+def _ball(rng, n, cut: bool):
+    """Edge points of one ball of a known shape: n rays, noise, some rays unusable, an
+    outlier, and (``cut``) an arc pushed inwards like a chord."""
+    ratio = rng.uniform(0.85, 1.0)
+    major = rng.uniform(-90, 90)
+    r = rng.uniform(4, 25)
+    c = rng.uniform(100, 500, 2)
+    phi = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    t = phi - np.radians(major)
+    rad = 1.0 / np.sqrt((np.cos(t) / (r / ratio)) ** 2 + (np.sin(t) / r) ** 2) + rng.normal(0, 0.15, n)
+    if cut:
+        arc = (np.arange(n) - rng.integers(n)) % n < max(4, n // 6)
+        rad[arc] -= rng.uniform(0.5, 2.0)
+    rad[rng.integers(n)] += 3.0
+    pts = c + rad[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])
+    return pts, rng.random(n) > 0.1, (ratio, major)
+
+
+def _both(fn):
+    old = edge_fit.COMPILED
+    try:
+        edge_fit.COMPILED = True
+        a = fn()
+        edge_fit.COMPILED = False
+        b = fn()
+    finally:
+        edge_fit.COMPILED = old
+    return a, b
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_fits_equal_the_reference(seed):
+    rng = np.random.default_rng(seed)
+    balls = {k: _ball(rng, int(rng.integers(32, 97)), cut=bool(k % 3 == 0)) for k in range(12)}
+    balls[12] = (balls[0][0][:40], np.zeros(40, bool), (0.9, 10.0))          # nothing usable
+    shapes = [b[2] for b in balls.values()]
+    got, ref = _both(lambda: edge_fit._shaped_fits({k: b[:2] for k, b in balls.items()}, shapes, 1.5))
+    n_cut = 0
+    for k in balls:
+        (fa, ca), (fb, cb) = got[k], ref[k]
+        assert (fa is None) == (fb is None)
+        if fa is None:
+            continue
+        assert np.allclose(fa[0][0], fb[0][0], atol=1e-9) and np.allclose(fa[0][1], fb[0][1], atol=1e-9)
+        assert np.array_equal(fa[1], fb[1]) and fa[2] == pytest.approx(fb[2], abs=1e-9)
+        assert ca == cb
+        n_cut += ca
+    assert 1 <= n_cut < len(balls) - 1          # both outcomes of the cut test were seen
+
+
+def _centres(det, images):
+    return [det.detect(img) for img in images]
+
+
+@pytest.mark.parametrize("optics", [None, "photo", "degraded"])
+def test_compiled_detector_finds_the_reference_centres(optics):
+    """Our simulator's frames (sharp, photo-like, degraded): the same balls accepted and rejected
+    (same reasons) and centres within 1e-3 px."""
+    cam = SimulatedCamera(seed=5, optics=optics)
+    images = [cam.render(t)[0] for t in (0.0, 0.7)]
+    got, ref = _both(lambda: _centres(ClassicalDetector(BlobRules(camera=cam.camera)), images))
+    for a, b in zip(got, ref):
+        assert len(a.fiducials) == len(b.fiducials) >= 8
+        assert np.abs(a.centres - b.centres).max() < 1e-3
+        assert sorted(r.reason for r in a.rejected) == sorted(r.reason for r in b.rejected)
+
+
+def test_compiled_edges_equal_the_reference_on_independent_renders():
+    """Balls rendered independently of our simulator (Bayer, defocus, JPEG, occluders): per ray
+    the same usable flags (all but a few rays at a threshold) and the same edges."""
+    rng = np.random.default_rng(11)
+    n_rays = n_diff = 0
+    for q in range(12):
+        imaging = Imaging(defocus_px=1.5, jpeg_quality=85) if q % 2 else Imaging(defocus_px=0.0, jpeg_quality=0)
+        occ = Occluder(depth=0.25) if q % 3 == 0 else None
+        img, c = render_in_frame(rng, imaging, occluder=occ)
+        ell = [((float(c[0]), float(c[1])), (20.0, 19.0), 0.0)]
+        for blur in (1.0, 2.0):
+            a, b = _both(lambda img=img, ell=ell, blur=blur: edge_fit._edge_points(img, ell, blur))
+            (pa, ua), (pb, ub) = a[0], b[0]
+            both = ua & ub
+            n_rays += len(ua)
+            n_diff += int((ua != ub).sum())
+            assert np.abs(pa[both] - pb[both]).max() < 1e-3
+    assert n_diff <= 0.01 * n_rays, (n_diff, n_rays)
