@@ -47,3 +47,17 @@ def cpu_hogs():
 def pytest_report_header(config):
     n = os.environ.get("MONOTRACKER_TEST_HOGS", "").strip()
     return f"MONOTRACKER_TEST_HOGS={n}: CPU hogs beside every test" if n and n != "0" else None
+
+
+@pytest.fixture(scope="session", autouse=True)
+def integrity_key_dir(tmp_path_factory):
+    """Every test (and the processes it starts) uses a private integrity-key folder
+    (``MONOTRACKER_KEY_DIR``, ``engine/integrity.py``), never the user's ``~/.config``."""
+    d = tmp_path_factory.mktemp("integrity-keys")
+    old = os.environ.get("MONOTRACKER_KEY_DIR")
+    os.environ["MONOTRACKER_KEY_DIR"] = str(d)
+    yield d
+    if old is None:
+        os.environ.pop("MONOTRACKER_KEY_DIR", None)
+    else:
+        os.environ["MONOTRACKER_KEY_DIR"] = old

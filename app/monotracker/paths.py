@@ -6,6 +6,9 @@
   the user database, not ``$HOME``: ``sudo`` or a shared ``$HOME`` never makes two users share
   one folder; :func:`default_home`). Created on first use. A running session locks its folder
   (``engine/session_lock.py``).
+* ``key_dir()``: where this machine's integrity key and the audit logs' anchors live, outside
+  every session folder (``engine/integrity.py``): ``$MONOTRACKER_KEY_DIR``, else
+  ``$XDG_CONFIG_HOME/monotracker``, else ``~/.config/monotracker``. Not created here.
 """
 
 from __future__ import annotations
@@ -61,3 +64,12 @@ def data_dir() -> Path:
             raise InputError(f"the default session folder {d} belongs to another user (uid {owner}); "
                              "use your own with --home or MONOTRACKER_HOME")
     return d
+
+
+def key_dir() -> Path:
+    """Folder of the integrity key and audit anchors (see the module docstring); not created."""
+    env = os.environ.get("MONOTRACKER_KEY_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "monotracker"

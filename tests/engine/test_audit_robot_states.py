@@ -8,6 +8,7 @@ safety layer gives each kind of transition (``robot/safety.py``)."""
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import subprocess
 import sys
@@ -143,7 +144,8 @@ def test_verify_names_the_first_state_row_that_does_not_follow(tmp_path):
     assert "goes from holding" in r.reason and "went to tracking" in r.reason and "\n" not in r.reason
     # the command line says the same in one line, exit 1
     p = subprocess.run([sys.executable, "-m", "monotracker", "audit", "verify", str(tmp_path)], capture_output=True,
-                       text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT / "app"), "PATH": "/usr/bin:/bin"})
+                       text=True, cwd=ROOT, env={"PYTHONPATH": str(ROOT / "app"), "PATH": "/usr/bin:/bin",
+                            "MONOTRACKER_KEY_DIR": os.environ["MONOTRACKER_KEY_DIR"]})  # the key the rows were MACed with
     assert p.returncode == 1, p.stdout + p.stderr
     assert "goes from holding" in (p.stdout + p.stderr) and "Traceback" not in p.stderr
 

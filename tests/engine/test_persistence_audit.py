@@ -319,10 +319,14 @@ def test_spilled_rows_are_copied_in_once(tmp_path):
 
     p = tmp_path / "audit.sqlite"
     _filled_log(p)
+    from monotracker.engine.audit import _line_body
+    from monotracker.engine.integrity import IntegrityKey
+
     spill = tmp_path / "audit.spill.jsonl"
-    lines = "".join(json.dumps({"t_unix": 1.0 + i, "t_iso": "x", "t_session": None, "session_id": "old",
-                                "kind": "alert", "level": "alarm", "code": f"spilled{i}", "message": "m",
-                                "data": "{}"}) + "\n" for i in range(2))
+    rows = [{"t_unix": 1.0 + i, "t_iso": "x", "t_session": None, "session_id": "old", "kind": "alert",
+             "level": "alarm", "code": f"spilled{i}", "message": "m", "data": "{}"} for i in range(2)]
+    key = IntegrityKey()  # as the app spills them: each line with this machine's MAC
+    lines = "".join(json.dumps(dict(r, mac=key.mac(_line_body(r)))) + "\n" for r in rows)
     spill.write_text(lines)
     for _ in range(2):  # the second time: as if a crash came between the copy and the rename
         log = AuditLog(p, "s2")

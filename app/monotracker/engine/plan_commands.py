@@ -180,10 +180,16 @@ class PlanCommands:
         if ct_path and not Path(ct_path).exists():
             out.append(("plan_ct_missing", f"the plan's CT {ct_path} is missing"))
         audit = self._audit
+        if audit.tampered:
+            out.append(("audit_tampered", f"audit log {audit.path.name}: {audit.tampered}"))
         if audit.lost:
             out.append(("audit_lost", f"{audit.lost} audit rows were lost"))
         elif audit.open_error or getattr(audit, "_trouble", False):
             out.append(("audit_delayed", f"audit rows are delayed to {audit.spill_path} ({audit.delayed} so far)"))
+        key = audit.key
+        if key is not None and key.problem:
+            out.append(("integrity_key_unavailable", f"{key.problem}: changes outside the app are seen through "
+                        "the audit chain only"))
         return out
 
     def _need_reconfirm(self, code: str, reason: str, data: dict | None = None) -> None:

@@ -187,7 +187,8 @@ log = logging.getLogger(__name__)
 
 PLAN_FILE = "plan.json"
 #: the integrity conditions :meth:`Session.integrity_alarms` derives from the session's state
-INTEGRITY_CODES = ("home_unwritable", "plan_reconfirm_pending", "plan_ct_missing", "audit_lost", "audit_delayed")
+INTEGRITY_CODES = ("home_unwritable", "plan_reconfirm_pending", "plan_ct_missing", "audit_tampered", "audit_lost",
+                   "audit_delayed", "integrity_key_unavailable")
 AUDIT_FILE = "audit.sqlite"
 
 
@@ -254,6 +255,13 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
             self._home_unwritable = unwritable
             self._bus.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: {unwritable}; "
                             "the plan cannot be changed and the audit log goes to a spill file until it is writable")
+        key = self._audit.key  # this machine's integrity key (engine/integrity.py), outside the home
+        if key is not None and key.problem:
+            self._bus.alert("warning", "integrity_key_unavailable", f"{key.problem}: the audit log is protected by "
+                            "its hash chain alone (no MAC, no anchor)")
+        if self._audit.tampered:
+            self._bus.alert("alarm", "audit_tampered", f"audit log {self._audit.path}: {self._audit.tampered} "
+                            "(recorded in the log; `monotracker audit verify` names it)")
         if self._audit.open_error:
             self._bus.alert("alarm", "audit_unavailable", f"audit database {self._audit.path} cannot be opened "
                             f"({self._audit.open_error}); events go to {self._audit.spill_path}")
