@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
-from _hogs import hogs, planned_home  # noqa: E402
+from _hogs import hogs, planned_home
 
 
 def _free_port() -> int:

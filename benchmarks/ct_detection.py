@@ -33,10 +33,10 @@ from scipy.spatial.distance import cdist
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
-from monotracker.ct.fiducials import detect_fiducials, detect_fiducials_paper  # noqa: E402
-from monotracker.ct.volume import Volume  # noqa: E402
-from monotracker.geometry import rotation_about_axis  # noqa: E402
-from monotracker.sim.ct_phantom import (  # noqa: E402
+from monotracker.ct.fiducials import detect_fiducials, detect_fiducials_paper
+from monotracker.ct.volume import Volume
+from monotracker.geometry import rotation_about_axis
+from monotracker.sim.ct_phantom import (
     ScanParams,
     default_direction,
     default_distractors,
@@ -45,7 +45,7 @@ from monotracker.sim.ct_phantom import (  # noqa: E402
     patch_scan_params,
     with_radius,
 )
-from monotracker.sim.phantom import default_phantom  # noqa: E402
+from monotracker.sim.phantom import default_phantom
 
 
 def _score(centres: np.ndarray, truth: np.ndarray, tol: float = 1.0):
@@ -287,7 +287,7 @@ def run_dicom_geometry() -> None:
         return p
 
     z = np.arange(30) * 1.25
-    gap = lambda n: np.r_[z[:12], z[12 + n:]]  # noqa: E731
+    gap = lambda n: np.r_[z[:12], z[12 + n:]]
     reversed_specs = stack_specs(z)
     for k, sp in enumerate(reversed_specs):
         sp.instance = len(z) - k

@@ -37,14 +37,14 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "vision"))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from camera_pipeline import EDGE_R5, EdgeSettings  # noqa: E402
-from independent_render import (FRAME_F_PX, FRAME_K, FRAME_SIZE, Imaging, Occluder, render_ball,  # noqa: E402
+from camera_pipeline import EDGE_R5, EdgeSettings
+from independent_render import (FRAME_F_PX, FRAME_K, FRAME_SIZE, Imaging, Occluder, render_ball,
                                 render_in_frame)
 
-from monotracker.vision import edge_fit  # noqa: E402
-from monotracker.vision.camera_model import CameraModel  # noqa: E402
-from monotracker.vision.detect_classical import ClassicalDetector  # noqa: E402
-from monotracker.vision.detection import BlobRules  # noqa: E402
+from monotracker.vision import edge_fit
+from monotracker.vision.camera_model import CameraModel
+from monotracker.vision.detect_classical import ClassicalDetector
+from monotracker.vision.detection import BlobRules
 
 OCCLUDERS = ("blue glove", "steel", "white gauze", "fair skin", "blue drape", "teal drape")
 

@@ -53,7 +53,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
-from _hogs import planned_home, start_hogs, stop_hogs  # noqa: E402
+from _hogs import planned_home, start_hogs, stop_hogs
 
 LIMIT_S = 0.15
 

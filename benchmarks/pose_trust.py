@@ -37,15 +37,15 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "app"))
 
-from monotracker.geometry import apply_transform  # noqa: E402
-from monotracker.registration import register  # noqa: E402
-from monotracker.registration.report import LEGACY_SIGMA_FLOOR_PX, tre_mm  # noqa: E402
-from monotracker.sim.phantom import default_phantom  # noqa: E402
-from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised, make_scene  # noqa: E402
-from monotracker.vision.camera_model import CameraModel  # noqa: E402
-from monotracker.vision.frames import Frame  # noqa: E402
-from monotracker.vision.point_detector import PointDetector  # noqa: E402
-from monotracker.vision.pose_stream import PoseTracker, TrackerConfig  # noqa: E402
+from monotracker.geometry import apply_transform
+from monotracker.registration import register
+from monotracker.registration.report import LEGACY_SIGMA_FLOOR_PX, tre_mm
+from monotracker.sim.phantom import default_phantom
+from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised, make_scene
+from monotracker.vision.camera_model import CameraModel
+from monotracker.vision.frames import Frame
+from monotracker.vision.point_detector import PointDetector
+from monotracker.vision.pose_stream import PoseTracker, TrackerConfig
 
 PH = default_phantom()
 BLANK = np.zeros((720, 1280, 3), np.uint8)

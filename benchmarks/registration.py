@@ -26,12 +26,12 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "app"))
 
-from monotracker.geometry import rotation_about_axis  # noqa: E402
-from monotracker.registration import register  # noqa: E402
-from monotracker.registration.pnp import refine_pose  # noqa: E402
-from monotracker.registration.projection import undistort_to_normalised  # noqa: E402
-from monotracker.registration.report import tre_mm  # noqa: E402
-from monotracker.sim.scenes import make_scene  # noqa: E402
+from monotracker.geometry import rotation_about_axis
+from monotracker.registration import register
+from monotracker.registration.pnp import refine_pose
+from monotracker.registration.projection import undistort_to_normalised
+from monotracker.registration.report import tre_mm
+from monotracker.sim.scenes import make_scene
 
 SCENARIOS = [
     ("9 clean (0.1 px)", dict(noise_px=0.1), False),

@@ -148,7 +148,7 @@ def target_offset(dp=(0.05, 0.0, 0.0), rot_deg=10.0, axis=(1, 0, 0)):
 
 def errors(log, t_from=0.0):
     e_mm, e_deg, ts = [], [], []
-    for t, q, dq, cmd, st, Tt, *_ in log:
+    for t, q, _dq, _cmd, _st, Tt, *_ in log:
         if t < t_from:
             continue
         T = tip_pose(q)
@@ -256,9 +256,8 @@ def fault(kind, rate, variant="APF-A-II", predict=False):
     if kind == "singular pose":
         qs = kin.Q_READY.copy()
         qs[4] = -0.35
-        T_s = tip_pose(qs)
 
-        def f(t):  # noqa: F811 - drives the wrist through q5 = 0 from t = 1 s
+        def f(t):  # drives the wrist through q5 = 0 from t = 1 s
             q = qs.copy()
             q[4] = -0.35 + min(max(t - 1.0, 0.0), 4.0) * 0.15
             return tip_pose(q)

@@ -22,14 +22,14 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from camera_pipeline import CONDITIONS, _match_centres, condition_camera  # noqa: E402
+from camera_pipeline import CONDITIONS, _match_centres, condition_camera
 
-from monotracker.geometry import apply_transform  # noqa: E402
-from monotracker.sim.phantom import default_phantom  # noqa: E402
-from monotracker.vision.detect_classical import ClassicalDetector  # noqa: E402
-from monotracker.vision.detection import BlobRules  # noqa: E402
-from monotracker.vision.frames import Frame  # noqa: E402
-from monotracker.vision.pose_tracker import PoseTracker  # noqa: E402
+from monotracker.geometry import apply_transform
+from monotracker.sim.phantom import default_phantom
+from monotracker.vision.detect_classical import ClassicalDetector
+from monotracker.vision.detection import BlobRules
+from monotracker.vision.frames import Frame
+from monotracker.vision.pose_tracker import PoseTracker
 
 
 def run(cond: str, n_frames: int, seed: int) -> dict:

@@ -44,7 +44,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "app"))
 
-from _hogs import hogs, planned_home  # noqa: E402
+from _hogs import hogs, planned_home
 
 #: before any page script: remember the Blob behind every object URL (viser shows each frame as
 #: an <img> with a blob: URL), so the probe can read the frame number from the JPEG's comment

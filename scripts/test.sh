@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Installs what the tests need, then runs the whole suite. Extra arguments go to pytest.
+# Installs what the tests need, checks the house rules (ruff, the import contracts: see
+# CONTRIBUTING.md), then runs the whole suite. Extra arguments go to pytest.
 # The web app's end-to-end tests drive Debian's chromium (never a downloaded browser).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -15,4 +16,6 @@ if [ -z "${MONOTRACKER_CHROMIUM:-}" ] && ! [ -x /usr/bin/chromium ] && ! command
   fi
 fi
 bash scripts/setup.sh
+.venv/bin/ruff check --quiet app tests benchmarks examples scripts
+.venv/bin/lint-imports --no-cache --no-logo >/dev/null || .venv/bin/lint-imports --no-cache --no-logo
 exec .venv/bin/python -m pytest "$@"

@@ -49,7 +49,7 @@ def make_sim(tmp_path):
 def _run(make_sim, delay, seconds, **cfg):
     """Track for ``seconds`` with the given delay schedule; returns (session, per-tick records)."""
     rob = FollowerRobotRig()
-    steady_first = lambda t: delay(t) if t >= 1.0 else 0.04  # noqa: E731 - start on a steady stream
+    steady_first = lambda t: delay(t) if t >= 1.0 else 0.04  # start on a steady stream
     s = make_sim(clock="sim", camera_factory=lambda *a: DelayedCameraRig(steady_first, a[4].clock),
                      robot_factory=lambda *a: rob, **cfg)
     plan_sample(s)
@@ -99,7 +99,7 @@ def test_a_flaky_stream_holds_once_instead_of_flapping(make_sim):
 
 
 def test_steady_stream_after_a_single_hiccup_resumes_after_the_dwell(make_sim):
-    delay = lambda t: 0.3 if 2.0 <= t < 2.04 else 0.04  # noqa: E731 - one 300 ms hiccup at 2 s
+    delay = lambda t: 0.3 if 2.0 <= t < 2.04 else 0.04  # one 300 ms hiccup at 2 s
     s, ticks = _run(make_sim, delay, 4.0)
     holding = [tk[0] for tk in ticks if tk[1] == "holding"]
     assert holding, "the hiccup must hold the arm"
@@ -114,7 +114,7 @@ def test_snapshot_says_stale_whenever_the_engine_holds_for_staleness(make_sim):
     s, ticks = _run(make_sim, _hiccups(0.7), 6.0)
     stale_ticks = [tk for tk in ticks if tk[5] == "pose_stale"]
     assert stale_ticks
-    for *_, pose, code, _ in stale_ticks:
+    for *_, pose, _code, _ in stale_ticks:
         assert pose.stale and not pose.trusted and pose.reason.startswith("pose stale")
     for *_, pose, code, _ in ticks:
         if code is None:

@@ -81,7 +81,7 @@ def test_tracks_the_breathing_head_to_sub_millimetre(make_session):
 
 
 def test_occlusion_below_four_fiducials_holds_and_resumes(make_session):
-    visible = lambda t: 3 if 1.0 <= t < 1.5 else 9  # noqa: E731
+    visible = lambda t: 3 if 1.0 <= t < 1.5 else 9
     s, cam, rob = _tracking_session(make_session, "still", visible)
     events = []
     s.subscribe(events.append)

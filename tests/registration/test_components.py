@@ -129,7 +129,7 @@ def test_report_fields_and_predicted_tre_is_calibrated():
     trues = {i: j for i, j in base.truth_pairs}
     target = base.targets_ct[0]
     errs, preds = [], []
-    for k in range(40):
+    for _k in range(40):
         pts = base.image_points + rng.normal(scale=1.0, size=base.image_points.shape)
         r = register(base.fiducials_ct, pts, base.K, None)
         assert r.ok and all(trues[i] == j for i, j in r.pairs)

@@ -100,7 +100,7 @@ def test_estop_racing_an_auto_resume_stays_latched():
     assert fired
     assert rig.tracker.state.value == "estopped"
     safety.target_fresh = real_fresh
-    n = arm_cmds = rig.arm.commands
+    n = rig.arm.commands
     rig.run(0.2, T)
     assert rig.tracker.state.value == "estopped" and rig.arm.commands == n
 

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from monotracker.errors import MonoTrackerError
 from monotracker.geometry import invert_transform
 from monotracker.robot import kinematics as kin
 from monotracker.robot.lie import adjoint, exp6, log6
@@ -76,7 +77,7 @@ def test_needle_tool_and_urdf():
     t = kin.NeedleTool(length_m=0.25)
     assert t.T_tool0_tip[2, 3] == pytest.approx(0.25)
     assert t.T_tool0_mid[2, 3] == pytest.approx(0.125)
-    with pytest.raises(Exception):
+    with pytest.raises(MonoTrackerError, match="needle length"):
         kin.NeedleTool(length_m=-1)
     # the ready pose: tool pointing down, ~0.5-0.7 m from the base
     T = kin.fk(kin.Q_READY) @ t.T_tool0_tip

@@ -174,7 +174,7 @@ def test_filter_divides_the_jitter_that_a_finite_difference_amplifies():
         e_last.append(np.linalg.norm(T[:3, 3] - true_now))
         v = (T[:3, 3] - poses[i - 1][:3, 3]) / (s - stamps[i - 1])
         e_fd.append(np.linalg.norm(T[:3, 3] + v * 0.06 - true_now))
-    rms = lambda e: float(np.sqrt(np.mean(np.square(e))))  # noqa: E731
+    rms = lambda e: float(np.sqrt(np.mean(np.square(e))))
     assert rms(e_kf) < 0.5 * rms(e_last) and rms(e_kf) < 0.4 * rms(e_fd)
     assert rms(e_kf) < 0.35e-3
 
@@ -210,7 +210,7 @@ def test_a_new_measurement_moves_the_prediction_without_a_step():
     smooth, raw = TargetPredictor(), TargetPredictor(blend_s=0.0)
     steps_s, steps_r, late = [], [], []
     prev_s = prev_r = None
-    for i, (s, T) in enumerate(zip(stamps, poses)):
+    for _i, (s, T) in enumerate(zip(stamps, poses)):
         smooth.update(T, s)
         raw.update(T, s)
         for k in range(4):  # 125 Hz control cycles until the next frame

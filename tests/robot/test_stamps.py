@@ -22,7 +22,7 @@ def test_resent_frame_does_not_count_as_fresh():
     stamp = rig.clock()
     cfg = rig.tracker.safety.cfg
     held_at = None
-    for i in range(int(0.3 * RATE)):
+    for _i in range(int(0.3 * RATE)):
         rig.tracker.set_target(to_mm(T), stamp)
         rig.tracker.step()
         if held_at is None and rig.tracker.state.value == "holding":

@@ -4,7 +4,9 @@ docs/img/ui_navigation_<step>_<size>.jpg.
 
     .venv/bin/python tests/ui/make_screenshots.py   (from the repository root; needs chromium)
 """
-import sys, tempfile, time
+import sys
+import tempfile
+import time
 from pathlib import Path
 sys.path.insert(0, "tests/ui")
 from conftest import display_browser_path, CHROMIUM_ARGS, free_port

@@ -199,7 +199,7 @@ def test_calibration_step_in_browser(served, browser, artifacts, tmp_path):
         with arm._lock:
             arm.true_q = q.copy()
             arm.true_dq = np.zeros(6)
-        _wait(lambda: np.allclose(robot.status().q, q), what="arm moved")
+        _wait(lambda q=q: np.allclose(robot.status().q, q), what="arm moved")
         T_cam_board = invert_transform(T_bc) @ tip() @ T_tb
         corners = np.array([[0, 0, 0], [(PATTERN[0] + 1) * SQUARE, 0, 0], [0, (PATTERN[1] + 1) * SQUARE, 0],
                             [(PATTERN[0] + 1) * SQUARE, (PATTERN[1] + 1) * SQUARE, 0]]) - SQUARE

@@ -44,7 +44,7 @@ def test_gate_lockout_expiry_logout():
     clock, rows, alarms = FakeClock(), [], []
     gate = LoginGate(PASSWORD, ttl_s=60.0, max_tries=3, lockout_s=30.0, clock=clock,
                      audit=lambda c, m, lvl: rows.append((c, m)), lockout=lambda s, m: alarms.append(s))
-    for k in range(2):
+    for _k in range(2):
         r, tok = gate.try_login("nope", "10.0.0.9")
         assert not r.ok and tok is None and "wrong password" in r.message
     r, tok = gate.try_login("nope", "10.0.0.9")

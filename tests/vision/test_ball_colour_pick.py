@@ -202,7 +202,6 @@ def test_the_click_learns_from_the_shown_frame_never_a_newer_one(live, monkeypat
     img_a, idx_a, _ = live.latest_frame()
     H, W = img_a.shape[:2]
     k, (x, y) = _ball_far_from_the_corner(rig._last_frame.truth)
-    before = rig.tracker.detector.colour
     assert picker.start()
     node = view.scene.nodes[-1]
 

@@ -23,7 +23,7 @@ def board_images():
     rays = TRUE.pixel_rays(2)
     rng = np.random.default_rng(7)
     imgs = []
-    for i in range(12):
+    for _i in range(12):
         ax = rng.normal(size=3)
         R = rotation_about_axis(ax, np.radians(rng.uniform(10, 35)))
         centre = np.array([(PATTERN[0] - 1) * SQUARE / 2, (PATTERN[1] - 1) * SQUARE / 2, 0])
@@ -87,7 +87,7 @@ def test_charuco_calibration():
     rays = TRUE.pixel_rays(2)
     rng = np.random.default_rng(3)
     imgs = []
-    for i in range(8):
+    for _i in range(8):
         R = rotation_about_axis(rng.normal(size=3), np.radians(rng.uniform(10, 30)))
         centre = np.array([squares[0] * sq / 2 + 10, squares[1] * sq / 2 + 10, 0])
         t = np.array([rng.uniform(-40, 40), rng.uniform(-30, 30), rng.uniform(380, 480)]) - R @ centre

@@ -75,7 +75,7 @@ def test_watchdog_detects_frozen_camera_within_three_frames():
     cam = SimulatedCamera(freeze_at_frame=4, seed=1)
     wd = FrameWatchdog()
     reasons = []
-    for i in range(8):
+    for _i in range(8):
         reasons.append(wd.feed(cam.read()))
     assert all(r == "" for r in reasons[:5])  # frames 0..4 differ (frame 4 is the last new one)
     assert "frozen" in reasons[6]             # frame 6 = 2nd repeat: 67 ms at 30 fps

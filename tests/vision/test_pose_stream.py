@@ -1,7 +1,6 @@
 """Pose stream against the simulator's truth: accuracy, occlusion alerts, gates, camera faults."""
 
 import threading
-import time
 
 import numpy as np
 

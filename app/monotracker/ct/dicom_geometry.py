@@ -72,7 +72,7 @@ def _check_geometry(slices: list[_Slice], what: str) -> _Geometry:
     if len(acqs) > 1:
         ranges = [(dd[[s.acquisition == a for s in slices]].min(), dd[[s.acquisition == a for s in slices]].max()) for a in acqs]
         ranges.sort()
-        for (a0, a1), (b0, b1) in zip(ranges, ranges[1:]):
+        for (_a0, a1), (b0, _b1) in zip(ranges, ranges[1:]):
             if b0 < a1 - POS_ATOL_MM:
                 raise InputError(
                     f"{what} holds {len(acqs)} acquisitions (AcquisitionNumber {', '.join(acqs[:4])}) that overlap in space; "

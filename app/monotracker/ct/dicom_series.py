@@ -41,7 +41,7 @@ from monotracker.ct.dicom_geometry import (  # noqa: F401 - public constants kep
     SPACING_RTOL,
     _check_geometry,
 )
-from monotracker.ct.dicom_headers import (  # noqa: F401 - _files used by volume.py
+from monotracker.ct.dicom_headers import (  # _files used by volume.py
     _files,
     _group_headers,
     _image_type,

@@ -55,7 +55,7 @@ def fit_blurred_sphere(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_sc
         return m - values
 
     def jac(p):
-        c, r, s, H, b = p[:3], p[3], p[4], p[5], p[6]
+        s, H, b = p[4], p[5], p[6]
         _, fill, (dist, rel, u, sF) = _sphere_model(p, pts, M)
         g = -_INV_SQRT_PI * np.exp(-u * u)  # d fill / d u
         du_ddist = 1.0 / (_SQRT2 * sF)

@@ -283,7 +283,7 @@ class AuditLog:
             rows = [r for r, _ in batch]
             try:
                 self._write(rows)
-            except Exception:  # noqa: BLE001 - the writer must survive anything
+            except Exception:  # the writer must survive anything
                 log.exception("audit writer failed")
                 self._spill(rows, "internal error in the audit writer")
             for _, done in batch:
@@ -489,7 +489,7 @@ class AuditLog:
         if cb is not None:
             try:
                 cb(level, code, message, data)
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("audit problem callback failed")
 
     def flush(self, timeout: float = 5.0) -> bool:

@@ -142,7 +142,7 @@ class IntrinsicsJob:
                 return self._report(False, found)
             obj, img = found
             diag = float(np.hypot(*size))
-            for o2, i2 in self.views:
+            for _o2, i2 in self.views:
                 if len(i2) == len(img) and np.mean(np.linalg.norm(i2 - img, axis=1)) < self.min_shift_frac * diag:
                     return self._report(False, "too close to a view already taken: move or tilt the board")
             self.image_size = size

@@ -232,7 +232,7 @@ class CTCommands:
             token.check()
         except JobCancelled:
             return
-        except Exception as exc:  # noqa: BLE001 - report, never kill the engine
+        except Exception as exc:  # report, never kill the engine
             log.exception("fiducial detection failed")
             self._set_job(1.0, "detection failed", f"internal error: {type(exc).__name__}: {exc}", True, token)
             self._bus.alert("alarm", "ct_failed", f"fiducial detection failed: {type(exc).__name__}: {exc}")
@@ -350,7 +350,7 @@ class CTCommands:
             self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT could not be used: {exc}", {"path": path})
             return
-        except Exception as exc:  # noqa: BLE001 - report, never kill the engine
+        except Exception as exc:  # report, never kill the engine
             if token.cancelled:
                 return
             log.exception("CT job failed")

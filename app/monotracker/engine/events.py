@@ -114,7 +114,7 @@ class EventBus:
         if self._sink is not None:
             try:
                 self._sink(ev)
-            except Exception:  # noqa: BLE001 - a failing disk must not stop the control loop
+            except Exception:  # a failing disk must not stop the control loop
                 log.exception("audit sink failed for %s", code)
         if self._thread is not None:
             self._queue.put(ev)
@@ -140,7 +140,7 @@ class EventBus:
         for cb in subs:
             try:
                 cb(ev)
-            except Exception:  # noqa: BLE001 - a broken subscriber must not break the engine
+            except Exception:  # a broken subscriber must not break the engine
                 log.exception("event subscriber failed on %s", ev.code)
 
     # ------------------------------------------------------------------ dispatcher thread

@@ -161,7 +161,7 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
         for fn in self._pose_hooks:
             try:
                 fn(self, sample, trusted, now)
-            except Exception:  # noqa: BLE001 - recording/streaming must never hold the arm
+            except Exception:  # recording/streaming must never hold the arm
                 log.exception("pose hook failed")
 
     def target(self) -> tuple:

@@ -100,7 +100,7 @@ class LoopClocks:
                     if st.t_command is not None and st.t_command >= self._pending_latency_set_at:
                         self.after_command(st.t_command)
                 self.s._alarm_board.clear("engine_error", now)
-            except Exception:  # noqa: BLE001 - the loop must survive; hold the arm and report
+            except Exception:  # the loop must survive; hold the arm and report
                 log.exception("engine loop iteration failed")
                 self._on_iteration_error()
             if woke is not None:
@@ -114,12 +114,12 @@ class LoopClocks:
         exception can never leave the arm following the last target; the loop thread survives."""
         try:
             self._hold("engine_error", "internal engine error; arm holding (see log)")
-        except Exception:  # noqa: BLE001 - last resort, must not kill the engine thread
+        except Exception:  # last resort, must not kill the engine thread
             log.exception("holding after an engine error failed; stopping tracking")
             try:
                 if self.robot is not None:
                     self.robot.stop_tracking()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("stop_tracking after an engine error failed")
 
     def shutdown(self) -> None:

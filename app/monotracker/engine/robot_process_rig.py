@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 class ProcessRobotRig(TrackerRobotRig):
     """Same interface and states as :class:`TrackerRobotRig`; the tracker runs in a child."""
 
-    def __init__(self, cfg, session, opts: dict | None = None):  # noqa: D401 - no super().__init__: no local tracker
+    def __init__(self, cfg, session, opts: dict | None = None):  # no super().__init__: no local tracker
         from monotracker.robot.control_process import ControlProcess, ControlProcessError
         from monotracker.robot.kinematics import Kinematics, NeedleTool
 
@@ -178,5 +178,5 @@ class ProcessRobotRig(TrackerRobotRig):
                                "seq": payload.get("seq"), "t_control": payload.get("t")})
             elif kind == "warning":
                 self.s.alert("warning", "robot_warning", str(payload))
-        except Exception:  # noqa: BLE001
+        except Exception:
             log.exception("robot event forwarding failed")

@@ -101,7 +101,7 @@ class TrackerRobotRig(RobotRig):
                                                     "reason": payload.reason, "seq": payload.seq})
             elif kind == "warning":
                 self.s.alert("warning", "robot_warning", str(payload))
-        except Exception:  # noqa: BLE001
+        except Exception:
             log.exception("robot event forwarding failed")
 
     # ------------------------------------------------------------------ commands
@@ -169,7 +169,7 @@ class TrackerRobotRig(RobotRig):
             self._head_ct = (np.asarray(fit.centre_mm, float), float(fit.radius_mm))
             self.s.record("head_sphere", f"head obstacle: sphere of radius {fit.radius_mm:.0f} mm fitted to "
                           f"the fiducials ({fit.reason})", {"centre_ct_mm": fit.centre_mm, "radius_mm": fit.radius_mm})
-        except Exception:  # noqa: BLE001 - the obstacle is an aid, not a precondition
+        except Exception:  # the obstacle is an aid, not a precondition
             log.exception("head sphere setup failed")
 
     # ------------------------------------------------------------------ control
@@ -193,7 +193,7 @@ class TrackerRobotRig(RobotRig):
         finally:
             try:
                 self.tracker.arm_backend.disconnect()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("arm disconnect failed")
 
     def status(self) -> RobotStatus:

@@ -172,7 +172,7 @@ class _SimRig(CameraRig):
         if self.on_priority is not None:
             try:
                 self.on_priority(self.priority)
-            except Exception:  # noqa: BLE001 - a report must never stop the camera
+            except Exception:  # a report must never stop the camera
                 log.exception("reporting the pipeline priority failed")
         period = 1.0 / self.fps
         t_next = self.clock()
@@ -225,7 +225,7 @@ class _SimRig(CameraRig):
                 c2 = time.thread_time()
                 smp = self.estimate(frame)
                 w3, c3 = self.clock(), time.thread_time()
-            except Exception as exc:  # noqa: BLE001 - the camera thread must outlive a bad frame
+            except Exception as exc:  # the camera thread must outlive a bad frame
                 # No frame is published, so the engine's freeze watchdog holds the arm; the
                 # thread keeps capturing so that the camera comes back by itself.
                 log.exception("simulated camera: frame failed")

@@ -86,7 +86,7 @@ class StreamRig(CameraRig):
             src = replay if kind == "replay" else open_source(int(arg) if kind == "device" else arg)
         except MonoTrackerError:
             raise
-        except Exception as exc:  # noqa: BLE001 - a camera that will not open is an operator problem
+        except Exception as exc:  # a camera that will not open is an operator problem
             raise MonoTrackerError(f"cannot open camera {source}: {exc}") from exc
         if getattr(src, "compression", ""):
             advice = ("choose an uncompressed format (e.g. YUYV) or JPEG quality >= 95 if the frame rate allows"

@@ -87,7 +87,7 @@ def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
     cost = r @ r
     converged = False
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 - the count is reported after the loop
         JtJ = J.T @ J
         g = J.T @ r
         improved = False

@@ -74,7 +74,7 @@ class Arm(ABC):
         (running, or a backend without such a program). Never raises."""
         return None
 
-    def recover(self) -> None:
+    def recover(self) -> None:  # noqa: B027 - optional: a backend without a control program has nothing to restart
         """Restart the arm's control program after :meth:`program_fault` (operator's reset only;
         the tracker never calls it while armed). Raises :class:`ArmError` (one line) when it
         cannot, e.g. a protective stop still to be cleared on the pendant. Default: nothing to do."""

@@ -134,7 +134,7 @@ class _Child:
                 else:
                     res = (False, f"unknown control command {name!r}")
                 ok, reason = (res.ok, res.reason) if hasattr(res, "ok") else res
-            except Exception as exc:  # noqa: BLE001 - a command never kills the control process
+            except Exception as exc:  # a command never kills the control process
                 log.exception("control command %s failed", name)
                 ok, reason = False, f"{name} failed: {type(exc).__name__}: {exc}"
             self._publish(self.clock())  # the reply's effect is visible once the reply arrives
@@ -271,7 +271,7 @@ class _Child:
             self._apply_target(t_start)
             tr.step(t_start)
             self._note_still(t_start)
-        except Exception as exc:  # noqa: BLE001 - step() catches loop errors; last guard
+        except Exception as exc:  # step() catches loop errors; last guard
             log.exception("control process error")
             tr.estop(f"internal error in control process: {type(exc).__name__}: {exc}")
         self.cycles += 1
@@ -295,7 +295,7 @@ class _Child:
         true_dq = self.sim_arm.true_dq if self.sim_arm is not None else snap.dq
         try:
             tr.disconnect()
-        except Exception:  # noqa: BLE001
+        except Exception:
             log.exception("arm disconnect failed")
         report = {"reason": self.exit_reason, "state": tr.state.value,
                   "last_transition": tr.safety.history[-1].reason if tr.safety.history else "",

@@ -178,7 +178,7 @@ class ControlProcess:
                 if self.on_event is not None:
                     try:
                         self.on_event(msg[1], msg[2])
-                    except Exception:  # noqa: BLE001
+                    except Exception:
                         log.exception("control event callback failed")
             elif kind == "ready":
                 self._ready_msg = msg

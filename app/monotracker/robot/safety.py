@@ -157,7 +157,7 @@ class SafetyLayer:
         if self.on_transition:
             try:
                 self.on_transition(tr)
-            except Exception:  # noqa: BLE001 - a broken listener must not break safety
+            except Exception:  # a broken listener must not break safety
                 log.exception("transition callback failed")
         return tr
 

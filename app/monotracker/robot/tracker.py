@@ -39,7 +39,7 @@ from monotracker.robot.arm import Arm, ArmError, ArmProgramStopped
 from monotracker.robot.head import Corridor, HeadSphere
 from monotracker.robot.kinematics import Kinematics, NeedleTool, manipulability
 from monotracker.robot.pacing import run_paced
-from monotracker.robot.prediction import TargetPredictor  # noqa: F401  (re-exported: its old home)
+from monotracker.robot.prediction import TargetPredictor  # re-exported: its old home
 from monotracker.robot.safety import SafetyConfig, SafetyLayer, State, Transition
 from monotracker.robot.tracker_snapshot import CommandResult, TrackerSnapshot  # their old home: here
 from monotracker.robot.units import m_to_mm, mm_to_m, transform_m_to_mm, transform_mm_to_m
@@ -118,7 +118,7 @@ class Tracker:
         if self.on_event:
             try:
                 self.on_event("transition", tr)
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("tracker event callback failed")
 
     def _emit_warnings(self) -> None:
@@ -128,7 +128,7 @@ class Tracker:
             if self.on_event:
                 try:
                     self.on_event("warning", w)
-                except Exception:  # noqa: BLE001
+                except Exception:
                     log.exception("tracker event callback failed")
 
     @property
@@ -242,7 +242,7 @@ class Tracker:
                     log.info("arm control program restarted on reset (was: %s)", fault)
             except ArmError as exc:
                 return CommandResult(False, f"reset refused: {exc}")
-            except Exception as exc:  # noqa: BLE001 - never a traceback to the operator
+            except Exception as exc:  # never a traceback to the operator
                 log.exception("arm recovery failed")
                 return CommandResult(False, f"reset refused: arm recovery failed ({type(exc).__name__}: {exc})")
             self._program_fault = None
@@ -324,7 +324,7 @@ class Tracker:
     def _stop_arm(self, decel: float) -> None:
         try:
             self.arm_backend.stop(decel)
-        except Exception:  # noqa: BLE001 - stopping must never raise
+        except Exception:  # stopping must never raise
             log.exception("arm stop failed")
 
     def _stop_decel(self) -> float:
@@ -397,7 +397,7 @@ class Tracker:
                     connected = bool(self.arm_backend.is_connected())
                 except Exception:  # noqa: BLE001
                     connected = False
-            except Exception as exc:  # noqa: BLE001 - any fault in the loop stops the arm
+            except Exception as exc:  # any fault in the loop stops the arm
                 log.exception("control loop error")
                 self.safety.estop(now, f"internal error in control loop: {type(exc).__name__}: {exc}")
                 self._stop_arm(self.safety.cfg.estop_decel)
@@ -466,7 +466,7 @@ class Tracker:
     def _thread_cycle(self, t_start: float) -> None:
         try:
             self.step()
-        except Exception as exc:  # noqa: BLE001 - step() catches loop errors; this is the last guard
+        except Exception as exc:  # step() catches loop errors; this is the last guard
             log.exception("tracker thread error")
             with self._lock:
                 self.safety.estop(self.clock(), f"internal error in tracker thread: {type(exc).__name__}: {exc}")

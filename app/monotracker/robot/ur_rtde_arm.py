@@ -122,7 +122,7 @@ class URRTDEArm(Arm):
                 if name == "control":
                     obj.stopScript()
                 obj.disconnect()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("UR %s disconnect failed", name)
 
     def is_connected(self) -> bool:
@@ -314,7 +314,7 @@ def read_joint_state(host: str, rate_hz: float = 125.0, receive_factory=None, cl
         if recv is not None:
             try:
                 recv.disconnect()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("UR receive disconnect failed")
     if q.shape != (6,) or dq.shape != (6,) or not (np.all(np.isfinite(q)) and np.all(np.isfinite(dq))):
         raise ArmError(f"UR at {host}: unexpected joint state {q}")

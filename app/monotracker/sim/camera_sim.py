@@ -357,7 +357,7 @@ class SimulatedCamera(RayGeometry, FrameSource):
         label = None
         if with_mask:
             label = np.zeros((h, w), np.float32)
-            for k, (roi, cov) in cov_store.items():
+            for roi, cov in cov_store.values():
                 y0, y1, x0, x1 = roi
                 label[y0:y1, x0:x1] = np.maximum(label[y0:y1, x0:x1], cov)
             for st in active:

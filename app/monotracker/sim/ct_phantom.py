@@ -180,7 +180,6 @@ def fiducial_centres(phantom: HeadPhantom, params: ScanParams) -> np.ndarray:
     c = phantom.fiducial_centres_lps
     if not params.fiducial_embed_mm:
         return c
-    n = c - phantom.centre_lps
     out = []
     for ci in c:
         _, nrm = phantom.skin_point(ci - phantom.centre_lps)

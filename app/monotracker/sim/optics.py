@@ -169,7 +169,7 @@ def drape_background(optics: Optics, shape_hw: tuple[int, int], rng: np.random.G
     out[:] = colours[0]
     if len(colours) > 1:
         # seams: lines through random points; each side takes the next colour
-        for k, col in enumerate(colours[1:]):
+        for _k, col in enumerate(colours[1:]):
             ang = rng.uniform(0, np.pi)
             p = rng.uniform([0.15 * w, 0.15 * h], [0.85 * w, 0.85 * h])
             side = (xx - p[0]) * np.sin(ang) - (yy - p[1]) * np.cos(ang) > 0

@@ -106,7 +106,7 @@ class MonoTrackerApp:
             self.proxy.stop()
         try:
             self.server.stop()
-        except Exception:  # noqa: BLE001
+        except Exception:
             log.debug("viser stop failed", exc_info=True)
 
     @property
@@ -126,7 +126,7 @@ class MonoTrackerApp:
         protect_client(client)
         try:
             view = ClientView(self, client)
-        except Exception:  # noqa: BLE001 - a tab that closes while its page is built
+        except Exception:  # a tab that closes while its page is built
             log.exception("building the page for client %s failed", client.client_id)
             return
         with self._lock:
@@ -160,9 +160,9 @@ class MonoTrackerApp:
                 for view in self.views():
                     try:
                         view.render(snap)
-                    except Exception:  # noqa: BLE001 - keep the other tabs alive; the log has the traceback
+                    except Exception:  # keep the other tabs alive; the log has the traceback
                         log.exception("render failed for client %s", view.client_id)
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("render failed")
             self._redraw.wait(max(0.01, period - (time.monotonic() - t0)))
 
@@ -196,7 +196,7 @@ class MonoTrackerApp:
                 last_index = index
                 t_last = time.monotonic()
                 self.push_frame(image, est, self.shown_snapshot(), watching)
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.exception("overlay failed")
                 self._stop.wait(0.2)
 

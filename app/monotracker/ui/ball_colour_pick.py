@@ -150,7 +150,7 @@ class BallColourPicker:
         """Learn at (x, y) of the frame that was shown (``image``, ``frame_index``), never of a
         newer one: the session learns from that image."""
         session = self.view.session
-        fn = lambda x, y: session.learn_ball_colour(x, y, frame=image, frame_index=frame_index)  # noqa: E731
+        fn = lambda x, y: session.learn_ball_colour(x, y, frame=image, frame_index=frame_index)
         return self._learn(fn, x_px, y_px)
 
     def learn_at(self, x_px: float, y_px: float):

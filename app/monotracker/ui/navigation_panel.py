@@ -190,7 +190,7 @@ class NavigationScene:
             t0 = time.monotonic()
             try:
                 self._render_once()
-            except Exception:  # noqa: BLE001 - one tab's view; the log has the traceback
+            except Exception:  # one tab's view; the log has the traceback
                 log.exception("navigation render failed for client %s", self.view.client_id)
             self._stop.wait(max(0.0, period - (time.monotonic() - t0)))
 
@@ -224,7 +224,7 @@ class NavigationScene:
         except Exception:  # noqa: BLE001 - no camera message from the browser yet
             aspect = 1.5
         cols, rows = grid(len(views), aspect)
-        r2 = lambda a: None if a is None else tuple(np.round(np.asarray(a, float), 2))  # noqa: E731
+        r2 = lambda a: None if a is None else tuple(np.round(np.asarray(a, float), 2))
         key = (gen, panel.key, r2(np_.point), r2(np_.tip_axis), np_.source, r2(e), r2(t), width, level, cols,
                tuple((f.id, f.status, r2(f.centre_lps_mm)) for f in snap.fiducials))
         with self._lock:

@@ -257,7 +257,7 @@ class LoginProxy:
         self._loop = loop
         try:
             loop.run_until_complete(self._main())
-        except BaseException as exc:  # noqa: BLE001 - reported to start() or logged
+        except BaseException as exc:  # reported to start() or logged
             if not self._ready.is_set():
                 self._error = exc
                 self._ready.set()
@@ -302,7 +302,7 @@ class LoginProxy:
                 self.gate.sync_alarm()
                 for token in [t for t in self._sockets if not self.gate.valid(t)]:
                     await self._close_session_sockets(token, "session ended: log in again")
-            except Exception:  # noqa: BLE001 - the sweep must go on
+            except Exception:  # the sweep must go on
                 log.exception("login sweep failed")
 
     async def _close_session_sockets(self, token: str, why: str) -> None:

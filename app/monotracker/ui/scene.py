@@ -125,7 +125,7 @@ class SceneView:
                 client.camera.up_direction = up
                 client.camera.position = tuple(pos)
                 client.camera.look_at = tuple(look)
-        except Exception:  # noqa: BLE001
+        except Exception:
             log.debug("aim failed", exc_info=True)
 
     # ------------------------------------------------------------------ render
@@ -292,6 +292,6 @@ class SceneView:
                 if r is not None and r.ok:
                     view.say(True, f"Target set halfway through the head under the pointer ({p[0]:.1f}, "
                                    f"{p[1]:.1f}, {p[2]:.1f}) mm: check the depth on the slices")
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             log.exception("click failed")
             view.say(False, f"Click: internal error ({type(exc).__name__}: {exc})")

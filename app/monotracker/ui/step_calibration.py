@@ -162,7 +162,7 @@ class CalibrationStep:
             ok, text = fn()
         except (InputError, MonoTrackerError, OSError, ValueError) as exc:
             ok, text = False, str(exc)
-        except Exception as exc:  # noqa: BLE001 - the operator sees one line, the log the traceback
+        except Exception as exc:  # the operator sees one line, the log the traceback
             log.exception("calibration %s failed", what)
             ok, text = False, f"internal error ({type(exc).__name__}: {exc})"
         self.view.say(ok, f"{what}: {text}")

@@ -140,7 +140,7 @@ class ClientView:
         """Call one session command, show its result on this tab; never lets an exception escape."""
         try:
             r = fn(*args)
-        except Exception as exc:  # noqa: BLE001 - the operator sees one line, the log the traceback
+        except Exception as exc:  # the operator sees one line, the log the traceback
             log.exception("command %s failed", what)
             self.say(False, f"{what}: internal error ({type(exc).__name__}: {exc})")
             return None
@@ -160,7 +160,7 @@ class ClientView:
             def cb(event):
                 try:
                     return fn(event)
-                except Exception as exc:  # noqa: BLE001
+                except Exception as exc:
                     log.exception("callback %s failed", what)
                     self.say(False, f"{what}: internal error ({type(exc).__name__}: {exc})")
                     return None
@@ -263,7 +263,7 @@ class ClientView:
         self.nav_scene.close()
         try:
             self.app.session.release_control(self.client_id)
-        except Exception:  # noqa: BLE001
+        except Exception:
             log.exception("release control failed")
 
     def wall_time(self, snap, t_session: float) -> float:

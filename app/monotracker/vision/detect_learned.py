@@ -143,7 +143,7 @@ def _ring_blobs(mask: np.ndarray) -> list:
     if hierarchy is None:
         return []
     out = []
-    for i, (nxt, prev, child, parent) in enumerate(hierarchy[0]):
+    for i, (_nxt, _prev, child, parent) in enumerate(hierarchy[0]):
         if parent != -1 or child == -1:
             continue
         area = cv2.contourArea(contours[i])

@@ -130,7 +130,7 @@ class PoseStream:
             if self._thread.is_alive() and self.close_source:
                 try:
                     self.source.close()
-                except Exception:  # noqa: BLE001
+                except Exception:
                     log.exception("closing the frame source failed")
         for t in (self._thread, self._monitor):
             if t is not None:
@@ -138,7 +138,7 @@ class PoseStream:
         if self.close_source:
             try:
                 self.source.close()
-            except Exception:  # noqa: BLE001 - closing a dead camera must not raise at shutdown
+            except Exception:  # closing a dead camera must not raise at shutdown
                 log.exception("closing the frame source failed")
 
     def __enter__(self):
@@ -157,7 +157,7 @@ class PoseStream:
         for cb in subs:
             try:
                 cb(est)
-            except Exception:  # noqa: BLE001 - a broken subscriber must not kill tracking
+            except Exception:  # a broken subscriber must not kill tracking
                 log.exception("pose stream subscriber failed")
 
     def _fault_estimate(self, camera: str, reason: str) -> None:
@@ -204,7 +204,7 @@ class PoseStream:
                 self.camera_state = "ok"
             try:
                 est = self.tracker.process(frame)
-            except Exception as exc:  # noqa: BLE001 - report, keep the stream alive
+            except Exception as exc:  # report, keep the stream alive
                 log.exception("pose tracking failed on frame %d", frame.index)
                 est = PoseEstimate(False, f"internal error: {type(exc).__name__}: {exc}", frame.index,
                                    frame.t_capture, time.monotonic(), alerts=[f"internal error: {exc}"],

@@ -34,15 +34,15 @@ OUTPUT_SCALE = 0.25
 
 def make_dataset(n_frames: int, seed: int):
     """(images (n, 3, H/2, W/2) float32 RGB [0, 1], labels (n, 1, H/2, W/2) float32, centres list)."""
-    from monotracker.geometry import invert_transform, look_at, make_transform, rotation_about_axis
-    from monotracker.sim.camera_sim import SceneEvents, SimulatedCamera, Stray, random_events
+    from monotracker.geometry import invert_transform, look_at, rotation_about_axis
+    from monotracker.sim.camera_sim import SimulatedCamera, Stray, random_events
 
     rng = np.random.default_rng(seed)
     cam = SimulatedCamera(seed=seed)
     ph = cam.phantom
     patch = cam.fiducials_ct.mean(0)
     xs, ys, cents = [], [], []
-    for i in range(n_frames):
+    for _i in range(n_frames):
         # random viewpoint around the view direction
         ax = rng.normal(size=3)
         R = rotation_about_axis(ax, np.radians(rng.uniform(0, 20)))
