@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from monotracker.engine.demo import DemoOptions, run_demo
-from monotracker.engine.target import tip_and_axis_error
+from monotracker.robot.targets import tip_and_axis_error
 from monotracker.sim.or_layout import default_layout
 
 

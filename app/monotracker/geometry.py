@@ -58,3 +58,12 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle (deg) of the relative rotation ``R_a^T R_b``."""
     c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def pose_jump(T_a: np.ndarray, T_b: np.ndarray, about_ct: np.ndarray) -> tuple[float, float]:
+    """How far two estimates of ``T_cam_ct`` disagree: (mm at the CT point ``about_ct``, deg)."""
+    pa = apply_transform(T_a, about_ct)
+    pb = apply_transform(T_b, about_ct)
+    Ra, Rb = np.asarray(T_a)[:3, :3], np.asarray(T_b)[:3, :3]
+    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
+    return float(np.linalg.norm(pa - pb)), float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))

@@ -15,7 +15,7 @@ import pytest
 
 from monotracker.engine import Session, SessionConfig
 from monotracker.engine.demo import DemoOptions, run_demo
-from monotracker.engine.target import tip_and_axis_error
+from monotracker.robot.targets import tip_and_axis_error
 
 ROOT = Path(__file__).resolve().parents[2]
 # waits on a state (a job done, a child exited), never a guess at speed: generous enough for a

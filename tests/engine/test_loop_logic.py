@@ -6,7 +6,7 @@ test_digital_twin.py."""
 import numpy as np
 
 from monotracker.engine.gate import PoseGate
-from monotracker.engine.target import needle_target, tip_and_axis_error
+from monotracker.robot.targets import needle_target, tip_and_axis_error
 from monotracker.geometry import apply_transform, make_transform, rotation_about_axis
 from monotracker.sim.or_layout import default_layout
 from monotracker.sim.phantom import default_phantom

@@ -232,7 +232,7 @@ def test_a_new_measurement_moves_the_prediction_without_a_step():
 
 def _roll_follows_the_arm(predictor):
     """The engine's target takes its roll about the needle axis from the arm's current tip
-    (``engine/target.py``: no needless wrist spin). A head moving at 15 mm/s with 0.1 deg of
+    (``robot/targets.py``: no needless wrist spin). A head moving at 15 mm/s with 0.1 deg of
     pose jitter, 30 fps, 50 ms latency; returns the largest wrist-3 speed (rad/s) after 1 s."""
     from monotracker.robot import kinematics as kin
     from monotracker.robot.targets import align_roll

@@ -108,7 +108,7 @@ class _Recorder:
         self.tracking_since = None
 
     def __call__(self, loop, t: float) -> None:
-        from monotracker.engine.target import tip_and_axis_error
+        from monotracker.robot.targets import tip_and_axis_error
 
         rig, rob = loop.rig, loop.robot
         T_base_ct = rig.truth_T_base_ct(t) if rig is not None else None

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monotracker.engine.target import pose_jump
+from monotracker.geometry import pose_jump
 
 
 @dataclass(frozen=True)

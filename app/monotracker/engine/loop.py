@@ -43,7 +43,6 @@ from monotracker.engine.loop_camera import CameraCommands
 from monotracker.engine.loop_clocks import LoopClocks
 from monotracker.engine.loop_robot import RobotCommands
 from monotracker.engine.loop_summaries import LoopSummaries
-from monotracker.engine.target import needle_target
 
 log = logging.getLogger(__name__)
 
@@ -257,6 +256,8 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             ref_R = st.T_base_tip[:3, :3]
         elif self._target_T is not None:
             ref_R = self._target_T[:3, :3]
+        from monotracker.robot.targets import needle_target
+
         T = needle_target(plan.T_base_cam, sample.T_cam_ct, plan.entry_lps_mm, plan.target_lps_mm, ref_R)
         with self._lock:
             self._target_T, self._target_stamp = T, sample.t_capture

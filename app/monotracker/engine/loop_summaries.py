@@ -12,7 +12,6 @@ from monotracker.engine.snapshot import (
     SceneGeometry,
     frozen_array,
 )
-from monotracker.engine.target import tip_and_axis_error
 
 
 class LoopSummaries:
@@ -64,6 +63,8 @@ class LoopSummaries:
             st = self.robot.status()
             q, T_tip, speed = st.q, st.T_base_tip, st.speed_mm_s
             if T_tip is not None and T_base_ct is not None and plan.path_complete:
+                from monotracker.robot.targets import tip_and_axis_error
+
                 tip_err, ang_err = tip_and_axis_error(T_tip, T_base_ct, plan.entry_lps_mm, plan.target_lps_mm)
             robot = RobotSummary(st.state, frozen_array(q), tip_err, ang_err, float(speed), st.connected,
                                  st.message if st.program_fault else (self._holding_reason or st.message), lat,

@@ -108,7 +108,7 @@ class ORLayout:
 
     def planned_needle_pose(self, t_motion=None, t: float = 0.0) -> np.ndarray:
         """The needle target (tip at entry, +z along the path) in the base for the true head pose."""
-        from monotracker.engine.target import needle_target
+        from monotracker.robot.targets import needle_target
 
         T_cam_ct = self.T_cam_ct0 if t_motion is None else self.T_cam_ct(t_motion, t)
         ph = self.phantom

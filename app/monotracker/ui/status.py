@@ -13,6 +13,18 @@ from __future__ import annotations
 import html
 import time
 
+#: docked panel widths (px) for a compact screen (1280x800: the canvas keeps 480-540 px between
+#: the panels, enough for the 3D head or the navigation slices) and a wide one (>= 1700 px).
+PANEL_PX = {"status": 330, "steps": 440, "steps_live": 480}
+PANEL_PX_WIDE = {"status": 360, "steps": 470, "steps_live": 640}
+WIDE_PX = (1650, 1750)  # viewport widths (px) to switch to compact below / to wide above (hysteresis)
+
+
+def fmt(v, unit="", nd=1) -> str:
+    """A number with its unit, or '-' for None."""
+    return "-" if v is None else f"{v:.{nd}f}{unit}"
+
+
 STATE_STYLE = {
     "disarmed": ("#5f6b76", "DISARMED", "robot will not move"),
     "armed": ("#d9730d", "ARMED", "ready to track"),

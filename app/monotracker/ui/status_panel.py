@@ -24,7 +24,7 @@ import logging
 
 from monotracker.ui import status as st
 from monotracker.ui.pin_pad import PinPad
-from monotracker.ui.view import PANEL_PX
+from monotracker.ui.status import PANEL_PX
 
 log = logging.getLogger(__name__)
 

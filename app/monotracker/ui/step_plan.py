@@ -12,7 +12,7 @@ import numpy as np
 from monotracker.engine.plan import distance_segment_to_points_mm
 from monotracker.ui.navigation_panel import NavigationPanel
 from monotracker.ui.slice_panel import SlicePanel
-from monotracker.ui.view import fmt
+from monotracker.ui.status import fmt
 
 CLICK_MODES_PLAN = ("set entry", "set target", "nothing")
 

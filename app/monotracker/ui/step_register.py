@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from monotracker.ui import status as st
-from monotracker.ui.view import fmt
+from monotracker.ui.status import fmt
 
 CAMERA_SOURCES = ("sim", "sim-points", "device:0", "file:PATH", "folder:PATH")
 FAULTS_UI = ("none", "occlude-all", "camera-freeze", "bad-pose", "robot-disconnect")

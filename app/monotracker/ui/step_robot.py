@@ -11,7 +11,7 @@ from monotracker.ui import plots
 from monotracker.ui import status as st
 from monotracker.ui.navigation_panel import NavigationPanel
 from monotracker.ui.pin_pad import PinPad
-from monotracker.ui.view import fmt
+from monotracker.ui.status import fmt
 
 
 PLOT_PERIOD_S = 0.5

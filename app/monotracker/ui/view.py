@@ -19,6 +19,7 @@ import threading
 import time
 
 from monotracker.ui import status as st
+from monotracker.ui.status import PANEL_PX, PANEL_PX_WIDE, WIDE_PX
 
 log = logging.getLogger(__name__)
 
@@ -26,11 +27,6 @@ VIEW_STEPS = ("ct", "plan", "register", "robot")
 STEP_LABELS = {"ct": "1 CT", "plan": "2 Plan", "register": "3 Register", "robot": "4 Robot"}
 LABEL_STEPS = {v: k for k, v in STEP_LABELS.items()}
 LIVE_STEPS = ("register", "robot", "calibration")  # steps whose page shows the live camera overlay
-#: docked panel widths (px) for a compact screen (1280x800: the canvas keeps 480-540 px between
-#: the panels, enough for the 3D head or the navigation slices) and a wide one (>= 1700 px).
-PANEL_PX = {"status": 330, "steps": 440, "steps_live": 480}
-PANEL_PX_WIDE = {"status": 360, "steps": 470, "steps_live": 640}
-WIDE_PX = (1650, 1750)  # viewport widths (px) to switch to compact below / to wide above (hysteresis)
 
 
 #: on a compact page the state block's words shrink a little so they fit the narrower status panel
@@ -49,11 +45,6 @@ def is_wide(viewport_px: float | None, wide_now: bool) -> bool:
     if viewport_px is None:
         return wide_now
     return viewport_px >= WIDE_PX[0] if wide_now else viewport_px >= WIDE_PX[1]
-
-
-def fmt(v, unit="", nd=1) -> str:
-    """A number with its unit, or '-' for None."""
-    return "-" if v is None else f"{v:.{nd}f}{unit}"
 
 
 def first_message(snap, notice: str | None) -> tuple[bool, str]:
