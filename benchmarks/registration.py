@@ -1,6 +1,6 @@
 """Registration benchmark: correctness, accuracy and speed of every method on synthetic scenes.
 
-Run:  PYTHONPATH=app /work/main/.venv/bin/python benchmarks/registration.py [--quick] [--seed S]
+Run:  PYTHONPATH=app .venv/bin/python benchmarks/registration.py [--quick] [--seed S]
 
 Scenes come from :mod:`monotracker.sim.scenes` (camera 0.4-0.7 m, f = 1100 px, 1280 x 720,
 OpenCV distortion, the phantom's 9 fiducials unless said otherwise). Columns:

@@ -30,6 +30,7 @@ from monotracker.errors import MonoTrackerError
 COMMAND_MODULES: tuple[str, ...] = (
     "monotracker.ct.commands",
     "monotracker.vision.commands",
+    "monotracker.sim.commands",
     "monotracker.robot.commands",
     "monotracker.engine.commands",
     "monotracker.ui.commands",

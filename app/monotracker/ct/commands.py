@@ -1,4 +1,4 @@
-"""CLI sub-commands of the CT area: ``detect-ct`` and ``make-sample-data``."""
+"""CLI sub-command of the CT area: ``detect-ct`` (``make-sample-data`` is the digital twin's: ``sim/commands.py``)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import contextlib
 import json
 import os
 import sys
-from pathlib import Path
 
 from monotracker.errors import InputError
 
@@ -26,14 +25,6 @@ def register(subparsers) -> None:
     p.add_argument("--list-series", action="store_true", help="list the DICOM series of the folder (uid, description, slices, spacing, tilt) and stop")
     p.add_argument("--baseline", action="store_true", help="use the paper's recipe (threshold + DBSCAN + centroid) instead")
     p.set_defaults(func=_detect_ct)
-
-    m = subparsers.add_parser(
-        "make-sample-data",
-        help="regenerate the synthetic head phantom CT and its ground truth",
-        description="Write phantom_ct.nii.gz and phantom_truth.json (deterministic).",
-    )
-    m.add_argument("--out", default=None, metavar="DIR", help="output folder (default: the repo's sample_data/)")
-    m.set_defaults(func=_make_sample_data)
 
 
 def _detect_ct(args: argparse.Namespace) -> int:
@@ -134,13 +125,3 @@ def format_detection(det, vol) -> str:
         lines.append(f"rejected blob at ({c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}): {r.reason}")
     lines += [f"note: {n}" for n in det.notes]
     return "\n".join(lines)
-
-
-def _make_sample_data(args: argparse.Namespace) -> int:
-    from monotracker.paths import sample_data_dir
-    from monotracker.sim.ct_phantom import make_sample_ct
-
-    out = Path(args.out) if args.out else sample_data_dir()
-    ct_path, truth_path = make_sample_ct(out)
-    print(f"wrote {ct_path} ({ct_path.stat().st_size / 1e6:.1f} MB) and {truth_path}")
-    return 0

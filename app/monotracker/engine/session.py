@@ -1,6 +1,6 @@
 """One surgical session: the engine that the web app and the headless demo both drive.
 
-Public API (the engine <-> UI contract; /work/wt/SESSION_API.md, refined here)::
+Public API (the engine <-> UI contract)::
 
     from monotracker.engine import Session, SessionConfig
 
@@ -119,11 +119,6 @@ detected points (no rendering), ``"device:N" | "file:PATH" | "folder:PATH"`` rea
 vision's PoseStream (clock="real"; pass the calibration file to ``set_camera``). Per-fiducial
 statuses in ``snap.pose.fiducial_status`` use vision's words: ``"seen" | "newly_lost" |
 "occluded" | "unknown"``, keyed by fiducial id.
-
-Differences from SESSION_API.md (refinements, same shape): ``clock``/``advance`` for the
-simulated-clock demo; ``unlock_fiducials``, ``new_plan``, ``use_sample_plan``, ``set_hand_eye``,
-``inject_fault``, ``audit_entries``; ``snap.scene`` carries the geometry for the 3D views; alerts
-are :class:`~monotracker.engine.events.Event` objects (with ``kind == "alert"``).
 
 Threading: every public method may be called from any thread (viser callbacks). State lives
 behind one re-entrant lock; methods hold it only for bookkeeping and for the plan's atomic save

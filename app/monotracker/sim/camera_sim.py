@@ -198,6 +198,16 @@ class SimulatedCamera(RayGeometry, FrameSource):
         return pos, neg
 
     # ------------------------------------------------------------------ geometry helpers
+    def pose_tracker(self):
+        """A :class:`~monotracker.vision.pose_tracker.PoseTracker` for this camera's phantom (its
+        fiducial centres, LPS mm, ball radius and sample target) and calibration: what
+        :class:`~monotracker.vision.pose_stream.PoseStream` uses when given no tracker."""
+        from monotracker.vision.pose_tracker import PoseTracker
+
+        ph = self.phantom
+        return PoseTracker(ph.fiducial_centres_lps, self.camera, radius_mm=ph.fiducial_radius_mm,
+                           target_ct=ph.sample_target_lps)
+
     def T_cam_ct_at(self, t: float) -> np.ndarray:
         """True CT-to-camera transform at simulated time ``t`` (s), with the camera's own motion
         (``camera_motion``, a fault) when it moved."""

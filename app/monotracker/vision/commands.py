@@ -10,8 +10,8 @@
   [--adapt bin:N|crop:X,Y,W,H]] [--annotate out.png] [--json]``: detects the fiducial balls in one
   image; with ``--camera`` an image whose size differs from the calibration is refused (one line)
   unless ``--adapt`` says the sensor was binned or cropped.
-* ``simulate-camera --out DIR [--frames 30] [--trajectory mixed] [--events]``: writes simulated
-  frames (PNG) and their ground truth (JSON), e.g. to try ``detect-image`` or a folder source.
+
+``simulate-camera`` (simulated frames to try these on) is the digital twin's: ``sim/commands.py``.
 """
 
 from __future__ import annotations
@@ -55,14 +55,6 @@ def register(subparsers) -> None:
     d.add_argument("--annotate", default=None, help="write an annotated copy of the image here")
     d.add_argument("--json", action="store_true", help="print JSON instead of a table")
     d.set_defaults(func=_detect)
-
-    s = subparsers.add_parser("simulate-camera", help="write simulated camera frames + ground truth")
-    s.add_argument("--out", required=True, help="output folder")
-    s.add_argument("--frames", type=int, default=30)
-    s.add_argument("--trajectory", default="mixed", help="still, drift, breathing, jumps or mixed")
-    s.add_argument("--events", action="store_true", help="add occlusions, stray blobs and lighting changes")
-    s.add_argument("--seed", type=int, default=0)
-    s.set_defaults(func=_simulate)
 
 
 def _calibrate(args) -> int:
@@ -170,31 +162,4 @@ def _detect(args) -> int:
             cv2.drawMarker(out, c, (0, 200, 255), cv2.MARKER_TILTED_CROSS, 10)
         if not cv2.imwrite(args.annotate, out):
             raise InputError(f"cannot write {args.annotate}")
-    return 0
-
-
-def _simulate(args) -> int:
-    import cv2
-
-    from monotracker.sim.camera_sim import SimulatedCamera, random_events
-    from monotracker.sim.trajectories import make_trajectory
-
-    if args.frames < 1:
-        raise InputError("--frames must be at least 1")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    cam = SimulatedCamera(trajectory=make_trajectory(args.trajectory, seed=args.seed), seed=args.seed,
-                          max_frames=args.frames)
-    if args.events:
-        cam.events = random_events(args.frames / cam.fps, cam.rest_projection(), seed=args.seed)
-    cam.camera.save(out / "camera.yml")
-    truth = []
-    for f in cam:
-        cv2.imwrite(str(out / f"frame_{f.index:05d}.png"), f.image)
-        tr = f.truth
-        truth.append({"index": f.index, "t_s": tr.t_s, "T_cam_ct": tr.T_cam_ct.round(6).tolist(),
-                      "ellipse_centres_px": tr.ellipse_centres_px.round(4).tolist(),
-                      "visible": tr.visible.tolist()})
-    (out / "truth.json").write_text(json.dumps(truth))
-    print(f"wrote {args.frames} frames, camera.yml and truth.json to {out}")
     return 0

@@ -1,6 +1,6 @@
 """Learned fiducial detector: a tiny segmentation network (ONNX, onnxruntime) + the shared blob analysis.
 
-The network (trained by :mod:`monotracker.vision.train_segmenter` on simulated frames, shipped
+The network (trained by :mod:`monotracker.sim.train_segmenter` on simulated frames, shipped
 as ``static/fiducial_seg.onnx``) takes the image at half resolution and returns a ball
 probability at quarter resolution. The probability is upsampled bilinearly to full
 resolution and thresholded at ``threshold``; the resulting blobs go through the same shape
@@ -63,7 +63,7 @@ class LearnedDetector:
         path = Path(self.model_path or default_model_path())
         if not path.is_file():
             raise InputError(f"segmentation model not found: {path} (train it with "
-                             "python -m monotracker.vision.train_segmenter)")
+                             "python -m monotracker.sim.train_segmenter)")
         so = ort.SessionOptions()
         so.intra_op_num_threads = self.threads
         so.log_severity_level = 3

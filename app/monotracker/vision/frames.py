@@ -305,13 +305,10 @@ class ImageFolderSource(FrameSource):
         return img
 
 
-def open_source(spec: str | int | None = None, **kwargs) -> FrameSource:
-    """Open a source from a user spec: ``None``/"sim" -> SimulatedCamera (default), an integer
-    or digit string -> camera device, a folder -> ImageFolderSource, a file -> VideoFileSource."""
-    if spec is None or spec == "sim":
-        from monotracker.sim.camera_sim import SimulatedCamera
-
-        return SimulatedCamera(**kwargs)
+def open_source(spec: str | int, **kwargs) -> FrameSource:
+    """Open a real source from a user spec: an integer or digit string -> camera device, a folder
+    -> ImageFolderSource, a file -> VideoFileSource. (The simulated camera is the digital twin's,
+    ``monotracker.sim.camera_sim.SimulatedCamera``: vision knows nothing of the simulator.)"""
     if isinstance(spec, int) or (isinstance(spec, str) and spec.isdigit()):
         return OpenCVCamera(int(spec), **kwargs)
     p = Path(spec)

@@ -47,32 +47,24 @@ class PoseStream:
     source's last state ("ok", "frozen", "stalled", "disconnected", "ended").
 
     Args:
-        source: any :class:`FrameSource` (camera, video file, image folder, replay); None is a
-            realtime :class:`~monotracker.sim.camera_sim.SimulatedCamera`.
-        tracker: the :class:`PoseTracker`; None builds one for the default phantom and the
-            source's ``camera`` (only possible for sources that carry their calibration).
+        source: any :class:`FrameSource` (camera, video file, image folder, replay, the
+            digital twin's simulated camera).
+        tracker: the :class:`PoseTracker`; None asks the source for one (``source.pose_tracker()``:
+            a source that knows its scene, as the simulated camera knows its phantom).
         watchdog: freeze / stall detection (:class:`FrameWatchdog`); defaults when None.
         close_source: close ``source`` in :meth:`stop`.
 
     Raises:
-        MonoTrackerError: ``tracker`` is None and the source carries no camera calibration.
+        MonoTrackerError: ``tracker`` is None and the source cannot make one.
     """
 
-    def __init__(self, source: FrameSource | None = None, tracker: PoseTracker | None = None,
+    def __init__(self, source: FrameSource, tracker: PoseTracker | None = None,
                  watchdog: FrameWatchdog | None = None, close_source: bool = True):
-        if source is None:
-            from monotracker.sim.camera_sim import SimulatedCamera
-
-            source = SimulatedCamera(realtime=True)
         if tracker is None:
-            from monotracker.sim.phantom import default_phantom
-
-            cam = getattr(source, "camera", None)
-            if cam is None:
-                raise MonoTrackerError("PoseStream needs a tracker with the camera calibration for a real camera")
-            ph = default_phantom()
-            tracker = PoseTracker(ph.fiducial_centres_lps, cam, radius_mm=ph.fiducial_radius_mm,
-                                  target_ct=ph.sample_target_lps)
+            make = getattr(source, "pose_tracker", None)
+            if make is None:
+                raise MonoTrackerError("PoseStream needs a tracker (fiducials and camera calibration) for this source")
+            tracker = make()
         self.source = source
         self.tracker = tracker
         self.watchdog = watchdog or FrameWatchdog()

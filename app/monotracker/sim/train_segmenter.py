@@ -2,8 +2,8 @@
 
 Offline tool (needs CPU PyTorch, which is NOT a runtime dependency):
 
-    /work/main/.venv/bin/pip install torch==2.13.0
-    PYTHONPATH=app python -m monotracker.vision.train_segmenter --out static/fiducial_seg.onnx
+    .venv/bin/pip install torch==2.13.0
+    PYTHONPATH=app python -m monotracker.sim.train_segmenter --out static/fiducial_seg.onnx
 
 Data: frames of :class:`~monotracker.sim.camera_sim.SimulatedCamera` with random head poses
 (+-20 deg, 420-680 mm), random occluders, many stray green blobs (round ones too), lighting
