@@ -18,88 +18,135 @@ when a condition holds and :meth:`clear` when it is over, as often as they like)
   most one per ``quiet_s`` (10 s); the episodes in between are counted (``Alarm.count``) and the
   next report says how many went unreported (:meth:`unreported`).
 
-Codes, levels and priorities are in :data:`CATALOGUE` (0 = most important). ``set`` may raise the
-level for one episode (a pose condition is an ``"alarm"`` while the arm follows the head, a
-``"warning"`` otherwise). Times are session-clock seconds.
+Codes, levels, priorities and every flag are rows of :data:`CATALOGUE` (0 = most important):
+adding a condition is adding a row. ``set`` may raise the level for one episode (a pose
+condition is an ``"alarm"`` while the arm follows the head, a ``"warning"`` otherwise). Times are
+session-clock seconds.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass
 
 from monotracker.engine.snapshot import Alarm
 
+log = logging.getLogger(__name__)
+_UNLISTED_SEEN: set[str] = set()
+
 
 @dataclass(frozen=True)
 class AlarmKind:
-    level: str  # default level: "alarm" | "warning" | "info"
-    priority: int  # 0 = most important
-    technical: bool = False  # rate-limited reports (one per quiet_s)
-    linger_s: float = 1.0  # shown at least this long after the last set
+    """One row of the catalogue: everything the engine decides about a condition, in one place.
+
+    ``level``: ``"alarm" | "warning" | "info"``, of its board entry and of every alert raised with
+    its code (the event bus takes it from here). ``priority``: 0 = most important.
+    ``technical``: reports (alerts) rate-limited to one per ``quiet_s``. ``linger_s``: shown at
+    least this long after it was last set. ``holds_arm``: a pose condition: the arm holds while it
+    stands, one at a time, raised to ``"alarm"`` while the arm follows the head.
+    ``freshness``: the pose stream stopped being fresh; resuming from it waits ``resume_dwell_s``.
+    ``camera_setup``: a condition of the running camera's setup, raised by its rig as it starts
+    and shown while that camera runs. ``pulse``: shown for its linger time from each report (it
+    has no end of its own). ``derived``: the session derives it from its state at every snapshot.
+    ``verdict``: the trust verdict's code for it where that differs (``GateVerdict.code``).
+    """
+
+    level: str
+    priority: int
+    technical: bool = False
+    linger_s: float = 1.0
+    holds_arm: bool = False
+    freshness: bool = False
+    camera_setup: bool = False
+    pulse: bool = False
+    derived: bool = False
+    verdict: str = ""
 
 
-#: every code the board knows; unknown codes are shown as technical warnings at priority 90
+_HOLD = {"holds_arm": True}
+#: every code that reaches the board (``tests/engine/test_alarm_catalogue.py`` fails on a code
+#: without a row). A code the board does not know is shown as an alarm right under the e-stop and
+#: logged as an error: never hidden, never rate-limited.
 CATALOGUE: dict[str, AlarmKind] = {
     # safety: the arm and what it follows
     "estop": AlarmKind("alarm", 0, linger_s=0.0),
     # STOP signalled but the robot's controller did not confirm it: use the robot's own e-stop
     "estop_unconfirmed": AlarmKind("alarm", 0, linger_s=0.0),
     "robot_disconnected": AlarmKind("alarm", 1, linger_s=0.0),
-    "engine_error": AlarmKind("alarm", 2, linger_s=2.0),
-    "pose_lost": AlarmKind("warning", 3),  # the estimator failed
-    "bad_pose": AlarmKind("warning", 3),  # FRE too large
-    "pose_jump": AlarmKind("warning", 3),  # pose disagrees with the last trusted one
-    "occlusion": AlarmKind("warning", 4),
-    "camera_freeze": AlarmKind("alarm", 5),
+    "engine_error": AlarmKind("alarm", 2, linger_s=2.0, **_HOLD),
+    "pose_lost": AlarmKind("warning", 3, verdict="estimator", **_HOLD),  # the estimator failed
+    "bad_pose": AlarmKind("warning", 3, verdict="fre", **_HOLD),  # FRE too large
+    "pose_jump": AlarmKind("warning", 3, verdict="jump", **_HOLD),  # pose disagrees with the last trusted one
+    "occlusion": AlarmKind("warning", 4, **_HOLD),
+    "camera_freeze": AlarmKind("alarm", 5, freshness=True, **_HOLD),
     "camera_failed": AlarmKind("alarm", 5, linger_s=0.0),
-    "camera_stopped": AlarmKind("warning", 6, linger_s=0.0),
-    "camera_disconnected": AlarmKind("alarm", 5, linger_s=0.0),
-    "camera_ended": AlarmKind("warning", 6, linger_s=0.0),
-    "frame_size": AlarmKind("alarm", 5, linger_s=0.0),  # frames do not match the calibration
-    "frame_grayscale": AlarmKind("alarm", 5, linger_s=0.0),  # a monochrome camera or grayscale files
-    "frame_unreadable": AlarmKind("warning", 6),
-    "tre_limit": AlarmKind("warning", 3),  # predicted error at the target over the limit
-    "weak_geometry": AlarmKind("warning", 3),
-    "pose_implausible": AlarmKind("warning", 3),
-    "fiducial_moved": AlarmKind("alarm", 3, linger_s=0.0),
-    "pose_stale": AlarmKind("warning", 7, technical=True),
+    "camera_stopped": AlarmKind("warning", 6, linger_s=0.0, **_HOLD),
+    "camera_disconnected": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),
+    "camera_ended": AlarmKind("warning", 6, linger_s=0.0, **_HOLD),
+    "frame_size": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),  # frames do not match the calibration
+    "frame_grayscale": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),  # a monochrome camera or grayscale files
+    "frame_unreadable": AlarmKind("warning", 6, **_HOLD),
+    "tre_limit": AlarmKind("warning", 3, **_HOLD),  # predicted error at the target over the limit
+    "weak_geometry": AlarmKind("warning", 3, **_HOLD),
+    "pose_implausible": AlarmKind("warning", 3, **_HOLD),
+    "fiducial_moved": AlarmKind("warning", 3, linger_s=0.0),
+    "pose_stale": AlarmKind("warning", 7, technical=True, freshness=True, **_HOLD),
     "plan_save_failed": AlarmKind("alarm", 8, linger_s=0.0),
-    "pin_lockout": AlarmKind("warning", 9, linger_s=0.0),
-    "login_lockout": AlarmKind("warning", 9, linger_s=0.0),  # the web login (--allow-remote) refused wrong passwords
+    "pin_lockout": AlarmKind("alarm", 9, linger_s=0.0),
+    "login_lockout": AlarmKind("alarm", 9, linger_s=0.0),  # the web login (--allow-remote) refused wrong passwords
     # the saved session: nothing reported as done that is not on disk, edits outside the app
-    "home_unwritable": AlarmKind("alarm", 8, linger_s=0.0),
+    "home_unwritable": AlarmKind("alarm", 8, linger_s=0.0, derived=True),
     "audit_unavailable": AlarmKind("alarm", 10, linger_s=0.0),
-    "audit_delayed": AlarmKind("warning", 11, linger_s=0.0),
-    "audit_lost": AlarmKind("alarm", 10, linger_s=0.0),
-    "audit_tampered": AlarmKind("alarm", 10, linger_s=0.0),  # the log no longer matches its anchor (engine/audit.py)
-    "integrity_key_unavailable": AlarmKind("warning", 11, linger_s=0.0),  # no MAC / anchor (engine/integrity.py)
-    "plan_ct_missing": AlarmKind("alarm", 12, linger_s=0.0),
+    "audit_delayed": AlarmKind("alarm", 11, linger_s=0.0, derived=True),
+    "audit_lost": AlarmKind("alarm", 10, linger_s=0.0, derived=True),
+    # the log no longer matches its anchor (engine/audit.py)
+    "audit_tampered": AlarmKind("alarm", 10, linger_s=0.0, derived=True),
+    # no MAC / anchor (engine/integrity.py)
+    "integrity_key_unavailable": AlarmKind("warning", 11, linger_s=0.0, derived=True),
+    "plan_ct_missing": AlarmKind("alarm", 12, linger_s=0.0, derived=True),
     "plan_ct_changed": AlarmKind("alarm", 12, linger_s=0.0),
     "calibration_changed": AlarmKind("alarm", 12, linger_s=0.0),
     "plan_changed_outside": AlarmKind("alarm", 12, linger_s=0.0),
-    "plan_reconfirm_pending": AlarmKind("alarm", 12, linger_s=0.0),
+    "plan_reconfirm_pending": AlarmKind("alarm", 12, linger_s=0.0, derived=True),
     "plan_field_rejected": AlarmKind("alarm", 13, linger_s=0.0),
     "session_unlocked": AlarmKind("warning", 14, linger_s=0.0),  # the session folder could not be locked
     # technical
-    "loop_overrun": AlarmKind("warning", 20, technical=True, linger_s=10.0),
-    "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0),
-    "camera_uncalibrated": AlarmKind("warning", 22, linger_s=0.0),
-    "camera_compressed": AlarmKind("warning", 22, linger_s=0.0),  # frames through JPEG/lossy video
-    "colour_clash": AlarmKind("warning", 22, linger_s=0.0),  # a drape of the balls' hue: learn the colour
-    "plan_unreadable": AlarmKind("warning", 23, linger_s=0.0),
-    "ct_failed": AlarmKind("warning", 24, linger_s=0.0),
-    "acquiring": AlarmKind("info", 30, technical=True),
+    "loop_overrun": AlarmKind("warning", 20, technical=True, linger_s=10.0, pulse=True),
+    "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0, pulse=True),
+    "camera_uncalibrated": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),
+    "camera_compressed": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),  # frames through JPEG/lossy video
+    "colour_clash": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),  # a drape of the balls' hue
+    "plan_unreadable": AlarmKind("alarm", 23, linger_s=0.0),
+    "ct_failed": AlarmKind("alarm", 24, linger_s=0.0),
+    "acquiring": AlarmKind("info", 30, technical=True, **_HOLD),
 }
-_UNKNOWN = AlarmKind("warning", 90, technical=True)
+_UNKNOWN = AlarmKind("alarm", 1, linger_s=0.0)
+
+
+def _codes(flag: str) -> tuple[str, ...]:
+    return tuple(code for code, kind in CATALOGUE.items() if getattr(kind, flag))
+
+
 #: the conditions under which the arm holds for the pose (one at a time)
-POSE_CODES = ("pose_lost", "bad_pose", "pose_jump", "occlusion", "acquiring", "pose_stale", "camera_freeze",
-              "camera_stopped", "engine_error", "camera_disconnected", "camera_ended", "frame_size",
-              "frame_grayscale", "frame_unreadable", "tre_limit", "weak_geometry", "pose_implausible")
+POSE_CODES = _codes("holds_arm")
 #: holds about a pose stream that stopped being fresh; resuming from them needs resume_dwell_s
-FRESHNESS_CODES = ("pose_stale", "camera_freeze")
+FRESHNESS_CODES = _codes("freshness")
 #: conditions of the running camera's setup: raised by its rig as it starts, shown while it runs
-CAMERA_SETUP_CODES = ("camera_uncalibrated", "camera_compressed", "colour_clash")
+CAMERA_SETUP_CODES = _codes("camera_setup")
+#: conditions the session derives from its state (folder writable, re-confirmation, CT, audit)
+DERIVED_CODES = _codes("derived")
+#: the trust verdict's code -> the condition's code
+VERDICT_CODES = {kind.verdict: code for code, kind in CATALOGUE.items() if kind.verdict}
+
+
+def level_of(code: str, level: str) -> str:
+    """The level an alert with ``code`` carries: its catalogue row's, else ``level`` (alerts that
+    are history only: ``resumed``, ``fiducials_lost``, ...)."""
+    kind = CATALOGUE.get(code)
+    return level if kind is None else kind.level
+
+
 LEVEL_RANK = {"alarm": 0, "warning": 1, "info": 2}
 
 
@@ -128,7 +175,13 @@ class AlarmBoard:
 
     @staticmethod
     def kind(code: str) -> AlarmKind:
-        return CATALOGUE.get(code, _UNKNOWN)
+        kind = CATALOGUE.get(code)
+        if kind is None:
+            if code not in _UNLISTED_SEEN:
+                _UNLISTED_SEEN.add(code)
+                log.error("alarm code %r has no row in alarms.CATALOGUE: shown as an alarm", code)
+            return _UNKNOWN
+        return kind
 
     def set(self, code: str, message: str, now: float, level: str | None = None) -> bool:
         """The condition ``code`` holds at ``now`` (s); ``message`` one line. Returns True when

@@ -69,12 +69,15 @@ class EventBus:
     ``sink(event)`` is called inside :meth:`publish`; it must not block (the audit log's sink
     only puts the event on its queue).
     ``clock()`` gives the session time stamped on each event.
+    ``alert_level(code, level)``: the level an alert with ``code`` carries (the engine passes
+    :func:`~monotracker.engine.alarms.level_of`: a catalogued code's level is its row's).
     """
 
     def __init__(self, sink: Callable[[Event], None] | None = None, clock: Callable[[], float] = time.monotonic,
-                 keep: int = 200):
+                 keep: int = 200, alert_level: Callable[[str, str], str] | None = None):
         self._sink = sink
         self._clock = clock
+        self._alert_level = alert_level
         self._lock = threading.Lock()
         self._recent: deque[Event] = deque(maxlen=keep)
         # alerts kept apart so that a burst of events (wrong PIN tries, state changes) cannot
@@ -103,6 +106,8 @@ class EventBus:
 
     # ------------------------------------------------------------------ publishing
     def publish(self, kind: str, level: str, code: str, message: str, data: dict | None = None) -> Event:
+        if kind == "alert" and self._alert_level is not None:
+            level = self._alert_level(code, level)
         if level not in LEVELS:
             raise ValueError(f"unknown level {level!r}")
         ev = Event(t=time.time(), t_session=float(self._clock()), kind=kind, level=level, code=code,

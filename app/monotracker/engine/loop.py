@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from monotracker.engine import components
-from monotracker.engine.alarms import FRESHNESS_CODES, POSE_CODES
+from monotracker.engine.alarms import FRESHNESS_CODES, POSE_CODES, VERDICT_CODES, level_of
 from monotracker.engine.gate import PoseGate
 from monotracker.engine.loop_camera import CameraCommands
 from monotracker.engine.loop_clocks import LoopClocks
@@ -195,7 +195,7 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
         """A new estimate is available (engine thread / sim tick)."""
         self._fiducial_changes(sample)
         for fid, shift in getattr(sample, "moved", {}).items():
-            self.s._persistent_alarm("warning", "fiducial_moved", f"fiducial {fid} moved about {shift:.1f} mm relative to the "
+            self.s._persistent_alarm("fiducial_moved", f"fiducial {fid} moved about {shift:.1f} mm relative to the "
                          "others since the CT: excluded from registration (check it is firmly attached)",
                          {"fiducial": fid, "shift_mm": shift})
         v = self.gate.check(sample.ok, sample.reason, sample.T_cam_ct, sample.n_matched, sample.fre_mm,
@@ -240,10 +240,7 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             if holding:
                 self._resume(f"pose trusted again ({sample.n_matched} fiducials)", self._registration_data(sample))
         else:
-            code = {"occlusion": "occlusion", "fre": "bad_pose", "jump": "pose_jump", "estimator": "pose_lost",
-                    "acquiring": "acquiring"}.get(v.code, v.code)
-            level = "info" if code == "acquiring" else "warning"
-            self._hold(code, v.reason, level)
+            self._hold(VERDICT_CODES.get(v.code, v.code), v.reason)
         self._run_pose_hooks(sample, v.trusted, now)
 
     def _push_target(self, sample: components.PoseSample, now: float) -> None:
@@ -265,7 +262,7 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             self._pending_latency_set_at = now
         self.robot.set_target(T, sample.t_capture, True, plan.T_base_cam @ sample.T_cam_ct)
 
-    def _hold(self, code: str, reason: str, level: str = "warning") -> None:
+    def _hold(self, code: str, reason: str) -> None:
         """Make the tracker hold still (valid=False) and raise the alert once per episode.
 
         ``acquiring`` (waiting for the first consistent poses) is recorded as an event, not an alert."""
@@ -299,9 +296,8 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
         if code == "acquiring":
             self.s.record("pose_acquiring", reason)
             return
-        lvl = "alarm" if code in ("camera_freeze", "camera_disconnected", "robot_disconnected", "engine_error") \
-            else level
-        self.s.alert(lvl, code, msg, {"reason": reason, "tracking": tracking, "unreported_episodes": unreported})
+        self.s.alert(level_of(code, "warning"), code, msg, {"reason": reason, "tracking": tracking,
+                                                             "unreported_episodes": unreported})
 
     def _set_pose_alarm(self, code: str, message: str, tracking: bool) -> bool:
         """Show why the arm holds (one pose condition at a time); True when it is to be reported.

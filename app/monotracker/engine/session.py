@@ -149,7 +149,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monotracker.engine.alarms import CAMERA_SETUP_CODES, AlarmBoard
+from monotracker.engine.alarms import CATALOGUE, DERIVED_CODES, AlarmBoard, level_of
 from monotracker.engine.audit import AuditEntry, AuditLog
 from monotracker.engine.control_commands import ControlCommands
 from monotracker.engine.ct_commands import CTCommands
@@ -181,9 +181,6 @@ from monotracker.errors import MonoTrackerError
 log = logging.getLogger(__name__)
 
 PLAN_FILE = "plan.json"
-#: the integrity conditions :meth:`Session.integrity_alarms` derives from the session's state
-INTEGRITY_CODES = ("home_unwritable", "plan_reconfirm_pending", "plan_ct_missing", "audit_tampered", "audit_lost",
-                   "audit_delayed", "integrity_key_unavailable")
 AUDIT_FILE = "audit.sqlite"
 
 
@@ -227,7 +224,7 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         self._plan_path = self.home / PLAN_FILE
         self._audit = AuditLog(self.home / AUDIT_FILE, self.session_id,
                                on_problem=lambda level, code, msg, data: self._bus.alert(level, code, msg, data))
-        self._bus = EventBus(sink=self._audit.record_event, clock=self.clock)
+        self._bus = EventBus(sink=self._audit.record_event, clock=self.clock, alert_level=level_of)
         self._job: Job | None = None
         self._job_thread: threading.Thread | None = None
         self._ct: CTSummary | None = None
@@ -341,19 +338,22 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
     def alert(self, level: str, code: str, message: str, data: dict | None = None) -> Event | None:
         """Raise an alert (to subscribers and the audit log). Used by the engine's parts.
 
-        Warnings from the robot's safety layer and the camera's setup (uncalibrated, lossy
-        frames: :data:`~.alarms.CAMERA_SETUP_CODES`) are also active
-        conditions in ``snap.alarms``; repeated robot warnings (a loaded machine overrunning the
-        control period) are reported at most once per quiet time (returns None when held back)."""
-        if code == "robot_warning":
-            kind = "loop_overrun" if "overran" in message else "robot_warning"
+        ``level`` counts only for a code without a catalogue row (:data:`~.alarms.CATALOGUE`):
+        a catalogued code carries its row's level. Warnings from the robot's safety layer
+        (``pulse`` rows) and the camera's setup (uncalibrated, lossy frames: ``camera_setup``
+        rows) are also active conditions in ``snap.alarms``; repeated robot warnings (a loaded
+        machine overrunning the control period) are reported at most once per quiet time
+        (returns None when held back)."""
+        on_board = "loop_overrun" if code == "robot_warning" and "overran" in message else code
+        kind = CATALOGUE.get(on_board)
+        if kind is not None and kind.pulse:
             now = float(self.clock())
-            report = self._alarm_board.set(kind, message, now)
-            self._alarm_board.clear(kind, now)  # a pulse: shown for its linger time
+            report = self._alarm_board.set(on_board, message, now)
+            self._alarm_board.clear(on_board, now)  # a pulse: shown for its linger time
             if not report:
-                log.info("robot warning (not re-reported): %s", message)
+                log.info("%s (not re-reported): %s", code, message)
                 return None
-        elif code in CAMERA_SETUP_CODES:
+        elif kind is not None and kind.camera_setup:
             self._alarm_board.set(code, message, float(self.clock()))
         return self._bus.alert(level, code, message, data)
 
@@ -362,10 +362,10 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         :meth:`alert` no longer holds (thread-safe)."""
         self._alarm_board.clear(code, float(self.clock()))
 
-    def _persistent_alarm(self, level: str, code: str, message: str, data: dict | None = None) -> Event:
+    def _persistent_alarm(self, code: str, message: str, data: dict | None = None) -> Event:
         """An alert that is also an active condition (``snap.alarms``) until it is cleared."""
-        self._alarm_board.set(code, message, float(self.clock()), level=level)
-        return self._bus.alert(level, code, message, data)
+        self._alarm_board.set(code, message, float(self.clock()))
+        return self._bus.alert(level_of(code, "alarm"), code, message, data)
 
     def record(self, code: str, message: str, data: dict | None = None, level: str = "info") -> Event:
         """Record a decision/state change (to subscribers and the audit log)."""
@@ -455,12 +455,12 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         )
 
     def _active_alarms(self):
-        """The board's active conditions, with the integrity conditions derived from the state."""
+        """The board's active conditions, with the conditions derived from the state (``derived`` rows)."""
         now, board = float(self.clock()), self._alarm_board
         standing = dict(self.integrity_alarms())
-        for code in INTEGRITY_CODES:
+        for code in DERIVED_CODES:
             if code in standing:
-                board.set(code, standing[code], now, level="alarm")
+                board.set(code, standing[code], now)
             else:
                 board.clear(code, now)
         return board.active(now)
