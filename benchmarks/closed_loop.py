@@ -2,7 +2,7 @@
 
 Usage: PYTHONPATH=app python benchmarks/closed_loop.py [--quick] [--seconds S] [--json]
 
-Everything runs through ``monotracker.engine.demo.run_demo`` (the same code as
+Everything runs through ``monotracker.demo.run.run_demo`` (the same code as
 ``monotracker demo --headless``) on a simulated clock: every pose becomes available only after
 the measured wall time of its registration, so latencies are this machine's.
 
@@ -33,7 +33,7 @@ import time
 
 import numpy as np
 
-from monotracker.engine.demo import DemoOptions, run_demo
+from monotracker.demo.run import DemoOptions, run_demo
 from monotracker.robot.targets import tip_and_axis_error
 from monotracker.sim.or_layout import default_layout
 

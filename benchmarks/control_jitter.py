@@ -90,7 +90,7 @@ def run_one(home: Path, rate_hz: float, isolated: bool, seconds: float, web: boo
         time.sleep(seconds)
         t1 = time.monotonic()
         snap1 = s.snapshot()
-        rig = s._loop.robot
+        rig = s._loop.robot.rig
         starts = rig.proc.cycle_starts() if isolated else np.array(rig.tracker.cycle_starts, dtype=float)
         row["control"] = snap1.robot.control
         row["state"] = snap1.robot.state

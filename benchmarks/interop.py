@@ -79,7 +79,7 @@ def bench_igtl(planned: Path, root: Path, camera: str, window_s: float) -> dict:
     try:
         s.start()
         st.start()
-        s._loop.add_pose_hook(lambda loop, smp, trusted, now: handled.append(time.monotonic()))
+        s.add_pose_listener(lambda smp, trusted, now: handled.append(time.monotonic()))
         client = pyigtl.OpenIGTLinkClient("127.0.0.1", port, start_now=False)
         client.incoming_messages = _Log()
         client.start()
@@ -114,7 +114,7 @@ def bench_igtl(planned: Path, root: Path, camera: str, window_s: float) -> dict:
 
 
 def bench_recording(planned: Path, root: Path, seconds: float) -> dict:
-    from monotracker.engine.demo import DemoOptions, run_demo
+    from monotracker.demo.run import DemoOptions, run_demo
     from monotracker.interop.replay import replay_recording
 
     t = time.perf_counter()

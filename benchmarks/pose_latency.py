@@ -17,7 +17,7 @@ Configurations, measured one after the other in the same run under the same load
   sim_camera_process=False)``, rig ``render_in_transport=False``), Python's 5 ms GIL interval;
 * ``nice`` (``--only nice``, an ablation): ours without SCHED_FIFO (``pose_rt_priority=0``);
 * ``ours``: the defaults: the twin camera renders in its own process
-  (``engine/sim_camera_process.py``), the pipeline and engine threads at SCHED_FIFO 5, every
+  (``engine/rigs/sim_camera_process.py``), the pipeline and engine threads at SCHED_FIFO 5, every
   engine-process thread at nice -10, the GIL switch interval at 1 ms
   (``engine/pipeline_priority.py``), the engine thread woken by each new sample.
 
@@ -79,9 +79,9 @@ def _wait(pred, timeout):
 
 
 def _baseline_factory(source, calibration_path, plan, cfg, session):
-    from monotracker.engine.vision_rig import make_vision_rig
+    from monotracker.engine.rigs.factory import build_camera_rig
 
-    rig = make_vision_rig(source, calibration_path, plan, cfg, session)
+    rig = build_camera_rig(source, calibration_path, plan, cfg, session)
     rig.render_in_transport = False  # the render after the modelled transport delay, as before
     return rig
 
@@ -172,31 +172,32 @@ def run_one(home: Path, mode: str, hogs: int, seconds: float, ui_load: bool) -> 
         loop.on_pose = timed_on_pose
         why = {}
 
-        def hook(lp, smp, trusted, now):
+        def hook(smp, trusted, now):
             poses.append((smp.t_capture, smp.t_ready, now, trusted, dict(smp.stages)))
-            if not trusted and lp._latest is not None:
-                k = (lp._latest.code or "?") + ": " + lp._latest.reason[:60]
+            rec = s.latest_pose()
+            if not trusted and rec is not None:
+                k = (rec.code or "?") + ": " + rec.reason[:60]
                 why[k] = why.get(k, 0) + 1
 
-        remove = loop.add_pose_hook(hook)
+        remove = s.add_pose_listener(hook)
         time.sleep(1.0)  # settle
         poses.clear()
         gate_s.clear()
-        n_lat = len(loop.latencies_s)
+        n_lat = len(s.latencies_s())
         stale0 = len(s.audit_entries(code="pose_stale"))
         ages, states = [], []
         t0 = time.monotonic()
         while time.monotonic() - t0 < seconds:
             now = loop.now()
-            last = loop._last_trusted
+            last = loop.last_trusted
             if last is not None:
                 ages.append(now - last.t_capture)
-            states.append(s._loop.robot_state())
+            states.append(loop.robot.state())
             time.sleep(0.01)
         t1 = time.monotonic()
         remove()
         loop.on_pose = on_pose
-        lat = list(loop.latencies_s)[n_lat:]
+        lat = list(s.latencies_s())[n_lat:]
         trusted = [p for p in poses if p[3]]
         arrive = [p[2] - p[0] for p in trusted]
         queue = [p[2] - p[1] for p in poses if p[1] is not None]
@@ -207,8 +208,8 @@ def run_one(home: Path, mode: str, hogs: int, seconds: float, ui_load: bool) -> 
 
         ages_ms = 1e3 * np.asarray(ages)
         row.update({
-            "state": s.snapshot().robot.state, "pipeline_priority": s._loop.rig.priority or "n/a",
-            "engine_priority": loop.priority, "load1": round(os.getloadavg()[0], 2),
+            "state": s.snapshot().robot.state, "pipeline_priority": loop.camera.rig.priority or "n/a",
+            "engine_priority": loop.driver.priority, "load1": round(os.getloadavg()[0], 2),
             "poses_per_s": len(trusted) / (t1 - t0), "estimates_per_s": len(poses) / (t1 - t0),
             "arrive_p50_ms": 1e3 * _pct(arrive, 50), "arrive_p95_ms": 1e3 * _pct(arrive, 95),
             "age_p50_ms": _pct(ages_ms, 50), "age_p95_ms": _pct(ages_ms, 95),

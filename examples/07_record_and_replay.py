@@ -1,7 +1,7 @@
 """Record a session, then replay it: re-run detection + registration on the recorded frames.
 
 What it shows: the headless demo (the engine ``Session`` on a simulated clock, rendered camera,
-simulated UR10) run with a recording folder (``monotracker.interop.recording``: lossless PNG
+simulated UR10) run with a recording folder (``monotracker.engine.recording``: lossless PNG
 frames, detections, poses, robot state, targets, alerts, the plan and the calibration, with a
 ``manifest.json``), then :func:`monotracker.interop.replay.replay_recording`, which runs today's
 detection + registration again on every recorded frame and compares the poses at the planned
@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from monotracker.engine.demo import DemoOptions, run_demo
+from monotracker.demo.run import DemoOptions, run_demo
 from monotracker.interop.replay import format_report, replay_recording
 
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pyigtl
 
-from monotracker.engine.demo import DemoOptions, run_demo
+from monotracker.demo.run import DemoOptions, run_demo
 
 
 class _EveryMessage(dict):

@@ -32,6 +32,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "monotracker.vision.commands",
     "monotracker.sim.commands",
     "monotracker.robot.commands",
+    "monotracker.demo.commands",
     "monotracker.engine.commands",
     "monotracker.ui.commands",
     "monotracker.interop.commands",

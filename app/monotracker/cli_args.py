@@ -3,8 +3,9 @@
 Each function is an ``argparse`` ``type=`` (it returns the parsed value or raises
 ``argparse.ArgumentTypeError`` with a one-line reason, which argparse prints as
 ``monotracker <cmd>: error: argument --x: <reason>`` and exits 2). The same checks serve the engine
-where it takes the same kind of value (:func:`check_ip`, :func:`check_robot_spec` are used by
-``SessionConfig.validate``), so a flag and a setting refuse the same things.
+where it takes the same kind of value (:func:`check_ip` checks the ``ur:`` robot spec of
+``robot/backends.py`` for the ``--robot`` flag and ``SessionConfig.validate``), so a flag and a
+setting refuse the same things.
 
 :func:`monotracker.cli.main` also refuses any float argument that is NaN or infinite, for every
 sub-command, whatever type its parser declared.
@@ -63,23 +64,6 @@ def ip_address(text: str) -> str:
     if why:
         raise argparse.ArgumentTypeError(why)
     return str(text).strip()
-
-
-def check_robot_spec(spec: str) -> str | None:
-    """None for ``"sim"`` or ``"ur:<IP address>"``, else a reason."""
-    spec = str(spec)
-    if spec == "sim":
-        return None
-    if not spec.startswith("ur:"):
-        return f"robot must be 'sim' or 'ur:<IP address>', not {spec!r}"
-    return check_ip(spec[3:])
-
-
-def robot_spec(text: str) -> str:
-    why = check_robot_spec(text)
-    if why:
-        raise argparse.ArgumentTypeError(why)
-    return text
 
 
 def home_folder(text: str) -> Path:

@@ -11,7 +11,7 @@ from ct_test_helpers import patch_params
 from scipy.spatial.distance import cdist
 
 from monotracker.engine import Session, SessionConfig
-from monotracker.engine.plan import Plan
+from monotracker.engine.plan import load_plan
 from monotracker.sim.ct_phantom import DenseBlob, generate_ct
 from monotracker.sim.phantom import default_phantom
 
@@ -61,7 +61,7 @@ def test_kit_reruns_detection_keeps_the_plan_and_is_audited(tmp_path, steel_ct):
         # the steel ball is listed in the snapshot as rejected, for its density
         near = [b for b in snap.ct.rejected if np.linalg.norm(np.array(b.centre_lps_mm) - steel) < 1.0]
         assert near and "density" in near[0].reason and 3.0 < near[0].radius_mm < 5.0 and near[0].n_voxels > 0, snap.ct.rejected
-        kit = Plan.load(home / "plan.json").fiducial_kit
+        kit = load_plan(home / "plan.json").fiducial_kit
         assert (kit.radius_mm, kit.density_hu) == (4.0, 1800.0)
         rows = s.audit_entries(code="fiducial_kit_set")
         assert rows and rows[-1].data["kit"]["density_hu"] == 1800.0

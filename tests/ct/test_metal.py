@@ -111,13 +111,13 @@ def test_detect_ct_lists_the_sample_clip_as_rejected(capsys):
 
 
 def test_plan_keeps_the_kit(tmp_path):
-    from monotracker.engine.plan import Plan
+    from monotracker.engine.plan import Plan, load_plan, plan_from_dict
 
     plan = Plan(ct_path="x.nii.gz", fiducial_kit=FiducialKit(radius_mm=2.0, density_hu=1600.0, name="ceramic"))
     plan.save(tmp_path / "plan.json")
-    back = Plan.load(tmp_path / "plan.json")
+    back = load_plan(tmp_path / "plan.json")
     assert back.fiducial_kit == plan.fiducial_kit
-    assert Plan.from_dict({**plan.to_dict(), "fiducial_kit": None}).fiducial_kit is None
+    assert plan_from_dict({**plan.to_dict(), "fiducial_kit": None}).fiducial_kit is None
 
 
 def test_half_embedded_3mm_balls_on_2mm_slices_with_streaks_subvoxel():

@@ -6,7 +6,7 @@ import json
 import pathlib
 import sys
 
-from monotracker.engine.demo import DemoOptions, run_demo
+from monotracker.demo.run import DemoOptions, run_demo
 
 
 def main() -> None:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monotracker.engine.components import CameraRig, PoseSample, RobotRig, RobotStatus
+from monotracker.engine.rigs.base import CameraRig, PoseSample, RobotRig, RobotStatus
 from monotracker.engine.snapshot import CommandResult
 from monotracker.geometry import make_transform, rotation_about_axis
 from monotracker.sim.or_layout import default_layout

@@ -17,7 +17,7 @@ from monotracker.engine.alarms import CATALOGUE, VERDICT_CODES, AlarmBoard
 
 PKG = Path(monotracker.__file__).parent
 #: calls whose first argument is a code that reaches the board
-BOARD_CALLS = {"_hold", "hold", "_persistent_alarm", "persistent_alarm", "_set_pose_alarm", "set_condition"}
+BOARD_CALLS = {"_hold", "hold", "_persistent_alarm", "persistent", "_set_pose_alarm", "set_condition"}
 
 
 def _receiver(node: ast.Call) -> str:
@@ -46,7 +46,8 @@ def board_codes(source: str) -> set[str]:
 
 
 def estimator_codes(source: str) -> set[str]:
-    """String constants the pose tracker assigns to ``code`` (names, tuple unpacking, keywords)."""
+    """String constants assigned to ``code`` (names, tuple unpacking, ``a if c else b``), and the
+    code argument of the pose tracker's ``_invalid``."""
     out = set()
     for node in ast.walk(ast.parse(source)):
         if isinstance(node, ast.Assign):
@@ -54,8 +55,9 @@ def estimator_codes(source: str) -> set[str]:
                 names = target.elts if isinstance(target, ast.Tuple) else [target]
                 values = node.value.elts if isinstance(node.value, ast.Tuple) else [node.value]
                 for n, v in zip(names, values):
-                    if isinstance(n, ast.Name) and n.id == "code" and isinstance(v, ast.Constant) and v.value:
-                        out.add(v.value)
+                    if isinstance(n, ast.Name) and n.id == "code":
+                        options = [v.body, v.orelse] if isinstance(v, ast.IfExp) else [v]
+                        out |= {o.value for o in options if isinstance(o, ast.Constant) and o.value}
         elif isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "_invalid" and len(node.args) > 2:
             arg = node.args[2]
             if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
@@ -83,7 +85,7 @@ def test_every_code_that_reaches_the_board_has_a_row():
     for path, src in _all_sources():
         for code in board_codes(src):
             found.setdefault(code, path.relative_to(PKG))
-    assert len(found) >= 15, found  # the walk sees the engine's holds and board sets
+    assert len(found) >= 10, found  # the walk sees the engine's holds and board sets
     missing = {c: str(p) for c, p in found.items() if c not in CATALOGUE}
     assert not missing, f"codes reaching the alarm board without a row in alarms.CATALOGUE: {missing}"
 
@@ -95,8 +97,8 @@ def test_every_refusal_of_the_estimator_and_the_verdict_has_a_row():
     codes = estimator_codes(tracker_src) | set(CAMERA_CODES.values())
     assert {"occlusion", "pose_lost", "tre_limit", "frame_size"} <= codes, codes
     gate_src = "\n".join(src for p, src in _all_sources() if "GateVerdict(" in src)
-    verdicts = verdict_codes(gate_src) - {"ok"}
-    assert {"fre", "jump", "acquiring"} <= verdicts, verdicts
+    verdicts = (verdict_codes(gate_src) | estimator_codes(gate_src)) - {"ok"}
+    assert {"fre", "jump", "acquiring", "estimator"} <= verdicts, verdicts
     held = codes | {VERDICT_CODES.get(v, v) for v in verdicts}
     missing = sorted(c for c in held if c not in CATALOGUE)
     assert not missing, f"refusal codes without a row in alarms.CATALOGUE: {missing}"

@@ -207,7 +207,7 @@ def test_a_drape_of_the_balls_colour_is_flagged(make_session, tmp_path, drapes, 
 
 
 def test_colour_clash_needs_frames_in_a_row_to_rise_and_to_clear():
-    from monotracker.engine import stream_rig
+    from monotracker.engine.rigs import stream as stream_rig
 
     calls = []
 

@@ -56,7 +56,7 @@ def test_each_robot_state_row_carries_its_own_transition_in_order(make_session):
     s.advance(0.1)
     assert s.snapshot().robot.state == "disarmed"
 
-    truth = [(t.from_state.value, t.to_state.value, t.reason) for t in s._loop.robot.tracker.safety.history]
+    truth = [(t.from_state.value, t.to_state.value, t.reason) for t in s._loop.robot.rig.tracker.safety.history]
     rows = robot_state_rows(s)
     got = [(r.data["from"], r.data["to"], r.data["reason"]) for r in rows]
     assert got == truth

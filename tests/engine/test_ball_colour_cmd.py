@@ -18,7 +18,7 @@ def test_learn_on_the_live_sim_frame(make_session):
     plan_sample(s)
     assert s.start_camera().ok
     s.advance(0.2)
-    rig = s._loop.rig
+    rig = s._loop.camera.rig
     img, _, _ = rig.latest_frame()
     truth = rig._last_frame.truth
     k = int(np.argmax(truth.visible))

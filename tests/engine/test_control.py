@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from monotracker.engine.control import NOT_IN_CONTROL, ClientSession, ControlArbiter, PinGuard
+from monotracker.engine.access import NOT_IN_CONTROL, ClientSession, ControlArbiter, PinGuard
 
 from .conftest import plan_sample
 from .doubles import FollowerRobotRig, TruthCameraRig

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from monotracker.engine import Session, SessionConfig
-from monotracker.engine.demo import DemoOptions, run_demo
+from monotracker.demo.run import DemoOptions, run_demo
 from monotracker.robot.targets import tip_and_axis_error
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -47,10 +47,10 @@ def _home_with_plan(planned_home, tmp_path):
 
 
 def test_ct_fiducials_match_the_phantom(planned_home):
-    from monotracker.engine.plan import Plan
+    from monotracker.engine.plan import load_plan
     from monotracker.sim.phantom import default_phantom
 
-    plan = Plan.load(planned_home / "plan.json")
+    plan = load_plan(planned_home / "plan.json")
     truth = default_phantom().fiducial_centres_lps
     got = plan.fiducial_centres()
     assert len(got) == 9
@@ -81,13 +81,13 @@ def test_partial_occlusion_keeps_tracking_with_four_and_holds_with_three(planned
         s.advance(0.5)
         assert s.arm("1234").ok and s.start_tracking().ok
         s.advance(3.0)
-        rig, rob = s._loop.rig, s._loop.robot
+        rig = s._loop.camera.rig  # test-only: the twin's drape over some balls
         rig.occluded_ids = {0, 1, 2, 3, 4}  # 4 of 9 remain
         s.advance(1.0)
         snap = s.snapshot()
         assert snap.robot.state == "tracking" and snap.pose.trusted and snap.pose.n_visible == 4
         plan = s.plan_copy()
-        tip, ang = tip_and_axis_error(rob.status().T_base_tip, rig.truth_T_base_ct(snap.t), plan.entry_lps_mm,
+        tip, ang = tip_and_axis_error(s.robot_status().T_base_tip, s.truth_T_base_ct(snap.t), plan.entry_lps_mm,
                                       plan.target_lps_mm)
         assert tip < 2.0 and ang < 1.5
         lost = [a for a in snap.alerts if a.code == "fiducials_lost"]
@@ -97,7 +97,7 @@ def test_partial_occlusion_keeps_tracking_with_four_and_holds_with_three(planned
         snap = s.snapshot()
         assert snap.robot.state == "holding" and not snap.pose.trusted
         assert snap.alerts[-1].code == "occlusion"
-        assert np.max(np.abs(rob.status().qd)) < 1e-3  # standing still
+        assert np.max(np.abs(s.robot_status().qd)) < 1e-3  # standing still
         rig.occluded_ids = set()
         s.advance(0.5)
         snap = s.snapshot()
@@ -218,7 +218,7 @@ def test_real_clock_threads_track_and_snapshots_are_safe_from_other_threads(plan
         assert snap.robot.state == "holding" and "camera_freeze" in [a.code for a in snap.alerts]
         # the control loop ran in its own process (SessionConfig.control_process, the default)
         assert snap.robot.control.startswith("control process pid"), snap.robot.control
-        child = s._loop.robot.proc.proc
+        child = s._loop.robot.rig.proc.proc
         assert child.is_alive() and child.pid != os.getpid()
         assert s.estop().ok and s.snapshot().robot.state == "estopped"  # latched at once
     finally:
@@ -250,7 +250,7 @@ def test_camera_calibration_is_saved_in_the_plan_and_events_reach_subscribers_on
     import threading
     import time
 
-    from monotracker.engine.plan import Plan
+    from monotracker.engine.plan import load_plan
 
     home = _home_with_plan(planned_home, tmp_path)
     s = Session(SessionConfig(home=home, clock="real"))
@@ -261,8 +261,8 @@ def test_camera_calibration_is_saved_in_the_plan_and_events_reach_subscribers_on
         s.wait_for_job(JOB_WAIT_S)
         assert s.start_camera().ok
         time.sleep(0.3)
-        rig = s._loop.rig
-        saved = Plan.load(home / "plan.json")
+        rig = s._loop.camera.rig
+        saved = load_plan(home / "plan.json")
         assert saved.camera_source == "sim" and np.allclose(saved.K, rig.K) and saved.image_size == rig.image_size
         assert np.allclose(saved.dist, np.ravel(rig.dist))
     finally:
@@ -274,10 +274,10 @@ def test_simulated_camera_thread_survives_a_failing_frame(planned_home):
     """An exception while capturing one frame must not kill the camera thread for good."""
     import time as _time
 
-    from monotracker.engine.plan import Plan
-    from monotracker.engine.vision_rig import ProjectedFiducialRig
+    from monotracker.engine.plan import load_plan
+    from monotracker.engine.rigs.sim import ProjectedFiducialRig
 
-    rig = ProjectedFiducialRig(Plan.load(planned_home / "plan.json"), trajectory="still")
+    rig = ProjectedFiducialRig(load_plan(planned_home / "plan.json"), trajectory="still")
     real_capture, calls = rig.capture, []
 
     def flaky_capture(t):

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from monotracker.engine import Session, SessionConfig
-from monotracker.engine.demo import DemoOptions, run_demo
-from monotracker.engine.plan import Plan
-from monotracker.engine.vision_rig import ProjectedFiducialRig
+from monotracker.demo.run import DemoOptions, run_demo
+from monotracker.engine.plan import load_plan
+from monotracker.engine.rigs.sim import ProjectedFiducialRig
 from monotracker.sim.phantom import default_phantom
 from monotracker.sim.trajectories import Breathing
 
@@ -28,7 +28,7 @@ def _planned_home(tmp_path):
 
 
 def test_sim_freeze_repeats_the_frame_bit_for_bit_with_new_stamps(tmp_path):
-    rig = ProjectedFiducialRig(Plan.load(_planned_home(tmp_path) / "plan.json"), trajectory="still")
+    rig = ProjectedFiducialRig(load_plan(_planned_home(tmp_path) / "plan.json"), trajectory="still")
     a, b = rig.capture(1.0), rig.capture(1.0 + 1 / 30)
     assert rig.frame_digest(a) != rig.frame_digest(b)  # sensor noise: never the same twice
     rig.set_fault("camera-freeze")
@@ -39,7 +39,7 @@ def test_sim_freeze_repeats_the_frame_bit_for_bit_with_new_stamps(tmp_path):
 
 
 def test_real_clock_rig_never_estimates_a_repeated_frame(tmp_path):
-    rig = ProjectedFiducialRig(Plan.load(_planned_home(tmp_path) / "plan.json"), trajectory="still")
+    rig = ProjectedFiducialRig(load_plan(_planned_home(tmp_path) / "plan.json"), trajectory="still")
     rig.start()
     try:
         deadline = time.monotonic() + 60
@@ -98,8 +98,8 @@ def test_a_pose_in_flight_at_the_freeze_detection_does_not_resume_tracking(tmp_p
     states, poses = [], []
 
     def watch(s):
-        s._loop.add_tick_hook(lambda loop, t: states.append((t, loop.robot.status().state)))
-        s._loop.add_pose_hook(lambda loop, smp, trusted, now: poses.append((now, trusted, smp.t_capture)))
+        s.add_tick_listener(lambda t: states.append((t, s.robot_status().state)))
+        s.add_pose_listener(lambda smp, trusted, now: poses.append((now, trusted, smp.t_capture)))
 
     r = run_demo(DemoOptions(seconds=3.0, trajectory=Breathing(amplitude_mm=4.0, period_s=2.0), fault="camera-freeze",
                              fault_at_s=1.5, home=_planned_home(tmp_path)), on_tracking=watch)

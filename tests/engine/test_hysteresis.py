@@ -10,7 +10,7 @@ import time
 import pytest
 
 from monotracker.engine import Session, SessionConfig
-from monotracker.engine.components import PoseSample
+from monotracker.engine.rigs.base import PoseSample
 
 from .conftest import plan_sample
 from .doubles import FollowerRobotRig, TruthCameraRig
@@ -58,12 +58,15 @@ def _run(make_sim, delay, seconds, **cfg):
     assert s.arm("1234").ok and s.start_tracking().ok
     ticks = []
 
-    def hook(loop, t):
-        snap_pose = loop.pose_summary()
-        fresh = loop._last_trusted is not None and t - loop._last_trusted.t_capture <= LIMIT
-        ticks.append((t, rob.state, rob.valid, rob.stamp, snap_pose, loop._holding_code, fresh))
+    loop = s._loop  # the hold state machine's own state, beside what the snapshot says
 
-    s._loop.add_tick_hook(hook)
+    def hook(t):
+        snap_pose = s.snapshot().pose
+        last = loop.last_trusted
+        fresh = last is not None and t - last.t_capture <= LIMIT
+        ticks.append((t, rob.state, rob.valid, rob.stamp, snap_pose, loop.holding_code, fresh))
+
+    s.add_tick_listener(hook)
     s.advance(seconds)
     return s, ticks
 
@@ -205,7 +208,7 @@ def test_a_short_camera_freeze_resumes_only_after_the_dwell(make_sim):
     s.advance(1.0)
     assert rob.state == "tracking"
     ticks = []
-    s._loop.add_tick_hook(lambda loop, t: ticks.append((t, rob.state)))
+    s.add_tick_listener(lambda t: ticks.append((t, rob.state)))
     t_fault = s.clock()
     assert s.inject_fault("camera-freeze").ok
     s.advance(1.2 / 30)  # the camera repeats one frame (measured: the arm resumed 64 ms after it)
@@ -241,7 +244,7 @@ def test_start_tracking_is_sent_only_on_a_pose_that_just_arrived(make_session):
     the arm, which refused ("no fresh valid target pose") beside "Pose: VALID". With the age
     limit out of the way (30 s), a pose that arrived longer ago than half the gap is refused
     with the reason, and a Start while poses flow again goes out on a newer pose."""
-    from monotracker.engine.loop_robot import START_ARRIVAL_S
+    from monotracker.engine.loop.robot import START_ARRIVAL_S
     from monotracker.robot.safety import SafetyConfig
 
     assert START_ARRIVAL_S == SafetyConfig().stale_s / 2
@@ -256,7 +259,7 @@ def test_start_tracking_is_sent_only_on_a_pose_that_just_arrived(make_session):
     assert s.arm("1234").ok
     paused.set()
     loop = s._loop
-    old = loop._latest.sample.t_capture
+    old = s.latest_pose().sample.t_capture
     # no pose arrives any more: wait until the newest arrived longer ago than the start allows
     assert _wait_for(s, lambda snap: loop.now() - loop._latest_arrival > START_ARRIVAL_S + 0.02)
     assert s.snapshot().pose.trusted  # the engine's own age limit still passes it

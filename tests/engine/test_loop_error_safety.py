@@ -1,5 +1,7 @@
 """An exception in the engine loop must never leave the arm tracking, even when the hold fails."""
 
+from monotracker.engine.loop.clocks import RealThread
+
 from .doubles import FollowerRobotRig
 
 
@@ -13,8 +15,8 @@ def test_failed_hold_after_engine_error_stops_tracking(make_session):
     loop = s._loop
     robot = _BrokenTargetRobot()
     robot.state = "tracking"
-    loop.robot = robot
-    loop._on_iteration_error()       # must not raise
+    loop.robot.rig = robot
+    RealThread(loop).on_iteration_error()       # must not raise
     assert robot.state != "tracking"
 
 
@@ -23,7 +25,7 @@ def test_engine_error_holds_and_alarms(make_session):
     loop = s._loop
     robot = FollowerRobotRig()
     robot.state, robot.valid = "tracking", True
-    loop.robot = robot
-    loop._on_iteration_error()
+    loop.robot.rig = robot
+    RealThread(loop).on_iteration_error()
     assert robot.state == "holding" and not robot.valid
-    assert loop._holding_code == "engine_error"
+    assert loop.holding_code == "engine_error"

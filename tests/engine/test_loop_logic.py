@@ -5,7 +5,7 @@ test_digital_twin.py."""
 
 import numpy as np
 
-from monotracker.engine.gate import PoseGate
+from monotracker.engine.loop.gate import PoseGate
 from monotracker.robot.targets import needle_target, tip_and_axis_error
 from monotracker.geometry import apply_transform, make_transform, rotation_about_axis
 from monotracker.sim.or_layout import default_layout
@@ -67,7 +67,7 @@ def test_gate_rejects_single_outliers_and_follows_confirmed_jumps():
 def test_tracks_the_breathing_head_to_sub_millimetre(make_session):
     s, cam, rob = _tracking_session(make_session, "breathing")
     errs = []
-    s._loop.add_tick_hook(lambda loop, t: errs.append(tip_and_axis_error(
+    s.add_tick_listener(lambda t: errs.append(tip_and_axis_error(
         rob.T_tip, cam.layout.T_base_ct(cam.motion, t), default_phantom().sample_entry_lps,
         default_phantom().sample_target_lps)))
     s.advance(3.0)  # the double parks 60 mm away: converge first
@@ -76,7 +76,7 @@ def test_tracks_the_breathing_head_to_sub_millimetre(make_session):
     e = np.array(errs)
     assert s.snapshot().robot.state == "tracking"
     assert e[:, 0].max() < 1.0 and e[:, 1].max() < 0.5
-    lat = np.array(s._loop.latencies_s)
+    lat = np.array(s.latencies_s())
     assert len(lat) > 50 and lat.min() > 0 and np.median(lat) < 0.05
 
 
@@ -117,7 +117,7 @@ def test_camera_freeze_holds_within_the_watchdog_time(make_session):
     t_fault = s.snapshot().t
     s.inject_fault("camera-freeze")
     hold_t = []
-    s._loop.add_tick_hook(lambda loop, t: hold_t.append(t) if rob.state == "holding" and not hold_t else None)
+    s.add_tick_listener(lambda t: hold_t.append(t) if rob.state == "holding" and not hold_t else None)
     s.advance(0.5)
     assert hold_t and hold_t[0] - t_fault <= 0.1 + 1 / 30 + 1 / 125 + 1e-9
     assert any(a.code == "camera_freeze" and a.level == "alarm" for a in s.snapshot().alerts)
@@ -138,7 +138,7 @@ def test_robot_disconnect_is_an_alarm_and_plan_survives(make_session):
 def test_demo_runner_reports_truth_metrics_and_fault(tmp_path):
     """The demo's bookkeeping (real CT, doubles for camera/arm): a camera freeze is detected,
     the arm stands still within 0.1 s of detection, the plan is intact."""
-    from monotracker.engine.demo import DemoOptions, format_report, run_demo
+    from monotracker.demo.run import DemoOptions, format_report, run_demo
 
     r = run_demo(DemoOptions(seconds=5.0, trajectory="breathing", fault="camera-freeze", home=tmp_path / "h"),
                  camera_factory=lambda *a: TruthCameraRig("breathing"),

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from monotracker.engine.audit import AuditLog
 from monotracker.engine.persistence import atomic_write_json
-from monotracker.engine.plan import Plan
+from monotracker.engine.plan import Plan, load_plan
 from monotracker.sim.phantom import default_phantom
 
 from .conftest import plan_sample
@@ -59,7 +59,7 @@ def test_plan_round_trip_is_exact(tmp_path):
                 dist=np.array([-0.12, 0.05, 1e-4, -2e-4, 0.0]), image_size=(1280, 720),
                 T_base_cam=np.eye(4), camera_source="sim")
     plan.save(tmp_path / "p.json")
-    back = Plan.load(tmp_path / "p.json")
+    back = load_plan(tmp_path / "p.json")
     assert np.array_equal(back.fiducial_centres(), plan.fiducial_centres())
     assert np.array_equal(back.entry_lps_mm, plan.entry_lps_mm) and np.array_equal(back.target_lps_mm, plan.target_lps_mm)
     assert back.image_size == (1280, 720) and back.fiducials_locked

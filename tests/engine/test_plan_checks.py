@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from monotracker.engine import Session, SessionConfig
-from monotracker.engine import plan_checks as pc
+from monotracker.engine.plan import checks as pc
 from monotracker.sim.or_layout import default_layout
 from monotracker.sim.phantom import default_phantom
 
@@ -30,7 +30,7 @@ def ct_session(tmp_path_factory):
 def test_sample_plan_passes_every_check(ct_session):
     s = ct_session
     assert s.use_sample_plan().ok
-    assert pc.plan_problems(s.plan_copy(), 4, s._anatomy) == []
+    assert pc.plan_problems(s.plan_copy(), 4, s._ct.loaded.anatomy) == []
     assert s.plan_not_ready() is None
 
 
@@ -62,14 +62,14 @@ def test_path_through_a_fiducial_and_a_grazing_angle_are_refused(ct_session):
     ph = default_phantom()
     # a path from a point on the skin beside fiducial 0 straight through the fiducial's ball
     why = pc.check_path(c + (c - ph.centre_lps) / np.linalg.norm(c - ph.centre_lps) * 1.0, ph.centre_lps,
-                        plan.fiducials, s._anatomy)
+                        plan.fiducials, s._ct.loaded.anatomy)
     assert why is not None and "fiducial" in why
     # nearly along the skin: entry on the skin, target 30 mm away tangentially, 12 mm under it
     e = plan.entry_lps_mm
     n = (e - ph.centre_lps) / np.linalg.norm(e - ph.centre_lps)
     t_dir = np.cross(n, [0.0, 0.0, 1.0])
     t_dir /= np.linalg.norm(t_dir)
-    why = pc.check_path(e, e + 30.0 * t_dir - 12.0 * n, [], s._anatomy)  # ~68 deg, still inside the head
+    why = pc.check_path(e, e + 30.0 * t_dir - 12.0 * n, [], s._ct.loaded.anatomy)  # ~68 deg, still inside the head
     assert why is not None and "normal" in why
 
 
@@ -169,9 +169,9 @@ def test_a_camera_started_on_another_fiducial_set_cannot_arm(tmp_path):
         r = s.arm("1234")
         assert not r.ok and "no trusted, fresh pose for this plan" in r.message
         # a camera started before the change would register against the old set: refused too
-        s._loop._rig_fiducials = np.zeros((3, 3))  # what a rig started on another set remembers
+        s._loop.camera.rig_fiducials = np.zeros((3, 3))  # what a rig started on another set remembers
         assert s.start_camera().ok
-        s._loop._rig_fiducials = np.zeros((3, 3))
+        s._loop.camera.rig_fiducials = np.zeros((3, 3))
         s.advance(0.3)
         r = s.arm("1234")
         assert not r.ok and "fiducial set changed" in r.message

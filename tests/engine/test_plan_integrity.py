@@ -114,16 +114,16 @@ def test_changed_calibration_file_needs_reconfirmation(tmp_path):
     s = Session(SessionConfig(home=tmp_path / "h", clock="sim"))
     try:
         plan_sample(s)
-        assert s._store_camera("device:0", str(cal), K, np.zeros(5), (1280, 720)) is None
+        assert s._plan.store_camera("device:0", str(cal), K, np.zeros(5), (1280, 720)) is None
         assert s.plan_copy().integrity["calibration_sha256"] == content_sha256(cal)
         assert s.plan_not_ready() is None
         cal.write_text(cal.read_text().replace("900.0", "905.0"))  # recalibrated behind the plan's back
-        assert s._store_camera("device:0", str(cal), K * [[1.0], [1.0], [1.0]], np.zeros(5), (1280, 720)) is None
+        assert s._plan.store_camera("device:0", str(cal), K * [[1.0], [1.0], [1.0]], np.zeros(5), (1280, 720)) is None
         assert any(al.code == "calibration_changed" for al in s.snapshot().alerts)
         assert "re-confirm" in s.plan_not_ready()
         assert s.reconfirm_plan().ok and s.plan_not_ready() is None
         # a calibration the checks refuse is not stored at all
-        why = s._store_camera("device:0", None, np.array([[-1.0, 0, 640], [0, 900, 360], [0, 0, 1]]), None, (1280, 720))
+        why = s._plan.store_camera("device:0", None, np.array([[-1.0, 0, 640], [0, 900, 360], [0, 0, 1]]), None, (1280, 720))
         assert why and "focal" in why
         assert np.allclose(s.plan_copy().K, K)
     finally:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from monotracker.engine import Session, SessionConfig
-from monotracker.engine.plan import Plan
+from monotracker.engine.plan import plan_from_dict
 from monotracker.sim.or_layout import default_layout
 
 from .conftest import plan_sample
@@ -207,7 +207,7 @@ def test_strict_from_dict_names_the_field(saved):
     _, d = saved
     d["fiducials_locked"] = "false"
     with pytest.raises(ValueError, match="fiducials_locked"):
-        Plan.from_dict(d)
+        plan_from_dict(d)
 
 
 def _paths(obj, prefix=()):
@@ -227,8 +227,8 @@ def test_any_single_corruption_restores_only_valid_state(saved):
     the commands' checks."""
     import copy
 
-    from monotracker.engine import plan_checks as pc
-    from monotracker.engine.plan_restore import restore_plan
+    from monotracker.engine.plan import checks as pc
+    from monotracker.engine.plan.store import restore_plan
 
     _, d = saved
     d["camera"] = {"source": "sim", "calibration_path": None, "K": [[800, 0, 320], [0, 800, 240], [0, 0, 1]],

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from monotracker.engine.pipeline_priority import normal_priority
-from monotracker.engine.sim_camera_process import SLOTS, SimCameraProcess, _slot_layout
+from monotracker.engine.rigs.sim_camera_process import SLOTS, SimCameraProcess, _slot_layout
 
 ROOT = Path(__file__).resolve().parents[2]
 T_STATE = 120.0  # s: generous, for a loaded machine
@@ -151,10 +151,10 @@ def main():
         while not (s.snapshot().pose and s.snapshot().pose.trusted):
             assert time.monotonic() - t0 < 120, "no trusted pose"
             time.sleep(0.05)
-        rig = s._loop.rig
+        rig = s._loop.camera.rig
         smp = rig.latest_sample()
-        proc = s._loop.robot.proc
-        print(json.dumps({"priority": rig.priority, "engine": s._loop.priority, "stages": smp.stages,
+        proc = s._loop.robot.rig.proc
+        print(json.dumps({"priority": rig.priority, "engine": s._loop.driver.priority, "stages": smp.stages,
                           "camera_pid": rig._camproc.pid if rig._camproc is not None else None,
                           "control_pid": proc.pid, "control": proc.priority,
                           "engine_threads": threads(os.getpid()),

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from monotracker.engine import Session, SessionConfig
-from monotracker.engine.demo import DemoOptions, run_demo
+from monotracker.demo.run import DemoOptions, run_demo
 from monotracker.sim.trajectories import Breathing
 
 from .conftest import plan_sample
@@ -39,9 +39,9 @@ def test_faults_with_the_default_prediction_stop_the_arm_where_it_was(planned_ho
     seen = {}
 
     def grab(s):
-        seen["tracker"] = s._loop.robot.tracker
+        seen["tracker"] = s._loop.robot.rig.tracker
         seen["active_before"] = []
-        s._loop.add_tick_hook(lambda loop, t: seen["active_before"].append(loop.robot.tracker.predictor.active))
+        s.add_tick_listener(lambda t: seen["active_before"].append(seen["tracker"].predictor.active))
 
     r = run_demo(DemoOptions(seconds=4.0, trajectory=FAST, fault=fault, fault_at_s=2.0, fault_at_fastest_within_s=1.0,
                              home=planned_home, config_overrides={"camera": "sim-points"}), on_tracking=grab)
@@ -73,14 +73,14 @@ def test_stale_poses_hold_and_nothing_is_extrapolated_from_them(planned_home):
         s.advance(0.5)
         assert s.arm("1234").ok and s.start_tracking().ok
         s.advance(2.5)
-        tr = s._loop.robot.tracker
+        tr = s._loop.robot.rig.tracker
         assert tr.state.value == "tracking" and tr.predictor.active
-        s._loop.rig.transport_delay_s = 0.25
+        s._loop.camera.rig.transport_delay_s = 0.25
         s.advance(0.3)
         snap = s.snapshot()
         assert snap.robot.state == "holding"
         assert any(a.code == "pose_stale" for a in snap.alerts)
-        arm = s._loop.robot.sim_arm
+        arm = s._loop.robot.rig.sim_arm
         q0 = arm.true_q.copy()
         for _ in range(50):  # 0.4 s more of stale poses: still, and never a velocity estimate
             s.advance(0.008)

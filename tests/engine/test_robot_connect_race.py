@@ -34,7 +34,7 @@ def test_concurrent_connects_create_one_robot(tmp_path):
             t.join(timeout=60)
         assert len(results) == 4 and all(r.ok for r in results), [r.message for r in results]
         assert len(made) == 1
-        rob = s._loop.robot
-        assert isinstance(rob, FollowerRobotRig) and s.connect_robot().ok and s._loop.robot is rob
+        rob = s._loop.robot.rig
+        assert isinstance(rob, FollowerRobotRig) and s.connect_robot().ok and s._loop.robot.rig is rob
     finally:
         s.shutdown()

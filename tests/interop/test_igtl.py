@@ -12,7 +12,7 @@ import numpy as np
 import pyigtl
 import pytest
 
-from monotracker.engine.demo import DemoOptions, run_demo
+from monotracker.demo.run import DemoOptions, run_demo
 from monotracker.errors import InputError
 from monotracker.geometry import apply_transform
 from monotracker.interop.igtl import F_LPS_RAS, IGTLStreamer

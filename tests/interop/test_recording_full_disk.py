@@ -22,7 +22,7 @@ from pathlib import Path
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead
 limit = int(sys.argv[3])
 from monotracker.engine import Session, SessionConfig
-from monotracker.interop import recording
+from monotracker.engine import recording
 from monotracker.sim.phantom import default_phantom
 recording.MIN_FREE_BYTES = 0
 s = Session(SessionConfig(home=sys.argv[1], clock="sim", camera="sim-points"))

@@ -30,7 +30,7 @@ def image_recording(fresh_home, tmp_path):
 
 
 def test_replay_camera_reproduces_the_recorded_poses(image_recording, planned_home, tmp_path):
-    from monotracker.engine.vision_rig import make_vision_rig
+    from monotracker.engine.rigs.factory import build_camera_rig
 
     home = tmp_path / "home2"
     home.mkdir()
@@ -47,14 +47,14 @@ def test_replay_camera_reproduces_the_recorded_poses(image_recording, planned_ho
             ended.set()
 
     def factory(source, calibration_path, plan, cfg, session):
-        rig = make_vision_rig(source, calibration_path, plan, cfg, session)
+        rig = build_camera_rig(source, calibration_path, plan, cfg, session)
         rig.stream.subscribe(on_estimate)
         return rig
 
     seen = []  # what reached the engine loop (it polls the newest; it may skip some when starved)
     s = Session(SessionConfig(home=home, camera=f"replay:{image_recording}", clock="real"), camera_factory=factory)
     try:
-        s._loop.add_pose_hook(lambda loop, smp, trusted, now: seen.append(smp))
+        s.add_pose_listener(lambda smp, trusted, now: seen.append(smp))
         s.start()
         assert s.start_camera().ok, s.snapshot().camera.error
         deadline = time.monotonic() + 240  # loaded machine: wait on state, generously

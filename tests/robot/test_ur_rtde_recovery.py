@@ -149,9 +149,9 @@ def test_control_hz_sets_rtde_frequency_and_speedj_time(rate_hz):
 
 
 def test_engine_rig_passes_control_hz_to_the_ur_backend(monkeypatch):
-    """engine/robot_rig builds URRTDEArm with cfg.control_hz (it used to be 125 Hz always)."""
+    """engine/rigs/robot builds URRTDEArm with cfg.control_hz (it used to be 125 Hz always)."""
     import monotracker.robot.ur_rtde_arm as ura
-    from monotracker.engine.robot_rig import TrackerRobotRig
+    from monotracker.engine.rigs.robot import TrackerRobotRig
 
     ur = FakeUR(kin.Q_READY, period=1 / 500)
     orig = ura.URRTDEArm.__init__

@@ -37,7 +37,7 @@ def test_camera_sees_all_fiducials_from_450_mm():
 
 
 def test_planned_pose_is_reachable_by_the_ur10():
-    from monotracker.engine.robot_rig import standby_configuration
+    from monotracker.engine.rigs.robot import standby_configuration
     from monotracker.robot.targets import reachable
 
     L = default_layout()

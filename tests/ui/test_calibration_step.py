@@ -33,7 +33,7 @@ class BoardFeed:
 
 
 def _board_rig_factory(feed: BoardFeed):
-    from monotracker.engine.vision_rig import SimImageRig
+    from monotracker.engine.rigs.sim import SimImageRig
 
     class BoardRig(SimImageRig):
         def capture(self, t):
@@ -179,7 +179,7 @@ def test_calibration_step_in_browser(served, browser, artifacts, tmp_path):
     msg = _command(page, "Record pose + view")  # connects the arm (disarmed); no board yet
     assert "refused" in msg and "chessboard found" in msg, msg
     assert s.snapshot().robot.connected and s.snapshot().robot.state == "disarmed"
-    robot = s._loop.robot  # test-only: move the simulated arm (an operator's freedrive)
+    robot = s._loop.robot.rig  # test-only: move the simulated arm (an operator's freedrive)
     arm = robot.sim_arm
     q0 = np.array(arm.true_q)
 
@@ -248,7 +248,7 @@ def test_viewing_tab_cannot_apply_calibration(served, browser):
     page.get_by_role("button", name="Record pose + view").wait_for()
     msg = _command(page, "Record pose + view")
     assert "cannot connect the arm" in msg and "control" in msg, msg
-    assert s._loop.robot is None
+    assert s.robot_status() is None
     msg = _command(page, "Save and use for this camera")
     assert "solve the calibration before saving it" in msg
     page.close()

@@ -38,7 +38,7 @@ def served_robot(tmp_path, monkeypatch, port):
 
 def _controller_state(s) -> str:
     """The state the robot's control process itself published (shared memory)."""
-    return s._loop.robot.proc.state().state
+    return s._loop.robot.rig.proc.state().state
 
 
 def _open_pad(page) -> None:

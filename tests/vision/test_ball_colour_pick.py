@@ -158,7 +158,7 @@ def test_click_on_a_ball_learns_its_colour_refusals_are_one_line(live):
     view = FakeView(rec, cam)
     shown = []
     picker = BallColourPicker(view, on_result=shown.append)
-    rig = live._loop.rig
+    rig = live._loop.camera.rig
     img = live.latest_frame()[0]
     truth = rig._last_frame.truth
     H, W = img.shape[:2]
@@ -198,7 +198,7 @@ def test_the_click_learns_from_the_shown_frame_never_a_newer_one(live, monkeypat
     view = FakeView(rec, cam)
     shown = []
     picker = BallColourPicker(view, on_result=shown.append)
-    rig = live._loop.rig
+    rig = live._loop.camera.rig
     img_a, idx_a, _ = live.latest_frame()
     H, W = img_a.shape[:2]
     k, (x, y) = _ball_far_from_the_corner(rig._last_frame.truth)
@@ -267,7 +267,7 @@ def test_register_step_wires_the_pick_and_the_typed_pixel(live):
     view.gui = FakeGui()
     rec.config = live.config
     step = RegisterStep(view)
-    truth = live._loop.rig._last_frame.truth
+    truth = live._loop.camera.rig._last_frame.truth
     k, (x, y) = _ball_far_from_the_corner(truth)
     # typed pixel
     view.gui.widgets["Ball at x, y (px)"].value = (float(x), float(y))

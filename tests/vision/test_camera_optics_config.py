@@ -32,7 +32,7 @@ def _one_frame(tmp_path, optics):
         assert s.confirm_fiducials().ok and s.use_sample_plan().ok
         assert s.start_camera().ok
         s.advance(0.1)
-        rig = s._loop.rig
+        rig = s._loop.camera.rig
         return rig.cam.optics, rig.latest_frame()[0]
     finally:
         s.shutdown()

@@ -127,7 +127,7 @@ def test_moved_ball_alert_names_it_and_it_stays_excluded():
 
 
 def test_engine_gate_keeps_the_estimators_code_and_gates_on_predicted_tre():
-    from monotracker.engine.gate import PoseGate
+    from monotracker.engine.loop.gate import PoseGate
 
     g = PoseGate(confirm_frames=1, max_predicted_tre_mm=1.0)
     T = np.eye(4)

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from independent_render import FRAME_F_PX, FRAME_K, FRAME_SIZE, Imaging, Occluder, render_in_frame, sphere_shape
 
-from monotracker.engine.verification import KeepDetections
+from monotracker.engine.rigs.validation import KeepDetections
 from monotracker.vision.camera_model import CameraModel
 from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detection import BlobRules

@@ -22,6 +22,40 @@ Codes, levels, priorities and every flag are rows of :data:`CATALOGUE` (0 = most
 adding a condition is adding a row. ``set`` may raise the level for one episode (a pose
 condition is an ``"alarm"`` while the arm follows the head, a ``"warning"`` otherwise). Times are
 session-clock seconds.
+
+Alert codes (``Event.kind == "alert"``; level in brackets; for a catalogued code its row's) the UI
+can rely on:
+``occlusion`` [warning] fewer than ``min_fiducials`` matched, arm holds; ``pose_jump`` [warning] the
+pose disagrees with the last trusted one (a wrong pose or a real jump; followed after
+``confirm_frames`` consistent frames), arm holds; ``bad_pose`` [warning] FRE too large; ``pose_lost``
+[warning] the estimator failed; ``pose_stale`` [warning] freshest trusted pose older than
+``max_pose_age_s``; ``camera_freeze`` [alarm] no new frame for ``freeze_after_s``; ``resumed`` [info]
+the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``fiducials_back``
+[info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
+[warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
+``robot_disconnected`` [alarm] /
+``robot_connected`` [info]; real cameras: ``camera_ended`` [warning] the video/folder ended,
+``frame_unreadable`` [warning] a corrupt frame (skipped), ``camera_disconnected`` [alarm],
+``camera_uncalibrated`` / ``camera_compressed`` / ``colour_clash`` [warning] nominal
+intrinsics / lossy frames (MJPEG, JPEG files, a lossy video codec) / a large area of the balls'
+colour (learn the colour), shown while that camera runs (the last while the area is seen),
+``frame_size`` [alarm] frame size differs from the calibration, ``frame_grayscale`` [alarm] the
+frames are grayscale (a monochrome camera or grayscale files: no ball can be found); poses: ``tre_limit``
+[warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
+``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
+with its shift in mm; excluded from then on); ``robot_warning`` [warning] from the robot's safety layer; integrity
+(engine/plan/editor.py, engine/audit.py): ``plan_field_rejected`` / ``plan_changed_outside`` /
+``plan_reconfirm_pending`` / ``plan_ct_changed`` / ``plan_ct_missing`` / ``calibration_changed`` /
+``plan_path_invalid`` / ``home_unwritable`` / ``audit_unavailable`` / ``audit_delayed`` / ``audit_lost``
+[alarm], ``home_writable`` / ``audit_recovered`` [info], ``fiducial_unverified`` [warning]; ``estop``
+[alarm]; ``estop_unconfirmed`` [alarm] STOP signalled but the robot controller did not confirm it;
+``session_unlocked`` [warning] the session folder could not be locked (read-only); ``pin_lockout`` [alarm] too many wrong PIN tries, arming and taking control locked (each
+wrong try is an ``arm_refused`` / ``control_refused`` *event*, never an alert, never the PIN); ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
+/ ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
+state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
+``arm``, ``tracking_started``, ``robot_state`` (one per robot transition, in order, with its own
+reason), ``session_lock_recovered`` (this session took over the folder lock of a process that was
+killed), ``fault_injected``, ...); all of them are in the audit log.
 """
 
 from __future__ import annotations
@@ -252,3 +286,60 @@ class AlarmBoard:
                      for code, st in self._active.items()]
         items.sort(key=lambda a: (a.priority, LEVEL_RANK.get(a.level, 1), a.since, a.code))
         return tuple(items)
+
+
+class Alarms:
+    """The session's alarms: the :class:`AlarmBoard` of active conditions and the alerts that
+    report them (on the event bus ``events``), on the session ``clock`` (s). Thread-safe.
+
+    :meth:`alert` is how every part raises an alert: a ``pulse`` row (robot warnings; a control
+    loop overrun is shown as ``loop_overrun``) is also shown on the board for its linger time and
+    reported at most once per quiet time; a ``camera_setup`` row is also an active condition
+    until :meth:`clear`."""
+
+    def __init__(self, events, clock, quiet_s: float = 10.0):
+        self.board = AlarmBoard(quiet_s)
+        self._bus = events
+        self._clock = clock
+
+    def now(self) -> float:
+        return float(self._clock())
+
+    def alert(self, level: str, code: str, message: str, data: dict | None = None):
+        """Raise an alert (to subscribers and the audit log); returns the event, or None when a
+        repeated pulse was held back. ``level`` counts only for a code without a row."""
+        on_board = "loop_overrun" if code == "robot_warning" and "overran" in message else code
+        kind = CATALOGUE.get(on_board)
+        if kind is not None and kind.pulse:
+            now = self.now()
+            report = self.board.set(on_board, message, now)
+            self.board.clear(on_board, now)  # a pulse: shown for its linger time
+            if not report:
+                log.info("%s (not re-reported): %s", code, message)
+                return None
+        elif kind is not None and kind.camera_setup:
+            self.board.set(code, message, self.now())
+        return self._bus.alert(level, code, message, data)
+
+    def persistent(self, code: str, message: str, data: dict | None = None):
+        """An alert that is also an active condition (``snap.alarms``) until it is cleared."""
+        self.board.set(code, message, self.now())
+        return self._bus.alert(level_of(code, "alarm"), code, message, data)
+
+    def clear(self, code: str) -> None:
+        """Condition ``code`` no longer holds."""
+        self.board.clear(code, self.now())
+
+    def clear_all(self, codes, keep: str | None = None) -> None:
+        self.board.clear_all(codes, self.now(), keep=keep)
+
+    def active(self, derived: dict[str, str]) -> tuple[Alarm, ...]:
+        """The active conditions now, most important first; ``derived``: the ``derived`` rows that
+        stand now (code -> one line), set on the board, the others cleared."""
+        now = self.now()
+        for code in DERIVED_CODES:
+            if code in derived:
+                self.board.set(code, derived[code], now)
+            else:
+                self.board.clear(code, now)
+        return self.board.active(now)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import sqlite3
 
-#: the state every session starts in (``engine/loop.py``)
+#: the state every session starts in (``engine/loop/robot.py``)
 FIRST_STATE = "disarmed"
 
 

@@ -241,8 +241,7 @@ class HandEyeJob:
 
     def capture(self, session) -> ViewReport:
         """The session's newest frame with the robot's current needle-tip pose (rigid with the flange)."""
-        rob = session._loop.robot
-        st = None if rob is None else rob.status()
+        st = session.robot_status()
         if st is None or st.T_base_tip is None or not st.connected:
             raise InputError("no robot pose: connect the arm first")
         return self.add_view(np.asarray(st.T_base_tip, float), _newest_image(session))

@@ -19,7 +19,7 @@ class SessionConfig:
     ``home``: folder for ``plan.json``, ``audit.sqlite`` and logs (None = ``paths.data_dir()``).
     ``camera``: ``"sim"`` (rendered digital-twin camera) ``| "sim-points"`` (twin at the level of
     detected points) ``| "device:0" | "file:/path/video.mp4" | "folder:/path" | "replay:/path"`` (a
-    session recording, ``monotracker.interop.recording``).
+    session recording, ``monotracker.engine.recording``).
     ``trajectory``: simulated head motion (``"still" | "drift" | "breathing" | "jumps"``, see
     ``monotracker.sim.trajectories``, or a trajectory object with ``pose(t)``; sim only).
     ``robot``: ``"sim" | "ur:<ip>"``. ``arm_pin``: the operator PIN that ``arm(pin)`` checks.
@@ -109,7 +109,7 @@ class SessionConfig:
     max_validation_tre_mm: float = 1.5
     camera_optics: str | None = None
     #: Longest a CT job (load + fiducial detection + surface) may run, s; then it is stopped
-    #: with a one-line message and the previous CT and plan stay (engine/ct_commands.py).
+    #: with a one-line message and the previous CT and plan stay (engine/ct_job.py).
     ct_job_timeout_s: float = 600.0
     pose_nice: int = 0
     pose_rt_priority: int = 0
@@ -122,13 +122,14 @@ class SessionConfig:
             raise InputError(f"unknown trajectory {self.trajectory!r}; use one of {', '.join(TRAJECTORIES)}")
         if self.clock not in ("real", "sim"):
             raise InputError(f"clock must be 'real' or 'sim', not {self.clock!r}")
-        if not (self.camera in ("sim", "sim-points")
-                or self.camera.split(":", 1)[0] in ("device", "file", "folder", "replay")):
-            raise InputError("camera must be 'sim', 'sim-points', 'device:N', 'file:PATH', 'folder:PATH' or "
-                             f"'replay:DIR' (a session recording), not {self.camera!r}")
-        from monotracker.cli_args import check_robot_spec
+        from monotracker.engine.rigs.sources import source_problem
 
-        why = check_robot_spec(self.robot)
+        why = source_problem(self.camera)
+        if why:
+            raise InputError(why)
+        from monotracker.robot.backends import spec_problem
+
+        why = spec_problem(self.robot)
         if why:
             raise InputError(why)
         if self.camera_fps <= 0 or self.control_hz <= 0:

@@ -10,7 +10,7 @@ so a row could carry the previous transition's reason (issue 34).
 
 :class:`TransitionLog` takes the reports as they come and hands them back strictly in sequence
 order, each with its own reason; the engine writes one ``robot_state`` row per transition from
-it (``engine/loop_robot.py``). Changes the engine itself decides (the control process is gone)
+it (``engine/loop/robot.py``). Changes the engine itself decides (the control process is gone)
 are added with :meth:`TransitionLog.add_local`, after every report already numbered.
 """
 

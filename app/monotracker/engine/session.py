@@ -35,10 +35,10 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.set_camera(source, calibration_path=None)
     s.start_camera(); s.stop_camera()   # pose stream on its own thread
     s.set_hand_eye(T_base_cam_mm)       # 4x4 mm; the sim camera sets it from the OR layout
-    s.plan_not_ready() -> str | None    # why arming/tracking is refused (plan_checks, CT loaded, re-confirmation)
+    s.plan_not_ready() -> str | None    # why arming/tracking is refused (plan checks, CT loaded, re-confirmation)
     s.reconfirm_plan()                  # the operator re-confirms after an integrity alarm (edited outside, CT/calibration changed)
     s.integrity_alarms() -> [(code, line)]   # integrity conditions that stand until they clear (for snap.alarms)
-    s.arm(pin); s.disarm()               # arm needs a fresh trusted pose for this plan; wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/control.py
+    s.arm(pin); s.disarm()               # arm needs a fresh trusted pose for this plan; wrong PINs: 5 tries, then a 30 s lockout (doubling), see engine/access.py
     s.claim_control(client_id, pin, label=""); s.release_control(client_id)   # one browser client in control
     s.for_client(client_id) -> ClientSession    # reads as is; commands only while in control; estop() always
     s.start_tracking(); s.stop_tracking()   # needs armed + plan + trusted fresh pose + hand-eye
@@ -77,48 +77,31 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.subscribe(callback) # callback(Event) on every alert/event (engine thread); returns unsubscribe()
     s.audit_entries(limit=None) -> list[AuditEntry]
 
-Alert codes (``Event.kind == "alert"``; level in brackets) the UI can rely on:
-``occlusion`` [warning] fewer than ``min_fiducials`` matched, arm holds; ``pose_jump`` [warning] the
-pose disagrees with the last trusted one (a wrong pose or a real jump; followed after
-``confirm_frames`` consistent frames), arm holds; ``bad_pose`` [warning] FRE too large; ``pose_lost``
-[warning] the estimator failed; ``pose_stale`` [warning] freshest trusted pose older than
-``max_pose_age_s``; ``camera_freeze`` [alarm] no new frame for ``freeze_after_s``; ``resumed`` [info]
-the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``fiducials_back``
-[info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
-[warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
-``robot_disconnected`` [alarm] /
-``robot_connected`` [info]; real cameras: ``camera_ended`` [warning] the video/folder ended,
-``frame_unreadable`` [warning] a corrupt frame (skipped), ``camera_disconnected`` [alarm],
-``camera_uncalibrated`` / ``camera_compressed`` / ``colour_clash`` [warning] nominal
-intrinsics / lossy frames (MJPEG, JPEG files, a lossy video codec) / a large area of the balls'
-colour (learn the colour), shown while that camera runs (the last while the area is seen),
-``frame_size`` [warning] frame size differs from the calibration, ``frame_grayscale`` [alarm] the
-frames are grayscale (a monochrome camera or grayscale files: no ball can be found); poses: ``tre_limit``
-[warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
-``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
-with its shift in mm; excluded from then on); ``robot_warning`` [warning] from the robot's safety layer; integrity
-(engine/plan_commands.py, engine/audit.py): ``plan_field_rejected`` / ``plan_changed_outside`` /
-``plan_reconfirm_pending`` / ``plan_ct_changed`` / ``plan_ct_missing`` / ``calibration_changed`` /
-``plan_path_invalid`` / ``home_unwritable`` / ``audit_unavailable`` / ``audit_delayed`` / ``audit_lost``
-[alarm], ``home_writable`` / ``audit_recovered`` [info], ``fiducial_unverified`` [warning]; ``estop``
-[alarm]; ``estop_unconfirmed`` [alarm] STOP signalled but the robot controller did not confirm it;
-``session_unlocked`` [warning] the session folder could not be locked (read-only); ``pin_lockout`` [alarm] too many wrong PIN tries, arming and taking control locked (each
-wrong try is an ``arm_refused`` / ``control_refused`` *event*, never an alert, never the PIN); ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
-/ ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
-state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
-``arm``, ``tracking_started``, ``robot_state`` (one per robot transition, in order, with its own
-reason), ``session_lock_recovered`` (this session took over the folder lock of a process that was
-killed), ``fault_injected``, ...); all of them are in the audit log.
-
 One session per folder: the session locks its ``home`` (``engine/session_lock.py``); a second
 session on it raises :class:`~monotracker.engine.session_lock.SessionFolderBusy` naming the holder.
 
-Camera sources (``engine/vision_rig.py``): ``"sim"`` the rendered digital-twin camera (vision's
-SimulatedCamera + classical detector + PoseTracker), ``"sim-points"`` the twin at the level of
-detected points (no rendering), ``"device:N" | "file:PATH" | "folder:PATH"`` real sources through
-vision's PoseStream (clock="real"; pass the calibration file to ``set_camera``). Per-fiducial
-statuses in ``snap.pose.fiducial_status`` use vision's words: ``"seen" | "newly_lost" |
-"occluded" | "unknown"``, keyed by fiducial id.
+Seams for programs beside the UI (recording, OpenIGTLink, the demo, benchmarks), instead of the
+engine's parts (every listener runs on the engine thread: keep it short; one that raises is
+logged and never disturbs the loop)::
+
+    s.add_pose_listener(fn) -> remove()   # fn(sample: PoseSample, trusted: bool, now_s) per estimate handled
+    s.add_tick_listener(fn) -> remove()   # fn(t_s) after every control tick (clock="sim")
+    s.latest_pose() -> PoseRecord | None  # newest estimate and its verdict (sample, trusted, code, reason)
+    s.robot_status() -> RobotStatus | None   # the arm now (state, q rad, T_base_tip mm, speed): None before it connects
+    s.needle_target() -> (T_base_target 4x4 mm | None, capture stamp s | None)   # last handed to the tracker
+    s.recent_alerts(n=50) -> list[Event]  # newest last
+    s.latencies_s() -> tuple[float, ...]  # capture -> command latency of each command, s
+    s.truth_T_base_ct(t) -> 4x4 mm | None # the simulator's true head pose in the robot base (None: real camera)
+
+Alert codes the UI can rely on, with their levels: the module docstring of ``engine/alarms.py``
+(every code that can be an active condition has a row in its catalogue). Camera sources: the
+table of source kinds, ``engine/rigs/sources.py``.
+
+Composition: ``Session`` inherits nothing. It builds its parts and hands each its collaborators:
+the event bus and audit log (``events.py``, ``audit.py``), the alarms (``alarms.py``), the plan
+store and editor (``plan/``), the CT job (``ct_job.py``), who may drive it (``access.py``), the
+tracking loop (``loop/``, with its rigs from ``rigs/``) and the recording (``recording.py``); the
+methods below are one-line delegations to them (``docs/engine.md`` draws the layout).
 
 Threading: every public method may be called from any thread (viser callbacks). State lives
 behind one re-entrant lock; methods hold it only for bookkeeping and for the plan's atomic save
@@ -127,7 +110,7 @@ and the in-memory plan never disagree), never across CT loading, registration or
 The audit log is written by its own thread from a bounded queue: no command waits on it.
 Snapshots are copies with read-only arrays.
 
-Validation: one check per kind of plan state (``engine/plan_checks.py``), used by the commands,
+Validation: one check per kind of plan state (``engine/plan/checks.py``), used by the commands,
 by the field-by-field restore of ``plan.json`` and by the arming gate: what a setter refuses, a
 restore refuses too; nothing is armed without a complete plan that passes every check.
 
@@ -147,35 +130,21 @@ import time
 import uuid
 from pathlib import Path
 
-import numpy as np
-
-from monotracker.engine.alarms import CATALOGUE, DERIVED_CODES, AlarmBoard, level_of
+from monotracker.engine.access import Access, ClientSession
+from monotracker.engine.alarms import Alarms, level_of
 from monotracker.engine.audit import AuditEntry, AuditLog
-from monotracker.engine.control_commands import ControlCommands
-from monotracker.engine.ct_commands import CTCommands
-from monotracker.engine.rig_commands import RigCommands
 from monotracker.engine.config import SessionConfig
-from monotracker.engine.control import ControlArbiter, PinGuard
+from monotracker.engine.ct_job import CTJob
 from monotracker.engine.events import Event, EventBus
-from monotracker.engine import plan_checks
-from monotracker.engine.plan_commands import PlanCommands, _fail, _home_write_problem, _ok, _prepare_home
-from monotracker.engine.plan import (
-    Plan,
-    angle_to_skin_normal_deg,
-    distance_segment_to_points_mm,
-    path_length_mm,
-)
+from monotracker.engine.loop import SimClock, TrackingLoop
+from monotracker.engine.loop.core import PoseRecord
+from monotracker.engine.plan import Plan, angle_to_skin_normal_deg, distance_segment_to_points_mm, path_length_mm
+from monotracker.engine.plan.editor import PlanEditor
+from monotracker.engine.plan.store import PlanStore, home_write_problem, prepare_home
+from monotracker.engine.recording import Recording
+from monotracker.engine.rigs.base import RobotStatus
 from monotracker.engine.session_lock import SessionFolderLock
-from monotracker.engine.snapshot import (
-    CommandResult,
-    CTSummary,
-    Fiducial,
-    HeadMesh,
-    Job,
-    PlanSummary,
-    Snapshot,
-    frozen_array,
-)
+from monotracker.engine.snapshot import CommandResult, Fiducial, Job, PlanSummary, Snapshot, frozen_array
 from monotracker.errors import MonoTrackerError
 
 log = logging.getLogger(__name__)
@@ -183,31 +152,16 @@ log = logging.getLogger(__name__)
 PLAN_FILE = "plan.json"
 AUDIT_FILE = "audit.sqlite"
 
-
-class SimClock:
-    """A settable clock (s) for clock="sim" sessions."""
-
-    def __init__(self, t0: float = 0.0):
-        self._t = float(t0)
-        self._lock = threading.Lock()
-
-    def __call__(self) -> float:
-        with self._lock:
-            return self._t
-
-    def set(self, t: float) -> None:
-        """Set the simulated time, s."""
-        with self._lock:
-            self._t = float(t)
+__all__ = ["AUDIT_FILE", "PLAN_FILE", "Session", "SimClock"]
 
 
-class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
+class Session:
     """One surgical session (see the module docstring for the whole API)."""
 
     def __init__(self, config: SessionConfig | None = None, *, camera_factory=None, robot_factory=None):
         """``camera_factory(source, calibration_path, plan, cfg, session) -> CameraRig`` and
         ``robot_factory(cfg, session) -> RobotRig`` replace the default vision/robot wiring
-        (``monotracker.engine.components``), e.g. for tests on doubles."""
+        (``monotracker.engine.rigs.factory``), e.g. for tests on doubles."""
         from monotracker.paths import data_dir
 
         self.camera_factory = camera_factory
@@ -215,36 +169,33 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         self.config = config or SessionConfig()
         self.config.validate()
         self.home = Path(self.config.home) if self.config.home is not None else data_dir()
-        _prepare_home(self.home)
+        prepare_home(self.home)
         # one session per folder: a second one is refused naming the holder (engine/session_lock.py)
         self._folder_lock = SessionFolderLock(self.home).acquire()
         self.session_id = uuid.uuid4().hex[:12]
         self.clock = SimClock() if self.config.clock == "sim" else time.monotonic
-        self._lock = threading.RLock()
-        self._plan_path = self.home / PLAN_FILE
+        self._lock = threading.RLock()  # the state lock: plan, CT, job (held for bookkeeping only)
+        self._started = False
+        self._closed = False
+        # ---- the parts, each given its collaborators
         self._audit = AuditLog(self.home / AUDIT_FILE, self.session_id,
                                on_problem=lambda level, code, msg, data: self._bus.alert(level, code, msg, data))
         self._bus = EventBus(sink=self._audit.record_event, clock=self.clock, alert_level=level_of)
-        self._job: Job | None = None
-        self._job_thread: threading.Thread | None = None
-        self._ct: CTSummary | None = None
-        self._volume = None
-        self._head_mesh: HeadMesh | None = None
-        self._head_normals: np.ndarray | None = None
-        self._anatomy: plan_checks.Anatomy | None = None  # what the CT tells the plan checks
-        self._ct_sha256: str | None = None  # content hash of the loaded CT
-        self._reconfirm: list[str] = []  # why the operator must re-confirm the plan before arming
-        self._home_unwritable: str | None = None  # last save failure while the home is unwritable
-        self._started = False
-        self._closed = False
-        self._recorder = None  # interop.recording.SessionRecorder while/after recording
-        self._plan = Plan()
-        self._pin_guard = PinGuard(self.config.arm_pin)
-        self._alarm_board = AlarmBoard()  # active conditions (snap.alarms); the loop sets and clears them
-        self._control = ControlArbiter()
-        unwritable = _home_write_problem(self.home)
+        self._alarms = Alarms(self._bus, self.clock)
+        self._store = PlanStore(self.home / PLAN_FILE, self.home, self._bus)
+        self._plan = PlanEditor(self._store, lock=self._lock, events=self._bus, alarms=self._alarms.board,
+                                clock=self.clock, config=self.config, ct=lambda: self._ct.loaded,
+                                robot_state=lambda: self._loop.robot.state(),
+                                plan_changed=lambda why, restart: self._loop.camera.plan_changed(why, restart),
+                                forget_ct=lambda: self._ct.forget())
+        self._ct = CTJob(lock=self._lock, editor=self._plan, events=self._bus, alarms=self._alarms.board,
+                         clock=self.clock, config=self.config,
+                         plan_changed=lambda why, restart: self._loop.camera.plan_changed(why, restart))
+        self._access = Access(self.config.arm_pin, events=self._bus, alarms=self._alarms.board, clock=self.clock,
+                              session=self)
+        unwritable = home_write_problem(self.home)
         if unwritable:
-            self._home_unwritable = unwritable
+            self._store.home_unwritable = unwritable
             self._bus.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: {unwritable}; "
                             "the plan cannot be changed and the audit log goes to a spill file until it is writable")
         key = self._audit.key  # this machine's integrity key (engine/integrity.py), outside the home
@@ -257,18 +208,17 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         if self._audit.open_error:
             self._bus.alert("alarm", "audit_unavailable", f"audit database {self._audit.path} cannot be opened "
                             f"({self._audit.open_error}); events go to {self._audit.spill_path}")
-        self._restore_plan()
-        ct_path = self._plan.ct_path
+        self._plan.restore()
+        ct_path = self._store.plan.ct_path
         if ct_path and not Path(ct_path).exists():
             self._bus.alert("alarm", "plan_ct_missing", f"the plan's CT {ct_path} is missing; the plan cannot be "
                             "checked or armed until it is back (or start a new plan)", {"path": ct_path})
-        # camera + loop + robot wiring (monotracker.engine.loop); created lazily
-        from monotracker.engine.loop import TrackingLoop
-
-        self._loop = TrackingLoop(self)
+        self._loop = TrackingLoop(config=self.config, clock=self.clock, events=self._bus, alarms=self._alarms,
+                                  plan=self._plan, access=self._access, session=self)
+        self._recording = Recording(self, self._loop, self._lock)
         self._bus.event("session_started", f"session {self.session_id} started, disarmed",
                         {"home": str(self.home), "camera": self.config.camera, "robot": self.config.robot,
-                         "clock": self.config.clock, "plan_revision": self._plan.revision})
+                         "clock": self.config.clock, "plan_revision": self._store.plan.revision})
         self._note_folder_lock()
 
     # ================================================================== lifecycle
@@ -276,19 +226,19 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         """Start the engine threads (event dispatcher; camera/control threads when running)."""
         with self._lock:
             if self._closed:
-                return _fail("session is shut down")
+                return CommandResult.refused("session is shut down")
             if self._started:
-                return _ok("already started")
+                return CommandResult.done("already started")
             self._started = True
         self._bus.start()
         self._loop.start_threads()
         # After a restart the plan is back but the CT volume and surface are not: reload them in
         # the background for the views (the saved fiducials are kept, see load_ct).
         with self._lock:
-            ct_path = self._plan.ct_path if self._ct is None else None
+            ct_path = self._store.plan.ct_path if self._ct.loaded is None else None
         if ct_path and Path(ct_path).exists():
             self.load_ct(ct_path)
-        return _ok("started")
+        return CommandResult.done("started")
 
     def shutdown(self) -> None:
         """Stop tracking, disarm, stop every thread, close the audit log. Idempotent."""
@@ -330,42 +280,20 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
             raise MonoTrackerError("advance() is only for clock='sim' sessions")
         self._loop.advance(float(dt))
 
-    # ================================================================== events
+    # ================================================================== events and alarms
     def subscribe(self, callback) -> "callable":
         """``callback(event)`` for every later event/alert; returns the unsubscribe function."""
         return self._bus.subscribe(callback)
 
     def alert(self, level: str, code: str, message: str, data: dict | None = None) -> Event | None:
-        """Raise an alert (to subscribers and the audit log). Used by the engine's parts.
-
-        ``level`` counts only for a code without a catalogue row (:data:`~.alarms.CATALOGUE`):
-        a catalogued code carries its row's level. Warnings from the robot's safety layer
-        (``pulse`` rows) and the camera's setup (uncalibrated, lossy frames: ``camera_setup``
-        rows) are also active conditions in ``snap.alarms``; repeated robot warnings (a loaded
-        machine overrunning the control period) are reported at most once per quiet time
-        (returns None when held back)."""
-        on_board = "loop_overrun" if code == "robot_warning" and "overran" in message else code
-        kind = CATALOGUE.get(on_board)
-        if kind is not None and kind.pulse:
-            now = float(self.clock())
-            report = self._alarm_board.set(on_board, message, now)
-            self._alarm_board.clear(on_board, now)  # a pulse: shown for its linger time
-            if not report:
-                log.info("%s (not re-reported): %s", code, message)
-                return None
-        elif kind is not None and kind.camera_setup:
-            self._alarm_board.set(code, message, float(self.clock()))
-        return self._bus.alert(level, code, message, data)
+        """Raise an alert (to subscribers and the audit log); used by the engine's parts and rigs.
+        See :meth:`monotracker.engine.alarms.Alarms.alert` (a catalogued code carries its row's level)."""
+        return self._alarms.alert(level, code, message, data)
 
     def clear_condition(self, code: str) -> None:
-        """A camera setup condition (:data:`~.alarms.CAMERA_SETUP_CODES`) raised with
+        """A camera setup condition (``camera_setup`` rows of ``alarms.CATALOGUE``) raised with
         :meth:`alert` no longer holds (thread-safe)."""
-        self._alarm_board.clear(code, float(self.clock()))
-
-    def _persistent_alarm(self, code: str, message: str, data: dict | None = None) -> Event:
-        """An alert that is also an active condition (``snap.alarms``) until it is cleared."""
-        self._alarm_board.set(code, message, float(self.clock()))
-        return self._bus.alert(level_of(code, "alarm"), code, message, data)
+        self._alarms.clear(code)
 
     def record(self, code: str, message: str, data: dict | None = None, level: str = "info") -> Event:
         """Record a decision/state change (to subscribers and the audit log)."""
@@ -376,66 +304,279 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         for the rows still queued; rows delayed to a spill file appear once copied back in."""
         return self._audit.entries(code=code, limit=limit)
 
-    # ================================================================== plan persistence
+    def recent_alerts(self, n: int = 50) -> list[Event]:
+        """The newest ``n`` alerts (``Event``), newest last."""
+        return self._bus.recent("alert")[-int(n):] if n > 0 else []
+
+    def integrity_alarms(self) -> list[tuple[str, str]]:
+        """Integrity conditions that stand until they clear, as ``(code, one line)``, most serious
+        first: the session folder is unwritable, the plan needs re-confirmation, the plan's CT is
+        missing, the audit log no longer matches its anchor, audit rows were lost or are delayed,
+        this machine's integrity key is unavailable. For the active-alarm list (``snap.alarms``);
+        each was also raised once as an alert when it began."""
+        out = self._plan.integrity_alarms()
+        audit = self._audit
+        if audit.tampered:
+            out.append(("audit_tampered", f"audit log {audit.path.name}: {audit.tampered}"))
+        if audit.lost:
+            out.append(("audit_lost", f"{audit.lost} audit rows were lost"))
+        elif audit.open_error or getattr(audit, "_trouble", False):
+            out.append(("audit_delayed", f"audit rows are delayed to {audit.spill_path} ({audit.delayed} so far)"))
+        key = audit.key
+        if key is not None and key.problem:
+            out.append(("integrity_key_unavailable", f"{key.problem}: changes outside the app are seen through "
+                        "the audit chain only"))
+        return out
+
+    # ================================================================== seams for programs beside the UI
+    def add_pose_listener(self, fn) -> "callable":
+        """``fn(sample, trusted, now)`` after every estimate the engine handles (``PoseSample``,
+        its verdict, session s); on the engine thread: keep it short. Returns the remover."""
+        return self._loop.add_pose_hook(fn)
+
+    def add_tick_listener(self, fn) -> "callable":
+        """``fn(t)`` after every control tick of a clock="sim" session (session s). Returns the remover."""
+        return self._loop.add_tick_hook(fn)
+
+    def latest_pose(self) -> PoseRecord | None:
+        """The newest estimate the engine handled and its trust verdict, or None."""
+        return self._loop.latest
+
+    def robot_status(self) -> RobotStatus | None:
+        """The arm now (``RobotStatus``: state, q rad, T_base_tip mm, speed mm/s), or None while no
+        robot is connected."""
+        rob = self._loop.robot.rig
+        return None if rob is None else rob.status()
+
+    def needle_target(self) -> tuple:
+        """``(T_base_target 4x4 mm or None, its capture stamp s or None)``: the needle target last
+        handed to the tracker."""
+        return self._loop.target()
+
+    def latencies_s(self) -> tuple[float, ...]:
+        """Capture -> command latency of every control command so far (s, oldest first, at most 5000)."""
+        return tuple(self._loop.latencies_s)
+
+    def truth_T_base_ct(self, t: float):
+        """The simulator's true head (CT) pose in the robot base at session time ``t`` (4x4 mm), or
+        None for a real camera or no camera."""
+        rig = self._loop.camera.rig
+        return None if rig is None else rig.truth_T_base_ct(t)
+
+    # ================================================================== plan
     @property
     def plan_path(self) -> Path:
         """Where the plan is saved: ``plan.json`` in the session's ``home``."""
-        return self._plan_path
+        return self._store.path
 
     def plan_copy(self) -> Plan:
         """A deep copy of the current plan."""
-        with self._lock:
-            return self._plan.copy()
+        return self._plan.copy()
 
     def new_plan(self) -> CommandResult:
         """Forget CT, fiducials, path (calibrations are kept). Refused while armed."""
-        if self._loop.robot_state() not in ("disarmed", "estopped"):
-            return _fail("disarm the robot before starting a new plan")
-        with self._lock:
-            keep = self._plan
-            integ = {k: v for k, v in keep.integrity.items() if k == "calibration_sha256"}
-            plan = Plan(camera_source=keep.camera_source, calibration_path=keep.calibration_path,
-                        K=keep.K, dist=keep.dist, image_size=keep.image_size, T_base_cam=keep.T_base_cam,
-                        integrity=integ)
-            err = self._commit_plan_locked(plan, "new plan")
-            if err:
-                return _fail(err)
-            self._ct = None
-            self._volume = None
-            self._head_mesh = None
-            self._head_normals = None
-            self._anatomy = None
-            self._reconfirm = []
-        self._alarm_board.clear_all(("plan_field_rejected", "fiducial_moved"), float(self.clock()))
-        self._bus.event("plan_cleared", "new plan: CT, fiducials and path cleared")
-        self._loop.plan_changed("new plan", restart_camera=False)
-        return _ok("new plan")
+        return self._plan.new_plan()
+
+    def set_fiducial_status(self, fid_id: int, status: str) -> CommandResult:
+        """See :meth:`PlanEditor.set_fiducial_status <monotracker.engine.plan.editor.PlanEditor.set_fiducial_status>`."""
+        return self._plan.set_fiducial_status(fid_id, status)
+
+    def add_fiducial(self, p_lps_mm, radius_mm: float | None = None, manual: bool = False) -> CommandResult:
+        """See :meth:`PlanEditor.add_fiducial <monotracker.engine.plan.editor.PlanEditor.add_fiducial>` (LPS mm)."""
+        return self._plan.add_fiducial(p_lps_mm, radius_mm, manual)
+
+    def confirm_fiducials(self) -> CommandResult:
+        """Lock the fiducial set (needs >= ``config.min_fiducials`` confirmed or added)."""
+        return self._plan.confirm_fiducials()
+
+    def set_fiducial_role(self, fid_id: int, role: str) -> CommandResult:
+        """``"registration"`` or ``"validation"`` (kept out of the fit, verifies it)."""
+        return self._plan.set_fiducial_role(fid_id, role)
+
+    def unlock_fiducials(self) -> CommandResult:
+        """Back to editing the fiducials (refused while armed or tracking)."""
+        return self._plan.unlock_fiducials()
+
+    def set_entry(self, p_lps_mm) -> CommandResult:
+        """The needle's entry point, (3,) CT LPS mm (see ``PlanEditor.set_entry``)."""
+        return self._plan.set_entry(p_lps_mm)
+
+    def set_target(self, p_lps_mm) -> CommandResult:
+        """The target point, (3,) CT LPS mm (see ``PlanEditor.set_target``)."""
+        return self._plan.set_target(p_lps_mm)
+
+    def use_sample_plan(self) -> CommandResult:
+        """Entry/target of the phantom's sample plan (meant for the sample CT)."""
+        return self._plan.use_sample_plan()
+
+    def set_hand_eye(self, T_base_cam_mm) -> CommandResult:
+        """``T_base_cam`` (4x4, camera -> robot base, mm), saved in the plan."""
+        return self._plan.set_hand_eye(T_base_cam_mm)
+
+    def plan_not_ready(self) -> str | None:
+        """Why arming/tracking is refused (one line), or None."""
+        return self._plan.plan_not_ready()
+
+    def reconfirm_plan(self) -> CommandResult:
+        """The operator re-confirms the plan after an integrity alarm."""
+        return self._plan.reconfirm_plan()
+
+    def export_slicer_markups(self, folder) -> list[Path]:
+        """Write fiducials and path as 3D Slicer markups (``.mrk.json``, LPS); returns the files."""
+        from monotracker.engine.plan.slicer import write_markups
+
+        return write_markups(self.plan_copy(), Path(folder))
+
+    # ================================================================== CT
+    def load_ct(self, path, series: str | None = None) -> CommandResult:
+        """Start the CT job (load, detect fiducials, head surface); see ``CTJob.load_ct``."""
+        return self._ct.load_ct(path, series)
+
+    def load_sample_ct(self) -> CommandResult:
+        """:meth:`load_ct` on the bundled phantom CT."""
+        return self._ct.load_sample_ct()
+
+    def set_fiducial_kit(self, radius_mm, density_hu=None) -> CommandResult:
+        """The fiducial kit (ball radius mm, density HU or None), kept in the plan; with a CT the
+        fiducials are detected again (see ``CTJob.set_fiducial_kit``)."""
+        return self._ct.set_fiducial_kit(radius_mm, density_hu)
+
+    def cancel_ct_job(self) -> CommandResult:
+        """Stop the CT job; the previous CT and plan stay."""
+        return self._ct.cancel_ct_job()
+
+    def wait_for_job(self, timeout: float | None = None) -> Job | None:
+        """Block until the current job ends (s; None = no limit); the last :class:`Job` or None."""
+        return self._ct.wait_for_job(timeout)
 
     def volume(self):
         """The loaded CT :class:`~monotracker.ct.Volume` (LPS mm) for read-only display (slice
         views), or None while no CT is loaded. Never modify it: the engine owns it."""
         with self._lock:
-            return self._volume
+            loaded = self._ct.loaded
+            return None if loaded is None else loaded.volume
+
+    # ================================================================== who may drive it
+    def claim_control(self, client_id: str, pin, label: str = "") -> CommandResult:
+        """Make browser client ``client_id`` the one in control (operator PIN)."""
+        return self._access.claim_control(client_id, pin, label)
+
+    def release_control(self, client_id: str) -> CommandResult:
+        """Client ``client_id`` gives up control."""
+        return self._access.release_control(client_id)
+
+    def is_in_control(self, client_id: str) -> bool:
+        """True if browser client ``client_id`` is the one in control."""
+        return self._access.is_in_control(client_id)
+
+    def control_summary(self):
+        """:class:`~monotracker.engine.snapshot.ControlSummary` now (also in ``snap.control``)."""
+        return self._access.control_summary()
+
+    def for_client(self, client_id: str) -> ClientSession:
+        """The session as browser client ``client_id`` may drive it (``engine/access.py``)."""
+        return self._access.for_client(client_id)
+
+    def report_login_lockout(self, locked_s: float, message: str = "") -> None:
+        """The page login is locked for ``locked_s`` s (0: no longer locked)."""
+        self._access.report_login_lockout(locked_s, message)
+
+    # ================================================================== camera
+    def set_camera(self, source: str, calibration_path: str | None = None) -> CommandResult:
+        """Choose the frame source (``engine/rigs/sources.py``) and calibration; see ``CameraControl.set_camera``."""
+        return self._loop.camera.set_camera(source, calibration_path)
+
+    def start_camera(self) -> CommandResult:
+        """Start the pose stream (poses in ``snap.pose``); see ``CameraControl.start_camera``."""
+        return self._loop.camera.start_camera()
+
+    def stop_camera(self) -> CommandResult:
+        """Stop the pose stream; the pose is cleared and a tracking arm holds. Never refused."""
+        return self._loop.camera.stop_camera()
+
+    def latest_frame(self):
+        """``(image BGR uint8, frame_index, estimate)`` of the newest processed frame, or None."""
+        return self._loop.camera.latest_frame()
+
+    def learn_ball_colour(self, x_px: float, y_px: float, *, frame=None, frame_index: int | None = None) -> CommandResult:
+        """Learn the balls' colour from a click (px) on a ball; see ``CameraControl.learn_ball_colour``."""
+        return self._loop.camera.learn_ball_colour(x_px, y_px, frame=frame, frame_index=frame_index)
+
+    def inject_fault(self, name: str) -> CommandResult:
+        """Simulated sessions only: start a fault (``config.FAULTS``; "none" clears)."""
+        return self._loop.camera.inject_fault(name)
+
+    # ================================================================== robot
+    def arm(self, pin) -> CommandResult:
+        """Arm the robot with the operator ``pin``; see ``RobotControl.arm`` for the refusals."""
+        return self._loop.robot.arm(pin)
+
+    def disarm(self) -> CommandResult:
+        """Disarm from armed, tracking or holding. Refused while the e-stop is latched."""
+        return self._loop.robot.disarm()
+
+    def start_tracking(self) -> CommandResult:
+        """The arm follows the planned path as the head moves; see ``RobotControl.start_tracking``."""
+        return self._loop.robot.start_tracking()
+
+    def stop_tracking(self) -> CommandResult:
+        """The arm stops following and holds, still armed."""
+        return self._loop.robot.stop_tracking()
+
+    def estop(self) -> CommandResult:
+        """Emergency stop: the arm stops at once and the stop is latched (``alarm`` ``estop``)
+        until :meth:`reset_estop`. Never refused, also without a robot. The stop goes first,
+        straight to the robot's controller (:meth:`request_estop`); the call then waits (about a
+        second at most) for the controller's acknowledgement: ``ok`` when it confirmed the stop,
+        else ``ok=False`` with the ``estop_unconfirmed`` alarm (use the robot's own e-stop)."""
+        return self._loop.robot.estop()
+
+    def request_estop(self) -> None:
+        """The stop channel alone: latch the e-stop in the robot's controller and return at once,
+        without a lock the engine or vision may hold, without waiting for the acknowledgement or
+        writing the audit (:meth:`estop` does both). For a web server's event loop, so a STOP is
+        never queued behind other work (``engine/pipeline_priority.py``). Never raises."""
+        self._loop.robot.signal_estop()
+
+    def reset_estop(self) -> CommandResult:
+        """Release a latched e-stop; the arm is left disarmed."""
+        return self._loop.robot.reset_estop()
+
+    def connect_robot(self) -> CommandResult:
+        """Connect the arm without arming it (e.g. for hand-eye poses); it stays DISARMED."""
+        return self._loop.robot.connect()
+
+    # ================================================================== recording
+    def start_recording(self, folder) -> CommandResult:
+        """Record every estimated frame and what the engine made of it into ``folder`` (an empty or
+        new folder; layout in ``docs/interop.md``) until :meth:`stop_recording` or shutdown."""
+        return self._recording.start(folder)
+
+    def stop_recording(self) -> CommandResult:
+        """Close the recording (manifest marked complete). Idempotent."""
+        return self._recording.stop()
 
     # ================================================================== snapshot
-    def _plan_summary(self, plan: Plan) -> PlanSummary:
+    def _plan_summary(self, plan: Plan, loaded) -> PlanSummary:
         e, t = plan.entry_lps_mm, plan.target_lps_mm
         if e is None or t is None:
             return PlanSummary(frozen_array(e), frozen_array(t), None, None, None, False)
         ang = None
-        if self._head_mesh is not None and self._head_normals is not None:
-            ang = angle_to_skin_normal_deg(e, t, self._head_mesh.vertices, self._head_normals)
+        if loaded is not None and loaded.head_mesh is not None and loaded.head_normals is not None:
+            ang = angle_to_skin_normal_deg(e, t, loaded.head_mesh.vertices, loaded.head_normals)
         return PlanSummary(frozen_array(e), frozen_array(t), path_length_mm(e, t), ang,
                            distance_segment_to_points_mm(e, t, plan.fiducial_centres()), True)
 
     def snapshot(self) -> Snapshot:
         """An immutable, consistent copy of the session state (thread-safe, cheap)."""
         with self._lock:
-            plan = self._plan
+            plan = self._store.plan
+            loaded = self._ct.loaded
             fids = tuple(Fiducial(f.id, frozen_array(f.centre_lps_mm), f.radius_mm, f.score, f.status, f.role)
                          for f in plan.fiducials)
-            plan_summary = self._plan_summary(plan)
-            job, ct, mesh, locked = self._job, self._ct, self._head_mesh, plan.fiducials_locked
+            plan_summary = self._plan_summary(plan, loaded)
+            job, locked = self._ct.job, plan.fiducials_locked
+            ct, mesh = (None, None) if loaded is None else (loaded.summary, loaded.head_mesh)
             if not locked:
                 step = "ct"
             elif not plan.path_complete:
@@ -448,19 +589,8 @@ class Session(PlanCommands, CTCommands, ControlCommands, RigCommands):
         return Snapshot(
             t=float(self.clock()), step=step, job=job, ct=ct, head_mesh=mesh, fiducials=fids,
             fiducials_locked=locked, plan=plan_summary, camera=camera, pose=pose, robot=robot, scene=scene,
-            alerts=tuple(self._bus.recent("alert")[-50:]), plan_path=str(self._plan_path),
+            alerts=tuple(self.recent_alerts(50)), plan_path=str(self._store.path),
             audit_path=str(self._audit.path), control=self.control_summary(),
-            alarms=self._active_alarms(),
-            recording=self._recording_summary(),
+            alarms=self._alarms.active(dict(self.integrity_alarms())),
+            recording=self._recording.summary(),
         )
-
-    def _active_alarms(self):
-        """The board's active conditions, with the conditions derived from the state (``derived`` rows)."""
-        now, board = float(self.clock()), self._alarm_board
-        standing = dict(self.integrity_alarms())
-        for code in DERIVED_CODES:
-            if code in standing:
-                board.set(code, standing[code], now)
-            else:
-                board.clear(code, now)
-        return board.active(now)

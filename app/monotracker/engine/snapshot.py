@@ -33,6 +33,16 @@ class CommandResult:
     def __bool__(self) -> bool:  # `if s.arm(pin): ...`
         return self.ok
 
+    @classmethod
+    def done(cls, message: str = "") -> "CommandResult":
+        """The command did what was asked (``ok`` True)."""
+        return cls(True, message)
+
+    @classmethod
+    def refused(cls, message: str) -> "CommandResult":
+        """The command changed nothing; ``message`` says why in one line (``ok`` False)."""
+        return cls(False, message)
+
 
 @dataclass(frozen=True)
 class Job:
@@ -199,7 +209,7 @@ class SceneGeometry:
 
 @dataclass(frozen=True)
 class ControlSummary:
-    """Which browser client is in control (see ``engine/control.py``).
+    """Which browser client is in control (see ``engine/access.py``).
 
     ``controller``: the client id in control, None when nobody is (the local operator calling the
     Session directly is never refused). ``controller_label``: its display name. ``since``: session

@@ -3,7 +3,7 @@
 The plan can give fiducials the role ``"validation"`` (``Session.set_fiducial_role``): they stay out
 of the fit, and every estimate measures the error at each of them (``registration.validation``:
 point-to-viewing-ray distance, mm, the same measure as the FRE). The camera rigs compute it per
-frame (:class:`ValidationSet`), it is shown in ``snap.pose.validation_tre_mm`` beside the FRE and
+frame (:class:`~monotracker.engine.rigs.validation.ValidationSet`), it is shown in ``snap.pose.validation_tre_mm`` beside the FRE and
 the predicted TRE, and arming is refused (:func:`arm_refusal`) unless the newest pose is trusted,
 fresh, and every validation fiducial is seen and within ``SessionConfig.max_validation_tre_mm``.
 Each arming attempt writes ``verification.json`` in the session folder (:func:`write_report`).
@@ -17,67 +17,11 @@ the 2-3 mm at which a puncture path is clinically off (and matches the engine's 
 from __future__ import annotations
 
 import datetime as _dt
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 VERIFICATION_FILE = "verification.json"
-
-
-class KeepDetections:
-    """The detector the pose tracker uses by default (classical, same rules), remembering the last
-    frame's blob centres (px) so that validation fiducials, which the fit ignores, can be found
-    (the pose tracker puts them in the detector's hint: ``PoseTracker(watch_ct=...)``), and the
-    share of the image covered by ball-coloured areas too large for a ball (``colour_share``,
-    0-1; :func:`~monotracker.vision.detection.oversized_colour_share`), as of the last
-    full-frame search (a search of windows around the predicted balls cannot measure it)."""
-
-    def __init__(self, K: np.ndarray, radius_mm: float):
-        from monotracker.vision.detect_classical import ClassicalDetector
-        from monotracker.vision.detection import BlobRules
-
-        self.inner = ClassicalDetector(BlobRules(radius_mm=radius_mm, focal_px=float(np.asarray(K)[0, 0])))
-        self.last = np.zeros((0, 2))
-        self.colour_share = 0.0
-
-    def detect(self, image, hint=None):
-        from monotracker.vision.detection import oversized_colour_share
-
-        det = self.inner.detect(image, hint)
-        self.last = np.asarray(det.centres, float).reshape(-1, 2)
-        if hint is None or hint.search_all:
-            self.colour_share = oversized_colour_share(det, self.inner.rules, image.shape)
-        return det
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-
-@dataclass
-class ValidationSet:
-    """The plan's validation fiducials for one camera rig: ``ids``, ``centres_ct`` (m, 3) LPS mm."""
-
-    ids: list
-    centres_ct: np.ndarray
-    radius_mm: float
-    limit_mm: float
-
-    @classmethod
-    def from_plan(cls, plan, radius_mm: float, limit_mm: float = 1.5) -> "ValidationSet":
-        """(The rig factory sets ``limit_mm`` from ``SessionConfig.max_validation_tre_mm``.)"""
-        fs = plan.validation_fiducials()
-        return cls([f.id for f in fs], np.array([f.centre_lps_mm for f in fs], float).reshape(-1, 3),
-                   float(radius_mm), float(limit_mm))
-
-    def check(self, T_cam_ct, detections_px, used_px, K, dist):
-        """ValidationResult for this frame, or None (no validation fiducials, or no pose)."""
-        if not self.ids or T_cam_ct is None:
-            return None
-        from monotracker.registration.validation import validate
-
-        return validate(np.asarray(T_cam_ct, float), self.ids, self.centres_ct, detections_px, K, dist,
-                        self.radius_mm, self.limit_mm, used_px=used_px)
 
 
 def arm_refusal(session) -> str | None:
@@ -86,13 +30,13 @@ def arm_refusal(session) -> str | None:
     plan = session.plan_copy()
     if not plan.validation_fiducials():
         return None
-    rec = session._loop._latest
+    rec = session.latest_pose()
     cfg = session.config
     if rec is None:
         return "no pose yet: the registration cannot be verified"
     if not rec.trusted or rec.sample.T_cam_ct is None:
         return f"no trusted pose ({rec.reason}): the registration cannot be verified"
-    if session._loop.now() - rec.sample.t_capture > cfg.max_pose_age_s:
+    if float(session.clock()) - rec.sample.t_capture > cfg.max_pose_age_s:
         return "the newest pose is stale: the registration cannot be verified"
     v = rec.sample.validation
     if v is None:
@@ -102,7 +46,7 @@ def arm_refusal(session) -> str | None:
 
 def report(session, decision: str, refusal: str | None) -> dict:
     """The verification report (JSON-ready): pose quality and validation errors at this moment."""
-    rec = session._loop._latest
+    rec = session.latest_pose()
     plan = session.plan_copy()
     smp = None if rec is None else rec.sample
     v = None if smp is None else smp.validation

@@ -104,7 +104,7 @@ class IGTLStreamer:
         self._server = _make_server(self.port, self.allow_remote, self._on_server_event)
         self._server.on_connect = self._on_connect
         self.epoch0 = time.time() - float(self.s.clock())
-        self._remove_hook = self.s._loop.add_pose_hook(self._on_pose)
+        self._remove_hook = self.s.add_pose_listener(self._on_pose)
         self._thread = threading.Thread(target=self._run, name="monotracker-igtl", daemon=True)
         self._thread.start()
         self.s.record("igtl_started", f"OpenIGTLink server on {self._server.host}:{self.port} ({self.coordinates})",
@@ -146,16 +146,18 @@ class IGTLStreamer:
         self._wake.set()
 
     # ------------------------------------------------------------------ engine thread
-    def _on_pose(self, loop, smp, trusted: bool, now: float) -> None:
+    def _on_pose(self, smp, trusted: bool, now: float) -> None:
         srv = self._server
         if srv is None or not srv.is_connected():
             return
-        st = loop.robot.status() if loop.robot is not None else None
-        alerts = [e.code for e in self.s._bus.recent("alert")[-3:]]
+        s = self.s
+        st = s.robot_status()
+        alerts = [e.code for e in s.recent_alerts(3)]
+        rec = s.latest_pose()
         self._q.append({
             "t_capture": float(smp.t_capture), "now": float(now), "trusted": bool(trusted),
-            "fresh": now - smp.t_capture <= loop.cfg.max_pose_age_s,
-            "reason": (loop._latest.reason if loop._latest is not None and not trusted else smp.reason) or "",
+            "fresh": now - smp.t_capture <= s.config.max_pose_age_s,
+            "reason": (rec.reason if rec is not None and not trusted else smp.reason) or "",
             "T_cam_ct": None if smp.T_cam_ct is None else np.array(smp.T_cam_ct, float),
             "n": int(smp.n_matched), "fre": smp.fre_mm,
             "robot": "none" if st is None else st.state,

@@ -95,11 +95,11 @@ class _PointEstimator:
     """What the "sim-points" rig ran: its own estimate() on the recorded points."""
 
     def __init__(self, folder: Path, seg: dict, plan_dict: dict):
-        from monotracker.engine.plan import Plan
-        from monotracker.engine.vision_rig import ProjectedFiducialRig
+        from monotracker.engine.plan import plan_from_dict
+        from monotracker.engine.rigs.sim import ProjectedFiducialRig
         from monotracker.vision.camera_model import CameraModel
 
-        plan = Plan.from_dict(plan_dict)
+        plan = plan_from_dict(plan_dict)
         plan.fiducials = [f for f in plan.fiducials if f.id in set(seg["fiducial_ids"])]
         for f in plan.fiducials:
             f.status = "confirmed"
@@ -113,7 +113,7 @@ class _PointEstimator:
             self.rig.K, self.rig.dist = cam.K, cam.dist
 
     def run(self, row: dict):
-        from monotracker.engine.vision_rig import SimFrame
+        from monotracker.engine.rigs.sim import SimFrame
 
         pts = np.asarray(row.get("points_px") or [], float).reshape(-1, 2)
         frame = SimFrame(float(row["t_capture"]), int(row["index"]), np.eye(4), pts, np.arange(len(pts)))

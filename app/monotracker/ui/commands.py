@@ -26,9 +26,11 @@ import signal
 import socket
 import time
 
-from monotracker.cli_args import existing_file, finite_float, home_folder, int_range, robot_spec
+from monotracker.cli_args import existing_file, finite_float, home_folder, int_range
 from monotracker.engine.config import TRAJECTORIES
+from monotracker.engine.rigs.sources import GRAMMAR as CAMERA_GRAMMAR
 from monotracker.errors import InputError
+from monotracker.robot.backends import robot_spec
 
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 
@@ -47,7 +49,7 @@ def register(subparsers) -> None:
     p.add_argument("--login-hours", type=finite_float(0.001, 72.0), default=12.0, metavar="H",
                    help="--allow-remote: how long one login lasts (hours, default 12)")
     p.add_argument("--sample", action="store_true", help="load the bundled sample CT at start")
-    p.add_argument("--camera", default="sim", help="sim | sim-points | device:N | file:PATH | folder:PATH | replay:DIR (default sim)")
+    p.add_argument("--camera", default="sim", help=f"{CAMERA_GRAMMAR} (default sim)")
     p.add_argument("--calibration", type=existing_file, default=None,
                    help="camera calibration file (OpenCV YAML/JSON) for a real camera; checked at start")
     p.add_argument("--robot", type=robot_spec, default="sim", help="sim | ur:IP (default sim; an IP address, no host names)")

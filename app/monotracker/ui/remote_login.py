@@ -7,7 +7,7 @@ So an unauthenticated client gets the login page, a redirect to it, or ``401`` -
 page, its websocket, nor any scene/GUI message (CT, camera image, controls).
 
 * :class:`LoginGate` (no network, no threads): the session password behind the shared
-  :class:`~monotracker.engine.control.PinGuard` (5 wrong tries, then a 30 s lockout that doubles
+  :class:`~monotracker.engine.access.PinGuard` (5 wrong tries, then a 30 s lockout that doubles
   while wrong tries go on; while locked even the right password is refused; one guard for every
   address, so many addresses do not multiply the tries), and the sessions:
   a random 256-bit id per login, kept server side with an absolute expiry (``ttl_s``), revoked
@@ -39,7 +39,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from monotracker.engine.control import PinGuard
+from monotracker.engine.access import PinGuard
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import InputError
 

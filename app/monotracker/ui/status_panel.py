@@ -74,7 +74,7 @@ class StatusPanel:
         """Runs on viser's event loop: signal the stop and return (never raises, never blocks)."""
         try:
             self.view.session.request_estop()
-        except Exception:  # noqa: BLE001 - never into viser's message handler; stop() follows anyway
+        except Exception:  # never into viser's message handler; stop() follows anyway
             log.exception("STOP signal failed")
 
     def stop(self) -> None:

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
+from monotracker.engine.rigs.sources import SOURCES
 from monotracker.ui import status as st
 from monotracker.ui.status import fmt
 
-CAMERA_SOURCES = ("sim", "sim-points", "device:0", "file:PATH", "folder:PATH")
+CAMERA_SOURCES = tuple(kind.example for kind in SOURCES.values())  # the engine's table of source kinds
 FAULTS_UI = ("none", "occlude-all", "camera-freeze", "bad-pose", "robot-disconnect")
 
 
@@ -92,11 +93,11 @@ class RegisterStep:
         view = self.view
         src = self.h_cam_src.value
         extra = self.h_cam_path.value.strip()
-        if src.endswith(":PATH") or src.startswith("device:"):
+        if src.endswith((":PATH", ":DIR")) or src.startswith("device:"):
             kind = src.split(":", 1)[0]
             if extra:
                 src = f"{kind}:{extra}"
-            elif src.endswith(":PATH"):
+            elif src.endswith((":PATH", ":DIR")):
                 view.say(False, f"Camera: type the {kind} path in 'Video file / device / folder'")
                 return
         calib = self.h_calib.value.strip() or None

@@ -1,6 +1,6 @@
 """A session recording as a frame source (``--camera replay:DIR``), and the recording's file layout.
 
-A recording folder (written by :mod:`monotracker.interop.recording`; the layout is documented in
+A recording folder (written by :mod:`monotracker.engine.recording`; the layout is documented in
 ``docs/interop.md``) holds ``manifest.json`` and one JSON-lines stream per kind. This module reads
 the part a camera needs: ``frames.jsonl`` (one row per frame: ``seq``, ``index``, ``t_capture`` s,
 ``segment``, ``kind`` ``"image"``, ``file`` ``frames/NNNNNN.png``, ``sha256`` of the PNG bytes) and

@@ -1,60 +1,60 @@
-"""The plan's commands and its integrity, as a part of :class:`~monotracker.engine.Session`.
+"""The plan's commands: fiducials, path, hand-eye, the camera in use, re-confirmation, restore.
 
-Every way plan state enters goes through :mod:`monotracker.engine.plan_checks` here: the editing
-commands (fiducials, entry/target, hand-eye, the camera the loop stores), the restore of
-``plan.json`` (:mod:`monotracker.engine.plan_restore`) and the arming gate
-(:meth:`PlanCommands.plan_not_ready`). Each command builds the new plan on a copy, saves it, and
-only then swaps it in (:meth:`PlanCommands._commit_plan_locked`): a save that fails leaves memory
-and disk unchanged and the command says why in one line.
+Every way plan state enters goes through :mod:`~monotracker.engine.plan.checks` here: the editing
+commands, the camera the loop stores, the restore of ``plan.json``
+(:mod:`~monotracker.engine.plan.store`) and the arming gate (:meth:`PlanEditor.plan_not_ready`).
+Each command is one :meth:`PlanEditor.edit` transaction: it changes a copy of the plan under the
+session's state lock; on a clean exit the copy is saved and only then swapped in
+(:meth:`~monotracker.engine.plan.store.PlanStore.commit`); raising :class:`Refused` (or a failed
+save) leaves memory and disk unchanged and the command says why in one line.
 
-:class:`PlanCommands` is a mixin: it uses the session's ``_lock``, ``_plan``, ``_plan_path``,
-``_bus``, ``_loop``, ``_anatomy``, ``_ct``, ``_ct_sha256``, ``_reconfirm``, ``_home_unwritable``,
-``home`` and ``config``.
+The editor's collaborators, given by the session: the :class:`~.store.PlanStore`, the state lock,
+the event bus and alarm board, the session clock (s), the configuration, ``ct()`` (the loaded CT's
+facts: :class:`CTFacts`, or None), ``robot_state()`` and ``plan_changed(why, restart_camera)`` of
+the tracking loop, ``forget_ct()`` (a new plan drops the CT) and the audit log (its conditions
+stand beside the plan's).
 """
 
 from __future__ import annotations
 
+import functools
 import logging
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
-from monotracker.engine import plan_checks
-from monotracker.engine.plan import Plan, PlanFiducial
+from monotracker.engine.plan import checks as plan_checks
+from monotracker.engine.plan.model import Plan, PlanFiducial
+from monotracker.engine.plan.store import load_saved_plan
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import InputError
 
 log = logging.getLogger(__name__)
 
 
-def _prepare_home(home: Path) -> None:
-    """Create the session folder; :class:`InputError` (one line) when ``home`` cannot be one."""
-    if home.exists() and not home.is_dir():
-        raise InputError(f"session folder {home} is not a folder")
-    try:
-        home.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the session folder {home}: {exc.strerror or exc}") from None
+class Refused(Exception):
+    """A plan command refused (``str`` is the one line for the operator); nothing changed."""
 
 
-def _home_write_problem(home: Path) -> str | None:
-    """None when a file can be created in ``home``; else the reason (one line)."""
-    import tempfile
+class CTFacts(Protocol):
+    """What the plan's checks need of the loaded CT (``engine/ct_job.py``'s ``LoadedCT``)."""
 
-    try:
-        with tempfile.NamedTemporaryFile(dir=home, prefix=".write-check-"):
-            pass
-    except OSError as exc:
-        return exc.strerror or str(exc)
-    return None
+    anatomy: plan_checks.Anatomy
+    sha256: str | None
 
 
-def _ok(msg: str = "") -> CommandResult:
-    return CommandResult(True, msg)
+def command(fn):
+    """A plan command: :class:`Refused` becomes ``CommandResult(False, why)``."""
 
-
-def _fail(msg: str) -> CommandResult:
-    return CommandResult(False, msg)
+    @functools.wraps(fn)
+    def run(*args, **kwargs) -> CommandResult:
+        try:
+            return fn(*args, **kwargs)
+        except Refused as exc:
+            return CommandResult.refused(str(exc))
+    return run
 
 
 def _point3(p) -> np.ndarray:
@@ -69,72 +69,89 @@ def _point3(p) -> np.ndarray:
     return a
 
 
-class PlanCommands:
-    """Plan editing, restore, integrity and readiness (mixed into ``Session``)."""
+class PlanEditor:
+    """Plan editing, restore, integrity and readiness (see the module docstring)."""
 
-    # ================================================================== plan persistence
-    def _restore_plan(self) -> None:
+    def __init__(self, store, *, lock, events, alarms, clock, config, ct, robot_state, plan_changed, forget_ct):
+        self.store = store
+        self._lock = lock
+        self._bus = events
+        self._board = alarms
+        self._clock = clock
+        self._config = config
+        self._ct = ct
+        self._robot_state = robot_state
+        self._plan_changed = plan_changed
+        self._forget_ct = forget_ct
+        self.reconfirm: list[str] = []  # why the operator must re-confirm the plan before arming
+
+    # ================================================================== transaction
+    @property
+    def plan(self) -> Plan:
+        """The current plan (read it under the state lock; never modify it: use :meth:`edit`)."""
+        return self.store.plan
+
+    def copy(self) -> Plan:
+        """A deep copy of the current plan."""
+        with self._lock:
+            return self.store.plan.copy()
+
+    @contextmanager
+    def edit(self, why: str):
+        """One plan change as a transaction: yields a copy of the plan to change (under the state
+        lock); on a clean exit the copy is saved and only then made the plan. Raise :class:`Refused`
+        inside to change nothing; a failed save raises :class:`Refused` with its reason."""
+        with self._lock:
+            draft = self.store.plan.copy()
+            yield draft
+            err = self.store.commit(draft, why)
+            if err:
+                raise Refused(err)
+
+    def _anatomy(self):
+        ct = self._ct()
+        return None if ct is None else ct.anatomy
+
+    # ================================================================== restore
+    def restore(self) -> None:
         """Restore ``plan.json`` field by field with the commands' checks (never raises)."""
-        if not self._plan_path.exists():
+        path = self.store.path
+        if not path.exists():
             return
-        from monotracker.engine.plan_restore import load_saved_plan
-
-        saved = load_saved_plan(self._plan_path, self.config.min_fiducials)
-        self._plan = saved.plan
-        self._reconfirm = list(saved.reconfirm)
+        saved = load_saved_plan(path, self._config.min_fiducials)
+        self.store.plan = saved.plan
+        self.reconfirm = list(saved.reconfirm)
         codes = [c for c, _, _ in saved.alarms]
         for code, msg, data in saved.alarms:
             if code == "plan_field_rejected":  # stands until a new plan (the rest derive from the state)
-                self._alarm_board.set(code, msg, float(self.clock()))
+                self._board.set(code, msg, float(self._clock()))
             self._bus.alert("alarm", code, msg, data)
         if saved.rejected:
             # the file on disk would say what memory does not: write what was restored (the original
             # is aside), carrying the pending re-confirmation so a restart cannot forget it
             with self._lock:
-                plan = self._plan.copy()
-                if self._reconfirm:
-                    plan.integrity["reconfirm_pending"] = self._reconfirm[0]
-                self._commit_plan_locked(plan, "restored plan (invalid fields removed)")
+                plan = self.store.plan.copy()
+                if self.reconfirm:
+                    plan.integrity["reconfirm_pending"] = self.reconfirm[0]
+                self.store.commit(plan, "restored plan (invalid fields removed)")
         if "plan_unreadable" in codes:
             with self._lock:
-                self._commit_plan_locked(Plan(), "empty plan (the unreadable one is kept aside)")
+                self.store.commit(Plan(), "empty plan (the unreadable one is kept aside)")
             return
-        plan = self._plan
+        plan = self.store.plan
         self._bus.event("plan_restored", f"plan restored (revision {plan.revision}, "
                         f"{len(plan.usable_fiducials())} fiducials, path {'set' if plan.path_complete else 'not set'})",
                         {"revision": plan.revision, "plan": plan.to_dict()})
 
-    def _commit_plan_locked(self, plan: Plan, why: str) -> str | None:
-        """Save ``plan`` (a modified copy) and only then make it the session's plan; caller holds
-        the lock. Returns None when saved and swapped in, else a one-line reason (memory unchanged,
-        a ``home_unwritable`` alarm stands until a save succeeds again)."""
-        plan.revision = self._plan.revision + 1
-        try:
-            plan.save(self._plan_path)
-        except OSError as exc:
-            reason = f"not saved ({exc.strerror or exc}): the plan on disk and in memory are unchanged"
-            if self._home_unwritable is None:
-                self._bus.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: "
-                                f"{exc.strerror or exc}; changes are refused until it is writable",
-                                {"why": why, "errno": getattr(exc, "errno", None)})
-            self._bus.alert("alarm", "plan_save_failed", f"{why}: {reason}", {"why": why})
-            self._home_unwritable = str(exc)
-            return reason
-        self._plan = plan
-        if self._home_unwritable is not None:
-            self._home_unwritable = None
-            self._bus.alert("info", "home_writable", f"session folder {self.home} is writable again")
-        log.debug("plan saved (%s) revision %d", why, plan.revision)
-        return None
-
+    # ================================================================== readiness and integrity
     def plan_not_ready(self) -> str | None:
         """Why the current plan cannot be armed or tracked on (one line), or None when it is a
         complete plan that passes every check (:func:`plan_checks.plan_problems`), its CT is loaded
         when it was made on one, and no re-confirmation is pending."""
         with self._lock:
-            plan, anatomy, reconfirm = self._plan, self._anatomy, list(self._reconfirm)
-            problems = plan_checks.plan_problems(plan, self.config.min_fiducials, anatomy)
-            ct_wanted = plan.ct_path is not None and self._ct is None
+            plan, ct, reconfirm = self.store.plan, self._ct(), list(self.reconfirm)
+            problems = plan_checks.plan_problems(plan, self._config.min_fiducials, None if ct is None else ct.anatomy)
+            ct_wanted = plan.ct_path is not None and ct is None
         if problems:
             return problems[0]
         if ct_wanted:
@@ -143,61 +160,74 @@ class PlanCommands:
             return f"re-confirm the plan first: {reconfirm[0]}"
         return None
 
+    @command
     def reconfirm_plan(self) -> CommandResult:
         """The operator has reviewed the plan after an integrity alarm (edited outside the app,
         changed CT or calibration): clear the pending re-confirmation and record the plan's
         current hashes. Refused when the plan itself fails its checks (the reason is returned)."""
         with self._lock:
-            if not self._reconfirm:
-                return _ok("nothing to re-confirm")
-            problems = plan_checks.plan_problems(self._plan, self.config.min_fiducials, self._anatomy)
+            if not self.reconfirm:
+                return CommandResult.done("nothing to re-confirm")
+            ct = self._ct()
+            problems = plan_checks.plan_problems(self.store.plan, self._config.min_fiducials,
+                                                 None if ct is None else ct.anatomy)
             if problems:
-                return _fail(f"the plan cannot be re-confirmed: {problems[0]}")
-            reasons, plan = list(self._reconfirm), self._plan.copy()
-            plan.integrity.pop("reconfirm_pending", None)
-            if self._ct is not None and self._ct_sha256:
-                plan.integrity["ct_sha256"] = self._ct_sha256
-            err = self._commit_plan_locked(plan, "plan re-confirmed")
-            if err:
-                return _fail(err)
-            self._reconfirm = []
+                raise Refused(f"the plan cannot be re-confirmed: {problems[0]}")
+            reasons = list(self.reconfirm)
+            with self.edit("plan re-confirmed") as plan:
+                plan.integrity.pop("reconfirm_pending", None)
+                if ct is not None and ct.sha256:
+                    plan.integrity["ct_sha256"] = ct.sha256
+            self.reconfirm = []
         self._bus.event("plan_reconfirmed", "plan re-confirmed by the operator", {"reasons": reasons})
-        return _ok("plan re-confirmed")
+        return CommandResult.done("plan re-confirmed")
 
     def integrity_alarms(self) -> list[tuple[str, str]]:
-        """Integrity conditions that stand until they clear, as ``(code, one line)``, most serious
-        first: the session folder is unwritable, the plan needs re-confirmation, the plan's CT is
-        missing, audit rows were lost or are delayed. For the active-alarm list (``snap.alarms``);
-        each was also raised once as an alert when it began."""
+        """The plan's integrity conditions that stand until they clear, as ``(code, one line)``,
+        most serious first: the session folder is unwritable, the plan needs re-confirmation, the
+        plan's CT is missing."""
         out = []
         with self._lock:
-            unwritable, reconfirm, ct_path = self._home_unwritable, list(self._reconfirm), self._plan.ct_path
+            unwritable, reconfirm, ct_path = self.store.home_unwritable, list(self.reconfirm), self.store.plan.ct_path
         if unwritable:
-            out.append(("home_unwritable", f"session folder {self.home} is not writable ({unwritable}): "
+            out.append(("home_unwritable", f"session folder {self.store.home} is not writable ({unwritable}): "
                         "plan changes are refused"))
         if reconfirm:
             out.append(("plan_reconfirm_pending", f"re-confirm the plan: {reconfirm[0]}"))
         if ct_path and not Path(ct_path).exists():
             out.append(("plan_ct_missing", f"the plan's CT {ct_path} is missing"))
-        audit = self._audit
-        if audit.tampered:
-            out.append(("audit_tampered", f"audit log {audit.path.name}: {audit.tampered}"))
-        if audit.lost:
-            out.append(("audit_lost", f"{audit.lost} audit rows were lost"))
-        elif audit.open_error or getattr(audit, "_trouble", False):
-            out.append(("audit_delayed", f"audit rows are delayed to {audit.spill_path} ({audit.delayed} so far)"))
-        key = audit.key
-        if key is not None and key.problem:
-            out.append(("integrity_key_unavailable", f"{key.problem}: changes outside the app are seen through "
-                        "the audit chain only"))
         return out
 
-    def _need_reconfirm(self, code: str, reason: str, data: dict | None = None) -> None:
+    def need_reconfirm(self, code: str, reason: str, data: dict | None = None) -> None:
+        """An integrity alarm ``code``: arming waits until the operator re-confirms the plan."""
         with self._lock:
-            self._reconfirm.append(reason)
+            self.reconfirm.append(reason)
         self._bus.alert("alarm", code, f"{reason}; re-confirm the plan before arming", data)
 
+    # ================================================================== a new plan
+    @command
+    def new_plan(self) -> CommandResult:
+        """Forget CT, fiducials, path (calibrations are kept). Refused while armed."""
+        if self._robot_state() not in ("disarmed", "estopped"):
+            raise Refused("disarm the robot before starting a new plan")
+        with self._lock:  # one transaction: a fresh plan keeping the calibrations, then the CT goes
+            keep = self.store.plan
+            integ = {k: v for k, v in keep.integrity.items() if k == "calibration_sha256"}
+            fresh = Plan(camera_source=keep.camera_source, calibration_path=keep.calibration_path,
+                         K=keep.K, dist=keep.dist, image_size=keep.image_size, T_base_cam=keep.T_base_cam,
+                         integrity=integ)
+            err = self.store.commit(fresh, "new plan")
+            if err:
+                raise Refused(err)
+            self._forget_ct()
+            self.reconfirm = []
+        self._board.clear_all(("plan_field_rejected", "fiducial_moved"), float(self._clock()))
+        self._bus.event("plan_cleared", "new plan: CT, fiducials and path cleared")
+        self._plan_changed("new plan", False)
+        return CommandResult.done("new plan")
+
     # ================================================================== fiducials
+    @command
     def set_fiducial_status(self, fid_id: int, status: str) -> CommandResult:
         """Operator decision on one fiducial.
 
@@ -205,30 +235,27 @@ class PlanCommands:
         "rejected" | "detected"`` (undo). Refused while the set is locked, for an unknown id, to set
         an added fiducial back to detected, or when the plan cannot be saved (nothing changes)."""
         if status not in ("confirmed", "rejected", "detected"):
-            return _fail(f"status must be confirmed, rejected or detected, not {status!r}")
+            raise Refused(f"status must be confirmed, rejected or detected, not {status!r}")
         if isinstance(fid_id, bool) or not isinstance(fid_id, (int, np.integer)):
-            return _fail(f"fiducial id must be an integer, not {fid_id!r}")
-        with self._lock:
-            if self._plan.fiducials_locked:
-                return _fail("fiducials are locked; unlock them first")
-            plan = self._plan.copy()
+            raise Refused(f"fiducial id must be an integer, not {fid_id!r}")
+        with self.edit("fiducial status") as plan:
+            if plan.fiducials_locked:
+                raise Refused("fiducials are locked; unlock them first")
             f = plan.fiducial(int(fid_id))
             if f is None:
-                return _fail(f"no fiducial with id {fid_id}")
+                raise Refused(f"no fiducial with id {fid_id}")
             if f.status == "added" and status == "detected":
-                return _fail("an added fiducial can be confirmed or rejected, not set to detected")
+                raise Refused("an added fiducial can be confirmed or rejected, not set to detected")
             old, f.status = f.status, status
             why = plan_checks.check_fiducial_set(plan.fiducials)
             if why:
-                return _fail(why)
-            err = self._commit_plan_locked(plan, "fiducial status")
-            if err:
-                return _fail(err)
+                raise Refused(why)
             centre = f.centre_lps_mm.tolist()
         self._bus.event(f"fiducial_{status}", f"fiducial {fid_id} {status} (was {old})",
                         {"id": int(fid_id), "centre_lps_mm": centre, "previous": old})
-        return _ok(f"fiducial {fid_id} {status}")
+        return CommandResult.done(f"fiducial {fid_id} {status}")
 
+    @command
     def add_fiducial(self, p_lps_mm, radius_mm: float | None = None, manual: bool = False) -> CommandResult:
         """Add an operator-picked fiducial; it counts as confirmed (status ``"added"``).
 
@@ -242,67 +269,62 @@ class PlanCommands:
         try:
             p = _point3(p_lps_mm)
         except InputError as exc:
-            return _fail(str(exc))
-        with self._lock:
-            if self._plan.fiducials_locked:
-                return _fail("fiducials are locked; unlock them first")
-            radii = [f.radius_mm for f in self._plan.fiducials]
+            raise Refused(str(exc)) from None
+        with self.edit("fiducial added") as plan:
+            if plan.fiducials_locked:
+                raise Refused("fiducials are locked; unlock them first")
+            radii = [f.radius_mm for f in plan.fiducials]
             if radius_mm is not None:
                 r, why = plan_checks.real_number(radius_mm, "fiducial radius")
                 if why:
-                    return _fail(why)
+                    raise Refused(why)
             else:
                 r = float(np.median(radii)) if radii else 4.0
             lo, hi = plan_checks.LIMITS.radius_mm
             if not (lo <= r <= hi):
-                return _fail(f"fiducial radius must be between {lo:g} and {hi:g} mm, not {r:g}")
-            for f in self._plan.fiducials:
+                raise Refused(f"fiducial radius must be between {lo:g} and {hi:g} mm, not {r:g}")
+            for f in plan.fiducials:
                 if f.status != "rejected" and np.linalg.norm(f.centre_lps_mm - p) < 2 * r:
-                    return _fail(f"too close to fiducial {f.id} ({np.linalg.norm(f.centre_lps_mm - p):.1f} mm)")
-            verified, how = plan_checks.check_added_fiducial(self._anatomy, p, r)
+                    raise Refused(f"too close to fiducial {f.id} ({np.linalg.norm(f.centre_lps_mm - p):.1f} mm)")
+            verified, how = plan_checks.check_added_fiducial(self._anatomy(), p, r)
             if verified is False and not manual:
-                return _fail(f"{how}; pick the ball's centre, or add it as manual (unverified)")
-            fid = max((f.id for f in self._plan.fiducials), default=-1) + 1
-            plan = self._plan.copy()
+                raise Refused(f"{how}; pick the ball's centre, or add it as manual (unverified)")
+            fid = max((f.id for f in plan.fiducials), default=-1) + 1
             plan.fiducials.append(PlanFiducial(fid, p, r, 1.0, "added", bool(verified)))
-            err = self._commit_plan_locked(plan, "fiducial added")
-            if err:
-                return _fail(err)
         self._bus.event("fiducial_added", f"fiducial {fid} added by the operator", {"id": fid, "centre_lps_mm": p.tolist(),
                                                                                     "radius_mm": r, "verified": verified,
                                                                                     "check": how})
         if not verified:
             self._bus.alert("warning", "fiducial_unverified", f"fiducial {fid} added manual, unverified: {how}",
                             {"id": fid})
-            return _ok(f"fiducial {fid} added (manual, unverified: {how})")
-        return _ok(f"fiducial {fid} added")
+            return CommandResult.done(f"fiducial {fid} added (manual, unverified: {how})")
+        return CommandResult.done(f"fiducial {fid} added")
 
+    @command
     def confirm_fiducials(self) -> CommandResult:
         """Lock the fiducial set: needs >= ``config.min_fiducials`` confirmed or added fiducials,
         each passing its check, no two overlapping. Refused (nothing changes) when the plan cannot be saved."""
         with self._lock:
-            if self._plan.fiducials_locked:
-                return _ok("fiducials already locked")
-            n = len(self._plan.usable_fiducials())
-            need = self.config.min_fiducials
+            if self.store.plan.fiducials_locked:
+                return CommandResult.done("fiducials already locked")
+            n = len(self.store.plan.usable_fiducials())
+            need = self._config.min_fiducials
             if n < need:
-                return _fail(f"{n} fiducials confirmed; at least {need} are needed")
-            plan = self._plan.copy()
-            plan.fiducials_locked = True
-            for f in plan.usable_fiducials():
-                why = plan_checks.check_fiducial(f.id, f.centre_lps_mm, f.radius_mm, f.score, f.status)
+                raise Refused(f"{n} fiducials confirmed; at least {need} are needed")
+            with self.edit("fiducials locked") as plan:
+                plan.fiducials_locked = True
+                for f in plan.usable_fiducials():
+                    why = plan_checks.check_fiducial(f.id, f.centre_lps_mm, f.radius_mm, f.score, f.status)
+                    if why:
+                        raise Refused(why)
+                why = plan_checks.check_fiducial_set(plan.fiducials) or plan_checks.check_locked(plan, need)
                 if why:
-                    return _fail(why)
-            why = plan_checks.check_fiducial_set(plan.fiducials) or plan_checks.check_locked(plan, need)
-            if why:
-                return _fail(why)
-            err = self._commit_plan_locked(plan, "fiducials locked")
-            if err:
-                return _fail(err)
-            ids = [f.id for f in plan.usable_fiducials()]
+                    raise Refused(why)
+                ids = [f.id for f in plan.usable_fiducials()]
         self._bus.event("fiducials_locked", f"fiducial set locked ({n} fiducials: {ids})", {"ids": ids})
-        return _ok(f"{n} fiducials locked")
+        return CommandResult.done(f"{n} fiducials locked")
 
+    @command
     def set_fiducial_role(self, fid_id: int, role: str) -> CommandResult:
         """Give fiducial ``fid_id`` the role ``"registration"`` (used in the fit, the default) or
         ``"validation"`` (seen by the camera but kept out of the fit, to verify it: see
@@ -310,41 +332,35 @@ class PlanCommands:
         registration role. Refused while the fiducials are locked, or when the plan cannot be saved."""
         why = plan_checks.check_role(fid_id, role)
         if why:
-            return _fail(why)
-        with self._lock:
-            if self._plan.fiducials_locked:
-                return _fail("fiducials are locked; unlock them first")
-            plan = self._plan.copy()
+            raise Refused(why)
+        with self.edit("fiducial role") as plan:
+            if plan.fiducials_locked:
+                raise Refused("fiducials are locked; unlock them first")
             f = plan.fiducial(int(fid_id))
             if f is None:
-                return _fail(f"no fiducial with id {fid_id}")
+                raise Refused(f"no fiducial with id {fid_id}")
             old, f.role = f.role, role
             left = len(plan.registration_fiducials())
-            if role == "validation" and left < self.config.min_fiducials:
-                return _fail(f"only {left} fiducials would remain for the registration; "
-                             f"at least {self.config.min_fiducials} are needed")
-            err = self._commit_plan_locked(plan, "fiducial role")
-            if err:
-                return _fail(err)
+            if role == "validation" and left < self._config.min_fiducials:
+                raise Refused(f"only {left} fiducials would remain for the registration; "
+                              f"at least {self._config.min_fiducials} are needed")
         self._bus.event("fiducial_role", f"fiducial {fid_id}: {role} (was {old})",
                         {"id": int(fid_id), "role": role, "previous": old})
-        return _ok(f"fiducial {fid_id}: {role}")
+        return CommandResult.done(f"fiducial {fid_id}: {role}")
 
+    @command
     def unlock_fiducials(self) -> CommandResult:
         """Back to editing the fiducials (refused while armed or tracking, or when the plan cannot be saved)."""
-        if self._loop.robot_state() not in ("disarmed", "estopped"):
-            return _fail("disarm the robot before editing fiducials")
+        if self._robot_state() not in ("disarmed", "estopped"):
+            raise Refused("disarm the robot before editing fiducials")
         with self._lock:
-            if not self._plan.fiducials_locked:
-                return _ok("fiducials not locked")
-            plan = self._plan.copy()
-            plan.fiducials_locked = False
-            err = self._commit_plan_locked(plan, "fiducials unlocked")
-            if err:
-                return _fail(err)
+            if not self.store.plan.fiducials_locked:
+                return CommandResult.done("fiducials not locked")
+            with self.edit("fiducials unlocked") as plan:
+                plan.fiducials_locked = False
         self._bus.event("fiducials_unlocked", "fiducial set unlocked for editing")
-        self._loop.plan_changed("fiducials unlocked for editing", restart_camera=False)
-        return _ok("fiducials unlocked")
+        self._plan_changed("fiducials unlocked for editing", False)
+        return CommandResult.done("fiducials unlocked")
 
     # ================================================================== path planning
     def set_entry(self, p_lps_mm) -> CommandResult:
@@ -368,35 +384,32 @@ class PlanCommands:
         r = self.set_entry(ph.sample_entry_lps)
         return self.set_target(ph.sample_target_lps) if r.ok else r
 
+    @command
     def _set_path_point(self, which: str, p_lps_mm) -> CommandResult:
         try:
             p = _point3(p_lps_mm)
         except InputError as exc:
-            return _fail(str(exc))
-        if self._loop.robot_state() == "tracking":
-            return _fail("stop tracking before changing the path")
-        with self._lock:
-            if not self._plan.fiducials_locked:
-                return _fail("confirm the fiducials before planning the path")
-            plan = self._plan.copy()
+            raise Refused(str(exc)) from None
+        if self._robot_state() == "tracking":
+            raise Refused("stop tracking before changing the path")
+        with self.edit(f"{which} set") as plan:
+            if not plan.fiducials_locked:
+                raise Refused("confirm the fiducials before planning the path")
             old = getattr(plan, f"{which}_lps_mm")
             setattr(plan, f"{which}_lps_mm", p)
             why = self._point_problem(which, p, plan)
             if why:
-                return _fail(why)
-            err = self._commit_plan_locked(plan, f"{which} set")
-            if err:
-                return _fail(err)
+                raise Refused(why)
         self._bus.event(f"{which}_set", f"{which} set to ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm LPS",
                         {"lps_mm": p.tolist(), "previous": None if old is None else old.tolist()})
         if old is None or not np.array_equal(old, p):
-            self._loop.plan_changed(f"{which} changed", restart_camera=True)
-        return _ok(f"{which} set")
+            self._plan_changed(f"{which} changed", True)
+        return CommandResult.done(f"{which} set")
 
     def _point_problem(self, which: str, p: np.ndarray, plan: Plan) -> str | None:
         """The checks of one path point (caller holds the lock): its own anatomy check, and the
         whole path's checks once both points are set."""
-        a = self._anatomy
+        a = self._anatomy()
         if a is not None:
             why = (plan_checks.check_entry_anatomy(p, a) if which == "entry" else plan_checks.check_target_anatomy(p, a))
             if why:
@@ -405,6 +418,7 @@ class PlanCommands:
             return plan_checks.check_path(plan.entry_lps_mm, plan.target_lps_mm, plan.fiducials, a)
         return None
 
+    @command
     def set_hand_eye(self, T_base_cam_mm) -> CommandResult:
         """Set the hand-eye transform and save it in the plan.
 
@@ -414,20 +428,16 @@ class PlanCommands:
         tracking, or when the plan cannot be saved."""
         why = plan_checks.check_hand_eye(T_base_cam_mm)
         if why:
-            return _fail(why)
+            raise Refused(why)
         T = np.asarray(T_base_cam_mm, dtype=float)
-        if self._loop.robot_state() == "tracking":
-            return _fail("stop tracking before changing the hand-eye calibration")
-        with self._lock:
-            plan = self._plan.copy()
+        if self._robot_state() == "tracking":
+            raise Refused("stop tracking before changing the hand-eye calibration")
+        with self.edit("hand-eye") as plan:
             plan.T_base_cam = T.copy()
-            err = self._commit_plan_locked(plan, "hand-eye")
-            if err:
-                return _fail(err)
         self._bus.event("hand_eye_set", "hand-eye calibration T_base_cam set", {"T_base_cam_mm": T.tolist()})
-        return _ok("hand-eye set")
+        return CommandResult.done("hand-eye set")
 
-    def _store_camera(self, source: str, calibration_path, K, dist, image_size) -> str | None:
+    def store_camera(self, source: str, calibration_path, K, dist, image_size) -> str | None:
         """Save the camera in use and its calibration in the plan (called by the loop when a camera
         starts). ``K`` 3x3 px, ``dist`` OpenCV coefficients, ``image_size`` (width, height) px.
         Returns None when stored (or unchanged), else why it was refused (:func:`plan_checks.check_camera`
@@ -447,7 +457,7 @@ class PlanCommands:
             except OSError as exc:
                 return f"calibration file {calibration_path} cannot be read ({exc.strerror or exc})"
         with self._lock:
-            p = self._plan
+            p = self.store.plan
             recorded = p.integrity.get("calibration_sha256")
             changed = (calibration_path and p.calibration_path == calibration_path and recorded
                        and cal_sha != recorded)
@@ -455,21 +465,21 @@ class PlanCommands:
                     and K is not None and np.array_equal(p.K, K) and not changed)
             if same:
                 return None
-            plan = p.copy()
-            plan.camera_source, plan.calibration_path = source, calibration_path
-            plan.K = None if K is None else np.asarray(K, float).copy()
-            plan.dist = None if dist is None else np.asarray(dist, float).ravel().copy()
-            plan.image_size = size
-            if cal_sha:
-                plan.integrity["calibration_sha256"] = cal_sha
-            else:
-                plan.integrity.pop("calibration_sha256", None)
-            err = self._commit_plan_locked(plan, "camera calibration")
-            if err:
-                return err
+            try:
+                with self.edit("camera calibration") as plan:
+                    plan.camera_source, plan.calibration_path = source, calibration_path
+                    plan.K = None if K is None else np.asarray(K, float).copy()
+                    plan.dist = None if dist is None else np.asarray(dist, float).ravel().copy()
+                    plan.image_size = size
+                    if cal_sha:
+                        plan.integrity["calibration_sha256"] = cal_sha
+                    else:
+                        plan.integrity.pop("calibration_sha256", None)
+            except Refused as exc:
+                return str(exc)
         if changed:
-            self._need_reconfirm("calibration_changed", f"the calibration file {calibration_path} changed since "
-                                 "the plan recorded it (content hash differs)", {"path": calibration_path})
+            self.need_reconfirm("calibration_changed", f"the calibration file {calibration_path} changed since "
+                                "the plan recorded it (content hash differs)", {"path": calibration_path})
         self._bus.event("camera_calibration", f"camera {source}: calibration stored in the plan",
                         {"source": source, "calibration_path": calibration_path,
                          "K": None if K is None else np.asarray(K).tolist(),

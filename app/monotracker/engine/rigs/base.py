@@ -1,4 +1,4 @@
-"""Adapters between the engine loop and the other packages (vision + registration, robot).
+"""The rigs' interfaces: what the engine loop asks of a camera rig and of a robot rig.
 
 The loop talks to two small interfaces, so that what vision and robot export can evolve without
 touching the loop's logic:
@@ -33,7 +33,7 @@ class PoseSample:
     ``predicted_tre_mm`` at the planned target. Simulator only: ``truth_T_cam_ct`` and
     ``truth_tre_mm`` (error at the planned target vs truth, mm). ``raw``: the package's own
     estimate object (for the UI overlay). ``frame``: what the estimate was computed from (the BGR
-    image for image cameras, a :class:`~monotracker.engine.vision_rig.SimFrame` of points for
+    image for image cameras, a :class:`~monotracker.engine.rigs.sim.SimFrame` of points for
     "sim-points"; None when unknown), for session recording."""
 
     t_capture: float
@@ -74,7 +74,9 @@ class RobotStatus:
     when it was sent (session clock s); ``program_fault``: link up but the arm's control
     program stopped (a UR's script: ``"watchdog" | "pendant" | "paused" | "protective_stop" |
     "emergency_stop" | "safeguard_stop" | "not_running"``; "" while it runs), the operator's
-    reset restarts it; ``control``: where the control loop runs and with which priority."""
+    reset restarts it; ``control``: where the control loop runs and with which priority;
+    ``response_s``: the arm's command delay + velocity lag (s) where the backend models it (the
+    simulated arm in-process), else None."""
 
     state: str
     connected: bool
@@ -87,6 +89,7 @@ class RobotStatus:
     t_command: float | None = None
     program_fault: str = ""
     control: str = ""
+    response_s: float | None = None
 
 
 class CameraRig:
@@ -210,25 +213,6 @@ class RobotRig:
 
     def close(self) -> None:
         pass
-
-
-# ---------------------------------------------------------------------- factories
-def make_camera_rig(source: str, calibration_path, plan, cfg, session) -> CameraRig:
-    """The vision-backed rig (``engine/vision_rig.py``) unless the session was given a factory."""
-    if session.camera_factory is not None:
-        return session.camera_factory(source, calibration_path, plan, cfg, session)
-    from monotracker.engine.vision_rig import make_vision_rig
-
-    return make_vision_rig(source, calibration_path, plan, cfg, session)
-
-
-def make_robot_rig(cfg, session) -> RobotRig:
-    """The robot-backed rig (``engine/robot_rig.py``) unless the session was given a factory."""
-    if session.robot_factory is not None:
-        return session.robot_factory(cfg, session)
-    from monotracker.engine.robot_rig import make_tracker_rig
-
-    return make_tracker_rig(cfg, session)
 
 
 def _nan_to_none(v) -> float | None:

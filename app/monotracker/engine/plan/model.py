@@ -11,9 +11,10 @@ Format: ``{"format": "monotracker-plan", "version": 1, ...}``; arrays as nested 
 of the plan's own content (:mod:`monotracker.engine.integrity`), so an edit made outside the app
 or a changed CT is noticed at restore.
 
-Restoring runs the same checks as the commands (:mod:`monotracker.engine.plan_checks`), field by
-field (:func:`monotracker.engine.plan_restore.restore_plan`); :meth:`Plan.from_dict` is the strict
-form that refuses the first invalid field.
+Restoring runs the same checks as the commands (:mod:`~monotracker.engine.plan.checks`), field by
+field (:func:`~monotracker.engine.plan.store.restore_plan`); :func:`~monotracker.engine.plan.store.plan_from_dict`
+is the strict form that refuses the first invalid field. This module is the model only: it
+imports neither the checks nor the store (model <- checks <- store <- editor).
 """
 
 from __future__ import annotations
@@ -24,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from monotracker.engine.persistence import atomic_write_json, read_json
+from monotracker.engine.persistence import atomic_write_json
 
 FORMAT = "monotracker-plan"
 VERSION = 1
-STATUSES = ("detected", "confirmed", "rejected", "added")  # same tuple as plan_checks.STATUSES
+STATUSES = ("detected", "confirmed", "rejected", "added")
 #: "registration": used in the fit; "validation": seen by the camera but left out of the fit, to
 #: verify the registration independently (``registration.validation``)
 ROLES = ("registration", "validation")
@@ -140,25 +141,9 @@ class Plan:
             "integrity": {k: v for k, v in sorted(self.integrity.items()) if k != "plan_sha256"},
         })
 
-    @classmethod
-    def from_dict(cls, d: dict, min_usable: int = 3) -> "Plan":
-        """Parse a saved plan strictly: raises ``ValueError`` with a one-line reason naming the
-        first field that fails its check (the session restores field by field instead)."""
-        from monotracker.engine.plan_restore import restore_plan
-
-        plan, rejected = restore_plan(d, min_usable)
-        if rejected:
-            raise ValueError(str(rejected[0]))
-        return plan
-
     def save(self, path: Path) -> None:
         """Atomic, durable save (temp file, fsync, rename)."""
         atomic_write_json(path, self.to_dict())
-
-    @classmethod
-    def load(cls, path: Path) -> "Plan":
-        """Load ``path``; raises ``OSError`` or ``ValueError`` (one line) if unusable."""
-        return cls.from_dict(read_json(path))
 
 
 # ---------------------------------------------------------------------- plan metrics

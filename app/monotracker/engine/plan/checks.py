@@ -1,8 +1,9 @@
 """One validation per kind of plan state, used by every way that state enters.
 
 A command (``Session.set_entry``, ``add_fiducial``, ``set_hand_eye``, ``confirm_fiducials``, the
-camera the loop stores), a restored ``plan.json`` (:mod:`monotracker.engine.plan_restore`) and the
-arming gate all call the functions here, so what a setter refuses, a restore refuses too.
+camera the loop stores: :mod:`~monotracker.engine.plan.editor`), a restored ``plan.json``
+(:mod:`~monotracker.engine.plan.store`) and the arming gate all call the functions here, so what a
+setter refuses, a restore refuses too.
 
 Each check returns ``None`` when the value is acceptable, else a one-line reason the operator can
 act on. Units: CT LPS millimetres, pixels for the camera, degrees for angles.
@@ -19,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-STATUSES = ("detected", "confirmed", "rejected", "added")
+from monotracker.engine.plan.model import ROLES, STATUSES, angle_to_skin_normal_deg
 
 
 @dataclass(frozen=True)
@@ -228,8 +229,6 @@ def check_locked(plan, min_usable: int) -> str | None:
 
 def check_role(fid, role) -> str | None:
     """A fiducial's role: ``"registration"`` (in the fit) or ``"validation"`` (kept out, verifies it)."""
-    from monotracker.engine.plan import ROLES
-
     if role not in ROLES:
         return f"fiducial {fid} role must be registration or validation, not {role!r}"
     return None
@@ -340,8 +339,6 @@ def check_path(entry, target, fiducials, anatomy: Anatomy | None, limits: PlanLi
 
 
 def angle_to_normal_deg(entry, target, anatomy: Anatomy) -> float | None:
-    from monotracker.engine.plan import angle_to_skin_normal_deg
-
     if anatomy.vertices is None:
         return None
     return angle_to_skin_normal_deg(entry, target, anatomy.vertices, anatomy.normals)

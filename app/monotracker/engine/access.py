@@ -1,6 +1,7 @@
-"""Who may drive the session: the PIN guard, the control arbiter and per-client proxies.
+"""Who may drive the session: the PIN guard, the control arbiter, per-client proxies, and
+:class:`Access`, the session's part that holds them.
 
-Three small pieces, no threads of their own, no UI knowledge (the web app consumes them):
+Small pieces, no threads of their own, no UI knowledge (the web app consumes them):
 
 * :class:`PinGuard` checks the operator PIN for arming *and* for taking control. Wrong tries are
   counted; after ``max_tries`` consecutive wrong tries the PIN is locked for ``lockout_s``
@@ -11,6 +12,9 @@ Three small pieces, no threads of their own, no UI knowledge (the web app consum
 * :class:`ClientSession` is what one browser client drives: every read is forwarded to the
   :class:`~monotracker.engine.session.Session` as is, every command that changes the session is
   refused unless that client is the one in control, and :meth:`ClientSession.estop` always works.
+  It is typed on :class:`GuardedSession`, the little it needs of the session.
+* :class:`Access` is the session's part over them: PIN tries (audit rows, the ``pin_lockout``
+  alarm), taking and releasing control, the web login's lockout alarm.
 
 Calling the :class:`~monotracker.engine.session.Session` directly (headless demo, library users,
 tests) is the local operator: unrestricted.
@@ -24,12 +28,9 @@ from __future__ import annotations
 import hmac
 import math
 import threading
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from monotracker.engine.snapshot import CommandResult, ControlSummary
-
-if TYPE_CHECKING:  # pragma: no cover
-    from monotracker.engine.session import Session
 
 NOT_IN_CONTROL = "another station is in control: take control with the PIN"
 
@@ -142,6 +143,20 @@ class ControlArbiter:
             return ControlSummary(self._controller, self._label, self._since, float(pin_locked_s))
 
 
+class GuardedSession(Protocol):
+    """What a :class:`ClientSession` needs of the session it guards (``Session`` has it all)."""
+
+    config: object
+
+    def is_in_control(self, client_id: str) -> bool: ...
+
+    def claim_control(self, client_id: str, pin, label: str = "") -> CommandResult: ...
+
+    def release_control(self, client_id: str) -> CommandResult: ...
+
+    def estop(self) -> CommandResult: ...
+
+
 class ClientSession:
     """One browser client's view of a :class:`~monotracker.engine.session.Session`.
 
@@ -157,11 +172,12 @@ class ClientSession:
     READS = frozenset({
         "snapshot", "volume", "latest_frame", "subscribe", "audit_entries", "plan_copy", "wait_for_job",
         "plan_path", "session_id", "home", "clock", "control_summary", "is_in_control",
+        "latest_pose", "robot_status", "needle_target", "recent_alerts", "latencies_s", "truth_T_base_ct",
     })
     #: commands every client may always run
     ALWAYS = frozenset({"estop", "request_estop"})
 
-    def __init__(self, session: "Session", client_id: str):
+    def __init__(self, session: GuardedSession, client_id: str):
         object.__setattr__(self, "_session", session)
         object.__setattr__(self, "client_id", str(client_id))
 
@@ -226,3 +242,95 @@ class ClientSession:
         guarded.__name__ = name
         guarded.__doc__ = getattr(target, "__doc__", None)
         return guarded
+
+
+class Access:
+    """The session's part for who may drive it (see the module docstring). Collaborators: the
+    operator ``pin``, the event bus and alarm board, the session ``clock`` (s) and the session the
+    per-client proxies guard."""
+
+    def __init__(self, pin: str, *, events, alarms, clock, session: GuardedSession):
+        self._pin_guard = PinGuard(pin)
+        self._control = ControlArbiter()
+        self._bus = events
+        self._alarm_board = alarms
+        self.clock = clock
+        self._session = session
+
+    def check_pin(self, pin, refused_code: str, what: str) -> CommandResult:
+        """One PIN try through the shared :class:`PinGuard`: an audit row per wrong try (never the
+        PIN), one ``pin_lockout`` alert when a lockout starts."""
+        now = float(self.clock())
+        was_locked = self._pin_guard.locked_for(now) > 0
+        r = self._pin_guard.check("" if pin is None else str(pin), now)
+        if r.ok:
+            return r
+        self._bus.event(refused_code, f"{what} refused: {r.message}", {"total_wrong": self._pin_guard.total_wrong},
+                        level="warning")
+        locked_s = self._pin_guard.locked_for(now)
+        self._sync_pin_alarm(now)
+        if locked_s > 0 and not was_locked:
+            self._bus.alert("alarm", "pin_lockout", f"PIN locked for {locked_s:.0f} s after "
+                            f"{self._pin_guard.max_tries} wrong tries", {"locked_s": locked_s})
+        return r
+
+    def _sync_pin_alarm(self, now: float) -> float:
+        """``pin_lockout`` is active while the PIN is locked; returns the seconds left."""
+        left = self._pin_guard.locked_for(now)
+        if left > 0:
+            self._alarm_board.set("pin_lockout", f"PIN locked for {left:.0f} s after {self._pin_guard.max_tries} "
+                                  "wrong tries (arming and taking control)", now)
+        else:
+            self._alarm_board.clear("pin_lockout", now)
+        return left
+
+    def claim_control(self, client_id: str, pin, label: str = "") -> CommandResult:
+        """Make browser client ``client_id`` the one in control (taking over from another client).
+
+        ``pin``: the operator PIN (same guard and lockout as arming). ``label``: a display name for
+        the other stations ("OR laptop", "nurse tablet"). Refused with one line on a wrong PIN or
+        while locked. Already in control: ok without a PIN check."""
+        client_id = str(client_id)
+        if not client_id:
+            return CommandResult.refused("a client id is needed to take control")
+        if self._control.is_controller(client_id):
+            return CommandResult.done("already in control")
+        r = self.check_pin(pin, "control_refused", "taking control")
+        if not r.ok:
+            return r
+        prev, prev_label = self._control.claim(client_id, label, float(self.clock()))
+        took = f" from {prev_label or prev}" if prev is not None else ""
+        self._bus.event("control_taken", f"{label or client_id} took control{took}",
+                        {"client": client_id, "label": label, "previous": prev, "previous_label": prev_label})
+        return CommandResult.done("in control" + took)
+
+    def release_control(self, client_id: str) -> CommandResult:
+        """Client ``client_id`` gives up control (also when it disconnects); others stay unaffected."""
+        if not self._control.release(str(client_id)):
+            return CommandResult.done("not in control")
+        self._bus.event("control_released", f"client {client_id} released control", {"client": str(client_id)})
+        return CommandResult.done("control released")
+
+    def is_in_control(self, client_id: str) -> bool:
+        """True if browser client ``client_id`` is the one in control."""
+        return self._control.is_controller(str(client_id))
+
+    def control_summary(self):
+        """:class:`~monotracker.engine.snapshot.ControlSummary` now (also in ``snap.control``)."""
+        return self._control.summary(self._sync_pin_alarm(float(self.clock())))
+
+    def for_client(self, client_id: str) -> ClientSession:
+        """The session as browser client ``client_id`` may drive it (see ``engine/access.py``):
+        reads as is, commands only while in control, ``estop()`` always."""
+        return ClientSession(self._session, str(client_id))
+
+    def report_login_lockout(self, locked_s: float, message: str = "") -> None:
+        """The page login (``ui/remote_login.py``, ``serve --allow-remote``) is locked for
+        ``locked_s`` s after wrong passwords (> 0: the ``login_lockout`` alarm is active with
+        ``message``, and an alert is written when it begins) or no longer locked (0: cleared)."""
+        now = float(self.clock())
+        if locked_s > 0:
+            if self._alarm_board.set("login_lockout", message, now):
+                self._bus.alert("alarm", "login_lockout", message, {"locked_s": float(locked_s)})
+        else:
+            self._alarm_board.clear("login_lockout", now)

@@ -1,4 +1,10 @@
-"""The loop wiring: camera -> pose -> trust gate -> needle target -> tracker -> arm.
+"""The tracking loop's core: camera -> pose -> trust verdict -> needle target -> tracker -> arm.
+
+The core holds the pose side (the newest estimate and its verdict, holds and resumes, the needle
+target, listeners) and composes its parts, each in its own module: :class:`~.camera.CameraControl`
+(the camera rig, its frames and faults), :class:`~.robot.RobotControl` (the robot rig, arming and
+tracking), the clock that drives it (:class:`~.clocks.SimStepper` or :class:`~.clocks.RealThread`)
+and the read side (:mod:`.summaries`).
 
 Rates and threads (clock="real", the web app):
 
@@ -31,59 +37,55 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
 
-from monotracker.engine import components
+from monotracker.engine import rigs
 from monotracker.engine.alarms import FRESHNESS_CODES, POSE_CODES, VERDICT_CODES, level_of
-from monotracker.engine.gate import PoseGate
-from monotracker.engine.loop_camera import CameraCommands
-from monotracker.engine.loop_clocks import LoopClocks
-from monotracker.engine.loop_robot import RobotCommands
-from monotracker.engine.loop_summaries import LoopSummaries
+from monotracker.engine.loop import summaries as _summaries
+from monotracker.engine.loop.camera import CameraControl
+from monotracker.engine.loop.clocks import RealThread, SimStepper
+from monotracker.engine.loop.gate import PoseGate
+from monotracker.engine.loop.robot import RobotControl
 
 log = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True)
+class PoseRecord:
+    """The newest estimate the loop handled and its trust verdict: ``sample`` (:class:`PoseSample`,
+    mm, session s), ``trusted``, ``code`` (the verdict's code, "ok" when trusted), ``reason``."""
 
-@dataclass
-class _PoseRecord:
-    sample: components.PoseSample
+    sample: rigs.PoseSample
     trusted: bool
     code: str
     reason: str
 
 
-class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
-    """Owns camera rig, pose gate, tracker and arm for a :class:`~monotracker.engine.Session`."""
+class TrackingLoop:
+    """Owns the camera rig, the trust verdict, the tracker and the arm of one session, through its
+    parts (see the module docstring).
 
-    def __init__(self, session):
-        self.s = session
-        cfg = session.config
+    Collaborators: ``config`` (:class:`~monotracker.engine.config.SessionConfig`), ``clock`` (the
+    session clock, s), ``events`` (the event bus: decisions and state changes), ``alarms``
+    (:class:`~monotracker.engine.alarms.Alarms`), ``plan`` (the plan editor: the plan, its
+    readiness, the camera and hand-eye it stores), ``access`` (the PIN guard arming checks) and
+    ``session``, the session the rigs report to (``engine/rigs/factory.py``)."""
+
+    def __init__(self, *, config, clock, events, alarms, plan, access, session):
+        cfg = config
         self.cfg = cfg
+        self.clock = clock
+        self.events = events
+        self.alarms = alarms
+        self.plan = plan
         self._lock = threading.RLock()
-        self.gate = PoseGate(cfg.min_fiducials, cfg.max_fre_mm, cfg.max_jump_mm, cfg.max_jump_deg,
-                             cfg.confirm_frames, max_predicted_tre_mm=cfg.max_predicted_tre_mm)
-        self.camera_source = cfg.camera
-        self.calibration_path: str | None = None
-        saved = session.plan_copy()
-        if saved.camera_source and saved.camera_source == cfg.camera:
-            self.calibration_path = saved.calibration_path  # the calibration used last time
-        self.rig: components.CameraRig | None = None
-        self._rig_fiducials: np.ndarray | None = None
-        self.robot: components.RobotRig | None = None
-        self.camera_error: str | None = None
-        self.fault = "none"
-        self._latest: _PoseRecord | None = None
-        self._last_trusted: components.PoseSample | None = None
-        self._last_frame_t: float | None = None  # capture time of the newest frame seen
-        self._last_frame_seen_at: float | None = None  # session time it arrived
-        self._last_digest = None  # content checksum of the newest frame (None: the rig gives none)
-        self._repeat_frames = 0  # bit-identical repeats since the last new frame (a frozen camera)
-        self._frames = 0
-        self._frame_times: deque[float] = deque(maxlen=90)
+        self.gate = PoseGate.from_config(cfg)
+        self._latest: PoseRecord | None = None
+        self._last_trusted: rigs.PoseSample | None = None
         self._holding_reason: str | None = None  # why the loop currently holds (None = not holding)
         self._holding_code: str | None = None
         self._hold_reported = False  # the current hold episode was reported (so its end is too)
@@ -99,29 +101,18 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
         self._pending_latency_stamp: float | None = None
         self._pending_latency_set_at = 0.0
         self.latencies_s: deque[float] = deque(maxlen=5000)
-        self._robot_state = "disarmed"
-        self._audited_state = "disarmed"  # the state the newest robot_state audit row went to
-        self._robot_audit_lock = threading.Lock()  # robot_state rows are written in order, one writer at a time
-        self._robot_connected = True
-        self._robot_message = "not connected"
         self._tick_hooks: list = []
         self._pose_hooks: list = []
-        # sim clock bookkeeping
-        self._t = 0.0
-        self._next_frame_t = 0.0
-        self._busy_until = -1.0
-        self._in_flight: deque[tuple[float, components.PoseSample]] = deque()
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._threads_wanted = False
-        self.priority = ""  # what the OS granted the engine thread (pipeline_priority)
-        self.process_priority = ""  # ... and the engine process's threads
+        self.camera = CameraControl(self, plan=plan, session=session)
+        self.robot = RobotControl(self, plan=plan, access=access, session=session)
+        self.driver = SimStepper(self) if cfg.clock == "sim" else RealThread(self)
 
     # ================================================================== plumbing
     def now(self) -> float:
-        return float(self.s.clock())
+        """Session clock, s."""
+        return float(self.clock())
 
-    def _mark(self, key: str) -> bool:
+    def mark(self, key: str) -> bool:
         """True the first time ``key`` is raised in this episode (thread-safe)."""
         with self._lock:
             if key in self._alerted:
@@ -129,25 +120,38 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             self._alerted.add(key)
             return True
 
-    def _alert_once(self, key: str, level: str, code: str, message: str, data: dict | None = None) -> None:
-        if self._mark(key):
-            self.s.alert(level, code, message, data)
+    def alert_once(self, key: str, level: str, code: str, message: str, data: dict | None = None) -> None:
+        """Raise the alert once per episode of ``key`` (until :meth:`clear_alert` or a resume)."""
+        if self.mark(key):
+            self.alarms.alert(level, code, message, data)
 
-    def _clear_alert(self, key: str) -> bool:
+    def clear_alert(self, key: str) -> bool:
         with self._lock:
             if key in self._alerted:
                 self._alerted.discard(key)
                 return True
             return False
 
-    def add_tick_hook(self, fn) -> None:
-        """``fn(loop, t)`` after every control tick (clock="sim"): metrics for demo/benchmark."""
-        self._tick_hooks.append(fn)
+    def add_tick_hook(self, fn) -> "callable":
+        """``fn(t)`` after every control tick (clock="sim"; session s): metrics for the demo and
+        benchmarks. Returns the function that removes the hook."""
+        with self._lock:
+            self._tick_hooks = self._tick_hooks + [fn]
+
+        def remove() -> None:
+            with self._lock:
+                self._tick_hooks = [h for h in self._tick_hooks if h is not fn]
+        return remove
+
+    def run_tick_hooks(self, t: float) -> None:
+        for fn in self._tick_hooks:
+            fn(t)
 
     def add_pose_hook(self, fn) -> "callable":
-        """``fn(loop, sample, trusted, now)`` after every estimate the loop handles (both clocks, on
-        the engine thread: keep it short, hand heavy work to your own thread). A hook that raises
-        is logged and never disturbs the loop. Returns the function that removes the hook."""
+        """``fn(sample, trusted, now)`` after every estimate the loop handles (both clocks, on the
+        engine thread: keep it short, hand heavy work to your own thread; ``now`` session s). A
+        hook that raises is logged and never disturbs the loop. Returns the function that removes
+        the hook."""
         with self._lock:
             self._pose_hooks = self._pose_hooks + [fn]
 
@@ -159,9 +163,37 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
     def _run_pose_hooks(self, sample, trusted: bool, now: float) -> None:
         for fn in self._pose_hooks:
             try:
-                fn(self, sample, trusted, now)
+                fn(sample, trusted, now)
             except Exception:  # recording/streaming must never hold the arm
                 log.exception("pose hook failed")
+
+    @property
+    def holding_code(self) -> str | None:
+        """Why the arm holds now (a catalogue code), or None."""
+        with self._lock:
+            return self._holding_code
+
+    def holding_state(self) -> tuple[str | None, str | None]:
+        """``(code, reason)`` of the current hold, or ``(None, None)``."""
+        with self._lock:
+            return self._holding_code, self._holding_reason
+
+    @property
+    def last_trusted(self) -> rigs.PoseSample | None:
+        """The newest trusted estimate (None since the pose was last cleared)."""
+        return self._last_trusted
+
+    @property
+    def holding_reason(self) -> str | None:
+        """The hold's reason (one line), or None."""
+        with self._lock:
+            return self._holding_reason
+
+    @property
+    def latest(self) -> PoseRecord | None:
+        """The newest estimate the loop handled, with its verdict (None: none since the pose was
+        last cleared)."""
+        return self._latest
 
     def target(self) -> tuple:
         """(T_base_target 4x4 mm or None, its capture stamp or None): the needle target last handed
@@ -170,7 +202,7 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             return self._target_T, self._target_stamp
 
     # ================================================================== the loop proper
-    def _fiducial_changes(self, sample: components.PoseSample) -> None:
+    def _fiducial_changes(self, sample: rigs.PoseSample) -> None:
         """Info alerts when fiducials vanish from / come back into the camera's view."""
         if not sample.fiducial_status:
             return
@@ -183,25 +215,25 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
         verdict = ("tracking continues" if n >= self.cfg.min_fiducials
                    else f"fewer than {self.cfg.min_fiducials}: arm holds")
         if lost:
-            self.s.alert("info", "fiducials_lost", f"fiducial{'s' if len(lost) > 1 else ''} "
+            self.alarms.alert("info", "fiducials_lost", f"fiducial{'s' if len(lost) > 1 else ''} "
                          f"{', '.join(map(str, lost))} out of view ({n} of {total} seen; {verdict})",
                          {"lost": lost, "seen": sorted(seen)})
         if back:
-            self.s.alert("info", "fiducials_back", f"fiducial{'s' if len(back) > 1 else ''} "
+            self.alarms.alert("info", "fiducials_back", f"fiducial{'s' if len(back) > 1 else ''} "
                          f"{', '.join(map(str, back))} back in view ({n} of {total} seen)",
                          {"back": back, "seen": sorted(seen)})
 
-    def on_pose(self, sample: components.PoseSample, now: float) -> None:
+    def on_pose(self, sample: rigs.PoseSample, now: float) -> None:
         """A new estimate is available (engine thread / sim tick)."""
         self._fiducial_changes(sample)
         for fid, shift in getattr(sample, "moved", {}).items():
-            self.s._persistent_alarm("fiducial_moved", f"fiducial {fid} moved about {shift:.1f} mm relative to the "
+            self.alarms.persistent("fiducial_moved", f"fiducial {fid} moved about {shift:.1f} mm relative to the "
                          "others since the CT: excluded from registration (check it is firmly attached)",
                          {"fiducial": fid, "shift_mm": shift})
         v = self.gate.check(sample.ok, sample.reason, sample.T_cam_ct, sample.n_matched, sample.fre_mm,
                             sample.t_capture, code=getattr(sample, "code", ""),
                             predicted_tre_mm=sample.predicted_tre_mm)
-        rec = _PoseRecord(sample, v.trusted, v.code, v.reason)
+        rec = PoseRecord(sample, v.trusted, v.code, v.reason)
         age = now - sample.t_capture
         limit = self.cfg.max_pose_age_s
         with self._lock:
@@ -217,11 +249,11 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             holding, code = self._holding_reason is not None, self._holding_code
         if v.trusted and age > limit:
             # trusted but already too old when it arrived: never a command; hold as stale
-            self._hold("pose_stale", f"pose stale: trusted pose arrived {1000 * age:.0f} ms after capture "
+            self.hold("pose_stale", f"pose stale: trusted pose arrived {1000 * age:.0f} ms after capture "
                                      f"(limit {1000 * limit:.0f} ms)")
         elif v.trusted:
             dwell = self._dwell_s
-            if holding and code == "camera_freeze" and self._camera_frozen(now):
+            if holding and code == "camera_freeze" and self.camera.frozen(now):
                 # a pose captured before the freeze, still in flight when it was detected: the
                 # camera is still frozen, so it must not resume tracking (not even for a cycle),
                 # and it does not count towards the fresh run the resume dwell asks for
@@ -236,19 +268,20 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
                     self._holding_reason = (f"pose stale: fresh again for {1000 * fresh_for:.0f} ms; resuming after "
                                             f"{1000 * dwell:.0f} ms")
                 return
-            self._push_target(sample, now)
+            self.push_target(sample, now)
             if holding:
-                self._resume(f"pose trusted again ({sample.n_matched} fiducials)", self._registration_data(sample))
+                self.resume(f"pose trusted again ({sample.n_matched} fiducials)", self.registration_data(sample))
         else:
-            self._hold(VERDICT_CODES.get(v.code, v.code), v.reason)
+            self.hold(VERDICT_CODES.get(v.code, v.code), v.reason)
         self._run_pose_hooks(sample, v.trusted, now)
 
-    def _push_target(self, sample: components.PoseSample, now: float) -> None:
-        plan = self.s.plan_copy()
-        if not plan.path_complete or plan.T_base_cam is None or self.robot is None:
+    def push_target(self, sample: rigs.PoseSample, now: float) -> None:
+        plan = self.plan.copy()
+        rob = self.robot.rig
+        if not plan.path_complete or plan.T_base_cam is None or rob is None:
             return
         ref_R = None
-        st = self.robot.status()
+        st = rob.status()
         if st.T_base_tip is not None:
             ref_R = st.T_base_tip[:3, :3]
         elif self._target_T is not None:
@@ -260,14 +293,15 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             self._target_T, self._target_stamp = T, sample.t_capture
             self._pending_latency_stamp = sample.t_capture
             self._pending_latency_set_at = now
-        self.robot.set_target(T, sample.t_capture, True, plan.T_base_cam @ sample.T_cam_ct)
+        rob.set_target(T, sample.t_capture, True, plan.T_base_cam @ sample.T_cam_ct)
 
-    def _hold(self, code: str, reason: str) -> None:
+    def hold(self, code: str, reason: str) -> None:
         """Make the tracker hold still (valid=False) and raise the alert once per episode.
 
         ``acquiring`` (waiting for the first consistent poses) is recorded as an event, not an alert."""
-        if self.robot is not None:
-            self.robot.set_target(self._target_T, self._target_stamp if self._target_stamp is not None else self.now(),
+        rob = self.robot.rig
+        if rob is not None:
+            rob.set_target(self._target_T, self._target_stamp if self._target_stamp is not None else self.now(),
                                   False)
         with self._lock:
             self._holding_reason = reason
@@ -282,29 +316,29 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             if code != self._holding_code:
                 self._hold_began = self.now()
             self._holding_code = code
-        tracking = self.robot_state() in ("tracking", "holding")
+        tracking = self.robot.state() in ("tracking", "holding")
         msg = reason + ("; arm holding still" if tracking else "")
         report = self._set_pose_alarm(code, msg, tracking)
-        if not self._mark(code):
+        if not self.mark(code):
             return
         self._hold_reported = self._hold_reported or report
         if not report:
             return  # a technical condition again within its quiet time: shown, counted, not re-reported
-        unreported = self.s._alarm_board.unreported(code)
+        unreported = self.alarms.board.unreported(code)
         if unreported:
             msg += f" ({unreported} more short episode{'s' if unreported > 1 else ''} since the last report)"
         if code == "acquiring":
-            self.s.record("pose_acquiring", reason)
+            self.events.event("pose_acquiring", reason)
             return
-        self.s.alert(level_of(code, "warning"), code, msg, {"reason": reason, "tracking": tracking,
+        self.alarms.alert(level_of(code, "warning"), code, msg, {"reason": reason, "tracking": tracking,
                                                              "unreported_episodes": unreported})
 
     def _set_pose_alarm(self, code: str, message: str, tracking: bool) -> bool:
         """Show why the arm holds (one pose condition at a time); True when it is to be reported.
         A stopped camera is a condition only while the arm is armed; the rest always are (the
         registration view needs them too), as alarms while the arm follows the head."""
-        board, now = self.s._alarm_board, self.now()
-        if code == "camera_stopped" and self.robot_state() in ("disarmed", "estopped"):
+        board, now = self.alarms.board, self.now()
+        if code == "camera_stopped" and self.robot.state() in ("disarmed", "estopped"):
             board.clear_all(POSE_CODES, now)
             return True
         if code != "engine_error":
@@ -312,13 +346,13 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
         return board.set(code, message, now, level="alarm" if tracking else None)
 
     @staticmethod
-    def _registration_data(smp: components.PoseSample) -> dict:
+    def registration_data(smp: rigs.PoseSample) -> dict:
         """What the audit log keeps about a registration (JSON-ready)."""
         return {"t_capture": smp.t_capture, "frame": smp.frame_index, "n_matched": smp.n_matched,
                 "fre_mm": smp.fre_mm, "predicted_tre_mm": smp.predicted_tre_mm,
                 "T_cam_ct_mm": None if smp.T_cam_ct is None else np.asarray(smp.T_cam_ct).tolist()}
 
-    def _resume(self, why: str, data: dict | None = None) -> None:
+    def resume(self, why: str, data: dict | None = None) -> None:
         with self._lock:
             was, code = self._holding_reason, self._holding_code
             self._holding_reason = self._holding_code = None
@@ -326,23 +360,86 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
                 self._fresh_resumed_at = self.now()
             self._alerted &= {"robot_disconnected"}
             reported, self._hold_reported = self._hold_reported, False
-        self.s._alarm_board.clear_all(tuple(c for c in POSE_CODES if c != "engine_error"), self.now())
+        self.alarms.board.clear_all(tuple(c for c in POSE_CODES if c != "engine_error"), self.now())
         if was is None or not reported:
             return  # an unreported (rate-limited) hold ends unreported too
         if code == "acquiring":
-            self.s.record("registration", f"registration acquired: {why}", data)
+            self.events.event("registration", f"registration acquired: {why}", data)
             return
-        tracking = self.robot_state() in ("tracking", "holding")
-        self.s.alert("info", "resumed", why + ("; tracking resumed" if tracking else ""),
+        tracking = self.robot.state() in ("tracking", "holding")
+        self.alarms.alert("info", "resumed", why + ("; tracking resumed" if tracking else ""),
                      {"after": was, "cause": code, "registration": data})
+
+    def invalidate_pose(self, why: str, hold: bool = True) -> None:
+        """Forget the pose: it no longer belongs to the current plan/camera (new CT, new plan,
+        fiducials or path changed, camera stopped or failed). ``snap.pose`` becomes None, the trust
+        gate starts over (first lock needs ``confirm_frames`` consistent estimates), and an engaged
+        arm holds (``hold``) until a pose for *this* plan is trusted."""
+        with self._lock:
+            had = self._latest is not None
+            self._latest = self._last_trusted = None
+            self._fresh_since = None
+            self._seen_ids = None
+            self.gate.reset()
+        if hold and self.robot.state() in ("tracking", "holding"):
+            self.hold("pose_lost", f"pose cleared: {why}")
+        if had:
+            self.events.event("pose_invalidated", f"pose cleared: {why}", {"why": why})
+
+    def restart_gate(self, about_ct) -> None:
+        """A new camera: the trust verdict starts over, jumps measured at ``about_ct`` (CT mm)."""
+        with self._lock:
+            self.gate.reset()
+            self.gate.set_anchor(about_ct)
+
+    def fresh_pose(self, arrival_within_s: float | None = None):
+        """``(record, now, None)`` when the newest pose is trusted and younger than max_pose_age_s
+        (and, with ``arrival_within_s``, reached the loop at most that long ago, s); else
+        ``(record, now, why)``. Inside the resume dwell after a stale episode a fresh pose is
+        enough: the operator's Start confirms it (the dwell only keeps *automatic* resumes from
+        flapping; the age limit is the same)."""
+        rec, now = self._latest, self.now()
+        with self._lock:
+            code, reason = self._holding_code, self._holding_reason
+            arrival = self._latest_arrival
+            new_since_hold = arrival > self._hold_began
+        if rec is None:
+            return rec, now, "no pose yet"
+        if not rec.trusted:
+            return rec, now, rec.reason
+        age = now - rec.sample.t_capture
+        if code in FRESHNESS_CODES and not new_since_hold:
+            return rec, now, reason or "pose is stale"  # no pose since the stream stalled
+        if age > self.cfg.max_pose_age_s:
+            return rec, now, (reason if code in FRESHNESS_CODES and reason else
+                              f"pose is stale ({1000 * age:.0f} ms old)")
+        if arrival_within_s is not None and now - arrival > arrival_within_s:
+            return rec, now, (f"no pose for {1000 * (now - arrival):.0f} ms: the arm needs poses at most "
+                              f"{1000 * 2 * arrival_within_s:.0f} ms apart")
+        return rec, now, None
+
+    def wait_for_fresh_pose(self, arrival_within_s: float | None = None):
+        """Start tracking on a loaded machine: while trusted poses keep arriving (or the gate is
+        confirming a new lock), a click that lands between two of them (or inside a short stale
+        episode) waits for the next fresh one (arrived within ``arrival_within_s``, s, when
+        given), up to ``start_wait_s`` (real clock only; the simulated clock cannot advance here)."""
+        rec, now, why = self.fresh_pose(arrival_within_s)
+        if why is None or self.cfg.clock != "real" or self.cfg.start_wait_s <= 0:
+            return rec, now, why
+        deadline = time.monotonic() + self.cfg.start_wait_s
+        while (why is not None and time.monotonic() < deadline and rec is not None
+               and (rec.trusted or rec.code == "acquiring")):  # poses flow (or are being confirmed)
+            time.sleep(0.005 if arrival_within_s is not None else 0.01)
+            rec, now, why = self.fresh_pose(arrival_within_s)
+        return rec, now, why
 
     def watchdogs(self, now: float) -> None:
         """Camera freeze, stale pose, robot state (every engine tick)."""
-        frozen = self._camera_frozen(now)
+        frozen = self.camera.frozen(now)
         if frozen:
             with self._lock:
                 self._fresh_since = None  # a frozen camera is a gap: the resume dwell starts again after it
-            self._hold("camera_freeze", frozen)
+            self.hold("camera_freeze", frozen)
         rec = self._latest
         if rec is not None and rec.trusted:
             age = now - rec.sample.t_capture
@@ -350,45 +447,14 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
                 with self._lock:
                     self._fresh_since = None  # a gap: the resume dwell starts again
                 if self._holding_reason is None:
-                    self._hold("pose_stale", f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old")
-        self._refresh_robot_state()
+                    self.hold("pose_stale", f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old")
+        self.robot.refresh()
 
-    def _camera_frozen(self, now: float) -> str | None:
-        """Why the camera counts as frozen now (the hold's reason), or None: its last frame(s)
-        repeated bit for bit, or no new frame for ``freeze_after_s``. A rig that watches its own
-        camera (StreamRig) reports freezes as estimates with a code instead: None here."""
-        rig = self.rig
-        if rig is None or not rig.running or getattr(rig, "watches_itself", False):
-            return None
-        seen = self._last_frame_seen_at
-        if self._repeat_frames:
-            return (f"camera frozen: {self._repeat_frames} frame(s) repeated bit for bit "
-                    f"(last new frame {1000 * (now - seen):.0f} ms ago)")
-        if seen is not None and now - seen > self.cfg.freeze_after_s:
-            return f"camera frozen: no new frame for {1000 * (now - seen):.0f} ms"
-        return None
-
-    def note_frame(self, t_capture: float, now: float, digest=None) -> bool:
-        """A frame with capture time ``t_capture`` arrived; True if it is new. Only new frames
-        refresh the freeze watchdog (a frozen camera repeats its last frame). ``digest``: a
-        checksum of the content; equal to the previous frame's, the frame is a bit-identical
-        repeat (a frozen camera; sensor noise never repeats a frame) and the freeze alarm holds
-        the arm at the next watchdog tick, without waiting ``freeze_after_s``."""
+    def pending_latency(self) -> float | None:
+        """Session time (s) the newest target was handed to the robot while its latency is not
+        measured yet, or None."""
         with self._lock:
-            if self._last_frame_t is not None and t_capture <= self._last_frame_t:
-                return False
-            if digest is not None and digest == self._last_digest:
-                self._last_frame_t = t_capture
-                self._repeat_frames += 1
-                return False
-            self._last_digest = digest
-            self._repeat_frames = 0
-            self._last_frame_t = t_capture
-            self._last_frame_seen_at = now
-            self.s._alarm_board.clear("camera_freeze", now)
-            self._frames += 1
-            self._frame_times.append(now)
-            return True
+            return None if self._pending_latency_stamp is None else self._pending_latency_set_at
 
     def after_command(self, t_command: float) -> None:
         """Called after a control step that used the current target: record capture->command latency."""
@@ -396,3 +462,37 @@ class TrackingLoop(RobotCommands, CameraCommands, LoopSummaries, LoopClocks):
             stamp, self._pending_latency_stamp = self._pending_latency_stamp, None
         if stamp is not None:
             self.latencies_s.append(t_command - stamp)
+
+    # ================================================================== read side
+    def pose_summary(self):
+        """``snap.pose`` (:class:`~monotracker.engine.snapshot.PoseSummary`) or None."""
+        return _summaries.pose_summary(self)
+
+    def summaries(self):
+        """``(camera, pose, robot, scene)`` summaries for the snapshot."""
+        return _summaries.summaries(self)
+
+    # ================================================================== clocks
+    def advance(self, dt: float) -> None:
+        """clock="sim": run camera, registration and control in lock-step for ``dt`` s."""
+        self.driver.advance(dt)
+
+    def start_threads(self) -> None:
+        """clock="real": start the engine thread (and the robot's control thread)."""
+        self.driver.start()
+
+    def shutdown(self) -> None:
+        """Stop the threads, disarm and close the robot, stop the camera."""
+        self.driver.stop()
+        rob = self.robot.rig
+        if rob is not None:
+            try:
+                if self.robot.state() in ("tracking", "holding"):
+                    rob.stop_tracking()
+                rob.disarm()
+            finally:
+                rob.close()
+        rig = self.camera.rig
+        if rig is not None:
+            rig.running = False
+            rig.stop()

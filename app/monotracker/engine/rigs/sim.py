@@ -1,12 +1,12 @@
-"""The simulated camera rigs of the digital twin (chosen by :func:`monotracker.engine.vision_rig.make_vision_rig`).
+"""The simulated camera rigs of the digital twin (rows ``sim`` and ``sim-points`` of ``rigs/sources.py``).
 
 * :class:`SimImageRig` (camera ``"sim"``): the rendered twin camera, vision's detector and registration.
 * :class:`ProjectedFiducialRig` (camera ``"sim-points"``): the same twin at the level of detected
   points (exact ellipse centres + lens distortion + noise -> registration).
 
 Both use the CT fiducials confirmed in the plan, take their truth (head pose over time, mm) from
-the OR layout and vision's trajectories, and apply the simulated faults (``sim/faults.py``); see
-:mod:`monotracker.engine.vision_rig` for the whole picture. Moved verbatim from ``vision_rig.py``.
+the OR layout and the simulator's trajectories, and apply the simulated faults (``sim/faults.py``);
+see :mod:`monotracker.engine.rigs.factory` for the whole picture.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from monotracker.engine.components import CameraRig, PoseSample, estimate_to_sample
 from monotracker.engine.pipeline_priority import DEFAULT_POSE_NICE, normal_priority
-from monotracker.engine.verification import KeepDetections, ValidationSet
+from monotracker.engine.rigs.base import CameraRig, PoseSample, estimate_to_sample
+from monotracker.engine.rigs.validation import KeepDetections, ValidationSet
 from monotracker.geometry import apply_transform
 
 log = logging.getLogger(__name__)
@@ -148,7 +148,7 @@ class _SimRig(CameraRig):
             camproc.close()
 
     def _start_camera_process(self):
-        """The rig's camera rendering in its own process (``engine/sim_camera_process.py``), or None
+        """The rig's camera rendering in its own process (``engine/rigs/sim_camera_process.py``), or None
         (this rig renders nothing worth a process, or the process could not start: then the
         render stays on the pipeline thread, and the log says why)."""
         return None
@@ -305,7 +305,7 @@ class SimImageRig(_SimRig):
         return self._new_frame(img, t, truth), render_s
 
     def _start_camera_process(self):
-        from monotracker.engine.sim_camera_process import SimCameraProcess
+        from monotracker.engine.rigs.sim_camera_process import SimCameraProcess
 
         proc = SimCameraProcess(self._cam_kwargs, self.image_size, self.fps, self.transport_delay_s, self.nice)
         try:

@@ -40,6 +40,15 @@ class GateVerdict:
 
 
 class PoseGate:
+    """The trust verdict of each estimate (see the module docstring); :meth:`from_config` builds
+    the session's one gate from its configuration."""
+
+    @classmethod
+    def from_config(cls, cfg) -> "PoseGate":
+        """The gate of a session: every limit from its ``SessionConfig`` (mm, deg, frames)."""
+        return cls(cfg.min_fiducials, cfg.max_fre_mm, cfg.max_jump_mm, cfg.max_jump_deg, cfg.confirm_frames,
+                   max_predicted_tre_mm=cfg.max_predicted_tre_mm)
+
     def __init__(self, min_fiducials: int = 4, max_fre_mm: float = 1.5, max_jump_mm: float = 5.0,
                  max_jump_deg: float = 3.0, confirm_frames: int = 3, reference_max_age_s: float = 0.5,
                  max_predicted_tre_mm: float = 1.0):

@@ -1,6 +1,7 @@
 """The rig for real frame sources: a camera device, a video file, an image folder or a session
 recording, through vision's :class:`~monotracker.vision.pose_stream.PoseStream` (real clock only).
-Chosen by :func:`monotracker.engine.vision_rig.make_vision_rig`. Moved verbatim from ``vision_rig.py``.
+Built by the rows ``device`` / ``file`` / ``folder`` / ``replay`` of the table of source kinds
+(``rigs/sources.py``), which checked the argument.
 """
 
 from __future__ import annotations
@@ -9,8 +10,8 @@ import threading
 
 import numpy as np
 
-from monotracker.engine.components import CameraRig, PoseSample, estimate_to_sample
-from monotracker.engine.verification import KeepDetections, ValidationSet
+from monotracker.engine.rigs.base import CameraRig, PoseSample, estimate_to_sample
+from monotracker.engine.rigs.validation import KeepDetections, ValidationSet
 from monotracker.errors import MonoTrackerError
 
 
@@ -56,16 +57,16 @@ class StreamRig(CameraRig):
 
     watches_itself = True
 
-    def __init__(self, source: str, calibration_path: str | None, plan, session, camera_adapt: str = "",
+    def __init__(self, kind: str, arg: str, calibration_path: str | None, plan, session, camera_adapt: str = "",
                  max_predicted_tre_mm: float | None = None):
+        """``kind``: ``"device" | "file" | "folder" | "replay"``; ``arg``: the device number or the
+        path (checked by the source table)."""
         super().__init__()
         from monotracker.vision.camera_model import CameraModel, default_camera
         from monotracker.vision.frames import open_source
         from monotracker.vision.pose_stream import PoseStream, PoseTracker
 
-        kind, _, arg = source.partition(":")
-        if kind == "device" and not arg.isdigit():
-            raise MonoTrackerError(f"camera device must be a number, as in device:0 (got {source!r})")
+        source = f"{kind}:{arg}"
         if kind == "replay":
             from monotracker.vision.replay_source import ReplaySource, calibration_path as recorded_calibration
 

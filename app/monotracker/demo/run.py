@@ -67,7 +67,7 @@ class DemoOptions:
     settle_s: float = 2.0
     home: Path | None = None
     pin: str = "1234"
-    record: Path | None = None  # record the session into this folder (monotracker.interop.recording)
+    record: Path | None = None  # record the session into this folder (monotracker.engine.recording)
     igtl_port: int | None = None  # stream to OpenIGTLink clients on this port (monotracker.interop.igtl)
     allow_remote: bool = False  # OpenIGTLink on every interface, not only 127.0.0.1
     #: SessionConfig fields to override (e.g. the benchmark's "no gate" baseline)
@@ -93,7 +93,7 @@ def _stats(x) -> dict | None:
 
 
 class _Recorder:
-    """Per-tick truth metrics (a tick hook on the loop)."""
+    """Per-tick truth metrics (a tick listener on the session)."""
 
     def __init__(self, session: Session):
         self.s = session
@@ -107,12 +107,12 @@ class _Recorder:
         self._seen_pose = None
         self.tracking_since = None
 
-    def __call__(self, loop, t: float) -> None:
+    def __call__(self, t: float) -> None:
         from monotracker.robot.targets import tip_and_axis_error
 
-        rig, rob = loop.rig, loop.robot
-        T_base_ct = rig.truth_T_base_ct(t) if rig is not None else None
-        st = rob.status() if rob is not None else None
+        s = self.s
+        T_base_ct = s.truth_T_base_ct(t)
+        st = s.robot_status()
         tip = ang = None
         if st is not None and st.T_base_tip is not None and T_base_ct is not None:
             tip, ang = tip_and_axis_error(st.T_base_tip, T_base_ct, self.entry, self.target)
@@ -129,7 +129,7 @@ class _Recorder:
             self.tip_vs_registered.append((t, float(np.linalg.norm(st.T_base_tip[:3, 3] - e))))
         if st is not None and st.T_base_tip is not None:
             self.tip_positions.append((t, st.T_base_tip[:3, 3].copy()))
-        rec = loop._latest
+        rec = s.latest_pose()
         if rec is not None and rec.sample is not self._seen_pose:
             self._seen_pose = rec.sample
             smp = rec.sample
@@ -160,12 +160,11 @@ def _standstill_after(rows, t0: float) -> float | None:
 def _fastest_head_time(s: Session, t0: float, window_s: float, rate_hz: float) -> float:
     """The control tick in ``[t0, t0 + window_s]`` where the simulator's TRUE planned entry
     point moves fastest (s, session clock); ``t0`` when the rig has no truth."""
-    rig = s._loop.rig
-    if rig is None or not hasattr(rig, "truth_T_base_ct"):
+    if s.truth_T_base_ct(t0) is None:
         return t0
     entry = s.plan_copy().entry_lps_mm
     ts = t0 + np.arange(0.0, window_s + 1e-9, 1.0 / rate_hz)
-    p = np.array([apply_transform(rig.truth_T_base_ct(t), entry) for t in ts])
+    p = np.array([apply_transform(s.truth_T_base_ct(t), entry) for t in ts])
     if len(p) < 2:
         return t0
     return float(ts[1:][int(np.argmax(np.linalg.norm(np.diff(p, axis=0), axis=1)))])
@@ -242,7 +241,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         raise MonoTrackerError(f"camera: {r.message}")
     wall_loop0, t_loop0 = time.perf_counter(), s.snapshot().t
     rec = _Recorder(s)
-    s._loop.add_tick_hook(rec)
+    s.add_tick_listener(rec)
     # acquire a trusted pose (at most 5 s of simulated time)
     t_acq = None
     for _ in range(100):
@@ -293,7 +292,7 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
     alerts = [e for e in s.audit_entries() if e.kind == "alert" and e.session_id == s.session_id]
     frames = snap.camera.frames
     sim_s = snap.t
-    lat = np.array(s._loop.latencies_s) * 1000
+    lat = np.array(s.latencies_s()) * 1000
     out = {
         "trajectory": opts.trajectory if isinstance(opts.trajectory, str) else repr(opts.trajectory),
         "fault": opts.fault,
@@ -362,11 +361,8 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
 
 def _arm_response_s(s: Session) -> float | None:
     """Command delay + velocity lag of the simulated arm (s); None for any other backend."""
-    robot = s._loop.robot
-    arm = getattr(getattr(robot, "tracker", None), "arm_backend", None)
-    if arm is None or not hasattr(arm, "delay_s") or not hasattr(arm, "tau_s"):
-        return None
-    return float(arm.delay_s + arm.tau_s)
+    st = s.robot_status()
+    return None if st is None else st.response_s
 
 
 def format_report(r: dict) -> str:

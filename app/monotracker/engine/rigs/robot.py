@@ -1,8 +1,9 @@
 """RobotRig on ``monotracker.robot``'s :class:`Tracker` (APFF controller + safety layer + arm).
 
-robot="sim": a ``SimulatedArm`` on the session clock, started at the OR layout's standby
-configuration (needle tip ``standby_mm`` = 60 mm back from the planned entry along the path, so
-the first approach is short and straight); robot="ur:<ip>": the ur_rtde backend.
+The arm comes from the robot-backend table (``robot/backends.py``): robot="sim", a
+``SimulatedArm`` on the session clock, started at the OR layout's standby configuration (needle
+tip ``standby_mm`` = 60 mm back from the planned entry along the path, so the first approach is
+short and straight); robot="ur:<ip>", the ur_rtde backend.
 
 The tracker's own safety layer keeps its checks (stale target, jump, joint/tool speed limits,
 keep-out); the engine's gate runs before it. The head obstacle for the APFF repulsion is a sphere
@@ -17,7 +18,7 @@ import threading
 
 import numpy as np
 
-from monotracker.engine.components import RobotRig, RobotStatus
+from monotracker.engine.rigs.base import RobotRig, RobotStatus
 from monotracker.engine.robot_transitions import TransitionLog
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
@@ -39,18 +40,30 @@ def standby_configuration(layout, standby_mm: float = STANDBY_MM):
     return res.q if res.ok else None
 
 
-def sim_arm_setup(cfg) -> tuple[dict, np.ndarray]:
-    """The simulated UR10 for ``robot="sim"`` (both rigs, in-process and control process):
-    ``(SimulatedArm keyword arguments without the clock, T_base_cam of the OR layout (mm))``,
-    the arm starting at the layout's standby configuration. Raises ``MonoTrackerError`` when the
-    UR10 cannot reach the standby pose."""
-    from monotracker.sim.or_layout import default_layout
+def arm_setup(cfg) -> tuple:
+    """The arm of ``cfg.robot`` from the backend table (both rigs, in-process and control process):
+    ``(picklable arm factory, T_base_cam of the OR layout (mm) or None, simulated)``. A simulated
+    arm starts at the layout's standby configuration (its factory also takes ``clock=``).
+    ``cfg.control_hz`` is the arm's rate (125 Hz for a CB3, 500 for an e-Series: RTDE frequency
+    and speedJ time). Raises ``MonoTrackerError`` when the backend is not installed or the UR10
+    cannot reach the standby pose."""
+    from monotracker.robot.backends import arm_factory, parse_spec
 
-    layout = default_layout()
-    q0 = standby_configuration(layout)
-    if q0 is None:
-        raise MonoTrackerError("the OR layout's standby pose is not reachable by the UR10 (IK failed)")
-    return {"q0": q0, "period_s": 1.0 / cfg.control_hz, "seed": cfg.seed}, layout.T_base_cam
+    backend, _arg = parse_spec(cfg.robot)
+    q0 = T_base_cam = None
+    if backend.simulated:
+        from monotracker.sim.or_layout import default_layout
+
+        layout = default_layout()
+        q0 = standby_configuration(layout)
+        if q0 is None:
+            raise MonoTrackerError("the OR layout's standby pose is not reachable by the UR10 (IK failed)")
+        T_base_cam = layout.T_base_cam
+    try:
+        factory = arm_factory(cfg.robot, rate_hz=cfg.control_hz, seed=cfg.seed, q0=q0)
+    except ImportError as exc:
+        raise MonoTrackerError(f"the {backend.kind} arm backend is not available: {exc}") from exc
+    return factory, T_base_cam, backend.simulated
 
 
 class TrackerRobotRig(RobotRig):
@@ -61,21 +74,11 @@ class TrackerRobotRig(RobotRig):
         self.clock = session.clock
         self._events: list = []
         self.transitions = TransitionLog(clock=session.clock)  # the audit's robot_state rows, in order
-        self.sim_arm = None
-        if cfg.robot == "sim":
-            from monotracker.robot.sim_arm import SimulatedArm
-
-            arm_kw, self.default_T_base_cam = sim_arm_setup(cfg)
-            arm = SimulatedArm(clock=self.clock, **arm_kw)
-            self.sim_arm = arm
-        else:
-            ip = cfg.robot.split(":", 1)[1]
-            try:
-                from monotracker.robot.ur_rtde_arm import URRTDEArm
-            except ImportError as exc:
-                raise MonoTrackerError(f"the ur_rtde backend is not available: {exc}") from exc
-            # control_hz: 125 for a CB3, 500 for an e-Series (RTDE frequency and speedJ time)
-            arm = URRTDEArm(ip, rate_hz=cfg.control_hz)
+        factory, self.default_T_base_cam, simulated = arm_setup(cfg)
+        arm = factory(clock=self.clock) if simulated else factory()
+        self.sim_arm = arm if simulated else None
+        delay, tau = getattr(arm, "delay_s", None), getattr(arm, "tau_s", None)
+        self._response_s = None if delay is None or tau is None else float(delay + tau)
         self.tracker = Tracker(arm, variant=cfg.controller, clock=self.clock, rate_hz=cfg.control_hz,
                                on_event=self._on_event, predict_target=cfg.predict_target)
         r = self.tracker.connect()
@@ -149,7 +152,7 @@ class TrackerRobotRig(RobotRig):
 
     def _controller(self):
         """What runs the tracker: here the in-process :class:`~monotracker.robot.tracker.Tracker`
-        (the control process's proxy in :class:`~monotracker.engine.robot_process_rig.ProcessRobotRig`)."""
+        (the control process's proxy in :class:`~monotracker.engine.rigs.robot_process.ProcessRobotRig`)."""
         return self.tracker
 
     def _set_head_sphere(self) -> None:
@@ -232,16 +235,7 @@ class TrackerRobotRig(RobotRig):
         st = RobotStatus(state=self.tracker.state.value, connected=bool(self.tracker.arm_backend.is_connected()),
                          message=msg, q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=self._speed, command_stamp=stamp,
                          t_command=snap.t, program_fault=snap.program_fault,
-                         control="in-process thread" if self.tracker._thread is not None else "in-process, stepped")
+                         control="in-process thread" if self.tracker._thread is not None else "in-process, stepped",
+                         response_s=self._response_s)
         self._status_cache = (now, st)
         return st
-
-
-def make_tracker_rig(cfg, session) -> RobotRig:
-    """clock="real" with ``control_process`` on: the control loop in its own process
-    (``engine/robot_process_rig.py``); otherwise (and always for clock="sim") in-process."""
-    if getattr(cfg, "clock", "sim") == "real" and getattr(cfg, "control_process", False):
-        from monotracker.engine.robot_process_rig import ProcessRobotRig
-
-        return ProcessRobotRig(cfg, session)
-    return TrackerRobotRig(cfg, session)

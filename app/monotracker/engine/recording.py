@@ -1,8 +1,8 @@
 """Session recording: every estimated camera frame with what the engine made of it, to disk.
 
 :class:`SessionRecorder` attaches to a running :class:`~monotracker.engine.Session` (a pose hook on
-the engine loop and an event subscription; ``Session.start_recording(folder)`` does this) and
-writes, timestamped on the session clock (s):
+the engine loop and an event subscription; ``Session.start_recording(folder)`` does this through
+the session's :class:`Recording` part) and writes, timestamped on the session clock (s):
 
 ====================  ==========================================================================
 ``manifest.json``      format, version, program and library versions, session, camera, clock,
@@ -56,7 +56,9 @@ import cv2
 import numpy as np
 
 from monotracker import __version__
-from monotracker.errors import InputError
+from monotracker.engine.persistence import atomic_write_json
+from monotracker.engine.snapshot import CommandResult, RecordingSummary
+from monotracker.errors import InputError, MonoTrackerError
 from monotracker.vision.replay_source import FORMAT, FRAMES_DIR, MANIFEST, VERSION
 
 log = logging.getLogger(__name__)
@@ -112,8 +114,6 @@ def _write_reserve(path: Path) -> None:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    from monotracker.engine.persistence import atomic_write_json
-
     atomic_write_json(path, data)
 
 
@@ -327,8 +327,11 @@ def _versions() -> dict:
 class SessionRecorder:
     """Records a session into ``folder`` from now until :meth:`close` (see the module docstring)."""
 
-    def __init__(self, session, folder: str | Path):
+    def __init__(self, session, loop, folder: str | Path):
+        """``session``: what is recorded about the session (config, plan, events); ``loop``: the
+        tracking loop whose estimates, camera segments, robot and targets are recorded."""
         self.s = session
+        self._loop = loop
         plan = session.plan_copy()
         cfg = session.config
         manifest = {
@@ -346,7 +349,7 @@ class SessionRecorder:
         self.folder = self.writer.folder
         self.writer.write_json_file("plan.json", plan.to_dict())
         self._rig = None
-        rig0 = session._loop.rig
+        rig0 = loop.camera.rig
         self._rig_at_start = rig0 if rig0 is not None and rig0.running else None
         self._segment = 0
         self._calibration: tuple | None = None
@@ -354,7 +357,7 @@ class SessionRecorder:
         self._fids: list[int] = []
         self._closed = False
         self._failure_reported = False
-        self._remove_hook = session._loop.add_pose_hook(self._on_pose)
+        self._remove_hook = loop.add_pose_hook(self._on_pose)
         self._unsubscribe = session.subscribe(self._on_event)
 
     # ------------------------------------------------------------------ status
@@ -364,8 +367,6 @@ class SessionRecorder:
                 "dropped": w.dropped, "error": w.error}
 
     def snapshot_summary(self):
-        from monotracker.engine.snapshot import RecordingSummary
-
         d = self.summary()
         return RecordingSummary(d["path"], int(d["frames"]), bool(d["running"]), int(d["dropped"]), d["error"])
 
@@ -375,7 +376,7 @@ class SessionRecorder:
             return
         self.writer.line("alerts" if ev.kind == "alert" else "events", ev.as_dict())
 
-    def _new_segment(self, loop, rig) -> None:
+    def _new_segment(self, rig) -> None:
         self._rig = rig
         self._segment += 1
         cal = None if rig.K is None else (np.asarray(rig.K, float), np.asarray(rig.dist, float).ravel(),
@@ -394,7 +395,7 @@ class SessionRecorder:
         plan = self.s.plan_copy()
         self._fids = [f.id for f in plan.registration_fiducials()]  # what the rig registers (in this order)
         self.writer.manifest["segments"].append({
-            "segment": self._segment, "source": loop.camera_source, "calibration": name,
+            "segment": self._segment, "source": self._loop.camera.source, "calibration": name,
             "fiducial_ids": self._fids, "fiducials_lps_mm": plan.registration_centres().tolist(),
             "radius_mm": float(np.median([f.radius_mm for f in plan.registration_fiducials()])),
             "target_lps_mm": None if plan.target_lps_mm is None else plan.target_lps_mm.tolist(),
@@ -402,7 +403,7 @@ class SessionRecorder:
             "mid_stream": rig is self._rig_at_start,
         })
 
-    def _on_pose(self, loop, smp, trusted: bool, now: float) -> None:
+    def _on_pose(self, smp, trusted: bool, now: float) -> None:
         if self._closed:
             return
         if self.writer.error is not None:
@@ -414,9 +415,10 @@ class SessionRecorder:
                              "kept and replay (the manifest marks it truncated)",
                              {"folder": str(self.folder), "frames_kept": kept, "error": self.writer.error})
             return
-        rig = loop.rig
+        loop = self._loop
+        rig = loop.camera.rig
         if rig is not None and rig is not self._rig:
-            self._new_segment(loop, rig)
+            self._new_segment(rig)
         raw = smp.raw
         payload = smp.frame
         row = {"index": int(smp.frame_index), "t_capture": float(smp.t_capture), "segment": self._segment,
@@ -446,8 +448,9 @@ class SessionRecorder:
             "image_points_px": None if pts is None else {
                 str(self._fids[j]): [_num(p[0]), _num(p[1])] for j, p in enumerate(np.asarray(pts, float))
                 if j < len(self._fids) and np.all(np.isfinite(p))}}
-        if loop.robot is not None:
-            st = loop.robot.status()
+        rob = loop.robot.rig
+        if rob is not None:
+            st = rob.status()
             rows["robot"] = {"t": float(now), "state": st.state, "connected": bool(st.connected),
                              "q_rad": None if st.q is None else [_num(v) for v in st.q],
                              "T_base_tip": _mat(st.T_base_tip), "speed_mm_s": _num(st.speed_mm_s),
@@ -472,40 +475,51 @@ class SessionRecorder:
         return self.writer.close()
 
 
-# ---------------------------------------------------------------------- Session.start/stop_recording
-def start_session_recording(session, folder):
-    """``Session.start_recording``: one recorder per session at a time."""
-    from monotracker.engine.snapshot import CommandResult
-    from monotracker.errors import MonoTrackerError
+# ---------------------------------------------------------------------- the session's part
+class Recording:
+    """The session's recording part: one :class:`SessionRecorder` at a time (``Session.start_recording``
+    / ``stop_recording``); ``lock``: the session's state lock."""
 
-    with session._lock:
-        rec = session._recorder
-        if rec is not None and not rec._closed:
-            if rec.writer.running:
-                return CommandResult(False, f"already recording to {rec.folder}")
-            rec.close()  # a failed recording: detach it before starting another
-        try:
-            session._recorder = SessionRecorder(session, folder)
-        except MonoTrackerError as exc:
-            return CommandResult(False, str(exc))
-    session.record("recording_started", f"recording to {folder}", {"folder": str(folder)})
-    return CommandResult(True, f"recording to {folder}")
+    def __init__(self, session, loop, lock):
+        self._session = session
+        self._loop = loop
+        self._lock = lock
+        self.recorder: SessionRecorder | None = None  # while and after recording
 
+    def start(self, folder) -> CommandResult:
+        """Record into ``folder`` (an empty or new folder) until :meth:`stop`."""
+        session = self._session
+        with self._lock:
+            rec = self.recorder
+            if rec is not None and not rec._closed:
+                if rec.writer.running:
+                    return CommandResult(False, f"already recording to {rec.folder}")
+                rec.close()  # a failed recording: detach it before starting another
+            try:
+                self.recorder = SessionRecorder(session, self._loop, folder)
+            except MonoTrackerError as exc:
+                return CommandResult(False, str(exc))
+        session.record("recording_started", f"recording to {folder}", {"folder": str(folder)})
+        return CommandResult(True, f"recording to {folder}")
 
-def stop_session_recording(session):
-    """``Session.stop_recording``: close and report (an alert if the recording is incomplete)."""
-    from monotracker.engine.snapshot import CommandResult
+    def stop(self) -> CommandResult:
+        """Close the recording and report (an alert if it is incomplete). Idempotent."""
+        session = self._session
+        rec = self.recorder
+        if rec is None or rec._closed:
+            return CommandResult(True, "not recording")
+        m = rec.close()
+        if not m.get("complete"):
+            why = m.get("error") or f"{m.get('frames_dropped')} frames dropped"
+            kept = f"; the {m.get('frames')} frames before the failure are kept" if m.get("truncated") else ""
+            if not rec._failure_reported:
+                session.alert("warning", "recording_failed", f"recording {rec.folder} is incomplete: {why}{kept}")
+            return CommandResult(False, f"recording {rec.folder} is incomplete ({why}){kept}")
+        session.record("recording_stopped", f"recording closed: {m['frames']} frames in {rec.folder}",
+                       {"folder": str(rec.folder), "frames": m["frames"]})
+        return CommandResult(True, f"recording closed: {m['frames']} frames")
 
-    rec = session._recorder
-    if rec is None or rec._closed:
-        return CommandResult(True, "not recording")
-    m = rec.close()
-    if not m.get("complete"):
-        why = m.get("error") or f"{m.get('frames_dropped')} frames dropped"
-        kept = f"; the {m.get('frames')} frames before the failure are kept" if m.get("truncated") else ""
-        if not rec._failure_reported:
-            session.alert("warning", "recording_failed", f"recording {rec.folder} is incomplete: {why}{kept}")
-        return CommandResult(False, f"recording {rec.folder} is incomplete ({why}){kept}")
-    session.record("recording_stopped", f"recording closed: {m['frames']} frames in {rec.folder}",
-                   {"folder": str(rec.folder), "frames": m["frames"]})
-    return CommandResult(True, f"recording closed: {m['frames']} frames")
+    def summary(self):
+        """``snap.recording``: None when nothing was recorded in this session."""
+        rec = self.recorder
+        return None if rec is None else rec.snapshot_summary()

@@ -1,20 +1,23 @@
-"""The session's CT commands: load a CT (DICOM folder, NIfTI, NRRD, MHA) on a job thread, detect the fiducials, build the head surface.
+"""The session's CT job: load a CT (DICOM folder, NIfTI, NRRD, MHA) on a job thread, detect the
+fiducials, build the head surface; or detect again with a new fiducial kit.
 
 Progress and errors go to ``snap.job``; a failure is an alarm with one line, never a traceback.
-Mixed into :class:`~monotracker.engine.session.Session`, whose state these methods use."""
+:class:`CTJob` is a part of the :class:`~monotracker.engine.session.Session`: it holds the loaded
+CT (:class:`LoadedCT`) and the job, and changes the plan only through the plan editor's
+transactions (``engine/plan/editor.py``)."""
 
 from __future__ import annotations
 
 import logging
 import threading
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from monotracker.engine import plan_checks
-from monotracker.engine.plan_commands import _fail, _ok
-from monotracker.engine.plan import PlanFiducial
+from monotracker.engine.plan import checks as plan_checks
+from monotracker.engine.plan.editor import Refused
+from monotracker.engine.plan.model import PlanFiducial
 from monotracker.engine.snapshot import (
     CommandResult,
     CTRejectedBlob,
@@ -33,7 +36,7 @@ class JobCancelled(Exception):
 
 
 class JobToken:
-    """One CT job's cancel flag: set by :meth:`CTCommands.cancel_ct_job` or the timeout; the
+    """One CT job's cancel flag: set by :meth:`CTJob.cancel_ct_job` or the timeout; the
     job checks it between its stages (and the fiducial search inside its loop) and then
     discards its results, so the previous CT and plan stay."""
 
@@ -77,8 +80,46 @@ def rejected_summary(det, vol) -> tuple:
     return tuple(out)
 
 
-class CTCommands:
-    """The session's CT commands: load a CT (DICOM folder, NIfTI, NRRD, MHA) on a job thread, detect the fiducials, build the head surface (part of :class:`~monotracker.engine.session.Session`)."""
+@dataclass(frozen=True)
+class LoadedCT:
+    """The CT the session has loaded: ``summary`` (for ``snap.ct``), ``volume`` (LPS mm),
+    ``head_mesh`` (:class:`HeadMesh`, or None) with its outward vertex ``head_normals`` (n, 3),
+    ``anatomy`` (what the plan's checks read of it) and ``sha256`` (content hash, or None)."""
+
+    summary: CTSummary
+    volume: object
+    head_mesh: HeadMesh | None
+    head_normals: np.ndarray | None
+    anatomy: plan_checks.Anatomy
+    sha256: str | None
+
+
+class CTJob:
+    """The session's CT job (see the module docstring). Collaborators: the state ``lock``, the
+    plan ``editor``, the event bus and alarm board, the session ``clock`` (s), the ``config``
+    (``ct_job_timeout_s``) and ``plan_changed(why, restart_camera)`` of the tracking loop."""
+
+    def __init__(self, *, lock, editor, events, alarms, clock, config, plan_changed):
+        self._lock = lock
+        self._editor = editor
+        self._bus = events
+        self._alarm_board = alarms
+        self.clock = clock
+        self.config = config
+        self._plan_changed = plan_changed
+        self._job: Job | None = None
+        self._job_thread: threading.Thread | None = None
+        self._ct_token: JobToken | None = None
+        self.loaded: LoadedCT | None = None
+
+    @property
+    def job(self) -> Job | None:
+        """The current or last job (``snap.job``)."""
+        return self._job
+
+    def forget(self) -> None:
+        """Drop the loaded CT (a new plan); the caller holds the state lock."""
+        self.loaded = None
 
     def load_sample_ct(self) -> CommandResult:
         """:meth:`load_ct` on the bundled phantom CT (``paths.sample_ct_path()``); same refusals."""
@@ -108,11 +149,12 @@ class CTCommands:
         path = str(path)
         with self._lock:
             if self._job is not None and not self._job.done:
-                return _fail(f"busy: {self._job.name} is still running")
-            if self._plan.fiducials_locked and self._plan.ct_path and Path(self._plan.ct_path) != Path(path):
-                return _fail("the plan's fiducials are locked on another CT; start a new plan first")
+                return CommandResult.refused(f"busy: {self._job.name} is still running")
+            plan = self._editor.plan
+            if plan.fiducials_locked and plan.ct_path and Path(plan.ct_path) != Path(path):
+                return CommandResult.refused("the plan's fiducials are locked on another CT; start a new plan first")
             if not Path(path).exists():
-                return _fail(f"no such file or folder: {path}")
+                return CommandResult.refused(f"no such file or folder: {path}")
             self._job = Job("load_ct", 0.0, f"loading {Path(path).name}")
             token = self._new_job_token()
             th = threading.Thread(target=self._ct_job, args=(path, series, token), name="monotracker-ct", daemon=True)
@@ -120,7 +162,7 @@ class CTCommands:
         self._alarm_board.clear("ct_failed", float(self.clock()))
         self._bus.event("ct_load_started", f"loading CT {path}", {"path": path})
         self._start_job(th, token)
-        return _ok("loading CT")
+        return CommandResult.done("loading CT")
 
     # ------------------------------------------------------------------ cancel and timeout
     def _new_job_token(self) -> JobToken:
@@ -145,19 +187,19 @@ class CTCommands:
 
         Refuses (ok=False): no CT job is running."""
         with self._lock:
-            token = getattr(self, "_ct_token", None)
+            token = self._ct_token
             running = self._job is not None and not self._job.done
         if token is None or not running:
-            return _fail("no CT job is running")
+            return CommandResult.refused("no CT job is running")
         if not self._stop_ct_job(token, "cancelled by the operator"):
-            return _fail("no CT job is running")
-        return _ok("CT job cancelled; the previous CT and plan are unchanged")
+            return CommandResult.refused("no CT job is running")
+        return CommandResult.done("CT job cancelled; the previous CT and plan are unchanged")
 
     def _stop_ct_job(self, token: JobToken, reason: str) -> bool:
         """Flag ``token``'s job and end it in ``snap.job`` now (the thread winds down by
         itself). False when that job had already ended or been stopped."""
         with self._lock:
-            if (token is not getattr(self, "_ct_token", None) or token.committed or self._job is None
+            if (token is not self._ct_token or token.committed or self._job is None
                     or self._job.done):
                 return False
             if not token.cancel(reason):
@@ -183,23 +225,23 @@ class CTCommands:
         running; the plan cannot be saved."""
         why = plan_checks.check_fiducial_kit(radius_mm, density_hu)
         if why:
-            return _fail(why)
+            return CommandResult.refused(why)
         from monotracker.ct.kit import FiducialKit
 
         kit = FiducialKit(float(radius_mm), None if density_hu is None else float(density_hu))
         with self._lock:
             if self._job is not None and not self._job.done:
-                return _fail(f"busy: {self._job.name} is still running")
-            if self._plan.fiducials_locked:
-                return _fail("fiducials are locked; unlock them first (a new kit re-runs the detection)")
-            old = self._plan.fiducial_kit
-            vol = self._volume
+                return CommandResult.refused(f"busy: {self._job.name} is still running")
+            if self._editor.plan.fiducials_locked:
+                return CommandResult.refused("fiducials are locked; unlock them first (a new kit re-runs the detection)")
+            old = self._editor.plan.fiducial_kit
+            vol = None if self.loaded is None else self.loaded.volume
             if vol is None:  # no CT: the kit alone goes into the plan now
-                plan = self._plan.copy()
-                plan.fiducial_kit = kit
-                err = self._commit_plan_locked(plan, "fiducial kit")
-                if err:
-                    return _fail(err)
+                try:
+                    with self._editor.edit("fiducial kit") as plan:
+                        plan.fiducial_kit = kit
+                except Refused as exc:
+                    return CommandResult.refused(str(exc))
                 th = None
             else:  # with a CT, the kit is committed with the fiducials it finds (a stopped job changes nothing)
                 self._job = Job("detect_fiducials", 0.0, "detecting fiducials with the new kit")
@@ -208,9 +250,9 @@ class CTCommands:
                 self._job_thread = th
         if th is None:
             self._kit_set_event(kit, old)
-            return _ok("fiducial kit kept in the plan; it is used when a CT is loaded")
+            return CommandResult.done("fiducial kit kept in the plan; it is used when a CT is loaded")
         self._start_job(th, token)
-        return _ok("detecting the fiducials with the new kit; the plan takes the kit when the detection ends")
+        return CommandResult.done("detecting the fiducials with the new kit; the plan takes the kit when the detection ends")
 
     def _kit_set_event(self, kit, old) -> None:
         self._bus.event("fiducial_kit_set", f"fiducial kit: radius {kit.radius_mm:g} mm, density "
@@ -241,29 +283,31 @@ class CTCommands:
             if token.cancelled:
                 return
             token.committed = True
-            if self._volume is not vol or self._plan.fiducials_locked:
+            loaded = self.loaded
+            if loaded is None or loaded.volume is not vol or self._editor.plan.fiducials_locked:
                 self._job = Job("detect_fiducials", 1.0, "detection not used; fiducial kit not changed",
                                 "the CT or the plan changed meanwhile", True)
                 return
-            plan = self._plan.copy()
-            old_kit = plan.fiducial_kit
-            plan.fiducial_kit = kit
-            new = detected_fiducials(det)
-            kept = [f for f in plan.fiducials if f.status == "added"
-                    and all(np.linalg.norm(np.asarray(f.centre_lps_mm) - g.centre_lps_mm) >= f.radius_mm + g.radius_mm for g in new)]
-            dropped = sum(f.status == "added" for f in plan.fiducials) - len(kept)
-            for k, f in enumerate(kept):
-                f.id = len(new) + k
-            plan.fiducials = new + kept
-            err = self._commit_plan_locked(plan, "fiducials detected again (new kit)")
-            if err:
+            try:
+                with self._editor.edit("fiducials detected again (new kit)") as plan:
+                    old_kit = plan.fiducial_kit
+                    plan.fiducial_kit = kit
+                    new = detected_fiducials(det)
+                    kept = [f for f in plan.fiducials if f.status == "added"
+                            and all(np.linalg.norm(np.asarray(f.centre_lps_mm) - g.centre_lps_mm)
+                                    >= f.radius_mm + g.radius_mm for g in new)]
+                    dropped = sum(f.status == "added" for f in plan.fiducials) - len(kept)
+                    for k, f in enumerate(kept):
+                        f.id = len(new) + k
+                    plan.fiducials = new + kept
+            except Refused as exc:
                 self._job = Job("detect_fiducials", 1.0, "detection not used; fiducial kit not changed",
-                                f"the plan could not be saved: {err}", True)
+                                f"the plan could not be saved: {exc}", True)
                 return
-            if self._ct is not None:
-                self._ct = replace(self._ct, rejected=rejected_summary(det, vol), detection=det.reason)
+            summary = replace(loaded.summary, rejected=rejected_summary(det, vol), detection=det.reason)
+            self.loaded = replace(loaded, summary=summary)
         self._kit_set_event(kit, old_kit)
-        self._loop.plan_changed("fiducials detected again (new kit)", restart_camera=False)
+        self._plan_changed("fiducials detected again (new kit)", False)
         extra = f"; {dropped} added fiducial(s) now detected" if dropped else ""
         self._set_job(1.0, ("fiducials detected again" if det.ok else f"fiducials: {det.reason}") + extra, None, True, token)
         self._bus.event("fiducials_detected", f"{len(det.fiducials)} fiducials detected in the CT (new kit)"
@@ -302,7 +346,7 @@ class CTCommands:
                  token: JobToken | None = None) -> None:
         """Update ``snap.job``; ignored for a job that was stopped (``token`` cancelled)."""
         with self._lock:
-            if token is not None and (token.cancelled or token is not getattr(self, "_ct_token", None)):
+            if token is not None and (token.cancelled or token is not self._ct_token):
                 return
             name = self._job.name if self._job else "job"
             self._job = Job(name, progress, message, error, done)
@@ -315,19 +359,52 @@ class CTCommands:
             self._job_ended(token)
 
     def _ct_job_body(self, path: str, series: str | None, token: JobToken) -> None:
+        got = self._load_stages(path, series, token)
+        if got is None:
+            return  # stopped (snap.job says why) or failed (reported)
+        vol, det, mesh, anatomy, ct_sha = got
+        kept = self._keep(path, vol, det, mesh, anatomy, ct_sha, token)
+        if kept is None:
+            return
+        restored, recorded = kept
+        if restored and recorded and ct_sha and recorded != ct_sha:
+            self._editor.need_reconfirm("plan_ct_changed", f"the CT {path} changed since the plan was made "
+                                        "(content hash differs)", {"path": path, "recorded": recorded, "now": ct_sha})
+        if restored:
+            plan = self._editor.plan
+            why = plan_checks.check_path(plan.entry_lps_mm, plan.target_lps_mm, plan.fiducials,
+                                         anatomy) if plan.path_complete else None
+            if why:
+                self._bus.alert("alarm", "plan_path_invalid", f"the restored path fails its check on the CT: {why}")
+        if not restored:
+            self._plan_changed("new CT loaded", False)
+        self._set_job(1.0, "CT ready" if det.ok else f"CT ready; fiducials: {det.reason}", None, True, token)
+        if restored:
+            self._bus.event("ct_reloaded", f"CT reloaded for the saved plan: {path}", {"path": path})
+        else:
+            self._bus.event("fiducials_detected", f"{len(det.fiducials)} fiducials detected in the CT"
+                            + ("" if det.ok else f" ({det.reason})"),
+                            {"path": path, "ok": bool(det.ok), "reason": det.reason,
+                             "centres_lps_mm": [np.asarray(f.centre_lps).tolist() for f in det.fiducials]})
+            if not det.ok:
+                self._bus.alert("warning", "fiducials_detection", f"fiducial detection: {det.reason}")
+
+    def _load_stages(self, path: str, series: str | None, token: JobToken):
+        """Load, detect, surface, anatomy, content hash: ``(vol, det, mesh, anatomy, sha256)``, or
+        None when the job was stopped or failed (then ``snap.job`` and a ``ct_failed`` alarm say why)."""
         try:
             from monotracker.ct import detect_fiducials, load_volume
         except ImportError as exc:
             self._set_job(1.0, "CT tools unavailable", f"CT tools are not installed: {exc}", True, token)
             self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT tools are not available: {exc}")
-            return
+            return None
         try:
             vol = load_volume(path, series=series)
             token.check()
             self._set_job(0.3, "detecting fiducials", token=token)
             with self._lock:
-                kit = self._plan.fiducial_kit
+                kit = self._editor.plan.fiducial_kit
             det = detect_fiducials(vol, kit=kit, cancel=lambda: token.cancelled)
             token.check()
             self._set_job(0.6, "extracting the head surface", token=token)
@@ -342,71 +419,56 @@ class CTCommands:
             ct_sha = self._hash_ct(path)
             token.check()
         except JobCancelled:
-            return  # snap.job already says why; nothing of this job is kept
+            return None  # snap.job already says why; nothing of this job is kept
         except MonoTrackerError as exc:
             if token.cancelled:
-                return
+                return None
             self._set_job(1.0, "CT failed", str(exc), True, token)
             self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT could not be used: {exc}", {"path": path})
-            return
+            return None
         except Exception as exc:  # report, never kill the engine
             if token.cancelled:
-                return
+                return None
             log.exception("CT job failed")
             self._set_job(1.0, "CT failed", f"internal error: {type(exc).__name__}: {exc}", True, token)
             self._ct_failed_alarm()
             self._bus.alert("alarm", "ct_failed", f"CT job failed: {type(exc).__name__}: {exc}", {"path": path})
-            return
+            return None
+        return vol, det, mesh, anatomy, ct_sha
+
+    def _keep(self, path: str, vol, det, mesh, anatomy, ct_sha, token: JobToken):
+        """Keep the job's result: a new plan on this CT (saved first, then swapped in with the
+        volume) or, for the plan's own CT after a restart, the volume alone. Returns
+        ``(restored, the plan's recorded CT hash)``, or None when stopped or not saved."""
         with self._lock:
             if token.cancelled:  # stopped while finishing: the previous CT and plan stay
-                return
+                return None
             token.committed = True  # from here on the job cannot be stopped: it is being kept
-            restored = self._plan.fiducials_locked and self._plan.ct_path == path
-            recorded = self._plan.integrity.get("ct_sha256")
-            if not restored:  # a new plan on this CT: saved first, then swapped in with the volume
-                plan = self._plan.copy()
-                plan.ct_path = path
-                plan.fiducials = detected_fiducials(det)
-                plan.fiducials_locked = False
-                plan.entry_lps_mm = None
-                plan.target_lps_mm = None
-                plan.integrity["ct_sha256"] = ct_sha
-                save_err = self._commit_plan_locked(plan, "CT loaded")
-                if save_err:
+            current = self._editor.plan
+            restored = current.fiducials_locked and current.ct_path == path
+            recorded = current.integrity.get("ct_sha256")
+            if not restored:
+                try:
+                    with self._editor.edit("CT loaded") as plan:
+                        plan.ct_path = path
+                        plan.fiducials = detected_fiducials(det)
+                        plan.fiducials_locked = False
+                        plan.entry_lps_mm = None
+                        plan.target_lps_mm = None
+                        plan.integrity["ct_sha256"] = ct_sha
+                except Refused as exc:
                     self._job = Job(self._job.name if self._job else "load_ct", 1.0, "CT not used",
-                                    f"the new plan could not be saved: {save_err}", True)
-                    return
-            self._volume = vol
-            self._ct = CTSummary(path=path, shape=tuple(int(v) for v in vol.array.shape),
-                                 spacing_mm=tuple(float(v) for v in vol.spacing_mm),
-                                 notes=tuple(getattr(vol, "notes", ()) or ()),
-                                 rejected=rejected_summary(det, vol), detection=det.reason)
+                                    f"the new plan could not be saved: {exc}", True)
+                    return None
+            summary = CTSummary(path=path, shape=tuple(int(v) for v in vol.array.shape),
+                                spacing_mm=tuple(float(v) for v in vol.spacing_mm),
+                                notes=tuple(getattr(vol, "notes", ()) or ()),
+                                rejected=rejected_summary(det, vol), detection=det.reason)
+            head_mesh = head_normals = None
             if mesh is not None:
-                self._head_mesh = HeadMesh(frozen_array(np.asarray(mesh.vertices, float)),
-                                           frozen_array(np.asarray(mesh.faces), np.int64))
-                self._head_normals = np.asarray(mesh.vertex_normals, dtype=float)
-            else:
-                self._head_mesh = self._head_normals = None
-            self._anatomy = anatomy
-            self._ct_sha256 = ct_sha
-        if restored and recorded and ct_sha and recorded != ct_sha:
-            self._need_reconfirm("plan_ct_changed", f"the CT {path} changed since the plan was made "
-                                 "(content hash differs)", {"path": path, "recorded": recorded, "now": ct_sha})
-        if restored:
-            why = plan_checks.check_path(self._plan.entry_lps_mm, self._plan.target_lps_mm, self._plan.fiducials,
-                                         anatomy) if self._plan.path_complete else None
-            if why:
-                self._bus.alert("alarm", "plan_path_invalid", f"the restored path fails its check on the CT: {why}")
-        if not restored:
-            self._loop.plan_changed("new CT loaded", restart_camera=False)
-        self._set_job(1.0, "CT ready" if det.ok else f"CT ready; fiducials: {det.reason}", None, True, token)
-        if restored:
-            self._bus.event("ct_reloaded", f"CT reloaded for the saved plan: {path}", {"path": path})
-        else:
-            self._bus.event("fiducials_detected", f"{len(det.fiducials)} fiducials detected in the CT"
-                            + ("" if det.ok else f" ({det.reason})"),
-                            {"path": path, "ok": bool(det.ok), "reason": det.reason,
-                             "centres_lps_mm": [np.asarray(f.centre_lps).tolist() for f in det.fiducials]})
-            if not det.ok:
-                self._bus.alert("warning", "fiducials_detection", f"fiducial detection: {det.reason}")
+                head_mesh = HeadMesh(frozen_array(np.asarray(mesh.vertices, float)),
+                                     frozen_array(np.asarray(mesh.faces), np.int64))
+                head_normals = np.asarray(mesh.vertex_normals, dtype=float)
+            self.loaded = LoadedCT(summary, vol, head_mesh, head_normals, anatomy, ct_sha)
+        return restored, recorded

@@ -4,21 +4,20 @@ Used for ``clock="real"`` sessions when ``SessionConfig.control_process`` is on 
 the tracker, its safety layer and the arm backend live in a spawned child at elevated priority
 where the OS allows, so vision, the web server and logging in the engine process cannot delay a
 control cycle. The engine sees the same :class:`RobotStatus` as with the in-process rig
-(``engine/robot_rig.py``), plus ``control`` saying where the loop runs and with which priority.
+(``engine/rigs/robot.py``), plus ``control`` saying where the loop runs and with which priority.
 ``clock="sim"`` sessions keep the in-process, deterministic rig.
 """
 
 from __future__ import annotations
 
-import functools
 import logging
 import threading
 
 import numpy as np
 
-from monotracker.engine.components import RobotStatus
 from monotracker.engine.pipeline_priority import CONTROL_FALLBACK_NICE, CONTROL_FIFO_PRIORITY
-from monotracker.engine.robot_rig import TrackerRobotRig, sim_arm_setup
+from monotracker.engine.rigs.base import RobotStatus
+from monotracker.engine.rigs.robot import TrackerRobotRig, arm_setup
 from monotracker.engine.robot_transitions import TransitionLog
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
@@ -39,17 +38,7 @@ class ProcessRobotRig(TrackerRobotRig):
         self.tracker = None
         self.transitions = TransitionLog()  # the child's reports, back in order (the audit's robot_state rows)
         self._exit_noted = False
-        if cfg.robot == "sim":
-            from monotracker.robot.sim_arm import SimulatedArm
-
-            arm_kw, self.default_T_base_cam = sim_arm_setup(cfg)
-            factory = functools.partial(SimulatedArm, **arm_kw)
-            self._is_sim = True
-        else:
-            from monotracker.robot.ur_rtde_arm import URRTDEArm
-
-            factory = functools.partial(URRTDEArm, cfg.robot.split(":", 1)[1], rate_hz=cfg.control_hz)
-            self._is_sim = False
+        factory, self.default_T_base_cam, self._is_sim = arm_setup(cfg)
         self._kin, self._tool = Kinematics(), NeedleTool()
         # the only real-time code of the app (the priority policy: engine/pipeline_priority.py)
         opts = {"fifo_priority": CONTROL_FIFO_PRIORITY, "fallback_nice": CONTROL_FALLBACK_NICE, **(opts or {})}

@@ -1,19 +1,32 @@
-"""Restore a saved plan field by field, with the same checks the commands use.
+"""Where the plan lives on disk: the saved ``plan.json``, restored field by field with the same
+checks the commands use, and the one way a changed plan is committed (saved, then swapped in).
 
 :func:`restore_plan` never raises for a file that is a MonoTracker plan: each field that fails its
-check (:mod:`monotracker.engine.plan_checks`) is left out and named in the returned rejections,
+check (:mod:`~monotracker.engine.plan.checks`) is left out and named in the returned rejections,
 and the plan holds what is valid. Fields depend on each other the way the commands make them:
 a dropped fiducial or a locked set that is not valid unlocks the set (the operator re-confirms);
 entry == target drops both points; a bad hand-eye or camera drops that calibration.
+
+:class:`PlanStore` holds the session's current plan and commits a changed copy: saved first,
+swapped in only once it is on disk, so the file and memory never disagree; a failed save leaves
+both unchanged and says why in one line (``home_unwritable`` / ``plan_save_failed`` alarms).
 """
 
 from __future__ import annotations
 
+import logging
+import tempfile
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from monotracker.engine import plan_checks as pc
+from monotracker.engine.persistence import read_json
+from monotracker.engine.plan import checks as pc
+from monotracker.engine.plan.model import FORMAT, VERSION, Plan, PlanFiducial
+from monotracker.errors import InputError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -30,8 +43,6 @@ class Rejection:
 def restore_plan(d, min_usable: int = 4):
     """``(Plan, [Rejection])`` from a parsed plan file. Raises ``ValueError`` only when ``d`` is
     not a MonoTracker plan at all (wrong format marker, newer version)."""
-    from monotracker.engine.plan import FORMAT, VERSION, Plan, PlanFiducial
-
     if not isinstance(d, dict) or d.get("format") != FORMAT:
         raise ValueError("not a MonoTracker plan file")
     ver = d.get("version", -1)
@@ -192,7 +203,6 @@ def _keep_aside(path, kind: str):
     """Copy ``path`` to ``plan.<kind>-<UTC timestamp>.json`` beside it; the copy's path or None."""
     import shutil
     import time
-    from pathlib import Path
 
     path = Path(path)
     stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
@@ -214,8 +224,6 @@ def load_saved_plan(path, min_usable: int) -> SavedPlan:
     the plan holds what is valid (or is empty). A content hash that does not match (an edit made
     outside the app) asks for re-confirmation."""
     from monotracker.engine.integrity import plan_stamp_problem
-    from monotracker.engine.persistence import read_json
-    from monotracker.engine.plan import Plan
 
     try:
         raw = read_json(path)
@@ -244,3 +252,75 @@ def load_saved_plan(path, min_usable: int) -> SavedPlan:
         alarms.append(("plan_reconfirm_pending", f"{pending}; re-confirm the plan before arming", {}))
         reconfirm.append(pending)
     return SavedPlan(plan, alarms, reconfirm, keep, tuple(rejected))
+
+
+def plan_from_dict(d: dict, min_usable: int = 3) -> Plan:
+    """Parse a saved plan strictly: raises ``ValueError`` with a one-line reason naming the first
+    field that fails its check (the session restores field by field instead)."""
+    plan, rejected = restore_plan(d, min_usable)
+    if rejected:
+        raise ValueError(str(rejected[0]))
+    return plan
+
+
+def load_plan(path) -> Plan:
+    """Load ``path`` strictly; raises ``OSError`` or ``ValueError`` (one line) if unusable."""
+    return plan_from_dict(read_json(path))
+
+
+def prepare_home(home: Path) -> None:
+    """Create the session folder; :class:`InputError` (one line) when ``home`` cannot be one."""
+    if home.exists() and not home.is_dir():
+        raise InputError(f"session folder {home} is not a folder")
+    try:
+        home.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the session folder {home}: {exc.strerror or exc}") from None
+
+
+def home_write_problem(home: Path) -> str | None:
+    """None when a file can be created in ``home``; else the reason (one line)."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=home, prefix=".write-check-"):
+            pass
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    return None
+
+
+class PlanStore:
+    """The session's current plan and its file (``path``, in the session folder ``home``).
+
+    ``plan`` is read and replaced only under the session's state lock (the editor's
+    transactions hold it). ``home_unwritable``: the last save failure while the folder is not
+    writable (None once a save succeeds again). ``events``: the event bus for the alarms."""
+
+    def __init__(self, path: Path, home: Path, events):
+        self.path = Path(path)
+        self.home = Path(home)
+        self.plan = Plan()
+        self.home_unwritable: str | None = None
+        self._events = events
+
+    def commit(self, plan: Plan, why: str) -> str | None:
+        """Save ``plan`` (a modified copy) and only then make it the current plan; the caller holds
+        the lock. Returns None when saved and swapped in, else a one-line reason (memory unchanged,
+        a ``home_unwritable`` alarm stands until a save succeeds again)."""
+        plan.revision = self.plan.revision + 1
+        try:
+            plan.save(self.path)
+        except OSError as exc:
+            reason = f"not saved ({exc.strerror or exc}): the plan on disk and in memory are unchanged"
+            if self.home_unwritable is None:
+                self._events.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: "
+                                   f"{exc.strerror or exc}; changes are refused until it is writable",
+                                   {"why": why, "errno": getattr(exc, "errno", None)})
+            self._events.alert("alarm", "plan_save_failed", f"{why}: {reason}", {"why": why})
+            self.home_unwritable = str(exc)
+            return reason
+        self.plan = plan
+        if self.home_unwritable is not None:
+            self.home_unwritable = None
+            self._events.alert("info", "home_writable", f"session folder {self.home} is writable again")
+        log.debug("plan saved (%s) revision %d", why, plan.revision)
+        return None
