@@ -116,6 +116,16 @@ class SessionConfig:
     sim_camera_process: bool = True
     extra: dict = field(default_factory=dict)
 
+    def frame_rules(self):
+        """The per-frame trust rules (vision's :class:`~monotracker.vision.pose_tracker.TrackerConfig`)
+        every camera rig's pose tracker applies: this session's ``min_fiducials`` and
+        ``max_predicted_tre_mm`` (mm), vision's defaults for the rest. A new object on each call
+        (a rig's tracker may keep state on it). The loop's gate (``engine/loop/gate.py``) judges
+        what the rigs deliver with the same limits: one verdict from one configuration."""
+        from monotracker.vision.pose_tracker import TrackerConfig
+
+        return TrackerConfig(min_fiducials=int(self.min_fiducials), max_predicted_tre_mm=float(self.max_predicted_tre_mm))
+
     def validate(self) -> None:
         """Raise :class:`InputError` with one line for a bad setting."""
         if not (self.trajectory in TRAJECTORIES or hasattr(self.trajectory, "pose")):

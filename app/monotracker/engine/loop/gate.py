@@ -1,7 +1,11 @@
-"""Deciding whether a pose estimate may drive the arm (the engine's trust gate).
+"""Deciding whether a pose estimate may drive the arm: the session's one trust verdict.
 
-The pose stream says what it saw; the gate decides what the robot may do with it. A pose is
-*trusted* when all hold:
+Built once from ``SessionConfig`` (:meth:`PoseGate.from_config`), in two stages that share its
+limits: ``SessionConfig.frame_rules()`` are the per-frame rules vision's ``PoseTracker`` applies to every
+estimate of every camera rig (the rig factory hands them to each rig: ``min_fiducials``, the
+residual gates, physical plausibility, weak geometry, the predicted-TRE bound with its noise
+upper bound and tail probability), and :meth:`PoseGate.check` judges each estimate the rig
+delivers, over time. A pose is *trusted* when all hold:
 
 1. the estimator says ``ok``;
 2. at least ``min_fiducials`` fiducials were matched (the paper needs >= 4 for < 1 mm);
@@ -18,6 +22,9 @@ An invalid estimate keeps the alert code its estimator gave (``code``: ``camera_
 ``frame_size``, ``frame_unreadable``, ``tre_limit``, ...), so the operator reads what happened;
 without one, fewer than ``min_fiducials`` matched is ``occlusion`` and anything else
 ``estimator``.
+
+Rules 2 and 3 repeat what the frame rules already refused for a rig that runs them, with the same
+limits; they stand for a rig that does not (a test double delivering samples of its own).
 
 The gate is pure bookkeeping (no threads, no clock of its own): the loop feeds it each estimate
 with its capture time and reads a :class:`GateVerdict`.
@@ -45,9 +52,12 @@ class PoseGate:
 
     @classmethod
     def from_config(cls, cfg) -> "PoseGate":
-        """The gate of a session: every limit from its ``SessionConfig`` (mm, deg, frames)."""
-        return cls(cfg.min_fiducials, cfg.max_fre_mm, cfg.max_jump_mm, cfg.max_jump_deg, cfg.confirm_frames,
+        """The gate of a session: every limit from its ``SessionConfig`` (mm, deg, frames);
+        ``frame_rules`` are the per-frame rules its camera rigs apply (``SessionConfig.frame_rules``)."""
+        gate = cls(cfg.min_fiducials, cfg.max_fre_mm, cfg.max_jump_mm, cfg.max_jump_deg, cfg.confirm_frames,
                    max_predicted_tre_mm=cfg.max_predicted_tre_mm)
+        gate.frame_rules = cfg.frame_rules()
+        return gate
 
     def __init__(self, min_fiducials: int = 4, max_fre_mm: float = 1.5, max_jump_mm: float = 5.0,
                  max_jump_deg: float = 3.0, confirm_frames: int = 3, reference_max_age_s: float = 0.5,

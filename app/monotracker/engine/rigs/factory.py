@@ -9,7 +9,8 @@ Camera: the source's row in the table of source kinds (``rigs/sources.py``) buil
   reaches the software ``transport_delay_s`` (30 ms) after exposure.
 * ``"sim-points"`` -- :class:`~.sim.ProjectedFiducialRig`, the same twin at the level of detected
   points (no rendering, no image detector): exact ellipse centres of the balls + lens distortion
-  + 0.3 px noise -> registration. Cheaper; for studies of the loop itself.
+  + 0.15 px noise -> the same pose tracker (vision's, through a point detector). Cheaper; for
+  studies of the loop itself.
 * ``"device:N" | "file:PATH" | "folder:PATH"`` -- :class:`~.stream.StreamRig`: vision's
   ``PoseStream`` on a real frame source (its own thread; clock="real" only), with the calibration
   file given to ``set_camera`` (``CameraModel.load``) or, without one, vision's default model and
@@ -17,6 +18,10 @@ Camera: the source's row in the table of source kinds (``rigs/sources.py``) buil
 * ``"replay:DIR"`` -- :class:`~.stream.StreamRig` on a session recording
   (``vision.replay_source``), paced at the recorded frame times, with the recording's own
   calibration unless one is given.
+
+Every rig's pose tracker applies the session's per-frame trust rules
+(``SessionConfig.frame_rules``: ``min_fiducials``, ``max_predicted_tre_mm``); the loop's gate
+judges what the rigs deliver with the same limits: one verdict, built from one configuration.
 
 Both simulated rigs use the CT fiducials *confirmed in the plan* (from the CT detector), not the
 phantom's true centres, so CT detection error is part of the measured TRE; their truth (head pose
@@ -48,18 +53,17 @@ def make_camera_rig(source: str, calibration_path, plan, cfg, session) -> Camera
 
 
 def build_camera_rig(source: str, calibration_path, plan, cfg, session) -> CameraRig:
-    """The rig the table of source kinds builds for ``source`` (see the module docstring).
+    """The rig the table of source kinds builds for ``source`` (see the module docstring), applying
+    the session's per-frame trust rules (``SessionConfig.frame_rules``).
     Raises ``MonoTrackerError`` (one line) for a bad source, or a real camera on the sim clock."""
     kind, arg = parse_source(source)
     if kind.real_clock and cfg.clock != "real":
         raise MonoTrackerError("real cameras need a real-clock session (clock='real')")
-    rig = kind.build(arg, calibration_path, plan, cfg, session)
+    rig = kind.build(arg, calibration_path, plan, cfg, session, cfg.frame_rules())
     if kind.simulated:
         rig.clock = session.clock
         rig.nice = int(getattr(cfg, "pose_nice", 0))  # >= 0 (SessionConfig.validate): never above the web server
         rig.camera_process = bool(getattr(cfg, "sim_camera_process", False)) and cfg.clock == "real"
-        if getattr(rig, "tracker", None) is not None:
-            rig.tracker.config.max_predicted_tre_mm = float(cfg.max_predicted_tre_mm)
     rig.validation.limit_mm = float(cfg.max_validation_tre_mm)
     return rig
 

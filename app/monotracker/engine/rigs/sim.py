@@ -28,6 +28,10 @@ log = logging.getLogger(__name__)
 SIM_IMAGE_SIZE = (1280, 720)
 SIM_FOCAL_PX = 1100.0
 SIM_DIST = np.array([-0.06, 0.02, 0.0, 0.0, 0.0])
+#: "sim-points" image noise of each ball centre (px, per axis): what the image detector achieves on
+#: rendered and independently rendered frames (0.07-0.21 px, docs/vision.md); the rig's poses pass
+#: the same per-frame trust rules as the image rigs' (at 0.3 px a third failed the TRE tail rule)
+NOISE_PX = 0.15
 #: exposure midpoint -> frame in memory for a 30 fps USB camera (half an exposure + readout +
 #: transfer), our modelling choice; it is part of every measured capture -> command latency
 SIM_TRANSPORT_DELAY_S = 0.030
@@ -267,7 +271,8 @@ class SimImageRig(_SimRig):
     """camera="sim": vision's SimulatedCamera + PoseTracker (see the module docstring)."""
 
     def __init__(self, plan, trajectory: str = "breathing", seed: int = 0, fps: float = 30.0, layout=None,
-                 optics=None):
+                 optics=None, rules=None):
+        """``rules``: the per-frame trust rules (vision's ``TrackerConfig``, ``SessionConfig.frame_rules``)."""
         super().__init__(plan, trajectory, seed, fps, layout)
         from monotracker.sim.camera_sim import SimulatedCamera
         from monotracker.vision.pose_stream import PoseTracker
@@ -284,7 +289,7 @@ class SimImageRig(_SimRig):
         self.image_size = tuple(self.camera_model.image_size)
         self.detector = KeepDetections(self.K, self.radius_mm)
         self.tracker = PoseTracker(self.fiducials_ct, self.camera_model, detector=self.detector,
-                                   radius_mm=self.radius_mm, target_ct=self.target_ct,
+                                   radius_mm=self.radius_mm, target_ct=self.target_ct, config=rules,
                                    watch_ct=self.validation.centres_ct)   # validation balls searched too
 
     def capture(self, t: float) -> _ImageFrame:
@@ -360,21 +365,29 @@ class SimImageRig(_SimRig):
 # ====================================================================== projected points
 @dataclass
 class SimFrame:
-    """A point-level frame: capture time, index, true pose, image points (px, shuffled)."""
+    """A point-level frame: capture time, index, true pose, image points (px, shuffled), their
+    phantom fiducial indices and the balls' minor semi-axes (px; None: unknown, e.g. replayed)."""
 
     t_capture: float
     index: int
     truth_T_cam_ct: np.ndarray
     points_px: np.ndarray
     point_ids: np.ndarray
+    minor_px: np.ndarray | None = None
 
 
 class ProjectedFiducialRig(_SimRig):
-    """camera="sim-points": see the module docstring."""
+    """camera="sim-points": see the module docstring. The points go through vision's
+    ``PoseTracker`` (a :class:`~monotracker.vision.point_detector.PointDetector` hands it the
+    points), so this rig applies the same per-frame trust rules as the image rigs (``rules``:
+    vision's ``TrackerConfig`` from ``SessionConfig.frame_rules``)."""
 
-    def __init__(self, plan, trajectory: str = "breathing", seed: int = 0, noise_px: float = 0.3,
-                 fps: float = 30.0, layout=None):
+    def __init__(self, plan, trajectory: str = "breathing", seed: int = 0, noise_px: float = NOISE_PX,
+                 fps: float = 30.0, layout=None, rules=None):
         super().__init__(plan, trajectory, seed, fps, layout)
+        self.rules = rules
+        self.tracker = None  # built at the first estimate (a replay sets the scene first)
+        self.detector = None
         from monotracker.sim.scenes import default_K
 
         self.noise_px = float(noise_px)
@@ -382,7 +395,19 @@ class ProjectedFiducialRig(_SimRig):
         self.dist = SIM_DIST.copy()
         self.image_size = SIM_IMAGE_SIZE
         self.true_fiducials_ct = self.phantom.fiducial_centres_lps  # truth (the phantom), computed once
-        self._prior: np.ndarray | None = None
+        self._blank = None
+
+    def _make_tracker(self) -> None:
+        from monotracker.vision.camera_model import CameraModel
+        from monotracker.vision.point_detector import PointDetector
+        from monotracker.vision.pose_tracker import PoseTracker
+
+        model = CameraModel(np.asarray(self.K, float), np.asarray(self.dist, float).ravel(), tuple(self.image_size))
+        self.detector = PointDetector()
+        self.tracker = PoseTracker(self.fiducials_ct, model, detector=self.detector, radius_mm=self.radius_mm,
+                                   target_ct=self.target_ct, config=self.rules)
+        w, h = self.image_size
+        self._blank = np.zeros((int(h), int(w), 3), np.uint8)  # the frame size the tracker checks; never drawn on
 
     def capture(self, t: float) -> SimFrame:
         from monotracker.registration.projection import distort_normalised, normalised_to_pixels
@@ -398,46 +423,33 @@ class ProjectedFiducialRig(_SimRig):
             keep[:] = False
         for i in tuple(self.occluded_ids):  # another thread may swap the set
             keep[i] = False
-        xy = ellipse_centre_normalised(Xc[keep], self.phantom.fiducial_radius_mm) if keep.any() else np.zeros((0, 2))
+        r = self.phantom.fiducial_radius_mm
+        xy = ellipse_centre_normalised(Xc[keep], r) if keep.any() else np.zeros((0, 2))
         px = normalised_to_pixels(distort_normalised(xy, self.dist), self.K)
         px = px + self.rng.normal(scale=self.noise_px, size=px.shape)
+        z = Xc[keep, 2]
+        minor = float(self.K[0, 0]) * r / np.sqrt(np.maximum(z ** 2 - r ** 2, 1e-9))  # ball image size, px
         ids = ids[keep]
         w, h = self.image_size
         inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
-        px, ids = px[inside], ids[inside]
+        px, ids, minor = px[inside], ids[inside], minor[inside]
         order = self.rng.permutation(len(px))
         self._index += 1
-        self._last_frame = SimFrame(float(t), self._index, T, px[order], ids[order])
+        self._last_frame = SimFrame(float(t), self._index, T, px[order], ids[order], minor[order])
         return self._last_frame
 
     def estimate(self, frame: SimFrame) -> PoseSample:
-        from monotracker.registration import register
+        from monotracker.vision.frames import Frame
 
-        n_pts = len(frame.points_px)
-        if n_pts < 4:
-            self._prior = None
-            smp = PoseSample(frame.t_capture, frame.index, False, f"{n_pts} fiducials visible (need 4)", None, n_pts,
-                             fiducial_status={fid: "occluded" for fid in self.fiducial_ids}, frame=frame)
-            return self._finish(smp, frame.truth_T_cam_ct)
-        reg = register(self.fiducials_ct, frame.points_px, self.K, self.dist, radius_mm=self.radius_mm,
-                       method="robust", prior=self._prior)
-        self._prior = reg.T_cam_ct if reg.ok else None
-        status = {fid: "occluded" for fid in self.fiducial_ids}
-        residuals = {}
-        if reg.ok:
-            for (_ii, fi), r in zip(reg.pairs, reg.residuals_px):
-                status[self.fiducial_ids[int(fi)]] = "seen"
-                residuals[self.fiducial_ids[int(fi)]] = float(r)
-        pred = float(reg.predicted_tre_mm(self.target_ct)) if reg.ok and self.target_ct is not None else None
-        smp = PoseSample(
-            t_capture=frame.t_capture, frame_index=frame.index, ok=bool(reg.ok), reason=reg.reason or "ok",
-            T_cam_ct=reg.T_cam_ct if reg.ok else None, n_matched=len(reg.pairs) if reg.ok else 0,
-            fiducial_status=status, residuals_px=residuals, fre_mm=float(reg.fre_mm) if reg.ok else None,
-            predicted_tre_mm=pred, raw=reg, frame=frame,
-        )
-        if reg.ok:
-            used = frame.points_px[[int(ii) for ii, _fi in reg.pairs]]
-            smp.validation = self.validation.check(reg.T_cam_ct, frame.points_px, used, self.K, self.dist)
+        if self.tracker is None:
+            self._make_tracker()
+        pts = np.asarray(frame.points_px, float).reshape(-1, 2)
+        minor = np.full(len(pts), np.nan) if frame.minor_px is None else np.asarray(frame.minor_px, float)
+        self.detector.set(pts, minor)
+        est = self.tracker.process(Frame(self._blank, frame.t_capture, frame.index))
+        smp = estimate_to_sample(est, self.fiducial_ids)
+        smp.frame = frame
+        smp.validation = self.validation.check(smp.T_cam_ct, pts, est.image_points_px, self.K, self.dist)
         return self._finish(smp, frame.truth_T_cam_ct)
 
     def latest_frame(self):

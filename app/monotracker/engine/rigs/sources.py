@@ -7,9 +7,10 @@ source enters uses it: ``SessionConfig.validate`` and ``Session.set_camera`` che
 :data:`GRAMMAR`. Adding a camera source is adding a row (and, for a new kind of frame source, its
 class in ``vision/frames.py``).
 
-Each ``build(arg, calibration_path, plan, cfg, session)`` returns a
+Each ``build(arg, calibration_path, plan, cfg, session, rules)`` returns a
 :class:`~monotracker.engine.rigs.base.CameraRig`; ``arg`` is the part after the colon, already
-checked.
+checked; ``rules`` are the session's per-frame trust rules (``SessionConfig.frame_rules``), which the
+rig's pose tracker applies to every estimate.
 
 The kinds: ``"sim"`` the rendered digital-twin camera (vision's
 SimulatedCamera + classical detector + PoseTracker), ``"sim-points"`` the twin at the level of
@@ -27,25 +28,24 @@ from typing import Callable
 from monotracker.errors import InputError
 
 
-def _sim_image(arg, calibration_path, plan, cfg, session):
+def _sim_image(arg, calibration_path, plan, cfg, session, rules):
     from monotracker.engine.rigs.sim import SimImageRig
 
     return SimImageRig(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps,
-                       optics=getattr(cfg, "camera_optics", None))
+                       optics=getattr(cfg, "camera_optics", None), rules=rules)
 
 
-def _sim_points(arg, calibration_path, plan, cfg, session):
+def _sim_points(arg, calibration_path, plan, cfg, session, rules):
     from monotracker.engine.rigs.sim import ProjectedFiducialRig
 
-    return ProjectedFiducialRig(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps)
+    return ProjectedFiducialRig(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps, rules=rules)
 
 
 def _stream(kind: str):
-    def build(arg, calibration_path, plan, cfg, session):
+    def build(arg, calibration_path, plan, cfg, session, rules):
         from monotracker.engine.rigs.stream import StreamRig
 
-        return StreamRig(kind, arg, calibration_path, plan, session, camera_adapt=cfg.camera_adapt,
-                         max_predicted_tre_mm=cfg.max_predicted_tre_mm)
+        return StreamRig(kind, arg, calibration_path, plan, session, camera_adapt=cfg.camera_adapt, rules=rules)
     return build
 
 

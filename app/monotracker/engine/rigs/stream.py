@@ -58,9 +58,10 @@ class StreamRig(CameraRig):
     watches_itself = True
 
     def __init__(self, kind: str, arg: str, calibration_path: str | None, plan, session, camera_adapt: str = "",
-                 max_predicted_tre_mm: float | None = None):
+                 rules=None):
         """``kind``: ``"device" | "file" | "folder" | "replay"``; ``arg``: the device number or the
-        path (checked by the source table)."""
+        path (checked by the source table); ``rules``: the per-frame trust rules (vision's
+        ``TrackerConfig``; None: vision's defaults)."""
         super().__init__()
         from monotracker.vision.camera_model import CameraModel, default_camera
         from monotracker.vision.frames import open_source
@@ -97,9 +98,7 @@ class StreamRig(CameraRig):
                           f"more than uncompressed (JPEG 85); {advice}")
         self.detector = KeepDetections(model.K, radius)  # keeps the blobs for the validation fiducials
         tracker = PoseTracker(plan.registration_centres(), model, detector=self.detector, radius_mm=radius,
-                              target_ct=plan.target_lps_mm, watch_ct=self.validation.centres_ct)
-        if max_predicted_tre_mm is not None:
-            tracker.config.max_predicted_tre_mm = float(max_predicted_tre_mm)
+                              target_ct=plan.target_lps_mm, watch_ct=self.validation.centres_ct, config=rules)
         if model.ball_colour is not None:
             self.detector.set_colour(model.ball_colour)      # learned earlier, saved with the calibration
         self.tracker = tracker

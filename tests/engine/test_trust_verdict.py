@@ -1,0 +1,55 @@
+"""One trust verdict: the per-frame rules every camera rig applies come from the session's
+configuration (``min_fiducials`` reaches vision), and the point-level twin ("sim-points") is
+judged by the same rules as the image rigs (it used to skip them: registration alone)."""
+
+import pytest
+
+from monotracker.engine import SessionConfig
+from monotracker.engine.loop.gate import PoseGate
+from monotracker.engine.plan import load_plan
+from monotracker.engine.rigs.sim import ProjectedFiducialRig
+
+from .conftest import plan_sample
+
+
+@pytest.mark.parametrize("camera", ["sim-points", "sim"])
+def test_min_fiducials_and_the_tre_limit_reach_every_rigs_pose_tracker(make_session, camera):
+    s = make_session(clock="sim", camera=camera, min_fiducials=3, max_predicted_tre_mm=0.8,
+                     sim_camera_process=False)
+    plan_sample(s)
+    assert s.start_camera().ok
+    s.advance(0.2)  # the sim-points rig builds its tracker at its first estimate
+    tracker = s._loop.camera.rig.tracker
+    assert tracker is not None
+    assert tracker.config.min_fiducials == 3 == s._loop.gate.min_fiducials
+    assert tracker.config.max_predicted_tre_mm == 0.8 == s._loop.gate.max_predicted_tre_mm
+
+
+def test_frame_rules_follow_the_session_configuration():
+    cfg = SessionConfig(min_fiducials=5, max_predicted_tre_mm=0.7)
+    rules = cfg.frame_rules()
+    gate = PoseGate.from_config(cfg)
+    assert (rules.min_fiducials, rules.max_predicted_tre_mm) == (5, 0.7)
+    assert (gate.frame_rules.min_fiducials, gate.frame_rules.max_predicted_tre_mm) == (5, 0.7)
+    assert cfg.frame_rules() is not rules  # each rig gets its own
+
+
+def test_point_twin_refuses_what_the_image_rigs_would(tmp_path, make_session):
+    """Noisy points (0.5 px): poses whose predicted error at the target is under the 1 mm limit
+    but whose error may exceed 2 mm too often are refused by the rig (vision's tail rule), as an
+    image rig refuses them; before, the point twin handed them on as good poses."""
+    s = make_session(clock="sim")
+    plan_sample(s)
+    plan = load_plan(s.plan_path)
+    s.shutdown()
+    rig = ProjectedFiducialRig(plan, trajectory="still", seed=3, noise_px=0.5, rules=SessionConfig().frame_rules())
+    samples = [rig.estimate(rig.capture(k / 30.0)) for k in range(40)]
+    tail = [smp for smp in samples if smp.code == "tre_limit" and smp.predicted_tre_mm is not None
+            and smp.predicted_tre_mm < 1.0]
+    assert tail, [(smp.ok, smp.code, smp.predicted_tre_mm) for smp in samples]
+    assert all(not smp.ok and smp.T_cam_ct is None for smp in tail)
+    # the same points at the image detector's noise pass
+    rig = ProjectedFiducialRig(plan, trajectory="still", seed=3, noise_px=0.1, rules=SessionConfig().frame_rules())
+    samples = [rig.estimate(rig.capture(k / 30.0)) for k in range(40)]
+    assert sum(smp.ok for smp in samples[10:]) == 30, [(smp.ok, smp.code) for smp in samples]
+    assert max(smp.truth_tre_mm for smp in samples[10:]) < 0.5
