@@ -13,7 +13,8 @@ the session's :class:`Recording` part) and writes, timestamped on the session cl
 ``frames/NNNNNN.png``  the frames, lossless PNG, BGR as the detector saw them
 ``frames.jsonl``       per frame: ``seq``, ``index`` (camera frame index), ``t_capture``,
                        ``segment`` (one per camera start), ``kind`` (``image`` | ``points`` |
-                       ``fault``), ``file`` + ``sha256`` (images) or ``points_px`` (sim-points),
+                       ``fault``), ``file`` + ``sha256`` (images) or ``points_px`` and ``minor_px`` (sim-points:
+                       the balls' centres and image sizes, px),
                        ``camera`` (vision's camera state: ok | frozen | stalled | ...)
 ``detections.jsonl``   per frame: matched image point per fiducial id (px), status, residual (px)
 ``poses.jsonl``        per frame: ``ok``, ``trusted``, ``reason``, ``T_cam_ct`` (4x4 mm), FRE,
@@ -431,6 +432,9 @@ class SessionRecorder:
         elif payload is not None and hasattr(payload, "points_px"):
             row["kind"] = "points"
             row["points_px"] = _mat(payload.points_px) if len(payload.points_px) else []
+            minor = getattr(payload, "minor_px", None)
+            if minor is not None:
+                row["minor_px"] = [_num(v) for v in np.asarray(minor, float).ravel()]
         else:
             row["kind"] = "none"
         rows = {"poses": {

@@ -116,7 +116,9 @@ class _PointEstimator:
         from monotracker.engine.rigs.sim import SimFrame
 
         pts = np.asarray(row.get("points_px") or [], float).reshape(-1, 2)
-        frame = SimFrame(float(row["t_capture"]), int(row["index"]), np.eye(4), pts, np.arange(len(pts)))
+        minor = row.get("minor_px")  # the balls' image sizes (px); older recordings have none
+        minor = None if minor is None or len(minor) != len(pts) else np.asarray(minor, float)
+        frame = SimFrame(float(row["t_capture"]), int(row["index"]), np.eye(4), pts, np.arange(len(pts)), minor)
         smp = self.rig.estimate(frame)
         return smp.T_cam_ct, bool(smp.ok)
 
