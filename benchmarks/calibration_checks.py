@@ -35,15 +35,15 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "vision"))
 
-from monotracker.geometry import apply_transform, make_transform, rotation_about_axis  # noqa: E402
-from monotracker.sim.camera_sim import SimulatedCamera  # noqa: E402
-from monotracker.sim.or_layout import default_layout  # noqa: E402
-from monotracker.sim.trajectories import make_trajectory  # noqa: E402
-from monotracker.vision.calibration import chessboard_views, render_chessboard  # noqa: E402
-from monotracker.vision.calibration_check import check_with_board, fit_intrinsics  # noqa: E402
-from monotracker.vision.camera_model import CameraModel  # noqa: E402
-from monotracker.vision.frames import Frame  # noqa: E402
-from monotracker.vision.pose_tracker import PoseTracker  # noqa: E402
+from monotracker.geometry import apply_transform, make_transform, rotation_about_axis
+from monotracker.sim.camera_sim import SimulatedCamera
+from monotracker.sim.or_layout import default_layout
+from monotracker.sim.trajectories import make_trajectory
+from monotracker.vision.calibration import chessboard_views, render_chessboard
+from monotracker.vision.calibration_check import check_with_board, fit_intrinsics
+from monotracker.vision.camera_model import CameraModel
+from monotracker.vision.frames import Frame
+from monotracker.vision.pose_tracker import PoseTracker
 
 LAYOUT = default_layout()
 PH = LAYOUT.phantom

@@ -6,7 +6,6 @@ and never while the camera stands still, whatever the head, the hands or the lig
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from monotracker.sim.camera_sim import SimulatedCamera, random_events

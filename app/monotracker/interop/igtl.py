@@ -123,7 +123,7 @@ class IGTLStreamer:
         if self._server is not None:
             try:
                 self._server.stop()
-            except Exception:  # noqa: BLE001 - closing must not raise at shutdown
+            except Exception:  # closing must not raise at shutdown
                 log.exception("stopping the OpenIGTLink server failed")
             self._server = None
 
@@ -175,7 +175,7 @@ class IGTLStreamer:
             self._wake.clear()
             try:
                 self._service()
-            except Exception:  # noqa: BLE001 - the stream must never take the engine down
+            except Exception:  # the stream must never take the engine down
                 log.exception("OpenIGTLink streaming failed")
 
     def _service(self) -> None:
