@@ -40,7 +40,8 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 intrinsics / lossy frames (MJPEG, JPEG files, a lossy video codec) / a large area of the balls'
 colour (learn the colour), shown while that camera runs (the last while the area is seen),
 ``frame_size`` [alarm] frame size differs from the calibration, ``frame_grayscale`` [alarm] the
-frames are grayscale (a monochrome camera or grayscale files: no ball can be found); poses: ``tre_limit``
+frames are grayscale (a monochrome camera or grayscale files: no ball can be found), ``camera_moved``
+[alarm] the camera moved after the hand-eye (vision's CameraMotionMonitor); poses: ``tre_limit``
 [warning] predicted error at the target over ``max_predicted_tre_mm``, ``weak_geometry`` /
 ``pose_implausible`` [warning], ``fiducial_moved`` [warning] a ball moved since the CT (named,
 with its shift in mm; excluded from then on); ``robot_warning`` [warning] from the robot's safety layer; integrity
@@ -120,6 +121,7 @@ CATALOGUE: dict[str, AlarmKind] = {
     "camera_ended": AlarmKind("warning", 6, linger_s=0.0, **_HOLD),
     "frame_size": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),  # frames do not match the calibration
     "frame_grayscale": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),  # a monochrome camera or grayscale files
+    "camera_moved": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),  # the camera moved after the hand-eye
     "frame_unreadable": AlarmKind("warning", 6, **_HOLD),
     "tre_limit": AlarmKind("warning", 3, **_HOLD),  # predicted error at the target over the limit
     "weak_geometry": AlarmKind("warning", 3, **_HOLD),
