@@ -81,7 +81,9 @@ def test_disk_full_during_a_recording_keeps_what_was_written(tmp_path):
     from monotracker.interop.replay import replay_recording
 
     r = replay_recording(rec)
-    assert r.ok and r.frames == len(rows), r
+    # every kept frame replays; the poses of both runs agree (a frame the per-frame trust rules
+    # refuse, in both runs alike, has no pose to compare: sim-points runs them since issue 30)
+    assert r.ok and r.frames_total == len(rows) and r.ok_mismatches == 0 and r.frames > 0.9 * len(rows), r
 
 
 def test_start_recording_on_a_full_disk_says_why_in_one_line(tmp_path):
