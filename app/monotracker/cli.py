@@ -29,6 +29,7 @@ from monotracker.errors import MonoTrackerError
 #: Modules that add sub-commands, in the order they appear in ``--help``.
 COMMAND_MODULES: tuple[str, ...] = (
     "monotracker.ct.commands",
+    "monotracker.planning.commands",
     "monotracker.vision.commands",
     "monotracker.sim.commands",
     "monotracker.robot.commands",

@@ -86,6 +86,25 @@ def existing_file(text: str) -> Path:
     return p
 
 
+def float_list(count: int, what: str = "X,Y,Z"):
+    """A type for ``count`` comma-separated finite numbers (``"12.5,-40,88"``) -> tuple of floats."""
+
+    def parse(text: str) -> tuple:
+        parts = [t.strip() for t in str(text).split(",")]
+        try:
+            vals = tuple(float(t) for t in parts)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {count} numbers {what}") from None
+        if len(vals) != count:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {count} numbers {what}")
+        if not all(math.isfinite(v) for v in vals):
+            raise argparse.ArgumentTypeError(f"{text!r} holds a number that is not finite")
+        return vals
+
+    parse.__name__ = what
+    return parse
+
+
 def non_finite_floats(ns: argparse.Namespace) -> list[str]:
     """Names of float attributes of ``ns`` that are NaN or infinite."""
     return [k for k, v in vars(ns).items() if isinstance(v, float) and not math.isfinite(v)]

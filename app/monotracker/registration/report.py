@@ -48,13 +48,32 @@ def sigma_from_residuals(residuals_px: np.ndarray, floor_px: float = SIGMA_FLOOR
 
 
 def pose_covariance(JtJ: np.ndarray, sigma_px: float) -> np.ndarray:
-    """(6, 6) covariance of the left-perturbation pose parameters (rad, mm)."""
+    """(6, 6) covariance of the left-perturbation pose parameters (rad, mm); a stack
+    (..., 6, 6) of normal matrices gives a stack of covariances."""
     return sigma_px**2 * np.linalg.pinv(JtJ)
+
+
+def fiducial_information(T_cam_ct: np.ndarray, fiducials_ct: np.ndarray, fxy: np.ndarray,
+                         radius_mm: float | None = None) -> np.ndarray:
+    """(k, 6, 6) each fiducial's share ``J_i^T J_i`` (px^2 per rad^2 / mm^2) of the normal
+    matrix of a pose fit at ``T_cam_ct``, with the refinement's own Jacobian (equivalent pinhole
+    px, sphere-centre model when ``radius_mm``; :mod:`.pnp`). Summed over the fiducials a frame
+    matches it is the ``JtJ`` :func:`pose_covariance` takes: the registration's covariance
+    before the frame exists (layout planning), from the same code."""
+    from .pnp import _residuals_and_jacobian
+
+    T = np.asarray(T_cam_ct, float)
+    X = np.asarray(fiducials_ct, float).reshape(-1, 3)
+    _, J = _residuals_and_jacobian(T[:3, :3], T[:3, 3], X, np.zeros((len(X), 2)),
+                                   np.asarray(fxy, float).reshape(2), radius_mm)
+    J = J.reshape(len(X), 2, 6)
+    return np.einsum("kai,kaj->kij", J, J)
 
 
 def target_covariance(T_cam_ct: np.ndarray, cov6: np.ndarray, target_ct: np.ndarray) -> np.ndarray:
     """(3, 3) covariance (mm^2, camera frame) of one target point (3,) CT mm under the pose
-    covariance ``cov6`` (rotation vector rad, translation mm; left perturbation)."""
+    covariance ``cov6`` (rotation vector rad, translation mm; left perturbation); a stack
+    ``cov6`` (..., 6, 6) gives a stack (..., 3, 3)."""
     q = T_cam_ct[:3, :3] @ np.asarray(target_ct, float).reshape(3)
     J = np.zeros((3, 6))
     J[:, :3] = -np.array([[0, -q[2], q[1]], [q[2], 0, -q[0]], [-q[1], q[0], 0]])
@@ -90,6 +109,14 @@ def exceed_probability(cov3: np.ndarray, r_mm: float) -> float:
     first = int(np.searchsorted(_NORM2, (1.0 - 1e-9) * r_mm**2 / sd_max**2, side="left"))
     d2 = (_BY_NORM[first:] * sd) ** 2
     return float(np.count_nonzero(d2.sum(axis=1) > r_mm**2) / len(_STD_NORMAL_3D))
+
+
+def error_norm_stats(cov3: np.ndarray, quantile: float = 0.95) -> tuple[float, float]:
+    """(mean, ``quantile``) of the length |e| (mm) of a zero-mean Gaussian 3D error with
+    covariance ``cov3`` (mm^2), over the same 40 000 fixed draws as :func:`exceed_probability`."""
+    w, _ = np.linalg.eigh(np.asarray(cov3, float))
+    norms = np.sqrt(((_STD_NORMAL_3D * np.sqrt(np.clip(w, 0.0, None))) ** 2).sum(axis=1))
+    return float(norms.mean()), float(np.quantile(norms, quantile))
 
 
 def tre_mm(T_est: np.ndarray, T_ref: np.ndarray, targets_ct: np.ndarray) -> np.ndarray:

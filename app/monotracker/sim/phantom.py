@@ -118,6 +118,24 @@ class HeadPhantom:
             out.append(p + self.fiducial_radius_mm * n)
         return np.array(out)
 
+    def with_fiducials_at(self, centres_lps: np.ndarray) -> "HeadPhantom":
+        """This phantom with its balls moved to ``centres_lps`` (n, 3) LPS mm (a planned layout):
+        each ball rests on the skin along the direction from the head's centre to its given centre
+        (within a millimetre or so of it for a centre one radius above the skin); all of them in
+        the registration set. The clip and the sample plan stay."""
+        from dataclasses import replace
+
+        v = self.view_direction_lps
+        e1, e2 = _tangent_frame(v)
+        angles = []
+        for c in np.asarray(centres_lps, float).reshape(-1, 3):
+            u = _unit(c - self.centre_lps)
+            theta = float(np.degrees(np.arccos(np.clip(u @ v, -1.0, 1.0))))
+            phi = float(np.degrees(np.arctan2(u @ e2, u @ e1)))
+            angles.append((theta, phi))
+        n = len(angles)
+        return replace(self, fiducial_angles_deg=tuple(angles), registration_ids=tuple(range(n)), validation_ids=())
+
     @property
     def fiducial_count(self) -> int:
         return len(self.fiducial_angles_deg)

@@ -1,0 +1,112 @@
+"""Which balls a camera at a given pose sees, and why it does not see the others.
+
+A ball (centre ``c``, radius ``R``, sitting on skin with outward normal ``n``; LPS mm) counts as
+seen from a camera at ``T_ct_cam`` when all of these hold, checked in this order (the first
+failure is the reason):
+
+1. ``"behind the camera"``: its centre is less than ``R`` + 1 mm in front of the camera;
+2. ``"out of the image"``: its image (centre +- its image radius + ``IMAGE_MARGIN_PX``) is not
+   wholly inside the frame (the detector refuses a cut ball);
+3. ``"under the drape"``: its centre is on the covered side of the drape line;
+4. ``"on the far side"``: the line of sight meets the skin at more than ``MAX_VIEW_ANGLE_DEG``
+   from the normal (the head's own horizon);
+5. ``"hidden by the head"``: a line of sight from the ball's front (its centre and four points
+   of its outline) to the camera meets the skin (nose, ear, the head's curve);
+6. ``"behind the <robot part>"``: the line of sight passes through a keep-out volume.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from monotracker.geometry import apply_transform, invert_transform
+
+#: lines of sight steeper than this to the skin normal are the head's horizon (deg)
+MAX_VIEW_ANGLE_DEG = 85.0
+#: a ball's image must stay this far inside the frame (px)
+IMAGE_MARGIN_PX = 4.0
+#: rays start this far in front of the ball's surface (mm): clear of the skin the CT's mesh
+#: wraps around an existing ball
+RAY_START_MM = 2.5
+
+REASONS = ("behind the camera", "out of the image", "under the drape", "on the far side", "hidden by the head")
+
+
+@dataclass(frozen=True)
+class Visibility:
+    """``seen`` (n,) bool and ``why`` n strings ('' where seen) for one camera pose."""
+
+    seen: np.ndarray
+    why: tuple
+
+    @property
+    def count(self) -> int:
+        return int(np.sum(self.seen))
+
+
+def image_radius_px(X_cam: np.ndarray, radius_mm: float, focal_px: float) -> np.ndarray:
+    """(n,) approximate image radius (px) of balls whose centres are ``X_cam`` (n, 3) mm."""
+    d2 = np.sum(np.asarray(X_cam, float) ** 2, axis=1)
+    return focal_px * radius_mm / np.sqrt(np.maximum(d2 - radius_mm**2, 1e-9))
+
+
+def visibility(problem, T_ct_cam: np.ndarray, centres: np.ndarray, normals: np.ndarray) -> Visibility:
+    """The :class:`Visibility` of balls ``centres`` (n, 3) with skin normals ``normals`` (n, 3)
+    (LPS mm) from a camera at ``T_ct_cam`` (4x4, camera -> CT mm), for ``problem``
+    (:class:`~.problem.PlanningProblem`: head, camera model, drape, keep-outs)."""
+    C = np.asarray(centres, float).reshape(-1, 3)
+    N = np.asarray(normals, float).reshape(-1, 3)
+    n = len(C)
+    why = np.full(n, "", dtype=object)
+    cam, R = problem.camera, problem.radius_mm
+    eye = np.asarray(T_ct_cam, float)[:3, 3]
+    Xc = apply_transform(invert_transform(np.asarray(T_ct_cam, float)), C)
+
+    def mark(mask, reason):
+        why[mask & (why == "")] = reason
+
+    mark(Xc[:, 2] <= R + 1.0, "behind the camera")
+    front = why == ""
+    if np.any(front):
+        px = np.full((n, 2), np.nan)
+        px[front] = cam.project(Xc[front])
+        rp = image_radius_px(Xc, R, float(cam.K[0, 0])) + IMAGE_MARGIN_PX
+        w, h = cam.image_size
+        inside = (px[:, 0] - rp >= 0) & (px[:, 0] + rp <= w - 1) & (px[:, 1] - rp >= 0) & (px[:, 1] + rp <= h - 1)
+        mark(front & ~inside, "out of the image")
+    if problem.drape is not None:
+        mark(problem.drape.covers(C), "under the drape")
+    v = eye - C
+    dist = np.linalg.norm(v, axis=1)
+    v = v / np.maximum(dist, 1e-9)[:, None]
+    cos_view = np.einsum("ij,ij->i", v, N)
+    mark(cos_view < np.cos(np.radians(MAX_VIEW_ANGLE_DEG)), "on the far side")
+    test = np.flatnonzero(why == "")
+    if len(test):
+        mark_idx = test[_head_blocks(problem.head, C[test], v[test], eye, R)]
+        why[mark_idx] = "hidden by the head"
+    for k in problem.space.keep_out:
+        mark(k.crosses(C, np.repeat(eye[None], n, axis=0)), f"behind the {k.name}")
+    seen = why == ""
+    return Visibility(seen, tuple(str(s) for s in why))
+
+
+def _head_blocks(head, C: np.ndarray, v: np.ndarray, eye: np.ndarray, R: float) -> np.ndarray:
+    """(m,) bool: a ray from the front of each ball (its centre's and four outline points')
+    towards the camera meets the skin."""
+    m = len(C)
+    a = np.cross(v, np.array([0.0, 0.0, 1.0]))
+    bad = np.linalg.norm(a, axis=1) < 1e-6
+    a[bad] = np.cross(v[bad], np.array([1.0, 0.0, 0.0]))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = np.cross(v, a)
+    rim = 0.8 * R
+    lift = np.sqrt(R * R - rim * rim) + RAY_START_MM
+    starts = [C + (R + RAY_START_MM) * v]
+    for s, u in ((1, a), (-1, a), (1, b), (-1, b)):
+        starts.append(C + s * rim * u + lift * v)
+    O = np.vstack(starts)
+    hit = head.blocked(O, np.repeat(eye[None], len(O), axis=0))
+    return hit.reshape(5, m).any(axis=0)

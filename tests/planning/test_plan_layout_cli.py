@@ -1,0 +1,80 @@
+"""``monotracker plan-layout``: the report on the sample CT ends with a JSON line holding the
+suggestion, the camera pose and the predictions; bad input gets one line, never a traceback."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from monotracker.cli import main
+from monotracker.paths import sample_ct_path
+from monotracker.sim.phantom import default_phantom
+
+PH = default_phantom()
+
+
+def _xyz(p) -> str:
+    return ",".join(f"{v:.3f}" for v in p)
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    """One quick plan of 7 balls on the sample CT (text + JSON)."""
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(["plan-layout", str(sample_ct_path()), "--target", _xyz(PH.sample_target_lps),
+                     "--entry", _xyz(PH.sample_entry_lps), "--balls", "7", "--quick"])
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_report_ends_with_a_json_object(report):
+    code, out, _ = report
+    assert code == 0
+    lines = out.strip().splitlines()
+    d = json.loads(lines[-1])
+    assert d["frame"] == "LPS" and len(d["balls_lps_mm"]) == 7
+    T = np.array(d["T_ct_cam"])
+    assert T.shape == (4, 4) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-5)
+    exp = d["expected"]
+    assert exp["balls_seen"] == 7 and exp["all_seen"]["p95_mm"] > exp["all_seen"]["mean_mm"] > 0
+    assert exp["worst_hidden"]["rms_mm"] >= exp["all_seen"]["rms_mm"]
+    assert d["at_near_distance"]["all_seen"]["rms_mm"] <= d["at_far_distance"]["all_seen"]["rms_mm"]
+    # the CT's own nine balls, found in the CT, evaluated too
+    assert len(d["ct_fiducials_lps_mm"]) == 9
+    got = np.array(d["ct_fiducials_lps_mm"])
+    assert np.linalg.norm(got[:, None] - PH.fiducial_centres_lps[None], axis=2).min(axis=1).max() < 0.5
+    assert d["existing_from_planned_camera"]["all_seen"] is not None
+    # the text names the same positions and the same camera
+    assert "suggested balls (centre, LPS mm):" in out and "T_ct_cam" in out
+    first = d["balls_lps_mm"][0]
+    assert f"{first[0]:8.2f} {first[1]:8.2f} {first[2]:8.2f}" in out
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--target", "1,2"], "--target: '1,2' is not 3 numbers X,Y,Z"),
+    (["--target", "0,0,900"], "error: the target lies outside the head surface's extent; check its LPS coordinates"),
+    (["--target", "0,0,0", "--balls", "3"], "--balls: 3 must be >= 4"),
+    (["--target", "0,0,0", "--keep", "12"], "error: --keep 12: the CT has fiducials 0-8"),
+    (["--target", "0,0,0", "--camera", "/nonexistent/cam.yaml"], "file not found: /nonexistent/cam.yaml"),
+])
+def test_bad_input_gets_one_line(capsys, args, expected):
+    try:
+        code = main(["plan-layout", str(sample_ct_path()), *args, "--quick"])
+    except SystemExit as exc:          # argparse's own refusals
+        code = exc.code
+    cap = capsys.readouterr()
+    assert code == 2
+    err = cap.err.strip().splitlines()
+    assert expected in err[-1] and "Traceback" not in cap.err, cap.err
+    assert cap.out == ""
+
+
+def test_missing_ct_gets_one_line(capsys, tmp_path):
+    code = main(["plan-layout", str(tmp_path / "nope.nii.gz"), "--target", "0,0,0"])
+    cap = capsys.readouterr()
+    assert code == 2 and len(cap.err.strip().splitlines()) == 1 and cap.err.startswith("error: ")

@@ -1,0 +1,137 @@
+"""The layout search and the planner: the exhaustive optimum on a small pool, the surgeon's rules,
+the camera space, and a layout called better measuring better through the real pose stream."""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from conftest import PH
+
+from monotracker.geometry import invert_transform
+from monotracker.planning import plan_layout, predict, rule_of_thumb_layout, sample_candidates
+from monotracker.planning.camera_poses import camera_pose
+from monotracker.planning.planner import pose_data
+from monotracker.planning.search import best_layout, objective
+from monotracker.registration.report import tre_mm
+from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised
+from monotracker.vision.frames import Frame
+from monotracker.vision.point_detector import PointDetector
+from monotracker.vision.pose_tracker import PoseTracker
+
+BLANK = np.zeros((720, 1280, 3), np.uint8)
+
+
+@pytest.fixture(scope="module")
+def quick_plan(problem):
+    """Seven balls, the camera over 8 directions, refined."""
+    return plan_layout(problem, 7, n_directions=8)
+
+
+def test_exchange_search_finds_the_exhaustive_optimum(problem):
+    """On a pool of 13 usable positions, the search's 6-ball layout is the best of all 1716."""
+    cands = sample_candidates(problem, spacing_mm=20.0)
+    pose = camera_pose(PH.view_direction_lps, 450.0, PH.fiducial_centres_lps.mean(axis=0), cands.skin)
+    pd = pose_data(problem, cands, pose)
+    pool = np.flatnonzero(pd.usable)
+    rng = np.random.default_rng(2)
+    pool = np.sort(rng.choice(pool, 13, replace=False))
+    pd.usable[:] = False
+    pd.usable[pool] = True
+    sep = problem.min_separation_mm
+    layouts = [c for c in itertools.combinations(pool, 6)
+               if all(np.linalg.norm(cands.centres[a] - cands.centres[b]) >= sep for a, b in itertools.combinations(c, 2))]
+    assert len(layouts) > 500
+    assert np.isfinite(values := objective(pd, np.array(layouts), points=cands.centres)).sum() > 100
+    S, val = best_layout(pd, cands.centres, 6, sep)
+    assert val == pytest.approx(float(values.min()), rel=1e-6), (val, values.min())
+    assert sorted(S) == sorted(layouts[int(np.argmin(values))])
+    # and the objective is the prediction's "worst single ball hidden", squared, at 1 px
+    p = predict(replace(problem, noise_px=1.0), pose.T_ct_cam, cands.centres[S], cands.normals[S])
+    assert np.sqrt(val) == pytest.approx(p.worst_hidden.rms_mm, rel=1e-6)
+
+
+def test_plan_keeps_the_rules_and_the_camera_space(problem, quick_plan):
+    """Every suggested ball on exposed skin, clear of the incision and the path, two ball
+    diameters from the others, seen from the planned camera; the camera inside the cone and the
+    distance range and out of the robot's reach."""
+    plan, P = quick_plan, problem
+    B = plan.balls
+    assert B.shape == (7, 3)
+    r = P.radius_mm
+    d = np.linalg.norm(B[:, None] - B[None], axis=2) + np.eye(len(B)) * 1e9
+    assert d.min() >= 4.0 * r - 1e-9
+    assert np.all((B - PH.centre_lps) @ PH.view_direction_lps >= 0.0)          # drape through the centre
+    assert np.all(np.linalg.norm(B - P.entry, axis=1) >= P.rules.incision_clearance_mm + r - 1e-9)
+    # distance to the path's line, computed here from scratch
+    u = (P.entry - P.target) / np.linalg.norm(P.entry - P.target)
+    t = np.clip((B - P.target) @ u, 0.0, np.linalg.norm(P.entry - P.target) + P.rules.path_extension_mm)
+    assert np.all(np.linalg.norm(B - (P.target + t[:, None] * u), axis=1) >= P.rules.path_clearance_mm + r - 1e-9)
+    # on the skin: the centre one radius out of the ellipsoid (|x/a| = 1 at the skin point)
+    skin = B - r * plan.normals
+    q = np.linalg.norm((skin - PH.centre_lps) / PH.skin_semi_axes_mm, axis=1)
+    assert np.all(np.abs(q - 1.0) < 0.01)
+    assert plan.expected.visibility.count == 7
+    eye = plan.T_ct_cam[:3, 3]
+    look = plan.T_ct_cam[:3, 2]
+    aim = plan.camera.aim
+    assert np.degrees(np.arccos((eye - aim) @ P.space.axis / np.linalg.norm(eye - aim))) <= P.space.half_angle_deg + 1e-6
+    assert P.space.distance_mm[0] - 1e-6 <= np.linalg.norm(eye - aim) <= P.space.distance_mm[1] + 1e-6
+    assert look @ (aim - eye) / np.linalg.norm(aim - eye) > 0.999
+    for k in P.space.keep_out:
+        assert k.distance(eye)[0] >= k.radius_mm + P.space.clearance_mm
+    # what to expect: nearer is better, a hidden ball costs
+    e = plan.expected
+    assert e.worst_hidden.rms_mm >= e.all_seen.rms_mm
+    assert plan.at_near.all_seen.rms_mm <= plan.at_far.all_seen.rms_mm
+    assert plan.existing_here is not None and plan.existing_best is not None
+    assert len(plan.moves) == 7 and sorted(m[1] for m in plan.moves) == list(range(7))
+    assert np.isfinite(plan.error_map_mm).sum() > 50
+    assert np.nanmin(plan.error_map_mm) <= e.worst_hidden.rms_mm + 1e-9
+
+
+def _measure(T_cam_ct, X, target, noise, frames=120, seed=0):
+    """(RMS error at the target over trusted frames mm, trusted share) through the real PoseTracker
+    fed noisy exact ellipse centres of the balls X."""
+    from monotracker.vision.camera_model import default_camera
+
+    cam = default_camera()
+    det = PointDetector()
+    tr = PoseTracker(X, cam, detector=det, radius_mm=4.0, target_ct=target)
+    rng = np.random.default_rng(seed)
+    err, ok = [], 0
+    Xc = X @ T_cam_ct[:3, :3].T + T_cam_ct[:3, 3]
+    px0 = _to_pixels(ellipse_centre_normalised(Xc, 4.0), cam.K, cam.dist)
+    for k in range(frames):
+        det.set(px0 + rng.normal(scale=noise, size=px0.shape), cam.K[0, 0] * 4.0 / Xc[:, 2])
+        e = tr.process(Frame(BLANK, k / 30.0, k))
+        if e.ok:
+            ok += 1
+            err.append(tre_mm(e.T_cam_ct, T_cam_ct, target[None])[0])
+    return float(np.sqrt(np.mean(np.square(err)))) if err else np.inf, ok / frames
+
+
+def test_a_layout_called_better_measures_better(problem, quick_plan):
+    """The planned layout against the rule of thumb (the same count spread evenly over the
+    skin the planned camera sees) and seven of the phantom's own balls it sees, from the planned camera: the
+    predicted order is the measured order, and each measured RMS is near its prediction."""
+    plan = quick_plan
+    T_ct_cam = plan.T_ct_cam
+    T_cam_ct = invert_transform(T_ct_cam)
+    thumb = rule_of_thumb_layout(problem, T_ct_cam, 7)
+    kit = PH.fiducial_centres_lps
+    kit_seen = predict(problem, T_ct_cam, kit).visibility.seen     # the planned camera need not see all nine
+    assert kit_seen.sum() >= 7, kit_seen
+    layouts = {"planned": plan.balls, "rule of thumb": thumb, "phantom's": kit[kit_seen][:7]}
+    noise = 0.3
+    pred, meas = {}, {}
+    for name, X in layouts.items():
+        p = predict(replace(problem, noise_px=noise), T_ct_cam, X)
+        assert p.visibility.count == len(X), (name, p.visibility.why)
+        pred[name] = p.all_seen.rms_mm
+        meas[name], _ = _measure(T_cam_ct, X, problem.target, noise, seed=len(name))
+        assert meas[name] == pytest.approx(pred[name], rel=0.25), (name, meas[name], pred[name])
+    assert pred["planned"] < pred["rule of thumb"] and pred["planned"] < pred["phantom's"]
+    assert meas["planned"] < meas["rule of thumb"] and meas["planned"] < meas["phantom's"], (meas, pred)

@@ -1,0 +1,196 @@
+"""The planner's error prediction against independent truths: the registration's own normal
+matrix, Monte-Carlo registrations of noisy images, the pose stream's trusted share on point-level
+frames, and analytic visibility."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import trimesh
+from conftest import PH, skin_ball
+
+from monotracker.geometry import invert_transform, look_at
+from monotracker.planning import Capsule, DrapeLine, HeadSurface, PlanningProblem, CameraSpace, predict, visibility
+from monotracker.planning.trust import trusted_fraction
+from monotracker.registration import register
+from monotracker.registration.pnp import refine_pose
+from monotracker.registration.projection import project_normalised
+from monotracker.registration.report import fiducial_information, tre_mm
+from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised
+from monotracker.vision.camera_model import default_camera
+from monotracker.vision.frames import Frame
+from monotracker.vision.point_detector import PointDetector
+from monotracker.vision.pose_tracker import PoseTracker
+
+CAM = default_camera()
+BLANK = np.zeros((720, 1280, 3), np.uint8)
+
+
+def _demo_pose(distance_mm: float = 450.0) -> np.ndarray:
+    """T_ct_cam: the camera ``distance_mm`` from the phantom's balls along its view direction."""
+    c = PH.fiducial_centres_lps.mean(axis=0)
+    return look_at(c + distance_mm * PH.view_direction_lps, c, up=np.array([0.0, -1.0, 0.0]))
+
+
+def _observe(T_cam_ct, X, rng, noise_px):
+    """Exact ellipse centres of balls X (CT mm) in distorted px, plus Gaussian noise."""
+    Xc = X @ T_cam_ct[:3, :3].T + T_cam_ct[:3, 3]
+    px = _to_pixels(ellipse_centre_normalised(Xc, 4.0), CAM.K, CAM.dist)
+    return px + rng.normal(scale=noise_px, size=px.shape), CAM.K[0, 0] * 4.0 / Xc[:, 2]
+
+
+def test_fiducial_information_is_the_refinement_normal_matrix():
+    """Summed over the balls, each ball's share is the JtJ the registration's own refinement
+    returns at the optimum (exact observations)."""
+    T_cam_ct = invert_transform(_demo_pose())
+    X = PH.fiducial_centres_lps
+    obs = project_normalised(X @ T_cam_ct[:3, :3].T + T_cam_ct[:3, 3], 4.0)
+    fxy = np.array([CAM.K[0, 0], CAM.K[1, 1]])
+    ref = refine_pose(T_cam_ct, X, obs, fxy, 4.0)
+    info = fiducial_information(T_cam_ct, X, fxy, 4.0)
+    assert info.shape == (9, 6, 6)
+    np.testing.assert_allclose(info.sum(axis=0), ref.JtJ, rtol=1e-6, atol=1e-6)
+
+
+def test_predicted_error_matches_monte_carlo_registrations(problem):
+    """RMS, mean and 95 % of the error at the target: predicted vs 400 registrations of noisy
+    exact ellipse centres through ``register`` (the true pairs found by the search itself)."""
+    P = replace(problem, space=replace(problem.space, keep_out=()), noise_px=0.3)
+    T_ct_cam = _demo_pose()
+    X = PH.fiducial_centres_lps
+    pred = predict(P, T_ct_cam, X)
+    assert pred.visibility.count == 9 and pred.all_seen is not None
+    T_cam_ct = invert_transform(T_ct_cam)
+    rng = np.random.default_rng(7)
+    err = []
+    for _ in range(400):
+        pts, _ = _observe(T_cam_ct, X, rng, 0.3)
+        r = register(X, pts, CAM.K, CAM.dist, radius_mm=4.0, prior=T_cam_ct)
+        assert r.ok
+        err.append(tre_mm(r.T_cam_ct, T_cam_ct, P.target[None])[0])
+    err = np.array(err)
+    rms, mean, p95 = np.sqrt(np.mean(err**2)), err.mean(), np.quantile(err, 0.95)
+    assert pred.all_seen.rms_mm == pytest.approx(rms, rel=0.12), (pred.all_seen, rms)
+    assert pred.all_seen.mean_mm == pytest.approx(mean, rel=0.12), (pred.all_seen, mean)
+    assert pred.all_seen.p95_mm == pytest.approx(p95, rel=0.15), (pred.all_seen, p95)
+    # the worst single hidden ball: the largest error of the 9 leave-one-out layouts
+    loo = [predict(P, T_ct_cam, np.delete(X, i, axis=0)).all_seen.rms_mm for i in range(9)]
+    assert pred.worst_hidden.rms_mm == pytest.approx(max(loo), rel=1e-9)
+    assert pred.worst_ball == int(np.argmax(loo))
+
+
+def test_trust_model_decides_frame_by_frame_as_the_pose_stream(problem):
+    """Near the gate (the noise at which the tracker starts refusing), the planner's trust model
+    fed the noise pool the real PoseTracker builds gives the tracker's own verdict frame by frame
+    (300 point-level frames), and the share it predicts is in the tracker's range."""
+    from monotracker.planning.trust import gate_noise_px
+
+    P = replace(problem, space=replace(problem.space, keep_out=()))
+    T_ct_cam = _demo_pose(560.0)
+    X = PH.fiducial_centres_lps[:6]
+    pred = predict(P, T_ct_cam, X)
+    # the tracker gates on the noise's 95 % upper bound: about x1.1 over a full pool of 6 balls
+    noise = pred.all_seen.gate_noise_px / 1.12
+    cov1 = pred.all_seen.cov_mm2 / P.noise_px**2
+    limit = gate_noise_px(cov1)
+    expected = trusted_fraction(cov1, 6, noise, frames=150, seed=3, runs=40)
+    assert 0.2 < expected < 0.9, expected           # the interesting region, not all or nothing
+    T_cam_ct = invert_transform(T_ct_cam)
+    det = PointDetector()
+    rng = np.random.default_rng(5)
+    agree = trusted = n = 0
+    for _ in range(2):
+        tr = PoseTracker(X, CAM, detector=det, radius_mm=4.0, target_ct=P.target)
+        pooled = []
+        update = tr.noise.update
+
+        def spy(rss, dof, update=update, pooled=pooled):
+            est = update(rss, dof)
+            pooled.append(est)
+            return est
+
+        tr.noise.update = spy
+        for k in range(150):
+            px, minor = _observe(T_cam_ct, X, rng, noise)
+            det.set(px, minor)
+            ok = tr.process(Frame(BLANK, k / 30.0, k)).ok
+            agree += (pooled[-1].upper(0.95) <= limit) == ok
+            trusted += ok
+            n += 1
+    assert agree >= 0.95 * n, (agree, n)            # the rest sit on the gate's edge
+    assert abs(trusted / n - expected) < 0.3, (trusted / n, expected)
+    # far from the gate: all or nothing, as predicted
+    assert trusted_fraction(cov1, 6, 0.5 * pred.all_seen.gate_noise_px, 150) > 0.97
+    assert trusted_fraction(cov1, 6, 1.5 * pred.all_seen.gate_noise_px, 150) < 0.03
+
+
+# ------------------------------------------------------------------ visibility
+def _sphere_scene(extra=None):
+    """A sphere head (radius 80 mm at the origin) and, optionally, a cylinder standing on it."""
+    parts = [trimesh.creation.icosphere(subdivisions=4, radius=80.0)]
+    if extra is not None:
+        parts.append(extra)
+    m = trimesh.util.concatenate(parts)
+    return HeadSurface(np.asarray(m.vertices), np.asarray(m.faces))
+
+
+def _problem_on(head, keep_out=(), drape=None):
+    space = CameraSpace(np.array([0.0, 0.0, 1.0]), 30.0, (300.0, 600.0), keep_out=keep_out)
+    return PlanningProblem(head=head, target=np.zeros(3), camera=default_camera(), space=space,
+                           radius_mm=4.0, drape=drape)
+
+
+def _ball(theta_deg, phi_deg=0.0):
+    t, p = np.radians(theta_deg), np.radians(phi_deg)
+    n = np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+    return 84.0 * n, n
+
+
+def test_visibility_reasons_follow_the_geometry():
+    """Balls on a sphere head seen from 500 mm above: in view, on the far side, under the drape,
+    behind a robot capsule, hidden by a bump of the head, out of the image."""
+    post = trimesh.creation.cylinder(radius=8.0, height=60.0)
+    post.apply_translation([0.0, 40.0, 80.0 + 25.0])          # stands on the sphere near its top
+    head = _sphere_scene(post)
+    robot = Capsule(np.array([-40.0, 0.0, 150.0]), np.array([-40.0, 0.0, 400.0]), 20.0, "robot")
+    P = _problem_on(head, keep_out=(robot,), drape=DrapeLine(np.array([0.0, 0.0, 30.0]), np.array([0.0, 0.0, 1.0])))
+    T = look_at(np.array([0.0, 0.0, 500.0]), np.zeros(3), up=np.array([0.0, -1.0, 0.0]))
+    balls = [_ball(10, 90),        # in view
+             _ball(120, 0),        # far side of the head
+             _ball(75, 90),        # exposed side but below the drape plane (z = 84 cos 75 = 22 mm)
+             _ball(30, 0)]         # in view
+    C = np.array([b[0] for b in balls])
+    N = np.array([b[1] for b in balls])
+    vis = visibility(P, T, C, N)
+    assert vis.why[0] == "" and vis.why[3] == ""
+    assert vis.why[2] == "under the drape"
+    assert visibility(replace(P, drape=None), T, C, N).why == ("", "on the far side", "", "")
+    # a ball under the robot: line of sight from (-40 + dx, 0, ~75) straight up passes the capsule
+    under_robot = np.array([-40.0, 0.0, np.sqrt(84.0**2 - 40.0**2)])
+    v2 = visibility(P, T, under_robot[None], (under_robot / 84.0)[None])
+    assert v2.why[0] == "behind the robot"
+    # a ball just beside the post, seen from a camera low on the post's far side: the post hides it
+    b = np.array([0.0, 25.0, np.sqrt(84.0**2 - 25.0**2)])
+    T_side = look_at(np.array([0.0, 400.0, 160.0]), b, up=np.array([0.0, 0.0, 1.0]))
+    v3 = visibility(P, T_side, b[None], (b / 84.0)[None])
+    assert v3.why[0] == "hidden by the head"
+    # the same ball from straight above: nothing in the way
+    assert visibility(P, T, b[None], (b / 84.0)[None]).why[0] == ""
+    # a camera turned away: out of the image / behind the camera
+    T_away = look_at(np.array([0.0, 0.0, 500.0]), np.array([0.0, 0.0, 1000.0]), up=np.array([0.0, -1.0, 0.0]))
+    assert visibility(P, T_away, C[:1], N[:1]).why[0] == "behind the camera"
+    T_off = look_at(np.array([0.0, 0.0, 500.0]), np.array([400.0, 0.0, 0.0]), up=np.array([0.0, -1.0, 0.0]))
+    assert visibility(P, T_off, C[:1], N[:1]).why[0] == "out of the image"
+
+
+def test_prediction_counts_only_the_balls_seen(problem):
+    """Balls on the far side add nothing: the prediction equals that of the seen balls alone."""
+    P = replace(problem, space=replace(problem.space, keep_out=()), drape=None)
+    T = _demo_pose()
+    far = skin_ball(-PH.view_direction_lps)
+    with_far = predict(P, T, np.vstack([PH.fiducial_centres_lps, far[None]]))
+    alone = predict(P, T, PH.fiducial_centres_lps)
+    assert with_far.visibility.why[-1] == "on the far side"
+    assert with_far.all_seen.rms_mm == pytest.approx(alone.all_seen.rms_mm, rel=1e-9)
