@@ -45,18 +45,18 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "app"))
 
-from monotracker.ct import detect_fiducials, head_surface, load_volume  # noqa: E402
-from monotracker.geometry import invert_transform  # noqa: E402
-from monotracker.paths import sample_ct_path  # noqa: E402
-from monotracker.planning import (DEFAULT_NOISE_PX, DrapeLine, HeadSurface, build_problem,  # noqa: E402
+from monotracker.ct import detect_fiducials, head_surface, load_volume
+from monotracker.geometry import invert_transform
+from monotracker.paths import sample_ct_path
+from monotracker.planning import (DEFAULT_NOISE_PX, DrapeLine, HeadSurface, build_problem,
                                   plan_layout, predict, rule_of_thumb_layout, sample_candidates)
-from monotracker.registration.report import tre_mm  # noqa: E402
-from monotracker.sim.or_layout import default_layout  # noqa: E402
-from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised  # noqa: E402
-from monotracker.vision.camera_model import default_camera  # noqa: E402
-from monotracker.vision.frames import Frame  # noqa: E402
-from monotracker.vision.point_detector import PointDetector  # noqa: E402
-from monotracker.vision.pose_tracker import PoseTracker  # noqa: E402
+from monotracker.registration.report import tre_mm
+from monotracker.sim.or_layout import default_layout
+from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised
+from monotracker.vision.camera_model import default_camera
+from monotracker.vision.frames import Frame
+from monotracker.vision.point_detector import PointDetector
+from monotracker.vision.pose_tracker import PoseTracker
 
 BLANK = np.zeros((720, 1280, 3), np.uint8)
 CAM = default_camera()
