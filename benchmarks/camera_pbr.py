@@ -26,8 +26,9 @@ outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid basel
 ``learned`` (the ONNX segmenter). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
 
-Columns, per condition x detector x trust model (``today``: this checkout's defaults; further
-models, when listed, see the same frames and the same detections):
+Columns, per condition x detector x trust model (``before``: each frame alone, the trust model
+before issue 28 and still the default; ``calibrated``: still frames pooled, the centre bias
+covered; same frames, same detections):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
   detections that are a ball; partial: accepted balls that were partly hidden;
 * centre err: mean / p95 px between the detected centre, carried to the sphere centre with the
@@ -107,9 +108,11 @@ class Replay:
 
 
 def trust_models() -> dict:
-    """Trust models compared in one run: name -> TrackerConfig. ``today``: this checkout's
-    defaults (the baseline every later trust model is measured against in the same run)."""
-    return {"today": TrackerConfig()}
+    """Trust models compared in one run: name -> TrackerConfig. ``before``: each frame alone,
+    image noise from the residuals (the trust model before issue 28, still the default:
+    ``centre_bias=None``); ``calibrated``: frames of a still head pooled, the detector's
+    measured centre bias covered (``centre_bias="detector"``)."""
+    return {"before": TrackerConfig(centre_bias=None), "calibrated": TrackerConfig(centre_bias="detector")}
 
 
 def detection_stats(dets, truth, cam) -> dict:

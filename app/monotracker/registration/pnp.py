@@ -35,10 +35,12 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
 @dataclass
 class Refinement:
     T: np.ndarray            # 4x4 T_cam_ct
-    residuals: np.ndarray    # (k, 2) equivalent px
-    JtJ: np.ndarray          # (6, 6) Gauss-Newton normal matrix at the optimum (px^2 units)
+    residuals: np.ndarray    # (k, 2) equivalent px (unweighted)
+    JtJ: np.ndarray          # (6, 6) Gauss-Newton normal matrix at the optimum (px^2 units; J^T W J when weighted)
     iterations: int
     converged: bool
+    #: (2k, 6) Jacobian of the (unweighted) residuals at the optimum, px per (rad, mm)
+    J: np.ndarray | None = None
 
 
 def _residuals(R, t, X, obs, fxy, radius_mm):
@@ -77,13 +79,21 @@ def _residuals_and_jacobian(R, t, X, obs, fxy, radius_mm):
 
 
 def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
-                radius_mm: float | None = None, max_iter: int = 20, tol: float = 1e-9) -> Refinement:
+                radius_mm: float | None = None, max_iter: int = 20, tol: float = 1e-9,
+                weights: np.ndarray | None = None) -> Refinement:
     """LM refinement of ``T0`` (4x4) for model points X (k, 3) mm and normalised observations
-    obs (k, 2); ``fxy`` = (fx, fy) converts residuals to pixels."""
+    obs (k, 2); ``fxy`` = (fx, fy) converts residuals to pixels. ``weights`` (k,): each point's
+    weight in the least squares (e.g. the number of frames averaged into it); None = equal."""
     R = T0[:3, :3].copy()
     t = T0[:3, 3].copy()
     lam = 1e-3
-    r, J = _residuals_and_jacobian(R, t, X, obs, fxy, radius_mm)
+    sw = None if weights is None else np.repeat(np.sqrt(np.asarray(weights, float).reshape(-1)), 2)
+
+    def _rj(R_, t_):
+        r_, J_ = _residuals_and_jacobian(R_, t_, X, obs, fxy, radius_mm)
+        return (r_, J_) if sw is None else (r_ * sw, J_ * sw[:, None])
+
+    r, J = _rj(R, t)
     cost = r @ r
     converged = False
     it = 0
@@ -102,7 +112,7 @@ def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
                 continue
             Rn = so3_exp(dx[:3]) @ R
             tn = t + dx[3:]
-            rn, Jn = _residuals_and_jacobian(Rn, tn, X, obs, fxy, radius_mm)
+            rn, Jn = _rj(Rn, tn)
             cn = rn @ rn
             if np.isfinite(cn) and cn <= cost:
                 rel = (cost - cn) / max(cost, 1e-30)
@@ -117,4 +127,5 @@ def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = t
-    return Refinement(T=T, residuals=r.reshape(-1, 2), JtJ=J.T @ J, iterations=it, converged=converged)
+    r0, J0 = _residuals_and_jacobian(R, t, X, obs, fxy, radius_mm)
+    return Refinement(T=T, residuals=r0.reshape(-1, 2), JtJ=J.T @ J, iterations=it, converged=converged, J=J0)

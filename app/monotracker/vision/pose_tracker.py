@@ -50,6 +50,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from monotracker.geometry import apply_transform
+from monotracker.registration.quantiles import chi2_ppf as chi2_quantile
 
 from .camera_model import CameraModel
 from .frames import Frame, grayscale_problem
@@ -136,6 +137,8 @@ class PoseEstimate:
     moved: list = field(default_factory=list)
     #: all fiducials excluded so far (moved), by index
     excluded: list = field(default_factory=list)
+    #: frames of a still head pooled into ``T_cam_ct`` (1 = this frame alone; 0 when not ok)
+    pooled_frames: int = 0
 
     @property
     def latency_s(self) -> float:
@@ -184,6 +187,21 @@ class TrackerConfig:
     #: ... and every this many frames that hint asks for the whole frame all the same
     #: (``search_all``: new balls, strays, a drape of the balls' colour); 0 = never
     full_search_every: int = 30
+    #: centre errors that frames of a still head do not average out (shading, highlights,
+    #: texture: :class:`~monotracker.registration.noise.CentreBias`, measured on physically
+    #: rendered frames): with it the pose and its trust come from the frames of a still head
+    #: pooled (:mod:`.still_pool`) and the predicted TRE covers the bias. "detector" = the one
+    #: measured for the tracker's detector (:func:`.centre_bias.centre_bias_of`); None = each
+    #: frame alone, image noise from the residuals only (the trust model before issue 28; still
+    #: the default: the calibrated model is opt-in until the whole suite has run with it)
+    centre_bias: object = None
+    #: frames of a still head pooled at most (0.27 s at 30 fps); the motion test's false-alarm rate
+    pool_frames: int = 8
+    pool_alpha: float = 1e-3
+    #: ... and the probability that the error at the target exceeds ``right_mm`` must stay at or
+    #: below this (1.0 = no such test)
+    right_mm: float = 1.0
+    max_not_right_probability: float = 1.0
 
 
 class PoseTracker:
@@ -249,6 +267,12 @@ class PoseTracker:
         self.excluded: dict[int, float] = {}
         c = self.config
         self.noise = OnlineNoise(window=c.noise_window, min_dof=c.noise_min_dof, prior_px=c.noise_prior_px)
+        from .centre_bias import centre_bias_of
+        from .still_pool import StillPool
+
+        self.pool = StillPool(max_frames=c.pool_frames, alpha=c.pool_alpha)
+        #: the centre bias the trust model covers (None: the trust model before issue 28)
+        self.centre_bias = centre_bias_of(self.detector) if c.centre_bias == "detector" else c.centre_bias
 
     def reset(self) -> None:
         """Forget the previous frames, the noise estimate and the excluded (moved) fiducials:
@@ -331,6 +355,8 @@ class PoseTracker:
         sigma = float("nan")
         sigma_src = ""
         tre = float("nan")
+        T_pose = reg.T_cam_ct
+        n_pooled = 1
         if reg.ok:
             for k, (i, j) in enumerate(reg.pairs):
                 img_pts[j] = pts[i]
@@ -363,7 +389,11 @@ class PoseTracker:
                 rss, dof = scr.noise_rss_px2, scr.noise_dof   # the fit's residuals (suspect ball trimmed)
                 ne = self.noise.update(rss, dof) if code in ("", "weak_geometry") else self.noise.peek(rss, dof)
                 sigma, sigma_src = ne.sigma_px, ne.source
-                if self.target_ct is not None:
+                if self.centre_bias is not None:
+                    usable = code in ("", "weak_geometry")
+                    T_pose, tre, sigma, sigma_src, ok, code, reason, n_pooled = self._pooled_trust(
+                        frame.index, reg, pts, det, ne.sigma_px, new_moved, usable, ok, code, reason)
+                elif self.target_ct is not None:
                     tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
                     # gate on an upper bound of the noise (95 %): a sigma from few dof may be low by chance
                     upper = ne.upper(cfg.noise_bound_confidence)
@@ -385,7 +415,10 @@ class PoseTracker:
                                       f"{cfg.wrong_mm:g} mm (probability {100 * p_wrong:.2f} % > "
                                       f"{100 * cfg.max_wrong_probability:g} %; image noise {sigma:.2f} px, "
                                       f"{len(reg.pairs)} fiducials)")
+            else:
+                self.pool.reset()
         else:
+            self.pool.reset()
             if len(pts) < cfg.min_fiducials:
                 reason = f"{len(pts)} fiducials detected (need {cfg.min_fiducials}): {reason}"
                 code = "occlusion"
@@ -423,12 +456,12 @@ class PoseTracker:
         self._last_ok = ok
         self._last_code = code if not ok else ""
 
-        T = reg.T_cam_ct if ok else None
+        T = T_pose if ok else None
         stages = {"hint": t_hint, "detect": det.time_s, "register": scr.register_s, "screen": scr.screen_s,
                   "gates": time.perf_counter() - t_gates0}
         stages.update({f"detect.{k}": v for k, v in getattr(det, "stages_s", {}).items()})
         if ok:
-            self._last_T = reg.T_cam_ct
+            self._last_T = T_pose
             self._last_T_time = frame.t_capture
             self._last_T_index = frame.index
         return PoseEstimate(
@@ -439,7 +472,85 @@ class PoseTracker:
             predicted_tre_mm=tre, n_detected=len(pts), n_matched=int(seen.sum()) if reg.ok else 0,
             alerts=alerts, used_prior=bool(reg.used_prior), detect_s=det.time_s, register_s=t_reg,
             truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
-            moved=new_moved, excluded=sorted(self.excluded), stages_s=stages)
+            moved=new_moved, excluded=sorted(self.excluded), stages_s=stages,
+            pooled_frames=n_pooled if ok else 0)
+
+    def _pooled_trust(self, frame_index: int, reg, pts: np.ndarray, det, frame_sigma_px: float, new_moved: list,
+                      usable: bool, ok: bool, code: str, reason: str):
+        """The pose of the still head's pooled frames and its trust (``TrackerConfig.centre_bias``):
+        returns (T_cam_ct, predicted TRE mm, sigma px, sigma source, ok, code, reason, frames pooled).
+
+        The frame's matched centres join the :class:`~.still_pool.StillPool` (a head that moved
+        restarts it); the pose is refitted to each fiducial's mean centre; the per-ball error of
+        those means comes from the refit's residuals with the bias prior
+        (:func:`~monotracker.registration.noise.pooled_sigma`), the frame-to-frame noise from the
+        pool's scatter; a shift common to all balls (which no residual shows) is added as the
+        prior says (:func:`~monotracker.registration.report.common_shift_covariance`). The gates
+        use the upper bound of the per-ball error (``noise_bound_confidence``): RMS at the target
+        <= ``max_predicted_tre_mm``, P(> ``wrong_mm``) <= ``max_wrong_probability``, P(>
+        ``right_mm``) <= ``max_not_right_probability``."""
+        from monotracker.registration.noise import pooled_sigma
+        from monotracker.registration.pnp import refine_pose
+        from monotracker.registration.projection import undistort_to_normalised
+        from monotracker.registration.report import (common_shift_covariance, exceed_probability,
+                                                     predicted_tre, target_covariance)
+
+        cfg, bias = self.config, self.centre_bias
+        K = self.camera.K
+        fxy = np.array([K[0, 0], K[1, 1]])
+        if new_moved or not usable:
+            self.pool.reset()        # a fiducial was just excluded, or the frame is unusable
+        if usable and not new_moved:
+            idx = np.array([i for i, _ in reg.pairs], int)
+            fids = [j for _, j in reg.pairs]
+            xn = undistort_to_normalised(pts[idx], K, self.camera.dist)
+            self.pool.add(frame_index, fids, xn, fxy, frame_sigma_px)
+        st = self.pool.stats()
+        if st is None or len(st.fiducials) < cfg.min_fiducials:
+            return reg.T_cam_ct, float("nan"), frame_sigma_px, "frame", ok, code, reason, 1
+        X = self.fiducials_ct[st.fiducials]
+        fit = refine_pose(reg.T_cam_ct, X, st.means, fxy, self.radius_mm)
+        k = len(st.fiducials)
+        dof = 2 * k - 6
+        rss = float(np.sum(fit.residuals**2))
+        radius_px = float(np.median([min(f.axes_px) for f in det.fiducials])) if det.fiducials else 0.0
+        if st.noise_dof >= 4:
+            noise = st.noise_px * float(np.sqrt(st.noise_dof / chi2_quantile(1.0 - cfg.noise_bound_confidence,
+                                                                              st.noise_dof)))
+        else:
+            noise = bias.noise_prior_px
+        n_h = float(k / np.sum(1.0 / st.counts))
+        ps = pooled_sigma(rss, dof, noise, n_h, bias.ball_sigma(radius_px), bias.prior_dof,
+                          cfg.noise_bound_confidence)
+        H_inv = np.linalg.pinv(fit.J.T @ fit.J)
+        common = common_shift_covariance(fit.J, bias.common_sigma(radius_px))
+        cov_est = ps.sigma_px**2 * H_inv + common
+        cov_hi = ps.upper_px**2 * H_inv + common
+        src = f"{st.frames} frame{'s' if st.frames > 1 else ''}, {ps.source}"
+        if self.target_ct is None:
+            return fit.T, float("nan"), ps.sigma_px, src, ok, code, reason, st.frames
+        tre = float(predicted_tre(fit.T, cov_est, self.target_ct))
+        tre_hi = float(predicted_tre(fit.T, cov_hi, self.target_ct))
+        if ok:
+            cov3 = target_covariance(fit.T, cov_hi, self.target_ct)
+            why = ""
+            if not tre_hi <= cfg.max_predicted_tre_mm:
+                why = f"up to {tre_hi:.2f} mm at {100 * cfg.noise_bound_confidence:.0f} %: over the " \
+                      f"{cfg.max_predicted_tre_mm:g} mm limit"
+            else:
+                p_wrong = exceed_probability(cov3, cfg.wrong_mm)
+                p_out = exceed_probability(cov3, cfg.right_mm) if cfg.max_not_right_probability < 1.0 else 0.0
+                if p_wrong > cfg.max_wrong_probability:
+                    why = (f"it may exceed {cfg.wrong_mm:g} mm (probability {100 * p_wrong:.2f} % > "
+                           f"{100 * cfg.max_wrong_probability:g} %)")
+                elif p_out > cfg.max_not_right_probability:
+                    why = (f"it may exceed {cfg.right_mm:g} mm (probability {100 * p_out:.1f} % > "
+                           f"{100 * cfg.max_not_right_probability:g} %)")
+            if why:
+                ok, code = False, "tre_limit"
+                reason = (f"predicted error at the target {tre:.2f} mm, {why} (centre error {ps.sigma_px:.2f} px per "
+                          f"ball, {k} fiducials, {src})")
+        return fit.T, tre, ps.sigma_px, src, ok, code, reason, st.frames
 
     def hint(self, frame_index: int, t_capture: float):
         """The :class:`~.detection.DetectionHint` for frame ``frame_index`` (captured at
@@ -467,6 +578,7 @@ class PoseTracker:
         status = [MOVED if j in self.excluded else NEWLY_LOST if s else (OCCLUDED if e else UNKNOWN)
                   for j, (s, e) in enumerate(zip(self._prev_seen, self._ever_seen))]
         repeat = self._last_ok is False and self._last_code == code
+        self.pool.reset()
         self._prev_seen = np.zeros(n, bool)
         self._last_T_time = -np.inf
         self._last_T_index = -10
