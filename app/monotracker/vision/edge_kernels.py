@@ -21,12 +21,33 @@ to (m, R, 2) with ``valid`` (m, R) (a ball of n rays fills its first n rows).
 from __future__ import annotations
 
 import math
+import os
+import tempfile
 
+import numba
 import numpy as np
-from numba import njit
 
 
-@njit(cache=True)
+def _compiled(fn):
+    """numba's ``njit(cache=True)``, with a cache that works where this module's folder is not
+    writable (a system-wide install run by another user, a service account without a home): the
+    machine code then goes to a per-user folder under the temporary directory, and where no
+    cache can be written at all each process compiles for itself (slower start, same code).
+    Before this, such a run failed at import ("cannot cache function ...: no locator")."""
+    try:
+        return numba.njit(cache=True)(fn)
+    except RuntimeError:
+        pass
+    if not numba.config.CACHE_DIR:
+        numba.config.CACHE_DIR = os.path.join(tempfile.gettempdir(), f"monotracker-numba-{os.getuid()}")
+        try:
+            return numba.njit(cache=True)(fn)
+        except (RuntimeError, OSError):
+            pass
+    return numba.njit(fn)
+
+
+@_compiled
 def _ball_directions(P, starts, counts, edge_k):
     """(N, 3): per ray its ball's colour direction, the component-wise median (upper middle for an
     even count, as ``np.partition(v, len(v) // 2)``) of the unit colour vectors of the inner
@@ -55,12 +76,12 @@ def _ball_directions(P, starts, counts, edge_k):
     return out
 
 
-@njit(cache=True)
+@_compiled
 def _dot3(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-@njit(cache=True)
+@_compiled
 def _gamma_row(Pn, bd, G1, slope, t, gamma_n):
     """One ray: the background share per sample (clipped to [0, 1]) of ``p = alpha b + gamma
     (G1 + t slope)``; returns True when every sample's 2 x 2 system is regular."""
@@ -83,7 +104,7 @@ def _gamma_row(Pn, bd, G1, slope, t, gamma_n):
     return good_all
 
 
-@njit(cache=True)
+@_compiled
 def _last_below(row, level):
     """Index of the last sample below ``level``; k - 1 when none is (``np.argmax`` of all False)."""
     k = row.shape[0]
@@ -93,7 +114,7 @@ def _last_below(row, level):
     return k - 1, False
 
 
-@njit(cache=True)
+@_compiled
 def _crossing(row, level):
     """Fractional sample index where the row last rises through ``level`` (edge_fit._crossing)."""
     k = row.shape[0]
@@ -103,14 +124,14 @@ def _crossing(row, level):
     return j + min(max((level - g0) / max(g1 - g0, 1e-6), 0.0), 1.0)
 
 
-@njit(cache=True)
+@_compiled
 def _median(x):
     s = np.sort(x)
     n = len(s)
     return 0.5 * (s[(n - 1) // 2] + s[n // 2])
 
 
-@njit(cache=True)
+@_compiled
 def ray_edges(prof, prof_e, starts, counts, step, blur_px, max_resid, near_background, integration_share,
               crossing_agree_px, near_bg_margin_px, near_bg_window_px, psf_radius_per_blur):
     """Per ray of ``prof`` (N, k, 3) (and ``prof_e``: the same rays with colour smoothed along
@@ -266,7 +287,7 @@ def ray_edges(prof, prof_e, starts, counts, step, blur_px, max_resid, near_backg
 # --- known-shape outline fits (edge_fit._fit_outline, _robust_ellipse, _hidden_arc) ----------
 
 
-@njit(cache=True)
+@_compiled
 def _solve3(A, b):
     """x of A x = b (3 x 3, Gaussian elimination with partial pivoting); ok False if singular."""
     M = np.empty((3, 4))
@@ -298,7 +319,7 @@ def _solve3(A, b):
     return x, ok
 
 
-@njit(cache=True)
+@_compiled
 def fit_outline(px, py, keep, ratio, major_deg):
     """The ellipse of shape (``ratio`` minor / major, major axis ``major_deg``) through the
     ``keep`` points (px, py): (cx, cy, d1, d2, ok), as :func:`.edge_fit._fit_outline`."""
@@ -372,7 +393,7 @@ def fit_outline(px, py, keep, ratio, major_deg):
     return mx + cu * ca - cv * sa, my + cu * sa + cv * ca, 2.0 * r / ratio, 2.0 * r, True
 
 
-@njit(cache=True)
+@_compiled
 def ellipse_residuals(px, py, cx, cy, d1, d2, angle_deg, out):
     """Signed distances (px, > 0 outside) of the points from the ellipse, into ``out``, as
     :func:`.edge_fit._ellipse_residuals`."""
@@ -388,7 +409,7 @@ def ellipse_residuals(px, py, cx, cy, d1, d2, angle_deg, out):
         out[i] = (rho - 1.0) / max(grad, 1e-9)
 
 
-@njit(cache=True)
+@_compiled
 def _masked_median(x, mask):
     cnt = 0
     for i in range(len(x)):
@@ -403,7 +424,7 @@ def _masked_median(x, mask):
     return _median(y)
 
 
-@njit(cache=True)
+@_compiled
 def robust_outline(px, py, usable, ratio, major_deg, min_share):
     """As :func:`.edge_fit._robust_ellipse` with a known shape: (ok, cx, cy, d1, d2, keep, rms)."""
     n = len(px)
@@ -448,7 +469,7 @@ def robust_outline(px, py, usable, ratio, major_deg, min_share):
     return True, cx, cy, d1, d2, keep, math.sqrt(a / max(cnt, 1))
 
 
-@njit(cache=True)
+@_compiled
 def hidden_arc(px, py, usable, cx, cy, d1, d2, angle_deg, ratio, major_deg, blur_px, window_share, depth_px,
                depth_per_radius, depth_per_blur, min_share):
     """As :func:`.edge_fit._hidden_arc`: True when the deepest arc of ``window_share`` of the
@@ -495,7 +516,7 @@ def hidden_arc(px, py, usable, cx, cy, d1, d2, angle_deg, ratio, major_deg, blur
     return depth > limit and depth > 3.0 * rms1 / math.sqrt(cnt)
 
 
-@njit(cache=True)
+@_compiled
 def shaped_fits(P, valid, usable, ratio, major_deg, min_share, blur_px, window_share, depth_px, depth_per_radius,
                 depth_per_blur):
     """:func:`robust_outline` and :func:`hidden_arc` for m balls (padded ``P`` (m, R, 2)):
