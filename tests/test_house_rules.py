@@ -29,7 +29,11 @@ def _tool(name: str) -> str:
 
 
 def _run(args, cwd: Path, env: dict | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+    """The tool's output read as UTF-8 whatever the locale (import-linter draws its banner in
+    box characters; CI once ran with an ASCII locale, and decoding that failed the test)."""
+    env = {**(os.environ if env is None else env), "PYTHONIOENCODING": "utf-8"}
+    return subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, encoding="utf-8",
+                          errors="replace", timeout=300)
 
 
 def test_ruff_finds_nothing():

@@ -49,6 +49,32 @@ def _screen_of(client, p_world):
     return cam.image_width / 2 + f * (q @ x) / (q @ z), cam.image_height / 2 + f * (q @ y) / (q @ z)
 
 
+def _camera_state(client):
+    cam = client.camera
+    return (tuple(np.round(cam.position, 6)), tuple(np.round(cam.look_at, 6)),
+            tuple(np.round(cam.up_direction, 6)), round(float(cam.fov), 6),
+            int(cam.image_width), int(cam.image_height))
+
+
+def _settled_camera_and_canvas(page, client, what):
+    """Wait until the browser's camera (as the server last heard it) has stopped changing and its
+    image size is the canvas's on-screen size; return the canvas box. A click placed through a
+    camera still moving, or a canvas being laid out again, lands elsewhere (CI saw 41 mm)."""
+    last = {"state": None, "box": None, "since": None}
+
+    def settled():
+        state, box = _camera_state(client), _canvas_box(page)
+        same = state == last["state"] and box == last["box"]
+        if not same:
+            last.update(state=state, box=box, since=time.monotonic())
+            return False
+        fits = abs(state[4] - box["width"]) <= 2 and abs(state[5] - box["height"]) <= 2
+        return fits and time.monotonic() - last["since"] >= 1.0
+
+    _wait(settled, what=lambda: f"{what} (camera {last['state']}, canvas {last['box']})")
+    return last["box"]
+
+
 def _grey(page, box):
     from PIL import Image
 
@@ -82,6 +108,7 @@ def test_navigation_slices_show_are_clickable_and_windowed(served_plan, browser,
     _input(page, "Slice click").click()
     page.get_by_role("option", name="set target").click()
     _wait(lambda: view.steps["plan"].nav.h_click.value == "set target", what="set target mode")
+    box = _settled_camera_and_canvas(page, view.client, "a still camera and canvas before the click")
     wanted = target + np.array([0.0, -6.0, 5.0])
     u, v = _screen_of(view.client, view.nav_scene.world_of("sagittal", wanted))
     assert 0 < u < box["width"] and 0 < v < box["height"], (u, v, box)
