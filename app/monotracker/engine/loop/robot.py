@@ -5,8 +5,9 @@ Each command refuses with a one-line reason; arming and tracking need the plan c
 fresh trusted pose for this plan. Arming is consent to one plan: a plan revision that reaches an
 armed, tracking or holding robot disarms it first (:meth:`RobotControl.disarm_for_revision`,
 ``plan_changed_armed``). An e-stop pressed before any robot is connected is latched here: arming
-is refused until it is reset, and a robot connected meanwhile starts e-stopped. A part of :class:`~monotracker.engine.loop.core.TrackingLoop`
-(``loop.robot``); the pose side (holds, the needle target) is the core's."""
+is refused until it is reset, and a robot connected meanwhile starts e-stopped. A part of
+:class:`~monotracker.engine.loop.core.TrackingLoop` (``loop.robot``); the pose side (holds, the
+needle target) is the core's."""
 
 from __future__ import annotations
 
