@@ -68,7 +68,11 @@ def test_arm_needs_the_pin_and_refusals_are_audited(make_session):
     r = s.start_tracking()
     assert not r.ok and "hand-eye" in r.message
     assert not s.set_hand_eye(np.diag([1.0, 1.0, -1.0, 1.0])).ok  # a reflection is not rigid
-    assert s.set_hand_eye(np.eye(4)).ok
+    r = s.set_hand_eye(np.eye(4))  # arming is for one plan (issue 36): not while armed
+    assert not r.ok and "disarm the robot before changing the path" in r.message
+    assert s.disarm().ok and s.set_hand_eye(np.eye(4)).ok
+    s.advance(0.5)
+    assert s.arm("1234").ok
     assert s.stop_camera().ok  # the pose is cleared with the camera
     r = s.start_tracking()
     assert not r.ok and "pose" in r.message

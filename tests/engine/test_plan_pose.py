@@ -85,15 +85,20 @@ def test_stopped_or_failed_camera_clears_the_pose(make_session):
     assert snap.pose is None and [a.code for a in snap.alarms][0] == "camera_failed"
 
 
-def test_path_change_while_holding_keeps_the_arm_holding_until_a_new_pose(make_session):
+def test_path_change_while_holding_is_refused_and_after_disarming_forgets_the_pose(make_session):
+    """Issue 36: the arm used to resume onto the new path by itself; arming is for one plan."""
     s, _ = _registered(make_session)
     assert s.arm("1234").ok and s.start_tracking().ok
     s.advance(0.3)
     assert s.inject_fault("occlude-all").ok
     s.advance(0.3)
     assert s.snapshot().robot.state == "holding"
-    assert s.set_entry(default_phantom().sample_entry_lps + np.array([0.0, 2.0, 0.0])).ok
-    assert s.snapshot().pose is None and s.snapshot().robot.state == "holding"
-    s.advance(0.5)  # the new rig has no fault: trusted poses for the new plan, tracking resumes
+    new_entry = default_phantom().sample_entry_lps + np.array([0.0, 2.0, 0.0])
+    r = s.set_entry(new_entry)
+    assert not r.ok and "disarm the robot before changing the path" in r.message
+    assert s.snapshot().robot.state == "holding"
+    assert s.disarm().ok and s.set_entry(new_entry).ok
+    assert s.snapshot().pose is None and s.snapshot().robot.state == "disarmed"
+    s.advance(0.5)  # the new rig has no fault: trusted poses for the new plan, the arm stays disarmed
     snap = s.snapshot()
-    assert snap.pose.trusted and snap.robot.state == "tracking"
+    assert snap.pose.trusted and snap.robot.state == "disarmed"

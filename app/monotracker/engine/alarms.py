@@ -50,9 +50,11 @@ with its shift in mm; excluded from then on); ``robot_warning`` [warning] from t
 ``plan_path_invalid`` / ``home_unwritable`` / ``audit_unavailable`` / ``audit_delayed`` / ``audit_lost``
 [alarm], ``home_writable`` / ``audit_recovered`` [info], ``fiducial_unverified`` [warning]; ``estop``
 [alarm]; ``estop_unconfirmed`` [alarm] STOP signalled but the robot controller did not confirm it;
+``plan_changed_armed`` [alarm] a plan revision reached an armed, tracking or holding robot, which
+was disarmed first (stands until the robot is armed again);
 ``session_unlocked`` [warning] the session folder could not be locked (read-only); ``pin_lockout`` [alarm] too many wrong PIN tries, arming and taking control locked (each
 wrong try is an ``arm_refused`` / ``control_refused`` *event*, never an alert, never the PIN); ``camera_failed`` / ``ct_failed`` / ``plan_save_failed``
-/ ``plan_unreadable`` [alarm]; ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
+/ ``plan_unreadable`` [alarm] (the last stands until a new plan is saved); ``fiducials_detection`` / ``head_sphere`` [warning]. Decisions and
 state changes are ``kind == "event"`` (``fiducial_confirmed``, ``fiducials_locked``, ``entry_set``,
 ``arm``, ``tracking_started``, ``robot_state`` (one per robot transition, in order, with its own
 reason), ``session_lock_recovered`` (this session took over the folder lock of a process that was
@@ -129,6 +131,8 @@ CATALOGUE: dict[str, AlarmKind] = {
     "fiducial_moved": AlarmKind("warning", 3, linger_s=0.0),
     "pose_stale": AlarmKind("warning", 7, technical=True, freshness=True, **_HOLD),
     "plan_save_failed": AlarmKind("alarm", 8, linger_s=0.0),
+    # a plan revision reached an armed / tracking / holding robot: it was disarmed (arming is for one plan)
+    "plan_changed_armed": AlarmKind("alarm", 8, linger_s=0.0),
     "pin_lockout": AlarmKind("alarm", 9, linger_s=0.0),
     "login_lockout": AlarmKind("alarm", 9, linger_s=0.0),  # the web login (--allow-remote) refused wrong passwords
     # the saved session: nothing reported as done that is not on disk, edits outside the app

@@ -29,6 +29,7 @@ import logging
 import os
 import secrets
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -74,14 +75,34 @@ def stamp_plan_mac(d: dict, key: "IntegrityKey | None") -> dict:
     return d
 
 
+_MACHINE_KEYS: dict = {}
+
+
+def machine_key() -> "IntegrityKey | None":
+    """This machine's key (``paths.key_dir()``) when one exists, else None; never creates one
+    (the session's audit log does, at start). Cached once found."""
+    from monotracker.paths import key_dir
+
+    folder = key_dir()
+    k = _MACHINE_KEYS.get(folder)
+    if k is None:
+        k = IntegrityKey(folder, create=False)
+        if not k.available:
+            return None
+        _MACHINE_KEYS[folder] = k
+    return k
+
+
 def stamp_plan_dict(d: dict) -> dict:
-    """``d`` with ``integrity.plan_sha256`` set to its content hash (``d`` is modified and returned)."""
+    """``d`` with ``integrity.plan_sha256`` set to its content hash and, when this machine has
+    an integrity key (:func:`machine_key`), ``integrity.plan_mac`` set to its MAC (``d`` is
+    modified and returned). Every plan file the app writes is stamped here."""
     integ = dict(d.get("integrity") or {})
     for k in STAMPS:
         integ.pop(k, None)
     d["integrity"] = integ
     integ["plan_sha256"] = plan_content_sha256(d)
-    return d
+    return stamp_plan_mac(d, machine_key())
 
 
 def plan_stamp_problem(d: dict) -> str | None:
@@ -306,7 +327,9 @@ def describe_plan_changes(old: dict, new: dict) -> list[str]:
         if Ta is not None and Tb is not None and Ta.shape == Tb.shape == (4, 4):
             R = Ta[:3, :3].T @ Tb[:3, :3]
             ang = float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
-            out.append(f"hand-eye rotated {ang:.1f} deg, shifted {np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]):.1f} mm")
+            shift = float(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3]))
+            parts = ([f"rotated {ang:.1f} deg"] if ang >= 0.05 else []) + ([f"shifted {shift:.1f} mm"] if shift >= 0.05 else [])
+            out.append("hand-eye " + (", ".join(parts) if parts else "changed (less than 0.05 deg / 0.05 mm)"))
         else:
             out.append("hand-eye changed")
     fa = {f.get("id"): f for f in old.get("fiducials") or [] if isinstance(f, dict)}
@@ -341,3 +364,54 @@ def summarise_changes(changes: list[str], most: int = 4) -> str:
         return "no field differs"
     more = len(changes) - most
     return "; ".join(changes[:most]) + (f"; and {more} more" if more > 0 else "")
+
+
+# ---------------------------------------------------------------------------------------------
+# is the plan on disk the app's own?
+@dataclass(frozen=True)
+class PlanVerdict:
+    """What :func:`judge_saved_plan` found. ``ok``: the file is the plan the app saved last.
+    ``interrupted``: it is the plan *before* the last recorded save (a save cut short between its
+    audit row and the file: ``kill -9``, a full disk); the file is used. Otherwise ``how`` says how
+    the change was seen (one phrase), ``changes`` what differs from the app's last plan (phrases
+    of :func:`describe_plan_changes`), ``app_plan`` the app's last plan to restore (a plan dict
+    from the audit chain) or None when it cannot be reconstructed."""
+
+    ok: bool
+    interrupted: bool = False
+    how: str = ""
+    changes: tuple = ()
+    app_plan: dict | None = None
+
+
+def judge_saved_plan(raw: dict, last_saved: dict | None, key: "IntegrityKey | None") -> PlanVerdict | None:
+    """Is ``raw`` (the parsed ``plan.json``) the plan this app saved last?
+
+    ``last_saved``: the ``data`` of the audit chain's newest ``plan_saved`` row that verifies
+    (``{"plan", "plan_sha256", "previous_sha256", ...}``), or None; ``key``: this machine's key.
+    The audit chain decides when it holds a plan: the file's content digest must be its last one
+    (or, after a save cut short, the one before, with this machine's MAC). Without such a row the
+    file's MAC decides. None when neither can (no row, and no MAC or no key: a file of an older
+    version; the caller falls back to the unkeyed content hash)."""
+    sha = plan_content_sha256(raw)
+    integ = raw.get("integrity") if isinstance(raw.get("integrity"), dict) else {}
+    mac = integ.get("plan_mac")
+    mac_ok = None  # None: no MAC to check (a file of an older version, or no key here)
+    if key is not None and key.available and "plan_mac" in integ:
+        mac_ok = isinstance(mac, str) and bool(key.check(_canonical(_unstamped(raw)), mac))
+    if isinstance(last_saved, dict) and isinstance(last_saved.get("plan"), dict):
+        if sha == last_saved.get("plan_sha256"):
+            return PlanVerdict(True)
+        if sha == last_saved.get("previous_sha256") and mac_ok:
+            return PlanVerdict(True, interrupted=True)
+        app = last_saved["plan"]
+        how = "it is not the plan the audit log recorded last"
+        if mac_ok is False:
+            how = "its MAC does not verify and it is not the plan the audit log recorded last"
+        return PlanVerdict(False, how=how, changes=tuple(describe_plan_changes(app, raw)), app_plan=app)
+    if mac_ok is None:
+        return None
+    if mac_ok:
+        return PlanVerdict(True)
+    return PlanVerdict(False, how="its MAC does not verify (not written by this app with this machine's key)",
+                       changes=())

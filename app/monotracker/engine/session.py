@@ -182,12 +182,13 @@ class Session:
                                on_problem=lambda level, code, msg, data: self._bus.alert(level, code, msg, data))
         self._bus = EventBus(sink=self._audit.record_event, clock=self.clock, alert_level=level_of)
         self._alarms = Alarms(self._bus, self.clock)
-        self._store = PlanStore(self.home / PLAN_FILE, self.home, self._bus)
+        self._store = PlanStore(self.home / PLAN_FILE, self.home, self._bus, audit=self._audit)
         self._plan = PlanEditor(self._store, lock=self._lock, events=self._bus, alarms=self._alarms.board,
                                 clock=self.clock, config=self.config, ct=lambda: self._ct.loaded,
                                 robot_state=lambda: self._loop.robot.state(),
                                 plan_changed=lambda why, restart: self._loop.camera.plan_changed(why, restart),
-                                forget_ct=lambda: self._ct.forget())
+                                forget_ct=lambda: self._ct.forget(), audit=self._audit,
+                                disarm_for_revision=lambda why: self._loop.robot.disarm_for_revision(why))
         self._ct = CTJob(lock=self._lock, editor=self._plan, events=self._bus, alarms=self._alarms.board,
                          clock=self.clock, config=self.config,
                          plan_changed=lambda why, restart: self._loop.camera.plan_changed(why, restart))

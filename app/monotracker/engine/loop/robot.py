@@ -2,8 +2,12 @@
 disarm, start/stop tracking, e-stop, reset.
 
 Each command refuses with a one-line reason; arming and tracking need the plan checks and a
-fresh trusted pose for this plan. A part of :class:`~monotracker.engine.loop.core.TrackingLoop`
-(``loop.robot``); the pose side (holds, the needle target) is the core's."""
+fresh trusted pose for this plan. Arming is consent to one plan: a plan revision that reaches an
+armed, tracking or holding robot disarms it first (:meth:`RobotControl.disarm_for_revision`,
+``plan_changed_armed``). An e-stop pressed before any robot is connected is latched here: arming
+is refused until it is reset, and a robot connected meanwhile starts e-stopped. A part of
+:class:`~monotracker.engine.loop.core.TrackingLoop` (``loop.robot``); the pose side (holds, the
+needle target) is the core's."""
 
 from __future__ import annotations
 
@@ -28,6 +32,9 @@ log = logging.getLogger(__name__)
 #: the newest pose arrived within half that gap (the other half for the start command's way to
 #: the control process), waiting for the next pose up to ``start_wait_s``.
 START_ARRIVAL_S = SafetyConfig().stale_s / 2
+#: the robot states in which the arm may move
+ENGAGED = ("armed", "tracking", "holding")
+ESTOP_LATCHED = "the e-stop is latched; reset the e-stop first"
 
 
 class RobotControl:
@@ -52,6 +59,9 @@ class RobotControl:
         self._audited_state = "disarmed"  # the state the newest robot_state audit row went to
         self._audit_lock = threading.Lock()  # robot_state rows are written in order, one writer at a time
         self.threads_wanted = False  # the real clock runs: a new rig starts its control thread
+        #: an e-stop pressed while no robot was connected: latched until reset_estop (a plain
+        #: attribute: the stop channel sets it without a lock)
+        self.estop_without_robot = False
 
     def now(self) -> float:
         return self.loop.now()
@@ -67,6 +77,10 @@ class RobotControl:
                 rob = rigs.make_robot_rig(self.cfg, self._session)
                 with self._lock:
                     self.rig = rob
+                if self.estop_without_robot:  # read after the rig is published (signal_estop: the reverse)
+                    rob.estop()
+                    self.loop.events.event("estop_latched_on_connect", "robot connected e-stopped: the e-stop "
+                                           "pressed before it was connected is latched", level="warning")
                 if self.threads_wanted and self.cfg.clock == "real":
                     rob.start_thread()
                 plan = self.plan.copy()
@@ -75,9 +89,31 @@ class RobotControl:
         return self.rig
 
     def state(self) -> str:
-        """The robot's state as last read: disarmed|armed|tracking|holding|estopped."""
+        """The robot's state as last read: disarmed|armed|tracking|holding|estopped (estopped also
+        while an e-stop pressed before any robot was connected is latched)."""
         with self._lock:
+            if self.rig is None and self.estop_without_robot:
+                return "estopped"
             return self._state
+
+    def disarm_for_revision(self, why: str) -> None:
+        """A plan revision (``why``) is about to be saved: an armed, tracking or holding robot is
+        disarmed first, with the ``plan_changed_armed`` alarm (arming was consent to the plan as
+        it was). Called under the session's state lock: takes only the rig's own locks."""
+        rob = self.rig
+        if rob is None:
+            return
+        st = rob.status().state
+        if st not in ENGAGED:
+            return
+        r = rob.disarm()
+        now_state = rob.status().state
+        with self._lock:
+            self._state = now_state
+        msg = (f"the plan changed while the robot was {st} ({why}): "
+               + ("robot disarmed" if r.ok else f"disarm refused ({r.message}), robot {now_state}")
+               + "; arming is for one plan: arm again with the PIN")
+        self.loop.alarms.persistent("plan_changed_armed", msg, {"why": why, "state": st, "disarmed": bool(r.ok)})
 
     def refresh(self) -> None:
         if self.rig is None:
@@ -157,6 +193,8 @@ class RobotControl:
         Order: the PIN (wrong tries count towards the lockout), the accuracy verification
         (validation fiducials; ``verification.json`` is written either way), then the plan and a
         fresh trusted pose (:meth:`_arm_robot`)."""
+        if self.estop_without_robot or self.state() == "estopped":
+            return self._refuse("arm", ESTOP_LATCHED)
         r = self._access.check_pin(pin, "arm_refused", "arming")
         if not r.ok:
             return r
@@ -196,8 +234,12 @@ class RobotControl:
             rob = self.ensure()
         except MonoTrackerError as exc:
             return CommandResult(False, str(exc))
+        if self.estop_without_robot:
+            return self._refuse("arm", ESTOP_LATCHED)
         r = rob.arm()
         self.refresh()
+        if r.ok:
+            self.loop.alarms.clear("plan_changed_armed")
         self.loop.events.event("arm" if r.ok else "arm_refused", "robot armed" if r.ok else f"arming refused: {r.message}",
                       level="info" if r.ok else "warning")
         return r
@@ -257,7 +299,10 @@ class RobotControl:
         full :meth:`estop` that follows reports it)."""
         rob = self.rig
         if rob is None:
-            return
+            self.estop_without_robot = True  # latched: arming refused, a robot connected later starts e-stopped
+            rob = self.rig  # connected meanwhile? (ensure() reads the latch after publishing the rig)
+            if rob is None:
+                return
         try:
             rob.signal_estop()
         except Exception:  # the STOP handler must survive; estop() says what failed
@@ -268,8 +313,13 @@ class RobotControl:
         Without an acknowledgement the ``estop_unconfirmed`` alarm stands until a later stop is
         confirmed."""
         if self.rig is None:
-            self.loop.alarms.alert("alarm", "estop", "EMERGENCY STOP (no robot connected)")
-            return CommandResult(True, "e-stop (no robot)")
+            self.estop_without_robot = True
+            if self.rig is None:
+                msg = ("EMERGENCY STOP latched (no robot connected): arming is refused and a robot connected "
+                       "now starts e-stopped; reset the e-stop to continue")
+                self.loop.alarms.board.set("estop", msg, self.now())
+                self.loop.alarms.alert("alarm", "estop", msg)
+                return CommandResult(True, "e-stop latched (no robot connected)")
         r = self.rig.estop()  # signals first, then waits for the acknowledgement
         self.refresh()
         board, now = self.loop.alarms.board, self.now()
@@ -283,8 +333,15 @@ class RobotControl:
 
     def reset_estop(self) -> CommandResult:
         if self.rig is None:
-            return CommandResult(True, "nothing to reset")
+            if not self.estop_without_robot:
+                return CommandResult(True, "nothing to reset")
+            self.estop_without_robot = False
+            self.loop.alarms.clear("estop")
+            self.loop.events.event("estop_reset", "e-stop reset (no robot connected); robot disarmed")
+            return CommandResult(True, "e-stop reset")
         r = self.rig.reset()
+        if r.ok:
+            self.estop_without_robot = False
         self.refresh()
         self.loop.events.event("estop_reset", "e-stop reset; robot disarmed" if r.ok else f"e-stop reset refused: {r.message}")
         return r

@@ -71,7 +71,9 @@ def summaries(loop):
                              st.message if st.program_fault else (loop.holding_reason or st.message), lat,
                              program_fault=st.program_fault, control=st.control)
     else:
-        robot = RobotSummary("disarmed", None, None, None, 0.0, False, "robot not connected yet", None)
+        state = loop.robot.state()  # "estopped" while an e-stop pressed before connecting is latched
+        robot = RobotSummary(state, None, None, None, 0.0, False, "robot not connected yet" if state == "disarmed"
+                             else "robot not connected yet; the e-stop is latched", None)
     scene = SceneGeometry(frozen_array(plan.T_base_cam), frozen_array(T_cam_ct), frozen_array(T_base_ct),
                           frozen_array(T_tip), frozen_array(loop.target()[0]), frozen_array(q))
     return camera, pose, robot, scene

@@ -8,11 +8,17 @@ session's state lock; on a clean exit the copy is saved and only then swapped in
 (:meth:`~monotracker.engine.plan.store.PlanStore.commit`); raising :class:`Refused` (or a failed
 save) leaves memory and disk unchanged and the command says why in one line.
 
+Arming is consent to one plan: the path and the hand-eye are refused while the robot is armed,
+tracking or holding (:data:`ENGAGED_REFUSAL`), and any other revision that reaches an engaged
+robot disarms it first (``disarm_for_revision(why)``, the robot part's ``plan_changed_armed``
+alarm): the arm never moves onto a plan it was not armed for.
+
 The editor's collaborators, given by the session: the :class:`~.store.PlanStore`, the state lock,
 the event bus and alarm board, the session clock (s), the configuration, ``ct()`` (the loaded CT's
 facts: :class:`CTFacts`, or None), ``robot_state()`` and ``plan_changed(why, restart_camera)`` of
-the tracking loop, ``forget_ct()`` (a new plan drops the CT) and the audit log (its conditions
-stand beside the plan's).
+the tracking loop, ``forget_ct()`` (a new plan drops the CT), ``disarm_for_revision(why)`` (the
+robot part: disarms an engaged robot before a plan revision is saved) and the audit log (its
+newest ``plan_saved`` row says which plan the app saved last).
 """
 
 from __future__ import annotations
@@ -32,6 +38,12 @@ from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import InputError
 
 log = logging.getLogger(__name__)
+
+
+#: the robot states in which the arm may move (it was armed for the plan as it is)
+ENGAGED = ("armed", "tracking", "holding")
+ENGAGED_REFUSAL = ("disarm the robot before changing the path (arming is for one plan: arm again with the PIN "
+                   "after the change)")
 
 
 class Refused(Exception):
@@ -72,7 +84,8 @@ def _point3(p) -> np.ndarray:
 class PlanEditor:
     """Plan editing, restore, integrity and readiness (see the module docstring)."""
 
-    def __init__(self, store, *, lock, events, alarms, clock, config, ct, robot_state, plan_changed, forget_ct):
+    def __init__(self, store, *, lock, events, alarms, clock, config, ct, robot_state, plan_changed, forget_ct,
+                 audit=None, disarm_for_revision=None):
         self.store = store
         self._lock = lock
         self._bus = events
@@ -83,6 +96,8 @@ class PlanEditor:
         self._robot_state = robot_state
         self._plan_changed = plan_changed
         self._forget_ct = forget_ct
+        self._audit = audit
+        self._disarm_for_revision = disarm_for_revision
         self.reconfirm: list[str] = []  # why the operator must re-confirm the plan before arming
 
     # ================================================================== transaction
@@ -104,9 +119,13 @@ class PlanEditor:
         with self._lock:
             draft = self.store.plan.copy()
             yield draft
+            if self._disarm_for_revision is not None:  # never a new plan under an engaged arm
+                self._disarm_for_revision(why)
             err = self.store.commit(draft, why)
             if err:
                 raise Refused(err)
+            if draft.ct_path or draft.fiducials or draft.path_complete:
+                self._board.clear("plan_unreadable", float(self._clock()))  # a new plan is saved
 
     def _anatomy(self):
         ct = self._ct()
@@ -114,26 +133,37 @@ class PlanEditor:
 
     # ================================================================== restore
     def restore(self) -> None:
-        """Restore ``plan.json`` field by field with the commands' checks (never raises)."""
+        """Restore ``plan.json`` field by field with the commands' checks (never raises). A file
+        that is not the app's own (the audit chain's last ``plan_saved`` row, this machine's MAC:
+        :func:`~monotracker.engine.plan.store.load_saved_plan`) is kept aside and the app's last
+        plan is restored and saved back; ``plan_unreadable`` stands until a new plan is saved."""
         path = self.store.path
         if not path.exists():
             return
-        saved = load_saved_plan(path, self._config.min_fiducials)
+        last, problem = (None, None) if self._audit is None else self._audit.last_record("plan_saved")
+        if problem:
+            log.warning("plan restore: %s", problem)
+        key = None if self._audit is None else self._audit.key
+        saved = load_saved_plan(path, self._config.min_fiducials, last_saved=last, key=key)
         self.store.plan = saved.plan
+        self.store.saved_sha = None if saved.outside else saved.sha256
         self.reconfirm = list(saved.reconfirm)
         codes = [c for c, _, _ in saved.alarms]
         for code, msg, data in saved.alarms:
-            if code == "plan_field_rejected":  # stands until a new plan (the rest derive from the state)
-                self._board.set(code, msg, float(self._clock()))
+            if code in ("plan_field_rejected", "plan_unreadable"):  # stand until a new plan (the rest derive
+                self._board.set(code, msg, float(self._clock()))  # from the state)
             self._bus.alert("alarm", code, msg, data)
-        if saved.rejected:
+        if saved.rejected or saved.outside or saved.interrupted:
             # the file on disk would say what memory does not: write what was restored (the original
             # is aside), carrying the pending re-confirmation so a restart cannot forget it
+            why = ("the app's last plan restored (plan.json was changed outside the app)" if saved.outside else
+                   "restored plan (invalid fields removed)" if saved.rejected else
+                   "the plan on disk kept (its last save was cut short)")
             with self._lock:
                 plan = self.store.plan.copy()
                 if self.reconfirm:
                     plan.integrity["reconfirm_pending"] = self.reconfirm[0]
-                self.store.commit(plan, "restored plan (invalid fields removed)")
+                self.store.commit(plan, why)
         if "plan_unreadable" in codes:
             with self._lock:
                 self.store.commit(Plan(), "empty plan (the unreadable one is kept aside)")
@@ -141,7 +171,7 @@ class PlanEditor:
         plan = self.store.plan
         self._bus.event("plan_restored", f"plan restored (revision {plan.revision}, "
                         f"{len(plan.usable_fiducials())} fiducials, path {'set' if plan.path_complete else 'not set'})",
-                        {"revision": plan.revision, "plan": plan.to_dict()})
+                        {"revision": plan.revision, "plan": plan.to_dict(), "interrupted_save": saved.interrupted})
 
     # ================================================================== readiness and integrity
     def plan_not_ready(self) -> str | None:
@@ -221,7 +251,7 @@ class PlanEditor:
                 raise Refused(err)
             self._forget_ct()
             self.reconfirm = []
-        self._board.clear_all(("plan_field_rejected", "fiducial_moved"), float(self._clock()))
+        self._board.clear_all(("plan_field_rejected", "fiducial_moved", "plan_unreadable"), float(self._clock()))
         self._bus.event("plan_cleared", "new plan: CT, fiducials and path cleared")
         self._plan_changed("new plan", False)
         return CommandResult.done("new plan")
@@ -364,8 +394,8 @@ class PlanEditor:
 
     # ================================================================== path planning
     def set_entry(self, p_lps_mm) -> CommandResult:
-        """Set the needle's entry point: ``p_lps_mm`` (3,) CT LPS mm, finite. Refused while tracking,
-        before the fiducials are locked, and when the path fails :func:`plan_checks.check_path`
+        """Set the needle's entry point: ``p_lps_mm`` (3,) CT LPS mm, finite. Refused while the
+        robot is armed, tracking or holding (:data:`ENGAGED_REFUSAL`), before the fiducials are locked, and when the path fails :func:`plan_checks.check_path`
         (with a CT: the entry within ``PlanLimits.entry_skin_mm`` of the skin; always: distinct
         from the target, length in range, clear of the fiducials), or the plan cannot be saved."""
         return self._set_path_point("entry", p_lps_mm)
@@ -390,8 +420,8 @@ class PlanEditor:
             p = _point3(p_lps_mm)
         except InputError as exc:
             raise Refused(str(exc)) from None
-        if self._robot_state() == "tracking":
-            raise Refused("stop tracking before changing the path")
+        if self._robot_state() in ENGAGED:
+            raise Refused(ENGAGED_REFUSAL)
         with self.edit(f"{which} set") as plan:
             if not plan.fiducials_locked:
                 raise Refused("confirm the fiducials before planning the path")
@@ -425,13 +455,13 @@ class PlanEditor:
         ``T_base_cam_mm``: 4x4 ``T_base_cam`` (camera frame -> robot base frame), translation in mm.
         Refused (one line, nothing changes) unless :func:`plan_checks.check_hand_eye` passes (finite,
         orthonormal rotation with det +1, last row 0 0 0 1, camera within 3 m of the base), while
-        tracking, or when the plan cannot be saved."""
+        the robot is armed, tracking or holding (:data:`ENGAGED_REFUSAL`), or when the plan cannot be saved."""
         why = plan_checks.check_hand_eye(T_base_cam_mm)
         if why:
             raise Refused(why)
         T = np.asarray(T_base_cam_mm, dtype=float)
-        if self._robot_state() == "tracking":
-            raise Refused("stop tracking before changing the hand-eye calibration")
+        if self._robot_state() in ENGAGED:
+            raise Refused(ENGAGED_REFUSAL)
         with self.edit("hand-eye") as plan:
             plan.T_base_cam = T.copy()
         self._bus.event("hand_eye_set", "hand-eye calibration T_base_cam set", {"T_base_cam_mm": T.tolist()})

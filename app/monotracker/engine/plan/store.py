@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monotracker.engine.persistence import read_json
+from monotracker.engine.persistence import atomic_write_json, read_json
 from monotracker.engine.plan import checks as pc
 from monotracker.engine.plan.model import FORMAT, VERSION, Plan, PlanFiducial
 from monotracker.errors import InputError
@@ -190,13 +190,19 @@ def restore_plan(d, min_usable: int = 4):
 class SavedPlan:
     """What :func:`load_saved_plan` found: the ``plan`` to start from, ``alarms`` as
     ``(code, message, data)`` to raise, ``reconfirm`` reasons the operator must re-confirm the
-    plan for before arming, and ``kept_aside`` (the copy of the original file, or None)."""
+    plan for before arming, ``kept_aside`` (the copy of the original file, or None), the
+    ``rejected`` fields, ``outside``: the file was changed outside the app and ``plan`` is the
+    app's own last plan (or empty), which the caller saves back; ``interrupted``: the file is the
+    plan before the last recorded save (a save cut short), used as it is."""
 
     plan: object
     alarms: list
     reconfirm: list
     kept_aside: object = None
     rejected: tuple = ()
+    outside: bool = False
+    interrupted: bool = False
+    sha256: str | None = None  # the file's content digest (integrity.plan_content_sha256)
 
 
 def _keep_aside(path, kind: str):
@@ -218,12 +224,24 @@ def _keep_aside(path, kind: str):
     return keep
 
 
-def load_saved_plan(path, min_usable: int) -> SavedPlan:
+def _has_content(plan) -> bool:
+    return bool(plan.fiducials or plan.path_complete or plan.T_base_cam is not None)
+
+
+def load_saved_plan(path, min_usable: int, last_saved: dict | None = None, key=None) -> SavedPlan:
     """Read ``plan.json`` at start-up; never raises. An unreadable file, or one with invalid
     fields, is copied aside (``plan.unreadable-*`` / ``plan.rejected-*``) and named in an alarm;
-    the plan holds what is valid (or is empty). A content hash that does not match (an edit made
-    outside the app) asks for re-confirmation."""
-    from monotracker.engine.integrity import plan_stamp_problem
+    the plan holds what is valid (or is empty).
+
+    Whether the file is the app's own (:func:`~monotracker.engine.integrity.judge_saved_plan`):
+    ``last_saved`` is the audit chain's newest ``plan_saved`` row (its data), ``key`` this
+    machine's :class:`~monotracker.engine.integrity.IntegrityKey`. A file that is not (changed
+    outside the app, its content hash recomputed or not) is copied aside as
+    ``plan.changed-outside-*``; the app's last plan from the audit chain is the plan (else an empty
+    one), with a ``plan_changed_outside`` alarm naming the differences and a re-confirmation
+    before arming. A file neither can judge (an older version's) falls back to its unkeyed
+    content hash: one that does not match asks for re-confirmation."""
+    from monotracker.engine.integrity import judge_saved_plan, plan_content_sha256, plan_stamp_problem, summarise_changes
 
     try:
         raw = read_json(path)
@@ -243,15 +261,47 @@ def load_saved_plan(path, min_usable: int) -> SavedPlan:
                        f"saved plan: {names} not restored ({rejected[0].reason}); {where}",
                        {"rejected": [{"field": r.field, "reason": r.reason} for r in rejected],
                         "kept_as": None if keep is None else str(keep)}))
-    stamp = plan_stamp_problem(raw)
-    if stamp is not None and (plan.fiducials or plan.path_complete or plan.T_base_cam is not None):
+    verdict = judge_saved_plan(raw, last_saved, key)
+    sha = plan_content_sha256(raw)
+    if verdict is not None and not verdict.ok:
+        return _changed_outside(path, verdict, min_usable, alarms, keep, rejected, summarise_changes)
+    stamp = plan_stamp_problem(raw) if verdict is None else None
+    if stamp is not None and _has_content(plan):
         alarms.append(("plan_changed_outside", f"{stamp}; re-confirm the plan before arming", {}))
         reconfirm.append(stamp)
     pending = plan.integrity.get("reconfirm_pending")
     if pending and stamp is None:
         alarms.append(("plan_reconfirm_pending", f"{pending}; re-confirm the plan before arming", {}))
         reconfirm.append(pending)
-    return SavedPlan(plan, alarms, reconfirm, keep, tuple(rejected))
+    return SavedPlan(plan, alarms, reconfirm, keep, tuple(rejected),
+                     interrupted=verdict is not None and verdict.interrupted, sha256=sha)
+
+
+def _changed_outside(path, verdict, min_usable, alarms, keep, rejected, summarise_changes) -> SavedPlan:
+    """The file is not the app's own: keep it aside, start from the app's last plan (or empty)."""
+    aside = _keep_aside(path, "changed-outside")
+    where = f"the edited file is kept as {aside.name}" if aside else "the edited file could not be copied aside"
+    plan = Plan()
+    if verdict.app_plan is not None:
+        try:
+            plan, _ = restore_plan(verdict.app_plan, min_usable)
+        except ValueError:  # never expected: the app wrote it
+            plan = Plan()
+    if _has_content(plan):
+        restored = f"the app's last plan (revision {plan.revision}) is restored"
+    elif verdict.app_plan is not None:
+        restored = "the app's last plan (empty) is restored"
+    else:
+        restored = "no earlier plan of the app to restore: starting empty"
+    what = summarise_changes(list(verdict.changes)) if verdict.changes else ""
+    head = f"plan.json was changed outside the app ({verdict.how})" + (f": {what}" if what else "")
+    line = f"{head}; {restored}; {where}"
+    need = _has_content(plan)
+    alarms.append(("plan_changed_outside", line + ("; re-confirm the plan before arming" if need else ""),
+                   {"changes": list(verdict.changes), "how": verdict.how, "kept_as": None if aside is None else str(aside),
+                    "restored_revision": plan.revision if verdict.app_plan is not None else None}))
+    reconfirm = [f"{head}; the app's last plan was restored"] if need else []
+    return SavedPlan(plan, alarms, reconfirm, aside or keep, tuple(rejected), outside=True)
 
 
 def plan_from_dict(d: dict, min_usable: int = 3) -> Plan:
@@ -293,24 +343,50 @@ class PlanStore:
 
     ``plan`` is read and replaced only under the session's state lock (the editor's
     transactions hold it). ``home_unwritable``: the last save failure while the folder is not
-    writable (None once a save succeeds again). ``events``: the event bus for the alarms."""
+    writable (None once a save succeeds again). ``events``: the event bus for the alarms.
+    ``audit``: the session's :class:`~monotracker.engine.audit.AuditLog` (None: library use, no
+    ``plan_saved`` rows). ``saved_sha``: the content digest of the plan on disk (None: none yet)."""
 
-    def __init__(self, path: Path, home: Path, events):
+    def __init__(self, path: Path, home: Path, events, audit=None):
         self.path = Path(path)
         self.home = Path(home)
         self.plan = Plan()
         self.home_unwritable: str | None = None
+        self.saved_sha: str | None = None
         self._events = events
+        self._audit = audit
 
     def commit(self, plan: Plan, why: str) -> str | None:
         """Save ``plan`` (a modified copy) and only then make it the current plan; the caller holds
         the lock. Returns None when saved and swapped in, else a one-line reason (memory unchanged,
-        a ``home_unwritable`` alarm stands until a save succeeds again)."""
+        a ``home_unwritable`` alarm stands until a save succeeds again).
+
+        With an audit log the save first writes a ``plan_saved`` row (the plan, its content digest
+        and the digest of the plan it replaces) durably (committed or spilled with fsync): a
+        ``kill -9`` between the row and the file leaves the file one save behind its row, which the
+        restore recognises (:func:`~monotracker.engine.integrity.judge_saved_plan`); never a plan
+        on disk that the audit chain does not know. No row, no save."""
+        from monotracker.engine.integrity import plan_content_sha256
+
         plan.revision = self.plan.revision + 1
+        d = plan.to_dict()
+        sha = plan_content_sha256(d)
+        if self._audit is not None:
+            ok = self._audit.record_durable("event", "info", "plan_saved", f"plan saved (revision {plan.revision}): {why}",
+                                            {"plan": d, "plan_sha256": sha, "previous_sha256": self.saved_sha,
+                                             "revision": plan.revision, "why": why})
+            if not ok:
+                reason = "not saved (the audit log could not record the change): the plan on disk and in memory are unchanged"
+                self._events.alert("alarm", "plan_save_failed", f"{why}: {reason}", {"why": why})
+                return reason
         try:
-            plan.save(self.path)
+            atomic_write_json(self.path, d)
         except OSError as exc:
             reason = f"not saved ({exc.strerror or exc}): the plan on disk and in memory are unchanged"
+            if self._audit is not None:  # the chain's last plan is the one still on disk
+                self._audit.record("event", "info", "plan_saved", f"plan not saved ({why}): the plan on disk is unchanged",
+                                   {"plan": self.plan.to_dict(), "plan_sha256": self.saved_sha, "previous_sha256": sha,
+                                    "revision": self.plan.revision, "why": f"save failed: {why}"})
             if self.home_unwritable is None:
                 self._events.alert("alarm", "home_unwritable", f"cannot write the session folder {self.home}: "
                                    f"{exc.strerror or exc}; changes are refused until it is writable",
@@ -319,6 +395,7 @@ class PlanStore:
             self.home_unwritable = str(exc)
             return reason
         self.plan = plan
+        self.saved_sha = sha
         if self.home_unwritable is not None:
             self.home_unwritable = None
             self._events.alert("info", "home_writable", f"session folder {self.home} is writable again")

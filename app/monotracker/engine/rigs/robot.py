@@ -210,7 +210,8 @@ class TrackerRobotRig(RobotRig):
         if snap is None:
             return RobotStatus("disarmed", False, "not started")
         now = float(self.clock())
-        if self._status_cache is not None and self._status_cache[0] == now:
+        key = (now, self.tracker.state.value)  # a command at the same instant changes the state
+        if self._status_cache is not None and self._status_cache[0] == key:
             return self._status_cache[1]
         if self.sim_arm is not None:
             from monotracker.robot.units import transform_m_to_mm
@@ -237,5 +238,5 @@ class TrackerRobotRig(RobotRig):
                          t_command=snap.t, program_fault=snap.program_fault,
                          control="in-process thread" if self.tracker._thread is not None else "in-process, stepped",
                          response_s=self._response_s)
-        self._status_cache = (now, st)
+        self._status_cache = (key, st)
         return st
