@@ -70,13 +70,14 @@ def cpu_hogs(pytestconfig):
     return list(getattr(pytestconfig, "_mt_hogs", []))
 
 
-#: Test files that run in the serial lane (one pytest-xdist worker, one after another; see
+#: Test files that run in the serial lane (one pytest-xdist worker, one test after another; see
 #: scripts/test.sh): the browser tests (each drives chromium, which renders the 3D view in
 #: software, against an engine on the real clock) and the files that drive the engine, a pose
 #: stream or a recording on the real clock against the engine's own limits (a pose older than
 #: 0.15 s holds the arm), which failed in the suite at high load before (issue 35). The other
 #: worker runs the rest beside them: the serial lane shares the machine with one test at a time,
-#: not with another browser or real-clock test. Tests marked ``realtime`` join it wherever they are.
+#: never with another browser or real-clock test. A file with a ``realtime`` test belongs here
+#: (collection says so otherwise).
 SERIAL_LANE = (
     "tests/ui/",
     "tests/examples/",
@@ -88,17 +89,38 @@ SERIAL_LANE = (
 )
 
 
-def _in_serial_lane(item) -> bool:
-    path = Path(str(item.path)).resolve().relative_to(ROOT).as_posix()
-    return item.get_closest_marker("realtime") is not None or any(path.startswith(p) for p in SERIAL_LANE)
+def in_serial_lane(nodeid: str) -> bool:
+    """True for a test (pytest node id, relative to the repository) of :data:`SERIAL_LANE`."""
+    return nodeid.split("::", 1)[0].startswith(SERIAL_LANE)
 
 
 def pytest_collection_modifyitems(config, items):
-    """Put the serial lane's tests in one ``xdist_group`` (``--dist loadgroup`` runs a group on
-    one worker); without pytest-xdist the marker does nothing."""
+    """A ``realtime`` test outside the serial lane is a usage error: it would share the machine
+    with any other test."""
     for item in items:
-        if _in_serial_lane(item):
-            item.add_marker(pytest.mark.xdist_group("serial"))
+        if item.get_closest_marker("realtime") is not None:
+            rel = Path(str(item.path)).resolve().relative_to(ROOT).as_posix()
+            if not rel.startswith(SERIAL_LANE):
+                raise pytest.UsageError(f"{item.nodeid} is marked realtime: add {rel} to SERIAL_LANE in tests/conftest.py")
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: unknown (and unused) without it
+def pytest_xdist_make_scheduler(config, log):
+    """With ``--dist loadgroup`` (scripts/test.sh): pytest-xdist's group scheduling, with the
+    serial lane as one group, sent first (the largest unit) to one worker while the other workers
+    take the remaining tests one by one. (Grouping by node id here: pytest-xdist 3.8's
+    ``xdist_group`` marker does not group on pytest 9.2, which made node ids read-only.)"""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class SerialLaneScheduling(LoadGroupScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            if in_serial_lane(nodeid):
+                return "serial-lane"
+            return super()._split_scope(nodeid)
+
+    return SerialLaneScheduling(config, log)
 
 
 def pytest_report_header(config):
