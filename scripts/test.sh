@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Installs what the tests need, checks the house rules (ruff, the import contracts: see
-# CONTRIBUTING.md), then runs the whole suite. Extra arguments go to pytest.
+# CONTRIBUTING.md), then runs the whole suite (2 workers, see below). Extra arguments go to pytest.
 # The web app's end-to-end tests drive Debian's chromium (never a downloaded browser).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,4 +18,11 @@ fi
 bash scripts/setup.sh
 .venv/bin/ruff check --quiet app tests benchmarks examples scripts
 .venv/bin/lint-imports --no-cache --no-logo >/dev/null || .venv/bin/lint-imports --no-cache --no-logo
-exec .venv/bin/python -m pytest "$@"
+# Two pytest-xdist workers (MONOTRACKER_TEST_WORKERS: another count, 0 = one process): the tests in
+# tests/conftest.py's serial lane (browser, real-clock engine, realtime) run one after another on
+# one worker while the other worker runs the rest (issue 35). Arguments after ours win (-n 0).
+workers="${MONOTRACKER_TEST_WORKERS:-2}"
+if [ "$workers" = "0" ]; then
+  exec .venv/bin/python -m pytest "$@"
+fi
+exec .venv/bin/python -m pytest -n "$workers" --dist loadgroup "$@"

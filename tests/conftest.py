@@ -2,7 +2,8 @@
 
 CPU hogs beside the tests: ``MONOTRACKER_TEST_HOGS=4 .venv/bin/python -m pytest tests/ui/test_e2e.py``
 runs 4 busy loops (``benchmarks/_hogs.py``: nice 0, whatever priority the engine gave the test
-process) for the whole pytest session, as a loaded machine would. The tests must hold on such a
+process) for the whole pytest session, as a loaded machine would (4 in all, also when pytest-xdist
+runs several workers: the controller starts them). The tests must hold on such a
 machine (they wait on state, never on wall-clock guesses); this is how to check it. The hogs are killed when the
 session ends and end by themselves if pytest dies (each watches its parent). Default: none.
 """
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import pytest
 
+ROOT = Path(__file__).resolve().parents[1]
 
 def _hogs_module():
     """``benchmarks/_hogs.py``: the one way the benchmarks and the tests start CPU hogs (loaded by
@@ -37,11 +39,88 @@ def _hog_count() -> int:
     return n
 
 
+def _is_xdist_worker(config) -> bool:
+    """True in a pytest-xdist worker (the controller, or a plain pytest run, starts the hogs)."""
+    return hasattr(config, "workerinput")
+
+
+def pytest_sessionstart(session):
+    """Start the hogs once per run: in the controller when pytest-xdist runs workers (each
+    worker starting its own would multiply them), else in this process."""
+    config = session.config
+    config._mt_hogs = []
+    if not _is_xdist_worker(config):
+        n = _hog_count()
+        if n:
+            config._mt_hogs = _hogs_module().start_hogs(n)
+
+
+def pytest_sessionfinish(session):
+    procs = getattr(session.config, "_mt_hogs", [])
+    if procs:
+        _hogs_module().stop_hogs(procs)
+        session.config._mt_hogs = []
+
+
 @pytest.fixture(scope="session", autouse=True)
-def cpu_hogs():
-    """The hog processes (empty without ``MONOTRACKER_TEST_HOGS``)."""
-    with _hogs_module().hogs(_hog_count()) as procs:
-        yield procs
+def cpu_hogs(pytestconfig):
+    """The hog processes this process started (empty without ``MONOTRACKER_TEST_HOGS``, and in a
+    pytest-xdist worker: the controller runs them for all workers)."""
+    _hog_count()  # a bad value is a usage error in every process
+    return list(getattr(pytestconfig, "_mt_hogs", []))
+
+
+#: Test files that run in the serial lane (one pytest-xdist worker, one test after another; see
+#: scripts/test.sh): the browser tests (each drives chromium, which renders the 3D view in
+#: software, against an engine on the real clock) and the files that drive the engine, a pose
+#: stream or a recording on the real clock against the engine's own limits (a pose older than
+#: 0.15 s holds the arm), which failed in the suite at high load before (issue 35). The other
+#: worker runs the rest beside them: the serial lane shares the machine with one test at a time,
+#: never with another browser or real-clock test. A file with a ``realtime`` test belongs here
+#: (collection says so otherwise).
+SERIAL_LANE = (
+    "tests/ui/",
+    "tests/examples/",
+    "tests/engine/test_digital_twin.py",
+    "tests/engine/test_pose_pipeline.py",
+    "tests/vision/test_pose_stream.py",
+    "tests/interop/test_recording_replay.py",
+    "tests/interop/test_replay_camera.py",
+)
+
+
+def in_serial_lane(nodeid: str) -> bool:
+    """True for a test (pytest node id, relative to the repository) of :data:`SERIAL_LANE`."""
+    return nodeid.split("::", 1)[0].startswith(SERIAL_LANE)
+
+
+def pytest_collection_modifyitems(config, items):
+    """A ``realtime`` test outside the serial lane is a usage error: it would share the machine
+    with any other test."""
+    for item in items:
+        if item.get_closest_marker("realtime") is not None:
+            rel = Path(str(item.path)).resolve().relative_to(ROOT).as_posix()
+            if not rel.startswith(SERIAL_LANE):
+                raise pytest.UsageError(f"{item.nodeid} is marked realtime: add {rel} to SERIAL_LANE in tests/conftest.py")
+
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: unknown (and unused) without it
+def pytest_xdist_make_scheduler(config, log):
+    """With ``--dist loadgroup`` (scripts/test.sh): pytest-xdist's group scheduling, with the
+    serial lane as one group, sent first (the largest unit) to one worker while the other workers
+    take the remaining tests one by one. (Grouping by node id here: pytest-xdist 3.8's
+    ``xdist_group`` marker does not group on pytest 9.2, which made node ids read-only.)"""
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class SerialLaneScheduling(LoadGroupScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            if in_serial_lane(nodeid):
+                return "serial-lane"
+            return super()._split_scope(nodeid)
+
+    return SerialLaneScheduling(config, log)
 
 
 def pytest_report_header(config):

@@ -63,14 +63,34 @@ def port() -> int:
     return free_port()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def browser():
+    """One headless chromium for the whole run (issue 35: it was launched again for every test
+    module). Each test opens its own pages; :func:`_close_pages_left_open` closes whatever a
+    test left open, so no tab of an earlier test keeps rendering (or reconnecting to a stopped
+    server) beside the next one."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=display_browser_path(), headless=True, args=CHROMIUM_ARGS)
         yield b
         b.close()
+
+
+@pytest.fixture(autouse=True)
+def _close_pages_left_open(request):
+    """After a test that used :func:`browser`: close its pages and contexts (a page left open
+    kept rendering the 3D view in software until its module ended, taking CPU from the tests
+    after it)."""
+    yield
+    if "browser" not in request.fixturenames:
+        return
+    b = request.getfixturevalue("browser")
+    for ctx in list(b.contexts):
+        try:
+            ctx.close()
+        except Exception:  # noqa: BLE001 - a context the test already closed, or a browser gone: nothing left to close
+            pass
 
 
 @pytest.fixture

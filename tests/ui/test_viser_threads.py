@@ -12,6 +12,7 @@ on the broadcast buffer and on every tab's buffer.
 from __future__ import annotations
 
 import asyncio
+import os
 import sys
 import threading
 import time
@@ -21,6 +22,11 @@ from browser_helpers import open_page
 
 pytestmark = pytest.mark.timeout(300)
 CLIENTS = 6
+#: how long (s) the unfixed event is hammered to show the race. 15 s, as long as the fixed event is
+#: checked below; on some machines/Pythons the race never shows (CI: none in 415984 tries over
+#: 120 s, and the test skips), so a longer default would only cost suite time there. Hunt longer
+#: with MONOTRACKER_RACE_HUNT_S=120.
+RACE_HUNT_S = float(os.environ.get("MONOTRACKER_RACE_HUNT_S", "15"))
 
 
 def _hammer(fixed: bool, seconds: float) -> tuple[list[str], int, int]:
@@ -150,20 +156,24 @@ def _event_race(fixed: bool, seconds: float) -> tuple[int, int, int]:
     return calls, errors, woken[0]
 
 
+@pytest.mark.realtime
 def test_unfixed_event_races():
-    """The race is real (else the fix below is not proven by anything)."""
-    calls, errors, woken = _event_race(fixed=False, seconds=120.0)
+    """The race is real (else the fix below is not proven by anything). Real time: hammers the
+    event for :data:`RACE_HUNT_S` s of wall clock (never retried)."""
+    calls, errors, woken = _event_race(fixed=False, seconds=RACE_HUNT_S)
     if not errors:
         pytest.skip(f"no race in {calls} tries on this machine/Python (asyncio.Event.set from another thread)")
     assert errors >= 1
 
 
+@pytest.mark.realtime
 def test_loop_safe_event_does_not_race_and_wakes():
     calls, errors, woken = _event_race(fixed=True, seconds=15.0)
     assert errors == 0 and calls > 1000
     assert woken > 0  # waiters are still woken (by the loop)
 
 
+@pytest.mark.realtime
 def test_fixed_viser_buffer_does_not_race():
     """viser's buffer with the fix, fed from 2 threads with 6 senders: no error, every sender drains it."""
     errors, pushed, received = _hammer(fixed=True, seconds=10.0)
