@@ -70,14 +70,12 @@ def cpu_hogs(pytestconfig):
     return list(getattr(pytestconfig, "_mt_hogs", []))
 
 
-#: Test files that run in the serial lane (one pytest-xdist worker, one test after another; see
-#: scripts/test.sh): the browser tests (each drives chromium, which renders the 3D view in
-#: software, against an engine on the real clock) and the files that drive the engine, a pose
-#: stream or a recording on the real clock against the engine's own limits (a pose older than
-#: 0.15 s holds the arm), which failed in the suite at high load before (issue 35). The other
-#: worker runs the rest beside them: the serial lane shares the machine with one test at a time,
-#: never with another browser or real-clock test. A file with a ``realtime`` test belongs here
-#: (collection says so otherwise).
+#: Test files of the serial lane (scripts/test.sh runs them one after another, alone, after the
+#: rest has run on 2 pytest-xdist workers): the browser tests (each drives chromium, which renders
+#: the 3D view in software, against an engine on the real clock) and the files that drive the
+#: engine, a pose stream or a recording on the real clock against the engine's own limits (a pose
+#: older than 0.15 s holds the arm), which failed in the suite at high load before (issue 35). A
+#: file with a ``realtime`` test belongs here (collection says so otherwise).
 SERIAL_LANE = (
     "tests/ui/",
     "tests/examples/",
@@ -89,38 +87,32 @@ SERIAL_LANE = (
 )
 
 
-def in_serial_lane(nodeid: str) -> bool:
-    """True for a test (pytest node id, relative to the repository) of :data:`SERIAL_LANE`."""
-    return nodeid.split("::", 1)[0].startswith(SERIAL_LANE)
+def pytest_addoption(parser):
+    parser.addoption("--lane", choices=("all", "parallel", "serial"), default="all",
+                     help="run only the tests of tests/conftest.py's SERIAL_LANE (serial), only the "
+                          "others (parallel), or all (default); scripts/test.sh runs the parallel "
+                          "part on 2 workers, then the serial lane alone")
+
+
+def _rel(item) -> str:
+    return Path(str(item.path)).resolve().relative_to(ROOT).as_posix()
 
 
 def pytest_collection_modifyitems(config, items):
     """A ``realtime`` test outside the serial lane is a usage error: it would share the machine
-    with any other test."""
+    with any other test. ``--lane`` keeps one side of the lane (the rest is deselected)."""
     for item in items:
-        if item.get_closest_marker("realtime") is not None:
-            rel = Path(str(item.path)).resolve().relative_to(ROOT).as_posix()
-            if not rel.startswith(SERIAL_LANE):
-                raise pytest.UsageError(f"{item.nodeid} is marked realtime: add {rel} to SERIAL_LANE in tests/conftest.py")
-
-
-@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist: unknown (and unused) without it
-def pytest_xdist_make_scheduler(config, log):
-    """With ``--dist loadgroup`` (scripts/test.sh): pytest-xdist's group scheduling, with the
-    serial lane as one group, sent first (the largest unit) to one worker while the other workers
-    take the remaining tests one by one. (Grouping by node id here: pytest-xdist 3.8's
-    ``xdist_group`` marker does not group on pytest 9.2, which made node ids read-only.)"""
-    if config.getvalue("dist") != "loadgroup":
-        return None
-    from xdist.scheduler import LoadGroupScheduling
-
-    class SerialLaneScheduling(LoadGroupScheduling):
-        def _split_scope(self, nodeid: str) -> str:
-            if in_serial_lane(nodeid):
-                return "serial-lane"
-            return super()._split_scope(nodeid)
-
-    return SerialLaneScheduling(config, log)
+        if item.get_closest_marker("realtime") is not None and not _rel(item).startswith(SERIAL_LANE):
+            raise pytest.UsageError(f"{item.nodeid} is marked realtime: add {_rel(item)} to SERIAL_LANE in tests/conftest.py")
+    lane = config.getoption("--lane")
+    if lane == "all":
+        return
+    keep, drop = [], []
+    for item in items:
+        (keep if _rel(item).startswith(SERIAL_LANE) == (lane == "serial") else drop).append(item)
+    if drop:
+        config.hook.pytest_deselected(items=drop)
+        items[:] = keep
 
 
 def pytest_report_header(config):
