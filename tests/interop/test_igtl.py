@@ -136,8 +136,8 @@ def test_every_trusted_pose_is_sent_once_stamped_with_its_capture_time(fresh_hom
         assert len(got) == len(want), (device, len(got), len(want))  # one message per trusted pose
         assert np.allclose(got, want, atol=1e-5), device  # each with its own capture time
     # and nothing else: no message for an untrusted pose
-    untrusted = np.array([t for t, ok in poses if not ok])
-    assert not any(np.isclose(untrusted[:, None], cam[None], atol=1e-6).any(axis=1)) if len(untrusted) else True
+    untrusted = np.array([t for t, ok in poses if not ok]).reshape(-1, 1)
+    assert not np.isclose(untrusted, cam[None, :], atol=1e-6).any()
 
 
 def test_no_pose_is_sent_while_the_fiducials_are_covered(fresh_home):
