@@ -23,6 +23,7 @@ class FakeFrame:
     t_capture: float
     index: int
     T_cam_ct: np.ndarray
+    content: int = 0  # stands for the image: the index of the frame it was captured as
 
 
 class TruthCameraRig(CameraRig):
@@ -48,10 +49,17 @@ class TruthCameraRig(CameraRig):
 
     def capture(self, t):
         if self.fault == "camera-freeze" and self._last is not None:
-            return self._last
+            # a frozen camera as sim/faults.py defines it: the driver keeps delivering, newly
+            # stamped, the last frame's content bit for bit
+            self._index += 1
+            return FakeFrame(t, self._index, self._last.T_cam_ct, self._last.content)
         self._index += 1
-        self._last = FakeFrame(t, self._index, self.truth_T_cam_ct(t))
+        self._last = FakeFrame(t, self._index, self.truth_T_cam_ct(t), self._index)
         return self._last
+
+    def frame_digest(self, frame):
+        """The frame's content: equal only for a frozen camera's repeats."""
+        return frame.content
 
     def estimate(self, frame):
         n = 0 if self.fault == "occlude-all" else int(self.visible(frame.t_capture))

@@ -143,10 +143,11 @@ def test_demo_runner_reports_truth_metrics_and_fault(tmp_path):
     r = run_demo(DemoOptions(seconds=5.0, trajectory="breathing", fault="camera-freeze", home=tmp_path / "h"),
                  camera_factory=lambda *a: TruthCameraRig("breathing"),
                  robot_factory=lambda *a: FollowerRobotRig())
-    assert r["frames"] > 85 and r["tip_error_mm"]["max"] < 1.0  # frames stop at the freeze (t = 3 s)
+    assert r["frames"] > 85 and r["tip_error_mm"]["max"] < 1.0  # new frames stop at the freeze (t = 3 s)
     fr = r["fault_report"]
     assert fr["engine_reported"].startswith("[alarm] camera_freeze")
-    # detected 0.1 s after the LAST frame, which came up to one frame period before the fault
-    assert 0.1 - 1 / 30 - 0.01 < fr["detection_delay_s"] <= 0.1 + 0.01 and fr["standstill_after_detection_s"] <= 0.1
+    # the frozen camera repeats its frame bit for bit: detected at the first repeat, at most one
+    # frame period (+ one control tick) after the fault
+    assert 0 <= fr["detection_delay_s"] <= 1 / 30 + 1 / 125 + 1e-9 and fr["standstill_after_detection_s"] <= 0.1
     assert fr["plan_intact"]
     assert "camera_freeze" in format_report(r)

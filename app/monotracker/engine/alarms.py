@@ -13,6 +13,14 @@ when a condition holds and :meth:`clear` when it is over, as often as they like)
 * ``linger_s`` (per code): the shortest time a condition stays shown after it was last set, so a
   one-tick glitch is readable and a condition re-set within that time stays one episode (this is
   display hysteresis; the engine's decisions never wait on it);
+* the *dwell* of a condition that may flap (``raise_after_s`` / ``clear_after_s``, per code): it
+  becomes an episode (shown, counted, reported) only once it has stood for ``raise_after_s``
+  since it was first set, short gaps included, and the episode ends only once it has been
+  absent (cleared and not set again) for ``clear_after_s``. A condition set again within
+  ``clear_after_s`` of its clear is the same episode, so a condition toggling every 100 ms is one
+  alarm, not one per toggle; one that ends before ``raise_after_s`` was never an episode (the
+  snapshot's pose and robot state still say what happened). Like ``linger_s`` this is only what
+  is *shown and reported*: the arm's hold is the caller's, immediate, and never waits on it;
 * ``set`` returns True when the caller should write an alert (audit row): every new episode of
   a safety condition, but for *technical* conditions (stale pose, control-loop overrun, ...) at
   most one per ``quiet_s`` (10 s); the episodes in between are counted (``Alarm.count``) and the
@@ -29,7 +37,11 @@ can rely on:
 pose disagrees with the last trusted one (a wrong pose or a real jump; followed after
 ``confirm_frames`` consistent frames), arm holds; ``bad_pose`` [warning] FRE too large; ``pose_lost``
 [warning] the estimator failed; ``pose_stale`` [warning] freshest trusted pose older than
-``max_pose_age_s``; ``camera_freeze`` [alarm] no new frame for ``freeze_after_s``; ``resumed`` [info]
+``max_pose_age_s``; ``camera_freeze`` [alarm] the camera repeats its frames bit for bit (a frozen
+driver); ``camera_late`` [warning] frames still arrive, new ones, but none for ``freeze_after_s``
+(a busy machine or a slow pipeline: the arm holds until fresh poses return, as the robot's own
+0.1 s freshness rule makes it); ``camera_stalled`` [alarm] no new frame at all for
+``stall_after_s`` (a camera that stopped delivering or was unplugged); ``resumed`` [info]
 the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``fiducials_back``
 [info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
 [warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
@@ -87,6 +99,8 @@ class AlarmKind:
     and shown while that camera runs. ``pulse``: shown for its linger time from each report (it
     has no end of its own). ``derived``: the session derives it from its state at every snapshot.
     ``verdict``: the trust verdict's code for it where that differs (``GateVerdict.code``).
+    ``raise_after_s`` / ``clear_after_s``: the dwell of a condition that may flap (see the module
+    docstring): an episode only once it stood this long, over only once absent this long (s).
     """
 
     level: str
@@ -99,9 +113,16 @@ class AlarmKind:
     pulse: bool = False
     derived: bool = False
     verdict: str = ""
+    raise_after_s: float = 0.0
+    clear_after_s: float = 0.0
 
 
 _HOLD = {"holds_arm": True}
+#: the dwell of the freshness conditions that flap on a busy machine (s): raised once they stood
+#: 0.5 s (a single late frame is no alarm, a busy spell is), ended once absent for 60 s (a spell
+#: that comes back within a minute is the same episode: at most one episode a minute)
+_FLAP_RAISE_S = 0.5
+_FLAP_CLEAR_S = 60.0
 #: every code that reaches the board (``tests/engine/test_alarm_catalogue.py`` fails on a code
 #: without a row). A code the board does not know is shown as an alarm right under the e-stop and
 #: logged as an error: never hidden, never rate-limited.
@@ -116,7 +137,10 @@ CATALOGUE: dict[str, AlarmKind] = {
     "bad_pose": AlarmKind("warning", 3, verdict="fre", **_HOLD),  # FRE too large
     "pose_jump": AlarmKind("warning", 3, verdict="jump", **_HOLD),  # pose disagrees with the last trusted one
     "occlusion": AlarmKind("warning", 4, **_HOLD),
+    # bit-identical frames: a frozen driver, at once (tests/engine/test_frozen_camera.py)
     "camera_freeze": AlarmKind("alarm", 5, freshness=True, **_HOLD),
+    # no new frame at all for stall_after_s: the camera stopped delivering
+    "camera_stalled": AlarmKind("alarm", 5, freshness=True, **_HOLD),
     "camera_failed": AlarmKind("alarm", 5, linger_s=0.0),
     "camera_stopped": AlarmKind("warning", 6, linger_s=0.0, **_HOLD),
     "camera_disconnected": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),
@@ -129,7 +153,12 @@ CATALOGUE: dict[str, AlarmKind] = {
     "weak_geometry": AlarmKind("warning", 3, **_HOLD),
     "pose_implausible": AlarmKind("warning", 3, **_HOLD),
     "fiducial_moved": AlarmKind("warning", 3, linger_s=0.0),
-    "pose_stale": AlarmKind("warning", 7, technical=True, freshness=True, **_HOLD),
+    # freshness on a busy machine (issue 33): the arm holds at once, the board shows one episode
+    # per busy spell (shown once it stood 0.5 s, flaps included; over after 30 s without)
+    "camera_late": AlarmKind("warning", 7, technical=True, freshness=True, raise_after_s=_FLAP_RAISE_S,
+                             clear_after_s=_FLAP_CLEAR_S, **_HOLD),
+    "pose_stale": AlarmKind("warning", 7, technical=True, freshness=True, raise_after_s=_FLAP_RAISE_S,
+                            clear_after_s=_FLAP_CLEAR_S, **_HOLD),
     "plan_save_failed": AlarmKind("alarm", 8, linger_s=0.0),
     # a plan revision reached an armed / tracking / holding robot: it was disarmed (arming is for one plan)
     "plan_changed_armed": AlarmKind("alarm", 8, linger_s=0.0),
@@ -198,6 +227,14 @@ class _State:
     last_set: float
     clear_asked: bool = False
     data: dict | None = None
+    raised: bool = True  # False: inside its raise dwell (not shown, counted or reported yet)
+    cleared_at: float | None = None  # the clear that began the current absence (s)
+
+
+def _over(st: _State, k: AlarmKind, now: float) -> bool:
+    """The condition has been absent long enough to leave the board (linger and clear dwell)."""
+    return (st.clear_asked and now - st.last_set >= k.linger_s
+            and (st.cleared_at is None or now - st.cleared_at >= k.clear_after_s))
 
 
 class AlarmBoard:
@@ -231,19 +268,35 @@ class AlarmBoard:
         now = float(now)
         with self._lock:
             st = self._active.get(code)
+            if st is not None and st.clear_asked and _over(st, k, now):
+                del self._active[code]  # absent long enough: this is a new episode
+                st = None
             if st is not None:
-                st.message, st.last_set, st.clear_asked = message, now, False
+                st.message, st.last_set, st.clear_asked, st.cleared_at = message, now, False, None
                 if LEVEL_RANK.get(lvl, 1) < LEVEL_RANK.get(st.level, 1):
                     st.level = lvl  # worsened within the episode (e.g. tracking started)
+                if not st.raised and now - st.since >= k.raise_after_s:
+                    return self._raise(code, k, st, now)  # it stood its raise dwell (gaps included)
                 return False
-            self._active[code] = _State(lvl, message, now, now)
-            self._episodes[code] = self._episodes.get(code, 0) + 1
-            if k.technical and now - self._last_report.get(code, -float("inf")) < self.quiet_s:
-                self._held_back[code] = self._held_back.get(code, 0) + 1
-                return False
-            self._last_report[code] = now
-            self._unreported[code] = self._held_back.pop(code, 0)
-            return True
+            st = self._active[code] = _State(lvl, message, now, now, raised=k.raise_after_s <= 0)
+            return self._raise(code, k, st, now) if st.raised else False
+
+    def _raise(self, code: str, k: AlarmKind, st: _State, now: float) -> bool:
+        """A new episode of ``code`` (lock held): count it; True when it is to be reported."""
+        st.raised = True
+        self._episodes[code] = self._episodes.get(code, 0) + 1
+        if k.technical and now - self._last_report.get(code, -float("inf")) < self.quiet_s:
+            self._held_back[code] = self._held_back.get(code, 0) + 1
+            return False
+        self._last_report[code] = now
+        self._unreported[code] = self._held_back.pop(code, 0)
+        return True
+
+    def pending(self, code: str) -> bool:
+        """``code`` was set and is inside its raise dwell (not an episode yet)."""
+        with self._lock:
+            st = self._active.get(code)
+            return st is not None and not st.raised
 
     def unreported(self, code: str) -> int:
         """Episodes of ``code`` held back before its latest report (for that report's message;
@@ -252,18 +305,21 @@ class AlarmBoard:
             return self._unreported.pop(code, 0)
 
     def clear(self, code: str, now: float) -> bool:
-        """The condition is over at ``now``; it leaves the list once shown for ``linger_s``.
-        Returns True if it was active."""
+        """The condition is over at ``now``; it leaves the list once shown for ``linger_s`` and,
+        with a clear dwell, once absent for ``clear_after_s`` (set again before that: the same
+        episode). Returns True if it was active (an episode, not a condition inside its raise
+        dwell)."""
         now = float(now)
         with self._lock:
             st = self._active.get(code)
             if st is None:
                 return False
-            if now - st.last_set >= self.kind(code).linger_s:
+            k = self.kind(code)
+            if not st.clear_asked:
+                st.clear_asked, st.cleared_at = True, now
+            if _over(st, k, now) or (not st.raised and k.clear_after_s <= 0):
                 del self._active[code]
-            else:
-                st.clear_asked = True
-            return True
+            return st.raised
 
     def clear_all(self, codes, now: float, keep: str | None = None) -> None:
         """``clear`` every code in ``codes`` except ``keep``."""
@@ -272,8 +328,10 @@ class AlarmBoard:
                 self.clear(c, now)
 
     def is_active(self, code: str) -> bool:
+        """``code`` is an episode on the board (shown), lingering or dwelling included."""
         with self._lock:
-            return code in self._active
+            st = self._active.get(code)
+            return st is not None and st.raised
 
     def episodes(self, code: str) -> int:
         """How many times ``code`` began since the session started."""
@@ -285,13 +343,20 @@ class AlarmBoard:
         oldest first)."""
         now = float(now)
         with self._lock:
-            for code in [c for c, st in self._active.items()
-                         if st.clear_asked and now - st.last_set >= self.kind(c).linger_s]:
+            for code in [c for c, st in self._active.items() if _over(st, self.kind(c), now)]:
                 del self._active[code]
-            items = [Alarm(code, st.level, self.kind(code).priority, st.message, st.since, self._episodes[code])
-                     for code, st in self._active.items()]
+            items = [Alarm(code, st.level, self.kind(code).priority, self._shown(code, st, now), st.since,
+                           self._episodes[code])
+                     for code, st in self._active.items() if st.raised]
         items.sort(key=lambda a: (a.priority, LEVEL_RANK.get(a.level, 1), a.since, a.code))
         return tuple(items)
+
+
+    def _shown(self, code: str, st: _State, now: float) -> str:
+        """The message shown: a condition kept by its clear dwell says how long it has been away."""
+        if st.clear_asked and st.cleared_at is not None and self.kind(code).clear_after_s > 0:
+            return f"{st.message} (last {now - st.cleared_at:.0f} s ago)"
+        return st.message
 
 
 class Alarms:

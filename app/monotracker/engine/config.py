@@ -34,7 +34,11 @@ class SessionConfig:
     whose fiducial residual exceeds this is not trusted. ``max_pose_age_s`` (0.15): the controller
     holds when the freshest trusted pose is older than this (capture time to now: 30 ms camera
     transport + up to one 33 ms frame period + registration, with margin for a loaded machine). ``freeze_after_s`` (0.1): no new
-    camera frame for this long -> camera-freeze alarm. ``max_jump_mm`` (5.0) / ``max_jump_deg``
+    camera frame for this long -> the arm holds, reported as ``camera_late`` while new frames
+    still come (a busy machine: shown once it lasts, one episode per busy spell) and as
+    ``camera_stalled`` after ``stall_after_s`` (0.5 s; at least ``freeze_after_s``) without any
+    new frame (a camera that stopped delivering); ``camera_freeze`` is a camera that repeats its
+    frames bit for bit (held at the first repeat). ``max_jump_mm`` (5.0) / ``max_jump_deg``
     (3.0): a pose that moved more than this from the last trusted one (per frame) is not trusted
     until ``confirm_frames`` (3) consecutive estimates agree with each other (a real head jump is
     followed after a short hold; a single wrong pose never moves the arm).
@@ -96,6 +100,7 @@ class SessionConfig:
     max_fre_mm: float = 1.5
     max_pose_age_s: float = 0.15
     freeze_after_s: float = 0.1
+    stall_after_s: float = 0.5
     max_jump_mm: float = 5.0
     max_jump_deg: float = 3.0
     confirm_frames: int = 3
@@ -144,6 +149,8 @@ class SessionConfig:
             raise InputError(why)
         if self.camera_fps <= 0 or self.control_hz <= 0:
             raise InputError("camera_fps and control_hz must be positive")
+        if not (self.freeze_after_s > 0 and self.stall_after_s > 0):
+            raise InputError("freeze_after_s and stall_after_s must be positive numbers of seconds")
         if not (self.max_validation_tre_mm > 0):
             raise InputError("max_validation_tre_mm must be positive")
         if self.min_fiducials < 3:

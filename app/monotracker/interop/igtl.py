@@ -2,7 +2,8 @@
 
 ``IGTLStreamer(session, port, allow_remote=False).start()`` serves OpenIGTLink (``pyigtl``) on
 127.0.0.1 (every interface only with ``allow_remote``, as for the web app) and sends, for every
-camera estimate the engine handles (camera rate):
+camera estimate the engine handles (the pose rate: one ``CTToCamera`` per trusted pose, none
+dropped on the way while clients read; issue 29):
 
 =================  =========  =================================================================
 device name        type       content
@@ -22,10 +23,14 @@ in RAS (``F = diag(-1, -1, 1)``: ``CTToCamera = T_cam_ct @ F``, ``NeedleTipToCT 
 points ``F @ p``) so that a CT loaded into Slicer lines up with no extra transform;
 ``coordinates="LPS"`` sends MonoTracker's own frame instead. The ``Status`` string names it.
 
-Only valid data is sent: ``CTToCamera`` and ``NeedleTipToCT`` go out only for a pose the engine
-trusts (``trusted``: >= min fiducials, FRE gate, jump gate) and that is fresh (capture age <=
-``max_pose_age_s``); otherwise they are withheld (a Slicer transform node keeps its last value, so
-the ``Status`` message says ``pose=INVALID`` with the reason and ``last_valid_age_ms``, every frame).
+Only valid data is sent: ``CTToCamera`` and ``NeedleTipToCT`` go out for every pose the engine
+trusts (``trusted``: >= min fiducials, FRE gate, jump gate, predicted error), each stamped with
+its frame's capture time, and for no other (a Slicer transform node keeps its last value, so the
+``Status`` message says ``pose=INVALID`` with the reason and ``last_valid_age_ms``, every frame).
+A trusted pose that reached the engine later than ``max_pose_age_s`` after capture (the arm holds
+for it) is still sent, under its own capture time, and ``Status`` says ``late=yes``: the pose is
+right for the moment it was captured, and a client that reads the timestamps knows its age
+(withholding it cut the stream to 11 Hz on a busy machine while the tracker ran at 16-18 Hz).
 Each message's OpenIGTLink timestamp is the frame's capture time on the wall clock
 (``epoch0 + t_capture``, where ``epoch0`` maps the session clock to Unix time when streaming
 starts; with the simulated clock this is simulated time, so rates read from the timestamps are the
@@ -59,6 +64,9 @@ DEFAULT_PORT = 18944
 F_LPS_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 DEVICES = ("CTToCamera", "NeedleTipToCT", "Status", "Fiducials", "Path")
 STATIC_EVERY_S = 2.0
+#: poses waiting for the streamer thread (the engine thread only appends): ~8 s at 30 Hz, so a
+#: busy moment never drops one; beyond it the oldest go first and are counted (``dropped``)
+POSE_QUEUE = 256
 
 
 def _make_server(port: int, allow_remote: bool, on_event=None):
@@ -72,7 +80,8 @@ def _make_server(port: int, allow_remote: bool, on_event=None):
 
 
 class IGTLStreamer:
-    """See the module docstring. ``sent`` counts messages sent per device name."""
+    """See the module docstring. ``sent`` counts messages sent per device name; ``dropped`` the
+    poses lost before they were sent (a full queue)."""
 
     def __init__(self, session, port: int = DEFAULT_PORT, allow_remote: bool = False, coordinates: str = "RAS"):
         if not (0 < int(port) < 65536):
@@ -85,7 +94,8 @@ class IGTLStreamer:
         self.coordinates = coordinates
         self.F = F_LPS_RAS if coordinates == "RAS" else np.eye(4)
         self.sent = collections.Counter()
-        self._q: collections.deque = collections.deque(maxlen=8)  # newest frames win
+        self._q: collections.deque = collections.deque(maxlen=POSE_QUEUE)  # the oldest go first when full
+        self.dropped = 0  # poses dropped from a full queue (the streamer thread starved)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._server = None
@@ -154,6 +164,8 @@ class IGTLStreamer:
         st = s.robot_status()
         alerts = [e.code for e in s.recent_alerts(3)]
         rec = s.latest_pose()
+        if len(self._q) == self._q.maxlen:
+            self.dropped += 1
         self._q.append({
             "t_capture": float(smp.t_capture), "now": float(now), "trusted": bool(trusted),
             "fresh": now - smp.t_capture <= s.config.max_pose_age_s,
@@ -197,7 +209,7 @@ class IGTLStreamer:
 
         ts = self.epoch0 + d["t_capture"]
         plan = self.s.plan_copy()
-        valid = d["trusted"] and d["fresh"] and d["T_cam_ct"] is not None
+        valid = d["trusted"] and d["T_cam_ct"] is not None
         tip_sent = False
         if valid:
             self._last_valid_t = d["t_capture"]
@@ -208,9 +220,9 @@ class IGTLStreamer:
                 self._send(pyigtl.TransformMessage(self.F @ T_ct_tip, timestamp=ts, device_name="NeedleTipToCT"))
                 tip_sent = True
         if valid:
-            pose = "pose=VALID"
+            pose = "pose=VALID; late=" + ("no" if d["fresh"] else "yes")
         else:
-            why = d["reason"] if not d["trusted"] else "pose is stale"
+            why = d["reason"] or "no pose"
             last = "none" if self._last_valid_t is None else f"{1000 * (d['now'] - self._last_valid_t):.0f}"
             pose = f"pose=INVALID; reason={why}; last_valid_age_ms={last}"
         fre = "n/a" if d["fre"] is None else f"{d['fre']:.3f}"

@@ -35,7 +35,9 @@ log = logging.getLogger(__name__)
 HEADER_SIZE = 58  # OpenIGTLink v1/v2 header: version, type, device, timestamp, body size, CRC
 MAX_BODY = 64 * 1024
 SEND_TIMEOUT_S = 2.0
-QUEUE_LEN = 256
+#: messages per client queue: ~10 s of the stream at 30 poses/s (3 messages each), so a client
+#: that falls behind during a burst loses none; one that stops reading is dropped after 2 s anyway
+QUEUE_LEN = 1024
 MAX_CLIENTS = 8
 
 

@@ -323,14 +323,17 @@ class FrameWatchdog:
     ``frozen``: the last ``identical_limit`` frames were bit-identical (real sensors always have
     noise, so two identical consecutive frames already mean a stuck driver buffer; we require
     ``identical_limit`` = 2 repeats). ``stalled``: no new frame for ``max_age_s`` (default 0.1 s,
-    i.e. 3 frames at 30 fps). ``check(now)`` returns '' when healthy, else a reason; the
-    pose stream calls it from a timer so a camera that blocks in ``read()`` is still reported.
+    i.e. 3 frames at 30 fps). ``check(now)`` returns '' when healthy, else a reason. The pose
+    stream tells a late frame from a stalled camera by how long its ``read()`` waits: over
+    ``max_age_s`` the frame is *late* (the source alive, the machine busy), over ``stall_s``
+    (default 0.5 s, 15 frames at 30 fps) the camera has *stalled*.
     Identity is tested on a sparse pixel sample (every 7th row/col) plus a full check only when
     the sample matches, so it costs ~0.1 ms per frame.
     """
 
-    def __init__(self, max_age_s: float = 0.1, identical_limit: int = 2):
+    def __init__(self, max_age_s: float = 0.1, identical_limit: int = 2, stall_s: float = 0.5):
         self.max_age_s = max_age_s
+        self.stall_s = max(float(stall_s), float(max_age_s))
         self.identical_limit = identical_limit
         self._last_t = None
         self._last_img = None

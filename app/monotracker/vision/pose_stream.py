@@ -10,9 +10,10 @@ Two layers, so that the logic is testable without threads:
   in its own daemon thread (never the UI thread). ``start()``, ``stop()``, ``subscribe(cb)``
   (``cb(estimate)`` called from the stream thread; keep it short, post to your own queue),
   ``latest()``. A monitor thread checks the :class:`~monotracker.vision.frames.FrameWatchdog`
-  every 20 ms, so a camera that freezes (identical frames) or stops delivering (``read()``
-  blocks for longer than ``watchdog.max_age_s`` = 0.1 s, or raises) is published as an invalid
-  estimate within 0.1 s (+ one 20 ms monitor tick). The stall check applies to live sources
+  every 20 ms, so a camera that freezes (identical frames), is late (``read()`` blocks for longer
+  than ``watchdog.max_age_s`` = 0.1 s: ``camera_late``) or stops delivering (``read()`` blocks for
+  longer than ``watchdog.stall_s`` = 0.5 s: ``camera_stalled``, or raises) is published as an
+  invalid estimate within that time (+ one 20 ms monitor tick). The stall check applies to live sources
   after their first frame (not to files and folders, which are read on demand). Time spent processing a frame does not
   count as a stall: only time spent waiting inside ``read()`` does.
 
@@ -44,7 +45,7 @@ class PoseStream:
     ``latest()`` returns the newest :class:`PoseEstimate` (or None); ``subscribe(cb)`` adds a
     callback run in the stream thread for every estimate; ``stop()`` joins the threads and
     closes the source. ``estimates`` counts published estimates; ``camera_state`` is the
-    source's last state ("ok", "frozen", "stalled", "disconnected", "ended").
+    source's last state ("ok", "frozen", "late", "stalled", "disconnected", "ended").
 
     Args:
         source: any :class:`FrameSource` (camera, video file, image folder, replay, the
@@ -213,5 +214,8 @@ class PoseStream:
             # (read as fast as frames are processed)
             if since is not None and self._last_index >= 0 and getattr(self.source, "live", True):
                 age = time.monotonic() - since
-                if age > self.watchdog.max_age_s:
+                if age > self.watchdog.stall_s:
                     self._fault_estimate("stalled", f"camera stalled: no new frame for {1000 * age:.0f} ms")
+                elif age > self.watchdog.max_age_s:
+                    self._fault_estimate("late", f"camera late: no new frame for {1000 * age:.0f} ms (the "
+                                         "camera is still read; the machine may be busy)")

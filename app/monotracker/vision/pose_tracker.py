@@ -30,7 +30,7 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
   naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
 
 Every invalid estimate carries ``code``: the alert code that says what happened
-(``frame_size``, ``frame_grayscale``, ``camera_moved``, ``frame_unreadable``, ``camera_ended``, ``camera_freeze``,
+(``frame_size``, ``frame_grayscale``, ``camera_moved``, ``frame_unreadable``, ``camera_ended``, ``camera_freeze``, ``camera_late``, ``camera_stalled``,
 ``camera_disconnected``, ``occlusion``, ``pose_lost``, ``pose_implausible``,
 ``weak_geometry``, ``tre_limit``).
 
@@ -58,8 +58,10 @@ from .frames import Frame, grayscale_problem
 SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "unknown", "moved"
 
 #: camera state -> alert code of the invalid estimate it causes
-CAMERA_CODES = {"frozen": "camera_freeze", "stalled": "camera_freeze", "disconnected": "camera_disconnected",
-                "ended": "camera_ended", "unreadable": "frame_unreadable"}
+#: ("late": a live camera's read() waits longer than a frame should take, the source alive;
+#: "stalled": it waited much longer, the camera stopped delivering; "frozen": identical frames)
+CAMERA_CODES = {"frozen": "camera_freeze", "late": "camera_late", "stalled": "camera_stalled",
+                "disconnected": "camera_disconnected", "ended": "camera_ended", "unreadable": "frame_unreadable"}
 
 
 @dataclass
@@ -70,7 +72,7 @@ class PoseEstimate:
     the matched detection per CT fiducial (NaN where none) and ``residuals_px`` its
     reprojection error (NaN where none). ``predicted_tre_mm`` is at the planned target (NaN if
     no target was given or no pose). ``alerts`` are one-line operator messages for this frame.
-    ``camera`` is "ok", "frozen", "stalled", "disconnected" or "ended". ``detect_s`` /
+    ``camera`` is "ok", "frozen", "late", "stalled", "disconnected" or "ended". ``detect_s`` /
     ``register_s`` are the stage times (s); ``truth`` is the simulator's ground truth of the
     frame (None for real cameras), carried for overlays and benchmarks.
 
@@ -91,7 +93,7 @@ class PoseEstimate:
             or a pose).
         n_detected, n_matched: balls detected in the image; of those, matched to fiducials.
         alerts: one-line operator messages raised in this frame.
-        camera: "ok", "frozen", "stalled", "disconnected" or "ended".
+        camera: "ok", "frozen", "late", "stalled", "disconnected" or "ended".
         used_prior: the registration's prior fast path produced the pose.
         detect_s, register_s: stage times, s (``register_s``: registration and screening).
         stages_s: wall time (s) per stage of this frame: ``hint`` (the balls' predicted
@@ -590,9 +592,17 @@ class PoseTracker:
                             code=code, truth=truth, excluded=sorted(self.excluded))
 
     def camera_fault(self, frame_index: int, t_capture: float, camera: str, reason: str) -> PoseEstimate:
-        """An invalid estimate for a camera fault (``camera``: frozen, stalled, disconnected,
-        ended, unreadable; its alert code from ``CAMERA_CODES``); the next good frame starts
-        from a full search."""
+        """An invalid estimate for a camera fault (``camera``: frozen, late, stalled,
+        disconnected, ended, unreadable; its alert code from ``CAMERA_CODES``); the next good
+        frame starts from a full search, except after ``late`` (a frame that is only late: the
+        tracking state stays, the next frame continues from it)."""
+        if camera == "late":
+            n = len(self.fiducials_ct)
+            return PoseEstimate(ok=False, reason=reason, frame_index=frame_index, t_capture=t_capture,
+                                t_published=time.monotonic(), status=[UNKNOWN] * n,
+                                image_points_px=np.full((n, 2), np.nan), residuals_px=np.full(n, np.nan),
+                                alerts=[reason], camera=camera, code=CAMERA_CODES["late"],
+                                excluded=sorted(self.excluded))
         est = self._invalid(frame_index, t_capture, CAMERA_CODES.get(camera, "camera_freeze"), reason, camera)
         est.alerts = [reason]
         return est

@@ -1,5 +1,5 @@
 """The tracking loop's camera part: choose, start and stop the camera rig, watch its frames
-(freeze), stop it when the plan changes, learn the balls' colour, inject simulated faults.
+(frozen, late, stalled: :meth:`CameraControl.frame_condition`), stop it when the plan changes, learn the balls' colour, inject simulated faults.
 
 A part of :class:`~monotracker.engine.loop.core.TrackingLoop` (``loop.camera``); the pose side
 (holds, the trust verdict) is the core's."""
@@ -150,20 +150,44 @@ class CameraControl:
         elif was_running:
             self.loop.hold("camera_stopped", f"camera stopped: {why}")
 
-    def frozen(self, now: float) -> str | None:
-        """Why the camera counts as frozen now (the hold's reason), or None: its last frame(s)
-        repeated bit for bit, or no new frame for ``freeze_after_s``. A rig that watches its own
-        camera (StreamRig) reports freezes as estimates with a code instead: None here."""
+    def frame_condition(self, now: float) -> tuple[str, str] | None:
+        """What is wrong with the camera's frames now, as ``(code, reason)`` (the arm holds for
+        it), or None. Three conditions, told apart by what arrives (issue 33):
+
+        * ``camera_freeze``: its last frame(s) repeated bit for bit (a frozen driver; sensor
+          noise never repeats a frame), at the first repeat;
+        * ``camera_stalled``: no new frame at all for ``stall_after_s`` (at least
+          ``freeze_after_s``): a camera that stopped delivering;
+        * ``camera_late``: no new frame for ``freeze_after_s`` (0.1 s, the robot's freshness rule)
+          but less than ``stall_after_s``: the source is alive, its frames come late (a busy
+          machine). The arm holds as for a stall, since no fresh pose can come; what differs is
+          what is reported (a warning with a dwell, not a frozen-camera alarm).
+
+        A rig that watches its own camera (StreamRig) reports these as estimates with a code: None."""
         rig = self.rig
         if rig is None or not rig.running or getattr(rig, "watches_itself", False):
             return None
         seen = self._last_frame_seen_at
         if self._repeat_frames:
-            return (f"camera frozen: {self._repeat_frames} frame(s) repeated bit for bit "
-                    f"(last new frame {1000 * (now - seen):.0f} ms ago)")
-        if seen is not None and now - seen > self.cfg.freeze_after_s:
-            return f"camera frozen: no new frame for {1000 * (now - seen):.0f} ms"
+            return "camera_freeze", (f"camera frozen: {self._repeat_frames} frame(s) repeated bit for bit "
+                                     f"(last new frame {1000 * (now - seen):.0f} ms ago)")
+        if seen is None:
+            return None
+        gap = now - seen
+        if gap > max(self.cfg.stall_after_s, self.cfg.freeze_after_s):
+            return "camera_stalled", f"camera stalled: no new frame for {1000 * gap:.0f} ms"
+        if gap > self.cfg.freeze_after_s:
+            fps = self.recent_fps(now)
+            rate = f"{fps:.0f} fps over the last second" if fps else "frames arriving"
+            return "camera_late", (f"camera late: no new frame for {1000 * gap:.0f} ms ({rate}, "
+                                   f"{self.cfg.camera_fps:.0f} expected; the machine may be busy)")
         return None
+
+    def recent_fps(self, now: float, window_s: float = 1.0) -> float:
+        """New frames per second over the last ``window_s`` (s) of session time."""
+        with self._lock:
+            n = sum(1 for t in self.frame_times if now - t <= window_s)
+        return n / window_s
 
     def note_frame(self, t_capture: float, now: float, digest=None) -> bool:
         """A frame with capture time ``t_capture`` arrived; True if it is new. Only new frames

@@ -12,8 +12,10 @@ Rates and threads (clock="real", the web app):
   as fast as registration allows (it always works on the newest frame, dropping older ones);
 * control: the robot ``Tracker``'s real-time thread at ``control_hz``;
 * the engine thread (``monotracker-loop``, 250 Hz) moves the freshest pose into the tracker and
-  runs the watchdogs: camera freeze (no new frame for ``freeze_after_s``), stale pose (freshest
-  trusted pose older than ``max_pose_age_s``), robot connection and state changes.
+  runs the watchdogs: the camera's frames (``camera_freeze``: repeated bit for bit;
+  ``camera_late``: no new frame for ``freeze_after_s``; ``camera_stalled``: none for
+  ``stall_after_s``), stale pose (freshest trusted pose older than ``max_pose_age_s``), robot
+  connection and state changes.
 
 clock="sim" (demo, tests, benchmark): no threads. :meth:`TrackingLoop.advance` steps a simulated
 clock at the control period; a frame is captured every camera period when the estimator is free,
@@ -52,6 +54,8 @@ from monotracker.engine.loop.gate import PoseGate
 from monotracker.engine.loop.robot import RobotControl
 
 log = logging.getLogger(__name__)
+#: the holds about the camera's frames (:meth:`CameraControl.frame_condition`)
+FRAME_CODES = ("camera_freeze", "camera_stalled", "camera_late")
 
 
 @dataclass(frozen=True)
@@ -253,9 +257,9 @@ class TrackingLoop:
                                      f"(limit {1000 * limit:.0f} ms)")
         elif v.trusted:
             dwell = self._dwell_s
-            if holding and code == "camera_freeze" and self.camera.frozen(now):
-                # a pose captured before the freeze, still in flight when it was detected: the
-                # camera is still frozen, so it must not resume tracking (not even for a cycle),
+            if holding and code in FRAME_CODES and self.camera.frame_condition(now):
+                # a pose captured before the freeze (or gap), still in flight when it was detected:
+                # the camera is still frozen, so it must not resume tracking (not even for a cycle),
                 # and it does not count towards the fresh run the resume dwell asks for
                 with self._lock:
                     self._fresh_since = None
@@ -319,11 +323,14 @@ class TrackingLoop:
         tracking = self.robot.state() in ("tracking", "holding")
         msg = reason + ("; arm holding still" if tracking else "")
         report = self._set_pose_alarm(code, msg, tracking)
-        if not self.mark(code):
-            return
+        if not self.mark(code) and not report:
+            return  # this hold's condition again (a watchdog re-sets it every tick)
         self._hold_reported = self._hold_reported or report
         if not report:
-            return  # a technical condition again within its quiet time: shown, counted, not re-reported
+            # a technical condition again within its quiet time (shown, counted, not re-reported),
+            # inside its raise dwell (reported by the call that raises it), or the same episode
+            # as the one before (its dwell kept it on the board)
+            return
         unreported = self.alarms.board.unreported(code)
         if unreported:
             msg += f" ({unreported} more short episode{'s' if unreported > 1 else ''} since the last report)"
@@ -434,19 +441,22 @@ class TrackingLoop:
         return rec, now, why
 
     def watchdogs(self, now: float) -> None:
-        """Camera freeze, stale pose, robot state (every engine tick)."""
-        frozen = self.camera.frozen(now)
-        if frozen:
+        """Camera frames (frozen, stalled, late), stale pose, robot state (every engine tick). A
+        condition that holds is set again at every tick, so that a dwell row is raised once it
+        stood its ``raise_after_s`` (the hold itself is immediate)."""
+        cond = self.camera.frame_condition(now)
+        if cond:
             with self._lock:
-                self._fresh_since = None  # a frozen camera is a gap: the resume dwell starts again after it
-            self.hold("camera_freeze", frozen)
+                self._fresh_since = None  # a frozen/late camera is a gap: the resume dwell starts again after it
+            self.hold(*cond)
         rec = self._latest
         if rec is not None and rec.trusted:
             age = now - rec.sample.t_capture
             if age > self.cfg.max_pose_age_s:
                 with self._lock:
                     self._fresh_since = None  # a gap: the resume dwell starts again
-                if self._holding_reason is None:
+                    code = self._holding_code if self._holding_reason is not None else None
+                if code is None or code == "pose_stale":
                     self.hold("pose_stale", f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old")
         self.robot.refresh()
 
