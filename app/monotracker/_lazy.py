@@ -15,7 +15,14 @@ import importlib
 
 def lazy_exports(package: str, exports: dict[str, str]):
     """``(__getattr__, __dir__)`` for ``package`` whose public names ``exports`` maps to the
-    module (relative to ``package``, e.g. ``".fiducials"``) that defines each."""
+    module (relative to ``package``, e.g. ``".fiducials"``) that defines each.
+
+    A name may not be its own module's name (``"visibility": "pkg.visibility"``): once that
+    module is imported, the import system sets the package's attribute of that name to the
+    module, and this ``__getattr__`` is never asked; import such a name eagerly instead."""
+    for name, where in exports.items():
+        if where.rsplit(".", 1)[-1] == name:
+            raise ValueError(f"{package}.{name}: a lazy name may not be its own module's name ({where}); import it eagerly")
 
     def __getattr__(name: str):
         where = exports.get(name)

@@ -11,6 +11,11 @@ from typing import TYPE_CHECKING
 
 from monotracker._lazy import lazy_exports
 
+# imported now, not on first use: the function shares its module's name, and once anything imports
+# the module monotracker.planning.visibility, the import system sets the package's attribute
+# `visibility` to that module, so a lazy name would never be looked up (numpy only: cheap)
+from monotracker.planning.visibility import Visibility, visibility
+
 if TYPE_CHECKING:  # the names below, imported on first use (monotracker/_lazy.py: a fast CLI start)
     from monotracker.planning.candidates import Candidates, sample_candidates
     from monotracker.planning.camera_poses import CameraPose, camera_pose
@@ -26,7 +31,6 @@ if TYPE_CHECKING:  # the names below, imported on first use (monotracker/_lazy.p
         HeadSurface,
         PlanningProblem,
     )
-    from monotracker.planning.visibility import Visibility, visibility
 
 __all__ = [
     "DEFAULT_NOISE_PX", "BallRules", "CameraPose", "CameraSpace", "Candidates", "Capsule", "DrapeLine",
@@ -55,6 +59,4 @@ __getattr__, __dir__ = lazy_exports(__name__, {
     "DrapeLine": "monotracker.planning.problem",
     "HeadSurface": "monotracker.planning.problem",
     "PlanningProblem": "monotracker.planning.problem",
-    "Visibility": "monotracker.planning.visibility",
-    "visibility": "monotracker.planning.visibility",
 })
