@@ -17,6 +17,7 @@ import pytest
 import trimesh
 
 from monotracker.engine import Session, SessionConfig
+from monotracker.engine.access import NOT_IN_CONTROL
 from monotracker.engine.layout_job import LayoutJob, placement_offset
 from monotracker.engine.plan.model import Plan, PlanFiducial
 from monotracker.engine.snapshot import HeadMesh
@@ -105,6 +106,10 @@ def test_refused_without_a_ct_and_while_armed(make_session):
     s = make_session(clock="sim", camera_factory=lambda *a: cam, robot_factory=lambda *a: rob)
     r = s.plan_layout(9)
     assert not r.ok and r.message.startswith("load a CT first")
+    tab = s.for_client("tab-b")  # a browser tab not in control: a command, refused; waiting is a read
+    r = tab.plan_layout(9)
+    assert not r.ok and r.message == NOT_IN_CONTROL
+    assert tab.wait_for_layout(0) is None and not tab.cancel_layout().ok
     plan_sample(s)
     assert s.start_camera().ok
     s.advance(0.3)

@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, "tests/ui")
-from browser_helpers import _click, _take_control, _wait, open_page  # noqa: E402
-from conftest import CHROMIUM_ARGS, display_browser_path, free_port  # noqa: E402
-from playwright.sync_api import sync_playwright  # noqa: E402
+from browser_helpers import _click, _take_control, _wait, open_page
+from conftest import CHROMIUM_ARGS, display_browser_path, free_port
+from playwright.sync_api import sync_playwright
 
-from monotracker.engine import Session, SessionConfig  # noqa: E402
-from monotracker.ui.app import MonoTrackerApp  # noqa: E402
+from monotracker.engine import Session, SessionConfig
+from monotracker.ui.app import MonoTrackerApp
 
 out = Path("docs/img")
 out.mkdir(parents=True, exist_ok=True)
