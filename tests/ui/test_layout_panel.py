@@ -43,12 +43,16 @@ def _layout(balls_needed=None, stale=False, done=True, worst_trusted=0.99):
 
 
 def test_error_colours_run_green_to_red_and_grey_where_unusable():
-    cols, lo, hi = error_colours(np.array([0.3, 0.45, 0.6, 2.0, np.nan]))
-    assert (lo, hi) == (0.3, pytest.approx(0.6))
-    assert cols[0, 1] > 200 and cols[0, 0] < 30             # the smallest: green
-    assert cols[1, 0] > 200 and cols[1, 1] > 200            # halfway: yellow
-    assert cols[2, 0] > 200 and cols[2, 1] < 30 and (cols[3] == cols[2]).all()  # 2x and beyond: red
-    assert (cols[4] == 150).all()                            # NaN: grey
+    e = np.array([0.30, 0.31, 0.32, 0.33, 0.34, 0.35, 0.36, 0.37, 0.38, 0.39, 0.40, 2.0, np.nan])
+    cols, lo, hi = error_colours(e)
+    assert lo == 0.30 and hi == pytest.approx(np.quantile(e[:12], 0.9))  # the largest tenth is red
+    assert cols[0, 1] > 200 and cols[0, 0] < 30              # the smallest: green
+    mid = int(np.argmin(np.abs(e[:12] - (lo + hi) / 2)))
+    assert cols[mid, 0] > 150 and cols[mid, 1] > 150          # halfway: yellow
+    assert cols[11, 0] > 200 and cols[11, 1] < 30            # the top: red
+    assert (cols[12] == 150).all()                           # NaN: grey
+    flat, lo, hi = error_colours(np.full(5, 0.2))             # a flat map: all green, not a division by 0
+    assert hi > lo and (flat[:, 1] > 200).all()
 
 
 def test_plan_step_text_shows_what_to_expect():
@@ -60,7 +64,8 @@ def test_plan_step_text_shows_what_to_expect():
     # each suggested position, numbered from 1, the kept fiducial named
     assert "<td><b>1</b></td><td>10.0, -80.0, 60.0</td><td>fiducial #3 stays</td>" in html
     assert "<td><b>6</b></td><td>30.0, -40.0, 100.0</td><td>new</td>" in html
-    assert "green 0.30 mm" in html and "red 0.60 mm" in html
+    lo, hi = error_colours(np.asarray(_layout().error_map_mm))[1:]
+    assert f"green {lo:.2f} mm" in html and f"red {hi:.2f} mm" in html
     needed = layout_html(_layout(balls_needed=8, worst_trusted=0.9))
     assert "8 balls needed</b> for 95 % trusted frames with one hidden" in needed
     assert "plan again" in layout_html(_layout(stale=True))

@@ -6,8 +6,9 @@ error at the target, mean / 95 % / trusted share, with every ball seen and with 
 hidden, for the suggestion and for the plan's fiducials; "N balls needed" when 95 % trusted is
 out of reach). In the 3D view (CT frame, :meth:`LayoutPanel.render_scene`): the map of the
 predicted error at the target as coloured points on the head (one per candidate ball position:
-the error with the worst ball hidden if one suggested ball moved there; green = small, red =
-large, see the legend), the suggested positions as numbered balls, and the planned camera with
+the error with the worst ball hidden if one suggested ball moved there; green = the smallest, red =
+the largest tenth, see the legend), the suggested positions as numbered balls, and the planned
+camera with
 its field of view and its line of sight to the head.
 
 At the Register step (:func:`placement_line`): "camera is N mm / N deg from the planned
@@ -26,24 +27,27 @@ from monotracker.ui import status as st
 from monotracker.ui.status import fmt
 
 MM = 1e-3  # scene metres per millimetre (as ui/scene.py)
-#: colours of the error map: green (the smallest error) -> yellow -> red (``MAP_SPAN`` x it and above)
-MAP_SPAN = 2.0
+#: colours of the error map: green (the smallest error) -> yellow -> red (this quantile and above)
+MAP_TOP_QUANTILE = 0.9
 SUGGESTED_RGB = (30, 90, 230)
 CAMERA_RGB = (30, 90, 230)
 
 
-def error_colours(err_mm: np.ndarray, span: float = MAP_SPAN) -> tuple[np.ndarray, float, float]:
+def error_colours(err_mm: np.ndarray, top: float = MAP_TOP_QUANTILE) -> tuple[np.ndarray, float, float]:
     """(m, 3) uint8 colours for the error map, and the (low, high) mm the scale runs over: green at
-    the smallest finite error, yellow halfway, red at ``span`` times it and above; grey for NaN
-    (a position the planned camera cannot use)."""
+    the smallest finite error, yellow halfway, red at the ``top`` quantile of the finite errors and
+    above (moving one ball changes the error by little, so a scale to the largest value would
+    paint nearly every point the same); grey for NaN (a position the planned camera cannot use)."""
     e = np.asarray(err_mm, float)
     ok = np.isfinite(e)
     out = np.full((len(e), 3), 150, np.uint8)
     if not ok.any():
         return out, float("nan"), float("nan")
     lo = float(e[ok].min())
-    hi = lo * span if lo > 0 else float(e[ok].max())
-    u = np.clip((e[ok] - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    hi = float(np.quantile(e[ok], top))
+    if hi <= lo:
+        hi = lo + max(0.05 * lo, 1e-6)
+    u = np.clip((e[ok] - lo) / (hi - lo), 0.0, 1.0)
     r = np.clip(2.0 * u, 0.0, 1.0)
     g = np.clip(2.0 * (1.0 - u), 0.0, 1.0)
     out[ok] = (np.stack([r, g, np.zeros_like(u)], axis=1) * 220 + 20).astype(np.uint8)
@@ -111,7 +115,7 @@ def layout_html(lay) -> str:
         if np.isfinite(lo):
             parts.append(f"<div class='mt-row'>Map on the head: the error at the target (RMS, worst ball hidden) if "
                          f"one ball moved there: <span style='color:#1f8f3a'><b>green {lo:.2f} mm</b></span> to "
-                         f"<span style='color:#c81e1e'><b>red {hi:.2f} mm</b></span> and more; grey: not usable "
+                         f"<span style='color:#c81e1e'><b>red {hi:.2f} mm</b></span> and more (the largest tenth); grey: not usable "
                          "from the planned camera. Blue: the suggested balls (numbered) and the planned camera.</div>")
         for n in lay.notes:
             parts.append(f"<div class='mt-row'>note: {st._esc(n)}</div>")
