@@ -8,8 +8,7 @@ out of reach). In the 3D view (CT frame, :meth:`LayoutPanel.render_scene`): the 
 predicted error at the target as coloured points on the head (one per candidate ball position:
 the error with the worst ball hidden if one suggested ball moved there; green = the smallest, red =
 the largest tenth, see the legend), the suggested positions as numbered balls, and the planned
-camera with
-its field of view and its line of sight to the head.
+camera with its field of view and its line of sight to the head.
 
 At the Register step (:func:`placement_line`): "camera is N mm / N deg from the planned
 placement; predicted error X mm" while a layout exists and the pose is trusted.
