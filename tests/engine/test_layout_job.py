@@ -144,7 +144,7 @@ def _job(robot_state):
     loaded = SimpleNamespace(head_mesh=mesh, summary=SimpleNamespace(path="phantom"))
     bus = _Bus()
     job = LayoutJob(lock=threading.RLock(), editor=SimpleNamespace(plan=plan), ct=lambda: loaded,
-                    ct_busy=lambda: None, robot_state=robot_state, camera_model=default_camera,
+                    ct_job=lambda: None, robot_state=robot_state, camera_rig=lambda: None,
                     config=SessionConfig(), events=bus)
     return job, bus, plan
 
@@ -214,3 +214,18 @@ def test_placement_offset_against_a_hand_made_move():
     rolled = T_ct_cam.copy()
     rolled[:3, :3] = T_ct_cam[:3, :3] @ Rotation.from_euler("z", 40, degrees=True).as_matrix()
     assert placement_offset(T_ct_cam, np.linalg.inv(rolled)) == pytest.approx((0.0, 0.0), abs=1e-6)
+
+
+def test_the_camera_planned_with_is_the_plans_calibration_else_the_rigs_else_the_simulated():
+    from monotracker.engine.layout_job import planning_camera
+
+    K = np.array([[1500.0, 0, 960], [0, 1500.0, 540], [0, 0, 1]])
+    rig = SimpleNamespace(K=K * [[0.5], [0.5], [1]], dist=None, image_size=(960, 540))
+    calibrated = Plan(K=K, dist=np.zeros(5), image_size=(1920, 1080))
+    assert np.allclose(planning_camera(calibrated, rig).K, K)
+    got = planning_camera(Plan(), rig)
+    assert np.allclose(got.K, rig.K) and got.image_size == (960, 540)
+    sim = default_camera()
+    assert np.allclose(planning_camera(Plan(), None).K, sim.K)
+    broken = Plan(K=np.zeros((3, 3)), image_size=(1920, 1080))  # refused by CameraModel: skipped
+    assert np.allclose(planning_camera(broken, None).K, sim.K)

@@ -60,6 +60,24 @@ def placement_offset(T_ct_cam_planned, T_cam_ct_now) -> tuple[float, float]:
     return d, float(np.degrees(np.arccos(c)))
 
 
+def planning_camera(plan, rig):
+    """The camera model a layout is planned with (a :class:`~monotracker.vision.camera_model.CameraModel`):
+    the plan's calibration, else the camera rig's (``rig`` may be None), else the simulated
+    camera's (``default_camera``); an unusable calibration is skipped."""
+    from monotracker.errors import MonoTrackerError
+    from monotracker.vision.camera_model import CameraModel, default_camera
+
+    for K, dist, size in ((plan.K, plan.dist, plan.image_size),
+                          (None, None, None) if rig is None else (rig.K, rig.dist, rig.image_size)):
+        if K is not None and size is not None:
+            try:
+                return CameraModel(np.asarray(K, float), np.zeros(5) if dist is None else np.asarray(dist, float),
+                                   tuple(int(v) for v in size))
+            except MonoTrackerError:
+                continue
+    return default_camera()
+
+
 def _error(e) -> LayoutError | None:
     if e is None:
         return None
@@ -78,17 +96,17 @@ def expectation(pred) -> LayoutExpectation | None:
 class LayoutJob:
     """The layout job (see the module docstring). Collaborators: the state ``lock``, the plan
     ``editor`` (read only), ``ct()`` the loaded CT (:class:`~monotracker.engine.ct_job.LoadedCT`
-    or None), ``ct_busy()`` the name of a running CT job or None, ``robot_state()``,
-    ``camera_model()`` (a :class:`~monotracker.vision.camera_model.CameraModel`), the session
-    ``config`` (``frame_rules()``) and the event bus."""
+    or None), ``ct_job()`` the CT job's :class:`Job` or None, ``robot_state()``, ``camera_rig()``
+    the running camera rig or None (:func:`planning_camera`), the session ``config``
+    (``frame_rules()``) and the event bus."""
 
-    def __init__(self, *, lock, editor, ct, ct_busy, robot_state, camera_model, config, events):
+    def __init__(self, *, lock, editor, ct, ct_job, robot_state, camera_rig, config, events):
         self._lock = lock
         self._editor = editor
         self._ct = ct
-        self._ct_busy = ct_busy
+        self._ct_job = ct_job
         self._robot_state = robot_state
-        self._camera_model = camera_model
+        self._camera_rig = camera_rig
         self.config = config
         self._bus = events
         self._job: Job | None = None
@@ -132,9 +150,9 @@ class LayoutJob:
         with self._lock:
             if self._job is not None and not self._job.done:
                 return CommandResult.refused("busy: the layout is still being planned (cancel it first)")
-            busy = self._ct_busy()
-            if busy:
-                return CommandResult.refused(f"busy: {busy} is still running")
+            ct_job = self._ct_job()
+            if ct_job is not None and not ct_job.done:
+                return CommandResult.refused(f"busy: {ct_job.name} is still running")
             loaded = self._ct()
             if loaded is None:
                 return CommandResult.refused("load a CT first: the layout is planned on its head surface")
@@ -151,7 +169,8 @@ class LayoutJob:
             args = dict(head_mesh=loaded.head_mesh, target=np.array(plan.target_lps_mm, float),
                         entry=None if plan.entry_lps_mm is None else np.array(plan.entry_lps_mm, float),
                         existing=np.array([f.centre_lps_mm for f in fids], float).reshape(-1, 3),
-                        existing_ids=tuple(int(f.id) for f in fids), radius_mm=radius, camera=self._camera_model(),
+                        existing_ids=tuple(int(f.id) for f in fids), radius_mm=radius,
+                        camera=planning_camera(plan, self._camera_rig()),
                         noise_px=noise, n_balls=n, quick=bool(quick), rules=cfg)
             token = self._token = JobToken()
             self._job = Job("plan_layout", 0.0, f"planning {n} balls and the camera")

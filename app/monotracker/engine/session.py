@@ -137,8 +137,6 @@ import time
 import uuid
 from pathlib import Path
 
-import numpy as np
-
 from monotracker.engine.access import Access, ClientSession
 from monotracker.engine.alarms import Alarms, level_of
 from monotracker.engine.audit import AuditEntry, AuditLog
@@ -228,8 +226,8 @@ class Session:
                                   plan=self._plan, access=self._access, session=self)
         self._recording = Recording(self, self._loop, self._lock)
         self._layout = LayoutJob(lock=self._lock, editor=self._plan, ct=lambda: self._ct.loaded,
-                                 ct_busy=self._ct_job_running, robot_state=lambda: self._loop.robot.state(),
-                                 camera_model=self._planning_camera, config=self.config, events=self._bus)
+                                 ct_job=lambda: self._ct.job, robot_state=lambda: self._loop.robot.state(),
+                                 camera_rig=lambda: self._loop.camera.rig, config=self.config, events=self._bus)
         self._bus.event("session_started", f"session {self.session_id} started, disarmed",
                         {"home": str(self.home), "camera": self.config.camera, "robot": self.config.robot,
                          "clock": self.config.clock, "plan_revision": self._store.plan.revision})
@@ -463,11 +461,6 @@ class Session:
         """Block until the current job ends (s; None = no limit); the last :class:`Job` or None."""
         return self._ct.wait_for_job(timeout)
 
-    def _ct_job_running(self) -> str | None:
-        """The name of the CT job while one runs, else None."""
-        job = self._ct.job
-        return job.name if job is not None and not job.done else None
-
     # ================================================================== layout (issue 31)
     def plan_layout(self, n_balls: int = 9, quick: bool = False, noise_px: float | None = None) -> CommandResult:
         """Plan where ``n_balls`` fiducial balls and the camera go for a small error at the
@@ -482,24 +475,6 @@ class Session:
     def wait_for_layout(self, timeout: float | None = None) -> Job | None:
         """Block until the layout job ends (s; None = no limit); its last :class:`Job` or None."""
         return self._layout.wait(timeout)
-
-    def _planning_camera(self):
-        """The camera model a layout is planned with: the plan's calibration, else the running
-        camera's, else the simulated camera's (``vision.camera_model.default_camera``)."""
-        from monotracker.errors import MonoTrackerError as _Err
-        from monotracker.vision.camera_model import CameraModel, default_camera
-
-        plan = self._store.plan
-        rig = self._loop.camera.rig
-        for K, dist, size in ((plan.K, plan.dist, plan.image_size),
-                              (None, None, None) if rig is None else (rig.K, rig.dist, rig.image_size)):
-            if K is not None and size is not None:
-                try:
-                    return CameraModel(np.asarray(K, float), np.zeros(5) if dist is None else np.asarray(dist, float),
-                                       tuple(int(v) for v in size))
-                except _Err:
-                    continue
-        return default_camera()
 
     def volume(self):
         """The loaded CT :class:`~monotracker.ct.Volume` (LPS mm) for read-only display (slice
