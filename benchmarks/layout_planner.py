@@ -104,8 +104,11 @@ def measure_points(T_cam_ct, X, target, noise_px, runs, frames, hide=None, seed=
 
 
 def measure_images(T_cam_ct, X_seen, X_all, target, frames, seed=0):
-    """Errors at the target (mm) of the trusted frames, the trusted share and the tracker's pooled
-    noise (px) on the simulator's photo-like frames of a still head with the balls ``X_seen``."""
+    """Errors at the target (mm) of the trusted frames, the trusted share, the tracker's pooled
+    noise (px) on the simulator's photo-like frames of a still head with the balls ``X_seen``, and
+    the tracker's commonest reason for a frame it did not trust (its first words; '' if none)."""
+    from collections import Counter
+
     from monotracker.sim.camera_sim import SimulatedCamera
     from monotracker.sim.phantom import default_phantom
     from monotracker.sim.trajectories import Still
@@ -114,7 +117,7 @@ def measure_images(T_cam_ct, X_seen, X_all, target, frames, seed=0):
     cam = SimulatedCamera(camera=CAM, phantom=ph, trajectory=Still(), T_cam_world=T_cam_ct, optics="photo",
                           seed=seed, exposure_s=0.0)
     tr = PoseTracker(X_all, CAM, radius_mm=4.0, target_ct=target)
-    err, ok, sig = [], 0, []
+    err, ok, sig, why = [], 0, [], Counter()
     for k in range(frames):
         img, truth = cam.render(k / 30.0)
         e = tr.process(Frame(img, k / 30.0, k, truth))
@@ -123,7 +126,10 @@ def measure_images(T_cam_ct, X_seen, X_all, target, frames, seed=0):
         if e.ok:
             ok += 1
             err.append(tre_mm(e.T_cam_ct, truth.T_cam_ct, target[None])[0])
-    return np.array(err), ok / frames, float(sig[-1]) if sig else float("nan")
+        else:
+            why[" ".join(str(e.reason).split()[:7])] += 1
+    top = why.most_common(1)[0][0] if why else ""
+    return np.array(err), ok / frames, float(sig[-1]) if sig else float("nan"), top
 
 
 def stats(err):
@@ -194,18 +200,19 @@ def main() -> int:
     print(f"\n2. images: the simulator's photo-like frames, classical detector, PoseTracker ({img_frames} frames, "
           "still head); predicted at the noise the tracker measured")
     print(f"{'layout':<22} {'seen':>4} {'noise px':>8} | {'pred mean':>9} {'p95':>5} {'rms':>5} | "
-          f"{'meas mean':>9} {'p95':>5} {'rms':>5} {'trust':>6}")
+          f"{'meas mean':>9} {'p95':>5} {'rms':>5} {'trust':>6} | commonest refusal")
     for k, (name, (X0, T_ct_cam)) in enumerate(list(layouts.items())[:3]):
         X = ph.with_fiducials_at(X0).fiducial_centres_lps
         p = predict(P, T_ct_cam, X)
         seen = p.visibility.seen
-        err, trust, sig = measure_images(invert_transform(T_ct_cam), X[seen], X[seen], target, img_frames, seed=k)
+        err, trust, sig, why = measure_images(invert_transform(T_ct_cam), X[seen], X[seen], target, img_frames, seed=k)
         q = predict(P, T_ct_cam, X, noise_px=sig if np.isfinite(sig) else args.noise).all_seen
         m = stats(err)
         res[name]["images"] = {"noise_px": sig, "pred_rms_mm": q.rms_mm, "pred_p95_mm": q.p95_mm,
-                               "meas_mean_mm": m[0], "meas_p95_mm": m[1], "meas_rms_mm": m[2], "trusted": trust}
+                               "meas_mean_mm": m[0], "meas_p95_mm": m[1], "meas_rms_mm": m[2], "trusted": trust,
+                               "commonest_refusal": why}
         print(f"{name:<22} {int(seen.sum()):4d} {sig:8.3f} | {q.mean_mm:9.3f} {q.p95_mm:5.3f} {q.rms_mm:5.3f} | "
-              f"{m[0]:9.3f} {m[1]:5.3f} {m[2]:5.3f} {100 * trust:5.0f}%")
+              f"{m[0]:9.3f} {m[1]:5.3f} {m[2]:5.3f} {100 * trust:5.0f}% | {why}")
     out = {"noise_px": args.noise, "balls": n, "planning_s": round(t_plan, 1),
            "planner_over_kit_p95": {"predicted": round(ratio_pred, 3), "measured": round(ratio_meas, 3)},
            "planner_trusted": res["planner"]["meas"]["trusted"],

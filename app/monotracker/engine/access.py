@@ -173,6 +173,7 @@ class ClientSession:
         "snapshot", "volume", "latest_frame", "subscribe", "audit_entries", "plan_copy", "wait_for_job",
         "plan_path", "session_id", "home", "clock", "control_summary", "is_in_control",
         "latest_pose", "robot_status", "needle_target", "recent_alerts", "latencies_s", "truth_T_base_ct",
+        "wait_for_layout",
     })
     #: commands every client may always run
     ALWAYS = frozenset({"estop", "request_estop"})

@@ -47,6 +47,10 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.request_estop()                   # the stop channel alone: never blocks (a web server's event loop)
     s.inject_fault(name)                # sim only: "camera-freeze"|"occlude-all"|"robot-disconnect"|"bad-pose"|"none"
     s.export_slicer_markups(folder) -> list[Path]   # .mrk.json, LPS
+    s.plan_layout(n_balls=9, quick=False, noise_px=None)   # async job: where the balls and the camera go
+                                        #   for a small error at the target (monotracker.planning); progress and
+                                        #   result in snap.layout; refused while armed/tracking/holding
+    s.cancel_layout()                   # stop it; the previous layout stays
     s.start_recording(folder); s.stop_recording()   # frames + detections + poses + robot + alerts
                                         # to a folder (docs/interop.md); state in snap.recording
 
@@ -69,6 +73,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     snap.control          # ControlSummary(controller client id or None, controller_label, since, pin_locked_s)
     snap.alarms           # active conditions, most important first: Alarm(code, level, priority, message, since, count)
     snap.recording        # None or RecordingSummary(path, frames, running, dropped, error)
+    snap.layout           # None or LayoutSummary(job, balls_lps_mm, T_ct_cam, suggestion, current, balls_needed,
+                          #   candidates_lps_mm, error_map_mm, stale, ...): the last planned layout
     snap.alerts           # recent alerts (Event: t, t_session, kind, level "info"|"warning"|"alarm", code, message, data)
     s.volume()            # the loaded CT Volume (LPS mm) for read-only display, or None
     s.latest_frame()      # (image BGR uint8, frame_index, estimate) for the overlay, or None; estimate is
@@ -100,7 +106,8 @@ table of source kinds, ``engine/rigs/sources.py``.
 Composition: ``Session`` inherits nothing. It builds its parts and hands each its collaborators:
 the event bus and audit log (``events.py``, ``audit.py``), the alarms (``alarms.py``), the plan
 store and editor (``plan/``), the CT job (``ct_job.py``), who may drive it (``access.py``), the
-tracking loop (``loop/``, with its rigs from ``rigs/``) and the recording (``recording.py``); the
+tracking loop (``loop/``, with its rigs from ``rigs/``), the recording (``recording.py``) and the
+layout job (``layout_job.py``); the
 methods below are one-line delegations to them (``docs/engine.md`` draws the layout).
 
 Threading: every public method may be called from any thread (viser callbacks). State lives
@@ -136,6 +143,7 @@ from monotracker.engine.audit import AuditEntry, AuditLog
 from monotracker.engine.config import SessionConfig
 from monotracker.engine.ct_job import CTJob
 from monotracker.engine.events import Event, EventBus
+from monotracker.engine.layout_job import LayoutJob
 from monotracker.engine.loop import SimClock, TrackingLoop
 from monotracker.engine.loop.core import PoseRecord
 from monotracker.engine.plan import Plan, angle_to_skin_normal_deg, distance_segment_to_points_mm, path_length_mm
@@ -217,6 +225,9 @@ class Session:
         self._loop = TrackingLoop(config=self.config, clock=self.clock, events=self._bus, alarms=self._alarms,
                                   plan=self._plan, access=self._access, session=self)
         self._recording = Recording(self, self._loop, self._lock)
+        self._layout = LayoutJob(lock=self._lock, editor=self._plan, ct=lambda: self._ct.loaded,
+                                 ct_job=lambda: self._ct.job, robot_state=lambda: self._loop.robot.state(),
+                                 camera_rig=lambda: self._loop.camera.rig, config=self.config, events=self._bus)
         self._bus.event("session_started", f"session {self.session_id} started, disarmed",
                         {"home": str(self.home), "camera": self.config.camera, "robot": self.config.robot,
                          "clock": self.config.clock, "plan_revision": self._store.plan.revision})
@@ -450,6 +461,21 @@ class Session:
         """Block until the current job ends (s; None = no limit); the last :class:`Job` or None."""
         return self._ct.wait_for_job(timeout)
 
+    # ================================================================== layout (issue 31)
+    def plan_layout(self, n_balls: int = 9, quick: bool = False, noise_px: float | None = None) -> CommandResult:
+        """Plan where ``n_balls`` fiducial balls and the camera go for a small error at the
+        target, on a job thread (progress and result in ``snap.layout``); see ``LayoutJob.start``
+        for the refusals (robot armed/tracking/holding, no CT or target, busy)."""
+        return self._layout.start(n_balls, quick, noise_px)
+
+    def cancel_layout(self) -> CommandResult:
+        """Stop the layout job; the previous layout (if any) stays."""
+        return self._layout.cancel()
+
+    def wait_for_layout(self, timeout: float | None = None) -> Job | None:
+        """Block until the layout job ends (s; None = no limit); its last :class:`Job` or None."""
+        return self._layout.wait(timeout)
+
     def volume(self):
         """The loaded CT :class:`~monotracker.ct.Volume` (LPS mm) for read-only display (slice
         views), or None while no CT is loaded. Never modify it: the engine owns it."""
@@ -577,6 +603,7 @@ class Session:
                          for f in plan.fiducials)
             plan_summary = self._plan_summary(plan, loaded)
             job, locked = self._ct.job, plan.fiducials_locked
+            layout = self._layout.summary()
             ct, mesh = (None, None) if loaded is None else (loaded.summary, loaded.head_mesh)
             if not locked:
                 step = "ct"
@@ -593,5 +620,5 @@ class Session:
             alerts=tuple(self.recent_alerts(50)), plan_path=str(self._store.path),
             audit_path=str(self._audit.path), control=self.control_summary(),
             alarms=self._alarms.active(dict(self.integrity_alarms())),
-            recording=self._recording.summary(),
+            recording=self._recording.summary(), layout=layout,
         )

@@ -252,6 +252,83 @@ class RecordingSummary:
 
 
 @dataclass(frozen=True)
+class LayoutError:
+    """Predicted error at the planned target (mm) with ``n_balls`` balls seen: ``mean_mm`` and
+    ``p95_mm`` of its length, ``rms_mm``; ``trusted`` the predicted share of frames the pose
+    stream trusts (0..1). The registration's first-order model (``monotracker.planning``)."""
+
+    n_balls: int
+    mean_mm: float
+    p95_mm: float
+    rms_mm: float
+    trusted: float
+
+
+@dataclass(frozen=True)
+class LayoutExpectation:
+    """What a layout of balls gives from one camera placement: ``all_seen`` (every ball the
+    camera sees) and ``worst_hidden`` (the one ball whose loss hurts most hidden too; its index
+    ``worst_ball`` in that layout) as :class:`LayoutError`, None when they give no pose
+    (``reason`` says why, one line); ``balls_seen`` of ``balls``."""
+
+    balls: int
+    balls_seen: int
+    all_seen: LayoutError | None
+    worst_hidden: LayoutError | None
+    worst_ball: int | None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class LayoutSummary:
+    """The fiducial-layout and camera-placement plan (``Session.plan_layout``; issue 31).
+
+    ``job``: the planning job (progress 0..1, message, error one line, done); the fields below
+    are those of the last plan that finished (None / empty until one has). Points LPS mm.
+
+    ``balls_lps_mm`` (n, 3) suggested ball centres, numbered 1..n in this order;
+    ``from_fiducial`` (n,) the plan fiducial id a suggested ball is (kept where it is), -1 for a
+    new position; ``T_ct_cam`` the planned camera (4x4, camera -> CT mm: where it stands in the
+    CT), ``camera_distance_mm`` to the point it aims at, ``K`` (3x3 px) and ``image_size`` (w, h
+    px) of the camera model planned with (its field of view); ``suggestion`` the suggested
+    balls from the planned camera; ``current`` the plan's registration fiducials from the planned
+    camera, ``current_best`` from the best camera for them, :class:`LayoutExpectation` or None;
+    ``balls_needed`` how many balls reach ``min_trusted`` trusted frames with one hidden when
+    this count does not (None: it does, or not even the most the planner suggests would: see
+    ``notes``); ``candidates_lps_mm`` (m, 3) the candidate ball positions on the skin and
+    ``error_map_mm`` (m,) the predicted RMS error at the target with the worst ball hidden if
+    one suggested ball moved there (NaN: not usable from the planned camera); ``target_lps_mm``,
+    ``noise_px`` (image noise, px), ``radius_mm`` (ball radius) planned for; ``stale``: the CT,
+    the fiducials or the path changed since (plan again), ``elapsed_s`` the planning time."""
+
+    job: Job
+    balls_lps_mm: np.ndarray | None = None
+    from_fiducial: tuple = ()
+    T_ct_cam: np.ndarray | None = None
+    camera_distance_mm: float | None = None
+    K: np.ndarray | None = None
+    image_size: tuple | None = None
+    suggestion: LayoutExpectation | None = None
+    current: LayoutExpectation | None = None
+    current_best: LayoutExpectation | None = None
+    balls_needed: int | None = None
+    min_trusted: float = 0.95
+    notes: tuple = ()
+    candidates_lps_mm: np.ndarray | None = None
+    error_map_mm: np.ndarray | None = None
+    target_lps_mm: np.ndarray | None = None
+    noise_px: float | None = None
+    radius_mm: float | None = None
+    stale: bool = False
+    elapsed_s: float | None = None
+
+    @property
+    def ready(self) -> bool:
+        """A finished plan is there (it may be ``stale``)."""
+        return self.balls_lps_mm is not None
+
+
+@dataclass(frozen=True)
 class Snapshot:
     """One consistent, immutable view of the session (see ``session.py`` for each field)."""
 
@@ -273,6 +350,7 @@ class Snapshot:
     control: ControlSummary = field(default_factory=ControlSummary)
     alarms: tuple = field(default_factory=tuple)  # tuple[Alarm], most important first
     recording: RecordingSummary | None = None  # None when no recording was made in this session
+    layout: LayoutSummary | None = None  # None until a layout was planned in this session (Plan step)
 
     @property
     def latest_alert(self) -> Event | None:

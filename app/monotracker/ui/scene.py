@@ -153,7 +153,7 @@ class SceneView:
             self.aim(step, snap)
         if keys.get("view") != step:
             keys["view"] = step
-            for k in ("mesh", "fids", "path", "robot_q", "frustum", "moved_t"):
+            for k in ("mesh", "fids", "path", "robot_q", "frustum", "moved_t", "layout"):
                 keys.pop(k, None)
             self.view.nav_scene.leave()  # no slice tile stays in the 3D view
             scene.reset()
@@ -171,6 +171,8 @@ class SceneView:
             if T_wc is not None:
                 self._set_pose(self._ct_frame, T_wc)
         self._render_ct_group(scene, keys, snap, step)
+        if step == "plan":  # the planned ball and camera layout (ui/layout_panel.py)
+            self.view.steps["plan"].layout.render_scene(scene, keys, snap)
         if step in ("register", "robot"):
             self._render_camera(scene, keys, snap, step, move)
         if step == "robot" and move:

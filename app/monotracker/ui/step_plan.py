@@ -10,6 +10,7 @@ import zipfile
 import numpy as np
 
 from monotracker.engine.plan import distance_segment_to_points_mm
+from monotracker.ui.layout_panel import LayoutPanel
 from monotracker.ui.navigation_panel import NavigationPanel
 from monotracker.ui.slice_panel import SlicePanel
 from monotracker.ui.status import fmt
@@ -36,6 +37,7 @@ class PlanStep:
             self.h_info = gui.add_html("")
             b_next = gui.add_button("Path is good: go to Register", color="green")
             b_x = gui.add_button("Export to 3D Slicer (.mrk.json)")
+            self.layout = LayoutPanel(view)  # where the balls and the camera go (ui/layout_panel.py)
             gui.add_markdown("**Navigation view** in the main view: slices through the target (or a picked "
                              "point), probe's eye and along-path; a click on a slice can set the entry, "
                              "the target or add a fiducial")
@@ -115,6 +117,7 @@ class PlanStep:
 
     def render(self, snap) -> None:
         self.h_info.content = plan_info(snap)
+        self.layout.render(snap)
         # show the plan's points in the typed fields whenever the plan changes (not while typing)
         for key, handle, p in (("entry", self.h_entry, snap.plan.entry_lps_mm),
                                ("target", self.h_target, snap.plan.target_lps_mm)):

@@ -11,6 +11,7 @@ import numpy as np
 
 from monotracker.engine.rigs.sources import SOURCES
 from monotracker.ui import status as st
+from monotracker.ui.layout_panel import placement_line
 from monotracker.ui.status import fmt
 
 CAMERA_SOURCES = tuple(kind.example for kind in SOURCES.values())  # the engine's table of source kinds
@@ -118,7 +119,8 @@ class RegisterStep:
 
     def render(self, snap) -> None:
         self.h_pose_banner.content = pose_banner(snap)
-        self.h_reg_table.content = validation_line(snap.pose) + registration_table(snap.pose) + recording_line(snap)
+        self.h_reg_table.content = (placement_line(snap) + validation_line(snap.pose) + registration_table(snap.pose)
+                                    + recording_line(snap))
 
 
 def pose_banner(snap) -> str:
