@@ -48,6 +48,8 @@ FAULT_CODES = {
     "occlude-all": ("occlusion", "pose_lost", "pose_stale"),
     "robot-disconnect": ("robot_disconnected",),
     "bad-pose": ("pose_jump", "bad_pose"),
+    "camera-bump": ("camera_moved",),
+    "camera-sag": ("camera_moved",),
 }
 
 

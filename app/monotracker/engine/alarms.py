@@ -29,7 +29,9 @@ can rely on:
 pose disagrees with the last trusted one (a wrong pose or a real jump; followed after
 ``confirm_frames`` consistent frames), arm holds; ``bad_pose`` [warning] FRE too large; ``pose_lost``
 [warning] the estimator failed; ``pose_stale`` [warning] freshest trusted pose older than
-``max_pose_age_s``; ``camera_freeze`` [alarm] no new frame for ``freeze_after_s``; ``resumed`` [info]
+``max_pose_age_s``; ``pipeline_overloaded`` [warning] the same, because this computer cannot
+estimate the frames in time (frames dropped, each estimate longer than a frame period:
+engine/loop/load.py), not a camera fault; ``camera_freeze`` [alarm] no new frame for ``freeze_after_s``; ``resumed`` [info]
 the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``fiducials_back``
 [info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
 [warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
@@ -128,6 +130,9 @@ CATALOGUE: dict[str, AlarmKind] = {
     "pose_implausible": AlarmKind("warning", 3, **_HOLD),
     "fiducial_moved": AlarmKind("warning", 3, linger_s=0.0),
     "pose_stale": AlarmKind("warning", 7, technical=True, freshness=True, **_HOLD),
+    # this computer cannot estimate the camera's frames in time (engine/loop/load.py): frames
+    # dropped, poses late; not a camera fault
+    "pipeline_overloaded": AlarmKind("warning", 7, technical=True, freshness=True, **_HOLD),
     "plan_save_failed": AlarmKind("alarm", 8, linger_s=0.0),
     "pin_lockout": AlarmKind("alarm", 9, linger_s=0.0),
     "login_lockout": AlarmKind("alarm", 9, linger_s=0.0),  # the web login (--allow-remote) refused wrong passwords
