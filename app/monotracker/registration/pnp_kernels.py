@@ -162,7 +162,7 @@ def refine(R0, t0, X, obs, fx, fy, radius, sw, max_iter, tol):
     Rd = np.empty((3, 3))
     converged = False
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 - the count is returned after the loop
         _normal(J, r, JtJ, g)
         improved = False
         rel = 0.0
