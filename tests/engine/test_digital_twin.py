@@ -150,6 +150,11 @@ def test_cli_headless_demo_json_and_bad_input(tmp_path):
     assert p.returncode == 0, p.stderr
     r = json.loads(p.stdout)
     assert r["frames"] > 50 and r["final_state"] == "tracking" and r["tip_error_mm"] is not None
+    # the pose pipeline's figures (issue 29): per-frame cost, pose age, tracking after the lock
+    assert r["detect_register_ms_median"] > 0 and r["pipeline_ms"]["p95"] >= r["pipeline_ms"]["p50"] > 0
+    assert {"detect", "register", "screen", "gates"} <= set(r["stages_ms"])
+    assert r["pose_age_ms"]["p95"] >= 30.0   # never younger than the camera's 30 ms transport
+    assert 0.0 < r["tracking_fraction_after_lock"] <= 1.0 and r["latency_ms"]["p95"] > 0
     p = subprocess.run(cmd[:-1] + ["--seconds", "-1"], capture_output=True, text=True, env=env, cwd=ROOT,
                        timeout=CHILD_WAIT_S)
     last = p.stderr.strip().splitlines()[-1]
