@@ -1,7 +1,7 @@
 """``monotracker demo --headless``: the closed loop on the digital twin, summarised.
 
     monotracker demo --headless --seconds S [--trajectory still|drift|breathing|jumps]
-        [--fault none|camera-freeze|occlude-all|robot-disconnect|bad-pose] [--fault-at T]
+        [--fault none|camera-freeze|occlude-all|robot-disconnect|bad-pose|camera-bump|camera-sag] [--fault-at T]
         [--seed N] [--home DIR] [--json] [--record DIR] [--igtl-port PORT [--allow-remote]]
 
 Runs on a simulated clock (see ``monotracker.demo.run``); ``--seconds`` is tracking time.

@@ -48,6 +48,8 @@ FAULT_CODES = {
     "occlude-all": ("occlusion", "pose_lost", "pose_stale"),
     "robot-disconnect": ("robot_disconnected",),
     "bad-pose": ("pose_jump", "bad_pose"),
+    "camera-bump": ("camera_moved",),
+    "camera-sag": ("camera_moved",),
 }
 
 
@@ -106,6 +108,9 @@ class _Recorder:
         self._reg_error = None
         self._seen_pose = None
         self.tracking_since = None
+        self.stages = []   # per estimate: vision's stage times (s) + the pipeline's CPU time (s)
+        self.pose_age = []  # (t, age of the newest trusted pose, s) on every tick
+        self._trusted_capture = None
 
     def __call__(self, t: float) -> None:
         from monotracker.robot.targets import tip_and_axis_error
@@ -129,15 +134,44 @@ class _Recorder:
             self.tip_vs_registered.append((t, float(np.linalg.norm(st.T_base_tip[:3, 3] - e))))
         if st is not None and st.T_base_tip is not None:
             self.tip_positions.append((t, st.T_base_tip[:3, 3].copy()))
+        if self._trusted_capture is not None:
+            self.pose_age.append((t, t - self._trusted_capture))
         rec = s.latest_pose()
         if rec is not None and rec.sample is not self._seen_pose:
             self._seen_pose = rec.sample
             smp = rec.sample
+            st = dict(getattr(smp.raw, "stages_s", None) or {})
+            st.update({k: v for k, v in (smp.stages or {}).items() if k == "pipeline_s"})
+            self.stages.append(st)
+            if rec.trusted:
+                self._trusted_capture = smp.t_capture
             if rec.trusted and smp.T_cam_ct is not None and smp.truth_T_cam_ct is not None:
                 d = apply_transform(smp.T_cam_ct, self.target) - apply_transform(smp.truth_T_cam_ct, self.target)
                 # the registration's error as a rigid map in CT (T_cam_ct = truth @ error)
                 self._reg_error = np.linalg.solve(smp.truth_T_cam_ct, smp.T_cam_ct)
                 self.tre.append(float(np.linalg.norm(d)))
+
+
+#: the per-frame stages of detection + registration + screening + gates (vision's PoseEstimate.stages_s)
+DETECT_REGISTER_STAGES = ("hint", "detect", "register", "screen", "gates")
+
+
+def _pipeline_figures(stages: list[dict]) -> dict:
+    """``detect_register_ms_median`` (detection + registration + screening + gates per frame, ms,
+    wall time of the stages), ``pipeline_ms`` (the whole estimate's CPU time per frame, with the
+    camera-motion watch and the validation check: what the simulated clock charges, ms) and
+    ``stages_ms`` (median per stage, ms)."""
+    def pct(a):
+        a = np.asarray(a, float) * 1000
+        a = a[np.isfinite(a)]
+        return None if a.size == 0 else {"p50": float(np.median(a)), "p95": float(np.percentile(a, 95)),
+                                          "p99": float(np.percentile(a, 99)), "n": int(a.size)}
+    dr = [sum(s.get(k, 0.0) for k in DETECT_REGISTER_STAGES) for s in stages if "detect" in s]
+    keys = sorted({k for s in stages for k in s if k != "pipeline_s"})
+    return {"detect_register_ms_median": float(np.median(dr)) * 1000 if dr else None,
+            "detect_register_ms": pct(dr),
+            "pipeline_ms": pct([s["pipeline_s"] for s in stages if "pipeline_s" in s]),
+            "stages_ms": {k: float(np.nanmedian([s.get(k, np.nan) for s in stages])) * 1000 for k in keys}}
 
 
 def _standstill_after(rows, t0: float) -> float | None:
@@ -317,7 +351,13 @@ def _run(s: Session, opts: DemoOptions, wall0: float, cpu0: float, on_tracking) 
         "tip_error_vs_registered_mm": _stats([e for t, e in rec.tip_vs_registered if settle_from <= t < until]),
         "axis_error_deg": _stats([r[3] for r in trk]),
         "tracking_fraction": len(trk) / max(1, len([r for r in rec.rows if settle_from <= r[0] < until])),
+        # after the first lock (tracking started), until the fault
+        "tracking_fraction_after_lock": (len([r for r in rec.rows if r[1] == "tracking" and t_track <= r[0] < until])
+                                         / max(1, len([r for r in rec.rows if t_track <= r[0] < until]))),
         "latency_ms": _stats(lat),
+        # age of the newest trusted pose on every control tick after settling (ms)
+        "pose_age_ms": _stats([1000 * a for t, a in rec.pose_age if settle_from <= t < until]),
+        **_pipeline_figures(rec.stages),
         "final_state": snap.robot.state,
         "recording": recording,
         "alerts": [{"t": round(a.t_session, 3), "level": a.level, "code": a.code, "message": a.message}
@@ -386,6 +426,8 @@ def format_report(r: dict) -> str:
         f"  needle tip error    : {st(r['tip_error_mm'], 'mm')} to the planned entry (tracking, after settling)",
         f"  needle axis error   : {st(r['axis_error_deg'], 'deg')}",
         f"  latency             : {st(r['latency_ms'], 'ms', 1)} capture -> command",
+        f"  pose pipeline       : detection + registration {r['detect_register_ms_median'] or float('nan'):.1f} ms "
+        f"median per frame; tracking {100 * r['tracking_fraction']:.1f} % of the time after settling",
         f"  final robot state   : {r['final_state']}",
     ] + ([f"  recording           : {r['recording']['message']} ({r['recording']['path']})"]
          if r.get("recording") else []) + [

@@ -37,7 +37,9 @@ can rely on:
 pose disagrees with the last trusted one (a wrong pose or a real jump; followed after
 ``confirm_frames`` consistent frames), arm holds; ``bad_pose`` [warning] FRE too large; ``pose_lost``
 [warning] the estimator failed; ``pose_stale`` [warning] freshest trusted pose older than
-``max_pose_age_s``; ``camera_freeze`` [alarm] the camera repeats its frames bit for bit (a frozen
+``max_pose_age_s``; ``pipeline_overloaded`` [warning] the same, because this computer cannot
+estimate the frames in time (frames dropped, each estimate longer than a frame period:
+engine/loop/load.py), not a camera fault; ``camera_freeze`` [alarm] the camera repeats its frames bit for bit (a frozen
 driver); ``camera_late`` [warning] frames still arrive, new ones, but none for ``freeze_after_s``
 (a busy machine or a slow pipeline: the arm holds until fresh poses return, as the robot's own
 0.1 s freshness rule makes it); ``camera_stalled`` [alarm] no new frame at all for
@@ -159,6 +161,10 @@ CATALOGUE: dict[str, AlarmKind] = {
                              clear_after_s=_FLAP_CLEAR_S, **_HOLD),
     "pose_stale": AlarmKind("warning", 7, technical=True, freshness=True, raise_after_s=_FLAP_RAISE_S,
                             clear_after_s=_FLAP_CLEAR_S, **_HOLD),
+    # this computer cannot estimate the camera's frames in time (engine/loop/load.py): frames
+    # dropped, poses late; not a camera fault (the arm holds at once; one episode per busy spell)
+    "pipeline_overloaded": AlarmKind("warning", 7, technical=True, freshness=True, raise_after_s=_FLAP_RAISE_S,
+                                     clear_after_s=_FLAP_CLEAR_S, **_HOLD),
     "plan_save_failed": AlarmKind("alarm", 8, linger_s=0.0),
     # a plan revision reached an armed / tracking / holding robot: it was disarmed (arming is for one plan)
     "plan_changed_armed": AlarmKind("alarm", 8, linger_s=0.0),

@@ -79,6 +79,14 @@ class SessionConfig:
     simulated camera process: 0 (normal) or higher (below the web server); never negative, and
     ``pose_rt_priority`` only 0: real-time scheduling is for the robot's control process only
     (the policy: ``engine/pipeline_priority.py``; other values are refused with that reason).
+    ``camera_motion_every`` (6): rigs whose frames show the room (camera "sim", devices, files,
+    replays; not "sim-points") give their pose tracker a camera-motion watch
+    (:class:`~monotracker.vision.camera_motion.CameraMotionMonitor`, quarter resolution) that
+    checks the static background every this many frames: a camera bumped or sagging after the
+    hand-eye calibration refuses every pose (``camera_moved``, the arm holds) until the camera is
+    restarted. 6 frames at 30 fps: a knock is refused within 0.2 s, a sag over 0.1 deg within
+    0.4 s of reaching it, for ~0.5 ms per frame on average (``benchmarks/pose_rate.py``); 0 = not
+    watched.
     ``extra``: free-form settings for experiments; nothing in the engine reads it.
 
     Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
@@ -119,6 +127,7 @@ class SessionConfig:
     pose_nice: int = 0
     pose_rt_priority: int = 0
     sim_camera_process: bool = True
+    camera_motion_every: int = 6
     extra: dict = field(default_factory=dict)
 
     def frame_rules(self):
@@ -157,6 +166,8 @@ class SessionConfig:
             raise InputError("min_fiducials must be at least 3 (a rigid pose needs 3 points)")
         if self.controller not in ("APF-V", "APF-A-I", "APF-A-II"):
             raise InputError(f"controller must be APF-V, APF-A-I or APF-A-II, not {self.controller!r}")
+        if not (isinstance(self.camera_motion_every, int) and self.camera_motion_every >= 0):
+            raise InputError(f"camera_motion_every must be a whole number of frames >= 0, not {self.camera_motion_every!r}")
         if not (self.max_predicted_tre_mm > 0):
             raise InputError("max_predicted_tre_mm must be a positive number of mm")
         if self.camera_adapt:

@@ -45,7 +45,7 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.estop(); s.reset_estop()          # e-stop is latched; reset leaves the arm disarmed; estop() waits
                                         #   (~1 s at most) for the robot controller's acknowledgement
     s.request_estop()                   # the stop channel alone: never blocks (a web server's event loop)
-    s.inject_fault(name)                # sim only: "camera-freeze"|"occlude-all"|"robot-disconnect"|"bad-pose"|"none"
+    s.inject_fault(name)                # sim only: "camera-freeze"|"occlude-all"|"robot-disconnect"|"bad-pose"|"camera-bump"|"camera-sag"|"none"
     s.export_slicer_markups(folder) -> list[Path]   # .mrk.json, LPS
     s.plan_layout(n_balls=9, quick=False, noise_px=None)   # async job: where the balls and the camera go
                                         #   for a small error at the target (monotracker.planning); progress and

@@ -104,6 +104,27 @@ def moved_gate(dof: int, p: float = P_MOVED) -> float:
     return float(2.0 * f_ppf(1.0 - p, 2, max(int(dof), 1)))
 
 
+def _deletion_quads(r: np.ndarray, J: np.ndarray, C: np.ndarray):
+    """Per pair q of a fit with residuals r (2k,) px, Jacobian J (2k, 6) and C = (J^T J)^-1: the
+    left-out prediction error ``e_q = (I - H_qq)^-1 r_q`` (k, 2) px and ``r_q^T e_q`` (k,), the
+    drop in RSS without the pair; H_qq the 2x2 block of the hat matrix. All pairs at once; a
+    singular block (only then, pair by pair) gives ``e_q = r_q * inf`` as before."""
+    k = len(r) // 2
+    Jq = J.reshape(k, 2, 6)
+    rq = r.reshape(k, 2)
+    IH = np.eye(2)[None] - np.einsum("qai,ij,qbj->qab", Jq, C, Jq)
+    try:
+        e = np.linalg.solve(IH, rq[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        e = np.empty((k, 2))
+        for q in range(k):
+            try:
+                e[q] = np.linalg.solve(IH[q], rq[q])
+            except np.linalg.LinAlgError:
+                e[q] = rq[q] * np.inf
+    return e, np.einsum("qa,qa->q", rq, e)
+
+
 def _loo_one(T, X, obs, fxy, radius, i, sigma_px, sigma_dof=0):
     """Leave pair i out: (error px (2,), d2, T_without, dof of the sigma used)."""
     keep = np.arange(len(X)) != i
@@ -158,15 +179,10 @@ def leave_one_out(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray,
     rss = float(r @ r)
     dof_loo = 2 * (k - 1) - 6
     out = []
+    es, quads = _deletion_quads(r, J, C)
     for q in range(k):
-        Jq = J[2 * q:2 * q + 2]
-        rq = r[2 * q:2 * q + 2]
-        IH = np.eye(2) - Jq @ C @ Jq.T
-        try:
-            e = np.linalg.solve(IH, rq)
-        except np.linalg.LinAlgError:
-            e = rq * np.inf
-        quad = float(rq @ e)                       # r^T (I - H)^-1 r = drop in RSS
+        e = es[q]
+        quad = float(quads[q])                     # r^T (I - H)^-1 r = drop in RSS
         s_loo = np.sqrt(max(rss - quad, 0.0) / dof_loo) if dof_loo > 0 else 0.0
         sigma, sdof = _pick_sigma(s_loo, dof_loo, sigma_px, sigma_dof)
         d2 = quad / sigma**2
@@ -199,13 +215,8 @@ def noise_sample(T: np.ndarray, X: np.ndarray, xn: np.ndarray, fxy: np.ndarray, 
         C = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         return rss, dof
-    quads = []
-    for q in range(k):
-        Jq, rq = J[2 * q:2 * q + 2], r[2 * q:2 * q + 2]
-        try:
-            quads.append(float(rq @ np.linalg.solve(np.eye(2) - Jq @ C @ Jq.T, rq)))
-        except np.linalg.LinAlgError:
-            quads.append(0.0)
+    _, quads = _deletion_quads(r, J, C)
+    quads = np.where(np.isfinite(quads), quads, 0.0)   # a singular block counts as no drop, as before
     q = int(np.argmax(quads))
     dof_loo = dof - 2
     rest = max(rss - quads[q], 0.0)

@@ -49,7 +49,25 @@ def _residuals(R, t, X, obs, fxy, radius_mm):
 
 
 def _residuals_and_jacobian(R, t, X, obs, fxy, radius_mm):
-    """Residuals r (2k,) and analytic Jacobian (2k, 6) w.r.t. the left perturbation (w, dt)."""
+    """Residuals r (2k,) px and analytic Jacobian (2k, 6) px per (rad, mm) w.r.t. the left
+    perturbation (w, dt): compiled (:mod:`.pnp_kernels`), same as
+    :func:`residuals_and_jacobian_reference`."""
+    from . import pnp_kernels
+
+    X = np.ascontiguousarray(X, dtype=float).reshape(-1, 3)
+    k = len(X)
+    r, J = np.empty(2 * k), np.empty((2 * k, 6))
+    pnp_kernels.residuals_and_jacobian(np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(t, dtype=float),
+                                       X, np.ascontiguousarray(obs, dtype=float).reshape(-1, 2),
+                                       float(fxy[0]), float(fxy[1]), float(radius_mm or 0.0), _NO_WEIGHTS, r, J)
+    return r, J
+
+
+_NO_WEIGHTS = np.empty(0)
+
+
+def residuals_and_jacobian_reference(R, t, X, obs, fxy, radius_mm):
+    """The NumPy form of :func:`_residuals_and_jacobian` (the compiled kernel's reference)."""
     q = X @ R.T                      # R X (k, 3)
     Xc = q + t
     a, b, c = Xc[:, 0], Xc[:, 1], Xc[:, 2]
@@ -81,16 +99,39 @@ def _residuals_and_jacobian(R, t, X, obs, fxy, radius_mm):
 def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
                 radius_mm: float | None = None, max_iter: int = 20, tol: float = 1e-9,
                 weights: np.ndarray | None = None) -> Refinement:
-    """LM refinement of ``T0`` (4x4) for model points X (k, 3) mm and normalised observations
-    obs (k, 2); ``fxy`` = (fx, fy) converts residuals to pixels. ``weights`` (k,): each point's
-    weight in the least squares (e.g. the number of frames averaged into it); None = equal."""
+    """LM refinement of ``T0`` (4x4 T_cam_ct, mm) for model points X (k, 3) CT mm and normalised
+    observations obs (k, 2); ``fxy`` = (fx, fy) converts residuals to pixels. ``weights`` (k,):
+    each point's weight in the least squares (e.g. the number of frames averaged into it); None =
+    equal. Compiled (:mod:`.pnp_kernels`); :func:`refine_pose_reference` is the same in NumPy."""
+    from . import pnp_kernels
+
+    X = np.ascontiguousarray(X, dtype=float).reshape(-1, 3)
+    obs = np.ascontiguousarray(obs, dtype=float).reshape(-1, 2)
+    T0 = np.asarray(T0, float)
+    fx, fy, radius = float(fxy[0]), float(fxy[1]), float(radius_mm or 0.0)
+    sw = _NO_WEIGHTS if weights is None else np.repeat(np.sqrt(np.asarray(weights, float).reshape(-1)), 2)
+    R, t, it, converged, JtJ = pnp_kernels.refine(np.ascontiguousarray(T0[:3, :3]), np.ascontiguousarray(T0[:3, 3]),
+                                                  X, obs, fx, fy, radius, sw, int(max_iter), float(tol))
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    k = len(X)
+    r0, J0 = np.empty(2 * k), np.empty((2 * k, 6))
+    pnp_kernels.residuals_and_jacobian(R, t, X, obs, fx, fy, radius, _NO_WEIGHTS, r0, J0)
+    return Refinement(T=T, residuals=r0.reshape(-1, 2), JtJ=JtJ, iterations=int(it), converged=bool(converged), J=J0)
+
+
+def refine_pose_reference(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
+                          radius_mm: float | None = None, max_iter: int = 20, tol: float = 1e-9,
+                          weights: np.ndarray | None = None) -> Refinement:
+    """The NumPy form of :func:`refine_pose` (the compiled kernel's reference)."""
     R = T0[:3, :3].copy()
     t = T0[:3, 3].copy()
     lam = 1e-3
     sw = None if weights is None else np.repeat(np.sqrt(np.asarray(weights, float).reshape(-1)), 2)
 
     def _rj(R_, t_):
-        r_, J_ = _residuals_and_jacobian(R_, t_, X, obs, fxy, radius_mm)
+        r_, J_ = residuals_and_jacobian_reference(R_, t_, X, obs, fxy, radius_mm)
         return (r_, J_) if sw is None else (r_ * sw, J_ * sw[:, None])
 
     r, J = _rj(R, t)
@@ -127,5 +168,5 @@ def refine_pose(T0: np.ndarray, X: np.ndarray, obs: np.ndarray, fxy: np.ndarray,
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = t
-    r0, J0 = _residuals_and_jacobian(R, t, X, obs, fxy, radius_mm)
+    r0, J0 = residuals_and_jacobian_reference(R, t, X, obs, fxy, radius_mm)
     return Refinement(T=T, residuals=r0.reshape(-1, 2), JtJ=J.T @ J, iterations=it, converged=converged, J=J0)

@@ -33,10 +33,10 @@ import numpy as np
 
 from monotracker.geometry import make_transform, rotation_about_axis
 
-FAULTS = ("none", "camera-freeze", "occlude-all", "robot-disconnect", "bad-pose")
-#: the faults that move the camera in the room (:class:`CameraMotion`); the engine's twin rigs
-#: inject them once they render a moved camera (until then they are not in :data:`FAULTS`)
+#: the faults that move the camera in the room (:class:`CameraMotion`); the rendered twin camera
+#: (camera "sim") shows them, the point-level twin ("sim-points") refuses them
 CAMERA_MOTION_FAULTS = ("camera-bump", "camera-sag")
+FAULTS = ("none", "camera-freeze", "occlude-all", "robot-disconnect", "bad-pose") + CAMERA_MOTION_FAULTS
 #: camera-bump: rotation (deg) about ``BUMP_AXIS_CAM`` and shift (mm) along ``BUMP_SHIFT_DIR_CAM``
 #: (camera frame: a knock from the side turns the camera mostly about its vertical axis)
 BUMP_DEG = 1.5

@@ -91,9 +91,11 @@ class MotionReport:
 def _prepare(image: np.ndarray, scale: float) -> np.ndarray:
     """Grey, resized, high-passed and normalised (uint8 around 128): a global gain or offset
     change of the lighting leaves it unchanged."""
-    g = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA) if scale != 1.0 else image
-    if g.ndim == 3:
-        g = cv2.cvtColor(g, cv2.COLOR_BGR2GRAY)
+    # grey first, then the area average: both linear, so the same image as the other order up to
+    # rounding, at a third of the cost (resizing three channels was 1.8 of a check's ~4.8 ms)
+    g = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    if scale != 1.0:
+        g = cv2.resize(g, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
     g = g.astype(np.float32)
     hp = g - cv2.GaussianBlur(g, (0, 0), 4.0)
     s = float(cv2.mean(np.abs(hp))[0]) + 1e-3

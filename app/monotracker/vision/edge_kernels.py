@@ -21,30 +21,14 @@ to (m, R, 2) with ``valid`` (m, R) (a ball of n rays fills its first n rows).
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 
-import numba
 import numpy as np
 
+from monotracker.registration.compiled import compiled
 
-def _compiled(fn):
-    """numba's ``njit(cache=True)``, with a cache that works where this module's folder is not
-    writable (a system-wide install run by another user, a service account without a home): the
-    machine code then goes to a per-user folder under the temporary directory, and where no
-    cache can be written at all each process compiles for itself (slower start, same code).
-    Before this, such a run failed at import ("cannot cache function ...: no locator")."""
-    try:
-        return numba.njit(cache=True)(fn)
-    except RuntimeError:
-        pass
-    if not numba.config.CACHE_DIR:
-        numba.config.CACHE_DIR = os.path.join(tempfile.gettempdir(), f"monotracker-numba-{os.getuid()}")
-        try:
-            return numba.njit(cache=True)(fn)
-        except (RuntimeError, OSError):
-            pass
-    return numba.njit(fn)
+
+#: numba's njit(cache=True), cached where this folder is not writable (registration/compiled.py)
+_compiled = compiled
 
 
 @_compiled

@@ -119,8 +119,8 @@ def grayscale_problem(image: np.ndarray) -> str:
     The fiducial detectors find the balls by their colour; a monochrome (or IR) camera, a
     grayscale video or a folder of grayscale images gives frames with one channel, or three
     equal ones after conversion, in which no ball can ever be found: without this check the
-    operator sees "0 fiducials detected" and looks for a covered patch. Cost: a 1-in-4 pixel
-    sample (~0.1 ms at 1280x720)."""
+    operator sees "0 fiducials detected" and looks for a covered patch. Cost: a 1-in-16 pixel
+    sample for a colour frame (~0.05 ms at 1280x720), a 1-in-4 one for a grey-looking frame."""
     img = np.asarray(image)
     why = ("frames are grayscale ({}): the balls are found by their colour, so none can be found; "
            "use a colour camera (not a monochrome or infrared one) or colour frames")
@@ -128,10 +128,11 @@ def grayscale_problem(image: np.ndarray) -> str:
         return why.format("one channel")
     if img.ndim != 3 or img.shape[2] < 3:
         return ""
-    s = img[::4, ::4, :3].astype(np.int16)
-    spread = np.maximum(np.abs(s[..., 0] - s[..., 1]), np.abs(s[..., 1] - s[..., 2]))
-    if spread.max() > GREY_CHANNEL_SPREAD:
-        return ""
+    for step in (16, 4):   # a 1-in-16 sample (a subset of the 1-in-4 one) settles a colour frame at once
+        s = img[::step, ::step, :3].astype(np.int16)
+        spread = np.maximum(np.abs(s[..., 0] - s[..., 1]), np.abs(s[..., 1] - s[..., 2]))
+        if spread.max() > GREY_CHANNEL_SPREAD:
+            return ""
     lo, hi = np.percentile(s[..., 1], (1, 99))
     if hi - lo < GREY_MIN_CONTRAST:
         return ""                   # black, blank or saturated: nothing to say about its colour

@@ -275,6 +275,9 @@ class PoseTracker:
         self.pool = StillPool(max_frames=c.pool_frames, alpha=c.pool_alpha)
         #: the centre bias the trust model covers (None: the trust model before issue 28)
         self.centre_bias = centre_bias_of(self.detector) if c.centre_bias == "detector" else c.centre_bias
+        from monotracker.registration import pnp_kernels
+
+        pnp_kernels.warm_up()   # compile or load the pose refinement now, not in the first frame's budget
 
     def reset(self) -> None:
         """Forget the previous frames, the noise estimate and the excluded (moved) fiducials:

@@ -255,6 +255,11 @@ class CameraControl:
         else:
             if self.rig is None:
                 return CommandResult(False, "start the camera first")
+            from monotracker.sim.faults import CAMERA_MOTION_FAULTS
+
+            if name in CAMERA_MOTION_FAULTS and not getattr(self.rig, "renders_camera_motion", False):
+                return CommandResult(False, f"{name} moves the rendered twin camera: use camera 'sim' "
+                                            f"(this camera, {self.source}, has no background to move)")
             self.rig.set_fault(name)
         self.fault = name
         self.loop.events.event("fault_injected", f"fault injected: {name}", {"fault": name}, level="warning")

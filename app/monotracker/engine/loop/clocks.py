@@ -78,6 +78,7 @@ class SimStepper:
                         w = time.thread_time() - w0
                         ready = t + rig.transport_delay_s + w
                         sample.t_ready = ready
+                        sample.stages["pipeline_s"] = w   # the pipeline's own time (engine/loop/load.py)
                         self._busy_until = ready
                         self._in_flight.append((ready, sample))
             while self._in_flight and self._in_flight[0][0] <= t + 1e-12:

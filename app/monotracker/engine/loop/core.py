@@ -51,6 +51,7 @@ from monotracker.engine.loop import summaries as _summaries
 from monotracker.engine.loop.camera import CameraControl
 from monotracker.engine.loop.clocks import RealThread, SimStepper
 from monotracker.engine.loop.gate import PoseGate
+from monotracker.engine.loop.load import PipelineLoad
 from monotracker.engine.loop.robot import RobotControl
 
 log = logging.getLogger(__name__)
@@ -105,6 +106,8 @@ class TrackingLoop:
         self._pending_latency_stamp: float | None = None
         self._pending_latency_set_at = 0.0
         self.latencies_s: deque[float] = deque(maxlen=5000)
+        #: is the pose pipeline keeping up with the camera (``pipeline_overloaded``)
+        self.load = PipelineLoad()
         self._tick_hooks: list = []
         self._pose_hooks: list = []
         self.camera = CameraControl(self, plan=plan, session=session)
@@ -229,6 +232,9 @@ class TrackingLoop:
 
     def on_pose(self, sample: rigs.PoseSample, now: float) -> None:
         """A new estimate is available (engine thread / sim tick)."""
+        rig = self.camera.rig
+        self.load.note_pose(sample.t_capture, sample.t_ready, now, getattr(rig, "transport_delay_s", 0.0),
+                            (getattr(sample, "stages", None) or {}).get("pipeline_s"))
         self._fiducial_changes(sample)
         for fid, shift in getattr(sample, "moved", {}).items():
             self.alarms.persistent("fiducial_moved", f"fiducial {fid} moved about {shift:.1f} mm relative to the "
@@ -253,8 +259,8 @@ class TrackingLoop:
             holding, code = self._holding_reason is not None, self._holding_code
         if v.trusted and age > limit:
             # trusted but already too old when it arrived: never a command; hold as stale
-            self.hold("pose_stale", f"pose stale: trusted pose arrived {1000 * age:.0f} ms after capture "
-                                     f"(limit {1000 * limit:.0f} ms)")
+            self.hold(*self._stale(f"pose stale: trusted pose arrived {1000 * age:.0f} ms after capture "
+                                   f"(limit {1000 * limit:.0f} ms)", now))
         elif v.trusted:
             dwell = self._dwell_s
             if holding and code in FRAME_CODES and self.camera.frame_condition(now):
@@ -456,9 +462,15 @@ class TrackingLoop:
                 with self._lock:
                     self._fresh_since = None  # a gap: the resume dwell starts again
                     code = self._holding_code if self._holding_reason is not None else None
-                if code is None or code == "pose_stale":
-                    self.hold("pose_stale", f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old")
+                if code is None or code in ("pose_stale", "pipeline_overloaded"):
+                    self.hold(*self._stale(f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old", now))
         self.robot.refresh()
+
+    def _stale(self, reason: str, now: float) -> tuple[str, str]:
+        """(code, reason) of a stale-pose hold: ``pipeline_overloaded`` when this computer, not
+        the camera, makes the poses late (:mod:`.load`), else ``pose_stale`` with ``reason``."""
+        why = self.load.overloaded(now, self.camera.frame_times, 1.0 / float(self.cfg.camera_fps))
+        return ("pipeline_overloaded", f"{reason}: {why}") if why else ("pose_stale", reason)
 
     def pending_latency(self) -> float | None:
         """Session time (s) the newest target was handed to the robot while its latency is not

@@ -65,7 +65,21 @@ def build_camera_rig(source: str, calibration_path, plan, cfg, session) -> Camer
         rig.nice = int(getattr(cfg, "pose_nice", 0))  # >= 0 (SessionConfig.validate): never above the web server
         rig.camera_process = bool(getattr(cfg, "sim_camera_process", False)) and cfg.clock == "real"
     rig.validation.limit_mm = float(cfg.max_validation_tre_mm)
+    _watch_camera_motion(rig, int(getattr(cfg, "camera_motion_every", 0)))
     return rig
+
+
+def _watch_camera_motion(rig: CameraRig, every: int) -> None:
+    """Give the rig's pose tracker a camera-motion watch (``SessionConfig.camera_motion_every``)
+    when its frames show the room (``rig.watches_background``): the tracker refuses every pose
+    with ``camera_moved`` once the background shows the camera moved after the hand-eye
+    calibration, so the arm holds. A new rig (the camera restarted) starts a new reference."""
+    tracker = getattr(rig, "tracker", None)
+    if every <= 0 or tracker is None or not getattr(rig, "watches_background", False):
+        return
+    from monotracker.vision.camera_motion import CameraMotionMonitor, MotionConfig
+
+    tracker.camera_motion = CameraMotionMonitor(float(rig.K[0, 0]), MotionConfig(every_n_frames=every))
 
 
 def make_robot_rig(cfg, session) -> RobotRig:

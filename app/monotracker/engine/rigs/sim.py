@@ -283,6 +283,7 @@ class SimImageRig(_SimRig):
         self._cam_kwargs = dict(trajectory=self.motion, fps=fps, seed=seed, T_cam_world=self.layout.T_cam_ct0,
                                 optics=optics)
         self.cam = SimulatedCamera(**self._cam_kwargs)
+        self._pending_motion: str | None = None   # a camera-motion fault to start at the next frame
         self.camera_model = self.cam.camera
         self.K = self.camera_model.K
         self.dist = self.camera_model.dist
@@ -292,9 +293,34 @@ class SimImageRig(_SimRig):
                                    radius_mm=self.radius_mm, target_ct=self.target_ct, config=rules,
                                    watch_ct=self.validation.centres_ct)   # validation balls searched too
 
+    #: the camera-motion faults (``camera-bump``, ``camera-sag``) move this rig's rendered camera
+    renders_camera_motion = True
+    #: its frames show a static background: the factory gives its tracker a camera-motion watch
+    watches_background = True
+
+    def set_fault(self, name: str) -> None:
+        """Apply fault ``name``; a camera-motion fault moves the twin camera in the room from the
+        next frame on (from the session time of that frame: ``sim/faults.py``'s CameraMotion),
+        "none" puts it back where the hand-eye was calibrated."""
+        from monotracker.sim.faults import CAMERA_MOTION_FAULTS
+
+        super().set_fault(name)
+        moving = name if name in CAMERA_MOTION_FAULTS else None
+        if moving is None:
+            self.cam.camera_motion = None
+        self._pending_motion = moving
+        camproc = self._camproc
+        if camproc is not None:
+            camproc.set_camera_motion(moving)
+
     def capture(self, t: float) -> _ImageFrame:
         if self.fault == "camera-freeze" and self._last_frame is not None:
             return self._frozen_frame(t)
+        pending, self._pending_motion = getattr(self, "_pending_motion", None), None
+        if pending is not None:
+            from monotracker.sim.faults import CameraMotion
+
+            self.cam.camera_motion = CameraMotion(pending, float(t))
         img, truth = self.cam.render(t)
         return self._new_frame(img, t, truth)
 
@@ -396,6 +422,9 @@ class ProjectedFiducialRig(_SimRig):
         self.image_size = SIM_IMAGE_SIZE
         self.true_fiducials_ct = self.phantom.fiducial_centres_lps  # truth (the phantom), computed once
         self._blank = None
+        from monotracker.registration import pnp_kernels
+
+        pnp_kernels.warm_up()   # the tracker comes at the first frame; its compiled fit is loaded now
 
     def _make_tracker(self) -> None:
         from monotracker.vision.camera_model import CameraModel

@@ -20,7 +20,9 @@ camera rate on the shared monotonic clock (``time.monotonic`` is system-wide on 
   policy, ``engine/pipeline_priority.py``), and ends when its parent closes the pipe or dies.
 
 Faults that the engine injects (freeze, occlusion) are applied by the rig to the frame it reads,
-as before; the child renders the scene only.
+as before; the child renders the scene only, with the camera moved in the room when a
+camera-motion fault (``camera-bump``, ``camera-sag``) is set (:meth:`SimCameraProcess.set_camera_motion`:
+control words 2-3, the fault's index in ``CAMERA_MOTION_FAULTS`` + 1 and its start, monotonic us).
 """
 
 from __future__ import annotations
@@ -86,7 +88,14 @@ def _child(wake_fd_holder, shm_name: str, shape: tuple, cam_kwargs: dict, fps: f
         t_next = time.monotonic()
         render_s = 0.0
         index = 0
+        motion_word = 0
         while ctrl[1] == 0 and os.getppid() == parent:
+            if ctrl[2] != motion_word:   # the parent set (or cleared) a camera-motion fault
+                from monotracker.sim.faults import CAMERA_MOTION_FAULTS, CameraMotion
+
+                motion_word = int(ctrl[2])
+                cam.camera_motion = (None if motion_word <= 0 else
+                                     CameraMotion(CAMERA_MOTION_FAULTS[motion_word - 1], float(ctrl[3]) * 1e-6))
             now = time.monotonic()
             if now < t_next:
                 time.sleep(min(t_next - now, 0.05))
@@ -215,6 +224,18 @@ class SimCameraProcess:
             return None  # overtaken by the renderer while copying
         self._last = index
         return img, index, t_capture, pickle.loads(blob), render_s
+
+    def set_camera_motion(self, kind: str | None) -> None:
+        """Move the rendered camera from now on (``kind`` one of ``CAMERA_MOTION_FAULTS``), or put
+        it back (None)."""
+        from monotracker.sim.faults import CAMERA_MOTION_FAULTS
+
+        shm = self._shm
+        if shm is None:
+            return
+        ctrl = np.ndarray((8,), np.int64, shm.buf, 0)
+        ctrl[3] = int(time.monotonic() * 1e6)
+        ctrl[2] = 0 if kind is None else CAMERA_MOTION_FAULTS.index(kind) + 1
 
     def alive(self) -> bool:
         return self._proc is not None and self._proc.is_alive()

@@ -57,6 +57,9 @@ class StreamRig(CameraRig):
 
     watches_itself = True
 
+    #: its frames show the room: the factory gives its tracker a camera-motion watch
+    watches_background = True
+
     def __init__(self, kind: str, arg: str, calibration_path: str | None, plan, session, camera_adapt: str = "",
                  rules=None):
         """``kind``: ``"device" | "file" | "folder" | "replay"``; ``arg``: the device number or the

@@ -1,0 +1,76 @@
+"""A computer too slow for the pose pipeline says so (``pipeline_overloaded``, engine/loop/load.py)
+instead of a ``pose_stale`` that reads like a camera fault; on the simulated clock, where each
+estimate's cost is its measured thread CPU time (so the test does not depend on the machine's
+speed or load: the slow estimator burns a fixed amount of its own CPU time)."""
+
+import time
+
+from monotracker.engine.rigs.factory import build_camera_rig
+
+from .conftest import plan_sample
+
+
+def _slow(burn):
+    """A camera factory whose rig spends ``burn["s"]`` more thread CPU time on every estimate."""
+
+    def factory(source, calibration_path, plan, cfg, session):
+        rig = build_camera_rig(source, calibration_path, plan, cfg, session)
+        estimate = rig.estimate
+
+        def slow_estimate(frame):
+            c0 = time.thread_time()
+            while time.thread_time() - c0 < burn["s"]:
+                pass
+            return estimate(frame)
+
+        rig.estimate = slow_estimate
+        return rig
+    return factory
+
+
+def _track(make_session, cpu_s, seconds=2.0):
+    burn = {"s": 0.0}
+    # freeze_after_s 0.3: on the simulated clock frames arriving while the estimator is busy are
+    # not noted, so a gap over 0.1 s (a ~70 ms estimate, or a loaded machine's slower CPU time)
+    # would read as a frozen camera first; this test is about the pipeline's own verdict
+    s = make_session(clock="sim", camera="sim-points", camera_factory=_slow(burn), freeze_after_s=0.3)
+    plan_sample(s)
+    assert s.start_camera().ok
+    s.advance(0.5)
+    assert s.arm("1234").ok and s.start_tracking().ok
+    s.advance(0.5)
+    burn["s"] = cpu_s      # the machine gets busy while tracking
+    s.advance(seconds)
+    return s, [a for a in s.snapshot().alerts]
+
+
+def test_a_pipeline_slower_than_the_camera_holds_with_its_own_alarm(make_session):
+    # 80 ms per estimate at 30 fps: two frames in three dropped, poses ~190 ms old before the next
+    s, alerts = _track(make_session, 0.080)
+    codes = [a.code for a in alerts]
+    assert "pipeline_overloaded" in codes and "pose_stale" not in codes and "camera_freeze" not in codes, codes
+    msg = next(a.message for a in alerts if a.code == "pipeline_overloaded")
+    assert "too slow for the pose pipeline" in msg and "the camera itself delivers frames" in msg
+    assert s.snapshot().robot.state == "holding"
+
+
+def test_a_pipeline_that_keeps_up_raises_nothing(make_session):
+    s, alerts = _track(make_session, 0.010)
+    codes = [a.code for a in alerts]
+    assert "pipeline_overloaded" not in codes and "pose_stale" not in codes, codes
+    assert s.snapshot().robot.state == "tracking"
+
+
+def test_late_frames_from_the_camera_stay_pose_stale(make_session):
+    """Frames that reach the computer late (the camera's transport, not the computer's compute)
+    are not the pipeline's overload."""
+    s = make_session(clock="sim", camera="sim-points")
+    plan_sample(s)
+    assert s.start_camera().ok
+    s.advance(0.5)
+    assert s.arm("1234").ok and s.start_tracking().ok
+    s.advance(0.5)
+    s._loop.camera.rig.transport_delay_s = 0.25
+    s.advance(0.5)
+    codes = [a.code for a in s.snapshot().alerts]
+    assert "pose_stale" in codes and "pipeline_overloaded" not in codes, codes
