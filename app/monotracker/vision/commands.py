@@ -17,6 +17,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 from monotracker.errors import InputError
@@ -45,7 +46,8 @@ def register(subparsers) -> None:
 
     d = subparsers.add_parser("detect-image", help="detect the fiducial balls in one image")
     d.add_argument("image")
-    d.add_argument("--detector", choices=("classical", "learned"), default="classical")
+    d.add_argument("--detector", choices=("classical", "learned"), default="classical",
+                   help="classical (the default); learned: NOT for clinical use (trained on a simple render only)")
     d.add_argument("--radius-mm", type=float, default=4.0, help="ball radius (mm)")
     d.add_argument("--focal-px", type=float, default=None, help="focal length (px) for the size check")
     d.add_argument("--camera", default=None, help="camera calibration file (gives the focal length); the image "
@@ -129,8 +131,9 @@ def _detect(args) -> int:
     # with a calibration, each ball's outline is a whole sphere's at its place (sphere_outline)
     rules = BlobRules(radius_mm=args.radius_mm, focal_px=focal, camera=model)
     if args.detector == "learned":
-        from .detect_learned import LearnedDetector
+        from .detect_learned import NOT_FOR_CLINICAL_USE, LearnedDetector
 
+        print(NOT_FOR_CLINICAL_USE, file=sys.stderr)
         det = LearnedDetector(rules=rules)
     else:
         from .detect_classical import ClassicalDetector

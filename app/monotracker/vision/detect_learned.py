@@ -13,7 +13,10 @@ Opt-in only (issue 13 measured it on photo-like frames, ``benchmarks/camera_pipe
 costs ~30 ms CPU per 1280x720 frame (the classical detector ~10), above the 10 ms budget; it
 misses half the balls at 5 px radius and in dark, blurred, noisy frames; above ~13 px radius its
 mask turns into rings. It was trained on the simple render. So the classical detector is the
-only default; this one refuses a frame (``Detection.refusal``, no fiducials) when it sees rings
+only default, and this one is **not for clinical use** (:data:`NOT_FOR_CLINICAL_USE`, shown where it
+is chosen): on physically rendered frames (issue 28, ``benchmarks/camera_pbr.py``) its trusted
+poses were up to 2.3 mm off at an 80 mm deep target (tuning set, 2026-11-26); held-out clean
+scenes, 2026-11-28: 9 of its 12 trusted poses 1-1.7 mm off, predicted/actual TRE 0.39; this one refuses a frame (``Detection.refusal``, no fiducials) when it sees rings
 or nothing, rather than guessing.
 """
 
@@ -29,6 +32,15 @@ import numpy as np
 from monotracker.errors import InputError
 
 from .detection import BlobRules, Detection, analyse_blobs, green_chroma
+
+#: shown wherever this detector is chosen (``detect-image --detector learned``; the app's camera
+#: rigs never choose it): the measured reason it is not for clinical use (issue 28 item 4; the
+#: figures are in docs/vision.md, "Judged on physically rendered frames")
+NOT_FOR_CLINICAL_USE = (
+    "WARNING: the learned detector is not for clinical use: it was trained on our simple render only; "
+    "on physically rendered frames (Mitsuba 3, benchmarks/camera_pbr.py) it found fewer of the whole balls "
+    "than the classical detector, and most of its trusted poses were 1-2.3 mm off at the target; use the classical "
+    "detector")
 
 INPUT_SCALE = 0.5
 
