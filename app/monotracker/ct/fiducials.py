@@ -44,7 +44,7 @@ from threadpoolctl import threadpool_limits
 
 from monotracker.ct.blob_search import principal_axes as _principal_axes
 from monotracker.ct.blob_search import coarse_grid, search_blobs, threshold_ladder, too_large_blob
-from monotracker.ct.coverage import blob_touches_border, cut_reason, pad_value
+from monotracker.ct.coverage import PAD_REACH_MM, blob_touches_border, cut_reason, pad_value
 from monotracker.ct.detection_result import Fiducial, FiducialDetection, RejectedBlob
 from monotracker.ct.fiducials_paper import MAX_CANDIDATES, detect_fiducials_paper
 from monotracker.ct.kit import FiducialKit
@@ -81,6 +81,26 @@ def _window(volume: Volume, kji: np.ndarray, pad_mm: float):
     lo = np.maximum(kji.min(axis=0) - pad, 0)
     hi = np.minimum(kji.max(axis=0) + pad + 1, volume.array.shape)
     return lo, hi
+
+
+def _box_points(volume: Volume, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """LPS positions (n, 3) mm and values (n,) HU of the voxels of the index box ``lo``..``hi``
+    (k, j, i), in C order."""
+    sub = volume.array[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(float)
+    grid = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
+    return volume.zyx_to_lps(grid), sub.ravel()
+
+
+def _ball_box(volume: Volume, centre_lps: np.ndarray, reach_mm: float, lo: np.ndarray, hi: np.ndarray):
+    """The part of the index box ``lo``..``hi`` (k, j, i) that can hold voxels within
+    ``reach_mm`` of ``centre_lps``: the ball's bounding box on the grid (any direction
+    matrix), clipped to the box; (lo, hi), possibly empty."""
+    ijk = volume.lps_to_index(np.asarray(centre_lps, float)[None])[0]
+    inv = np.linalg.inv(volume.direction * volume.spacing_mm[None, :])
+    ext = reach_mm * np.linalg.norm(inv, axis=1)  # the ball's half extent along i, j, k
+    b_lo = np.floor(ijk - ext).astype(int)[::-1]
+    b_hi = np.ceil(ijk + ext).astype(int)[::-1] + 1
+    return np.maximum(lo, b_lo), np.maximum(np.maximum(lo, b_lo), np.minimum(hi, b_hi))
 
 
 # ---------------------------------------------------------------------------- product method
@@ -225,12 +245,10 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
     if edge:
         return None, RejectedBlob(centroid, f"cut by the edge of the scan ({edge})", n, kind="cut")
     lo, hi = _window(volume, ckji, pad_mm=2.5 + 2.0 * float(sp.max()))
-    sub = arr[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(float)
-    grid = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
-    wpts = volume.zyx_to_lps(grid)
-    vals = sub.ravel()
-    all_pts, all_vals = wpts, vals
-    cut = cut_reason(volume, centroid, r0, all_pts, all_vals, pad_hu)
+    # the edge check needs only the window's voxels within reach of the blob's ball: those
+    # first, so that a blob refused as not round never has its whole window built
+    blo, bhi = _ball_box(volume, centroid, r0 + PAD_REACH_MM, lo, hi)
+    cut = cut_reason(volume, centroid, r0, *_box_points(volume, blo, bhi), pad_hu)
     if cut:
         return None, RejectedBlob(centroid, cut, n, kind="cut")
     axes = _principal_axes(cpts, volume)
@@ -239,6 +257,8 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
         return None, RejectedBlob(
             centroid, f"not round: {2 * axes[0]:.1f} x {2 * axes[2]:.1f} mm (elongation {elong:.2f}), e.g. clip, rod, "
                       f"streak or bone{_touching_hint(n, voxel_mm3, kit.radius_mm, elong, float(axes[2]))}", n)
+    wpts, vals = _box_points(volume, lo, hi)
+    all_pts, all_vals = wpts, vals
     rel0 = wpts - centroid
     dist = np.linalg.norm(rel0, axis=1)
     # window: the ball plus ~2.5 edge sigmas of the slice profile in each direction (thick slices
