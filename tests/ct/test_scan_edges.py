@@ -243,3 +243,33 @@ def test_a_ball_across_missing_slices_is_refused(tmp_path):
     rej = _cut(det, across)
     assert rej is not None and "cut by the edge of the scan" in rej.reason and "missing" in rej.reason, \
         [r.reason for r in det.rejected]
+
+
+@pytest.mark.parametrize("shear", [0.0, 0.3])
+def test_the_edge_check_reads_every_voxel_within_reach_of_the_ball(shear):
+    """The edge check before a blob's fit (issue 32 item 3: refuse cheaply before building the
+    fit window) looks at the voxels of a small box around the ball only: that box must hold
+    every voxel of the window within reach of the ball, on an oblique and on a sheared grid
+    (truth: brute force over the whole window)."""
+    from monotracker.ct.fiducials import _ball_box, _box_points
+
+    rng = np.random.default_rng(5)
+    D = rotation_about_axis(np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]), 0.7)
+    D = D @ np.array([[1.0, 0.0, 0.0], [0.0, 1.0, shear], [0.0, 0.0, 1.0]])
+    img = sitk.GetImageFromArray(rng.integers(-1000, 2000, (30, 40, 50)).astype(np.int16))
+    img.SetSpacing((0.6, 0.7, 1.3))
+    img.SetDirection(tuple(D.ravel()))
+    img.SetOrigin((10.0, -20.0, 5.0))
+    vol = Volume.from_image(img)
+    lo, hi = np.array([2, 3, 4]), np.array([28, 37, 45])
+    all_pts, all_vals = _box_points(vol, lo, hi)
+    for _ in range(20):
+        c = vol.zyx_to_lps(rng.uniform(lo, hi - 1)[None])[0]
+        reach = float(rng.uniform(0.5, 6.0))
+        truth = np.linalg.norm(all_pts - c, axis=1) <= reach
+        blo, bhi = _ball_box(vol, c, reach, lo, hi)
+        assert np.all(blo >= lo) and np.all(bhi <= hi)
+        pts, vals = _box_points(vol, blo, bhi)
+        near = np.linalg.norm(pts - c, axis=1) <= reach
+        assert near.sum() == truth.sum()
+        assert sorted(vals[near].tolist()) == sorted(all_vals[truth].tolist())

@@ -95,8 +95,8 @@ def _ball_box(volume: Volume, centre_lps: np.ndarray, reach_mm: float, lo: np.nd
     """The part of the index box ``lo``..``hi`` (k, j, i) that can hold voxels within
     ``reach_mm`` of ``centre_lps``: the ball's bounding box on the grid (any direction
     matrix), clipped to the box; (lo, hi), possibly empty."""
-    ijk = volume.lps_to_index(np.asarray(centre_lps, float)[None])[0]
     inv = np.linalg.inv(volume.direction * volume.spacing_mm[None, :])
+    ijk = inv @ (np.asarray(centre_lps, float) - volume.origin_mm)
     ext = reach_mm * np.linalg.norm(inv, axis=1)  # the ball's half extent along i, j, k
     b_lo = np.floor(ijk - ext).astype(int)[::-1]
     b_hi = np.ceil(ijk + ext).astype(int)[::-1] + 1
