@@ -48,7 +48,7 @@ def test_a_pipeline_slower_than_the_camera_holds_with_its_own_alarm(make_session
     # 80 ms per estimate at 30 fps: two frames in three dropped, poses ~190 ms old before the next
     s, alerts = _track(make_session, 0.080)
     codes = [a.code for a in alerts]
-    assert "pipeline_overloaded" in codes and "pose_stale" not in codes and "camera_freeze" not in codes, codes
+    assert "pipeline_overloaded" in codes and "pose_stale" not in codes and "camera_freeze" not in codes, sorted(set(codes))
     msg = next(a.message for a in alerts if a.code == "pipeline_overloaded")
     assert "too slow for the pose pipeline" in msg and "the camera itself delivers frames" in msg
     assert s.snapshot().robot.state == "holding"
@@ -71,6 +71,6 @@ def test_late_frames_from_the_camera_stay_pose_stale(make_session):
     assert s.arm("1234").ok and s.start_tracking().ok
     s.advance(0.5)
     s._loop.camera.rig.transport_delay_s = 0.25
-    s.advance(0.5)
+    s.advance(1.0)  # past pose_stale's 0.5 s dwell (engine/alarms.py)
     codes = [a.code for a in s.snapshot().alerts]
-    assert "pose_stale" in codes and "pipeline_overloaded" not in codes, codes
+    assert "pose_stale" in codes and "pipeline_overloaded" not in codes, sorted(set(codes))

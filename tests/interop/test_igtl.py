@@ -405,10 +405,14 @@ def test_trusted_poses_that_arrive_late_are_sent_too_under_their_capture_time(fr
         while len(received()) < len(want) and time.monotonic() < deadline:
             time.sleep(0.02)  # the streamer and server threads catch up (state, not a guess)
         got = received()
+        tips = np.array([m.timestamp - epoch0 for m in list(client.incoming_messages.all)
+                         if m.device_name == "NeedleTipToCT"])
     finally:
         client.stop()
         streamer.stop()
         s.shutdown()
     assert len(got) == len(want) and np.allclose(np.sort(got), np.sort(want), atol=1e-5)
+    # the tip in the CT joins the arm's tip now to the frame's pose: never sent with a late pose
+    assert not np.isclose(np.array(late).reshape(-1, 1), tips.reshape(1, -1), atol=1e-6).any()
     status = [m.string for m in client.incoming_messages.all if m.device_name == "Status"]
     assert any("pose=VALID; late=yes" in x for x in status)

@@ -31,6 +31,8 @@ A trusted pose that reached the engine later than ``max_pose_age_s`` after captu
 for it) is still sent, under its own capture time, and ``Status`` says ``late=yes``: the pose is
 right for the moment it was captured, and a client that reads the timestamps knows its age
 (withholding it cut the stream to 11 Hz on a busy machine while the tracker ran at 16-18 Hz).
+``NeedleTipToCT`` goes out only with a fresh pose: it joins the arm's tip as it is now to the
+frame's pose, and for a late pose the head may have moved in between.
 Each message's OpenIGTLink timestamp is the frame's capture time on the wall clock
 (``epoch0 + t_capture``, where ``epoch0`` maps the session clock to Unix time when streaming
 starts; with the simulated clock this is simulated time, so rates read from the timestamps are the
@@ -215,7 +217,9 @@ class IGTLStreamer:
             self._last_valid_t = d["t_capture"]
             T_cam_ct = d["T_cam_ct"]
             self._send(pyigtl.TransformMessage(T_cam_ct @ self.F, timestamp=ts, device_name="CTToCamera"))
-            if d["T_base_tip"] is not None and plan.T_base_cam is not None:
+            # the tip is the arm's now and the pose the frame's: for a late pose the head may have
+            # moved in between, so the tip in the CT is sent only with a fresh pose
+            if d["T_base_tip"] is not None and plan.T_base_cam is not None and d["fresh"]:
                 T_ct_tip = np.linalg.inv(plan.T_base_cam @ T_cam_ct) @ d["T_base_tip"]
                 self._send(pyigtl.TransformMessage(self.F @ T_ct_tip, timestamp=ts, device_name="NeedleTipToCT"))
                 tip_sent = True

@@ -463,13 +463,19 @@ class TrackingLoop:
                     self._fresh_since = None  # a gap: the resume dwell starts again
                     code = self._holding_code if self._holding_reason is not None else None
                 if code is None or code in ("pose_stale", "pipeline_overloaded"):
-                    self.hold(*self._stale(f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old", now))
+                    self.hold(*self._stale(f"pose stale: freshest trusted pose is {1000 * age:.0f} ms old", now,
+                                           overloaded=code == "pipeline_overloaded"))
         self.robot.refresh()
 
-    def _stale(self, reason: str, now: float) -> tuple[str, str]:
+    def _stale(self, reason: str, now: float, overloaded: bool = False) -> tuple[str, str]:
         """(code, reason) of a stale-pose hold: ``pipeline_overloaded`` when this computer, not
-        the camera, makes the poses late (:mod:`.load`), else ``pose_stale`` with ``reason``."""
+        the camera, makes the poses late (:mod:`.load`), else ``pose_stale`` with ``reason``.
+        ``overloaded``: this stale spell was already put down to the computer; it stays so until
+        fresh poses end it (the load window's verdict may waver inside one spell, and one spell
+        is one alarm, not an overload and a stale pose in turn)."""
         why = self.load.overloaded(now, self.camera.frame_times, 1.0 / float(self.cfg.camera_fps))
+        if not why and overloaded:
+            why = "this computer is too slow for the pose pipeline (since this hold began)"
         return ("pipeline_overloaded", f"{reason}: {why}") if why else ("pose_stale", reason)
 
     def pending_latency(self) -> float | None:
