@@ -18,9 +18,9 @@ Scene effects (all deterministic for a given seed and frame index): head traject
 (hand / instrument polygons sweeping over fiducials), stray green blobs (round and irregular),
 global lighting changes; motion blur from
 the head's image motion during the exposure, sensor noise (a bank of precomputed Gaussian
-noise images, never the same one twice in a row, each rolled by one more row per frame so that
-no two frames within 720 of each other carry the same noise: a still head never gives two
-bit-identical frames, which the engine would read as a frozen camera). Faults for tests: ``freeze_at_frame``
+noise images, never the same one twice in a row, and one pixel's lowest bit flipped at a place
+that moves on every frame: a still head never gives two bit-identical frames, which the engine
+would read as a frozen camera). Faults for tests: ``freeze_at_frame``
 (the same image again and again) and ``disconnect_at_frame`` (``read()`` raises
 :class:`CameraDisconnected`).
 
@@ -166,7 +166,7 @@ class SimulatedCamera(RayGeometry, FrameSource):
         self._noise_pos, self._noise_neg = self._make_noise(rng, 6) if optics is None else ([], [])
         self._noise_rng = np.random.default_rng(seed + 999)
         self._last_noise = -1
-        self._noise_frame = 0  # frames rendered: the noise image's row shift (never a repeat)
+        self._noise_frame = 0  # frames rendered: where the flipped bit sits (never a repeat)
         self._light_cam = np.array([-0.3, -0.5, -1.0]) / np.linalg.norm([-0.3, -0.5, -1.0])  # towards light
         self._chain = self._hair = None
         self._skin_cache = None       # (pose bytes, skin render) of the last frame
@@ -409,17 +409,16 @@ class SimulatedCamera(RayGeometry, FrameSource):
             n = len(self._noise_pos)
             k = (self._last_noise + 1 + int(self._noise_rng.integers(n - 1))) % n
             self._last_noise = k
-            # each frame's noise image rolled by one more row: a still head's frames never repeat
-            # bit for bit, even two frames apart (a busy machine skips frames, and a bank of 6
-            # noise images alone gave the engine identical frames: a false camera_freeze)
+            cv2.add(out, self._noise_pos[k], dst=out)
+            cv2.subtract(out, self._noise_neg[k], dst=out)
+            # a still head's frames never repeat bit for bit, even two frames apart (a busy machine
+            # skips frames, and a bank of 6 noise images alone gave the engine identical frames: a
+            # false camera_freeze), as a real sensor's noise makes them: one pixel's lowest bit,
+            # at a place that moves one byte on per frame. (Rolling the noise image instead moved
+            # its pattern by a few rows between uses: a coherent shift the camera-motion watch saw.)
             self._noise_frame += 1
-            r = self._noise_frame % out.shape[0]
-            for noise, op in ((self._noise_pos[k], cv2.add), (self._noise_neg[k], cv2.subtract)):
-                if r == 0:
-                    op(out, noise, dst=out)
-                else:
-                    op(out[r:], noise[:-r], dst=out[r:])
-                    op(out[:r], noise[-r:], dst=out[:r])
+            i = self._noise_frame % out.size
+            out.flat[i] = out.flat[i] ^ 1
 
         truth = FrameTruth(
             t_s=t, T_cam_ct=T, ellipse_centres_px=ell, projected_centres_px=proj,
