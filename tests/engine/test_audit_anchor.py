@@ -9,30 +9,12 @@ import sqlite3
 from pathlib import Path
 
 
-from monotracker.engine import Session, SessionConfig
 from monotracker.engine.audit import GENESIS, AuditLog, row_hash, verify
-from monotracker.sim.or_layout import default_layout
 
-from .conftest import plan_sample
-from .doubles import FollowerRobotRig, TruthCameraRig
+from .conftest import restart as _restart
+from .conftest import saved_plan as _saved
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _saved(home) -> dict:
-    s = Session(SessionConfig(home=home, clock="sim"))
-    try:
-        plan_sample(s)
-        assert s.set_hand_eye(default_layout().T_base_cam).ok
-    finally:
-        s.shutdown()
-    return json.loads((home / "plan.json").read_text())
-
-
-def _restart(home):
-    cam, rob = TruthCameraRig("still"), FollowerRobotRig()
-    return Session(SessionConfig(home=home, clock="sim"), camera_factory=lambda *a: cam,
-                   robot_factory=lambda *a: rob)
 
 
 def _log(path, n=6):

@@ -22,30 +22,12 @@ from monotracker.engine.integrity import plan_content_sha256
 from monotracker.geometry import rotation_about_axis
 from monotracker.sim.or_layout import default_layout
 
+from .conftest import alerts_of as _alerts
 from .conftest import plan_sample
-from .doubles import FollowerRobotRig, TruthCameraRig
+from .conftest import restart as _restart
+from .conftest import saved_plan as _saved_plan
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _saved_plan(home) -> dict:
-    s = Session(SessionConfig(home=home, clock="sim"))
-    try:
-        plan_sample(s)
-        assert s.set_hand_eye(default_layout().T_base_cam).ok
-    finally:
-        s.shutdown()
-    return json.loads((home / "plan.json").read_text())
-
-
-def _restart(home):
-    cam, rob = TruthCameraRig("still"), FollowerRobotRig()
-    return Session(SessionConfig(home=home, clock="sim"), camera_factory=lambda *a: cam,
-                   robot_factory=lambda *a: rob)
-
-
-def _alerts(s, code):
-    return [a for a in s.snapshot().alerts if a.code == code]
 
 
 def _target_moved(d):

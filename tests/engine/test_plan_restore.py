@@ -14,31 +14,9 @@ from monotracker.engine import Session, SessionConfig
 from monotracker.engine.plan import plan_from_dict
 from monotracker.sim.or_layout import default_layout
 
-from .conftest import plan_sample
-from .doubles import FollowerRobotRig, TruthCameraRig
-
-
-def _saved_plan(home) -> dict:
-    """A complete plan (phantom fiducials, sample path, the twin's hand-eye) saved by a session."""
-    s = Session(SessionConfig(home=home, clock="sim"))
-    try:
-        plan_sample(s)
-        assert s.set_hand_eye(default_layout().T_base_cam).ok
-    finally:
-        s.shutdown()
-    return json.loads((home / "plan.json").read_text())
-
-
-def _restart(home, d=None, **kw):
-    if d is not None:
-        (home / "plan.json").write_text(json.dumps(d))
-    cam, rob = TruthCameraRig("still"), FollowerRobotRig()
-    return Session(SessionConfig(home=home, clock="sim", **kw), camera_factory=lambda *a: cam,
-                   robot_factory=lambda *a: rob)
-
-
-def _alarms(s, code):
-    return [a for a in s.snapshot().alerts if a.code == code]
+from .conftest import alerts_of as _alarms
+from .conftest import restart as _restart
+from .conftest import saved_plan as _saved_plan
 
 
 def _kept(home):

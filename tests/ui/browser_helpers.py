@@ -79,6 +79,16 @@ def open_page(browser, app, size=(1600, 1000), ready: str = "#mt-control"):
     return page
 
 
+def open_page_in_control(browser, app, size, pin: str):
+    """A tab of ``size`` on the app that is in control: it takes control with ``pin`` when no
+    station holds it (the screenshot scripts, where a previous tab may already hold it)."""
+    page = open_page(browser, app, size)
+    if app.session.snapshot().control.controller is None:
+        _take_control(page, pin)
+    page.wait_for_function("document.querySelector('#mt-control').dataset.mine === '1'")
+    return page
+
+
 def _sample_ct_ready(s) -> bool:
     snap = s.snapshot()
     return snap.job is not None and snap.job.done and snap.head_mesh is not None

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, "tests/ui")
-from browser_helpers import _click, _take_control, _wait, open_page
+from browser_helpers import _click, _wait, open_page_in_control
 from conftest import CHROMIUM_ARGS, display_browser_path, free_port
 from playwright.sync_api import sync_playwright
 
@@ -55,10 +55,7 @@ try:
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=display_browser_path(), headless=True, args=CHROMIUM_ARGS)
         for w, h in ((1280, 800), (1920, 1080)):
-            page = open_page(b, app, (w, h))
-            if s.snapshot().control.controller is None:
-                _take_control(page, "2468")
-            page.wait_for_function("document.querySelector('#mt-control').dataset.mine === '1'")
+            page = open_page_in_control(b, app, (w, h), "2468")
             _click(page, "2 Plan")
             if s.snapshot().layout is None:
                 _click(page, "Plan layout")

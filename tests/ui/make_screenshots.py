@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 sys.path.insert(0, "tests/ui")
 from conftest import display_browser_path, CHROMIUM_ARGS, free_port
-from browser_helpers import _click, _take_control, _wait, _command, open_page
+from browser_helpers import _click, _command, _wait, open_page_in_control
 from monotracker.engine import Session, SessionConfig
 from monotracker.ui.app import MonoTrackerApp
 from playwright.sync_api import sync_playwright
@@ -30,10 +30,7 @@ try:
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=display_browser_path(), headless=True, args=CHROMIUM_ARGS)
         for w, h in ((1280, 800), (1920, 1080)):
-            page = open_page(b, app, (w, h))
-            if s.snapshot().control.controller is None:
-                _take_control(page, "2468")
-            page.wait_for_function("document.querySelector('#mt-control').dataset.mine === '1'")
+            page = open_page_in_control(b, app, (w, h), "2468")
             for step, label in (("ct", "1 CT"), ("plan", "2 Plan"), ("register", "3 Register"), ("robot", "4 Robot")):
                 if step == "plan" and not s.snapshot().fiducials_locked:
                     s.confirm_fiducials(); s.use_sample_plan()

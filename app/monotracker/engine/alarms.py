@@ -156,7 +156,7 @@ CATALOGUE: dict[str, AlarmKind] = {
     "pose_implausible": AlarmKind("warning", 3, **_HOLD),
     "fiducial_moved": AlarmKind("warning", 3, linger_s=0.0),
     # freshness on a busy machine (issue 33): the arm holds at once, the board shows one episode
-    # per busy spell (shown once it stood 0.5 s, flaps included; over after 30 s without)
+    # per busy spell (shown once it stood 0.5 s, flaps included; over after 60 s without)
     "camera_late": AlarmKind("warning", 7, technical=True, freshness=True, raise_after_s=_FLAP_RAISE_S,
                              clear_after_s=_FLAP_CLEAR_S, **_HOLD),
     "pose_stale": AlarmKind("warning", 7, technical=True, freshness=True, raise_after_s=_FLAP_RAISE_S,
