@@ -134,7 +134,7 @@ class _Bus:
         self.codes.append(code)
 
 
-def _job(robot_state):
+def _job(robot_state, **kw):
     """A LayoutJob on the phantom's skin ellipsoid with its nine balls and the sample plan."""
     m = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
     mesh = HeadMesh(np.asarray(m.vertices) * PH.skin_semi_axes_mm + PH.centre_lps, np.asarray(m.faces))
@@ -145,7 +145,7 @@ def _job(robot_state):
     bus = _Bus()
     job = LayoutJob(lock=threading.RLock(), editor=SimpleNamespace(plan=plan), ct=lambda: loaded,
                     ct_job=lambda: None, robot_state=robot_state, camera_rig=lambda: None,
-                    config=SessionConfig(), events=bus)
+                    config=SessionConfig(), events=bus, **kw)
     return job, bus, plan
 
 
@@ -188,6 +188,28 @@ def test_arming_while_planning_stops_the_plan():
     assert end.done and end.error.startswith("the robot was armed"), end
     assert not job.summary().ready
     assert "layout_planned" not in bus.codes
+
+
+def test_a_plan_past_its_time_limit_stops_with_a_reason_and_keeps_the_previous_layout():
+    now = [0.0]  # a simulated clock (s): each read of it is one minute later once armed below
+    step = [0.0]
+
+    def clock():
+        now[0] += step[0]
+        return now[0]
+
+    job, bus, _ = _job(lambda: "disarmed", time_limit_s=300.0, clock=clock)
+    assert job.start(6, quick=True).ok
+    first = job.wait(300)
+    assert first.done and first.error is None, first  # no time passes: the plan completes
+    before = job.summary()
+    step[0] = 60.0
+    assert job.start(7, quick=True).ok
+    end = job.wait(300)
+    assert end.done and end.message == "layout planning stopped", end
+    assert end.error.startswith("planning took longer than its 300 s limit"), end.error
+    assert job.summary().balls_lps_mm is before.balls_lps_mm  # the first plan stays
+    assert bus.codes.count("layout_planned") == 1 and "layout_stopped" in bus.codes
 
 
 def test_a_plan_the_planner_refuses_is_one_line():

@@ -40,6 +40,10 @@ log = logging.getLogger(__name__)
 BUSY_ROBOT_STATES = ("armed", "tracking", "holding")
 #: camera directions tried by a quick plan (the CLI's --quick) and by a full one
 QUICK_DIRECTIONS, FULL_DIRECTIONS = 8, 24
+#: the longest a plan may run (s, wall clock) before it is stopped with a one-line reason; a full
+#: plan takes ~40 s on a quiet 2-core machine, so this is several times that: a plan still running
+#: then is starved of CPU or stuck, and the operator is told so instead of watching a bar that never ends
+TIME_LIMIT_S = 300.0
 
 
 def placement_offset(T_ct_cam_planned, T_cam_ct_now) -> tuple[float, float]:
@@ -100,8 +104,11 @@ class LayoutJob:
     the running camera rig or None (:func:`planning_camera`), the session ``config``
     (``frame_rules()``) and the event bus."""
 
-    def __init__(self, *, lock, editor, ct, ct_job, robot_state, camera_rig, config, events):
+    def __init__(self, *, lock, editor, ct, ct_job, robot_state, camera_rig, config, events,
+                 time_limit_s: float = TIME_LIMIT_S, clock=time.monotonic):
         self._lock = lock
+        self.time_limit_s = float(time_limit_s)  # s, see TIME_LIMIT_S
+        self._clock = clock  # s, monotonic
         self._editor = editor
         self._ct = ct
         self._ct_job = ct_job
@@ -224,8 +231,14 @@ class LayoutJob:
 
     # ------------------------------------------------------------------ the job's thread
     def _progress(self, token: JobToken):
+        started = self._clock()
+
         def report(frac: float, msg: str) -> None:
             token.check()
+            if self._clock() - started > self.time_limit_s:
+                self.cancel(f"planning took longer than its {self.time_limit_s:.0f} s limit "
+                            "(the computer is busy, or try a quick plan)")
+                token.check()
             state = self._robot_state()
             if state in BUSY_ROBOT_STATES:
                 self.cancel(f"the robot was {state}: layout planning runs only while it is disarmed")
