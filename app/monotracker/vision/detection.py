@@ -257,6 +257,31 @@ def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[floa
 HINT_SHAPE_SHARE = 0.5
 
 
+#: a blob's edge fit starts its rays from the predicted ball's centre (the hint's, from the last
+#: trusted pose) instead of the blob's pixel-contour ellipse when the two lie within this many px
+#: (0 = never). The contour's centre is off by ~0.5 px, and a fit that ends more than
+#: ``edge_fit.RECENTRE_PX`` from where its rays started is fitted a second time from its own
+#: centre (about half the balls of a frame, half the edge fit's time); the prediction of a
+#: breathing head is off by a tenth of that. A ball further from its prediction (it moved, a
+#: stray) starts from its contour as before, and the fit's own checks (how far it may move from
+#: the blob) are unchanged.
+HINT_CENTRE_PX = 1.0
+
+
+def _hinted_centres(hint, ells: list) -> list:
+    """The coarse ellipses ((cx, cy), (d1, d2), angle) with each centre replaced by the nearest
+    predicted ball's centre (``hint``) where that lies within :data:`HINT_CENTRE_PX` of it."""
+    if hint is None or len(hint) == 0 or HINT_CENTRE_PX <= 0:
+        return list(ells)
+    out = []
+    for (cx, cy), axes, ang in ells:
+        d = np.hypot(hint.centres_px[:, 0] - cx, hint.centres_px[:, 1] - cy)
+        q = int(np.argmin(d))
+        c = (float(hint.centres_px[q, 0]), float(hint.centres_px[q, 1])) if d[q] <= HINT_CENTRE_PX else (cx, cy)
+        out.append((c, axes, ang))
+    return out
+
+
 def _hinted_shapes(hint, ells: list) -> list:
     """Per coarse ellipse ((cx, cy), (d1, d2), angle), the outline shape (minor / major, major
     axis deg) of the predicted ball it lies on (:data:`HINT_SHAPE_SHARE`), or None."""
@@ -376,7 +401,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
             edge_blur_px = (measure_edge_blur(refine_image, ells) if edge_fit.MEASURE_BLUR else None) \
                 or edge_fit.BLUR_PROBE_PX
         clock.lap("blur")
-        fits = fit_ball_edges(refine_image, ells, edge_blur_px, shapes, frame=frame)
+        fits = fit_ball_edges(refine_image, _hinted_centres(hint, ells), edge_blur_px, shapes, frame=frame)
         edge_fits = dict(zip(good, fits))
         clock.lap("edge_fit")
     if info is not None:

@@ -688,7 +688,12 @@ def sample_rays(img, lut, cw, cx, cy, counts, boxes, step, phi, s0, k, smooth, s
                     tot += g[abs(i - j)]
                 for i in range(k):
                     ker_t[i, j] = np.float32(g[abs(i - j)] / tot)
-            sm = np.dot(diff, ker_t)          # BLAS: (2n, k) x (k, k)
+            sm = np.zeros((2 * n, k))        # diff @ ker_t, the output index innermost (no BLAS threads)
+            for r in range(2 * n):
+                for i in range(k):
+                    d = diff[r, i]
+                    for j in range(k):
+                        sm[r, j] += d * ker_t[i, j]
             for r in range(n):
                 for j in range(k):
                     y = ys[r, j]
