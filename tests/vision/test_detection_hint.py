@@ -163,3 +163,47 @@ def test_window_search_finds_nothing_where_the_prediction_is_wrong():
     for p in d.centres:
         assert np.linalg.norm(tr.ellipse_centres_px - p, axis=1).min() < 0.5   # only true balls, if any
     assert len(d.fiducials) < 9
+
+
+def test_window_search_fits_each_ball_in_one_pass_when_the_prediction_holds(monkeypatch):
+    """Tracking (a hint), each ball's edge rays start from its own centre of the previous search
+    (detection.START_AT_LAST_PX) and no ball of a head that did not move needs the re-centred
+    second pass; the centres stay those of the truth. Started from their blobs' contours several
+    balls are fitted twice."""
+    from monotracker.vision import detection, edge_fit
+    from monotracker.vision.detection import BlobRules
+
+    cam = SimulatedCamera(seed=0, optics="photo", distance_mm=1100.0 * 4.0 / 18.0)    # 18 px balls
+    img, tr = cam.render(0.5)
+    det = ClassicalDetector(BlobRules(camera=cam.camera))
+    det.detect(img)                  # a full search first (measures the blur, the balls' centres)
+    passes = []
+    inner = edge_fit._edge_points
+    monkeypatch.setattr(edge_fit, "_edge_points", lambda image, balls, *a, **k: passes.append(len(balls))
+                        or inner(image, balls, *a, **k))
+    hint = _truth_hint(cam, tr)
+    d = det.detect(img, hint)
+    assert passes[0] == 9 and sum(passes[1:]) <= 1, passes
+    dist = np.linalg.norm(d.centres[:, None] - tr.ellipse_centres_px[None], axis=2)
+    assert len(d.fiducials) == 9 and dist.min(1).max() < 0.3
+    passes.clear()
+    monkeypatch.setattr(detection, "START_AT_LAST_PX", 0.0)
+    det.detect(img, hint)
+    assert sum(passes[1:]) >= 2, passes               # the contour's centre is often > 0.6 px off
+
+
+def test_window_search_finds_balls_that_moved_from_their_prediction():
+    """Balls 3 px from where the hint predicts them and from where the last search found them
+    (the head moved more than expected): their rays start from their own blobs, and every ball is
+    found at its true centre."""
+    from monotracker.vision.detection import BlobRules
+
+    cam = SimulatedCamera(seed=0, optics="photo")
+    img, tr = cam.render(0.5)
+    det = ClassicalDetector(BlobRules(camera=cam.camera))
+    det.detect(np.roll(img, (-2, 3), axis=(0, 1)))     # the last search saw them 3.6 px away
+    hint = _truth_hint(cam, tr)
+    moved = DetectionHint(hint.centres_px + [2.4, -1.8], hint.axes_px, hint.angles_deg, hint.fiducial_indices)
+    d = det.detect(img, moved)
+    dist = np.linalg.norm(d.centres[:, None] - tr.ellipse_centres_px[None], axis=2)
+    assert len(d.fiducials) == 9 and sorted(dist.argmin(1)) == list(range(9)) and dist.min(1).max() < 0.3

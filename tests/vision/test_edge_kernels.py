@@ -97,3 +97,63 @@ def test_compiled_edges_equal_the_reference_on_independent_renders():
             n_diff += int((ua != ub).sum())
             assert np.abs(pa[both] - pb[both]).max() < 1e-3
     assert n_diff <= 0.01 * n_rays, (n_diff, n_rays)
+
+
+def _reference_profiles(img, balls, blur_px, smooth):
+    """The ray profiles as edge_fit._edge_points' NumPy body makes them (cv2.remap per ball,
+    chroma smoothed along the rays with NumPy), for the balls inside the image."""
+    import cv2
+
+    k = edge_fit.SAMPLES
+    profs, sprofs = [], []
+    for (cx, cy), (d1, d2), ang in balls:
+        axes = (d1 / 2, d2 / 2)
+        a, b = max(axes), min(axes)
+        n_rays = int(np.clip(2 * np.pi * a / 1.6, 32, 96))
+        phi = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
+        r = edge_fit._ray_radius(axes, ang, phi)
+        w_out = 3.0 + 0.25 * b + blur_px
+        w_in = min(w_out, 0.65 * float(r.min()))
+        step = (w_in + w_out) / (k - 1)
+        m = int(np.ceil(a + w_out + 2))
+        x0, y0 = int(np.floor(cx)) - m, int(np.floor(cy)) - m
+        x1, y1 = int(np.floor(cx)) + m + 2, int(np.floor(cy)) + m + 2
+        if x0 < 0 or y0 < 0 or x1 > img.shape[1] or y1 > img.shape[0]:
+            continue
+        roi = img[y0:y1, x0:x1]
+        s = (r - w_in)[:, None] + (np.arange(k) * step)[None, :]
+        mx = (cx - x0 + s * np.cos(phi)[:, None]).astype(np.float32)
+        my = (cy - y0 + s * np.sin(phi)[:, None]).astype(np.float32)
+        profs.append(cv2.remap(edge_fit.LINEAR_LUT[roi], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
+        enc = cv2.remap(roi.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        sprofs.append(edge_fit._smooth_chroma_along_rays(enc, edge_fit.CHROMA_SIGMA_PX / step))
+    W = edge_fit.COLOUR_WEIGHTS.T
+    return np.concatenate(profs) @ W, (np.concatenate(sprofs) @ W if smooth else None)
+
+
+@pytest.mark.parametrize("optics", ["photo", None])
+def test_compiled_ray_sampling_equals_remap(optics):
+    """edge_kernels.ray_geometry + sample_rays (the compiled sampling of the edge fit's rays)
+    give the profiles of cv2.remap and the NumPy chroma smoothing: the same rays, the same
+    samples (OpenCV's 1/32 px bilinear), to float32 rounding; balls near the border left out."""
+    from monotracker.vision import edge_kernels
+
+    cam = SimulatedCamera(seed=2, optics=optics)
+    img, tr = cam.render(0.4)
+    rng = np.random.default_rng(3)
+    balls = [((float(c[0]) + rng.uniform(-1, 1), float(c[1]) + rng.uniform(-1, 1)),
+              (float(2 * a + rng.uniform(0, 2)), float(2 * a)), float(rng.uniform(-90, 90)))
+             for c, a in zip(tr.ellipse_centres_px, rng.uniform(4, 22, len(tr.ellipse_centres_px)))]
+    balls.append(((3.0, 200.0), (20.0, 20.0), 0.0))                   # its window leaves the image
+    e = np.array([(c[0], c[1], d[0], d[1], a) for c, d, a in balls])
+    for blur in (1.2, 2.5):
+        counts, boxes, _w, step, phi, s0 = edge_kernels.ray_geometry(e[:, 0], e[:, 1], e[:, 2], e[:, 3], e[:, 4],
+                                                                     edge_fit.SAMPLES, blur, *img.shape[:2])
+        assert counts[-1] == 0 and (counts[:-1] >= 32).all()
+        prof, prof_e = edge_kernels.sample_rays(img, edge_fit.LINEAR_LUT, edge_fit.COLOUR_WEIGHTS, e[:, 0], e[:, 1],
+                                                counts, boxes, step, phi, s0, edge_fit.SAMPLES, True,
+                                                edge_fit.CHROMA_SIGMA_PX, edge_kernels.fine_lut())
+        ref, ref_e = _reference_profiles(img, balls, blur, True)
+        assert prof.shape == ref.shape
+        assert np.abs(prof - ref).max() < 1e-5
+        assert np.abs(prof_e - ref_e).max() < 2e-4

@@ -42,7 +42,9 @@ class ClassicalDetector:
     #: :meth:`set_colour` (e.g. learned from a click, or loaded with the camera calibration).
     colour: BallColour | None = None
     #: what the last searches measured of the imaging (``blur_px``: the edge blur, px;
-    #: ``chroma_band_limited``: bool), reused by the next search with a hint
+    #: ``chroma_band_limited``: bool) and found (``centres_px``: the accepted balls' centres, px,
+    #: where the next search's edge rays start, :data:`~.detection.START_AT_LAST_PX`), reused by
+    #: the next search with a hint
     _imaging: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -88,7 +90,8 @@ class ClassicalDetector:
         t_mask = time.perf_counter() - t0
         accepted, rejected = analyse_blobs(image, mask, self.rules, self.name, centre_method=self.centre_method,
                                            edge_blur_px=blur, contours=contours, info=info, frame=frame,
-                                           hint=hint)
+                                           hint=hint, start_px=self._imaging.get("centres_px") if warm else None)
+        self._imaging["centres_px"] = np.array([f.centre_px for f in accepted], float).reshape(-1, 2)
         rejected += cut
         new_blur = frame.get("blur_px_measured") or info.get("edge_blur_px")
         if new_blur is not None:

@@ -257,6 +257,35 @@ def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[floa
 HINT_SHAPE_SHARE = 0.5
 
 
+#: a blob's edge fit starts its rays from that ball's own fitted centre in the previous frame
+#: (``start_px`` of :func:`analyse_blobs`) instead of the blob's pixel-contour ellipse when the
+#: two lie within this many px (0 = never). The contour's centre is off by ~0.5 px, and a fit
+#: that ends more than ``edge_fit.RECENTRE_PX`` from where its rays started is fitted a second
+#: time from its own centre (about half the balls of a frame, half the edge fit's time); last
+#: frame's own fit is where that second pass would start for a ball that moved little. Not the
+#: pose's prediction: on rendered frames with shading (issue 28) an edge fit depends a little on
+#: where its rays start, and rays started from the pose's consensus pulled the balls towards it
+#: (PBR tuning crops, clean: target error 0.84 vs 0.42 mm median). A ball further from its last
+#: centre (it moved, a new blob) starts from its contour as before; the fit's own checks (how far
+#: it may move from the blob) are unchanged.
+START_AT_LAST_PX = 1.0
+
+
+def _started_centres(start_px, ells: list) -> list:
+    """The coarse ellipses ((cx, cy), (d1, d2), angle) with each centre replaced by the nearest
+    of ``start_px`` ((n, 2) px or None) where that lies within :data:`START_AT_LAST_PX` of it."""
+    if start_px is None or len(start_px) == 0 or START_AT_LAST_PX <= 0:
+        return list(ells)
+    start_px = np.asarray(start_px, float).reshape(-1, 2)
+    out = []
+    for (cx, cy), axes, ang in ells:
+        d = np.hypot(start_px[:, 0] - cx, start_px[:, 1] - cy)
+        q = int(np.argmin(d))
+        c = (float(start_px[q, 0]), float(start_px[q, 1])) if d[q] <= START_AT_LAST_PX else (cx, cy)
+        out.append((c, axes, ang))
+    return out
+
+
 def _hinted_shapes(hint, ells: list) -> list:
     """Per coarse ellipse ((cx, cy), (d1, d2), angle), the outline shape (minor / major, major
     axis deg) of the predicted ball it lies on (:data:`HINT_SHAPE_SHARE`), or None."""
@@ -298,7 +327,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                   refine_image: np.ndarray | None = None, centre_method: str = "edge",
                   edge_blur_px: float | None = None, contours: list | None = None,
                   info: dict | None = None, frame: dict | None = None,
-                  hint: "DetectionHint | None" = None) -> tuple[list, list]:
+                  hint: "DetectionHint | None" = None, start_px=None) -> tuple[list, list]:
     """Contours of a binary ``mask`` -> (accepted, rejected) :class:`ImageFiducial` lists.
     ``refine_image`` (default ``image``) is the full-resolution BGR image for sub-pixel centres;
     ``centre_method`` one of :data:`CENTRE_METHODS` (see the module docstring);
@@ -310,7 +339,9 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
     what is known of the frame's imaging, passed to :func:`~.edge_fit.fit_ball_edges` (which
     also stores what it measured there); ``hint``: the balls' predicted ellipses
     (:class:`DetectionHint`): a blob lying on a predicted ball takes that ball's outline shape
-    (from the pose: no need to compute it from the blob, :func:`_hinted_shapes`)."""
+    (from the pose: no need to compute it from the blob, :func:`_hinted_shapes`); ``start_px``:
+    None or (n, 2) px, the balls' own edge-fit centres in the previous frame of a stream: a blob
+    within :data:`START_AT_LAST_PX` of one starts its edge rays there (:func:`_started_centres`)."""
     if centre_method not in CENTRE_METHODS:
         raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {centre_method!r}")
     refine_image = image if refine_image is None else refine_image
@@ -376,7 +407,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
             edge_blur_px = (measure_edge_blur(refine_image, ells) if edge_fit.MEASURE_BLUR else None) \
                 or edge_fit.BLUR_PROBE_PX
         clock.lap("blur")
-        fits = fit_ball_edges(refine_image, ells, edge_blur_px, shapes, frame=frame)
+        fits = fit_ball_edges(refine_image, _started_centres(start_px, ells), edge_blur_px, shapes, frame=frame)
         edge_fits = dict(zip(good, fits))
         clock.lap("edge_fit")
     if info is not None:

@@ -396,6 +396,8 @@ def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resi
     :func:`unmix_residual_limit`). ``chroma_limited``: whether the frame's colour is band-limited
     (:func:`chroma_is_band_limited`), None = measured on these balls' neighbourhoods (the
     decision is then stored in ``frame["chroma_band_limited"]`` when ``frame`` is a dict)."""
+    if COMPILED:
+        return _edge_points_compiled(image_bgr, balls, blur_px, widths, max_resid, chroma_limited, frame)
     h, w = image_bgr.shape[:2]
     measure_chroma = chroma_limited is None
     k = SAMPLES
@@ -436,23 +438,6 @@ def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resi
         chroma_limited = chroma_is_band_limited(hf)
         if frame is not None:
             frame["chroma_band_limited"] = chroma_limited
-    if COMPILED:
-        prof_e = prof
-        if sprofs and chroma_limited:
-            enc = [_smooth_chroma_along_rays(cv2.remap(roi.astype(np.float32), mx, my, cv2.INTER_LINEAR,
-                                                       borderMode=cv2.BORDER_REPLICATE), CHROMA_SIGMA_PX / st)
-                   for roi, mx, my, st in sprofs]
-            prof_e = np.ascontiguousarray(np.concatenate(enc, 0) @ COLOUR_WEIGHTS.T)
-        step = np.repeat([g[5] for g in geo], counts).astype(np.float64)
-        starts = np.cumsum([0] + counts[:-1]).astype(np.int64)
-        edge_rel, usable, wid = edge_kernels.ray_edges(
-            np.ascontiguousarray(prof), prof_e, starts, np.asarray(counts, np.int64), step, float(blur_px),
-            float(unmix_residual_limit(blur_px) if max_resid is None else max_resid), bool(NEAR_BACKGROUND),
-            float(INTEGRATION_SHARE), float(CROSSING_AGREE_PX), float(NEAR_BG_MARGIN_PX), float(NEAR_BG_WINDOW_PX),
-            float(1.0 / (BLUR_PER_WIDTH * DISC_WIDTH_PER_RADIUS)))
-        if widths is not None:
-            widths.append(wid[usable])
-        return _points_out(out, geo, counts, edge_rel, usable)
     step = np.repeat([g[5] for g in geo], counts)                               # (N,)
     edge_k = max(k // 10, 3)
     half = k // 8
@@ -533,6 +518,58 @@ def _points_out(out: list, geo: list, counts: list, edge_rel: np.ndarray, usable
         e = s0 + edge_rel[start:start + cnt]
         out[i] = (c[None, :] + e[:, None] * u, usable[start:start + cnt])
         start += cnt
+    return out
+
+
+#: the display gamma's power at 1/64 of a display value (edge_kernels.fine_lut)
+_FINE_LUT = edge_kernels.fine_lut(2.2)
+
+
+def _edge_points_compiled(image_bgr, balls, blur_px, widths, max_resid, chroma_limited, frame):
+    """:func:`_edge_points` (same arguments, same result) with the rays laid out, sampled, chroma
+    smoothed and unmixed in compiled kernels (:mod:`.edge_kernels`: ``ray_geometry``,
+    ``sample_rays``, ``ray_edges``); the NumPy body of :func:`_edge_points` is the reference."""
+    out: list = [None] * len(balls)
+    if not balls:
+        return out
+    h, w = image_bgr.shape[:2]
+    k = SAMPLES
+    e = np.array([(c[0], c[1], d[0], d[1], a) for c, d, a in balls], float)
+    counts, boxes, _w_in, step_b, phi, s0 = edge_kernels.ray_geometry(
+        e[:, 0], e[:, 1], e[:, 2], e[:, 3], e[:, 4], k, float(blur_px), h, w)
+    inside = np.flatnonzero(counts)
+    if not len(inside):
+        return out
+    if CHROMA_SIGMA_PX > 0 and chroma_limited is None:
+        hf = np.zeros(3)
+        for b in inside:
+            x0, y0, x1, y1 = boxes[b]
+            hf += _detail_energy(image_bgr[y0:y1, x0:x1])
+        chroma_limited = chroma_is_band_limited(hf)
+        if frame is not None:
+            frame["chroma_band_limited"] = chroma_limited
+    smooth = bool(CHROMA_SIGMA_PX > 0 and chroma_limited)
+    img = image_bgr if image_bgr.flags.c_contiguous else np.ascontiguousarray(image_bgr)
+    prof, prof_e = edge_kernels.sample_rays(img, LINEAR_LUT, COLOUR_WEIGHTS, e[:, 0], e[:, 1], counts, boxes,
+                                            step_b, phi, s0, k, smooth, float(CHROMA_SIGMA_PX),
+                                            _FINE_LUT)
+    cnt = counts[inside]
+    step = np.repeat(step_b[inside], cnt)
+    starts = np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(np.int64)
+    edge_rel, usable, wid = edge_kernels.ray_edges(
+        prof, prof_e, starts, cnt.astype(np.int64), step, float(blur_px),
+        float(unmix_residual_limit(blur_px) if max_resid is None else max_resid), bool(NEAR_BACKGROUND),
+        float(INTEGRATION_SHARE), float(CROSSING_AGREE_PX), float(NEAR_BG_MARGIN_PX), float(NEAR_BG_WINDOW_PX),
+        float(1.0 / (BLUR_PER_WIDTH * DISC_WIDTH_PER_RADIUS)))
+    if widths is not None:
+        widths.append(wid[usable])
+    rad = s0 + edge_rel
+    px, py = rad * np.cos(phi), rad * np.sin(phi)
+    for b, st, c in zip(inside, starts, cnt):
+        pts = np.empty((c, 2))
+        pts[:, 0] = e[b, 0] + px[st:st + c]
+        pts[:, 1] = e[b, 1] + py[st:st + c]
+        out[b] = (pts, usable[st:st + c])
     return out
 
 

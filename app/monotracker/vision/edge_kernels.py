@@ -532,6 +532,183 @@ def shaped_fits(P, valid, usable, ratio, major_deg, min_share, blur_px, window_s
     return ok, centre, d1, d2, keep, rms, cut
 
 
+# --- ray sampling (edge_fit._edge_points' geometry, cv2.remap, chroma smoothing) -------------
+
+
+@_compiled
+def ray_geometry(cx, cy, d1, d2, ang_deg, k, blur_px, img_h, img_w):
+    """The rays of m balls given by their coarse OpenCV ellipses (centre ``cx``, ``cy`` px, full
+    axes ``d1``, ``d2`` px, ``ang_deg``), as :func:`.edge_fit._edge_points` lays them out for blur
+    ``blur_px`` px and ``k`` samples per ray: (counts (m,) rays per ball, 0 for a ball whose
+    window leaves the ``img_h`` x ``img_w`` image; boxes (m, 4) int x0, y0, x1, y1 of each ball's
+    window; w_in (m,) px; step (m,) px per sample; phi (N,) ray direction rad; s0 (N,) px from
+    the centre to each ray's first sample). N = counts.sum()."""
+    m = len(cx)
+    counts = np.zeros(m, np.int64)
+    n_all = np.zeros(m, np.int64)
+    boxes = np.zeros((m, 4), np.int64)
+    w_in = np.zeros(m)
+    step = np.zeros(m)
+    N = 0
+    for b in range(m):
+        a_ = max(d1[b], d2[b]) / 2
+        n = int(min(max(2 * np.pi * a_ / 1.6, 32.0), 96.0))
+        n_all[b] = n
+        w_out = 3.0 + 0.25 * (min(d1[b], d2[b]) / 2) + blur_px
+        mm = int(math.ceil(a_ + w_out + 2))
+        x0, y0 = int(math.floor(cx[b])) - mm, int(math.floor(cy[b])) - mm
+        x1, y1 = int(math.floor(cx[b])) + mm + 2, int(math.floor(cy[b])) + mm + 2
+        boxes[b, 0], boxes[b, 1], boxes[b, 2], boxes[b, 3] = x0, y0, x1, y1
+        if x0 < 0 or y0 < 0 or x1 > img_w or y1 > img_h:
+            continue
+        counts[b] = n
+        N += n
+    phi = np.empty(N)
+    s0 = np.empty(N)
+    q = 0
+    for b in range(m):
+        n = counts[b]
+        if n == 0:
+            continue
+        ea, eb = d1[b] / 2, d2[b] / 2
+        th = np.radians(ang_deg[b])
+        rmin = np.inf
+        for i in range(n):
+            ph = i * (2 * np.pi / n)
+            t = ph - th
+            r = 1.0 / math.sqrt((math.cos(t) / ea) ** 2 + (math.sin(t) / eb) ** 2)
+            phi[q + i] = ph
+            s0[q + i] = r
+            rmin = min(rmin, r)
+        w_out = 3.0 + 0.25 * min(ea, eb) + blur_px
+        w_in[b] = min(w_out, 0.65 * rmin)
+        step[b] = (w_in[b] + w_out) / (k - 1)
+        for i in range(n):
+            s0[q + i] -= w_in[b]
+        q += n
+    return counts, boxes, w_in, step, phi, s0
+
+
+#: :func:`fine_lut`'s entries per display value
+FINE_LUT_STEPS = 64
+
+
+def fine_lut(gamma: float = 2.2) -> np.ndarray:
+    """(255 * FINE_LUT_STEPS + 2,) float64: ``(v / 255) ** gamma`` at v = i / FINE_LUT_STEPS."""
+    v = np.arange(255 * FINE_LUT_STEPS + 2) / FINE_LUT_STEPS
+    return (np.minimum(v, 255.0) / 255.0) ** gamma
+
+
+@_compiled
+def _fine(lut_fine, v):
+    """``lut_fine`` (:func:`fine_lut`) at display value ``v``, clipped to [0, 255], interpolated."""
+    x = min(max(v, 0.0), 255.0) * FINE_LUT_STEPS
+    i = int(x)
+    return lut_fine[i] + (x - i) * (lut_fine[i + 1] - lut_fine[i])
+
+
+@_compiled
+def sample_rays(img, lut, cw, cx, cy, counts, boxes, step, phi, s0, k, smooth, sigma_px, lut_fine):
+    """The ray profiles of :func:`.edge_fit._edge_points` for the rays of :func:`ray_geometry`:
+    ``img`` (H, W, 3) uint8 BGR, ``lut`` (256,) float32 display value -> linear radiance, ``cw``
+    (3, 3) float32 linear BGR -> the unmixing's colour space. Each ray is sampled (k samples,
+    ``step`` px apart from ``s0``) as ``cv2.remap`` samples the ball's window (bilinear, at 1/32
+    px, round half to even; border replicated at the window's edge), in linear light (``prof``)
+    and, with ``smooth``, also in gamma-encoded values whose colour differences are smoothed
+    along the ray by a Gaussian of ``sigma_px`` px and then linearised (``prof_e``,
+    :func:`.edge_fit._smooth_chroma_along_rays`; ``lut_fine``: the linearisation at
+    1/:data:`FINE_LUT_STEPS` of a display value, :func:`fine_lut`, interpolated: relative error
+    < 1e-4 above value 1, where a power per sample would cost more than all the rest); without
+    ``smooth`` ``prof_e`` is ``prof``.
+    Returns (prof (N, k, 3) float32, prof_e)."""
+    N = len(phi)
+    prof = np.empty((N, k, 3), np.float32)
+    prof_e = np.empty((N, k, 3), np.float32) if smooth else prof
+    one = np.float32(1.0)
+    wt = np.empty(32, np.float32)
+    for i in range(32):
+        wt[i] = np.float32(i) * np.float32(1.0 / 32)
+    lin = np.empty(3)
+    g = np.empty(k)
+    ker_t = np.empty((k, k))     # ker_t[i, j]: weight of sample i in smoothed sample j
+    q = 0
+    for b in range(len(counts)):
+        n = counts[b]
+        if n == 0:
+            continue
+        x0, y0, x1, y1 = boxes[b, 0], boxes[b, 1], boxes[b, 2], boxes[b, 3]
+        ww, hh = x1 - x0, y1 - y0
+        ys = np.empty((n, k))
+        diff = np.empty((2 * n, k))      # B - Y', R - Y' of the encoded samples, per ray
+        for r in range(n):
+            ux, uy = math.cos(phi[q + r]), math.sin(phi[q + r])
+            for j in range(k):
+                s = s0[q + r] + j * step[b]
+                fx = np.float32(cx[b] - x0 + s * ux)
+                fy = np.float32(cy[b] - y0 + s * uy)
+                ix = np.int64(np.rint(fx * np.float32(32.0)))
+                iy = np.int64(np.rint(fy * np.float32(32.0)))
+                xi, yi, ax, ay = ix >> 5, iy >> 5, ix & 31, iy & 31
+                xa, xb = min(max(xi, 0), ww - 1), min(max(xi + 1, 0), ww - 1)
+                ya, yb = min(max(yi, 0), hh - 1), min(max(yi + 1, 0), hh - 1)
+                w0 = (one - wt[ay]) * (one - wt[ax])
+                w1 = (one - wt[ay]) * wt[ax]
+                w2 = wt[ay] * (one - wt[ax])
+                w3 = wt[ay] * wt[ax]
+                e0 = e1 = e2 = 0.0
+                for ch in range(3):
+                    p0 = img[y0 + ya, x0 + xa, ch]
+                    p1 = img[y0 + ya, x0 + xb, ch]
+                    p2 = img[y0 + yb, x0 + xa, ch]
+                    p3 = img[y0 + yb, x0 + xb, ch]
+                    lin[ch] = np.float32(lut[p0] * w0 + lut[p1] * w1 + lut[p2] * w2 + lut[p3] * w3)
+                    if smooth:
+                        v = np.float32(np.float32(p0) * w0 + np.float32(p1) * w1 + np.float32(p2) * w2
+                                       + np.float32(p3) * w3)
+                        if ch == 0:
+                            e0 = v
+                        elif ch == 1:
+                            e1 = v
+                        else:
+                            e2 = v
+                for c in range(3):
+                    prof[q + r, j, c] = cw[c, 0] * lin[0] + cw[c, 1] * lin[1] + cw[c, 2] * lin[2]
+                if smooth:
+                    y = 0.114 * e0 + 0.587 * e1 + 0.299 * e2
+                    ys[r, j] = y
+                    diff[2 * r, j] = e0 - y
+                    diff[2 * r + 1, j] = e2 - y
+        if smooth:     # edge_fit._ray_kernel(k, round(sigma, 2)): rows summing to 1
+            sg = max(np.rint(sigma_px / step[b] * 100.0) / 100.0, 1e-6)
+            for d in range(k):
+                g[d] = math.exp(-0.5 * (d / sg) ** 2)
+            for j in range(k):
+                tot = 0.0
+                for i in range(k):
+                    tot += g[abs(i - j)]
+                for i in range(k):
+                    ker_t[i, j] = np.float32(g[abs(i - j)] / tot)
+            sm = np.zeros((2 * n, k))        # diff @ ker_t, the output index innermost (no BLAS threads)
+            for r in range(2 * n):
+                for i in range(k):
+                    d = diff[r, i]
+                    for j in range(k):
+                        sm[r, j] += d * ker_t[i, j]
+            for r in range(n):
+                for j in range(k):
+                    y = ys[r, j]
+                    b2 = y + sm[2 * r, j]
+                    r2 = y + sm[2 * r + 1, j]
+                    g2 = (y - 0.114 * b2 - 0.299 * r2) * (1.0 / 0.587)
+                    lin[0] = _fine(lut_fine, b2)
+                    lin[1] = _fine(lut_fine, g2)
+                    lin[2] = _fine(lut_fine, r2)
+                    for c in range(3):
+                        prof_e[q + r, j, c] = cw[c, 0] * lin[0] + cw[c, 1] * lin[1] + cw[c, 2] * lin[2]
+        q += n
+    return prof, prof_e
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on a tiny input: call it before the first
     frame, off the time-critical path (a first compile takes ~10-20 s)."""
@@ -544,3 +721,10 @@ def warm_up() -> None:
     P = np.stack([10 * np.cos(phi), 10 * np.sin(phi)], -1)[None]
     shaped_fits(P, np.ones((1, 32), np.bool_), np.ones((1, 32), np.bool_), np.ones(1), np.zeros(1), 0.6, 1.5,
                 0.125, 0.3, 0.04, 0.5)
+    img = np.random.default_rng(1).integers(0, 256, (64, 64, 3)).astype(np.uint8)
+    one = np.ones(1)
+    cnt, box, _w, st, ph, s0 = ray_geometry(32.0 * one, 32.0 * one, 20.0 * one, 18.0 * one, 0.0 * one, k, 1.5, 64, 64)
+    lut = np.linspace(0, 1, 256).astype(np.float32)
+    for smooth in (True, False):
+        sample_rays(img, lut, np.eye(3, dtype=np.float32), 32.0 * one, 32.0 * one, cnt, box, st, ph, s0, k, smooth, 2.0,
+                    fine_lut())
