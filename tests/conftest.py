@@ -71,19 +71,21 @@ def cpu_hogs(pytestconfig):
 
 
 #: Test files of the serial lane (scripts/test.sh runs them one after another, alone, after the
-#: rest has run on 2 pytest-xdist workers): the browser tests (each drives chromium, which renders
-#: the 3D view in software, against an engine on the real clock) and the files that drive the
-#: engine, a pose stream or a recording on the real clock against the engine's own limits (a pose
-#: older than 0.15 s holds the arm), which failed in the suite at high load before (issue 35). A
-#: file with a ``realtime`` test belongs here (collection says so otherwise).
+#: rest has run on 2 pytest-xdist workers): the files that drive the engine, a pose stream or a
+#: recording on the real clock against the engine's own limits (a pose older than 0.15 s holds
+#: the arm), which failed in the suite at high load before (issue 35). A file with a ``realtime``
+#: test belongs here (collection says so otherwise). Every test that uses the ``browser`` fixture
+#: (tests/ui/conftest.py: chromium renders the 3D view in software beside an engine on the real
+#: clock) is in the serial lane too, wherever it lives (:func:`in_serial_lane`); the view-level
+#: tests of tests/ui/ (doubles, fake clocks, no browser) run 2-wide with the rest.
 SERIAL_LANE = (
-    "tests/ui/",
     "tests/examples/",
     "tests/engine/test_digital_twin.py",
     "tests/engine/test_pose_pipeline.py",
     "tests/vision/test_pose_stream.py",
     "tests/interop/test_recording_replay.py",
     "tests/interop/test_replay_camera.py",
+    "tests/ui/test_viser_threads.py",
 )
 
 
@@ -98,9 +100,14 @@ def _rel(item) -> str:
     return Path(str(item.path)).resolve().relative_to(ROOT).as_posix()
 
 
+def in_serial_lane(item) -> bool:
+    """True for a test of a :data:`SERIAL_LANE` file or one that uses the ``browser`` fixture."""
+    return _rel(item).startswith(SERIAL_LANE) or "browser" in getattr(item, "fixturenames", ())
+
+
 def pytest_collection_modifyitems(config, items):
-    """A ``realtime`` test outside the serial lane is a usage error: it would share the machine
-    with any other test. ``--lane`` keeps one side of the lane (the rest is deselected)."""
+    """A ``realtime`` test outside the serial lane's files is a usage error: it would share the
+    machine with any other test. ``--lane`` keeps one side of the lane (the rest is deselected)."""
     for item in items:
         if item.get_closest_marker("realtime") is not None and not _rel(item).startswith(SERIAL_LANE):
             raise pytest.UsageError(f"{item.nodeid} is marked realtime: add {_rel(item)} to SERIAL_LANE in tests/conftest.py")
@@ -109,7 +116,7 @@ def pytest_collection_modifyitems(config, items):
         return
     keep, drop = [], []
     for item in items:
-        (keep if _rel(item).startswith(SERIAL_LANE) == (lane == "serial") else drop).append(item)
+        (keep if in_serial_lane(item) == (lane == "serial") else drop).append(item)
     if drop:
         config.hook.pytest_deselected(items=drop)
         items[:] = keep

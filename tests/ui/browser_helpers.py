@@ -10,6 +10,12 @@ from contextlib import contextmanager
 # machine the same step can take 10x longer than on a quiet one, and that is not a bug.
 T_STATE = 120.0  # s, session state
 T_PAGE_MS = 120_000  # ms, the page catching up with the session
+#: the live overlay's most frames a second in the browser tests (``MonoTrackerApp(max_stream_fps=)``,
+#: 30 in the app; issue 35): each streamed frame is drawn and JPEG-encoded by the app and decoded
+#: and composited in software by chromium, on the same 2 cores as the pose pipeline; on the live
+#: steps each click of the end-to-end test took ~30 s at load 9. The tests check the workflow, not
+#: the stream's rate (``benchmarks/web_overlay.py`` measures that).
+STREAM_FPS = 5.0
 
 
 def _wait(pred, timeout=T_STATE, what="condition"):
@@ -115,7 +121,7 @@ def served_locked_sample(tmp_path, monkeypatch, port, config: dict | None = None
         assert s.confirm_fiducials().ok
         if sample_plan:
             assert s.use_sample_plan().ok
-        app = MonoTrackerApp(s, "127.0.0.1", port)
+        app = MonoTrackerApp(s, "127.0.0.1", port, max_stream_fps=STREAM_FPS)
         app.start()
         try:
             yield s, app

@@ -63,17 +63,80 @@ def port() -> int:
     return free_port()
 
 
+#: the most animation frames a second a test page draws (issue 35). Without a GPU, chromium draws
+#: the 3D view in software (SwiftShader): viser's client draws on demand, but every scene update
+#: (the head moving with the breathing trajectory, the arm) opens a 250 ms window of 60 Hz frames,
+#: so with the app's 8 Hz render thread the browser drew continuously and took most of a core
+#: from the app under test on a 2-core machine (the end-to-end test's pose pipeline starved
+#: beside it). The tests check the page's widgets, the session and where a click lands, not the
+#: frame rate: each page's ``requestAnimationFrame`` is capped at this rate (an init script in its
+#: own page world; Playwright's actionability checks run in their own world, unaffected), so the
+#: scene still follows the session, up to 1/BROWSER_FPS s later. GUI-only updates (panels, result
+#: lines, the state block) do not wait for a frame in viser's client (messageQueue.ts).
+BROWSER_FPS = 5
+
+#: the init script that caps ``requestAnimationFrame`` at :data:`BROWSER_FPS`: a callback asked
+#: for runs at the animation frame after the next 1/BROWSER_FPS s boundary (all callbacks asked
+#: within one period share a frame, as without the cap); ``cancelAnimationFrame`` cancels either stage.
+FRAME_CAP_JS = """(() => {
+  const period = 1000 / %s;
+  const raf = window.requestAnimationFrame.bind(window);
+  const caf = window.cancelAnimationFrame.bind(window);
+  const pending = new Map();
+  let next = 1;
+  window.requestAnimationFrame = (cb) => {
+    const id = next++;
+    const now = performance.now();
+    const wait = Math.max(0, Math.ceil(now / period) * period - now);
+    const timer = setTimeout(() => {
+      pending.set(id, {frame: raf((ts) => { pending.delete(id); cb(ts); })});
+    }, wait);
+    pending.set(id, {timer});
+    return id;
+  };
+  window.cancelAnimationFrame = (id) => {
+    const p = pending.get(id);
+    if (p === undefined) return;
+    pending.delete(id);
+    if (p.timer !== undefined) clearTimeout(p.timer);
+    if (p.frame !== undefined) caf(p.frame);
+  };
+})();""" % BROWSER_FPS
+
+
+class CappedBrowser:
+    """A Playwright ``Browser`` whose new pages and contexts draw at most :data:`BROWSER_FPS`
+    frames a second (:data:`FRAME_CAP_JS` added before any page script runs); everything else is
+    the browser's own (attributes are passed through)."""
+
+    def __init__(self, browser):
+        self._browser = browser
+
+    def new_context(self, **kw):
+        ctx = self._browser.new_context(**kw)
+        ctx.add_init_script(FRAME_CAP_JS)
+        return ctx
+
+    def new_page(self, **kw):
+        ctx = self.new_context(**kw)
+        page = ctx.new_page()
+        return page
+
+    def __getattr__(self, name):
+        return getattr(self._browser, name)
+
+
 @pytest.fixture(scope="session")
 def browser():
     """One headless chromium for the whole run (issue 35: it was launched again for every test
-    module). Each test opens its own pages; :func:`_close_pages_left_open` closes whatever a
-    test left open, so no tab of an earlier test keeps rendering (or reconnecting to a stopped
-    server) beside the next one."""
+    module), its pages capped at :data:`BROWSER_FPS` (:class:`CappedBrowser`). Each test opens
+    its own pages; :func:`_close_pages_left_open` closes whatever a test left open, so no tab of
+    an earlier test keeps rendering (or reconnecting to a stopped server) beside the next one."""
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=display_browser_path(), headless=True, args=CHROMIUM_ARGS)
-        yield b
+        yield CappedBrowser(b)
         b.close()
 
 
