@@ -76,6 +76,24 @@ def test_index_lps_round_trip_on_the_sample():
 
 
 # ------------------------------------------------------------------ several series
+def test_lps_to_index_inverts_a_sheared_grid():
+    """A direction matrix that is not orthonormal (sheared grid, e.g. an affine registration's
+    output kept by ITK): lps_to_index inverts index_to_lps (the transpose would not), checked
+    against ITK's own TransformPhysicalPointToContinuousIndex."""
+    D = np.array([[1.0, 0.3, 0.0], [0.0, 0.95, 0.2], [0.1, 0.0, 1.0]])
+    img = sitk.Image([8, 9, 10], sitk.sitkInt16)
+    img.SetSpacing((0.5, 0.7, 1.25))
+    img.SetOrigin((-20.0, 13.0, 4.0))
+    img.SetDirection(tuple(D.ravel()))
+    vol = Volume.from_image(img)
+    ijk = np.array([[0.0, 0.0, 0.0], [3.5, 2.25, 7.0], [7.0, 8.0, 9.0]])
+    lps = vol.index_to_lps(ijk)
+    itk = np.array([img.TransformContinuousIndexToPhysicalPoint(tuple(p)) for p in ijk])
+    assert np.allclose(lps, itk, atol=1e-9)
+    assert np.allclose(vol.lps_to_index(lps), ijk, atol=1e-9)
+    assert np.allclose(vol.lps_to_index(lps[1]), ijk[1], atol=1e-9)  # one point, (3,)
+
+
 def test_folder_with_several_series_picks_the_one_covering_the_patient_and_says_so(small_ct, tmp_path):
     img = small_ct.to_sitk()
     write_dicom_series(img, tmp_path, series_uid="1.2.826.0.1.3680043.2.1125.9.1")

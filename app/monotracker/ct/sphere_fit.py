@@ -7,14 +7,35 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import erfc
 
+from monotracker.ct import fit_kernels
+
 _SQRT2 = np.sqrt(2.0)
 _INV_SQRT_PI = 1.0 / np.sqrt(np.pi)
+
+
+#: Which solver the fits use: "compiled" (:mod:`.fit_kernels`, numba) or "scipy" (SciPy's
+#: ``least_squares``, the reference; ``tests/ct/test_fit_kernels.py`` checks they agree).
+SOLVER = "compiled"
+_MODELS = {"sphere": fit_kernels.MODEL_SPHERE, "surface": fit_kernels.MODEL_SURFACE}
+_LOSSES = {"soft_l1": fit_kernels.LOSS_SOFT_L1, "cauchy": fit_kernels.LOSS_CAUCHY}
+
+
+def _compiled_fit(model: str, pts: np.ndarray, values: np.ndarray, M: np.ndarray | None, x0: np.ndarray, lo: np.ndarray,
+                  hi: np.ndarray, f_scale: float, max_nfev: int, loss: str) -> tuple[np.ndarray, float, bool]:
+    """:func:`.fit_kernels.robust_lm` with SciPy's default tolerances (1e-8)."""
+    use_M = M is not None
+    M = np.zeros((3, 3)) if M is None else np.ascontiguousarray(M, float)
+    x, rms, ok, _ = fit_kernels.robust_lm(_MODELS[model], np.asarray(x0, float), np.asarray(lo, float), np.asarray(hi, float),
+                                          np.ascontiguousarray(pts, float), np.ascontiguousarray(values, float), M, use_M,
+                                          float(f_scale), _LOSSES[loss], int(max_nfev), 1e-8, 1e-8, 1e-8)
+    return x, float(rms), bool(ok)
 
 
 def _bounded_robust_fit(resid, jac, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, f_scale: float,
                         max_nfev: int, loss: str = "soft_l1") -> tuple[np.ndarray, float, bool]:
     """Soft-L1 least squares of ``resid`` (HU) within bounds ``lo``..``hi``, started at ``x0``
-    (clipped inside). Returns ``(params, rms of the inlier residuals (|r| < 3 f_scale), success)``."""
+    (clipped inside), with SciPy (the reference solver). Returns ``(params, rms of the inlier
+    residuals (|r| < 3 f_scale), success)``."""
     x0 = np.clip(x0, lo + 1e-6, hi - 1e-6)
     res = least_squares(resid, x0, jac=jac, loss=loss, f_scale=f_scale, bounds=(lo, hi), x_scale="jac",
                         max_nfev=max_nfev)
@@ -59,16 +80,22 @@ def _sphere_model(params: np.ndarray, pts: np.ndarray, M: np.ndarray | None = No
 
 
 def fit_blurred_sphere(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float,
-                       box_cov: np.ndarray | None = None, r_bounds: tuple[float, float] = (0.3, 30.0), loss: str = "soft_l1"):
+                       box_cov: np.ndarray | None = None, r_bounds: tuple[float, float] = (0.3, 30.0), loss: str = "soft_l1",
+                       solver: str | None = None):
     """Least-squares fit of a blurred ball to voxel values at LPS points ``pts`` (n, 3).
 
     Parameters ``[cx, cy, cz, r, s, H, b]``: centre and radius (mm), edge sigma (mm), inside
     and background levels (HU). ``box_cov`` (3x3 mm^2, the voxel box's covariance in LPS):
     an edge with normal ``e`` is then blurred by ``sqrt(s**2 + e^T box_cov e)`` (the slice
     profile: thick slices blur along z more than in-plane) and ``s`` is the scanner's PSF.
+    ``solver``: "compiled" or "scipy" (the reference); None: :data:`SOLVER`.
     Returns (params, inlier RMS residual HU, success).
     """
     M = None if box_cov is None else np.asarray(box_cov, float)
+    lo = np.r_[x0[:3] - 3.0, r_bounds[0], 0.05, -np.inf, -np.inf]
+    hi = np.r_[x0[:3] + 3.0, r_bounds[1], 5.0 if M is None else 1.5, np.inf, np.inf]
+    if (solver or SOLVER) == "compiled":
+        return _compiled_fit("sphere", pts, values, M, x0, lo, hi, f_scale, 60, loss)
     parts = _LastCall(lambda p: _sphere_model(p, pts, M))
 
     def resid(p):
@@ -90,8 +117,6 @@ def fit_blurred_sphere(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_sc
         J[:, 6] = 1.0 - fill
         return J
 
-    lo = np.r_[x0[:3] - 3.0, r_bounds[0], 0.05, -np.inf, -np.inf]
-    hi = np.r_[x0[:3] + 3.0, r_bounds[1], 5.0 if M is None else 1.5, np.inf, np.inf]
     return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=60, loss=loss)
 
 
@@ -102,7 +127,8 @@ def _unit_from_angles(theta: float, phi: float) -> tuple[np.ndarray, np.ndarray,
 
 
 def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_scale: float, box_cov: np.ndarray | None = None,
-                        r_bounds: tuple[float, float] = (0.3, 30.0), max_tissue_hu: float = np.inf, loss: str = "soft_l1"):
+                        r_bounds: tuple[float, float] = (0.3, 30.0), max_tissue_hu: float = np.inf, loss: str = "soft_l1",
+                        solver: str | None = None):
     """Least-squares fit of a blurred ball resting on a blurred plane surface (the scalp).
 
     The background is ``b_out`` on one side of the plane ``n . (x - c) = h`` and ``b_in`` on
@@ -113,10 +139,17 @@ def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_s
     ``box_cov`` (3x3, mm^2): the voxel box's covariance in LPS, ``D diag(w**2 / 12) D^T``;
     with it an edge with normal ``e`` is blurred by ``sqrt(s**2 + e^T box_cov e)``, so thick
     slices blur along z more than in-plane, as in the scanner; ``s`` is then the PSF sigma.
-    Parameters ``[cx, cy, cz, r, s, H, b_out, b_in, theta, phi, h]``. Returns
-    (params, inlier RMS residual HU, success).
+    Parameters ``[cx, cy, cz, r, s, H, b_out, b_in, theta, phi, h]``. ``solver``: "compiled"
+    or "scipy" (the reference); None: :data:`SOLVER`. Returns (params, inlier RMS residual HU,
+    success).
     """
     M = np.zeros((3, 3)) if box_cov is None else np.asarray(box_cov, float)
+    # the tissue must stay fainter than the ball (``max_tissue_hu``), or a half space of "tissue"
+    # as dense as the ball can stand in for part of it
+    lo = np.r_[x0[:3] - 3.0, r_bounds[0], 0.05, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf]
+    hi = np.r_[x0[:3] + 3.0, r_bounds[1], 5.0, np.inf, max_tissue_hu, max_tissue_hu, np.inf, np.inf, np.inf]
+    if (solver or SOLVER) == "compiled":
+        return _compiled_fit("surface", pts, values, M, x0, lo, hi, f_scale, 80, loss)
 
     def parts(p):
         c, r, s0, H, bo, bi, th, ph, h = p[:3], p[3], p[4], p[5], p[6], p[7], p[8], p[9], p[10]
@@ -160,10 +193,6 @@ def fit_ball_on_surface(pts: np.ndarray, values: np.ndarray, x0: np.ndarray, f_s
         J[:, 10] = gP * k2
         return J
 
-    # the tissue must stay fainter than the ball (``max_tissue_hu``), or a half space of "tissue"
-    # as dense as the ball can stand in for part of it
-    lo = np.r_[x0[:3] - 3.0, r_bounds[0], 0.05, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf, -np.inf]
-    hi = np.r_[x0[:3] + 3.0, r_bounds[1], 5.0, np.inf, max_tissue_hu, max_tissue_hu, np.inf, np.inf, np.inf]
     return _bounded_robust_fit(resid, jac, x0, lo, hi, f_scale, max_nfev=80, loss=loss)
 
 

@@ -93,9 +93,11 @@ class Volume:
         return ijk @ (self.direction * self.spacing_mm[None, :]).T + self.origin_mm
 
     def lps_to_index(self, lps: np.ndarray) -> np.ndarray:
-        """LPS points (n, 3), mm -> continuous voxel indices (n, 3) in (i, j, k) order."""
+        """LPS points (n, 3), mm -> continuous voxel indices (n, 3) in (i, j, k) order; the
+        inverse of :meth:`index_to_lps` for any direction matrix (a sheared grid too: its
+        transpose is the inverse only for orthonormal directions)."""
         lps = np.asarray(lps, float)
-        return ((lps - self.origin_mm) @ self.direction) / self.spacing_mm
+        return np.linalg.solve(self.direction * self.spacing_mm[None, :], (lps - self.origin_mm).T).T
 
     def zyx_to_lps(self, kji: np.ndarray) -> np.ndarray:
         """Array-order indices (n, 3) as (k, j, i) -> LPS points (n, 3), mm."""
