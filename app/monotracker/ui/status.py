@@ -66,7 +66,12 @@ div[style*="pointer-events: none"] .mt-state { filter: grayscale(1); }
 .mt-pin-dots { font-size: 2.2rem; letter-spacing: 0.2em; text-align: center; min-height: 3rem; }
 .mt-state b { font-size: 2.0rem; letter-spacing: 0.05em; }
 .mt-state span { font-size: 1.0rem; margin-left: 10px; }
-.mt-row { font-size: 1.05rem; margin: 3px 0; }
+.mt-row { font-size: 1.05rem; margin: 3px 0; overflow-wrap: anywhere; }
+.mt-wrap, .mt-status, .mt-msg, .mt-alert, .mt-banner-ok, .mt-banner-bad, .mt-control { overflow-wrap: anywhere;
+  white-space: normal; max-width: 100%; box-sizing: border-box; }
+.mt-fig small.mt-age { color: #777; font-weight: 400; }
+.mt-stale, .mt-fig.mt-stale { color: #8a8a8a !important; }
+.mt-fig.mt-stale small { font-style: italic; }
 .mt-steps span { display: inline-block; padding: 4px 10px; margin-right: 4px; border-radius: 14px;
   background: #e2e8f0; color: #333; font-size: 1.0rem; }
 .mt-steps span.done { background: #c6f6d5; color: #22543d; }
@@ -99,14 +104,18 @@ def camera_line(snap) -> str:
 
 
 def pose_line(snap) -> str:
+    """The pose in one line: VALID with FRE and predicted TRE (each with its age), or why not
+    (no figure shown: :mod:`monotracker.ui.freshness`)."""
+    from monotracker.ui.freshness import figure_html, pose_figures, pose_why
+
     p = snap.pose
     if p is None:
-        return "Pose: <b>none yet</b>"
-    if p.trusted:
-        fre = "-" if p.fre_mm is None else f"{p.fre_mm:.2f} mm"
-        tre = "-" if p.predicted_tre_mm is None else f"{p.predicted_tre_mm:.2f} mm"
-        return f"Pose: <b style='color:#1f8f3a'>VALID</b>, FRE {fre}, predicted TRE {tre}, {p.n_visible} fiducials"
-    return f"Pose: <b style='color:#c81e1e'>NOT VALID</b>: {_esc(p.reason)}"
+        return "Pose: <b>none yet</b>" if snap.camera.running else "Pose: <b>none</b> (camera stopped)"
+    f = pose_figures(snap)
+    if f["fre"].live:
+        return (f"Pose: <b style='color:#1f8f3a'>VALID</b>, FRE {figure_html(f['fre'])}, "
+                f"predicted TRE {figure_html(f['tre'])}, {p.n_visible} fiducials")
+    return f"Pose: <b style='color:#c81e1e'>NOT VALID</b>: {_esc(pose_why(snap))}"
 
 
 def recent_alert(snap, now_wall: float | None = None, within_s: float = 6.0):

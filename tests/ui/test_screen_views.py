@@ -1,0 +1,172 @@
+"""The surgeon's screen at view level (issue 33): live figures are never stale numbers, the
+overlay's labels never overlap and its banner is never cut, the camera-stopped view."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace as NS
+
+import numpy as np
+import pytest
+
+
+# ---------------------------------------------------------------- snapshots for the figures
+def _snap(*, t=100.0, pose_t=99.95, trusted=True, reason="", state="tracking", connected=True, running=True,
+          errors_t=99.95, command_t=99.96, tip=1.64, angle=1.02):
+    pose = NS(t=pose_t, trusted=trusted, reason=reason, fre_mm=0.21, predicted_tre_mm=0.4, latency_ms=30.0,
+              n_visible=6, trusted_t=errors_t, fiducial_status={1: "seen", 2: "occluded"},
+              residuals_px={1: 0.12, 2: float("nan")}, validation_ok=None)
+    robot = NS(state=state, connected=connected, tip_error_mm=tip, angle_error_deg=angle, speed_mm_s=3.0,
+               latency_ms=12.0, errors_t=errors_t, command_t=command_t, message="ok")
+    camera = NS(running=running, error=None, source="sim", fps=30.0)
+    return NS(t=t, pose=pose, robot=robot, camera=camera, recording=None)
+
+
+def _numbers(html: str) -> bool:
+    import re
+
+    return re.search(r"\d+\.\d+ mm|\d+\.\d+&deg;", html) is not None
+
+
+def test_robot_figures_live_with_their_age():
+    from monotracker.ui.step_robot import robot_info_html
+
+    html = robot_info_html(_snap(), wall_of=lambda t: 1_700_000_000.0 + t)
+    assert "1.64 mm" in html and "1.02&deg;" in html
+    assert "id='mt-fig-tip' data-live='1' data-age='0.050'" in html
+    assert "50 ms old" in html  # the age shown beside the number
+
+
+@pytest.mark.parametrize("case", ["occluded", "estop", "old", "camera_stopped", "disconnected"])
+def test_no_tip_or_angle_error_shown_as_live_without_a_trusted_fresh_source(case):
+    """Every fiducial occluded, an e-stop, a pose 3 s old, the camera stopped: the tip and
+    angle error are blanked, with "stale since <clock>" and why; the number is not on the page."""
+    from monotracker.ui.step_robot import robot_info_html
+
+    kw = {"occluded": dict(trusted=False, reason="occlusion: 0 fiducials seen", state="holding"),
+          "estop": dict(state="estopped"),
+          "old": dict(t=103.0),
+          "camera_stopped": dict(running=False, state="holding"),
+          "disconnected": dict(connected=False)}[case]
+    html = robot_info_html(_snap(**kw), wall_of=lambda t: 1_700_000_000.0 + t)
+    assert "id='mt-fig-tip' data-live='0'" in html and "id='mt-fig-angle' data-live='0'" in html
+    assert not _numbers(html.split("id='mt-fig-speed'")[0]), html  # no mm / deg figure before speed
+    assert "stale since" in html
+    why = {"occluded": "occlusion", "estop": "e-stopped", "old": "3.0 s old", "camera_stopped": "camera stopped",
+           "disconnected": "not connected"}[case]
+    assert why in html
+
+
+def test_latency_is_stale_when_no_command_is_sent():
+    from monotracker.ui.freshness import robot_figures
+
+    assert robot_figures(_snap())["latency"].live
+    f = robot_figures(_snap(state="holding"))["latency"]
+    assert not f.live and "holding" in f.why
+
+
+def test_register_banner_table_and_status_line_blank_an_untrusted_pose():
+    from monotracker.ui.status import pose_line
+    from monotracker.ui.step_register import pose_banner, registration_table
+
+    wall = lambda t: 1_700_000_000.0 + t  # noqa: E731
+    good = _snap()
+    assert "0.21 mm" in pose_banner(good, wall) and "data-live='1'" in pose_banner(good, wall)
+    assert "0.21 mm" in pose_line(good)
+    assert "data-live='1'" in registration_table(good.pose, good, wall)
+    for bad in (_snap(trusted=False, reason="occlusion: 2 fiducials seen"), _snap(t=105.0)):
+        banner = pose_banner(bad, wall)
+        assert "0.21 mm" not in banner and "0.40 mm" not in banner and "stale since" in banner
+        assert "0.21 mm" not in pose_line(bad) and "NOT VALID" in pose_line(bad)
+        table = registration_table(bad.pose, bad, wall)
+        assert "data-live='0'" in table and "residuals stale since" in table
+    stopped = _snap(running=False)
+    assert "camera stopped" in pose_banner(stopped, wall) and "0.21 mm" not in pose_line(stopped)
+
+
+# ---------------------------------------------------------------- the overlay's labels
+def _sample_scene(crowd: float = 1.0):
+    """The sample phantom seen by the simulated camera at rest: its 9 fiducials (and the sample
+    path), the camera's K, the true T_cam_ct. ``crowd`` < 1 squeezes the balls together in the
+    image (about their centroid) to make the labels' job harder."""
+    from monotracker.sim.camera_sim import SimulatedCamera
+
+    cam = SimulatedCamera()
+    ph = cam.phantom
+    T = cam.T_cam_ct_at(0.0)
+    uv = cam.rest_projection()
+    uv = uv.mean(axis=0) + (uv - uv.mean(axis=0)) * crowd
+    ids = list(range(len(uv)))
+    states = ["seen"] * len(ids)
+    states[2], states[5], states[7] = "occluded", "moved", "unknown"
+    fids = tuple(NS(id=i, centre_lps_mm=c, radius_mm=4.0, status="confirmed") for i, c in zip(ids, ph.fiducial_centres_lps))
+    pose = NS(trusted=True, reason="", T_cam_ct=T, fiducial_status=dict(zip(ids, states)),
+              residuals_px={i: 0.01 * (i + 1) for i in ids}, fre_mm=0.12, predicted_tre_mm=0.35)
+    snap = NS(pose=pose, camera=NS(K=cam.K, dist=cam.dist), fiducials=fids,
+              plan=NS(entry_lps_mm=ph.sample_entry_lps, target_lps_mm=ph.sample_target_lps))
+    pts = uv.copy()
+    pts[[2, 5, 7]] = np.nan  # not detected in this frame
+    est = NS(T_cam_ct=T, status=states, image_points_px=pts, residuals_px=np.array([0.01 * (i + 1) for i in ids]))
+    return cam.camera.image_size, est, snap
+
+
+@pytest.mark.parametrize("width", [480, 640, 960, 1280])
+@pytest.mark.parametrize("crowd", [1.0, 0.25])
+def test_overlay_labels_never_intersect_at_any_display_width(width, crowd):
+    """The sample scene drawn at the widths the page shows it: no two label boxes (the banner
+    included) intersect, each lies inside the image, and each box really holds its text (the
+    drawn pixels of the labels lie inside the boxes: the boxes are not just bookkeeping)."""
+    from monotracker.ui.overlay import draw_overlay
+    from monotracker.ui.stream import OverlayStream
+
+    (w, h), est, snap = _sample_scene(crowd)
+    frame = np.zeros((h, w, 3), np.uint8)
+    small = OverlayStream(display_width=width).downscale(frame, width)
+    boxes: list = []
+    out = draw_overlay(small, est, snap, px_scale=small.shape[1] / w, label_boxes=boxes)
+    assert len(boxes) == 1 + 9  # the banner and one label per ball
+    for i, a in enumerate(boxes):
+        assert 0 <= a[0] < a[2] <= out.shape[1] and 0 <= a[1] < a[3] <= out.shape[0], a
+        for b in boxes[i + 1:]:
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]), (width, a, b)
+    # the banner holds its whole message: one or two lines, nothing cut at the right edge
+    assert out[boxes[0][1]:boxes[0][3], -3:].reshape(-1, 3).max(axis=1).min() < 250
+
+
+def test_banner_wraps_instead_of_being_cut():
+    from monotracker.ui.overlay import _text_box, wrap_banner
+
+    msg = "POSE NOT VALID: predicted error at the target 1.42 mm exceeds the 1.00 mm limit   (predicted TRE 1.42 mm)"
+    for width in (440, 480, 640):
+        lines, scale = wrap_banner(msg, width - 16, 0.75, 1)
+        assert " ".join(lines).split() == msg.split() and len(lines) <= 2
+        assert all(_text_box(ln, scale, 1)[0] <= width - 16 for ln in lines)
+        assert scale >= 0.42
+
+
+def test_place_labels_crowded_cluster_goes_to_legend_without_overlap():
+    from monotracker.ui.overlay import place_labels
+
+    anchors = [(200.0 + i, 150.0 + i) for i in range(12)]  # 12 balls within 12 px
+    boxes = place_labels(anchors, [(70, 16)] * 12, 480, 270, avoid=[(0, 0, 480, 30)], gap=10)
+    for i, a in enumerate(boxes):
+        assert a[1] >= 30 and a[2] <= 480 and a[3] <= 270
+        for b in boxes[i + 1:]:
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3])
+
+
+def test_ball_states_differ_in_shape_and_colour():
+    from monotracker.ui.overlay import BALL_STYLE, ball_state
+
+    assert ball_state("seen", True) == "seen" and ball_state("seen", False) == "predicted"
+    assert ball_state("unknown", False) == "predicted" and ball_state("occluded", False) == "lost"
+    assert ball_state("newly_lost", True) == "lost" and ball_state("moved", True) == "moved"
+    assert len({v[0] for v in BALL_STYLE.values()}) == 4 and len({v[1] for v in BALL_STYLE.values()}) == 4
+
+
+def test_camera_stopped_view_dims_the_last_frame_and_says_so():
+    from monotracker.ui.overlay import draw_camera_stopped
+
+    last = np.full((270, 480, 3), 200, np.uint8)
+    out = draw_camera_stopped(last, 480, 270, "CAMERA STOPPED since 12:03:07")
+    assert out.shape == last.shape and np.median(out) < 80  # dimmed
+    assert (np.abs(out.astype(int) - [80, 80, 255]).max(axis=2) < 40).sum() > 200  # the red words
