@@ -68,7 +68,7 @@ def test_register_banner_table_and_status_line_blank_an_untrusted_pose():
     from monotracker.ui.status import pose_line
     from monotracker.ui.step_register import pose_banner, registration_table
 
-    wall = lambda t: 1_700_000_000.0 + t  # noqa: E731
+    wall = lambda t: 1_700_000_000.0 + t
     good = _snap()
     assert "0.21 mm" in pose_banner(good, wall) and "data-live='1'" in pose_banner(good, wall)
     assert "0.21 mm" in pose_line(good)

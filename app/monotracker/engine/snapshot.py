@@ -359,6 +359,9 @@ class Snapshot:
     alarms: tuple = field(default_factory=tuple)  # tuple[Alarm], most important first
     recording: RecordingSummary | None = None  # None when no recording was made in this session
     layout: LayoutSummary | None = None  # None until a layout was planned in this session (Plan step)
+    #: the CT file or folder the plan was made on (None: no CT in the plan); with ``ct`` None
+    #: after a restart, the CT the restored plan needs (``Session.load_ct`` on it restores it)
+    plan_ct_path: str | None = None
 
     @property
     def latest_alert(self) -> Event | None:

@@ -8,13 +8,13 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
 
 from monotracker.engine.rigs.sources import SOURCES
 from monotracker.ui import status as st
 from monotracker.ui.layout_panel import placement_line
 from monotracker.ui.freshness import figure_html, pose_figures, pose_why, residuals_live
 from monotracker.ui.status import fmt
+from monotracker.ui.step_plan import gate
 
 CAMERA_SOURCES = tuple(kind.example for kind in SOURCES.values())  # the engine's table of source kinds
 FAULTS_UI = ("none", "occlude-all", "camera-freeze", "bad-pose", "robot-disconnect")
@@ -29,7 +29,6 @@ class RegisterStep:
             src = session.config.camera
             opts = CAMERA_SOURCES if src in CAMERA_SOURCES else (src,) + CAMERA_SOURCES
             self.h_pose_banner = gui.add_html("")
-            self.h_live = gui.add_image(np.zeros((54, 96, 3), np.uint8), label="live camera + overlay", format="jpeg")
             grp = gui.add_button_group("Camera", ["Start camera", "Stop camera"])
             self.h_cam_src = gui.add_dropdown("Camera source", opts, initial_value=src)
             self.h_cam_path = gui.add_text("Video file / device / folder", "", hint="for file:PATH / folder:PATH / device:N")
@@ -44,7 +43,7 @@ class RegisterStep:
             self.h_reg_table = gui.add_html("")
             self.h_fault = gui.add_dropdown("Simulate a fault (sim only)", FAULTS_UI, initial_value="none")
             b_f = gui.add_button("Inject fault")
-            b_next = gui.add_button("Registration is good: go to Robot", color="green")
+            self.b_next = b_next = gui.add_button(REGISTER_GATE[False], color="gray")
 
         @b_apply.on_click
         @view.safe("Camera")
@@ -90,7 +89,13 @@ class RegisterStep:
         @b_next.on_click
         @view.safe("Go to Robot")
         def _(_event) -> None:
+            snap = session.snapshot()
+            why = pose_why(snap)
+            if why:
+                view.say(False, f"Go to Robot: the registration is not good yet: {why}")
+                return
             view.goto("robot")
+            view.say(True, "Registration good: arm the robot (Arm, PIN), then start tracking")
 
     def _apply_camera(self) -> None:
         view = self.view
@@ -112,19 +117,18 @@ class RegisterStep:
     def _show_colour_result(self, text: str) -> None:
         self.h_colour.content = (f"<div class='mt-row' id='mt-ball-colour'>{st._esc(text)}</div>" if text else "")
 
-    def show_frame(self, jpeg: bytes) -> None:
-        """Show one overlay frame already encoded as JPEG (the same bytes go to every tab; viser's
-        image props are the encoded data and its format, so nothing is encoded again here)."""
-        h = self.h_live
-        h._format = "jpeg"
-        h._data = jpeg
-
     def render(self, snap) -> None:
-        wall_of = lambda t: self.view.wall_time(snap, t)  # noqa: E731
+        wall_of = lambda t: self.view.wall_time(snap, t)
         self.h_pose_banner.content = pose_banner(snap, wall_of)
+        gate(self.b_next, not pose_why(snap), REGISTER_GATE)
         self.h_reg_table.content = (placement_line(snap) + validation_line(snap.pose)
                                     + registration_table(snap.pose, snap, wall_of)
                                     + recording_line(snap))
+
+
+#: the Register step's "go on" button: green only with a trusted, fresh pose
+REGISTER_GATE = {True: "Registration is good: go to Robot",
+                 False: "Go to Robot: needs a valid pose (start the camera, all fiducials in view)"}
 
 
 def pose_banner(snap, wall_of=None) -> str:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 
 from monotracker.ui import plots
 from monotracker.ui import status as st
@@ -24,7 +23,6 @@ class RobotStep:
         gui, session = view.gui, view.session
         self.folder = gui.add_folder("Step 4: robot")
         with self.folder:
-            self.h_live = gui.add_image(np.zeros((54, 96, 3), np.uint8), label="live camera + overlay", format="jpeg")
             b_arm = gui.add_button("Arm (PIN)", color="orange", hint="the PIN set when the app was started")
             b_dis = gui.add_button("Disarm")
             b_start = gui.add_button("Start tracking", color="green")
@@ -52,11 +50,6 @@ class RobotStep:
         @view.safe(what)
         def _(_event) -> None:
             view.run(what, fn)
-
-    def show_frame(self, jpeg: bytes) -> None:
-        """The shared overlay JPEG (see ``RegisterStep.show_frame``)."""
-        self.h_live._format = "jpeg"
-        self.h_live._data = jpeg
 
     def render(self, snap) -> None:
         self.h_info.content = robot_info_html(snap, lambda t: self.view.wall_time(snap, t))
