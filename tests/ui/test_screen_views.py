@@ -170,3 +170,144 @@ def test_camera_stopped_view_dims_the_last_frame_and_says_so():
     out = draw_camera_stopped(last, 480, 270, "CAMERA STOPPED since 12:03:07")
     assert out.shape == last.shape and np.median(out) < 80  # dimmed
     assert (np.abs(out.astype(int) - [80, 80, 255]).max(axis=2) < 40).sum() > 200  # the red words
+
+
+# ---------------------------------------------------------------- step buttons, stations, small things
+class _Button:
+    def __init__(self):
+        self.label, self.color = "x", "green"
+
+
+def test_go_on_buttons_are_green_only_when_their_precondition_holds():
+    from monotracker.ui.step_plan import PLAN_GATE, gate
+    from monotracker.ui.step_register import REGISTER_GATE
+
+    b = _Button()
+    gate(b, False, REGISTER_GATE)
+    assert b.color == "gray" and "needs a valid pose" in b.label
+    gate(b, True, REGISTER_GATE)
+    assert b.color == "green" and b.label == "Registration is good: go to Robot"
+    gate(b, False, PLAN_GATE)
+    assert b.color == "gray" and "set the entry and the target" in b.label
+
+
+def _view(client_id="1"):
+    from monotracker.ui.view import ClientView
+
+    v = ClientView.__new__(ClientView)
+    import threading
+
+    v.lock = threading.RLock()
+    v.client_id = client_id
+    v.app = NS(last_stop=None)
+    v._seen_control, v._seen_state = None, "tracking"
+    return v
+
+
+def _ctl(controller, label="", state="tracking"):
+    return NS(control=NS(controller=controller, controller_label=label), robot=NS(state=state))
+
+
+def test_every_station_is_told_when_control_moves_and_where_stop_was_pressed():
+    import time
+
+    v = _view("1")
+    assert v.changes_elsewhere(_ctl("1", "station at 10.0.0.5 (tab 1)")) == []  # its own claim: its own result line
+    lines = v.changes_elsewhere(_ctl("2", "station at 10.0.0.7 (tab 2)"))
+    assert lines == [(False, "Control moved to station at 10.0.0.7 (tab 2): this station is now viewing "
+                             "(Take control with the PIN)")]
+    other = _view("3")
+    assert other.changes_elsewhere(_ctl("2", "OR-2"))[0] == (True, "Control moved: OR-2 is in control now")
+    other.app.last_stop = ("2", "station at 10.0.0.7 (tab 2)", time.time())
+    stop = other.changes_elsewhere(_ctl("2", "OR-2", state="estopped"))
+    assert len(stop) == 1 and not stop[0][0] and "STOP pressed at station at 10.0.0.7 (tab 2)" in stop[0][1]
+    assert other.changes_elsewhere(_ctl("2", "OR-2", state="estopped")) == []  # said once
+    me = _view("2")
+    me._seen_control = "2"
+    me.app.last_stop = other.app.last_stop
+    assert me.changes_elsewhere(_ctl("2", state="estopped")) == []  # the pressing tab has its own result
+
+
+def test_station_label_is_the_address():
+    from monotracker.ui.view import station_label
+
+    conn = NS(remote_address=("10.0.0.5", 51234))
+    app = NS(server=NS(_websock_server=NS(_live_connections={7: conn})))
+    assert station_label(app, 7) == "station at 10.0.0.5 (tab 7)"
+    assert station_label(NS(), 3) == "station 3"
+
+
+def test_slice_position_reads_as_a_reader_says_it_and_letters_follow_the_axes():
+    from monotracker.ui.slices import edge_letters, position_text
+
+    assert position_text("sagittal", [-6.2, 0, 0]) == "sagittal R 6.2 mm"
+    assert position_text("sagittal", [6.2, 0, 0]) == "sagittal L 6.2 mm"
+    assert position_text("axial", [0, 0, -12.0]) == "axial I 12.0 mm"
+    assert position_text("coronal", [0, -3.14, 0]) == "coronal A 3.1 mm"
+    # radiological convention (module doc of ui/slices.py), hand-checked
+    assert edge_letters("axial") == {"right": "L", "left": "R", "bottom": "P", "top": "A"}
+    assert edge_letters("coronal") == {"right": "L", "left": "R", "bottom": "I", "top": "S"}
+    assert edge_letters("sagittal") == {"right": "P", "left": "A", "bottom": "I", "top": "S"}
+
+
+def test_a_target_10_mm_under_the_entry_gets_a_warning():
+    from monotracker.ui.step_plan import plan_info
+
+    def snap(length):
+        e = np.zeros(3)
+        t = np.array([0.0, 0.0, length])
+        return NS(plan=NS(entry_lps_mm=e, target_lps_mm=t, complete=True, path_length_mm=length,
+                          angle_to_skin_normal_deg=5.0, distance_to_fiducials_mm=20.0), fiducials=())
+
+    assert "mt-shallow" in plan_info(snap(9.5)) and "9.5 mm under the entry" in plan_info(snap(9.5))
+    assert "mt-shallow" in plan_info(snap(10.0))
+    assert "mt-shallow" not in plan_info(snap(35.0))
+
+
+def test_reload_ct_offered_only_for_a_restored_plan_without_its_ct():
+    from monotracker.ui.step_ct import needs_ct_reload
+
+    assert needs_ct_reload(NS(ct=None, plan_ct_path="/data/ct.nii.gz", job=None))
+    assert not needs_ct_reload(NS(ct=None, plan_ct_path="/data/ct.nii.gz", job=NS(done=False)))
+    assert not needs_ct_reload(NS(ct=NS(), plan_ct_path="/data/ct.nii.gz", job=None))
+    assert not needs_ct_reload(NS(ct=None, plan_ct_path=None, job=None))
+
+
+def test_live_panel_css_fills_the_canvas_between_the_panels_with_the_aspect_kept():
+    from monotracker.ui.live_panel import CHROME_PX, live_css
+
+    css = live_css(330, 400, 1280 / 720)
+    assert "left: 330px" in css and "calc(100% - 730px)" in css and f"(100vh - {CHROME_PX}px) * 1.7778" in css
+
+
+def test_a_stopped_camera_replaces_the_last_overlay_with_camera_stopped():
+    """The overlay thread (``MonoTrackerApp._overlay_loop``) with a camera that is not running:
+    the watching tab gets the last frame dimmed with "CAMERA STOPPED since ...", never the last
+    overlay left up as if live."""
+    import threading
+
+    import cv2
+
+    from monotracker.ui.app import MonoTrackerApp
+    from monotracker.ui.stream import OverlayStream
+
+    shown = []
+    got = threading.Event()
+    tab = NS(wants_live=True, live_width=480, show_frame=lambda data: (shown.append(bytes(data)), got.set()))
+    last = np.full((720, 1280, 3), 200, np.uint8)
+    fake = NS(_stop=threading.Event(), max_stream_fps=30.0, MAX_HOLD_S=0.25, stream=OverlayStream(display_width=960),
+              views=lambda: [tab], session=NS(latest_frame=lambda: (last, 41, None)),
+              shown_snapshot=lambda: NS(camera=NS(running=False)))
+    fake.push_stopped = lambda since, tabs: MonoTrackerApp.push_stopped(fake, since, tabs)
+    fake.push_jpeg = lambda jpeg, tabs=None: MonoTrackerApp.push_jpeg(fake, jpeg, tabs)
+    fake.push_frame = lambda *a, **k: pytest.fail("a stopped camera's frame drawn as live")
+    th = threading.Thread(target=MonoTrackerApp._overlay_loop, args=(fake,), daemon=True)
+    th.start()
+    try:
+        assert got.wait(60)
+    finally:
+        fake._stop.set()
+        th.join(10)
+    img = cv2.imdecode(np.frombuffer(shown[0], np.uint8), cv2.IMREAD_COLOR)
+    assert img.shape[1] == 480 and np.median(img) < 80  # the last frame, dimmed, at the tab's width
+    assert (np.abs(img.astype(int) - [80, 80, 255]).max(axis=2) < 60).sum() > 100  # the red words
