@@ -186,18 +186,20 @@ class MonoTrackerApp:
         while not self._stop.is_set():
             try:
                 watching = [v for v in self.views() if v.wants_live]
-                if watching and not self.shown_snapshot().camera.running:
-                    # a stopped camera never leaves its last overlay up as if live: the last
-                    # frame dimmed, no marks, "CAMERA STOPPED" (once a second: new tabs get it)
+                fr = self.session.latest_frame() if watching else None
+                if (watching and (fr is None or last_index is None or fr[1] == last_index)
+                        and not self.shown_snapshot().camera.running):
+                    # a stopped camera (no new frame) never leaves its last overlay up as if
+                    # live: the last frame dimmed, no marks, "CAMERA STOPPED" (once a second:
+                    # tabs that open meanwhile get it too)
                     stopped_since = stopped_since or time.time()
                     if time.monotonic() - t_last >= 1.0:
                         t_last = time.monotonic()
                         self.push_stopped(stopped_since, watching)
-                        last_index = None
+                    last_index = None if fr is None else fr[1]
                     self._stop.wait(0.05)
                     continue
                 stopped_since = None
-                fr = self.session.latest_frame() if watching else None
                 if fr is None or fr[1] == last_index:
                     self._stop.wait(0.005)
                     continue
