@@ -224,7 +224,9 @@ class ClientView:
                 viewport = None
             self._wide = is_wide(viewport, self._wide)
             widths = panel_widths(step, self._wide)
-            self.h_live_main.visible = step in MAIN_LIVE_STEPS
+            tick = step in MAIN_LIVE_STEPS
+            if self.h_live_main.visible != tick:  # every prop assignment is a message to the browser
+                self.h_live_main.visible = tick
             self.live.update(step, bool(self.h_live_main.value), widths, self._last_image_size)
             if widths == self._panel_width:
                 return
