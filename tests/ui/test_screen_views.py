@@ -273,13 +273,6 @@ def test_reload_ct_offered_only_for_a_restored_plan_without_its_ct():
     assert not needs_ct_reload(NS(ct=None, plan_ct_path=None, job=None))
 
 
-def test_live_panel_css_fills_the_canvas_between_the_panels_with_the_aspect_kept():
-    from monotracker.ui.live_panel import CHROME_PX, live_css
-
-    css = live_css(330, 400, 1280 / 720)
-    assert "left: 330px" in css and "calc(100% - 730px)" in css and f"(100vh - {CHROME_PX}px) * 1.7778" in css
-
-
 def test_a_stopped_camera_replaces_the_last_overlay_with_camera_stopped():
     """The overlay thread (``MonoTrackerApp._overlay_loop``) with a camera that is not running:
     the watching tab gets the last frame dimmed with "CAMERA STOPPED since ...", never the last

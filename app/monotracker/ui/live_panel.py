@@ -1,17 +1,13 @@
 """The live camera + overlay in the main view (Register and Robot; issue 33 item 1).
 
 The overlay decides whether the arm may move, so on the live steps it fills the main view: a
-viser panel of this tab floated over the 3D canvas, held by the page's stylesheet at the canvas's
-top-left corner and as wide as the canvas between the status panel and the step panel (aspect
-kept: never taller than the window). The 3D context (head, arm, path) stays visible below it
+viser panel of this tab floated at the canvas's top-left corner (viser's ``float``), as wide as
+the canvas between the status panel and the step panel (``view.MAIN_LIVE_PX``), the image at
+the panel's width with its aspect kept. The 3D context (head, arm, path) stays visible below it
 where the window is taller than the image, and the tick box **Live image in the main view** (in
 the step panel, per tab) hides it to give the 3D view the whole area. CT and Plan never show it.
-
-Why a stylesheet and not ``panel.float(width=...)`` alone: viser does not tell the server the
-canvas's size in CSS px (its camera message carries the drawing buffer's size, scaled by an
-adaptive pixel ratio); the server does know its own panel widths, so the rule
-``left: <status px>; width: min(100% - <both panels>, (100vh - chrome) * aspect)`` keeps the
-image as large as the window allows at any size, and follows a window resize without a message.
+(A first version forced the panel's position and size with an ``!important`` stylesheet; the
+browser test's clicks then hung, probably viser's layout observers fighting it.)
 """
 
 from __future__ import annotations
@@ -25,14 +21,15 @@ MAIN_LIVE_STEPS = ("register", "robot")
 
 
 def live_css(status_px: int, steps_px: int, aspect_w_over_h: float) -> str:
-    """The stylesheet that places the live panel over the canvas (left edge at the status panel,
-    as wide as the canvas or as the window's height allows at ``aspect_w_over_h``)."""
+    """The stylesheet for the live image inside its floating panel: as wide as the panel,
+    aspect kept. (A rule that also forced the panel's own position and width with !important
+    froze Chromium's page: viser's layout observers fought it; the panel is placed with viser's
+    own ``float`` instead.) ``status_px``, ``steps_px``, ``aspect_w_over_h`` are kept in the
+    rule's comment so a layout change re-sends it."""
     a = max(0.5, min(4.0, float(aspect_w_over_h)))
-    return (f"<style id='mt-live-css'>[data-floating-window]:has(#mt-live-main) {{ left: {int(status_px)}px !important; "
-            f"top: 0 !important; width: min(calc(100% - {int(status_px) + int(steps_px)}px), "
-            f"calc((100vh - {CHROME_PX}px) * {a:.4f})) !important; height: auto !important; }}"
-            f"[data-floating-window]:has(#mt-live-main) img {{ width: 100% !important; height: auto !important; "
-            f"max-height: none !important; object-fit: contain; }}</style>")
+    return (f"<style id='mt-live-css'>/* {int(status_px)} {int(steps_px)} {a:.4f} */ "
+            f"[data-floating-window] #mt-live-main ~ * img, [data-floating-window] img {{ max-width: 100%; "
+            f"height: auto; }}</style>")
 
 
 class LivePanel:
@@ -52,6 +49,7 @@ class LivePanel:
         self.panel.float(x=0, y=0, width=640)
         self._shown: bool | None = None
         self._css: str = ""
+        self._width: int | None = None
 
     def show_frame(self, jpeg) -> None:
         """Show one overlay frame already encoded as JPEG (the same bytes go to every tab; viser's
@@ -59,10 +57,14 @@ class LivePanel:
         self.h_img._format = "jpeg"
         self.h_img._data = jpeg
 
-    def update(self, step: str, wanted: bool, widths: tuple[int, int], image_size) -> None:
-        """Show the panel on a live step when ``wanted``; keep its stylesheet true to the panel
-        ``widths`` (status px, steps px) and the camera's ``image_size`` (w, h px or None)."""
+    def update(self, step: str, wanted: bool, widths: tuple[int, int], image_size, live_px: int | None = None) -> None:
+        """Show the panel on a live step when ``wanted``, ``live_px`` wide (the canvas between the
+        panels, ``view.MAIN_LIVE_PX``) at the canvas's top left; keep its stylesheet true to the
+        panel ``widths`` (status px, steps px) and the camera's ``image_size`` (w, h px or None)."""
         show = step in MAIN_LIVE_STEPS and wanted
+        if live_px is not None and live_px != self._width:
+            self._width = live_px
+            self.panel.float(x=0, y=0, width=live_px)
         aspect = 16 / 9 if not image_size else image_size[0] / max(1, image_size[1])
         css = live_css(widths[0], widths[1], aspect)
         if css != self._css:

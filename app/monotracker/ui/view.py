@@ -227,7 +227,8 @@ class ClientView:
             tick = step in MAIN_LIVE_STEPS
             if self.h_live_main.visible != tick:  # every prop assignment is a message to the browser
                 self.h_live_main.visible = tick
-            self.live.update(step, bool(self.h_live_main.value), widths, self._last_image_size)
+            self.live.update(step, bool(self.h_live_main.value), widths, self._last_image_size,
+                             MAIN_LIVE_PX[self._wide] - 4)
             if widths == self._panel_width:
                 return
             old = self._panel_width
