@@ -304,3 +304,60 @@ def test_a_stopped_camera_replaces_the_last_overlay_with_camera_stopped():
     img = cv2.imdecode(np.frombuffer(shown[0], np.uint8), cv2.IMREAD_COLOR)
     assert img.shape[1] == 480 and np.median(img) < 80  # the last frame, dimmed, at the tab's width
     assert (np.abs(img.astype(int) - [80, 80, 255]).max(axis=2) < 60).sum() > 100  # the red words
+
+
+# ---------------------------------------------------------------- the live image's cost
+def test_overlay_text_from_the_sprite_cache_is_what_puttext_draws():
+    """The overlay's texts are drawn from cached anti-aliased masks (cheap when a text repeats):
+    the pixels are those of OpenCV's two ``putText`` calls (black outline, then the colour), also
+    a second time (from the cache) and clipped at the image's edges."""
+    import cv2
+
+    from monotracker.ui import overlay as ov
+
+    rng = np.random.default_rng(3)
+    base = rng.integers(0, 255, (90, 420, 3)).astype(np.uint8)
+    for text, org, colour, scale, thick in (("POSE OK   FRE 0.12 mm", (8, 40), (255, 255, 255), 0.95, 2),
+                                            ("7 0.04 px", (300, 80), (60, 200, 60), 0.45, 1),
+                                            ("cut at the right edge", (330, 20), (40, 40, 235), 0.7, 2),
+                                            ("cut at the top", (-6, 6), (255, 220, 0), 0.7, 2)):
+        ref = base.copy()
+        cv2.putText(ref, text, org, ov.FONT, scale, (0, 0, 0), thick + 3, cv2.LINE_AA)
+        cv2.putText(ref, text, org, ov.FONT, scale, colour, thick, cv2.LINE_AA)
+        for _ in range(2):  # drawn, then from the cache
+            img = base.copy()
+            ov._text(img, text, org, colour, scale, thick)
+            # (OpenCV's own anti-aliasing differs on the image's outermost pixels: left out)
+            diff = np.abs(img.astype(int) - ref.astype(int))[1:-1, 1:-1]
+            assert diff.max() <= 6 and diff.mean() < 0.5, (text, diff.max(), diff.mean())  # AA rounding only
+
+
+def test_a_tab_with_the_live_image_unticked_gets_no_frames():
+    """Register / Robot with **Live image in the main view** unticked: no frame is encoded or
+    sent to that tab (the overlay thread asks ``wants_live``); Calibrate always shows it."""
+    import threading
+
+    from monotracker.ui.view import ClientView
+
+    def tab(step, ticked):
+        return NS(lock=threading.RLock(), step=step, h_live_main=NS(value=ticked))
+
+    assert ClientView.wants_live.fget(tab("register", True))
+    assert not ClientView.wants_live.fget(tab("register", False))
+    assert not ClientView.wants_live.fget(tab("robot", False))
+    assert ClientView.wants_live.fget(tab("calibration", False))
+    assert not ClientView.wants_live.fget(tab("ct", True))
+
+
+def test_the_live_image_is_encoded_at_about_the_width_it_is_shown():
+    """The main view's image is encoded at the width the stylesheet shows it at (from the canvas
+    size the page reports: the canvas's width, or its height times the aspect), never below a
+    compact page's, and the stylesheet keeps the image between the docked panels."""
+    from monotracker.ui.live_panel import BOTTOM_PX, GAP_PX, TOP_PX, live_css, shown_width
+
+    assert shown_width(None, 16 / 9, 546) == 546
+    assert shown_width((1090, 1080), 16 / 9, 546) == 1090 - 2 * GAP_PX  # the width limits
+    assert shown_width((1730, 900), 16 / 9, 546) == int((900 - TOP_PX - BOTTOM_PX) * 16 / 9)  # the height limits
+    assert shown_width((300, 700), 16 / 9, 546) == 546
+    css = live_css(330, 400, 16 / 9)
+    assert "left: 332px" in css and "calc(100vw - 734px)" in css and "1.7778" in css

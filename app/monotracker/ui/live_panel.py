@@ -1,39 +1,67 @@
 """The live camera + overlay in the main view (Register and Robot; issue 33 item 1).
 
 The overlay decides whether the arm may move, so on the live steps it fills the main view: a
-viser panel of this tab floated at the canvas's top-left corner (viser's ``float``), as wide as
-the canvas between the status panel and the step panel (``view.MAIN_LIVE_PX``), the image at
-the panel's width with its aspect kept. The 3D context (head, arm, path) stays visible below it
+small viser panel of this tab floated at the canvas's top-left corner (viser's ``float``; its
+header reads "Live camera + overlay") holds the live image, and the page's stylesheet
+(:func:`live_css`) places that *image* (not the panel) over the canvas: its left edge at the
+status panel, as wide as the canvas between the two docked panels, or as the window's height
+allows with the camera's aspect kept. The 3D context (head, arm, path) stays visible below it
 where the window is taller than the image, and the tick box **Live image in the main view** (in
-the step panel, per tab) hides it to give the 3D view the whole area. CT and Plan never show it.
-(A first version forced the panel's position and size with an ``!important`` stylesheet; the
-browser test's clicks then hung, probably viser's layout observers fighting it.)
+the step panel, per tab) hides it to give the 3D view the whole area (no frame is then encoded
+or sent to that tab). CT and Plan never show it.
+
+Why the image's box and not the panel's: viser does not tell the server the canvas's size in CSS
+px (its camera message carries the drawing buffer's size, scaled by an adaptive pixel ratio that
+drops to 0.75 on a slow machine), so the size is left to the browser, which knows it; the server
+knows its own panel widths. The image is taken out of the panel's flow (``position: fixed``), so
+the panel's own size never changes with it: a first version that forced the floating panel's own
+position, width and height with ``!important`` fought viser's window layout (its observers
+re-measure the window), and the page never settled (the browser test's clicks hung).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-#: px of window chrome above and below the image inside the floating panel (header, caption)
-CHROME_PX = 96
+#: px above the image: the floating panel's header (its title stays readable above the image)
+TOP_PX = 38
+#: px left free below the image
+BOTTOM_PX = 6
+#: px kept between the image and each docked panel
+GAP_PX = 2
+#: the floating panel's own width (CSS px): its header; the image is placed by the stylesheet
+PANEL_PX = 300
 #: the steps that show the live image in the main view
 MAIN_LIVE_STEPS = ("register", "robot")
 
 
 def live_css(status_px: int, steps_px: int, aspect_w_over_h: float) -> str:
-    """The stylesheet for the live image inside its floating panel: as wide as the panel,
-    aspect kept. (A rule that also forced the panel's own position and width with !important
-    froze Chromium's page: viser's layout observers fought it; the panel is placed with viser's
-    own ``float`` instead.) ``status_px``, ``steps_px``, ``aspect_w_over_h`` are kept in the
-    rule's comment so a layout change re-sends it."""
+    """The stylesheet that places the live image over the canvas: left edge ``GAP_PX`` right of
+    the status panel (``status_px`` wide), below the floating panel's header, as wide as the
+    canvas between the docked panels (``steps_px``: the step panel) or as the window's height
+    allows at ``aspect_w_over_h`` (w / h), whichever is smaller; aspect kept (CSS px)."""
     a = max(0.5, min(4.0, float(aspect_w_over_h)))
-    return (f"<style id='mt-live-css'>/* {int(status_px)} {int(steps_px)} {a:.4f} */ "
-            f"[data-floating-window] #mt-live-main ~ * img, [data-floating-window] img {{ max-width: 100%; "
-            f"height: auto; }}</style>")
+    left = int(status_px) + GAP_PX
+    side = int(status_px) + int(steps_px) + 2 * GAP_PX
+    return (f"<style id='mt-live-css'>[data-floating-window]:has(#mt-live-main) img {{ position: fixed; "
+            f"left: {left}px; top: {TOP_PX}px; width: min(calc(100vw - {side}px), "
+            f"calc((100vh - {TOP_PX + BOTTOM_PX}px) * {a:.4f})); max-width: none; height: auto; "
+            f"z-index: 1; background: #000; }}</style>")
+
+
+def shown_width(canvas_px: tuple[int, int] | None, aspect_w_over_h: float, fallback: int) -> int:
+    """About the width (CSS px) :func:`live_css` gives the image on a canvas of ``canvas_px``
+    (w, h) as the page's camera message says (drawing-buffer px: at most 25 % under CSS px on
+    a slow machine), ``fallback`` when not known: the width to encode the stream at."""
+    if not canvas_px or canvas_px[0] <= 0 or canvas_px[1] <= 0:
+        return int(fallback)
+    a = max(0.5, min(4.0, float(aspect_w_over_h)))
+    w, h = canvas_px
+    return int(max(fallback, min(w - 2 * GAP_PX, (h - TOP_PX - BOTTOM_PX) * a)))
 
 
 class LivePanel:
-    """The floating live panel of one tab and its tick box."""
+    """The floating live panel of one tab, its stylesheet and its image."""
 
     def __init__(self, view):
         self.view = view
@@ -43,28 +71,25 @@ class LivePanel:
         with tab:
             self.h_css = gui.add_html("")
             gui.add_html("<div id='mt-live-main' class='mt-row' style='font-size:0.9rem;color:#555'>"
-                         "live camera with the registration overlay; the 3D view is below and behind "
-                         "(untick <b>Live image in the main view</b> to see it whole)</div>")
+                         "the live camera with the registration overlay fills the main view; untick "
+                         "<b>Live image in the main view</b> to see the 3D view whole</div>")
             self.h_img = gui.add_image(np.zeros((54, 96, 3), np.uint8), format="jpeg")
-        self.panel.float(x=0, y=0, width=640)
+        self.panel.float(x=0, y=0, width=PANEL_PX)
         self._shown: bool | None = None
         self._css: str = ""
-        self._width: int | None = None
 
     def show_frame(self, jpeg) -> None:
         """Show one overlay frame already encoded as JPEG (the same bytes go to every tab; viser's
         image props are the encoded data and its format, so nothing is encoded again here)."""
-        self.h_img._format = "jpeg"
-        self.h_img._data = jpeg
+        h = self.h_img
+        if h._format != "jpeg":  # every prop assignment is a message to the browser
+            h._format = "jpeg"
+        h._data = jpeg
 
-    def update(self, step: str, wanted: bool, widths: tuple[int, int], image_size, live_px: int | None = None) -> None:
-        """Show the panel on a live step when ``wanted``, ``live_px`` wide (the canvas between the
-        panels, ``view.MAIN_LIVE_PX``) at the canvas's top left; keep its stylesheet true to the
-        panel ``widths`` (status px, steps px) and the camera's ``image_size`` (w, h px or None)."""
+    def update(self, step: str, wanted: bool, widths: tuple[int, int], image_size) -> None:
+        """Show the panel on a live step when ``wanted``; keep its stylesheet true to the panel
+        ``widths`` (status px, steps px) and the camera's ``image_size`` (w, h px or None)."""
         show = step in MAIN_LIVE_STEPS and wanted
-        if live_px is not None and live_px != self._width:
-            self._width = live_px
-            self.panel.float(x=0, y=0, width=live_px)
         aspect = 16 / 9 if not image_size else image_size[0] / max(1, image_size[1])
         css = live_css(widths[0], widths[1], aspect)
         if css != self._css:

@@ -19,7 +19,7 @@ import threading
 import time
 
 from monotracker.ui import status as st
-from monotracker.ui.live_panel import MAIN_LIVE_STEPS
+from monotracker.ui.live_panel import MAIN_LIVE_STEPS, shown_width
 from monotracker.ui.status import PANEL_PX, PANEL_PX_WIDE, WIDE_PX
 
 log = logging.getLogger(__name__)
@@ -28,9 +28,6 @@ VIEW_STEPS = ("ct", "plan", "register", "robot")
 STEP_LABELS = {"ct": "1 CT", "plan": "2 Plan", "register": "3 Register", "robot": "4 Robot"}
 LABEL_STEPS = {v: k for k, v in STEP_LABELS.items()}
 LIVE_STEPS = ("register", "robot", "calibration")  # steps whose page shows the live camera overlay
-#: the width (CSS px) of the live image in the main view (Register / Robot) on a compact page
-#: (1280 wide: 1280 - 330 - 400) and a wide one (1920: 1920 - 360 - 470)
-MAIN_LIVE_PX = {False: 550, True: 1090}
 
 
 #: on a compact page the state block's words shrink a little so they fit the narrower status panel
@@ -115,6 +112,8 @@ class ClientView:
         self._panel_width = None  # (status px, steps px) last set
         self._wide = False
         self._last_image_size = None  # the camera's (w, h) px last rendered (the live panel's aspect)
+        self._canvas = None  # the 3D canvas (w, h) CSS px between the docked panels, as the page reported it
+        self._widths_set_at = 0.0  # wall time the docked panels' widths were last set
         # what this tab last saw: a change made elsewhere (control moved, STOP) is told on its result line
         self._seen_control = snap.control.controller
         self._seen_state = snap.robot.state
@@ -215,11 +214,15 @@ class ClientView:
         # the live camera is the view that matters in Register / Robot: a wider step panel there;
         # the panels grow on a wide screen (the browser's canvas width + the panels = the page)
         with self.lock:
-            viewport = None
+            viewport = canvas = None
             try:
                 cam = self.client.camera
                 if self._panel_width is not None and cam.update_timestamp and cam.image_width > 0:
                     viewport = cam.image_width + sum(self._panel_width)
+                    # the canvas as the page last reported it; only once it reflects the panel
+                    # widths now set (a width change reaches the page, then its canvas size comes back)
+                    if cam.update_timestamp > self._widths_set_at:
+                        canvas = (cam.image_width, cam.image_height)
             except Exception:  # noqa: BLE001 - no camera message from the browser yet
                 viewport = None
             self._wide = is_wide(viewport, self._wide)
@@ -227,12 +230,14 @@ class ClientView:
             tick = step in MAIN_LIVE_STEPS
             if self.h_live_main.visible != tick:  # every prop assignment is a message to the browser
                 self.h_live_main.visible = tick
-            self.live.update(step, bool(self.h_live_main.value), widths, self._last_image_size,
-                             MAIN_LIVE_PX[self._wide] - 4)
+            if canvas is not None and widths == self._panel_width:
+                self._canvas = canvas
+            self.live.update(step, bool(self.h_live_main.value), widths, self._last_image_size)
             if widths == self._panel_width:
                 return
             old = self._panel_width
             self._panel_width = widths
+            self._widths_set_at = time.time()
         if old is None or widths[0] != old[0]:
             self.status.panel.set_width(widths[0])
         self.gui.main_panel.set_width(widths[1])
@@ -306,19 +311,28 @@ class ClientView:
 
     @property
     def live_width(self) -> int:
-        """The width (CSS px) this page shows the live image at: in Register / Robot the main
-        view's (``MAIN_LIVE_PX``, compact or wide layout: the stream caps it at its
-        ``display_width``), in Calibrate the step panel's."""
+        """The width (CSS px) this page shows the live image at, about: in Register / Robot the
+        main view's (:func:`~monotracker.ui.live_panel.shown_width` from the canvas size the page
+        reported, at least a compact page's; the stream caps it at its ``display_width``), in
+        Calibrate the step panel's."""
         with self.lock:
-            wide, step = self._wide, self.step
+            wide, step, canvas, size = self._wide, self.step, self._canvas, self._last_image_size
         if step in MAIN_LIVE_STEPS:
-            return MAIN_LIVE_PX[wide]
+            px = PANEL_PX
+            compact = 1280 - px["status"] - px["steps_main_live"] - 4
+            aspect = 16 / 9 if not size else size[0] / max(1, size[1])
+            return shown_width(canvas, aspect, compact)
         return (PANEL_PX_WIDE if wide else PANEL_PX)["steps_live"]
 
     @property
     def wants_live(self) -> bool:
+        """Whether this tab shows the live image now: Calibrate, or Register / Robot with
+        **Live image in the main view** ticked (no frame is encoded or sent for a hidden one)."""
         with self.lock:
-            return self.step in LIVE_STEPS
+            step = self.step
+        if step in MAIN_LIVE_STEPS:
+            return bool(self.h_live_main.value)
+        return step in LIVE_STEPS
 
     def close(self) -> None:
         """The tab went away: give up control if it had it."""
