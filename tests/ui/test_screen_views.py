@@ -340,7 +340,9 @@ def test_a_tab_with_the_live_image_unticked_gets_no_frames():
     from monotracker.ui.view import ClientView
 
     def tab(step, ticked):
-        return NS(lock=threading.RLock(), step=step, h_live_main=NS(value=ticked))
+        view = NS(lock=threading.RLock(), step=step, h_live_main=NS(value=ticked), steps={})
+        view.live_main_wanted = lambda: ClientView.live_main_wanted(view)
+        return view
 
     assert ClientView.wants_live.fget(tab("register", True))
     assert not ClientView.wants_live.fget(tab("register", False))

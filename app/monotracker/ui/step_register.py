@@ -60,7 +60,7 @@ class RegisterStep:
 
         from monotracker.ui.ball_colour_pick import BallColourPicker
 
-        self.picker = BallColourPicker(view, on_result=self._show_colour_result)
+        self.picker = BallColourPicker(view, on_result=self._show_colour_result, on_end=lambda: view.show_step())
 
         @pick.on_click
         @view.safe("Ball colour")
@@ -70,6 +70,7 @@ class RegisterStep:
                 self._show_colour_result("")
             else:
                 self.picker.start()
+            view.show_step()  # the live image steps aside for the pick's frame in the 3D view, and back
 
         @b_ball_xy.on_click
         @view.safe("Ball colour")

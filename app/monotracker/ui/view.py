@@ -232,7 +232,7 @@ class ClientView:
                 self.h_live_main.visible = tick
             if canvas is not None and widths == self._panel_width:
                 self._canvas = canvas
-            self.live.update(step, bool(self.h_live_main.value), widths, self._last_image_size)
+            self.live.update(step, self.live_main_wanted(), widths, self._last_image_size)
             if widths == self._panel_width:
                 return
             old = self._panel_width
@@ -331,8 +331,16 @@ class ClientView:
         with self.lock:
             step = self.step
         if step in MAIN_LIVE_STEPS:
-            return bool(self.h_live_main.value)
+            return self.live_main_wanted()
         return step in LIVE_STEPS
+
+    def live_main_wanted(self) -> bool:
+        """The live image over the main view is wanted: **Live image in the main view** ticked and
+        no ball-colour pick waiting for a click on the frame shown in the 3D view (the live image
+        would cover it)."""
+        steps = getattr(self, "steps", None)
+        picker = getattr(steps.get("register"), "picker", None) if steps else None
+        return bool(self.h_live_main.value) and not (picker is not None and picker.active)
 
     def close(self) -> None:
         """The tab went away: give up control if it had it."""
