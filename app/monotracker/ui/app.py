@@ -180,7 +180,6 @@ class MonoTrackerApp:
         A frame still goes out at least every ``MAX_HOLD_S`` (a tab that stopped reading must not
         freeze the others' view)."""
         last_index = None
-        min_dt = 1.0 / self.max_stream_fps
         t_last = 0.0
         stopped_since = None  # wall time the camera was first seen stopped
         while not self._stop.is_set():
@@ -204,8 +203,9 @@ class MonoTrackerApp:
                     self._stop.wait(0.005)
                     continue
                 now = time.monotonic()
+                min_dt = 1.0 / self.max_stream_fps  # read each time: a tab (or a test) may lower it
                 if now - t_last < min_dt:
-                    self._stop.wait(min_dt - (now - t_last))
+                    self._stop.wait(min(0.1, min_dt - (now - t_last)))
                     continue
                 if now - t_last < self.MAX_HOLD_S and not any(tab_caught_up(v.client) for v in watching):
                     self.frames_held += 1

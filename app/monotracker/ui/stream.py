@@ -57,10 +57,18 @@ class OverlayStream:
         h, w = img.shape[:2]
         if w <= width:
             return img
-        # area averaging where it matters (2x and more: no aliasing); below 2x bilinear, which
-        # reads every source pixel anyway and costs a fraction of INTER_AREA at a fractional ratio
-        interp = cv2.INTER_AREA if w >= 2 * width else cv2.INTER_LINEAR
-        return cv2.resize(img, (width, round(h * width / w)), interpolation=interp)
+        size = (width, round(h * width / w))
+        k = w // width
+        if k >= 2:
+            if w % k or h % k:  # no whole factor: area averaging at the fractional ratio
+                return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+            # 2x and more: area averaging by the whole factor first (no aliasing, OpenCV's fast
+            # path; INTER_AREA at a fractional ratio, 1280 -> 546 px, took 16 ms a frame)
+            img = cv2.resize(img, (w // k, h // k), interpolation=cv2.INTER_AREA)
+            if img.shape[1] == width:
+                return img
+        # the rest (under 2x) bilinear: it reads every source pixel anyway, at a fraction of the cost
+        return cv2.resize(img, size, interpolation=cv2.INTER_LINEAR)
 
     def encode_frame(self, image_bgr: np.ndarray, estimate, snap, width: int | None = None) -> bytes:
         """Downscale one BGR camera frame for display (``width`` px, default ``display_width``),
