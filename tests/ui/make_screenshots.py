@@ -54,7 +54,7 @@ try:
                         time.sleep(1)
                 if step in ("register", "robot"):  # the live image in the main view, laid out
                     page.wait_for_function("(() => { const i = document.querySelector("
-                                           "'[data-floating-window]:has(#mt-live-main) img'); "
+                                           "'div:has(> #mt-live-main) + div img'); "
                                            "return i && i.naturalWidth >= 300 && i.getBoundingClientRect().width > 500; })()")
                 time.sleep(4)
                 page.screenshot(path=str(out / f"ui_{step}_{w}x{h}.jpg"), type="jpeg", quality=70)

@@ -16,7 +16,7 @@ SIZES = ((1280, 800), (1920, 1080), (2560, 1440))
 
 #: the live image in the main view and the docked panels beside it, CSS px
 MEASURE_JS = """() => {
-  const img = document.querySelector('[data-floating-window]:has(#mt-live-main) img');
+  const img = document.querySelector('div:has(> #mt-live-main) + div img');
   const reg = e => { const el = document.querySelector(`[data-dock-region="${e}"]`);
                      return el ? el.getBoundingClientRect().width : 0; };
   if (!img) return null;
@@ -100,9 +100,9 @@ def test_overlay_fills_the_main_view_texts_fit_and_no_stale_number(tmp_path, mon
                 _shoot(page, artifacts, step, w, h)
             for step, label in (("ct", "1 CT"), ("plan", "2 Plan")):
                 _click(page, label)
-                page.wait_for_function("(() => { const p = document.querySelector("
-                                       "'[data-floating-window]:has(#mt-live-main)'); "
-                                       "return !p || p.getBoundingClientRect().width === 0; })()")
+                page.wait_for_function("(() => { const i = document.querySelector("
+                                       "'div:has(> #mt-live-main) + div img'); "
+                                       "return !i || i.getBoundingClientRect().width === 0; })()")
                 assert not page.evaluate(OVERFLOW_JS), (step, w, h)
                 _shoot(page, artifacts, step, w, h)
             page.close()

@@ -1,49 +1,51 @@
 """The live camera + overlay in the main view (Register and Robot; issue 33 item 1).
 
-The overlay decides whether the arm may move, so on the live steps it fills the main view: a
-small viser panel of this tab floated at the canvas's top-left corner (viser's ``float``; its
-header reads "Live camera + overlay") holds the live image, and the page's stylesheet
-(:func:`live_css`) places that *image* (not the panel) over the canvas: its left edge at the
-status panel, as wide as the canvas between the two docked panels, or as the window's height
-allows with the camera's aspect kept. The 3D context (head, arm, path) stays visible below it
-where the window is taller than the image, and the tick box **Live image in the main view** (in
-the step panel, per tab) hides it to give the 3D view the whole area (no frame is then encoded
-or sent to that tab). CT and Plan never show it.
+The overlay decides whether the arm may move, so on the live steps it fills the main view. The
+image is a viser image of the tab's step panel (docked right, like the one it replaces), right
+after a one-line caption (``#mt-live-main``); the page's stylesheet (:func:`live_css`) takes that
+image out of the panel's flow (``position: fixed``) and places it over the canvas: its left edge
+at the status panel, as wide as the canvas between the two docked panels, or as the window's
+height allows with the camera's aspect kept. The 3D context (head, arm, path) stays visible
+below it where the window is taller than the image, and the tick box **Live image in the main
+view** (in the step panel, per tab) hides it to give the 3D view the whole area (no frame is
+then encoded or sent to that tab). CT and Plan never show it.
 
-Why the image's box and not the panel's: viser does not tell the server the canvas's size in CSS
-px (its camera message carries the drawing buffer's size, scaled by an adaptive pixel ratio that
-drops to 0.75 on a slow machine), so the size is left to the browser, which knows it; the server
-knows its own panel widths. The image is taken out of the panel's flow (``position: fixed``), so
-the panel's own size never changes with it: a first version that forced the floating panel's own
-position, width and height with ``!important`` fought viser's window layout (its observers
-re-measure the window), and the page never settled (the browser test's clicks hung).
+Why the browser sizes it: viser does not tell the server the canvas's size in CSS px (its
+camera message carries the drawing buffer's size, scaled by an adaptive pixel ratio that drops
+to 0.75 on a slow machine); the server knows its own panel widths. Why not a floating viser
+panel: with the live image in one (``gui.add_panel().float()``, sized by viser's ``float`` or by
+an ``!important`` rule, or only its image placed by this stylesheet) the page stopped drawing
+frames once the stream began: the browser test's click on "3 Register" was done, then
+Playwright's wait for two animation frames never ended (120 s). The image of a docked panel is
+what the step panel had before, and the end-to-end test streamed into it.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-#: px above the image: the floating panel's header (its title stays readable above the image)
-TOP_PX = 38
+#: px above the image (the canvas's top edge)
+TOP_PX = 4
 #: px left free below the image
-BOTTOM_PX = 6
+BOTTOM_PX = 4
 #: px kept between the image and each docked panel
 GAP_PX = 2
-#: the floating panel's own width (CSS px): its header; the image is placed by the stylesheet
-PANEL_PX = 300
 #: the steps that show the live image in the main view
 MAIN_LIVE_STEPS = ("register", "robot")
+#: the image that follows this caption in the step panel is the one placed over the canvas
+CAPTION = ("<div id='mt-live-main' class='mt-row' style='font-size:0.9rem;color:#555'>"
+           "Live camera + overlay: in the main view (left)</div>")
 
 
 def live_css(status_px: int, steps_px: int, aspect_w_over_h: float) -> str:
     """The stylesheet that places the live image over the canvas: left edge ``GAP_PX`` right of
-    the status panel (``status_px`` wide), below the floating panel's header, as wide as the
+    the status panel (``status_px`` wide), ``TOP_PX`` below the canvas's top, as wide as the
     canvas between the docked panels (``steps_px``: the step panel) or as the window's height
     allows at ``aspect_w_over_h`` (w / h), whichever is smaller; aspect kept (CSS px)."""
     a = max(0.5, min(4.0, float(aspect_w_over_h)))
     left = int(status_px) + GAP_PX
     side = int(status_px) + int(steps_px) + 2 * GAP_PX
-    return (f"<style id='mt-live-css'>[data-floating-window]:has(#mt-live-main) img {{ position: fixed; "
+    return (f"<style id='mt-live-css'>div:has(> #mt-live-main) + div img {{ position: fixed; "
             f"left: {left}px; top: {TOP_PX}px; width: min(calc(100vw - {side}px), "
             f"calc((100vh - {TOP_PX + BOTTOM_PX}px) * {a:.4f})); max-width: none; height: auto; "
             f"z-index: 1; background: #000; }}</style>")
@@ -61,20 +63,14 @@ def shown_width(canvas_px: tuple[int, int] | None, aspect_w_over_h: float, fallb
 
 
 class LivePanel:
-    """The floating live panel of one tab, its stylesheet and its image."""
+    """The live image of one tab (in its step panel, placed over the canvas) and its stylesheet."""
 
     def __init__(self, view):
         self.view = view
         gui = view.gui
-        self.panel = gui.add_panel(visible=False)
-        tab = self.panel.add_tab("Live camera + overlay")
-        with tab:
-            self.h_css = gui.add_html("")
-            gui.add_html("<div id='mt-live-main' class='mt-row' style='font-size:0.9rem;color:#555'>"
-                         "the live camera with the registration overlay fills the main view; untick "
-                         "<b>Live image in the main view</b> to see the 3D view whole</div>")
-            self.h_img = gui.add_image(np.zeros((54, 96, 3), np.uint8), format="jpeg")
-        self.panel.float(x=0, y=0, width=PANEL_PX)
+        self.h_css = gui.add_html("")
+        self.h_caption = gui.add_html(CAPTION, visible=False)
+        self.h_img = gui.add_image(np.zeros((54, 96, 3), np.uint8), format="jpeg", visible=False)
         self._shown: bool | None = None
         self._css: str = ""
 
@@ -87,14 +83,16 @@ class LivePanel:
         h._data = jpeg
 
     def update(self, step: str, wanted: bool, widths: tuple[int, int], image_size) -> None:
-        """Show the panel on a live step when ``wanted``; keep its stylesheet true to the panel
+        """Show the image on a live step when ``wanted``; keep its stylesheet true to the panel
         ``widths`` (status px, steps px) and the camera's ``image_size`` (w, h px or None)."""
         show = step in MAIN_LIVE_STEPS and wanted
         aspect = 16 / 9 if not image_size else image_size[0] / max(1, image_size[1])
-        css = live_css(widths[0], widths[1], aspect)
-        if css != self._css:
-            self._css = css
-            self.h_css.content = css
+        if show:
+            css = live_css(widths[0], widths[1], aspect)
+            if css != self._css:
+                self._css = css
+                self.h_css.content = css
         if show != self._shown:
             self._shown = show
-            self.panel.visible = show
+            self.h_caption.visible = show
+            self.h_img.visible = show
