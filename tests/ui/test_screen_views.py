@@ -333,14 +333,15 @@ def test_overlay_text_from_the_sprite_cache_is_what_puttext_draws():
 
 
 def test_a_tab_with_the_live_image_unticked_gets_no_frames():
-    """Register / Robot with **Live image in the main view** unticked: no frame is encoded or
-    sent to that tab (the overlay thread asks ``wants_live``); Calibrate always shows it."""
+    """Register / Robot with **Live image in the main view** unticked (or the slices in the main
+    view, or a ball-colour pick waiting): no frame is encoded or sent to that tab (the overlay
+    thread asks ``wants_live``); Calibrate always shows it."""
     import threading
 
     from monotracker.ui.view import ClientView
 
-    def tab(step, ticked):
-        view = NS(lock=threading.RLock(), step=step, h_live_main=NS(value=ticked), steps={})
+    def tab(step, ticked, steps=None):
+        view = NS(lock=threading.RLock(), step=step, h_live_main=NS(value=ticked), steps=steps or {})
         view.live_main_wanted = lambda: ClientView.live_main_wanted(view)
         return view
 
@@ -349,6 +350,10 @@ def test_a_tab_with_the_live_image_unticked_gets_no_frames():
     assert not ClientView.wants_live.fget(tab("robot", False))
     assert ClientView.wants_live.fget(tab("calibration", False))
     assert not ClientView.wants_live.fget(tab("ct", True))
+    # it steps aside for the navigation slices in the main view and for a ball-colour pick
+    assert not ClientView.wants_live.fget(tab("robot", True, {"robot": NS(nav=NS(active=True))}))
+    assert ClientView.wants_live.fget(tab("robot", True, {"robot": NS(nav=NS(active=False))}))
+    assert not ClientView.wants_live.fget(tab("register", True, {"register": NS(picker=NS(active=True))}))
 
 
 def test_the_live_image_is_encoded_at_about_the_width_it_is_shown():

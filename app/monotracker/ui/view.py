@@ -335,12 +335,16 @@ class ClientView:
         return step in LIVE_STEPS
 
     def live_main_wanted(self) -> bool:
-        """The live image over the main view is wanted: **Live image in the main view** ticked and
-        no ball-colour pick waiting for a click on the frame shown in the 3D view (the live image
-        would cover it)."""
-        steps = getattr(self, "steps", None)
-        picker = getattr(steps.get("register"), "picker", None) if steps else None
-        return bool(self.h_live_main.value) and not (picker is not None and picker.active)
+        """The live image over the main view is wanted: **Live image in the main view** ticked, no
+        ball-colour pick waiting for a click on the frame shown in the 3D view, and the shown
+        step's **Slices in main view** not ticked (the live image would cover either)."""
+        steps = getattr(self, "steps", None) or {}
+        picker = getattr(steps.get("register"), "picker", None)
+        with self.lock:
+            step = self.step
+        nav = getattr(steps.get(step), "nav", None)
+        return (bool(self.h_live_main.value) and not (picker is not None and picker.active)
+                and not (nav is not None and nav.active))
 
     def close(self) -> None:
         """The tab went away: give up control if it had it."""
