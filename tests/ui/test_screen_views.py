@@ -367,4 +367,4 @@ def test_the_live_image_is_encoded_at_about_the_width_it_is_shown():
     assert shown_width((1730, 900), 16 / 9, 546) == int((900 - TOP_PX - BOTTOM_PX) * 16 / 9)  # the height limits
     assert shown_width((300, 700), 16 / 9, 546) == 546
     css = live_css(330, 400, 16 / 9)
-    assert "left: 332px" in css and "calc(100vw - 734px)" in css and "1.7778" in css
+    assert "left: 336px" in css and "calc(100vw - 742px)" in css and "1.7778" in css
