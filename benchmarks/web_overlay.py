@@ -166,7 +166,7 @@ def run(seconds: float, shared: bool, clients: int, display_width: int = 960, li
                 app.stream.pushed[n] = time.time()
                 rgb = cv2.cvtColor(out, cv2.COLOR_BGR2RGB)
                 for v in app.views():  # what `h_live.image = rgb` did: viser's encode, per tab
-                    h = v.steps["register"].h_live
+                    h = v.live.h_img
                     fmt, data = _encode_image_binary(rgb, "jpeg")
                     h._format, h._data = fmt, with_frame_comment(data, n)
             if not live_camera:

@@ -1,4 +1,4 @@
-"""Screenshots of each web-app step at 1280x800 and 1920x1080 -> docs/img/ui_<step>_<size>.jpg,
+"""Screenshots of each web-app step at 1280x800, 1920x1080 and 2560x1440 -> docs/img/ui_<step>_<size>.jpg,
 and of the navigation view (slices in the main view) in Plan and Robot (live needle tip) ->
 docs/img/ui_navigation_<step>_<size>.jpg.
 
@@ -29,7 +29,7 @@ app = MonoTrackerApp(s, "127.0.0.1", free_port()); app.start()
 try:
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path=display_browser_path(), headless=True, args=CHROMIUM_ARGS)
-        for w, h in ((1280, 800), (1920, 1080)):
+        for w, h in ((1280, 800), (1920, 1080), (2560, 1440)):
             page = open_page_in_control(b, app, (w, h), "2468")
             for step, label in (("ct", "1 CT"), ("plan", "2 Plan"), ("register", "3 Register"), ("robot", "4 Robot")):
                 if step == "plan" and not s.snapshot().fiducials_locked:
@@ -52,6 +52,10 @@ try:
                             break
                         print("start:", s.start_tracking(), flush=True)
                         time.sleep(1)
+                if step in ("register", "robot"):  # the live image in the main view, laid out
+                    page.wait_for_function("(() => { const i = document.querySelector("
+                                           "'div:has(> #mt-live-main) + div img'); "
+                                           "return i && i.naturalWidth >= 300 && i.getBoundingClientRect().width > 500; })()")
                 time.sleep(4)
                 page.screenshot(path=str(out / f"ui_{step}_{w}x{h}.jpg"), type="jpeg", quality=70)
                 print("shot", step, w, h, flush=True)

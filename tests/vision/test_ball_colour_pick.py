@@ -105,6 +105,9 @@ class FakeView:
     def goto(self, step):
         pass
 
+    def show_step(self):  # the live image over the main view steps aside while a pick waits
+        pass
+
 
 @pytest.fixture
 def live(tmp_path):

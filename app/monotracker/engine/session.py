@@ -620,5 +620,5 @@ class Session:
             alerts=tuple(self.recent_alerts(50)), plan_path=str(self._store.path),
             audit_path=str(self._audit.path), control=self.control_summary(),
             alarms=self._alarms.active(dict(self.integrity_alarms())),
-            recording=self._recording.summary(), layout=layout,
+            recording=self._recording.summary(), layout=layout, plan_ct_path=plan.ct_path,
         )

@@ -166,6 +166,9 @@ class PoseSummary:
     validation_ok: bool | None = None
     validation_reason: str = ""
     stale: bool = False  # the engine holds because the pose stream is not fresh (then trusted is False)
+    #: capture time (session clock, s) of the newest trusted estimate, None since the pose was
+    #: last cleared: what "stale since" means for every figure derived from the pose
+    trusted_t: float | None = None
 
 
 @dataclass(frozen=True)
@@ -188,6 +191,11 @@ class RobotSummary:
     program_fault: str = ""
     #: where the control loop runs ("in-process thread" | "process pid N, SCHED_FIFO 10" ...)
     control: str = ""
+    #: capture time (session clock, s) of the trusted pose ``tip_error_mm`` / ``angle_error_deg``
+    #: were computed from (None when they are None): their age is ``snap.t - errors_t``
+    errors_t: float | None = None
+    #: session time (s) of the command ``latency_ms`` was measured on (None before the first)
+    command_t: float | None = None
 
 
 @dataclass(frozen=True)
@@ -351,6 +359,9 @@ class Snapshot:
     alarms: tuple = field(default_factory=tuple)  # tuple[Alarm], most important first
     recording: RecordingSummary | None = None  # None when no recording was made in this session
     layout: LayoutSummary | None = None  # None until a layout was planned in this session (Plan step)
+    #: the CT file or folder the plan was made on (None: no CT in the plan); with ``ct`` None
+    #: after a restart, the CT the restored plan needs (``Session.load_ct`` on it restores it)
+    plan_ct_path: str | None = None
 
     @property
     def latest_alert(self) -> Event | None:

@@ -59,6 +59,9 @@ class MonoTrackerApp:
             self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
         self.stream = OverlayStream(display_width=display_width, jpeg_quality=jpeg_quality, stream_code=stream_code)
         self.max_stream_fps = float(max_stream_fps)
+        #: (client id, station label, wall time) of the newest STOP pressed in a tab, or None:
+        #: every other tab says where STOP was pressed (ClientView.changes_elsewhere)
+        self.last_stop: tuple | None = None
         self.frames_held = 0  # overlay waits for a tab to catch up (benchmark, tests)
         self._lock = threading.RLock()
         self._stop = threading.Event()
@@ -72,6 +75,8 @@ class MonoTrackerApp:
         snap = session.snapshot()
         if snap.fiducials or snap.plan.entry_lps_mm is not None:
             self.notice = f"Saved plan restored ({snap.plan_path}); robot starts DISARMED."
+            if snap.ct is None and snap.plan_ct_path:
+                self.notice += " Its CT is not loaded: \"Reload the plan's CT\" in step 1."
 
     # ================================================================== lifecycle
     def start(self) -> None:
@@ -175,18 +180,32 @@ class MonoTrackerApp:
         A frame still goes out at least every ``MAX_HOLD_S`` (a tab that stopped reading must not
         freeze the others' view)."""
         last_index = None
-        min_dt = 1.0 / self.max_stream_fps
         t_last = 0.0
+        stopped_since = None  # wall time the camera was first seen stopped
         while not self._stop.is_set():
             try:
                 watching = [v for v in self.views() if v.wants_live]
                 fr = self.session.latest_frame() if watching else None
+                if (watching and (fr is None or last_index is None or fr[1] == last_index)
+                        and not self.shown_snapshot().camera.running):
+                    # a stopped camera (no new frame) never leaves its last overlay up as if
+                    # live: the last frame dimmed, no marks, "CAMERA STOPPED" (once a second:
+                    # tabs that open meanwhile get it too)
+                    stopped_since = stopped_since or time.time()
+                    if time.monotonic() - t_last >= 1.0:
+                        t_last = time.monotonic()
+                        self.push_stopped(stopped_since, watching)
+                    last_index = None if fr is None else fr[1]
+                    self._stop.wait(0.05)
+                    continue
+                stopped_since = None
                 if fr is None or fr[1] == last_index:
                     self._stop.wait(0.005)
                     continue
                 now = time.monotonic()
+                min_dt = 1.0 / self.max_stream_fps  # read each time: a tab (or a test) may lower it
                 if now - t_last < min_dt:
-                    self._stop.wait(min_dt - (now - t_last))
+                    self._stop.wait(min(0.1, min_dt - (now - t_last)))
                     continue
                 if now - t_last < self.MAX_HOLD_S and not any(tab_caught_up(v.client) for v in watching):
                     self.frames_held += 1
@@ -199,6 +218,10 @@ class MonoTrackerApp:
             except Exception:
                 log.exception("overlay failed")
                 self._stop.wait(0.2)
+
+    def note_stop(self, client_id: str, label: str) -> None:
+        """A tab pressed STOP (called on viser's event loop: one assignment, never blocks)."""
+        self.last_stop = (client_id, label, time.time())
 
     def shown_snapshot(self):
         """The snapshot the panels show now (taken by the render thread), so the overlay's banner
@@ -222,6 +245,17 @@ class MonoTrackerApp:
             out[width] = self.stream.encode_frame(image_bgr, estimate, snap, width=width)
             self.push_jpeg(out[width], group)
         return out
+
+    def push_stopped(self, since_wall: float, tabs) -> None:
+        """"CAMERA STOPPED since HH:MM:SS" over the last frame (dimmed) on every tab in ``tabs``."""
+        fr = self.session.latest_frame()
+        image = None if fr is None else fr[0]
+        text = f"CAMERA STOPPED since {time.strftime('%H:%M:%S', time.localtime(since_wall))}: no live image"
+        groups: dict[int, list] = {}
+        for view in tabs:
+            groups.setdefault(self.stream.width_for(getattr(view, "live_width", None)), []).append(view)
+        for width, group in groups.items():
+            self.push_jpeg(self.stream.encode_stopped(image, text, width), group)
 
     def push_jpeg(self, jpeg: bytes, tabs=None) -> None:
         """The same encoded frame to ``tabs`` (default: every tab showing the live view). Handed

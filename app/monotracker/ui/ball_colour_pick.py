@@ -85,11 +85,13 @@ def click_to_pixel(ray_origin, ray_direction, position, wxyz, render_w: float, r
 class BallColourPicker:
     """The pick mode of one tab. ``view`` gives ``scene`` (this tab's viser scene), ``client``
     (its ClientHandle: ``camera``), ``session`` and ``run(what, fn, *args)`` / ``say(ok, text)``;
-    ``on_result(text)`` shows the outcome next to the button."""
+    ``on_result(text)`` shows the outcome next to the button; ``on_end()`` is called when a click
+    ends the pick (the page shows the live image over the main view again)."""
 
-    def __init__(self, view, on_result=None):
+    def __init__(self, view, on_result=None, on_end=None):
         self.view = view
         self.on_result = on_result or (lambda text: None)
+        self.on_end = on_end or (lambda: None)
         self._lock = threading.Lock()
         self._node = None
         self._placement = None
@@ -144,6 +146,7 @@ class BallColourPicker:
             self._tell(False, "that click is off the camera image: click a ball on it")
             return
         self.cancel()
+        self.on_end()  # the live image over the main view comes back
         self._learn_on_shown(px[0], px[1], *shown)
 
     def _learn_on_shown(self, x_px: float, y_px: float, image, frame_index):

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from monotracker.engine.config import SessionConfig
-from monotracker.ui.slices import STATUS_BGR, window_hu
+from monotracker.ui.slices import STATUS_BGR, direction_letters, window_hu
 
 ORTHO = ("axial", "coronal", "sagittal")
 PROBE = ("probe", "along")
@@ -58,20 +58,6 @@ ENTRY_BGR = (255, 255, 0)  # cyan
 TARGET_BGR = (255, 0, 255)  # magenta
 TIP_BGR = (0, 230, 255)  # yellow
 PATH_BGR = (255, 220, 120)
-
-_LETTERS = (("R", "L"), ("A", "P"), ("I", "S"))  # (negative, positive) per LPS axis
-
-
-def direction_letters(d, min_component: float = 0.3) -> str:
-    """Orientation letters of an LPS direction: one letter per axis whose share of the unit
-    vector is at least ``min_component`` (cos 72 deg), strongest first; e.g. (1, 0, 0) -> "L",
-    (0, -0.7, 0.7) -> "AS" or "SA"."""
-    d = np.asarray(d, float)
-    d = d / np.linalg.norm(d)
-    order = np.argsort(-np.abs(d), kind="stable")
-    out = [_LETTERS[i][int(d[i] > 0)] for i in order if abs(d[i]) >= min_component]
-    return "".join(out) or _LETTERS[order[0]][int(d[order[0]] > 0)]
-
 
 @dataclass(frozen=True)
 class PlaneView:

@@ -71,6 +71,7 @@ class NavigationPanel:
                 self.active = bool(self.h_main.value)
             view.scene_keys.pop("view", None)  # the scene is rebuilt for the chosen view
             view.nav_scene.poke()
+            view.show_step()  # Robot: the live image over the main view steps aside for the slices
 
         @self.h_preset.on_update
         @view.safe("Window preset")

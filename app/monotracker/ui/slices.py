@@ -25,6 +25,39 @@ from scipy.ndimage import map_coordinates
 
 PLANES = ("axial", "coronal", "sagittal")
 
+_LETTERS = (("R", "L"), ("A", "P"), ("I", "S"))  # (negative, positive) per LPS axis
+
+
+def direction_letters(d, min_component: float = 0.3) -> str:
+    """Orientation letters of an LPS direction: one letter per axis whose share of the unit
+    vector is at least ``min_component`` (cos 72 deg), strongest first; e.g. (1, 0, 0) -> "L",
+    (0, -0.7, 0.7) -> "AS" or "SA"."""
+    d = np.asarray(d, float)
+    d = d / np.linalg.norm(d)
+    order = np.argsort(-np.abs(d), kind="stable")
+    out = [_LETTERS[i][int(d[i] > 0)] for i in order if abs(d[i]) >= min_component]
+    return "".join(out) or _LETTERS[order[0]][int(d[order[0]] > 0)]
+
+
+def position_text(plane: str, point_lps) -> str:
+    """Where a slice cuts, as a reader says it: "sagittal R 6.2 mm" (x = -6.2 LPS is right),
+    "axial S 12.0 mm", "coronal A 3.1 mm"."""
+    n = _AXES[plane][3]
+    v = float(np.asarray(point_lps, float)[n])
+    return f"{plane} {_LETTERS[n][int(v > 0)]} {abs(v):.1f} mm"
+
+
+def edge_letters(plane: str) -> dict:
+    """Orientation letters at the image's edge midpoints ({"left", "right", "top", "bottom"}),
+    from the plane's axes (:data:`_AXES`; radiological convention)."""
+    col, row, sign, _ = _AXES[plane]
+    right = np.zeros(3)
+    right[col] = 1.0
+    down = np.zeros(3)
+    down[row] = float(sign)
+    return {"right": direction_letters(right), "left": direction_letters(-right),
+            "bottom": direction_letters(down), "top": direction_letters(-down)}
+
 #: (image-column axis, image-row axis, row direction sign) in LPS index 0=x 1=y 2=z per plane.
 _AXES = {"axial": (0, 1, +1, 2), "coronal": (0, 2, -1, 1), "sagittal": (1, 2, -1, 0)}
 
@@ -149,7 +182,13 @@ def render_slice(volume, plane: str, point_lps, fiducials=(), entry=None, target
     cx, cy = px(geom.point_lps)
     cv2.line(img, (cx, 0), (cx, img.shape[0] - 1), (90, 90, 160), 1)
     cv2.line(img, (0, cy), (img.shape[1] - 1, cy), (90, 90, 160), 1)
-    n = _AXES[plane][3]
-    cv2.putText(img, f"{plane} {'LPS'[n]}={geom.point_lps[n]:.1f} mm", (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55,
+    cv2.putText(img, position_text(plane, geom.point_lps), (6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.55,
                 (230, 230, 230), 1, cv2.LINE_AA)
+    h, w = img.shape[:2]
+    for where, letter in edge_letters(plane).items():
+        (tw, th), _ = cv2.getTextSize(letter, cv2.FONT_HERSHEY_SIMPLEX, 0.7, 2)
+        org = {"left": (4, h // 2 + th // 2), "right": (w - tw - 4, h // 2 + th // 2),
+               "top": (w // 2 - tw // 2, th + 26), "bottom": (w // 2 - tw // 2, h - 6)}[where]
+        cv2.putText(img, letter, org, cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.putText(img, letter, org, cv2.FONT_HERSHEY_SIMPLEX, 0.7, (80, 230, 255), 2, cv2.LINE_AA)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB), geom

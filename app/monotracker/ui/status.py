@@ -15,8 +15,11 @@ import time
 
 #: docked panel widths (px) for a compact screen (1280x800: the canvas keeps 480-540 px between
 #: the panels, enough for the 3D head or the navigation slices) and a wide one (>= 1700 px).
-PANEL_PX = {"status": 330, "steps": 440, "steps_live": 480}
-PANEL_PX_WIDE = {"status": 360, "steps": 470, "steps_live": 640}
+#: ``steps_live``: Calibrate (the live image in the step panel); ``steps_main_live``: Register and
+#: Robot, where the live image is in the main view (``ui/live_panel.py``) and the step panel
+#: holds only controls
+PANEL_PX = {"status": 330, "steps": 440, "steps_live": 480, "steps_main_live": 400}
+PANEL_PX_WIDE = {"status": 360, "steps": 470, "steps_live": 640, "steps_main_live": 470}
 WIDE_PX = (1650, 1750)  # viewport widths (px) to switch to compact below / to wide above (hysteresis)
 
 
@@ -44,8 +47,8 @@ CSS = """
   font-weight: 800 !important; letter-spacing: 0.04em; }
 .mantine-SegmentedControl-label, .mantine-Input-input, .mantine-TextInput-input { font-size: 1.05rem !important; }
 .mt-status { font-family: system-ui, sans-serif; }
-.mt-state { color: white; border-radius: 8px; padding: 10px 14px; margin-bottom: 6px; height: 3.4rem;
-  overflow: hidden; white-space: nowrap; box-sizing: border-box; }
+.mt-state { color: white; border-radius: 8px; padding: 8px 14px; margin-bottom: 6px; height: 4.9rem;
+  overflow: hidden; box-sizing: border-box; }
 .mt-conn-lost { display: none; }
 /* viser dims the GUI and sets pointer-events:none on it while the websocket is down: then the
    robot state shown is stale, say so over it */
@@ -53,6 +56,8 @@ div[style*="pointer-events: none"] .mt-conn-lost { display: block; position: fix
   z-index: 10000; background: #000; color: #ff4040; font: 800 2.2rem system-ui, sans-serif; text-align: center;
   padding: 18px; border-bottom: 6px solid #ff4040; }
 div[style*="pointer-events: none"] .mt-state { filter: grayscale(1); }
+/* the banner spans the page: the status panel's dock region above every other panel meanwhile */
+[data-dock-region]:has(div[style*="pointer-events: none"] .mt-conn-lost) { z-index: 10001 !important; overflow: visible !important; }
 /* STOP first: the status panel (robot state, STOP) stays above any modal (a PIN pad): its dock
    region over the modal's overlay (viser draws modals at z-index 100+), so a gloved press on STOP is
    never swallowed by an open pad (issue 34; tests/ui/test_stop_with_modal.py) */
@@ -62,11 +67,17 @@ div[style*="pointer-events: none"] .mt-state { filter: grayscale(1); }
 .mt-control.viewing { background: #fffbea; color: #744210; border: 2px solid #d69e2e; }
 .mt-alarms { list-style: none; padding: 0; margin: 4px 0; }
 .mt-alarm { color: white; border-radius: 6px; padding: 6px 10px; font-size: 1.05rem; margin-bottom: 4px; }
-.mt-alarm .mt-since { float: right; font-weight: 400; font-size: 0.9rem; }
+.mt-alarm { overflow-wrap: anywhere; }
+.mt-alarm .mt-since { display: block; font-weight: 400; font-size: 0.9rem; opacity: 0.9; }
 .mt-pin-dots { font-size: 2.2rem; letter-spacing: 0.2em; text-align: center; min-height: 3rem; }
-.mt-state b { font-size: 2.0rem; letter-spacing: 0.05em; }
-.mt-state span { font-size: 1.0rem; margin-left: 10px; }
-.mt-row { font-size: 1.05rem; margin: 3px 0; }
+.mt-state b { display: block; font-size: 2.0rem; line-height: 1.15; letter-spacing: 0.05em; white-space: nowrap; }
+.mt-state span { display: block; font-size: 0.95rem; line-height: 1.2; white-space: normal; overflow-wrap: anywhere; }
+.mt-row { font-size: 1.05rem; margin: 3px 0; overflow-wrap: anywhere; }
+.mt-wrap, .mt-status, .mt-msg, .mt-alert, .mt-banner-ok, .mt-banner-bad, .mt-control { overflow-wrap: anywhere;
+  white-space: normal; max-width: 100%; box-sizing: border-box; }
+.mt-fig small.mt-age { color: #777; font-weight: 400; }
+.mt-stale, .mt-fig.mt-stale { color: #8a8a8a !important; }
+.mt-fig.mt-stale small { font-style: italic; }
 .mt-steps span { display: inline-block; padding: 4px 10px; margin-right: 4px; border-radius: 14px;
   background: #e2e8f0; color: #333; font-size: 1.0rem; }
 .mt-steps span.done { background: #c6f6d5; color: #22543d; }
@@ -99,14 +110,18 @@ def camera_line(snap) -> str:
 
 
 def pose_line(snap) -> str:
+    """The pose in one line: VALID with FRE and predicted TRE (each with its age), or why not
+    (no figure shown: :mod:`monotracker.ui.freshness`)."""
+    from monotracker.ui.freshness import figure_html, pose_figures, pose_why
+
     p = snap.pose
     if p is None:
-        return "Pose: <b>none yet</b>"
-    if p.trusted:
-        fre = "-" if p.fre_mm is None else f"{p.fre_mm:.2f} mm"
-        tre = "-" if p.predicted_tre_mm is None else f"{p.predicted_tre_mm:.2f} mm"
-        return f"Pose: <b style='color:#1f8f3a'>VALID</b>, FRE {fre}, predicted TRE {tre}, {p.n_visible} fiducials"
-    return f"Pose: <b style='color:#c81e1e'>NOT VALID</b>: {_esc(p.reason)}"
+        return "Pose: <b>none yet</b>" if snap.camera.running else "Pose: <b>none</b> (camera stopped)"
+    f = pose_figures(snap)
+    if f["fre"].live:
+        return (f"Pose: <b style='color:#1f8f3a'>VALID</b>, FRE {figure_html(f['fre'])}, "
+                f"predicted TRE {figure_html(f['tre'])}, {p.n_visible} fiducials")
+    return f"Pose: <b style='color:#c81e1e'>NOT VALID</b>: {_esc(pose_why(snap))}"
 
 
 def recent_alert(snap, now_wall: float | None = None, within_s: float = 6.0):

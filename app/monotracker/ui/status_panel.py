@@ -76,6 +76,7 @@ class StatusPanel:
             self.view.session.request_estop()
         except Exception:  # never into viser's message handler; stop() follows anyway
             log.exception("STOP signal failed")
+        self.view.app.note_stop(self.view.client_id, self.view.label)
 
     def stop(self) -> None:
         """The acknowledged stop (worker thread): result line, and every tab redrawn at once."""

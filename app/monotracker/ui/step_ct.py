@@ -23,6 +23,8 @@ class CtStep:
         with self.folder:
             gui.add_markdown("Open the patient CT (a file or a DICOM folder), or the bundled sample. "
                              "Check each fiducial, then lock the set: nothing else can start before.")
+            # after a restart the restored plan has no CT in memory: reload it in one click
+            self.b_reload = gui.add_button("Reload the plan's CT", color="blue", visible=False)
             self.h_ct_path = gui.add_text("CT file or folder", "", hint="path on the server: .nii.gz, .nrrd, .mha or a DICOM folder")
             b_open = gui.add_button("Open CT")
             b_sample = gui.add_button("Load sample CT")
@@ -107,6 +109,17 @@ class CtStep:
             if r is not None and r.ok and "detecting" in r.message:
                 view.watch_job()
 
+        @self.b_reload.on_click
+        @view.safe("Reload CT")
+        def _(_event) -> None:
+            path = session.snapshot().plan_ct_path
+            if not path:
+                view.say(False, "Reload CT: the plan names no CT")
+                return
+            r = view.run("Reload CT", session.load_ct, path)
+            if r is not None and r.ok:
+                view.watch_job()
+
         @b_sample.on_click
         @view.safe("Load sample CT")
         def _(_event) -> None:
@@ -182,6 +195,9 @@ class CtStep:
     def render(self, snap) -> None:
         job = snap.job
         self.b_cancel.visible = job is not None and not job.done
+        offer = needs_ct_reload(snap)
+        if self.b_reload.visible != offer:
+            self.b_reload.visible = offer
         if job is not None and not job.done:
             self.h_progress.visible = True
             self.h_progress.value = 100.0 * job.progress
@@ -286,3 +302,9 @@ def rejected_table(snap) -> str:
     return (f"<div class='mt-row'>{len(ct.rejected)} dense blobs not taken as fiducials</div>"
             "<table class='mt' id='mt-rejected'><tr><th>centre LPS mm</th><th>r mm</th><th>voxels</th><th>reason</th></tr>"
             f"{rows}</table>")
+
+
+def needs_ct_reload(snap) -> bool:
+    """A restored plan names a CT that is not loaded (and no CT job runs): offer to reload it."""
+    running = snap.job is not None and not snap.job.done
+    return snap.ct is None and bool(snap.plan_ct_path) and not running

@@ -35,7 +35,7 @@ class PlanStep:
             b_s = gui.add_button("Use the sample plan")
             b_new = gui.add_button("New plan (start over: clear CT, fiducials, path)")
             self.h_info = gui.add_html("")
-            b_next = gui.add_button("Path is good: go to Register", color="green")
+            self.b_next = b_next = gui.add_button(PLAN_GATE[False], color="gray")
             b_x = gui.add_button("Export to 3D Slicer (.mrk.json)")
             self.layout = LayoutPanel(view)  # where the balls and the camera go (ui/layout_panel.py)
             gui.add_markdown("**Navigation view** in the main view: slices through the target (or a picked "
@@ -49,12 +49,12 @@ class PlanStep:
         @b_e.on_click
         @view.safe("Set entry")
         def _(_event) -> None:
-            view.run("Set entry", session.set_entry, np.array(self.h_entry.value, float))
+            self._set_point("entry", session.set_entry)
 
         @b_t.on_click
         @view.safe("Set target")
         def _(_event) -> None:
-            view.run("Set target", session.set_target, np.array(self.h_target.value, float))
+            self._set_point("target", session.set_target)
 
         @b_s.on_click
         @view.safe("Sample plan")
@@ -79,6 +79,17 @@ class PlanStep:
         @view.safe("Export")
         def _(_event) -> None:
             self._export()
+
+    def _set_point(self, key: str, command) -> None:
+        """Set the entry or the target from its typed field; a refused value does not stay in the
+        field beside the accepted one: the field goes back to the plan's point (or zeros)."""
+        handle = self.h_entry if key == "entry" else self.h_target
+        r = self.view.run(f"Set {key}", command, np.array(handle.value, float))
+        if r is not None and not r.ok:
+            p = getattr(self.view.session.snapshot().plan, f"{key}_lps_mm")
+            val = (0.0, 0.0, 0.0) if p is None else tuple(round(float(v), 2) for v in p)
+            self._synced[key] = val
+            handle.value = val
 
     def _new_plan(self) -> None:
         """Start over: the engine forgets CT, fiducials and path (refused while armed)."""
@@ -118,6 +129,7 @@ class PlanStep:
     def render(self, snap) -> None:
         self.h_info.content = plan_info(snap)
         self.layout.render(snap)
+        gate(self.b_next, snap.plan.complete, PLAN_GATE)
         # show the plan's points in the typed fields whenever the plan changes (not while typing)
         for key, handle, p in (("entry", self.h_entry, snap.plan.entry_lps_mm),
                                ("target", self.h_target, snap.plan.target_lps_mm)):
@@ -127,6 +139,22 @@ class PlanStep:
                 handle.value = val
         t = snap.plan.target_lps_mm
         self.slices.render(snap, None if t is None else np.asarray(t))
+
+
+#: the Plan step's "go on" button: green only once the path exists, else what is missing
+PLAN_GATE = {True: "Path is good: go to Register", False: "Go to Register: set the entry and the target first"}
+#: a target this close under the entry (mm) is in or near the skull: the plan says so
+SHALLOW_TARGET_MM = 10.0
+
+
+def gate(button, ok: bool, labels: dict) -> None:
+    """A step's "go on" ``button``: green with ``labels[True]`` when its precondition holds,
+    grey with ``labels[False]`` (what is missing) otherwise; only changed props are sent."""
+    label, colour = labels[bool(ok)], ("green" if ok else "gray")
+    if button.label != label:
+        button.label = label
+    if button.color != colour:
+        button.color = colour
 
 
 def plan_info(snap) -> str:
@@ -145,4 +173,8 @@ def plan_info(snap) -> str:
                 d = distance_segment_to_points_mm(e, t, np.asarray(f.centre_lps_mm)[None, :])
                 cells.append(f"<td>#{f.id}: {float(np.min(d)):.1f}</td>")
         lines.append(f"<div class='mt-row'>Distance path to each fiducial (mm):</div><table class='mt'><tr>{''.join(cells)}</tr></table>")
+        if p.path_length_mm is not None and p.path_length_mm <= SHALLOW_TARGET_MM:
+            lines.append(f"<div class='mt-alert' id='mt-shallow' style='background:#b7791f'>WARNING: the target is only "
+                         f"{p.path_length_mm:.1f} mm under the entry (&le; {SHALLOW_TARGET_MM:.0f} mm): in or near the "
+                         f"skull; check it on the slices</div>")
     return "".join(lines)

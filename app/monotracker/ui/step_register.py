@@ -5,14 +5,16 @@ with the OCCLUSION alert; learning the ball colour from one click on a ball
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
-import numpy as np
 
 from monotracker.engine.rigs.sources import SOURCES
 from monotracker.ui import status as st
 from monotracker.ui.layout_panel import placement_line
+from monotracker.ui.freshness import figure_html, pose_figures, pose_why, residuals_live
 from monotracker.ui.status import fmt
+from monotracker.ui.step_plan import gate
 
 CAMERA_SOURCES = tuple(kind.example for kind in SOURCES.values())  # the engine's table of source kinds
 FAULTS_UI = ("none", "occlude-all", "camera-freeze", "bad-pose", "robot-disconnect")
@@ -27,7 +29,6 @@ class RegisterStep:
             src = session.config.camera
             opts = CAMERA_SOURCES if src in CAMERA_SOURCES else (src,) + CAMERA_SOURCES
             self.h_pose_banner = gui.add_html("")
-            self.h_live = gui.add_image(np.zeros((54, 96, 3), np.uint8), label="live camera + overlay", format="jpeg")
             grp = gui.add_button_group("Camera", ["Start camera", "Stop camera"])
             self.h_cam_src = gui.add_dropdown("Camera source", opts, initial_value=src)
             self.h_cam_path = gui.add_text("Video file / device / folder", "", hint="for file:PATH / folder:PATH / device:N")
@@ -42,7 +43,7 @@ class RegisterStep:
             self.h_reg_table = gui.add_html("")
             self.h_fault = gui.add_dropdown("Simulate a fault (sim only)", FAULTS_UI, initial_value="none")
             b_f = gui.add_button("Inject fault")
-            b_next = gui.add_button("Registration is good: go to Robot", color="green")
+            self.b_next = b_next = gui.add_button(REGISTER_GATE[False], color="gray")
 
         @b_apply.on_click
         @view.safe("Camera")
@@ -59,7 +60,7 @@ class RegisterStep:
 
         from monotracker.ui.ball_colour_pick import BallColourPicker
 
-        self.picker = BallColourPicker(view, on_result=self._show_colour_result)
+        self.picker = BallColourPicker(view, on_result=self._show_colour_result, on_end=lambda: view.show_step())
 
         @pick.on_click
         @view.safe("Ball colour")
@@ -69,6 +70,7 @@ class RegisterStep:
                 self._show_colour_result("")
             else:
                 self.picker.start()
+            view.show_step()  # the live image steps aside for the pick's frame in the 3D view, and back
 
         @b_ball_xy.on_click
         @view.safe("Ball colour")
@@ -88,7 +90,13 @@ class RegisterStep:
         @b_next.on_click
         @view.safe("Go to Robot")
         def _(_event) -> None:
+            snap = session.snapshot()
+            why = pose_why(snap)
+            if why:
+                view.say(False, f"Go to Robot: the registration is not good yet: {why}")
+                return
             view.goto("robot")
+            view.say(True, "Registration good: arm the robot (Arm, PIN), then start tracking")
 
     def _apply_camera(self) -> None:
         view = self.view
@@ -110,31 +118,37 @@ class RegisterStep:
     def _show_colour_result(self, text: str) -> None:
         self.h_colour.content = (f"<div class='mt-row' id='mt-ball-colour'>{st._esc(text)}</div>" if text else "")
 
-    def show_frame(self, jpeg: bytes) -> None:
-        """Show one overlay frame already encoded as JPEG (the same bytes go to every tab; viser's
-        image props are the encoded data and its format, so nothing is encoded again here)."""
-        h = self.h_live
-        h._format = "jpeg"
-        h._data = jpeg
-
     def render(self, snap) -> None:
-        self.h_pose_banner.content = pose_banner(snap)
-        self.h_reg_table.content = (placement_line(snap) + validation_line(snap.pose) + registration_table(snap.pose)
+        wall_of = lambda t: self.view.wall_time(snap, t)
+        self.h_pose_banner.content = pose_banner(snap, wall_of)
+        gate(self.b_next, not pose_why(snap), REGISTER_GATE)
+        self.h_reg_table.content = (placement_line(snap) + validation_line(snap.pose)
+                                    + registration_table(snap.pose, snap, wall_of)
                                     + recording_line(snap))
 
 
-def pose_banner(snap) -> str:
+#: the Register step's "go on" button: green only with a trusted, fresh pose
+REGISTER_GATE = {True: "Registration is good: go to Robot",
+                 False: "Go to Robot: needs a valid pose (start the camera, all fiducials in view)"}
+
+
+def pose_banner(snap, wall_of=None) -> str:
+    """The pose banner: VALID with FRE, predicted TRE and latency (each with its age), or why not
+    (the figures blanked with "stale since ...": :mod:`monotracker.ui.freshness`)."""
     pose = snap.pose
     if snap.camera.error:
-        return f"<div class='mt-banner-bad' id='mt-pose-banner'>CAMERA: {st._esc(snap.camera.error)}</div>"
-    if pose is None:
-        what = "NO POSE: start the camera" if not snap.camera.running else "NO POSE YET"
-        return f"<div class='mt-banner-bad' id='mt-pose-banner'>{what}</div>"
-    if pose.trusted:
-        return (f"<div class='mt-banner-ok' id='mt-pose-banner'>POSE VALID: FRE {fmt(pose.fre_mm, ' mm', 2)}, "
-                f"predicted TRE at target {fmt(pose.predicted_tre_mm, ' mm', 2)}, "
-                f"{pose.n_visible} fiducials, latency {fmt(pose.latency_ms, ' ms', 0)}</div>")
-    return f"<div class='mt-banner-bad' id='mt-pose-banner'>POSE NOT VALID: {st._esc(pose.reason)}</div>"
+        return f"<div class='mt-banner-bad mt-wrap' id='mt-pose-banner'>CAMERA: {st._esc(snap.camera.error)}</div>"
+    if pose is None or not snap.camera.running:
+        what = "NO POSE: camera stopped, start the camera" if not snap.camera.running else "NO POSE YET"
+        return f"<div class='mt-banner-bad mt-wrap' id='mt-pose-banner'>{what}</div>"
+    f = pose_figures(snap)
+    if f["fre"].live:
+        return (f"<div class='mt-banner-ok mt-wrap' id='mt-pose-banner'>POSE VALID: FRE {figure_html(f['fre'])}, "
+                f"predicted TRE at target {figure_html(f['tre'])}, "
+                f"{pose.n_visible} fiducials, latency {figure_html(f['reglat'])}</div>")
+    when = f["fre"]
+    return (f"<div class='mt-banner-bad mt-wrap' id='mt-pose-banner'>POSE NOT VALID: {st._esc(pose_why(snap))}"
+            f"<br>FRE {figure_html(when, wall_of)}</div>")
 
 
 def validation_line(pose) -> str:
@@ -161,20 +175,29 @@ def recording_line(snap) -> str:
     return f"<div class='mt-row' id='mt-recording'>{state}: {rec.frames} frames to {st._esc(rec.path)}{extra}</div>"
 
 
-def registration_table(pose) -> str:
+def registration_table(pose, snap=None, wall_of=None) -> str:
+    """Per fiducial: its state and residual (px). The residuals are greyed with "stale since ..."
+    when the pose is not trusted or too old (``snap`` given)."""
     if pose is None:
         return ""
+    live, why = (True, "") if snap is None else residuals_live(snap)
     rows = []
     for fid, s in pose.fiducial_status.items():
         r = pose.residuals_px.get(fid)
         hidden = s in ("occluded", "newly_lost")
         col = "#c81e1e" if hidden else ("#1f8f3a" if s == "seen" else "#555")
         word = "HIDDEN (occluded)" if hidden else s
-        rows.append(f"<tr><td><b>#{fid}</b></td><td style='color:{col}'><b>{word}</b></td><td>{fmt(r, ' px', 2)}</td></tr>")
+        res = fmt(r, ' px', 2) if live else f"<span class='mt-stale'>{fmt(r, ' px', 2)}</span>"
+        rows.append(f"<tr><td><b>#{fid}</b></td><td style='color:{col}'><b>{word}</b></td><td>{res}</td></tr>")
     hidden_ids = [fid for fid, s in pose.fiducial_status.items() if s in ("occluded", "newly_lost")]
     alert = ""
     if hidden_ids:
         alert = (f"<div class='mt-alert' id='mt-occlusion' style='background:#b7791f'>OCCLUSION: fiducial"
                  f"{'s' if len(hidden_ids) > 1 else ''} {', '.join(map(str, hidden_ids))} hidden from the camera</div>")
-    return (alert + "<table class='mt' id='mt-reg'><tr><th>fiducial</th><th>camera</th><th>residual</th></tr>"
+    stale = ""
+    if not live:
+        since = pose.trusted_t if snap is not None else None
+        when = "" if since is None or wall_of is None else time.strftime(" since %H:%M:%S", time.localtime(wall_of(since)))
+        stale = f"<div class='mt-row mt-stale mt-wrap' id='mt-reg-stale'>residuals stale{when}: {st._esc(why)}</div>"
+    return (alert + stale + f"<table class='mt' id='mt-reg' data-live='{int(live)}'><tr><th>fiducial</th><th>camera</th><th>residual</th></tr>"
             + "".join(rows) + "</table>")

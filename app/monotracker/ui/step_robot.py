@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 
 from monotracker.ui import plots
 from monotracker.ui import status as st
 from monotracker.ui.navigation_panel import NavigationPanel
 from monotracker.ui.pin_pad import PinPad
-from monotracker.ui.status import fmt
+from monotracker.ui.freshness import figure_html, robot_figures
 
 
 PLOT_PERIOD_S = 0.5
@@ -24,7 +23,6 @@ class RobotStep:
         gui, session = view.gui, view.session
         self.folder = gui.add_folder("Step 4: robot")
         with self.folder:
-            self.h_live = gui.add_image(np.zeros((54, 96, 3), np.uint8), label="live camera + overlay", format="jpeg")
             b_arm = gui.add_button("Arm (PIN)", color="orange", hint="the PIN set when the app was started")
             b_dis = gui.add_button("Disarm")
             b_start = gui.add_button("Start tracking", color="green")
@@ -53,20 +51,23 @@ class RobotStep:
         def _(_event) -> None:
             view.run(what, fn)
 
-    def show_frame(self, jpeg: bytes) -> None:
-        """The shared overlay JPEG (see ``RegisterStep.show_frame``)."""
-        self.h_live._format = "jpeg"
-        self.h_live._data = jpeg
-
     def render(self, snap) -> None:
-        r = snap.robot
-        conn = "connected" if r.connected else "<b style='color:#c81e1e'>NOT CONNECTED</b>"
-        self.h_info.content = (
-            f"<div class='mt-row'>Robot {conn}; {st._esc(r.message)}</div>"
-            f"<div class='mt-row' id='mt-robot-metrics'>Tip error <b>{fmt(r.tip_error_mm, ' mm', 2)}</b>, "
-            f"angle error <b>{fmt(r.angle_error_deg, '&deg;', 2)}</b>, speed <b>{fmt(r.speed_mm_s, ' mm/s', 1)}</b>, "
-            f"latency {fmt(r.latency_ms, ' ms', 0)}</div>")
+        self.h_info.content = robot_info_html(snap, lambda t: self.view.wall_time(snap, t))
         now = time.monotonic()
         if now - self._plot_t >= PLOT_PERIOD_S:  # the chart at 2 Hz: a redraw is costly in the browser
             self._plot_t = now
             plots.update_tracking_plot(self.h_plot, self.view.app.history())
+
+
+def robot_info_html(snap, wall_of=None) -> str:
+    """The robot's connection line and its live figures, each with its age or "stale since ..."
+    (:mod:`monotracker.ui.freshness`): after an e-stop or with the pose not trusted no tip or
+    angle error is shown as a number."""
+    r = snap.robot
+    conn = "connected" if r.connected else "<b style='color:#c81e1e'>NOT CONNECTED</b>"
+    f = robot_figures(snap)
+    rows = "".join(f"<div class='mt-row'>{name} {figure_html(f[key], wall_of)}</div>"
+                   for name, key in (("Tip error", "tip"), ("Angle error", "angle"), ("Speed", "speed"),
+                                     ("Latency", "latency")))
+    return (f"<div class='mt-row mt-wrap'>Robot {conn}; {st._esc(r.message)}</div>"
+            f"<div id='mt-robot-metrics'>{rows}</div>")

@@ -16,7 +16,7 @@ import time
 import cv2
 import numpy as np
 
-from monotracker.ui.overlay import draw_overlay, frame_code_strip
+from monotracker.ui.overlay import draw_camera_stopped, draw_overlay, frame_code_strip
 
 
 #: the JPEG comment (COM segment) payload that carries a benchmark frame number
@@ -57,7 +57,18 @@ class OverlayStream:
         h, w = img.shape[:2]
         if w <= width:
             return img
-        return cv2.resize(img, (width, round(h * width / w)), interpolation=cv2.INTER_AREA)
+        size = (width, round(h * width / w))
+        k = w // width
+        if k >= 2:
+            if w % k or h % k:  # no whole factor: area averaging at the fractional ratio
+                return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+            # 2x and more: area averaging by the whole factor first (no aliasing, OpenCV's fast
+            # path; INTER_AREA at a fractional ratio, 1280 -> 546 px, took 16 ms a frame)
+            img = cv2.resize(img, (w // k, h // k), interpolation=cv2.INTER_AREA)
+            if img.shape[1] == width:
+                return img
+        # the rest (under 2x) bilinear: it reads every source pixel anyway, at a fraction of the cost
+        return cv2.resize(img, size, interpolation=cv2.INTER_LINEAR)
 
     def encode_frame(self, image_bgr: np.ndarray, estimate, snap, width: int | None = None) -> bytes:
         """Downscale one BGR camera frame for display (``width`` px, default ``display_width``),
@@ -67,6 +78,18 @@ class OverlayStream:
         scale = small.shape[1] / image_bgr.shape[1]
         img = draw_overlay(small, estimate, snap, in_place=small is not image_bgr, px_scale=scale)
         return self.encode(img)
+
+    def encode_stopped(self, image_bgr: np.ndarray | None, text: str, width: int | None = None,
+                       aspect: float = 9 / 16) -> bytes:
+        """The view of a camera that stopped: the last frame (or grey) at ``width`` px, dimmed,
+        without overlay marks, with ``text`` across it; ``aspect`` (h/w) when there is no frame."""
+        width = self.display_width if width is None else int(width)
+        if image_bgr is not None:
+            small = self.downscale(image_bgr, width)
+            height = small.shape[0]
+        else:
+            small, height = None, int(round(width * aspect))
+        return self.encode(draw_camera_stopped(small, small.shape[1] if small is not None else width, height, text))
 
     def encode(self, img_bgr: np.ndarray) -> bytes:
         """JPEG bytes of a display-size BGR image (frame code stamped when ``stream_code``)."""

@@ -19,6 +19,7 @@ import threading
 import time
 
 from monotracker.ui import status as st
+from monotracker.ui.live_panel import MAIN_LIVE_STEPS, shown_width
 from monotracker.ui.status import PANEL_PX, PANEL_PX_WIDE, WIDE_PX
 
 log = logging.getLogger(__name__)
@@ -31,12 +32,14 @@ LIVE_STEPS = ("register", "robot", "calibration")  # steps whose page shows the 
 
 #: on a compact page the state block's words shrink a little so they fit the narrower status panel
 COMPACT_CSS = ("<style>@media (max-width: 1600px) { .mt-state b { font-size: 1.7rem; } "
-               ".mt-state span { font-size: 0.8rem; margin-left: 6px; } }</style>")
+               ".mt-state span { font-size: 0.85rem; } }</style>")
 
 
 def panel_widths(step: str, wide: bool) -> tuple[int, int]:
     """(status panel, step panel) widths in px for ``step`` on a compact or wide screen."""
     px = PANEL_PX_WIDE if wide else PANEL_PX
+    if step in MAIN_LIVE_STEPS:
+        return px["status"], px["steps_main_live"]
     return px["status"], px["steps_live"] if step in LIVE_STEPS else px["steps"]
 
 
@@ -45,6 +48,17 @@ def is_wide(viewport_px: float | None, wide_now: bool) -> bool:
     if viewport_px is None:
         return wide_now
     return viewport_px >= WIDE_PX[0] if wide_now else viewport_px >= WIDE_PX[1]
+
+
+def station_label(app, client_id) -> str:
+    """This tab's name for the others: "station at <its IP address> (tab N)", or "station N"
+    when the address is not known (viser keeps it on its websocket connection)."""
+    try:
+        conn = app.server._websock_server._live_connections.get(client_id)
+        host = conn.remote_address[0] if conn is not None and conn.remote_address else None
+    except Exception:  # noqa: BLE001 - a viser without that attribute: the plain name
+        host = None
+    return f"station at {host} (tab {client_id})" if host else f"station {client_id}"
 
 
 def first_message(snap, notice: str | None) -> tuple[bool, str]:
@@ -57,6 +71,8 @@ def first_message(snap, notice: str | None) -> tuple[bool, str]:
         return True, f"{job.message} ({100 * job.progress:.0f} %)"
     if job is not None and job.error:
         return False, f"CT: {job.error}"
+    if snap.ct is None and snap.plan_ct_path and (job is None or job.done):
+        return True, "Saved plan restored without its CT in memory: press \"Reload the plan's CT\" (step 1)."
     if snap.ct is None and not snap.fiducials:
         return True, "Ready. Start with step 1: load a CT."
     if not snap.fiducials_locked:
@@ -70,6 +86,7 @@ class ClientView:
     """The page of one browser client (``client``: a :class:`viser.ClientHandle`)."""
 
     def __init__(self, app, client):
+        from monotracker.ui.live_panel import LivePanel
         from monotracker.ui.navigation_panel import NavigationScene
         from monotracker.ui.scene import SceneView
         from monotracker.ui.status_panel import StatusPanel
@@ -82,7 +99,7 @@ class ClientView:
         self.app = app
         self.client = client
         self.client_id = str(client.client_id)
-        self.label = f"station {client.client_id}"
+        self.label = station_label(app, client.client_id)
         self.session = app.session.for_client(self.client_id)
         self.gui, self.scene = client.gui, client.scene
         self.lock = threading.RLock()
@@ -94,6 +111,12 @@ class ClientView:
         self._msg_seq = 0
         self._panel_width = None  # (status px, steps px) last set
         self._wide = False
+        self._last_image_size = None  # the camera's (w, h) px last rendered (the live panel's aspect)
+        self._canvas = None  # the 3D canvas (w, h) CSS px between the docked panels, as the page reported it
+        self._widths_set_at = 0.0  # wall time the docked panels' widths were last set
+        # what this tab last saw: a change made elsewhere (control moved, STOP) is told on its result line
+        self._seen_control = snap.control.controller
+        self._seen_state = snap.robot.state
         self._job_watch = False  # this tab started a CT job: report its end on the result line
         self.notice = app.notice
         self.nav_scene = NavigationScene(self)  # the navigation view's worker (slices in the canvas)
@@ -111,6 +134,16 @@ class ClientView:
         def _(event) -> None:
             self.goto(LABEL_STEPS.get(event.target.value, "ct"))
 
+        self.h_live_main = gui.add_checkbox("Live image in the main view", True,
+                                            hint="Register / Robot: the live overlay over the 3D view; "
+                                                 "untick to see the 3D view whole")
+
+        @self.h_live_main.on_update
+        @self.safe("Live image")
+        def _(_event) -> None:
+            self.show_step()
+
+        self.live = LivePanel(self)
         self.steps = {"ct": CtStep(self), "plan": PlanStep(self), "register": RegisterStep(self), "robot": RobotStep(self),
                       "calibration": CalibrationStep(self)}  # reached from Register
         self.scene3d = SceneView(self)
@@ -181,19 +214,30 @@ class ClientView:
         # the live camera is the view that matters in Register / Robot: a wider step panel there;
         # the panels grow on a wide screen (the browser's canvas width + the panels = the page)
         with self.lock:
-            viewport = None
+            viewport = canvas = None
             try:
                 cam = self.client.camera
                 if self._panel_width is not None and cam.update_timestamp and cam.image_width > 0:
                     viewport = cam.image_width + sum(self._panel_width)
+                    # the canvas as the page last reported it; only once it reflects the panel
+                    # widths now set (a width change reaches the page, then its canvas size comes back)
+                    if cam.update_timestamp > self._widths_set_at:
+                        canvas = (cam.image_width, cam.image_height)
             except Exception:  # noqa: BLE001 - no camera message from the browser yet
                 viewport = None
             self._wide = is_wide(viewport, self._wide)
             widths = panel_widths(step, self._wide)
+            tick = step in MAIN_LIVE_STEPS
+            if self.h_live_main.visible != tick:  # every prop assignment is a message to the browser
+                self.h_live_main.visible = tick
+            if canvas is not None and widths == self._panel_width:
+                self._canvas = canvas
+            self.live.update(step, self.live_main_wanted(), widths, self._last_image_size)
             if widths == self._panel_width:
                 return
             old = self._panel_width
             self._panel_width = widths
+            self._widths_set_at = time.time()
         if old is None or widths[0] != old[0]:
             self.status.panel.set_width(widths[0])
         self.gui.main_panel.set_width(widths[1])
@@ -213,11 +257,15 @@ class ClientView:
             report_job = self._job_watch and snap.job is not None and snap.job.done
             if report_job:
                 self._job_watch = False
+        for ok, text in self.changes_elsewhere(snap):
+            self.say(ok, text)
         if report_job:
             if snap.job.error:
                 self.say(False, f"CT: {snap.job.error}")
             else:
                 self.say(True, f"CT loaded: {len(snap.fiducials)} fiducials found; check each, then lock the set")
+        with self.lock:
+            self._last_image_size = snap.camera.image_size
         self.show_step()
         if snap.robot.state != "disarmed":
             self.notice = None
@@ -225,11 +273,36 @@ class ClientView:
         self.steps[step].render(snap)
         self.scene3d.render(snap, step)
 
+    def changes_elsewhere(self, snap) -> list[tuple[bool, str]]:
+        """Result lines for what changed without this tab's command: control moved to another
+        station (or away from this one), STOP pressed at another station (or by the engine)."""
+        out = []
+        with self.lock:
+            prev_ctrl, prev_state = self._seen_control, self._seen_state
+            self._seen_control, self._seen_state = snap.control.controller, snap.robot.state
+        ctrl = snap.control.controller
+        if ctrl != prev_ctrl and ctrl != self.client_id:
+            who = (snap.control.controller_label or ctrl) if ctrl is not None else "nobody"
+            if prev_ctrl == self.client_id:
+                out.append((False, f"Control moved to {who}: this station is now viewing (Take control with the PIN)"))
+            else:
+                out.append((True, f"Control moved: {who} is in control now"))
+        if snap.robot.state == "estopped" and prev_state not in (None, "estopped"):
+            by = self.app.last_stop
+            if by is None or time.time() - by[2] > 10.0:
+                out.append((False, "Robot E-STOPPED (not from a station: see the alarms)"))
+            elif by[0] != self.client_id:
+                when = time.strftime("%H:%M:%S", time.localtime(by[2]))
+                out.append((False, f"STOP pressed at {by[1]} at {when}: robot E-STOPPED"))
+        return out
+
     def show_frame(self, jpeg: bytes) -> None:
         """The newest overlay frame (JPEG bytes, encoded once for all tabs) on the shown step."""
         with self.lock:
             step = self.step
-        if step in LIVE_STEPS:
+        if step in MAIN_LIVE_STEPS:
+            self.live.show_frame(jpeg)
+        elif step in LIVE_STEPS:
             self.steps[step].show_frame(jpeg)
 
     def nav_panel(self, step: str):
@@ -238,16 +311,40 @@ class ClientView:
 
     @property
     def live_width(self) -> int:
-        """The width (CSS px) this page shows the live image at: its step panel's width on a
-        live step (compact or wide layout, ``PANEL_PX`` / ``PANEL_PX_WIDE``)."""
+        """The width (CSS px) this page shows the live image at, about: in Register / Robot the
+        main view's (:func:`~monotracker.ui.live_panel.shown_width` from the canvas size the page
+        reported, at least a compact page's; the stream caps it at its ``display_width``), in
+        Calibrate the step panel's."""
         with self.lock:
-            wide = self._wide
+            wide, step, canvas, size = self._wide, self.step, self._canvas, self._last_image_size
+        if step in MAIN_LIVE_STEPS:
+            px = PANEL_PX
+            compact = 1280 - px["status"] - px["steps_main_live"] - 4
+            aspect = 16 / 9 if not size else size[0] / max(1, size[1])
+            return shown_width(canvas, aspect, compact)
         return (PANEL_PX_WIDE if wide else PANEL_PX)["steps_live"]
 
     @property
     def wants_live(self) -> bool:
+        """Whether this tab shows the live image now: Calibrate, or Register / Robot with
+        **Live image in the main view** ticked (no frame is encoded or sent for a hidden one)."""
         with self.lock:
-            return self.step in LIVE_STEPS
+            step = self.step
+        if step in MAIN_LIVE_STEPS:
+            return self.live_main_wanted()
+        return step in LIVE_STEPS
+
+    def live_main_wanted(self) -> bool:
+        """The live image over the main view is wanted: **Live image in the main view** ticked, no
+        ball-colour pick waiting for a click on the frame shown in the 3D view, and the shown
+        step's **Slices in main view** not ticked (the live image would cover either)."""
+        steps = getattr(self, "steps", None) or {}
+        picker = getattr(steps.get("register"), "picker", None)
+        with self.lock:
+            step = self.step
+        nav = getattr(steps.get(step), "nav", None)
+        return (bool(self.h_live_main.value) and not (picker is not None and picker.active)
+                and not (nav is not None and nav.active))
 
     def close(self) -> None:
         """The tab went away: give up control if it had it."""

@@ -108,6 +108,7 @@ class TrackingLoop:
         self.latencies_s: deque[float] = deque(maxlen=5000)
         #: is the pose pipeline keeping up with the camera (``pipeline_overloaded``)
         self.load = PipelineLoad()
+        self.last_command_t: float | None = None  # session time (s) of the newest latency measured
         self._tick_hooks: list = []
         self._pose_hooks: list = []
         self.camera = CameraControl(self, plan=plan, session=session)
@@ -490,6 +491,7 @@ class TrackingLoop:
             stamp, self._pending_latency_stamp = self._pending_latency_stamp, None
         if stamp is not None:
             self.latencies_s.append(t_command - stamp)
+            self.last_command_t = t_command
 
     # ================================================================== read side
     def pose_summary(self):

@@ -35,6 +35,7 @@ def pose_summary(loop) -> PoseSummary | None:
         validation_tre_mm={} if smp.validation is None else dict(smp.validation.errors_mm),
         validation_ok=None if smp.validation is None else bool(smp.validation.ok),
         validation_reason="" if smp.validation is None else smp.validation.reason,
+        trusted_t=None if loop.last_trusted is None else loop.last_trusted.t_capture,
     )
 
 
@@ -69,7 +70,9 @@ def summaries(loop):
             tip_err, ang_err = tip_and_axis_error(T_tip, T_base_ct, plan.entry_lps_mm, plan.target_lps_mm)
         robot = RobotSummary(st.state, frozen_array(q), tip_err, ang_err, float(speed), st.connected,
                              st.message if st.program_fault else (loop.holding_reason or st.message), lat,
-                             program_fault=st.program_fault, control=st.control)
+                             program_fault=st.program_fault, control=st.control,
+                             errors_t=None if tip_err is None else last.t_capture,
+                             command_t=loop.last_command_t if loop.latencies_s else None)
     else:
         state = loop.robot.state()  # "estopped" while an e-stop pressed before connecting is latched
         robot = RobotSummary(state, None, None, None, 0.0, False, "robot not connected yet" if state == "disarmed"

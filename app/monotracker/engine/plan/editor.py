@@ -372,8 +372,12 @@ class PlanEditor:
             old, f.role = f.role, role
             left = len(plan.registration_fiducials())
             if role == "validation" and left < self._config.min_fiducials:
-                raise Refused(f"only {left} fiducials would remain for the registration; "
-                              f"at least {self._config.min_fiducials} are needed")
+                usable = {id(x) for x in plan.usable_fiducials()}
+                pending = sum(1 for x in plan.fiducials if id(x) not in usable and x.status == "detected")
+                hint = (f"; {pending} more {'is' if pending == 1 else 'are'} not confirmed yet: confirm the "
+                        f"fiducials first, then choose the validation ones") if pending else ""
+                raise Refused(f"only {left} fiducial{'' if left == 1 else 's'} would remain for the registration; "
+                              f"at least {self._config.min_fiducials} are needed{hint}")
         self._bus.event("fiducial_role", f"fiducial {fid_id}: {role} (was {old})",
                         {"id": int(fid_id), "role": role, "previous": old})
         return CommandResult.done(f"fiducial {fid_id}: {role}")
