@@ -10,6 +10,12 @@ of a scene (towards the contact shadow), i.e. a common bias no residual shows. R
 independent single-ball renders (``tests/vision/independent_render.py``: sharp raw, 1.5 px defocus
 + JPEG 85), which show none of it.
 
+Per ray (:func:`ray_profile`): the residual against the true outline binned by how much the
+background darkens towards the ball (near / far luma just beyond the blurred edge), and the
+known-shape fit with and without the rays of a darkening background (the contact-shadow side):
+the shadow's rays lie outside, but dropping them does not remove the centre error (the lit side
+lies inside the true outline too).
+
 Frames: the committed tuning crops (``tests/data/pbr/tuning``; no Mitsuba needed) unless
 ``--root DIR`` names a folder of rendered scenes (the tuning split; never the held-out one).
 
@@ -57,6 +63,72 @@ def harmonics(img, centre, radius_px, shape) -> tuple | None:
             float(np.hypot(co[3], co[4])), float(np.std(res - A @ co)))
 
 
+#: bins of the near / far background luma ratio of a ray (:func:`ray_profile`): < 1 = the
+#: background darkens towards the ball (a contact shadow, ambient occlusion)
+NF_BINS = (0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 1.05, np.inf)
+#: drop rays whose near / far ratio is below this (the shadow-ray variant of :func:`ray_profile`)
+SHADOW_NF = 0.8
+#: the far background sample lies this far (px) beyond the near one
+FAR_PX = 3.0
+
+
+def _luma_at(lin_y: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Linear luma (bilinear) at points (n, 2) px."""
+    import cv2
+
+    return cv2.remap(lin_y, pts[None, :, 0].astype(np.float32), pts[None, :, 1].astype(np.float32),
+                     cv2.INTER_LINEAR)[0]
+
+
+def ray_profile(img, centre, radius_px, shape) -> dict | None:
+    """Per ray of one whole ball (rays from its true ellipse ``centre``, px, the frame's measured
+    blur), as the edge fit sees it: ``res`` the edge's residual (px, + outside) against the TRUE
+    outline, ``nf`` the background's linear luma just beyond the blurred edge over that
+    :data:`FAR_PX` further out, ``limb`` the ball's luma just inside the edge over the median of
+    its inner half, ``usable``; and the known-shape fits (centre error px against the true
+    ellipse centre, cut) with all usable rays and without the rays of ``nf`` < :data:`SHADOW_NF`
+    (the contact-shadow side). None when the ball is too close to the border."""
+    ell = ((float(centre[0]), float(centre[1])), (2 * radius_px / shape[0], 2 * radius_px), float(shape[1]))
+    blur = edge_fit.measure_edge_blur(img, [ell]) or edge_fit.BLUR_PROBE_PX
+    got = edge_fit._edge_points(img, [ell], blur)[0]
+    if got is None:
+        return None
+    pts, u = got
+    y = (edge_fit.LINEAR_LUT[img] @ np.array([0.114, 0.587, 0.299], np.float32)).astype(np.float32)
+    c = np.asarray(centre, float)
+    d = pts - c
+    ud = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+    rp = blur / (edge_fit.BLUR_PER_WIDTH * edge_fit.DISC_WIDTH_PER_RADIUS) + edge_fit.NEAR_BG_MARGIN_PX
+    near, far = _luma_at(y, pts + rp * ud), _luma_at(y, pts + (rp + FAR_PX) * ud)
+    inner = _luma_at(y, c + 0.5 * d)
+    out = {"res": edge_fit._ellipse_residuals(pts, ell), "nf": near / np.maximum(far, 1e-6),
+           "limb": _luma_at(y, pts - rp * ud) / max(float(np.median(inner)), 1e-6), "usable": u}
+    for name, use in (("all", u), ("no_shadow", u & (out["nf"] >= SHADOW_NF))):
+        fit = edge_fit._robust_ellipse(pts, use, shape) if use.sum() >= edge_fit.MIN_RAY_SHARE * len(u) else None
+        out[name] = None if fit is None else (float(np.linalg.norm(np.array(fit[0][0]) - c)),
+                                              bool(edge_fit._hidden_arc(pts, use, fit[0], shape, blur)))
+    return out
+
+
+def _ray_rows(profiles: list) -> dict:
+    """Per :data:`NF_BINS` bin: usable rays, mean / median residual against the true outline (px);
+    and per fit variant: balls fitted, refused as cut, mean centre error of all fitted (px)."""
+    res = np.concatenate([p["res"][p["usable"]] for p in profiles]) if profiles else np.zeros(0)
+    nf = np.concatenate([p["nf"][p["usable"]] for p in profiles]) if profiles else np.zeros(0)
+    bins = {}
+    for lo, hi in zip(NF_BINS[:-1], NF_BINS[1:]):
+        m = (nf >= lo) & (nf < hi)
+        bins[f"{lo:g}-{hi:g}"] = {"rays": int(m.sum()), "res_mean_px": float(res[m].mean()) if m.any() else float("nan"),
+                                  "res_median_px": float(np.median(res[m])) if m.any() else float("nan")}
+    fits = {}
+    for name in ("all", "no_shadow"):
+        got = [p[name] for p in profiles]
+        ok = [g for g in got if g is not None]
+        fits[name] = {"balls": len(got), "fitted": len(ok), "cut": int(sum(g[1] for g in ok)),
+                      "err_mean_px": float(np.mean([g[0] for g in ok])) if ok else float("nan")}
+    return {"nf_bins": bins, "fits": fits}
+
+
 def pbr_rows(scenes, frames: int) -> dict:
     out = {}
     for cond, spec in CONDITIONS.items():
@@ -66,6 +138,7 @@ def pbr_rows(scenes, frames: int) -> dict:
         whole = found = 0
         errs, h1, h2, rest, spread = [], [], [], [], []
         why = collections.Counter()
+        profiles = []
         for s in cs:
             cam, tr = s.camera_model(), s.truth
             det = ClassicalDetector(BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0]), camera=cam))
@@ -88,6 +161,9 @@ def pbr_rows(scenes, frames: int) -> dict:
                         why["score: " + reason.split(": ", 1)[1] if reason.startswith("score") else reason] += 1
                     sh = expected_shapes(cam, [e], [r])[0]
                     h = harmonics(img, e, r, sh if sh is not None else (1.0, 0.0))
+                    p = ray_profile(img, e, r, sh if sh is not None else (1.0, 0.0))
+                    if p is not None:
+                        profiles.append(p)
                     if h is not None:
                         h1.append(h[0])
                         h2.append(h[2])
@@ -99,7 +175,8 @@ def pbr_rows(scenes, frames: int) -> dict:
                      "centre_err_mean_px": float(np.mean(errs)) if errs else float("nan"),
                      "missed_by": dict(why.most_common()),
                      "h1_px": float(np.mean(h1)), "h2_px": float(np.mean(h2)), "rest_px": float(np.mean(rest)),
-                     "h1_direction_agreement": float(np.mean(spread)) if spread else float("nan")}
+                     "h1_direction_agreement": float(np.mean(spread)) if spread else float("nan"),
+                     "rays": _ray_rows(profiles)}
     return out
 
 
@@ -153,6 +230,12 @@ def main(argv=None) -> int:
         for name, o in res["independent"].items():
             print(f"{name:<14} {o['balls']:>5} {'':>6} {'':>6} {o['h1_px']:>6.2f} {'':>5} {o['h2_px']:>6.2f} "
                   f"{o['rest_px']:>7.2f}")
+        print(f"per ray, residual vs the true outline (px, + outside) by near/far background luma ratio (usable rays); "
+              f"known-shape fits with all rays / without rays of near/far < {SHADOW_NF}:")
+        for cond, o in res["pbr"].items():
+            print(f"{cond:<14} " + "  ".join(f"{k}: {v['res_mean_px']:+.2f} ({v['rays']})" for k, v in o["rays"]["nf_bins"].items()))
+            print(f"{'':<14} " + "  ".join(f"{k}: {v['fitted']}/{v['balls']} fitted, {v['cut']} cut, err {v['err_mean_px']:.3f} px"
+                                           for k, v in o["rays"]["fits"].items()))
         print("h1: first harmonic of the edge residuals round the true centre (a centre shift); agree: length of "
               "the mean unit vector of its direction over a frame's balls (1 = all alike)")
     print(json.dumps(res))
