@@ -42,15 +42,23 @@ from monotracker.vision.sphere_outline import expected_shapes
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "vision"))
 
 
-def harmonics(img, centre, radius_px, shape) -> tuple | None:
-    """(first-harmonic amplitude px, its direction deg, second-harmonic amplitude px, rest RMS px) of
-    the edge residuals of one ball round its true ellipse ``centre`` (px); None when the fit fails."""
+def _ball_edge_points(img, centre, radius_px, shape):
+    """``(ellipse, blur px, edge points px, usable)`` of the edge fit for one ball whose true ellipse centre is ``centre``
+    (px), radius ``radius_px`` and outline ``shape`` (axis ratio, angle deg), with the blur measured
+    on that ball; None when the ball is too close to the border."""
     ell = ((float(centre[0]), float(centre[1])), (2 * radius_px / shape[0], 2 * radius_px), float(shape[1]))
     blur = edge_fit.measure_edge_blur(img, [ell]) or edge_fit.BLUR_PROBE_PX
     got = edge_fit._edge_points(img, [ell], blur)[0]
+    return None if got is None else (ell, blur, *got)
+
+
+def harmonics(img, centre, radius_px, shape) -> tuple | None:
+    """(first-harmonic amplitude px, its direction deg, second-harmonic amplitude px, rest RMS px) of
+    the edge residuals of one ball round its true ellipse ``centre`` (px); None when the fit fails."""
+    got = _ball_edge_points(img, centre, radius_px, shape)
     if got is None:
         return None
-    pts, u = got
+    ell, blur, pts, u = got
     fit = edge_fit._robust_ellipse(pts, u, shape)
     if fit is None:
         return None
@@ -88,12 +96,10 @@ def ray_profile(img, centre, radius_px, shape) -> dict | None:
     its inner half, ``usable``; and the known-shape fits (centre error px against the true
     ellipse centre, cut) with all usable rays and without the rays of ``nf`` < :data:`SHADOW_NF`
     (the contact-shadow side). None when the ball is too close to the border."""
-    ell = ((float(centre[0]), float(centre[1])), (2 * radius_px / shape[0], 2 * radius_px), float(shape[1]))
-    blur = edge_fit.measure_edge_blur(img, [ell]) or edge_fit.BLUR_PROBE_PX
-    got = edge_fit._edge_points(img, [ell], blur)[0]
+    got = _ball_edge_points(img, centre, radius_px, shape)
     if got is None:
         return None
-    pts, u = got
+    ell, blur, pts, u = got
     y = (edge_fit.LINEAR_LUT[img] @ np.array([0.114, 0.587, 0.299], np.float32)).astype(np.float32)
     c = np.asarray(centre, float)
     d = pts - c
