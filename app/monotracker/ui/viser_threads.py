@@ -7,7 +7,9 @@ the render thread, the overlay thread and viser's callback workers - calls
 event's ``_waiters`` deque while the event-loop thread adds and removes waiters
 (``await message_event.wait()``, cancelled flush waits). Under load a thread switch lands inside
 that loop and the assigning thread gets ``RuntimeError: deque mutated during iteration`` (the
-``render failed ...`` / ``overlay failed`` lines in the server log; the tab misses that update).
+``render failed ...`` / ``overlay failed`` lines in the server log; the tab misses that update),
+or, when the switch lands between ``fut.done()`` and ``fut.set_result()`` while the loop cancels
+that waiter, ``asyncio.InvalidStateError`` (seen once in CI).
 
 :func:`make_thread_safe` switches one buffer's event to :class:`LoopSafeEvent` (same object, so
 a sender already waiting on it stays woken): called from the event loop's own thread it is the
