@@ -228,3 +228,21 @@ def test_an_unprivileged_session_tracks_and_says_the_control_process_is_not_real
         raise
     assert "refused" in r["control"] and "control_priority" in r["codes"]
     assert r["priority"].startswith("normal priority") and "pose_priority" not in r["codes"]
+
+
+def test_camera_process_that_cannot_be_spawned_says_why(monkeypatch):
+    """A spawn refused before the child exists (here: the OS refuses the fork) is reported as the
+    product's error naming the cause, and nothing is left behind; it used to surface as
+    ``AssertionError: can only join a started process`` from the clean-up (the cause lost)."""
+    import multiprocessing.process as mpp
+
+    from monotracker.errors import MonoTrackerError
+
+    def refuse(self):
+        raise OSError("Resource temporarily unavailable")
+
+    monkeypatch.setattr(mpp.BaseProcess, "start", refuse)
+    proc, _layout, _motion = _camera()
+    with pytest.raises(MonoTrackerError, match="failed to start .*OSError"):
+        proc.start(ready_timeout_s=5.0)
+    assert not proc.alive() and proc.next_frame(0.0) is None

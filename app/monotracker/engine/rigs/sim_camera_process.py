@@ -246,7 +246,7 @@ class SimCameraProcess:
             self._conn = self._proc = self._shm = None
         if shm is not None:
             np.ndarray((8,), np.int64, shm.buf, 0)[1] = 1  # stop
-        if proc is not None:
+        if proc is not None and proc.pid is not None:  # never started (start() failed): nothing to join
             proc.join(2.0)
             if proc.is_alive():
                 proc.kill()
