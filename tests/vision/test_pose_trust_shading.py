@@ -118,3 +118,12 @@ def test_sharp_whole_balls_are_still_trusted(scene):
     ests = _stream(s, target, s.T_cam_ct, 0.05, 10, TrackerConfig())
     assert all(e.ok for e in ests[2:]), [e.reason for e in ests]
     assert all(float(tre_mm(e.T_cam_ct, s.T_cam_ct, target)[0]) <= 1.0 for e in ests if e.ok)
+
+
+def test_without_an_edge_spread_the_prediction_is_the_residuals_one(scene):
+    """The shading cover only adds: with (almost) no edge spread the predicted TRE is the one the
+    residuals' noise gives (the model before), to rounding."""
+    s, target = scene
+    tiny = _stream(s, target, s.T_cam_ct, 0.05, 5, TrackerConfig(edge_bias_per_rms=1e-9, edge_common_per_rms=0.0))
+    off = _stream(s, target, s.T_cam_ct, 0.05, 5, TrackerConfig(edge_bias_per_rms=0.0, edge_common_per_rms=0.0))
+    np.testing.assert_allclose([e.predicted_tre_mm for e in tiny], [e.predicted_tre_mm for e in off], rtol=1e-9)

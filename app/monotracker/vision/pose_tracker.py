@@ -418,7 +418,7 @@ class PoseTracker:
                     # gate on an upper bound of the noise (95 %): a sigma from few dof may be low by chance
                     upper = ne.upper(cfg.noise_bound_confidence)
                     upper = upper if np.isfinite(upper) else sigma
-                    covs = self._frame_covariances(reg, pts, det, sigma, upper)
+                    covs = self._frame_covariances(reg, det, sigma, upper)
                     shading = ""
                     if covs is None:
                         tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
@@ -508,7 +508,7 @@ class PoseTracker:
             moved=new_moved, excluded=sorted(self.excluded), stages_s=stages,
             pooled_frames=n_pooled if ok else 0)
 
-    def _frame_covariances(self, reg, pts: np.ndarray, det, sigma_px: float, upper_px: float):
+    def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float):
         """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with
         the balls' shading error covered (``TrackerConfig.edge_bias_per_rms``,
         ``edge_common_per_rms``): (with the noise estimate ``sigma_px``, with its upper bound
@@ -523,20 +523,20 @@ class PoseTracker:
         rms = np.array([float(det.fiducials[i].features.get("edge_rms_px", np.nan)) for i, _ in reg.pairs])
         if not len(rms) or not np.all(np.isfinite(rms)) or not (sigma_px > 0 and np.isfinite(upper_px)):
             return None
-        from monotracker.registration.pnp import refine_pose
-        from monotracker.registration.projection import undistort_to_normalised
-        from monotracker.registration.report import common_shift_covariance
+        from monotracker.registration import pnp_kernels
 
         K = self.camera.K
-        fxy = np.array([K[0, 0], K[1, 1]])
-        idx = np.array([i for i, _ in reg.pairs], int)
-        X = self.fiducials_ct[[j for _, j in reg.pairs]]
-        xn = undistort_to_normalised(pts[idx], K, self.camera.dist)
-        J = refine_pose(reg.T_cam_ct, X, xn, fxy, self.radius_mm, max_iter=1).J      # (2k, 6) px per parameter
-        H_inv = np.linalg.pinv(J.T @ J)
-        A = H_inv @ J.T
+        T = reg.T_cam_ct
+        X = np.ascontiguousarray(self.fiducials_ct[[j for _, j in reg.pairs]], dtype=float)
+        k = len(X)
+        r, J = np.empty(2 * k), np.empty((2 * k, 6))              # J: px per pose parameter at the pose
+        pnp_kernels.residuals_and_jacobian(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), X,
+                                           np.zeros((k, 2)), float(K[0, 0]), float(K[1, 1]),
+                                           float(self.radius_mm or 0.0), np.empty(0), r, J)
+        A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
         shade = np.repeat((cfg.edge_bias_per_rms * rms) ** 2, 2)
-        common = common_shift_covariance(J, cfg.edge_common_per_rms * float(np.median(rms)))
+        B = A.reshape(6, k, 2).sum(axis=1)                      # a shift shared by all balls
+        common = (cfg.edge_common_per_rms * float(np.median(rms))) ** 2 * (B @ B.T)
 
         def cov(noise_px: float) -> np.ndarray:
             return (A * np.maximum(noise_px**2, shade)) @ A.T + common
