@@ -28,7 +28,8 @@ outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid basel
 
 Columns, per condition x detector x trust model (``before``: each frame alone, the trust model
 before issue 28 and still the default; ``calibrated``: still frames pooled, the centre bias
-covered; same frames, same detections):
+covered; same frames, same detections; ``before`` covers each ball's edge spread since the
+per-frame model does, ``TrackerConfig.edge_bias_per_rms``):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
   detections that are a ball; partial: accepted balls that were partly hidden;
 * centre err: mean / p95 px between the detected centre, carried to the sphere centre with the
@@ -109,7 +110,7 @@ class Replay:
 
 def trust_models() -> dict:
     """Trust models compared in one run: name -> TrackerConfig. ``before``: each frame alone,
-    image noise from the residuals (the trust model before issue 28, still the default:
+    image noise from the residuals and each ball's edge spread (the default:
     ``centre_bias=None``); ``calibrated``: frames of a still head pooled, the detector's
     measured centre bias covered (``centre_bias="detector"``)."""
     return {"before": TrackerConfig(centre_bias=None), "calibrated": TrackerConfig(centre_bias="detector")}

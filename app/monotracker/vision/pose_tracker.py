@@ -24,7 +24,10 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
   gate uses the noise's 95 % upper bound for its degrees of freedom (few balls or the first
   frames: a wider bound), ``predicted_tre_mm`` the calibrated value. The same bound must keep
   the probability that the error at the target exceeds ``wrong_mm`` (2 mm) below
-  ``max_wrong_probability`` (0.1 %): an RMS limit alone leaves a tail;
+  ``max_wrong_probability`` (0.1 %): an RMS limit alone leaves a tail. Each matched ball's
+  centre error counts as at least its edge fit's residual RMS, plus a shift common to all balls
+  (``edge_bias_per_rms``, ``edge_common_per_rms``): shading moves the centres in a way a slightly
+  wrong pose explains, which the residuals cannot show (issue 28);
 * a fiducial whose position disagrees with the others (leave-one-out,
   :mod:`monotracker.registration.consistency`) is excluded with a ``fiducial_moved`` alert
   naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
@@ -204,6 +207,19 @@ class TrackerConfig:
     #: below this (1.0 = no such test)
     right_mm: float = 1.0
     max_not_right_probability: float = 1.0
+    #: the per-frame trust model (``centre_bias`` None) also covers the centre error that a ball's
+    #: shading leaves (issue 28): each matched ball's centre error per coordinate is taken as at
+    #: least ``edge_bias_per_rms`` x its edge fit's residual RMS (``edge_rms_px``, the spread of its
+    #: edge around the known-shape outline), and a shift common to all balls of
+    #: ``edge_common_per_rms`` x their median edge RMS is added (the residuals cannot show it).
+    #: Measured on the committed tuning crops of physically rendered frames (tests/data/pbr/tuning,
+    #: 99 whole balls, 2 frames per scene): per coordinate, the per-ball part of the centre error is
+    #: 1.02 x edge RMS (RMS; p90 1.7), the part common to a frame's balls 0.72 x (p90 1.39); the
+    #: detector's own ``centre_sigma_px`` (edge RMS / sqrt(rays / 2)) is 4x too small (median). 0 =
+    #: off (the residuals alone, the model before); detectors without an edge fit (``chroma``) have
+    #: no edge RMS and are gated as before
+    edge_bias_per_rms: float = 1.0
+    edge_common_per_rms: float = 1.0
 
 
 class PoseTracker:
@@ -309,7 +325,7 @@ class PoseTracker:
         target over the gates of :class:`TrackerConfig` (``tre_limit``).
         """
         from monotracker.registration.consistency import register_screened
-        from monotracker.registration.report import exceed_probability, target_covariance
+        from monotracker.registration.report import exceed_probability, predicted_tre, target_covariance
 
         from .pose_checks import PhysicalLimits, physical_problem, weak_geometry
 
@@ -399,26 +415,38 @@ class PoseTracker:
                     T_pose, tre, sigma, sigma_src, ok, code, reason, n_pooled = self._pooled_trust(
                         frame.index, reg, pts, det, ne.sigma_px, new_moved, usable, ok, code, reason)
                 elif self.target_ct is not None:
-                    tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
                     # gate on an upper bound of the noise (95 %): a sigma from few dof may be low by chance
                     upper = ne.upper(cfg.noise_bound_confidence)
                     upper = upper if np.isfinite(upper) else sigma
-                    tre_hi = tre * upper / sigma if sigma > 0 else tre
+                    covs = self._frame_covariances(reg, det, sigma, upper)
+                    shading = ""
+                    if covs is None:
+                        tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
+                        tre_hi = tre * upper / sigma if sigma > 0 else tre
+                    else:
+                        cov_est, cov_hi, edge_px = covs
+                        tre = float(predicted_tre(reg.T_cam_ct, cov_est, self.target_ct))
+                        tre_hi = float(predicted_tre(reg.T_cam_ct, cov_hi, self.target_ct))
+                        shading = f", edge spread {edge_px:.2f} px"
                     if ok and not (tre_hi <= cfg.max_predicted_tre_mm):
                         ok, code = False, "tre_limit"
                         bound = (f"; up to {tre_hi:.2f} mm at {100 * cfg.noise_bound_confidence:.0f} % with {ne.dof} dof"
                                  if tre_hi > tre + 0.005 else "")
                         reason = (f"predicted error at the target {tre:.2f} mm{bound}: over the "
-                                  f"{cfg.max_predicted_tre_mm:g} mm limit (image noise {sigma:.2f} px, "
+                                  f"{cfg.max_predicted_tre_mm:g} mm limit (image noise {sigma:.2f} px{shading}, "
                                   f"{len(reg.pairs)} fiducials)")
                     elif ok and reg.pose_covariance is not None and reg.sigma_px > 0:
-                        cov3 = target_covariance(reg.T_cam_ct, reg.pose_covariance, self.target_ct)
-                        p_wrong = exceed_probability(cov3 * (upper / reg.sigma_px) ** 2, cfg.wrong_mm)
+                        if covs is None:
+                            cov3 = target_covariance(reg.T_cam_ct, reg.pose_covariance, self.target_ct)
+                            cov3 = cov3 * (upper / reg.sigma_px) ** 2
+                        else:
+                            cov3 = target_covariance(reg.T_cam_ct, covs[1], self.target_ct)
+                        p_wrong = exceed_probability(cov3, cfg.wrong_mm)
                         if p_wrong > cfg.max_wrong_probability:
                             ok, code = False, "tre_limit"
                             reason = (f"predicted error at the target {tre:.2f} mm, but it may exceed "
                                       f"{cfg.wrong_mm:g} mm (probability {100 * p_wrong:.2f} % > "
-                                      f"{100 * cfg.max_wrong_probability:g} %; image noise {sigma:.2f} px, "
+                                      f"{100 * cfg.max_wrong_probability:g} %; image noise {sigma:.2f} px{shading}, "
                                       f"{len(reg.pairs)} fiducials)")
             else:
                 self.pool.reset()
@@ -479,6 +507,41 @@ class PoseTracker:
             truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
             moved=new_moved, excluded=sorted(self.excluded), stages_s=stages,
             pooled_frames=n_pooled if ok else 0)
+
+    def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float):
+        """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with
+        the balls' shading error covered (``TrackerConfig.edge_bias_per_rms``,
+        ``edge_common_per_rms``): (with the noise estimate ``sigma_px``, with its upper bound
+        ``upper_px``, the median edge RMS px). Per matched ball the centre error per coordinate
+        is max(noise, ``edge_bias_per_rms`` x its edge RMS) (a weighted least-squares fit's
+        covariance ``H^-1 J^T V J H^-1``), plus a shift common to all balls of
+        ``edge_common_per_rms`` x their median edge RMS. None when off or when a matched ball has
+        no edge RMS (a detector without an edge fit): the residuals' noise alone decides."""
+        cfg = self.config
+        if cfg.edge_bias_per_rms <= 0 and cfg.edge_common_per_rms <= 0:
+            return None
+        rms = np.array([float(det.fiducials[i].features.get("edge_rms_px", np.nan)) for i, _ in reg.pairs])
+        if not len(rms) or not np.all(np.isfinite(rms)) or not (sigma_px > 0 and np.isfinite(upper_px)):
+            return None
+        from monotracker.registration import pnp_kernels
+
+        K = self.camera.K
+        T = reg.T_cam_ct
+        X = np.ascontiguousarray(self.fiducials_ct[[j for _, j in reg.pairs]], dtype=float)
+        k = len(X)
+        r, J = np.empty(2 * k), np.empty((2 * k, 6))              # J: px per pose parameter at the pose
+        pnp_kernels.residuals_and_jacobian(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), X,
+                                           np.zeros((k, 2)), float(K[0, 0]), float(K[1, 1]),
+                                           float(self.radius_mm or 0.0), np.empty(0), r, J)
+        A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
+        shade = np.repeat((cfg.edge_bias_per_rms * rms) ** 2, 2)
+        B = A.reshape(6, k, 2).sum(axis=1)                      # a shift shared by all balls
+        common = (cfg.edge_common_per_rms * float(np.median(rms))) ** 2 * (B @ B.T)
+
+        def cov(noise_px: float) -> np.ndarray:
+            return (A * np.maximum(noise_px**2, shade)) @ A.T + common
+
+        return cov(sigma_px), cov(upper_px), float(np.median(rms))
 
     def _pooled_trust(self, frame_index: int, reg, pts: np.ndarray, det, frame_sigma_px: float, new_moved: list,
                       usable: bool, ok: bool, code: str, reason: str):
