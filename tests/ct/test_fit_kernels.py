@@ -76,3 +76,53 @@ def test_detection_with_either_solver_gives_the_same_balls(monkeypatch):
     D = cdist(got.centres, ref.centres)
     assert D.min(axis=1).max() < 1e-3
     assert cdist(got.centres, ct.fiducial_centres_lps).min(axis=1).max() < 0.1
+
+
+_WARM_SCRIPT = """
+import numpy as np
+from monotracker.ct import fit_kernels, sphere_fit
+from monotracker.ct.fiducials import detect_fiducials
+from monotracker.ct.volume import Volume
+from monotracker.sim.ct_phantom import generate_ct, patch_scan_params
+from monotracker.sim.phantom import default_phantom
+
+assert not fit_kernels.robust_lm.signatures
+sphere_fit.warm_up()
+warm = set(fit_kernels.robust_lm.signatures)
+ct = generate_ct(default_phantom(), patch_scan_params(None, 7.0))
+det = detect_fiducials(Volume.from_image(ct.to_sitk()))
+assert det.ok, det.reason
+print(len(warm), len(set(fit_kernels.robust_lm.signatures) - warm))
+"""
+
+
+def test_warm_up_compiles_what_a_detection_runs(tmp_path):
+    """After :func:`sphere_fit.warm_up` a detection compiles nothing more: the warm-up passes
+    the fits the same argument types (a fresh process, numba's disk cache in an empty folder)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", _WARM_SCRIPT], env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    n_warm, n_new = (int(x) for x in out.stdout.split()[-2:])
+    assert n_warm >= 1 and n_new == 0
+
+
+def test_loading_a_ct_starts_the_warm_up(tmp_path):
+    """Loading a CT starts the fits' compilation on a background thread (once per process)."""
+    import SimpleITK as sitk
+
+    from monotracker.ct.volume import load_volume
+
+    img = sitk.GetImageFromArray(np.full((8, 8, 8), 40, np.int16))
+    sitk.WriteImage(img, str(tmp_path / "ct.nii.gz"))
+    try:
+        load_volume(tmp_path / "ct.nii.gz")
+    except Exception:  # noqa: BLE001 - the volume may be refused as not a head CT; the thread started before
+        pass
+    t = sphere_fit._warm_thread
+    assert t is not None and t.name == "ct-fit-warm-up"
+    t.join()
+    assert sphere_fit.warm_up_in_background() is t

@@ -7,6 +7,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import erfc
 
+import threading
+
 from monotracker.ct import fit_kernels
 
 _SQRT2 = np.sqrt(2.0)
@@ -236,3 +238,43 @@ def refine_on_surface(pts: np.ndarray, values: np.ndarray, ball: np.ndarray, f_s
         if best is not None and best[1] < 0.5 * f_scale:  # residuals at the noise level: no need for the other start
             break
     return best
+
+
+_warm_lock = threading.Lock()
+_warm_thread: threading.Thread | None = None
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's disk cache) the compiled fits for the argument types that
+    :func:`fit_blurred_sphere` and :func:`fit_ball_on_surface` pass during a detection, on a
+    small synthetic ball (~1 000 voxels, milliseconds once compiled). The first detection after
+    an install otherwise pays the compilation (a few seconds)."""
+    ax = np.arange(-4.0, 4.01, 0.8)
+    pts = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+    M = np.diag([0.8**2 / 12.0] * 3)
+    truth = np.r_[0.1, -0.1, 0.05, 2.0, 0.4, 2000.0, 0.0]
+    vals = _sphere_model(truth, pts, M)[0]
+    x0 = np.r_[0.0, 0.0, 0.0, 2.2, 0.4, 1800.0, 50.0]
+    fit_blurred_sphere(pts, vals, x0, 60.0, M, solver="compiled")
+    fit_blurred_sphere(pts, vals, x0, 60.0, None, solver="compiled")
+    xs = np.r_[x0[:6], 0.0, 40.0, 3.0, 0.0, 2.0]
+    for loss in ("soft_l1", "cauchy"):
+        fit_ball_on_surface(pts, vals, xs, 60.0, M, max_tissue_hu=1000.0, loss=loss, solver="compiled")
+
+
+def warm_up_in_background() -> threading.Thread:
+    """:func:`warm_up` on a daemon thread, once per process (later calls return the same
+    thread): started when a CT is loaded, so the compilation overlaps the reading of the
+    series instead of delaying the detection that follows. Errors are left to the detection
+    (which compiles the same code and reports them there)."""
+    global _warm_thread
+    with _warm_lock:
+        if _warm_thread is None:
+            def run():
+                try:
+                    warm_up()
+                except Exception:  # noqa: BLE001 - the detection compiles again and reports
+                    pass
+            _warm_thread = threading.Thread(target=run, name="ct-fit-warm-up", daemon=True)
+            _warm_thread.start()
+        return _warm_thread

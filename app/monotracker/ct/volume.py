@@ -294,6 +294,9 @@ def load_volume(path: str | Path, series: str | None = None) -> Volume:
             cm; sheared axes. A NIfTI without orientation loads, with a ``WARNING`` note.
     """
     p = Path(path).expanduser()
+    from monotracker.ct.sphere_fit import warm_up_in_background
+
+    warm_up_in_background()  # the fiducial fits compile while the series is read
     try:
         return _load_volume(p, series)
     except PermissionError as exc:
