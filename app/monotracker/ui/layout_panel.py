@@ -5,8 +5,8 @@ or full search, "Plan layout" / "Cancel", the job's progress, and what to expect
 error at the target, mean / 95 % / trusted share, with every ball seen and with the worst one
 hidden, for the suggestion and for the plan's fiducials; "N balls needed" when 95 % trusted is
 out of reach). The suggested positions are also drawn on the Plan step's slices and navigation
-views (:func:`suggested_balls`; ``ui/slices.py`` draws them). In the 3D view (CT frame, :meth:`LayoutPanel.render_scene`): the map of the
-predicted error at the target as coloured points on the head (one per candidate ball position:
+views (``ui/slices.py``: ``suggested_balls``, ``draw_suggested``). In the 3D view (CT frame,
+:meth:`LayoutPanel.render_scene`): the map of the predicted error at the target as coloured points on the head (one per candidate ball position:
 the error with the worst ball hidden if one suggested ball moved there; green = the smallest, red =
 the largest tenth, see the legend), the suggested positions as numbered balls, and the planned
 camera with its field of view and its line of sight to the head.
@@ -32,21 +32,6 @@ MM = 1e-3  # scene metres per millimetre (as ui/scene.py)
 MAP_TOP_QUANTILE = 0.9
 SUGGESTED_RGB = SUGGESTED_BGR[::-1]  # the same blue as on the slices
 CAMERA_RGB = SUGGESTED_RGB
-#: the steps whose slice views show the suggested balls (the layout is planned there)
-SUGGESTION_STEPS = ("plan",)
-
-
-def suggested_balls(snap, step: str):
-    """What the slice views of ``step`` ("ct" | "plan" | "robot") draw of the layout: (the suggested
-    ball centres, (n, 3) LPS mm, numbered 1..n in this order, or None; their ball radius mm).
-    None without a planned layout and outside :data:`SUGGESTION_STEPS` (at the Robot step the
-    slices show the balls that are on the head, not advice)."""
-    lay = getattr(snap, "layout", None)
-    if step not in SUGGESTION_STEPS or lay is None or not lay.ready:
-        return None, 4.0
-    return np.asarray(lay.balls_lps_mm, float), float(lay.radius_mm or 4.0)
-
-
 def error_colours(err_mm: np.ndarray, top: float = MAP_TOP_QUANTILE) -> tuple[np.ndarray, float, float]:
     """(m, 3) uint8 colours for the error map, and the (low, high) mm the scale runs over: green at
     the smallest finite error, yellow halfway, red at the ``top`` quantile of the finite errors and

@@ -29,8 +29,7 @@ import time
 import numpy as np
 
 from monotracker.ui import navigation as nav
-from monotracker.ui.layout_panel import suggested_balls
-from monotracker.ui.slices import volume_bounds_lps
+from monotracker.ui.slices import suggested_balls, volume_bounds_lps
 
 log = logging.getLogger(__name__)
 

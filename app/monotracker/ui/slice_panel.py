@@ -6,8 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from monotracker.ui.layout_panel import suggested_balls
-from monotracker.ui.slices import PLANES, render_slice, volume_bounds_lps
+from monotracker.ui.slices import PLANES, render_slice, suggested_balls, volume_bounds_lps
 
 
 class SlicePanel:

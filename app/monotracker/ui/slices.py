@@ -140,6 +140,21 @@ def draw_suggested(img, centres_lps, radius_mm: float, px, depth_mm, pixel_mm: f
     return drawn
 
 
+#: the steps whose slice views show the suggested balls (the layout is planned there)
+SUGGESTION_STEPS = ("plan",)
+
+
+def suggested_balls(snap, step: str):
+    """What the slice views of ``step`` ("ct" | "plan" | "robot") draw of the layout: (the suggested
+    ball centres, (n, 3) LPS mm, numbered 1..n in this order, or None; their ball radius mm).
+    None without a planned layout and outside :data:`SUGGESTION_STEPS` (at the Robot step the
+    slices show the balls that are on the head, not advice)."""
+    lay = getattr(snap, "layout", None)
+    if step not in SUGGESTION_STEPS or lay is None or not lay.ready:
+        return None, 4.0
+    return np.asarray(lay.balls_lps_mm, float), float(lay.radius_mm or 4.0)
+
+
 def volume_bounds_lps(volume) -> tuple[np.ndarray, np.ndarray]:
     """LPS bounding box (min, max) mm of the volume's voxel centres."""
     nz, ny, nx = volume.array.shape
