@@ -6,10 +6,11 @@ error at the target, mean / 95 % / trusted share, with every ball seen and with 
 hidden, for the suggestion and for the plan's fiducials; "N balls needed" when 95 % trusted is
 out of reach). The suggested positions are also drawn on the Plan step's slices and navigation
 views (``ui/slices.py``: ``suggested_balls``, ``draw_suggested``). In the 3D view (CT frame,
-:meth:`LayoutPanel.render_scene`): the map of the predicted error at the target as coloured points on the head (one per candidate ball position:
-the error with the worst ball hidden if one suggested ball moved there; green = the smallest, red =
-the largest tenth, see the legend), the suggested positions as numbered balls, and the planned
-camera with its field of view and its line of sight to the head.
+:meth:`LayoutPanel.render_scene`): the map of the predicted error at the target as coloured
+points on the head (one per candidate ball position: the error with the worst ball hidden if one
+suggested ball moved there; green = the smallest, red = the largest tenth, see the legend), the
+suggested positions as numbered balls, and the planned camera with its field of view and its
+line of sight to the head.
 
 At the Register step (:func:`placement_line`): "camera is N mm / N deg from the planned
 placement; predicted error X mm" while a layout exists and the pose is trusted.
