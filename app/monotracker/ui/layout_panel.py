@@ -4,11 +4,13 @@ At the Plan step (:class:`LayoutPanel`, built inside the step's folder): the bal
 or full search, "Plan layout" / "Cancel", the job's progress, and what to expect (predicted
 error at the target, mean / 95 % / trusted share, with every ball seen and with the worst one
 hidden, for the suggestion and for the plan's fiducials; "N balls needed" when 95 % trusted is
-out of reach). In the 3D view (CT frame, :meth:`LayoutPanel.render_scene`): the map of the
-predicted error at the target as coloured points on the head (one per candidate ball position:
-the error with the worst ball hidden if one suggested ball moved there; green = the smallest, red =
-the largest tenth, see the legend), the suggested positions as numbered balls, and the planned
-camera with its field of view and its line of sight to the head.
+out of reach). The suggested positions are also drawn on the Plan step's slices and navigation
+views (``ui/slices.py``: ``suggested_balls``, ``draw_suggested``). In the 3D view (CT frame,
+:meth:`LayoutPanel.render_scene`): the map of the predicted error at the target as coloured
+points on the head (one per candidate ball position: the error with the worst ball hidden if one
+suggested ball moved there; green = the smallest, red = the largest tenth, see the legend), the
+suggested positions as numbered balls, and the planned camera with its field of view and its
+line of sight to the head.
 
 At the Register step (:func:`placement_line`): "camera is N mm / N deg from the planned
 placement; predicted error X mm" while a layout exists and the pose is trusted.
@@ -23,15 +25,14 @@ import numpy as np
 
 from monotracker.engine.layout_job import placement_offset
 from monotracker.ui import status as st
+from monotracker.ui.slices import SUGGESTED_BGR
 from monotracker.ui.status import fmt
 
 MM = 1e-3  # scene metres per millimetre (as ui/scene.py)
 #: colours of the error map: green (the smallest error) -> yellow -> red (this quantile and above)
 MAP_TOP_QUANTILE = 0.9
-SUGGESTED_RGB = (30, 90, 230)
-CAMERA_RGB = (30, 90, 230)
-
-
+SUGGESTED_RGB = SUGGESTED_BGR[::-1]  # the same blue as on the slices
+CAMERA_RGB = SUGGESTED_RGB
 def error_colours(err_mm: np.ndarray, top: float = MAP_TOP_QUANTILE) -> tuple[np.ndarray, float, float]:
     """(m, 3) uint8 colours for the error map, and the (low, high) mm the scale runs over: green at
     the smallest finite error, yellow halfway, red at the ``top`` quantile of the finite errors and

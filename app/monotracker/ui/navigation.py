@@ -35,7 +35,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from monotracker.engine.config import SessionConfig
-from monotracker.ui.slices import STATUS_BGR, direction_letters, window_hu
+from monotracker.ui.slices import STATUS_BGR, direction_letters, draw_suggested, window_hu
 
 ORTHO = ("axial", "coronal", "sagittal")
 PROBE = ("probe", "along")
@@ -250,10 +250,12 @@ def draw_letters(img, letters: dict, scale: float = 0.9) -> None:
 
 def render_view(hu: np.ndarray, view: PlaneView, *, width: float, level: float, entry=None, target=None,
                 tip=None, tip_axis=None, fiducials=(), near_mm: float = 6.0, scale: int = 2,
-                title: str | None = None) -> np.ndarray:
+                title: str | None = None, suggested=None, suggested_radius_mm: float = 4.0) -> np.ndarray:
     """RGB uint8 (scale*size)^2 image of one view: ``hu`` windowed (``width``/``level`` HU), the
     orientation letters, the path (entry cyan +, target magenta x, line between, projected on the
-    plane), the tip (yellow ring, its axis 20 mm) and fiducials within ``near_mm`` of the plane."""
+    plane), the tip (yellow ring, its axis 20 mm), fiducials within ``near_mm`` of the plane and
+    the layout planner's suggested ball centres ``suggested`` ((n, 3) LPS mm or None; blue, S1..Sn;
+    ball radius ``suggested_radius_mm``) within ``near_mm`` of it."""
     grey = window_hu(hu, level=level, width=width)
     img = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     if scale != 1:
@@ -272,6 +274,7 @@ def render_view(hu: np.ndarray, view: PlaneView, *, width: float, level: float, 
         c = px(f.centre_lps_mm)
         cv2.circle(img, c, rad, col, 2, cv2.LINE_AA)
         _text(img, str(f.id), (c[0] + rad + 2, c[1] - rad), 0.6, col)
+    draw_suggested(img, suggested, suggested_radius_mm, px, view.depth, view.pixel_mm, s, near_mm)
     if entry is not None and target is not None:
         cv2.line(img, px(entry), px(target), PATH_BGR, 2, cv2.LINE_AA)
         if view.name == "probe":  # where the path pierces this plane (its centre): a ring

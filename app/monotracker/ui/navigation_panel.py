@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from monotracker.ui import navigation as nav
-from monotracker.ui.slices import volume_bounds_lps
+from monotracker.ui.slices import suggested_balls, volume_bounds_lps
 
 log = logging.getLogger(__name__)
 
@@ -226,8 +226,10 @@ class NavigationScene:
             aspect = 1.5
         cols, rows = grid(len(views), aspect)
         r2 = lambda a: None if a is None else tuple(np.round(np.asarray(a, float), 2))
+        sug, sug_r = suggested_balls(snap, panel.key)
         key = (gen, panel.key, r2(np_.point), r2(np_.tip_axis), np_.source, r2(e), r2(t), width, level, cols,
-               tuple((f.id, f.status, r2(f.centre_lps_mm)) for f in snap.fiducials))
+               tuple((f.id, f.status, r2(f.centre_lps_mm)) for f in snap.fiducials),
+               None if sug is None else (sug.round(2).tobytes(), sug_r))
         with self._lock:
             same = key == self._key and self._shown == panel.key
             note_changed = np_.note != self._note
@@ -241,7 +243,8 @@ class NavigationScene:
         for name, v in views.items():
             hu = self._hu(vol, v)
             images[name] = nav.render_view(hu, v, width=width, level=level, entry=e, target=t, tip=np_.tip,
-                                           tip_axis=np_.tip_axis, fiducials=snap.fiducials)
+                                           tip_axis=np_.tip_axis, fiducials=snap.fiducials, suggested=sug,
+                                           suggested_radius_mm=sug_r)
         with self.scene_lock:
             active, *_ = panel.state()
             if not active:

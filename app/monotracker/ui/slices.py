@@ -11,7 +11,8 @@ Display conventions (radiological, as CT viewers show them):
 * sagittal (x = const): image right = posterior (+y), image down = inferior (-z).
 
 Fiducials within ``near_mm`` of a plane are drawn as numbered circles (green confirmed/added,
-yellow detected, red rejected); the planned path is drawn projected onto each plane (entry
+yellow detected, red rejected), the layout planner's suggested ball positions (issue 31) as blue
+circles labelled S1..Sn (:func:`draw_suggested`, shared with the navigation views); the planned path is drawn projected onto each plane (entry
 cyan, target magenta), solid where it is within ``near_mm`` of the plane.
 """
 
@@ -61,6 +62,9 @@ def edge_letters(plane: str) -> dict:
 #: (image-column axis, image-row axis, row direction sign) in LPS index 0=x 1=y 2=z per plane.
 _AXES = {"axial": (0, 1, +1, 2), "coronal": (0, 2, -1, 1), "sagittal": (1, 2, -1, 0)}
 
+#: the layout planner's suggested balls, as in the 3D view (blue; ui/layout_panel.py draws them there)
+SUGGESTED_BGR = (230, 90, 30)
+
 STATUS_BGR = {
     "confirmed": (80, 220, 80),
     "added": (80, 220, 80),
@@ -108,6 +112,49 @@ class SliceGeometry:
         return np.abs(np.atleast_2d(np.asarray(p_lps, float))[:, n] - self.point_lps[n])
 
 
+def draw_suggested(img, centres_lps, radius_mm: float, px, depth_mm, pixel_mm: float, scale: float,
+                   near_mm: float = 6.0) -> int:
+    """Draw the suggested ball positions ``centres_lps`` ((n, 3) LPS mm, numbered 1..n in this order)
+    within ``near_mm`` of the image's plane on ``img`` (BGR, in place) as blue circles
+    ``radius_mm + 2`` mm wide (as the fiducials) with a filled centre dot and the label "S<k>"
+    left of the circle (fiducial ids sit right of theirs, so a kept fiducial shows both).
+    ``px(p)`` maps an LPS point to the image's (col, row) px, ``depth_mm(p)`` gives its signed or
+    absolute distance to the plane (mm); ``pixel_mm`` mm per unscaled pixel, ``scale`` the image's
+    upscale. Returns how many were drawn."""
+    drawn = 0
+    if centres_lps is None:
+        return 0
+    rad = max(4, int(round((float(radius_mm) + 2.0) / pixel_mm * scale)))
+    for k, p in enumerate(np.asarray(centres_lps, float).reshape(-1, 3)):
+        if abs(float(np.ravel(depth_mm(p))[0])) > near_mm:
+            continue
+        c = px(p)
+        cv2.circle(img, c, rad, SUGGESTED_BGR, 2, cv2.LINE_AA)
+        cv2.circle(img, c, 2, SUGGESTED_BGR, -1, cv2.LINE_AA)
+        label = f"S{k + 1}"
+        (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 2)
+        org = (c[0] - rad - 2 - tw, c[1] - rad)
+        cv2.putText(img, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.putText(img, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, SUGGESTED_BGR, 2, cv2.LINE_AA)
+        drawn += 1
+    return drawn
+
+
+#: the steps whose slice views show the suggested balls (the layout is planned there)
+SUGGESTION_STEPS = ("plan",)
+
+
+def suggested_balls(snap, step: str):
+    """What the slice views of ``step`` ("ct" | "plan" | "robot") draw of the layout: (the suggested
+    ball centres, (n, 3) LPS mm, numbered 1..n in this order, or None; their ball radius mm).
+    None without a planned layout and outside :data:`SUGGESTION_STEPS` (at the Robot step the
+    slices show the balls that are on the head, not advice)."""
+    lay = getattr(snap, "layout", None)
+    if step not in SUGGESTION_STEPS or lay is None or not lay.ready:
+        return None, 4.0
+    return np.asarray(lay.balls_lps_mm, float), float(lay.radius_mm or 4.0)
+
+
 def volume_bounds_lps(volume) -> tuple[np.ndarray, np.ndarray]:
     """LPS bounding box (min, max) mm of the volume's voxel centres."""
     nz, ny, nx = volume.array.shape
@@ -145,12 +192,15 @@ def window_hu(hu: np.ndarray, level: float = 300.0, width: float = 2000.0) -> np
 
 
 def render_slice(volume, plane: str, point_lps, fiducials=(), entry=None, target=None, *,
-                 pixel_mm: float = 1.0, near_mm: float = 6.0, scale: int = 2) -> tuple[np.ndarray, SliceGeometry]:
+                 pixel_mm: float = 1.0, near_mm: float = 6.0, scale: int = 2, suggested=None,
+                 suggested_radius_mm: float = 4.0) -> tuple[np.ndarray, SliceGeometry]:
     """RGB uint8 image of one plane with fiducials and path drawn, and its geometry.
 
     ``fiducials``: objects with ``id``, ``centre_lps_mm``, ``radius_mm``, ``status`` (the
     engine's snapshot ``Fiducial``). ``entry``/``target``: LPS mm or None. ``scale``: the grey
     image is upscaled by this integer factor before drawing so labels stay legible.
+    ``suggested``: (n, 3) LPS mm, the layout planner's suggested ball centres (S1..Sn) or None;
+    ``suggested_radius_mm`` their ball radius.
     """
     geom = slice_geometry(volume, plane, point_lps, pixel_mm)
     grey = window_hu(sample_slice(volume, geom))
@@ -171,6 +221,7 @@ def render_slice(volume, plane: str, point_lps, fiducials=(), entry=None, target
         c = px(f.centre_lps_mm)
         cv2.circle(img, c, rad, col, 2, cv2.LINE_AA)
         cv2.putText(img, str(f.id), (c[0] + rad + 2, c[1] - rad), cv2.FONT_HERSHEY_SIMPLEX, 0.6, col, 2, cv2.LINE_AA)
+    draw_suggested(img, suggested, suggested_radius_mm, px, geom.distance_to_plane, geom.pixel_mm, s, near_mm)
     if entry is not None and target is not None:
         e, t = px(entry), px(target)
         cv2.line(img, e, t, (255, 255, 0), 2, cv2.LINE_AA)
