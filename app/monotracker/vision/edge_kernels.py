@@ -538,9 +538,14 @@ def shaped_fits(P, valid, usable, ratio, major_deg, min_share, blur_px, window_s
 @_compiled
 def ray_geometry(cx, cy, d1, d2, ang_deg, k, blur_px, img_h, img_w):
     """The rays of m balls given by their coarse OpenCV ellipses (centre ``cx``, ``cy`` px, full
-    axes ``d1``, ``d2`` px, ``ang_deg``), as :func:`.edge_fit._edge_points` lays them out for blur
-    ``blur_px`` px and ``k`` samples per ray: (counts (m,) rays per ball, 0 for a ball whose
-    window leaves the ``img_h`` x ``img_w`` image; boxes (m, 4) int x0, y0, x1, y1 of each ball's
+    axes ``d1``, ``d2`` px, ``ang_deg``), for blur ``blur_px`` px and ``k`` samples per ray: the
+    edge fit's one ray layout (both bodies of :func:`.edge_fit._edge_points` take it from here,
+    through ``edge_fit._ray_layout``). Per ball n = clip(2 pi a / 1.6, 32, 96) rays (a the
+    semi-major axis) at angles 2 pi i / n from +x towards +y; each starts ``w_in`` px inside the
+    ellipse and ends ``w_out`` = 3 + b / 4 + ``blur_px`` px outside it (b the semi-minor axis),
+    w_in = min(w_out, 0.65 x the shortest ray radius), k samples ``step`` apart; the window is
+    the ball's square of half side ceil(a + w_out + 2) around floor(centre) (+2 on the far
+    side). Returns (counts (m,) rays per ball, 0 for a ball whose window leaves the ``img_h`` x ``img_w`` image; boxes (m, 4) int x0, y0, x1, y1 of each ball's
     window; w_in (m,) px; step (m,) px per sample; phi (N,) ray direction rad; s0 (N,) px from
     the centre to each ray's first sample). N = counts.sum()."""
     m = len(cx)
