@@ -195,3 +195,30 @@ def test_compiled_ray_sampling_equals_remap(optics):
         assert prof.shape == ref.shape
         assert np.abs(prof - ref).max() < 1e-5
         assert np.abs(prof_e - ref_e).max() < 2e-4
+
+
+def test_contour_fit_rms_is_the_radial_deviation_about_its_mean():
+    """edge_kernels.contour_fit_rms (score_blob's fit term) against the formula written out here
+    with NumPy: a pixel contour of a dented ellipse, its OpenCV fit, each point's (rho - 1)
+    sqrt(a b) with rho the point's normalised radius in the ellipse's axes, RMS about the mean."""
+    import cv2
+
+    from monotracker.vision import edge_kernels
+
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        img = np.zeros((120, 140), np.uint8)
+        c = (int(rng.integers(50, 90)), int(rng.integers(45, 75)))
+        cv2.ellipse(img, c, (int(rng.integers(12, 30)), int(rng.integers(10, 25))), float(rng.uniform(0, 180)), 0, 360,
+                    255, -1)
+        cv2.circle(img, (c[0] + 15, c[1]), 6, 0, -1)                      # a dent
+        cnt = max(cv2.findContours(img, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0], key=len)
+        (ex, ey), (d1, d2), ang = cv2.fitEllipse(cnt)
+        p = cnt.reshape(-1, 2) - [ex, ey]
+        th = np.radians(ang)
+        u = p[:, 0] * np.cos(th) + p[:, 1] * np.sin(th)
+        v = -p[:, 0] * np.sin(th) + p[:, 1] * np.cos(th)
+        dev = (np.hypot(u / (d1 / 2), v / (d2 / 2)) - 1.0) * np.sqrt(d1 * d2 / 4)
+        want = np.std(dev)
+        assert edge_kernels.contour_fit_rms(cnt, ex, ey, d1, d2, ang) == pytest.approx(want, rel=1e-12)
+        assert want > 0.1

@@ -162,8 +162,16 @@ def _ray_radius(axes, angle_deg, phi):
 
 
 def _ellipse_residuals(pts, ell):
-    """Approximate signed distance (px) of points from an OpenCV ellipse ((cx, cy), (d1, d2), ang)."""
+    """Approximate signed distance (px) of points from an OpenCV ellipse ((cx, cy), (d1, d2), ang);
+    compiled (:func:`.edge_kernels.ellipse_residuals`, the same arithmetic: ~3 us instead of ~40 us
+    a call, ~20 calls a frame) unless :data:`COMPILED` is False."""
     (cx, cy), (d1, d2), ang = ell
+    if COMPILED:
+        pts = np.asarray(pts, np.float64).reshape(-1, 2)
+        out = np.empty(len(pts))
+        edge_kernels.ellipse_residuals(pts[:, 0], pts[:, 1], float(cx), float(cy), float(d1), float(d2),
+                                       float(ang), out)
+        return out
     th = np.radians(ang)
     c, s = np.cos(th), np.sin(th)
     q = pts - [cx, cy]
