@@ -152,3 +152,28 @@ def test_balls_inside_a_ball_coloured_drape_are_found():
     assert len(d.fiducials) >= 3                                        # (none before)
     j, err = _match(d.centres, tr.ellipse_centres_px, tol=3.0)
     assert err.max() < 0.3
+
+
+def test_windows_masked_in_one_mosaic_equal_each_window_masked_alone():
+    """The window search's colour masks, made in one go from the windows stacked into a mosaic
+    (ClassicalDetector._window_masks), equal mask() of each window on its own (its own opening,
+    OpenCV's border), on a photo-like frame with windows on and beside the balls, at the image's
+    corners and overlapping each other, and for a red band that wraps through hue 0."""
+    cam = SimulatedCamera(seed=4, optics="photo")
+    img, tr = cam.render(0.3)
+    h, w = img.shape[:2]
+    rng = np.random.default_rng(1)
+    boxes = [(int(c[0]) - 30, int(c[1]) - 25, int(c[0]) + 27, int(c[1]) + 33) for c in tr.ellipse_centres_px]
+    boxes += [(0, 0, 41, 17), (w - 50, h - 60, w, h), (0, h - 3, 5, h)]
+    boxes += [tuple(int(v) for v in (x, y, x + rng.integers(3, 90), y + rng.integers(3, 90)))
+              for x, y in zip(rng.integers(0, w - 90, 6), rng.integers(0, h - 90, 6))]
+    boxes = [(max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)) for x0, y0, x1, y1 in boxes]
+    det = ClassicalDetector()
+    n_set = 0
+    for hue in ((35, 90), (170, 10)):
+        det.hue_lo, det.hue_hi = hue
+        for (x0, y0, x1, y1), got in zip(boxes, det._window_masks(img, boxes)):
+            ref = det.mask(img[y0:y1, x0:x1])
+            assert got.shape == ref.shape and np.array_equal(got, ref), (x0, y0, x1, y1)
+            n_set += int(got.any())
+    assert n_set >= 9

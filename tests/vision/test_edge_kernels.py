@@ -99,29 +99,65 @@ def test_compiled_edges_equal_the_reference_on_independent_renders():
     assert n_diff <= 0.01 * n_rays, (n_diff, n_rays)
 
 
-def _reference_profiles(img, balls, blur_px, smooth):
-    """The ray profiles as edge_fit._edge_points' NumPy body makes them (cv2.remap per ball,
-    chroma smoothed along the rays with NumPy), for the balls inside the image."""
+def test_ray_layout_hand_checked():
+    """edge_kernels.ray_geometry (the edge fit's one ray layout) against values worked out by
+    hand from its rule, and each ray's crossing of the ellipse checked with the ellipse's own
+    equation in its axes' frame."""
+    from monotracker.vision import edge_kernels
+
+    k, blur = 48, 1.5
+    # (cx, cy, d1, d2, angle deg): a circle of radius 10, an ellipse 20 x 15 at 30 deg, a small
+    # ball (radius 4: the 32-ray floor, w_in = 0.65 r), a big one (radius 40: the 96-ray cap),
+    # and one whose window leaves the 300 x 200 image
+    e = np.array([(100.3, 80.7, 20.0, 20.0, 0.0), (150.0, 100.0, 40.0, 30.0, 30.0), (40.5, 40.5, 8.0, 8.0, 0.0),
+                  (200.0, 100.0, 80.0, 80.0, 0.0), (3.0, 100.0, 20.0, 20.0, 0.0)])
+    counts, boxes, w_in, step, phi, s0 = edge_kernels.ray_geometry(e[:, 0], e[:, 1], e[:, 2], e[:, 3], e[:, 4],
+                                                                   k, blur, 200, 300)
+    # rays: int(2 pi 10 / 1.6) = 39, int(2 pi 20 / 1.6) = 78, 2 pi 4 / 1.6 = 15.7 -> 32, 157 -> 96
+    assert counts.tolist() == [39, 78, 32, 96, 0]
+    # w_out = 3 + b / 4 + blur: 7.0, 8.25, 5.5, 14.5; w_in = min(w_out, 0.65 r_min): 6.5, 8.25, 2.6, 14.5
+    w_out = np.array([7.0, 8.25, 5.5, 14.5])
+    assert w_in[:4] == pytest.approx([6.5, 8.25, 2.6, 14.5])
+    assert step[:4] == pytest.approx((w_in[:4] + w_out) / 47)
+    # the circle's window: half side ceil(10 + 7 + 2) = 19 around (100, 80), +2 on the far side
+    assert boxes[0].tolist() == [81, 61, 121, 101]
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    for b in range(4):
+        n = counts[b]
+        ph, st = phi[first[b]:first[b] + n], s0[first[b]:first[b] + n]
+        assert ph == pytest.approx(np.arange(n) * 2 * np.pi / n)
+        # each ray crosses the ellipse w_in px after its start: (u / a)^2 + (v / b)^2 = 1 there
+        r = st + w_in[b]
+        th = np.radians(e[b, 4])
+        u = r * np.cos(ph) * np.cos(th) + r * np.sin(ph) * np.sin(th)
+        v = -r * np.cos(ph) * np.sin(th) + r * np.sin(ph) * np.cos(th)
+        assert (u / (e[b, 2] / 2)) ** 2 + (v / (e[b, 3] / 2)) ** 2 == pytest.approx(np.ones(n))
+        # ... and ends w_out beyond it; every sample's 2 x 2 bilinear neighbourhood inside the window
+        assert st + (k - 1) * step[b] == pytest.approx(r + w_out[b])
+        x0, y0, x1, y1 = boxes[b]
+        for s in (st, st + (k - 1) * step[b]):
+            x, y = e[b, 0] + s * np.cos(ph), e[b, 1] + s * np.sin(ph)
+            assert x.min() >= x0 and x.max() < x1 - 1 and y.min() >= y0 and y.max() < y1 - 1
+    assert len(phi) == len(s0) == counts.sum()
+
+
+def _reference_profiles(img, balls, layout, smooth):
+    """The ray profiles of the rays ``layout`` (edge_kernels.ray_geometry's, checked by hand in
+    test_ray_layout_hand_checked) as edge_fit._edge_points' NumPy body samples them (cv2.remap
+    per ball, chroma smoothed along the rays with NumPy), for the balls inside the image."""
     import cv2
 
     k = edge_fit.SAMPLES
+    counts, boxes, _w_in, step_b, phi_all, s0_all = layout
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
     profs, sprofs = [], []
-    for (cx, cy), (d1, d2), ang in balls:
-        axes = (d1 / 2, d2 / 2)
-        a, b = max(axes), min(axes)
-        n_rays = int(np.clip(2 * np.pi * a / 1.6, 32, 96))
-        phi = np.linspace(0, 2 * np.pi, n_rays, endpoint=False)
-        r = edge_fit._ray_radius(axes, ang, phi)
-        w_out = 3.0 + 0.25 * b + blur_px
-        w_in = min(w_out, 0.65 * float(r.min()))
-        step = (w_in + w_out) / (k - 1)
-        m = int(np.ceil(a + w_out + 2))
-        x0, y0 = int(np.floor(cx)) - m, int(np.floor(cy)) - m
-        x1, y1 = int(np.floor(cx)) + m + 2, int(np.floor(cy)) + m + 2
-        if x0 < 0 or y0 < 0 or x1 > img.shape[1] or y1 > img.shape[0]:
+    for i, ((cx, cy), _axes, _ang) in enumerate(balls):
+        if counts[i] == 0:
             continue
+        phi, s0, step = phi_all[first[i]:first[i] + counts[i]], s0_all[first[i]:first[i] + counts[i]], step_b[i]
+        x0, y0, x1, y1 = boxes[i]
         roi = img[y0:y1, x0:x1]
-        s = (r - w_in)[:, None] + (np.arange(k) * step)[None, :]
+        s = s0[:, None] + (np.arange(k) * step)[None, :]
         mx = (cx - x0 + s * np.cos(phi)[:, None]).astype(np.float32)
         my = (cy - y0 + s * np.sin(phi)[:, None]).astype(np.float32)
         profs.append(cv2.remap(edge_fit.LINEAR_LUT[roi], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
@@ -133,9 +169,10 @@ def _reference_profiles(img, balls, blur_px, smooth):
 
 @pytest.mark.parametrize("optics", ["photo", None])
 def test_compiled_ray_sampling_equals_remap(optics):
-    """edge_kernels.ray_geometry + sample_rays (the compiled sampling of the edge fit's rays)
-    give the profiles of cv2.remap and the NumPy chroma smoothing: the same rays, the same
-    samples (OpenCV's 1/32 px bilinear), to float32 rounding; balls near the border left out."""
+    """edge_kernels.sample_rays (the compiled sampling of the edge fit's rays) gives the profiles
+    of cv2.remap and the NumPy chroma smoothing on the same rays (the layout is checked by hand
+    in test_ray_layout_hand_checked): the same samples (OpenCV's 1/32 px bilinear), to float32
+    rounding; balls near the border left out."""
     from monotracker.vision import edge_kernels
 
     cam = SimulatedCamera(seed=2, optics=optics)
@@ -147,13 +184,41 @@ def test_compiled_ray_sampling_equals_remap(optics):
     balls.append(((3.0, 200.0), (20.0, 20.0), 0.0))                   # its window leaves the image
     e = np.array([(c[0], c[1], d[0], d[1], a) for c, d, a in balls])
     for blur in (1.2, 2.5):
-        counts, boxes, _w, step, phi, s0 = edge_kernels.ray_geometry(e[:, 0], e[:, 1], e[:, 2], e[:, 3], e[:, 4],
-                                                                     edge_fit.SAMPLES, blur, *img.shape[:2])
+        layout = edge_kernels.ray_geometry(e[:, 0], e[:, 1], e[:, 2], e[:, 3], e[:, 4], edge_fit.SAMPLES, blur,
+                                           *img.shape[:2])
+        counts, boxes, _w, step, phi, s0 = layout
         assert counts[-1] == 0 and (counts[:-1] >= 32).all()
         prof, prof_e = edge_kernels.sample_rays(img, edge_fit.LINEAR_LUT, edge_fit.COLOUR_WEIGHTS, e[:, 0], e[:, 1],
                                                 counts, boxes, step, phi, s0, edge_fit.SAMPLES, True,
                                                 edge_fit.CHROMA_SIGMA_PX, edge_kernels.fine_lut())
-        ref, ref_e = _reference_profiles(img, balls, blur, True)
+        ref, ref_e = _reference_profiles(img, balls, layout, True)
         assert prof.shape == ref.shape
         assert np.abs(prof - ref).max() < 1e-5
         assert np.abs(prof_e - ref_e).max() < 2e-4
+
+
+def test_contour_fit_rms_is_the_radial_deviation_about_its_mean():
+    """edge_kernels.contour_fit_rms (score_blob's fit term) against the formula written out here
+    with NumPy: a pixel contour of a dented ellipse, its OpenCV fit, each point's (rho - 1)
+    sqrt(a b) with rho the point's normalised radius in the ellipse's axes, RMS about the mean."""
+    import cv2
+
+    from monotracker.vision import edge_kernels
+
+    rng = np.random.default_rng(8)
+    for _ in range(5):
+        img = np.zeros((120, 140), np.uint8)
+        c = (int(rng.integers(50, 90)), int(rng.integers(45, 75)))
+        cv2.ellipse(img, c, (int(rng.integers(12, 30)), int(rng.integers(10, 25))), float(rng.uniform(0, 180)), 0, 360,
+                    255, -1)
+        cv2.circle(img, (c[0] + 15, c[1]), 6, 0, -1)                      # a dent
+        cnt = max(cv2.findContours(img, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)[0], key=len)
+        (ex, ey), (d1, d2), ang = cv2.fitEllipse(cnt)
+        p = cnt.reshape(-1, 2) - [ex, ey]
+        th = np.radians(ang)
+        u = p[:, 0] * np.cos(th) + p[:, 1] * np.sin(th)
+        v = -p[:, 0] * np.sin(th) + p[:, 1] * np.cos(th)
+        dev = (np.hypot(u / (d1 / 2), v / (d2 / 2)) - 1.0) * np.sqrt(d1 * d2 / 4)
+        want = np.std(dev)
+        assert edge_kernels.contour_fit_rms(cnt, ex, ey, d1, d2, ang) == pytest.approx(want, rel=1e-12)
+        assert want > 0.1

@@ -79,6 +79,23 @@ def _principal_spread(X: np.ndarray) -> np.ndarray:
     return np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
 
 
+#: the CT fiducials' own checks (:func:`_ct_geometry`) of the last few fiducial sets: a tracker
+#: registers the same set every frame (~0.2 ms of the frame's budget each time; issue 29)
+_CT_GEOMETRY: dict = {}
+
+
+def _ct_geometry(X: np.ndarray) -> tuple:
+    """(closest pair of CT fiducials (i, j, mm), principal spread) of ``X`` (n, 3) mm, kept for
+    the last 8 fiducial sets (keyed by their values)."""
+    key = (X.shape, X.tobytes())
+    got = _CT_GEOMETRY.get(key)
+    if got is None:
+        if len(_CT_GEOMETRY) >= 8:
+            _CT_GEOMETRY.clear()
+        got = _CT_GEOMETRY[key] = (_closest_pair(X), _principal_spread(X))
+    return got
+
+
 def _input_problem(X, pts, K, dist, radius_mm) -> str:
     """The reason of the first failed check, in checklist order; "" when every check passes.
 
@@ -107,13 +124,12 @@ def _input_problem(X, pts, K, dist, radius_mm) -> str:
         return f"only {len(X)} CT fiducials; need at least 4"
     if len(pts) < 4:
         return f"only {len(pts)} image points; need at least 4 fiducials in view"
-    i, j, d = _closest_pair(X)
+    (i, j, d), spread = _ct_geometry(X)
     if d < DUPLICATE_MM:
         return f"CT fiducials {i} and {j} coincide (duplicate points)"
     i, j, d = _closest_pair(pts)
     if d < DUPLICATE_PX:
         return f"image points {i} and {j} coincide (duplicate points)"
-    spread = _principal_spread(X)
     if spread[1] < COPLANAR_RATIO * spread[0]:
         return "CT fiducials are collinear: the pose is not determined"
     if spread[2] < COPLANAR_RATIO * spread[0]:

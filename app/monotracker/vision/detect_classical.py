@@ -121,6 +121,32 @@ class ClassicalDetector:
                                           "extends beyond its search window (larger than a ball?)"))
         return contours, rejected
 
+    def _window_masks(self, image: np.ndarray, boxes: list) -> list:
+        """:meth:`mask` of each window (x0, y0, x1, y1 px) of ``image``, as if each were masked on
+        its own (the opening's border left as OpenCV leaves an image's), in one colour conversion,
+        one threshold, one erosion and one dilation of the windows stacked into a mosaic (one
+        call per window cost ~50-100 us of overhead each, 9 windows a frame; issue 29). Between
+        and beside the windows lies padding that counts as set for the erosion and as unset for
+        the dilation: OpenCV's default border for each (a window's pixels never see another's)."""
+        w_max = max(x1 - x0 for x0, _y0, x1, _y1 in boxes)
+        rows = sum(y1 - y0 + 1 for _x0, y0, _x1, y1 in boxes) + 1
+        mosaic = np.zeros((rows, w_max + 2, 3), np.uint8)
+        pad = np.ones((rows, w_max + 2), bool)
+        at, places = 1, []
+        for x0, y0, x1, y1 in boxes:
+            h_, w_ = y1 - y0, x1 - x0
+            mosaic[at:at + h_, 1:1 + w_] = image[y0:y1, x0:x1]
+            pad[at:at + h_, 1:1 + w_] = False
+            places.append((at, h_, w_))
+            at += h_ + 1
+        band = BallColour(self.hue_lo, self.hue_hi, self.sat_min, self.val_min).mask(mosaic)
+        band[pad] = 255
+        kernel = np.ones((3, 3), np.uint8)
+        band = cv2.erode(band, kernel)
+        band[pad] = 0
+        band = cv2.dilate(band, kernel)
+        return [band[a:a + h_, 1:1 + w_] for a, h_, w_ in places]
+
     def _contours_in(self, image: np.ndarray, boxes: list) -> tuple[list, set, list]:
         """Blobs of the colour mask inside ``boxes`` (x0, y0, x1, y1 px): (whole contours,
         indices of the boxes a blob leaves through an edge that is not the image's, those
@@ -144,8 +170,7 @@ class ClassicalDetector:
             # one colour conversion of the windows' bounding box costs less than one per window
             cv2.bitwise_and(self.mask(image[Y0:Y1, X0:X1]), inside, dst=mask)
         else:
-            for x0, y0, x1, y1 in boxes:
-                sub = self.mask(image[y0:y1, x0:x1])
+            for (x0, y0, x1, y1), sub in zip(boxes, self._window_masks(image, boxes)):
                 np.maximum(mask[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0], sub, out=mask[y0 - Y0:y1 - Y0, x0 - X0:x1 - X0])
         whole, cut, cut_boxes = [], [], set()
         for cnt in blob_contours(mask, (X0, Y0)):

@@ -35,13 +35,14 @@ Candidates scoring below ``min_score`` are rejected with their reason.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from . import edge_fit
+from . import edge_fit, edge_kernels
 from .edge_fit import fit_ball_edges, measure_edge_blur
 from .sphere_outline import expected_shapes
 
@@ -135,17 +136,20 @@ class DetectionHint:
 
     @classmethod
     def from_pose(cls, camera, T_cam_ct: np.ndarray, centres_ct, radius_mm: float, frame_index: int = -1,
-                  age_frames: int = 1, fiducial_indices=None, search_all: bool = False) -> "DetectionHint":
+                  age_frames: int = 1, fiducial_indices=None, search_all: bool = False,
+                  ellipses=None) -> "DetectionHint":
         """The image ellipses of spheres of ``radius_mm`` (mm) at ``centres_ct`` ((n, 3) CT mm)
         under the pose ``T_cam_ct`` (4x4, CT mm -> camera mm) seen by ``camera`` (a
         :class:`~.camera_model.CameraModel`, lens distortion included). Balls behind the camera,
-        or where the distortion model does not invert, are left out."""
+        or where the distortion model does not invert, are left out. ``ellipses``: what computes
+        them (:func:`~.sphere_outline.sphere_ellipses` when None; a stream of frames passes a
+        :class:`~.sphere_outline.SphereEllipseCache`, which reuses them between frames)."""
         from .sphere_outline import sphere_ellipses
 
         X = np.asarray(centres_ct, float).reshape(-1, 3)
         idx = np.arange(len(X)) if fiducial_indices is None else np.asarray(fiducial_indices, int).reshape(-1)
         Xc = X @ np.asarray(T_cam_ct, float)[:3, :3].T + np.asarray(T_cam_ct, float)[:3, 3]
-        cen, axes, ang, ok = sphere_ellipses(camera, Xc, radius_mm)
+        cen, axes, ang, ok = (ellipses or sphere_ellipses)(camera, Xc, radius_mm)
         return cls(cen[ok], axes[ok], ang[ok], idx[ok], int(frame_index), max(int(age_frames), 1), bool(search_all))
 
 
@@ -221,30 +225,22 @@ def refine_blob(image: np.ndarray, contour: np.ndarray, pad: int = 3) -> tuple[n
 
 def score_blob(contour: np.ndarray, area: float, rules: BlobRules) -> tuple[float, dict, tuple]:
     """Shape score of one blob (see the module docstring): (score, factors, fitted ellipse)."""
-    pts = contour.reshape(-1, 2).astype(np.float64)
-    if len(pts) < 5:
+    if len(contour) < 5:
         return 0.0, {"why": "too few contour points"}, None
     raw = cv2.fitEllipse(contour)
     (ex, ey), (d1, d2), ang = raw
     a, b = max(d1, d2) / 2, min(d1, d2) / 2
     if b <= 0.5:
         return 0.0, {"why": "degenerate ellipse"}, None
-    # radial deviation of the contour from the fitted ellipse
-    th = np.radians(ang)
-    c, s = np.cos(th), np.sin(th)
-    q = pts - [ex, ey]
-    u = q[:, 0] * c + q[:, 1] * s
-    v = -q[:, 0] * s + q[:, 1] * c
-    ax_u, ax_v = d1 / 2, d2 / 2
-    rho = np.sqrt((u / ax_u) ** 2 + (v / ax_v) ** 2)
-    dev = (rho - 1.0) * np.sqrt(ax_u * ax_v)
-    rms = float(np.sqrt(np.mean((dev - dev.mean()) ** 2)))
+    # radial deviation of the contour from the fitted ellipse (RMS about its mean, px)
+    rms = float(edge_kernels.contour_fit_rms(contour.reshape(-1, 1, 2), float(ex), float(ey), float(d1), float(d2),
+                                             float(ang)))
     ratio = b / a
     fill = area / (np.pi * a * b)
     lo, hi = rules.radius_range_px
-    f_fit = float(np.exp(-(rms / 0.6) ** 2))
-    f_round = float(np.clip((ratio - 0.6) / 0.2, 0.0, 1.0))
-    f_fill = float(np.exp(-((fill - 1.0) / 0.12) ** 2))
+    f_fit = math.exp(-(rms / 0.6) ** 2)
+    f_round = min(max((ratio - 0.6) / 0.2, 0.0), 1.0)
+    f_fill = math.exp(-((fill - 1.0) / 0.12) ** 2)
     f_range = 1.0 if lo * 0.8 <= b + 0.5 <= hi * 1.2 else 0.0
     factors = {"fit_rms_px": rms, "axis_ratio": ratio, "fill": fill, "f_fit": f_fit, "f_round": f_round,
                "f_fill": f_fill, "f_range": f_range, "contour_ellipse": raw}

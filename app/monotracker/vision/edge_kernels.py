@@ -538,9 +538,14 @@ def shaped_fits(P, valid, usable, ratio, major_deg, min_share, blur_px, window_s
 @_compiled
 def ray_geometry(cx, cy, d1, d2, ang_deg, k, blur_px, img_h, img_w):
     """The rays of m balls given by their coarse OpenCV ellipses (centre ``cx``, ``cy`` px, full
-    axes ``d1``, ``d2`` px, ``ang_deg``), as :func:`.edge_fit._edge_points` lays them out for blur
-    ``blur_px`` px and ``k`` samples per ray: (counts (m,) rays per ball, 0 for a ball whose
-    window leaves the ``img_h`` x ``img_w`` image; boxes (m, 4) int x0, y0, x1, y1 of each ball's
+    axes ``d1``, ``d2`` px, ``ang_deg``), for blur ``blur_px`` px and ``k`` samples per ray: the
+    edge fit's one ray layout (both bodies of :func:`.edge_fit._edge_points` take it from here,
+    through ``edge_fit._ray_layout``). Per ball n = clip(2 pi a / 1.6, 32, 96) rays (a the
+    semi-major axis) at angles 2 pi i / n from +x towards +y; each starts ``w_in`` px inside the
+    ellipse and ends ``w_out`` = 3 + b / 4 + ``blur_px`` px outside it (b the semi-minor axis),
+    w_in = min(w_out, 0.65 x the shortest ray radius), k samples ``step`` apart; the window is
+    the ball's square of half side ceil(a + w_out + 2) around floor(centre) (+2 on the far
+    side). Returns (counts (m,) rays per ball, 0 for a ball whose window leaves the ``img_h`` x ``img_w`` image; boxes (m, 4) int x0, y0, x1, y1 of each ball's
     window; w_in (m,) px; step (m,) px per sample; phi (N,) ray direction rad; s0 (N,) px from
     the centre to each ray's first sample). N = counts.sum()."""
     m = len(cx)
@@ -587,6 +592,32 @@ def ray_geometry(cx, cy, d1, d2, ang_deg, k, blur_px, img_h, img_w):
             s0[q + i] -= w_in[b]
         q += n
     return counts, boxes, w_in, step, phi, s0
+
+
+@_compiled
+def contour_fit_rms(contour, ex, ey, d1, d2, ang_deg):
+    """RMS (px) about its mean of the radial deviation of a blob's pixel contour (OpenCV int32
+    (m, 1, 2)) from the ellipse fitted to it (centre ``ex``, ``ey`` px, full axes ``d1``, ``d2``
+    px, ``ang_deg``), each point's (rho - 1) sqrt(a b): :func:`.detection.score_blob`'s fit term
+    (its NumPy form before issue 29's round 3; ~2 us instead of ~60 us a blob)."""
+    m = contour.shape[0]
+    th = math.radians(ang_deg)
+    c, s = math.cos(th), math.sin(th)
+    au, av = d1 / 2, d2 / 2
+    scale = math.sqrt(au * av)
+    dev = np.empty(m)
+    mean = 0.0
+    for i in range(m):
+        qx, qy = float(contour[i, 0, 0]) - ex, float(contour[i, 0, 1]) - ey
+        u = qx * c + qy * s
+        v = -qx * s + qy * c
+        dev[i] = (math.sqrt((u / au) ** 2 + (v / av) ** 2) - 1.0) * scale
+        mean += dev[i]
+    mean /= m
+    a = 0.0
+    for i in range(m):
+        a += (dev[i] - mean) ** 2
+    return math.sqrt(a / m)
 
 
 #: :func:`fine_lut`'s entries per display value
@@ -721,6 +752,10 @@ def warm_up() -> None:
     P = np.stack([10 * np.cos(phi), 10 * np.sin(phi)], -1)[None]
     shaped_fits(P, np.ones((1, 32), np.bool_), np.ones((1, 32), np.bool_), np.ones(1), np.zeros(1), 0.6, 1.5,
                 0.125, 0.3, 0.04, 0.5)
+    px = np.ascontiguousarray(P[0, :, 0])
+    ellipse_residuals(px, np.ascontiguousarray(P[0, :, 1]), 0.0, 0.0, 20.0, 20.0, 0.0, np.empty(32))
+    ellipse_residuals(P[0, :, 0], P[0, :, 1], 0.0, 0.0, 20.0, 20.0, 0.0, np.empty(32))     # strided views
+    contour_fit_rms(np.zeros((8, 1, 2), np.int32), 0.0, 0.0, 2.0, 1.0, 0.0)
     img = np.random.default_rng(1).integers(0, 256, (64, 64, 3)).astype(np.uint8)
     one = np.ones(1)
     cnt, box, _w, st, ph, s0 = ray_geometry(32.0 * one, 32.0 * one, 20.0 * one, 18.0 * one, 0.0 * one, k, 1.5, 64, 64)

@@ -57,6 +57,7 @@ from monotracker.registration.quantiles import chi2_ppf as chi2_quantile
 
 from .camera_model import CameraModel
 from .frames import Frame, grayscale_problem
+from .sphere_outline import SphereEllipseCache
 
 SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "unknown", "moved"
 
@@ -270,6 +271,8 @@ class PoseTracker:
         self.camera_motion = camera_motion
         self.watch_ct = np.zeros((0, 3)) if watch_ct is None else np.asarray(watch_ct, float).reshape(-1, 3)
         self._takes_hint = _takes_hint(self.detector)
+        #: the hint's predicted ellipses, each reused between frames while its ball moved little
+        self._hint_ellipses = SphereEllipseCache()
         self._last_full_index = -(10**9)
         from monotracker.registration.noise import OnlineNoise
 
@@ -636,7 +639,7 @@ class PoseTracker:
         search_all = cfg.full_search_every > 0 and frame_index - self._last_full_index >= cfg.full_search_every
         X = np.vstack([self.fiducials_ct, self.watch_ct])
         return DetectionHint.from_pose(self.camera, self._last_T, X, self.radius_mm, self._last_T_index, age,
-                                       search_all=search_all)
+                                       search_all=search_all, ellipses=self._hint_ellipses)
 
     def _invalid(self, frame_index: int, t_capture: float, code: str, reason: str, camera: str = "ok",
                  truth=None) -> PoseEstimate:

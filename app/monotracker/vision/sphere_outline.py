@@ -80,6 +80,63 @@ def sphere_ellipses(camera, centres_cam_mm, radius_mm: float):
     return cen, axes, ang, ok
 
 
+class SphereEllipseCache:
+    """:func:`sphere_ellipses` for a stream of poses, each sphere's outline reused from the last
+    time it was computed while the sphere has moved little since: the pose tracker's hint
+    predicts the same balls every frame, a few tenths of a px from where they were (issue 29:
+    the outlines were ~1.5 ms of a 10 ms frame). A reused ellipse is the computed one moved by
+    the shift of the projected sphere centre and scaled by the change of the sphere's distance;
+    its major axis turned with the ball about the principal point (it points away from it); it is
+    computed afresh when the projected centre has moved more than :attr:`max_shift_px` or
+    the distance changed by more than :attr:`max_scale` since. Over a few px the outline's shape
+    changes by ~1e-4 per px (module docstring) and the ellipse centre's offset from the projected
+    sphere centre (~0.2 px at the image's edge for a 20 px ball) by ~1e-3 px: far below what a
+    hint is used for (search windows, the edge fit's outline shape)."""
+
+    #: recompute a sphere's outline when its projected centre moved more than this (px) ...
+    max_shift_px: float = 2.0
+    #: ... or its distance from the camera changed by more than this share
+    max_scale: float = 0.003
+
+    def __init__(self):
+        self._key = None
+        self._base = None
+
+    def __call__(self, camera, centres_cam_mm, radius_mm: float):
+        """As :func:`sphere_ellipses` (same arguments, same result to the tolerances above)."""
+        C = np.asarray(centres_cam_mm, float).reshape(-1, 3)
+        m = len(C)
+        key = (id(camera), camera.K.tobytes(), camera.dist.tobytes(), float(radius_mm), m)
+        dist = np.linalg.norm(C, axis=1)
+        front = C[:, 2] > 1.5 * float(radius_mm)
+        proj = np.full((m, 2), np.nan)
+        if front.any():
+            proj[front] = camera.project(C[front])
+        if key != self._key or self._base is None:
+            self._key = key
+            self._base = (np.full((m, 2), np.nan), np.full(m, np.nan), np.full((m, 2), np.nan),
+                          np.full((m, 2), np.nan), np.zeros(m), np.zeros(m, bool))
+        b_proj, b_dist, b_cen, b_axes, b_ang, b_ok = self._base
+        shift = np.hypot(proj[:, 0] - b_proj[:, 0], proj[:, 1] - b_proj[:, 1])
+        reuse = front & b_ok & (shift <= self.max_shift_px) & (np.abs(dist / b_dist - 1.0) <= self.max_scale)
+        redo = np.flatnonzero(~reuse)
+        if len(redo):
+            cen, axes, ang, ok = sphere_ellipses(camera, C[redo], radius_mm)
+            b_proj[redo], b_dist[redo], b_cen[redo], b_axes[redo], b_ang[redo], b_ok[redo] = \
+                proj[redo], dist[redo], cen, axes, ang, ok
+        cen = b_cen + (proj - b_proj)
+        axes = b_axes * (b_dist / np.maximum(dist, 1e-9))[:, None]
+        # the major axis points away from the principal point: it turns with the ball about it
+        pp = camera.K[:2, 2]
+        turn = np.degrees(np.arctan2(proj[:, 1] - pp[1], proj[:, 0] - pp[0])
+                          - np.arctan2(b_proj[:, 1] - pp[1], b_proj[:, 0] - pp[0]))
+        ang = b_ang + turn
+        ok = b_ok & front
+        cen[redo], axes[redo], ang[redo] = b_cen[redo], b_axes[redo], b_ang[redo]
+        cen[~ok], axes[~ok] = np.nan, np.nan
+        return cen, axes, np.where(ok, ang, 0.0), ok
+
+
 def expected_outlines(camera, centres_px, minors_px) -> list:
     """The image outlines of whole spheres seen at ``centres_px`` (m, 2) distorted px with minor
     semi-axes of about ``minors_px`` (m,) px (they set the angular radii): per sphere
