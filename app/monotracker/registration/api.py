@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -79,21 +80,18 @@ def _principal_spread(X: np.ndarray) -> np.ndarray:
     return np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
 
 
-#: the CT fiducials' own checks (:func:`_ct_geometry`) of the last few fiducial sets: a tracker
-#: registers the same set every frame (~0.2 ms of the frame's budget each time; issue 29)
-_CT_GEOMETRY: dict = {}
+@functools.lru_cache(maxsize=8)
+def _ct_geometry_of(shape: tuple, data: bytes) -> tuple:
+    X = np.frombuffer(data, float).reshape(shape)
+    return _closest_pair(X), _principal_spread(X)
 
 
 def _ct_geometry(X: np.ndarray) -> tuple:
     """(closest pair of CT fiducials (i, j, mm), principal spread) of ``X`` (n, 3) mm, kept for
-    the last 8 fiducial sets (keyed by their values)."""
-    key = (X.shape, X.tobytes())
-    got = _CT_GEOMETRY.get(key)
-    if got is None:
-        if len(_CT_GEOMETRY) >= 8:
-            _CT_GEOMETRY.clear()
-        got = _CT_GEOMETRY[key] = (_closest_pair(X), _principal_spread(X))
-    return got
+    the last 8 fiducial sets (keyed by their values): a tracker registers the same set every
+    frame (~0.2 ms of the frame's budget each time; issue 29)."""
+    X = np.ascontiguousarray(X, float)
+    return _ct_geometry_of(X.shape, X.tobytes())
 
 
 def _input_problem(X, pts, K, dist, radius_mm) -> str:

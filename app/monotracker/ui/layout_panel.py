@@ -33,6 +33,8 @@ MM = 1e-3  # scene metres per millimetre (as ui/scene.py)
 MAP_TOP_QUANTILE = 0.9
 SUGGESTED_RGB = SUGGESTED_BGR[::-1]  # the same blue as on the slices
 CAMERA_RGB = SUGGESTED_RGB
+
+
 def error_colours(err_mm: np.ndarray, top: float = MAP_TOP_QUANTILE) -> tuple[np.ndarray, float, float]:
     """(m, 3) uint8 colours for the error map, and the (low, high) mm the scale runs over: green at
     the smallest finite error, yellow halfway, red at the ``top`` quantile of the finite errors and

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from monotracker.engine.config import SessionConfig
-from monotracker.ui.slices import STATUS_BGR, direction_letters, draw_suggested, window_hu
+from monotracker.ui.slices import STATUS_BGR, direction_letters, draw_suggested, outlined_text, window_hu
 
 ORTHO = ("axial", "coronal", "sagittal")
 PROBE = ("probe", "along")
@@ -234,8 +234,7 @@ def sample_plane(volume, view: PlaneView) -> np.ndarray:
 
 
 def _text(img, s, org, scale, colour=(235, 235, 235), thick=2) -> None:
-    cv2.putText(img, s, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thick + 3, cv2.LINE_AA)
-    cv2.putText(img, s, org, cv2.FONT_HERSHEY_SIMPLEX, scale, colour, thick, cv2.LINE_AA)
+    outlined_text(img, s, org, scale, colour, thick)
 
 
 def draw_letters(img, letters: dict, scale: float = 0.9) -> None:

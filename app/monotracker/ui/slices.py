@@ -112,6 +112,15 @@ class SliceGeometry:
         return np.abs(np.atleast_2d(np.asarray(p_lps, float))[:, n] - self.point_lps[n])
 
 
+def outlined_text(img, text: str, org, scale: float, colour, thick: int = 2, outline: int | None = None) -> None:
+    """``text`` on ``img`` (BGR, in place) at ``org`` (px, baseline left) in ``colour``, ``thick``
+    px strokes over a black outline ``outline`` px wide (default ``thick + 3``): readable on any
+    grey level of a CT slice."""
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), thick + 3 if outline is None else outline,
+                cv2.LINE_AA)
+    cv2.putText(img, text, org, cv2.FONT_HERSHEY_SIMPLEX, scale, colour, thick, cv2.LINE_AA)
+
+
 def draw_suggested(img, centres_lps, radius_mm: float, px, depth_mm, pixel_mm: float, scale: float,
                    near_mm: float = 6.0) -> int:
     """Draw the suggested ball positions ``centres_lps`` ((n, 3) LPS mm, numbered 1..n in this order)
@@ -134,8 +143,7 @@ def draw_suggested(img, centres_lps, radius_mm: float, px, depth_mm, pixel_mm: f
         label = f"S{k + 1}"
         (tw, _), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 2)
         org = (c[0] - rad - 2 - tw, c[1] - rad)
-        cv2.putText(img, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 4, cv2.LINE_AA)
-        cv2.putText(img, label, org, cv2.FONT_HERSHEY_SIMPLEX, 0.6, SUGGESTED_BGR, 2, cv2.LINE_AA)
+        outlined_text(img, label, org, 0.6, SUGGESTED_BGR, outline=4)
         drawn += 1
     return drawn
 
@@ -240,6 +248,5 @@ def render_slice(volume, plane: str, point_lps, fiducials=(), entry=None, target
         (tw, th), _ = cv2.getTextSize(letter, cv2.FONT_HERSHEY_SIMPLEX, 0.7, 2)
         org = {"left": (4, h // 2 + th // 2), "right": (w - tw - 4, h // 2 + th // 2),
                "top": (w // 2 - tw // 2, th + 26), "bottom": (w // 2 - tw // 2, h - 6)}[where]
-        cv2.putText(img, letter, org, cv2.FONT_HERSHEY_SIMPLEX, 0.7, (0, 0, 0), 4, cv2.LINE_AA)
-        cv2.putText(img, letter, org, cv2.FONT_HERSHEY_SIMPLEX, 0.7, (80, 230, 255), 2, cv2.LINE_AA)
+        outlined_text(img, letter, org, 0.7, (80, 230, 255), outline=4)
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB), geom

@@ -527,6 +527,7 @@ class PoseTracker:
         if not len(rms) or not np.all(np.isfinite(rms)) or not (sigma_px > 0 and np.isfinite(upper_px)):
             return None
         from monotracker.registration import pnp_kernels
+        from monotracker.registration.report import common_shift_covariance
 
         K = self.camera.K
         T = reg.T_cam_ct
@@ -538,8 +539,7 @@ class PoseTracker:
                                            float(self.radius_mm or 0.0), np.empty(0), r, J)
         A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
         shade = np.repeat((cfg.edge_bias_per_rms * rms) ** 2, 2)
-        B = A.reshape(6, k, 2).sum(axis=1)                      # a shift shared by all balls
-        common = (cfg.edge_common_per_rms * float(np.median(rms))) ** 2 * (B @ B.T)
+        common = common_shift_covariance(J, cfg.edge_common_per_rms * float(np.median(rms)))  # shared by all balls
 
         def cov(noise_px: float) -> np.ndarray:
             return (A * np.maximum(noise_px**2, shade)) @ A.T + common
