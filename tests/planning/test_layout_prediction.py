@@ -56,8 +56,9 @@ def test_fiducial_information_is_the_refinement_normal_matrix():
 
 def test_predicted_error_matches_monte_carlo_registrations(problem):
     """RMS, mean and 95 % of the error at the target: predicted vs 400 registrations of noisy
-    exact ellipse centres through ``register`` (the true pairs found by the search itself)."""
-    P = replace(problem, space=replace(problem.space, keep_out=()), noise_px=0.3)
+    exact ellipse centres through ``register`` (the true pairs found by the search itself);
+    point centres have no edge fit, so no shading cover (``edge_rms_px=0``)."""
+    P = replace(problem, space=replace(problem.space, keep_out=()), noise_px=0.3, edge_rms_px=0.0)
     T_ct_cam = _demo_pose()
     X = PH.fiducial_centres_lps
     pred = predict(P, T_ct_cam, X)
@@ -84,10 +85,11 @@ def test_predicted_error_matches_monte_carlo_registrations(problem):
 def test_trust_model_decides_frame_by_frame_as_the_pose_stream(problem):
     """Near the gate (the noise at which the tracker starts refusing), the planner's trust model
     fed the noise pool the real PoseTracker builds gives the tracker's own verdict frame by frame
-    (300 point-level frames), and the share it predicts is in the tracker's range."""
+    (300 point-level frames), and the share it predicts is in the tracker's range. Point
+    centres carry no edge fit: no shading cover on either side (``edge_rms_px=0``)."""
     from monotracker.planning.trust import gate_noise_px
 
-    P = replace(problem, space=replace(problem.space, keep_out=()))
+    P = replace(problem, space=replace(problem.space, keep_out=()), edge_rms_px=0.0)
     T_ct_cam = _demo_pose(560.0)
     X = PH.fiducial_centres_lps[:6]
     pred = predict(P, T_ct_cam, X)
@@ -124,6 +126,59 @@ def test_trust_model_decides_frame_by_frame_as_the_pose_stream(problem):
     # far from the gate: all or nothing, as predicted
     assert trusted_fraction(cov1, 6, 0.5 * pred.all_seen.gate_noise_px, 150) > 0.97
     assert trusted_fraction(cov1, 6, 1.5 * pred.all_seen.gate_noise_px, 150) < 0.03
+
+
+class _EdgeSpreadDetector(PointDetector):
+    """Point centres reported as an edge-fitted detector reports them: each with its edge fit's
+    spread (``features["edge_rms_px"]``), which switches the pose tracker's shading cover on."""
+
+    name = "edge-points"
+
+    def __init__(self, edge_rms_px: float):
+        super().__init__()
+        self.edge_rms_px = float(edge_rms_px)
+
+    def detect(self, image, hint=None):
+        det = super().detect(image, hint)
+        for f in det.fiducials:
+            f.features["edge_rms_px"] = self.edge_rms_px
+        return det
+
+
+def test_shading_cover_is_the_pose_streams_own(problem):
+    """With the default edge-fitted detector the pose tracker covers shading: each ball's error is
+    at least its edge fit's spread, and a shift common to all balls is added. The planner models
+    the same cover (``edge_rms_px``). Balls whose edge spread (2 sigma) exceeds the frame noise
+    sigma, at a noise the model without the cover trusts every frame of: the real PoseTracker,
+    fed frames whose balls report that spread, refuses them, as the planner with the cover
+    predicts (the planner before this predicted ~100 %); and where the tracker's cover is off
+    (no edge spread reported) the bare model still holds."""
+    from monotracker.planning.trust import gate_noise_px
+
+    P = replace(problem, space=replace(problem.space, keep_out=()))
+    T_ct_cam = _demo_pose(560.0)
+    X = PH.fiducial_centres_lps[:6]
+    bare = predict(replace(P, edge_rms_px=0.0), T_ct_cam, X).all_seen
+    noise = bare.gate_noise_px / 1.6                  # the bare model's noise bound (~1.1 sigma) passes
+    Pn = replace(P, noise_px=float(noise), edge_rms_px=float(2.0 * noise))
+    cover = predict(Pn, T_ct_cam, X).all_seen
+    bare_n = predict(replace(Pn, edge_rms_px=0.0), T_ct_cam, X).all_seen
+    assert cover.floor_px == pytest.approx(2 * noise) and cover.common_px == pytest.approx(2 * noise)
+    assert cover.common_mm2 > 0 and cover.rms_mm > 1.9 * bare_n.rms_mm
+    assert bare_n.trusted > 0.9 and cover.trusted == 0.0 and cover.gate_noise_px == 0.0
+    cov1 = bare.cov_mm2 / P.noise_px**2
+    fixed = cover.cov_mm2 - cov1 * (2 * noise) ** 2
+    assert gate_noise_px(cov1, None, cover.floor_px, fixed) == 0.0 < gate_noise_px(cov1)
+    T_cam_ct = invert_transform(T_ct_cam)
+    rng = np.random.default_rng(11)
+    for det, predicted in ((_EdgeSpreadDetector(2.0 * noise), cover.trusted), (PointDetector(), bare_n.trusted)):
+        tr = PoseTracker(X, CAM, detector=det, radius_mm=4.0, target_ct=P.target)
+        trusted = 0
+        for k in range(60):
+            px, minor = _observe(T_cam_ct, X, rng, noise)
+            det.set(px, minor)
+            trusted += tr.process(Frame(BLANK, k / 30.0, k)).ok
+        assert abs(trusted / 60 - predicted) < 0.1, (det.name, trusted, predicted)
 
 
 # ------------------------------------------------------------------ visibility

@@ -22,6 +22,8 @@ from monotracker.errors import InputError
 
 
 def register(subparsers) -> None:
+    from .noise_default import DEFAULT_NOISE_PX
+
     p = subparsers.add_parser(
         "plan-layout",
         help="plan where the fiducial balls and the camera go for a small error at the target",
@@ -38,7 +40,10 @@ def register(subparsers) -> None:
     p.add_argument("--camera", type=existing_file, default=None, metavar="CAM.yaml",
                    help="camera calibration (OpenCV YAML/XML or JSON; default: the simulated camera's)")
     p.add_argument("--noise", type=finite_float(0.005, 5.0), default=None, metavar="PX",
-                   help="image noise of the ball centres, px (default 0.2)")
+                   help=f"image noise of the ball centres, px (default {DEFAULT_NOISE_PX:g})")
+    p.add_argument("--edge-rms", type=finite_float(0.0, 5.0), default=None, metavar="PX",
+                   help="edge-fit spread of the balls that the pose tracker's shading cover will see, px "
+                        "(default: the noise, as the default edge-fitted detector; 0: a detector without edge fits)")
     p.add_argument("--keep", default="", metavar="I,J,...",
                    help="indices of the CT's fiducials (as detect-ct numbers them) that stay where they are")
     p.add_argument("--quick", action="store_true", help="a coarser, quicker search (8 camera directions, no refinement)")
@@ -83,7 +88,8 @@ def _plan_layout(args: argparse.Namespace) -> int:
     try:
         problem = build_problem(head, np.array(args.target), entry=None if args.entry is None else np.array(args.entry),
                                 existing=existing, radius_mm=radius, camera=camera,
-                                noise_px=args.noise if args.noise is not None else DEFAULT_NOISE_PX)
+                                noise_px=args.noise if args.noise is not None else DEFAULT_NOISE_PX,
+                                edge_rms_px=args.edge_rms)
         progress = None if args.json else _progress_line
         plan = plan_layout(problem, args.balls, keep=keep, progress=progress,
                            n_directions=8 if args.quick else 24, refine=not args.quick)
@@ -126,7 +132,8 @@ def format_plan(plan, existing) -> str:
 
     P = plan.problem
     lines = [f"layout for target {', '.join(f'{v:.1f}' for v in P.target)} (LPS mm): {len(plan.balls)} balls of "
-             f"{P.radius_mm:g} mm radius, image noise {P.noise_px:g} px",
+             f"{P.radius_mm:g} mm radius, image noise {P.noise_px:g} px, edge spread "
+             f"{P.noise_px if P.edge_rms_px is None else P.edge_rms_px:g} px (the tracker's shading cover)",
              "suggested balls (centre, LPS mm):"]
     for i, (b, src) in enumerate(zip(plan.balls, plan.from_existing)):
         keep = f"   (CT fiducial {src} stays)" if src >= 0 else ""

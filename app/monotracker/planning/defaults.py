@@ -52,10 +52,11 @@ def build_problem(head: HeadSurface, target, *, entry=None, existing=None, radiu
                   camera: CameraModel | None = None, noise_px: float = DEFAULT_NOISE_PX, axis=None,
                   half_angle_deg: float = 35.0, distance_mm: tuple = (400.0, 700.0),
                   drape_offset_mm: float | None = 0.0, keep_out: tuple | None = None,
-                  rules: BallRules | None = None) -> PlanningProblem:
+                  rules: BallRules | None = None, edge_rms_px: float | None = None) -> PlanningProblem:
     """A :class:`~.problem.PlanningProblem` with the defaults of the module docstring for what
     is not given. ``drape_offset_mm`` None: no drape; ``keep_out`` None: the robot's capsules when
-    there is an entry (:func:`robot_keep_out`)."""
+    there is an entry (:func:`robot_keep_out`); ``edge_rms_px``: the shading cover's edge spread
+    (:class:`~.problem.PlanningProblem`; None: the noise)."""
     ax = default_axis(head, target, entry, existing) if axis is None else np.asarray(axis, float)
     if keep_out is None:
         keep_out = robot_keep_out(entry, target) if entry is not None else ()
@@ -67,4 +68,5 @@ def build_problem(head: HeadSurface, target, *, entry=None, existing=None, radiu
                            space=space, entry=None if entry is None else np.asarray(entry, float),
                            radius_mm=float(radius_mm), noise_px=float(noise_px), drape=drape,
                            rules=rules or BallRules(),
-                           existing=np.zeros((0, 3)) if existing is None else np.asarray(existing, float))
+                           existing=np.zeros((0, 3)) if existing is None else np.asarray(existing, float),
+                           edge_rms_px=None if edge_rms_px is None else float(edge_rms_px))

@@ -269,7 +269,12 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
         ex_best = predict(problem, ex_cam.T_ct_cam, cands.centres[ex], cands.normals[ex], config=cfg)
         moves = _moves(problem.existing, balls)
     emap = np.sqrt(swap_map(pd, cands.centres, S, problem.min_separation_mm, keep_idx, cfg.min_fiducials))
-    emap = emap * problem.noise_px
+    # at the planned noise with the shading cover (its floor scales every entry alike; the common
+    # shift, absorbed by a translation parallel to the image, is nearly the same for every layout
+    # from one camera pose: the suggestion's is added to each)
+    ref = expected.worst_hidden or expected.all_seen
+    floor, c0 = (ref.floor_px, ref.common_mm2) if ref is not None else (0.0, 0.0)
+    emap = np.sqrt(emap**2 * max(problem.noise_px, floor) ** 2 + c0)
     notes = []
     if n < cfg.min_fiducials + 1:
         notes.append(f"with {n} balls losing any one loses the pose; take at least {cfg.min_fiducials + 1}")

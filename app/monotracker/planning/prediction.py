@@ -5,7 +5,10 @@ covariance ``sigma^2 (J^T J)^-1`` with the refinement's Jacobian at the planned 
 seen ball's share from :func:`~monotracker.registration.report.fiducial_information`), pushed to
 the target (:func:`~monotracker.registration.report.target_covariance`); the pose stream's
 predicted TRE is this number once frames come. Here ``sigma`` is the planned image noise (px),
-and only the balls the camera sees count (:mod:`.visibility`).
+and only the balls the camera sees count (:mod:`.visibility`). As the pose tracker does with the
+default edge-fitted detector, each ball's error is at least its edge spread and a shift common to
+all balls is added (:func:`.trust.shading_cover`; the problem's ``edge_rms_px``, by default the
+planned noise): the covariance is ``max(sigma, floor)^2 C1 + C0``.
 
 Each error is reported as the RMS 3D error (what the tracker gates on), and the mean and the
 95th percentile of its length (the Gaussian's, :func:`~monotracker.registration.report.error_norm_stats`).
@@ -18,11 +21,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from monotracker.geometry import invert_transform
-from monotracker.registration.report import error_norm_stats, fiducial_information, pose_covariance, target_covariance
+from monotracker.registration.report import (common_shift_covariance, error_norm_stats, fiducial_jacobian,
+                                             pose_covariance, target_covariance)
 from monotracker.vision.pose_checks import weak_geometry
 from monotracker.vision.pose_tracker import TrackerConfig
 
-from .trust import gate_noise_px, trusted_fraction
+from .trust import gate_noise_px, shading_cover, trusted_fraction
 from .visibility import Visibility, visibility
 
 
@@ -31,7 +35,9 @@ class TargetError:
     """Predicted error at the target with ``n_balls`` seen balls: ``rms_mm`` (sqrt of the
     covariance's trace), ``mean_mm`` and ``p95_mm`` of its length, ``cov_mm2`` (3, 3) in the
     camera frame; ``trusted`` the predicted share of frames the pose stream trusts;
-    ``gate_noise_px`` the largest image noise its gates let through."""
+    ``gate_noise_px`` the largest image noise its gates let through; ``floor_px`` and
+    ``common_px`` the shading cover modelled (:func:`.trust.shading_cover`; 0 without);
+    ``common_mm2`` the common shift's share of the covariance's trace (mm^2)."""
 
     n_balls: int
     rms_mm: float
@@ -40,11 +46,15 @@ class TargetError:
     cov_mm2: np.ndarray
     trusted: float
     gate_noise_px: float
+    floor_px: float = 0.0
+    common_px: float = 0.0
+    common_mm2: float = 0.0
 
     def to_dict(self) -> dict:
         return {"balls_seen": self.n_balls, "rms_mm": round(self.rms_mm, 4), "mean_mm": round(self.mean_mm, 4),
                 "p95_mm": round(self.p95_mm, 4), "trusted_fraction": round(self.trusted, 4),
-                "gate_noise_px": round(self.gate_noise_px, 4)}
+                "gate_noise_px": round(self.gate_noise_px, 4), "shading_floor_px": round(self.floor_px, 4),
+                "common_shift_px": round(self.common_px, 4)}
 
 
 def pose_problem(fiducials_ct: np.ndarray, seen: np.ndarray, config: TrackerConfig | None = None) -> str:
@@ -66,19 +76,26 @@ def predict_error(problem, T_ct_cam: np.ndarray, centres: np.ndarray, seen: np.n
     if pose_problem(C, seen, config):
         return None
     sigma = problem.noise_px if noise_px is None else float(noise_px)
+    floor, common = shading_cover(sigma, getattr(problem, "edge_rms_px", None), config)
     T_cam_ct = invert_transform(np.asarray(T_ct_cam, float))
     fxy = np.array([problem.camera.K[0, 0], problem.camera.K[1, 1]])
-    info = fiducial_information(T_cam_ct, C[seen], fxy, problem.radius_mm).sum(axis=0)
+    J = fiducial_jacobian(T_cam_ct, C[seen], fxy, problem.radius_mm)           # (k, 2, 6)
+    info = np.einsum("kai,kaj->ij", J, J)
     cov1 = target_covariance(T_cam_ct, pose_covariance(info, 1.0), problem.target)
-    cov = cov1 * sigma**2
+    fixed = np.zeros((3, 3))
+    if common > 0:
+        fixed = target_covariance(T_cam_ct, common_shift_covariance(J.reshape(-1, 6), common), problem.target)
+    cov = cov1 * max(sigma, floor) ** 2 + fixed
     rms = float(np.sqrt(max(np.trace(cov), 0.0)))
     k = int(seen.sum())
+    c0 = float(np.trace(fixed))
     if not full:
         nan = float("nan")
-        return TargetError(k, rms, nan, nan, cov, nan, nan)
+        return TargetError(k, rms, nan, nan, cov, nan, nan, floor, common, c0)
     mean, p95 = error_norm_stats(cov, 0.95)
-    return TargetError(k, rms, mean, p95, cov, trusted_fraction(cov1, k, sigma, frames, config),
-                       gate_noise_px(cov1, config))
+    return TargetError(k, rms, mean, p95, cov,
+                       trusted_fraction(cov1, k, sigma, frames, config, floor_px=floor, fixed_cov3=fixed),
+                       gate_noise_px(cov1, config, floor, fixed), floor, common, c0)
 
 
 @dataclass(frozen=True)

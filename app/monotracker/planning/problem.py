@@ -28,10 +28,7 @@ import numpy as np
 
 from monotracker.vision.camera_model import CameraModel
 
-#: default image noise of the ball centres, px (1-sigma per coordinate): the centre error the
-#: edge-fitted detector shows on independently rendered frames (0.14-0.21 px at 1.5 px defocus
-#: + JPEG 85, README "Key numbers"); the upper end, so that the plan is not optimistic
-DEFAULT_NOISE_PX = 0.2
+from .noise_default import DEFAULT_NOISE_PX
 
 
 def _unit(v) -> np.ndarray:
@@ -233,8 +230,11 @@ class BallRules:
 class PlanningProblem:
     """Everything the planner needs (see the module docstring). ``target`` and ``entry`` are
     LPS mm (entry optional); ``radius_mm`` the balls' radius; ``noise_px`` the image noise of
-    the ball centres (px, 1-sigma per coordinate); ``existing`` the fiducials the CT already
-    has ((n, 3) LPS mm centres, may be empty); ``drape`` None = nothing covered."""
+    the ball centres (px, 1-sigma per coordinate); ``edge_rms_px`` the spread of the balls' edge
+    fits the pose tracker's shading cover will see (px; None: ``noise_px``, what the default
+    edge-fitted detector shows; 0: a detector without an edge fit; :func:`.trust.shading_cover`);
+    ``existing`` the fiducials the CT already has ((n, 3) LPS mm centres, may be empty);
+    ``drape`` None = nothing covered."""
 
     head: HeadSurface
     target: np.ndarray
@@ -246,6 +246,7 @@ class PlanningProblem:
     drape: DrapeLine | None = None
     rules: BallRules = field(default_factory=BallRules)
     existing: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    edge_rms_px: float | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "target", _point(self.target, "target"))
@@ -259,6 +260,8 @@ class PlanningProblem:
             raise ValueError(f"ball radius {self.radius_mm} mm is implausible (0.5-20 mm)")
         if not (np.isfinite(self.noise_px) and 0.005 <= self.noise_px <= 5.0):
             raise ValueError(f"image noise {self.noise_px} px is implausible (0.005-5 px)")
+        if self.edge_rms_px is not None and not (np.isfinite(self.edge_rms_px) and 0.0 <= self.edge_rms_px <= 5.0):
+            raise ValueError(f"edge spread {self.edge_rms_px} px is implausible (0-5 px)")
 
     @property
     def min_separation_mm(self) -> float:

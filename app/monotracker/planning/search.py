@@ -5,7 +5,11 @@ hidden, ``max_i RMS(S minus i)`` (the margin for losing any one ball), for layou
 ``min_fiducials + 1`` balls; smaller layouts use the RMS with every ball seen. RMS comes from
 the registration's covariance (:func:`~monotracker.registration.report.pose_covariance`,
 :func:`~monotracker.registration.report.target_covariance`, on stacks of normal matrices),
-at 1 px of noise: the noise scales every layout alike, so it does not change the choice.
+at 1 px of noise: the noise scales every layout alike, so it does not change the choice. The
+pose tracker's shading cover (:func:`.trust.shading_cover`) is left out of the ranking: its
+per-ball floor scales every layout alike too, and its shift common to all balls is absorbed by
+a translation parallel to the image, nearly the same for every layout from one camera pose
+(the predictions of :mod:`.prediction` include both).
 
 Search (an exchange algorithm, as for optimal experimental designs):
 

@@ -8,6 +8,13 @@ error at the target predicted with an upper bound of its online noise estimate p
 one largest noise the gates let through (:func:`gate_noise_px`), and a frame is trusted when the
 tracker's noise bound stays under it.
 
+With the default edge-fitted detector the tracker also covers each ball's shading error
+(``TrackerConfig.edge_bias_per_rms``, ``edge_common_per_rms``): a ball's centre error is at
+least its edge fit's spread, and a shift common to all balls is added; the planner models both
+with the planned image noise as the edge spread (:func:`shading_cover`), so the covariance at a
+noise bound ``u`` is ``max(u, floor)^2 C1 + C0`` (``C0`` the common shift's), still one largest
+``u`` the gates let through.
+
 The bound comes from :class:`~monotracker.registration.noise.OnlineNoise` pooling the frames'
 residual sums of squares; with Gaussian image noise each frame's sum is ``sigma^2 chi2(2k - 6)``.
 :func:`trusted_fraction` feeds such draws (a fixed seed) through the real ``OnlineNoise`` with
@@ -25,21 +32,51 @@ from monotracker.registration.report import exceed_probability
 from monotracker.vision.pose_tracker import TrackerConfig
 
 
-def gate_noise_px(cov3_per_px2: np.ndarray, config: TrackerConfig | None = None) -> float:
-    """The largest image noise bound (px) the tracker's TRE gates let through, for a target
-    covariance ``cov3_per_px2`` (mm^2 at 1 px of noise, camera frame)."""
+def shading_cover(noise_px: float, edge_rms_px: float | None,
+                  config: TrackerConfig | None = None) -> tuple[float, float]:
+    """(per-ball floor px, common shift px) the pose tracker adds for shading when the balls'
+    edge fits spread ``edge_rms_px`` (None: the planned image noise ``noise_px``, what the
+    default edge-fitted detector shows; 0: a detector without an edge fit, no cover), per
+    coordinate: ``TrackerConfig.edge_bias_per_rms`` and ``edge_common_per_rms`` times it."""
+    cfg = config or TrackerConfig()
+    e = float(noise_px) if edge_rms_px is None else float(edge_rms_px)
+    if not (e > 0):
+        return 0.0, 0.0
+    return max(cfg.edge_bias_per_rms, 0.0) * e, max(cfg.edge_common_per_rms, 0.0) * e
+
+
+def _passes(cov3: np.ndarray, cfg: TrackerConfig) -> bool:
+    """The tracker's two per-frame TRE gates on a target covariance (mm^2)."""
+    return (float(np.sqrt(max(np.trace(cov3), 0.0))) <= cfg.max_predicted_tre_mm
+            and exceed_probability(cov3, cfg.wrong_mm) <= cfg.max_wrong_probability)
+
+
+def gate_noise_px(cov3_per_px2: np.ndarray, config: TrackerConfig | None = None, floor_px: float = 0.0,
+                  fixed_cov3: np.ndarray | None = None) -> float:
+    """The largest image noise bound ``u`` (px) the tracker's TRE gates let through for the
+    target covariance ``max(u, floor_px)^2 cov3_per_px2 + fixed_cov3`` (``cov3_per_px2``: mm^2
+    at 1 px of noise, camera frame; ``floor_px``, ``fixed_cov3``: the shading cover of
+    :func:`shading_cover`, none by default). 0 when even the floor and the fixed part fail the
+    gates (no frame is trusted); inf when no noise can fail them."""
     cfg = config or TrackerConfig()
     cov = np.asarray(cov3_per_px2, float)
+    fixed = np.zeros((3, 3)) if fixed_cov3 is None else np.asarray(fixed_cov3, float)
+    floor = max(float(floor_px), 0.0)
     rms1 = float(np.sqrt(max(np.trace(cov), 0.0)))
     if rms1 <= 0:
-        return float("inf")
-    s_rms = cfg.max_predicted_tre_mm / rms1
-    if exceed_probability(cov * s_rms**2, cfg.wrong_mm) <= cfg.max_wrong_probability:
-        return s_rms
-    lo, hi = 0.0, s_rms
+        return float("inf") if _passes(fixed, cfg) else 0.0
+    if not _passes(cov * floor**2 + fixed, cfg):
+        return 0.0
+    room = cfg.max_predicted_tre_mm**2 - float(np.trace(fixed))
+    hi = float(np.sqrt(max(room, 0.0))) / rms1        # the RMS gate's limit: no larger u passes
+    if hi <= floor:
+        return floor
+    if exceed_probability(cov * hi**2 + fixed, cfg.wrong_mm) <= cfg.max_wrong_probability:
+        return hi                                      # (the RMS gate holds at hi by construction)
+    lo = floor
     for _ in range(40):   # exceed_probability grows with the noise: bisect for the limit
         mid = 0.5 * (lo + hi)
-        if exceed_probability(cov * mid**2, cfg.wrong_mm) <= cfg.max_wrong_probability:
+        if _passes(cov * mid**2 + fixed, cfg):
             lo = mid
         else:
             hi = mid
@@ -47,17 +84,21 @@ def gate_noise_px(cov3_per_px2: np.ndarray, config: TrackerConfig | None = None)
 
 
 def trusted_fraction(cov3_per_px2: np.ndarray, n_balls: int, noise_px: float, frames: int = 300,
-                     config: TrackerConfig | None = None, seed: int = 0, runs: int = 20) -> float:
+                     config: TrackerConfig | None = None, seed: int = 0, runs: int = 20,
+                     floor_px: float = 0.0, fixed_cov3: np.ndarray | None = None) -> float:
     """Expected share of frames the tracker trusts over a run of ``frames`` consecutive frames
     (from the first, warm-up included) with ``n_balls`` matched balls and Gaussian image noise
-    ``noise_px`` (px), for a target covariance ``cov3_per_px2`` (mm^2 at 1 px): the mean over
-    ``runs`` simulated runs (the pool's estimate wanders slowly, so one run says little). 0 when
-    fewer than ``min_fiducials`` balls."""
+    ``noise_px`` (px), for a target covariance ``cov3_per_px2`` (mm^2 at 1 px) and the shading
+    cover ``floor_px``, ``fixed_cov3`` (:func:`gate_noise_px`): the mean over ``runs`` simulated
+    runs (the pool's estimate wanders slowly, so one run says little). 0 when fewer than
+    ``min_fiducials`` balls."""
     cfg = config or TrackerConfig()
     dof = 2 * int(n_balls) - 6
     if n_balls < cfg.min_fiducials or dof <= 0:
         return 0.0
-    limit = gate_noise_px(cov3_per_px2, cfg)
+    limit = gate_noise_px(cov3_per_px2, cfg, floor_px, fixed_cov3)
+    if not (limit > 0):
+        return 0.0
     rng = np.random.default_rng(seed)
     ok = 0
     for _ in range(int(runs)):

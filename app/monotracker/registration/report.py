@@ -53,20 +53,27 @@ def pose_covariance(JtJ: np.ndarray, sigma_px: float) -> np.ndarray:
     return sigma_px**2 * np.linalg.pinv(JtJ)
 
 
-def fiducial_information(T_cam_ct: np.ndarray, fiducials_ct: np.ndarray, fxy: np.ndarray,
-                         radius_mm: float | None = None) -> np.ndarray:
-    """(k, 6, 6) each fiducial's share ``J_i^T J_i`` (px^2 per rad^2 / mm^2) of the normal
-    matrix of a pose fit at ``T_cam_ct``, with the refinement's own Jacobian (equivalent pinhole
-    px, sphere-centre model when ``radius_mm``; :mod:`.pnp`). Summed over the fiducials a frame
-    matches it is the ``JtJ`` :func:`pose_covariance` takes: the registration's covariance
-    before the frame exists (layout planning), from the same code."""
+def fiducial_jacobian(T_cam_ct: np.ndarray, fiducials_ct: np.ndarray, fxy: np.ndarray,
+                      radius_mm: float | None = None) -> np.ndarray:
+    """(k, 2, 6) each fiducial's rows of the refinement's own Jacobian (px per rad / mm;
+    equivalent pinhole px, sphere-centre model when ``radius_mm``; :mod:`.pnp`) of a pose fit at
+    ``T_cam_ct``: what a frame's fit would have, before the frame exists (layout planning)."""
     from .pnp import _residuals_and_jacobian
 
     T = np.asarray(T_cam_ct, float)
     X = np.asarray(fiducials_ct, float).reshape(-1, 3)
     _, J = _residuals_and_jacobian(T[:3, :3], T[:3, 3], X, np.zeros((len(X), 2)),
                                    np.asarray(fxy, float).reshape(2), radius_mm)
-    J = J.reshape(len(X), 2, 6)
+    return J.reshape(len(X), 2, 6)
+
+
+def fiducial_information(T_cam_ct: np.ndarray, fiducials_ct: np.ndarray, fxy: np.ndarray,
+                         radius_mm: float | None = None) -> np.ndarray:
+    """(k, 6, 6) each fiducial's share ``J_i^T J_i`` (px^2 per rad^2 / mm^2) of the normal
+    matrix of a pose fit at ``T_cam_ct`` (:func:`fiducial_jacobian`). Summed over the fiducials
+    a frame matches it is the ``JtJ`` :func:`pose_covariance` takes: the registration's
+    covariance before the frame exists (layout planning), from the same code."""
+    J = fiducial_jacobian(T_cam_ct, fiducials_ct, fxy, radius_mm)
     return np.einsum("kai,kaj->kij", J, J)
 
 
