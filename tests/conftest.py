@@ -77,13 +77,12 @@ def cpu_hogs(pytestconfig):
 #: test belongs here (collection says so otherwise). Every test that uses the ``browser`` fixture
 #: (tests/ui/conftest.py: chromium renders the 3D view in software beside an engine on the real
 #: clock) is in the serial lane too, wherever it lives (:func:`in_serial_lane`); the view-level
-#: tests of tests/ui/ (doubles, fake clocks, no browser) run 2-wide with the rest.
+#: tests of tests/ui/ (doubles, fake clocks, no browser) run 2-wide with the rest. A file that
+#: mixes such tests with pure logic (a manual clock, no thread, no wall time) lists no file here:
+#: its lane tests carry ``@pytest.mark.serial`` and the rest run 2-wide.
 SERIAL_LANE = (
-    "tests/examples/",
     "tests/engine/test_digital_twin.py",
     "tests/engine/test_pose_pipeline.py",
-    "tests/vision/test_pose_stream.py",
-    "tests/interop/test_recording_replay.py",
     "tests/interop/test_replay_camera.py",
     "tests/ui/test_viser_threads.py",
 )
@@ -101,8 +100,10 @@ def _rel(item) -> str:
 
 
 def in_serial_lane(item) -> bool:
-    """True for a test of a :data:`SERIAL_LANE` file or one that uses the ``browser`` fixture."""
-    return _rel(item).startswith(SERIAL_LANE) or "browser" in getattr(item, "fixturenames", ())
+    """True for a test of a :data:`SERIAL_LANE` file, one marked ``serial``, or one that uses the
+    ``browser`` fixture."""
+    return (_rel(item).startswith(SERIAL_LANE) or item.get_closest_marker("serial") is not None
+            or "browser" in getattr(item, "fixturenames", ()))
 
 
 def pytest_collection_modifyitems(config, items):

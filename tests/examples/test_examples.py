@@ -30,6 +30,17 @@ EXPECT = {
     "08_openigtlink_client.py": "pose=VALID",
 }
 
+#: examples that run the engine or a pose stream on the real clock, or the demo on a simulated
+#: clock that counts measured CPU time (a loaded machine changes what they see: example 06's tip
+#: was 40 mm off in a loaded suite, issue 35): the serial lane's (tests/conftest.py). The others
+#: (a manual clock, pure computation) run 2-wide with the rest of the suite.
+SERIAL = {"04_pose_stream_sim_camera.py", "06_headless_session.py", "07_record_and_replay.py",
+          "08_openigtlink_client.py"}
+
+
+def _example(p: Path):
+    return pytest.param(p, id=p.stem, marks=[pytest.mark.serial] if p.name in SERIAL else [])
+
 
 def test_every_example_is_listed_in_the_index_and_here():
     index = (ROOT / "examples" / "README.md").read_text()
@@ -37,9 +48,10 @@ def test_every_example_is_listed_in_the_index_and_here():
     for p in EXAMPLES:
         assert p.name in index, f"{p.name} missing from examples/README.md"
         assert p.name in EXPECT, f"{p.name} has no expectation in this test"
+    assert SERIAL <= set(EXPECT), SERIAL - set(EXPECT)
 
 
-@pytest.mark.parametrize("script", EXAMPLES, ids=lambda p: p.stem)
+@pytest.mark.parametrize("script", [_example(p) for p in EXAMPLES])
 def test_example_runs_and_checks_itself(script, tmp_path):
     env = dict(os.environ, PYTHONPATH=str(ROOT / "app"), MONOTRACKER_HOME=str(tmp_path))
     proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True,

@@ -22,6 +22,7 @@ def _last_json_line(text: str) -> dict:
     return json.loads(text.strip().splitlines()[-1])
 
 
+@pytest.mark.serial  # the rendered demo, its simulated clock counting measured CPU time: tests/conftest.py
 def test_headless_demo_recording_replays_exactly(fresh_home, tmp_path, capsys):
     rec = tmp_path / "rec"
     # the command line of the done criterion, in-process

@@ -1,8 +1,13 @@
-"""Pose stream against the simulator's truth: accuracy, occlusion alerts, gates, camera faults."""
+"""Pose stream against the simulator's truth: accuracy, occlusion alerts, gates, camera faults.
+
+The tests on a paced camera (the real clock: frozen, stalled) are the serial lane's
+(``@pytest.mark.serial``, tests/conftest.py); the rest (frame by frame, or an unpaced camera
+waited on by state) run 2-wide with the suite."""
 
 import threading
 
 import numpy as np
+import pytest
 
 from monotracker.geometry import apply_transform
 from monotracker.sim.camera_sim import Occluder, SceneEvents, SimulatedCamera, _finger
@@ -105,6 +110,7 @@ def test_stream_thread_publishes_and_reports_unplugged_camera():
     assert threading.current_thread() is threading.main_thread()
 
 
+@pytest.mark.serial  # the stream thread on a paced camera (real clock): tests/conftest.py
 def test_frozen_camera_reported_on_the_third_identical_frame():
     """Behaviour, not wall time (the 0.1 s latency on a quiet machine is a benchmark figure): the
     camera repeats frame 7's image from frame 8 on; the stream publishes at most one estimate
@@ -122,6 +128,7 @@ def test_frozen_camera_reported_on_the_third_identical_frame():
     assert any(e.ok and e.frame_index <= 7 for e in got)
 
 
+@pytest.mark.serial  # the stream thread on a paced camera (real clock): tests/conftest.py
 def test_stalled_camera_reported():
     """A read() that blocks for longer than the watchdog's 0.1 s is reported late, and past its
     0.5 s as stalled, while it still blocks (behaviour; the latency is a benchmark figure)."""
