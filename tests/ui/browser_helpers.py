@@ -16,6 +16,12 @@ T_PAGE_MS = 120_000  # ms, the page catching up with the session
 #: steps each click of the end-to-end test took ~30 s at load 9. The tests check the workflow, not
 #: the stream's rate (``benchmarks/web_overlay.py`` measures that).
 STREAM_FPS = 5.0
+#: ``MonoTrackerApp`` options of every browser test: the overlay at :data:`STREAM_FPS`, and no HDR
+#: environment map (``environment_map=False``): headless chromium draws the 3D view in software,
+#: and the map's prefiltering and shaders cost it ~10 of the ~14 CPU s of its GPU process at each
+#: page load of the sample scene (issue 33: 4 CPU hogs beside the tests left the browser a
+#: fraction of a core, and clicks waited for that first frame). The tests check the page's logic.
+APP_OPTIONS = dict(max_stream_fps=STREAM_FPS, environment_map=False)
 
 
 def _wait(pred, timeout=T_STATE, what="condition"):
@@ -121,7 +127,7 @@ def served_locked_sample(tmp_path, monkeypatch, port, config: dict | None = None
         assert s.confirm_fiducials().ok
         if sample_plan:
             assert s.use_sample_plan().ok
-        app = MonoTrackerApp(s, "127.0.0.1", port, max_stream_fps=STREAM_FPS)
+        app = MonoTrackerApp(s, "127.0.0.1", port, **APP_OPTIONS)
         app.start()
         try:
             yield s, app

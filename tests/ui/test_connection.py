@@ -5,7 +5,7 @@ the stylesheet shows the banner then)."""
 from __future__ import annotations
 
 import pytest
-from browser_helpers import open_page
+from browser_helpers import APP_OPTIONS, open_page
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -15,7 +15,7 @@ def test_connection_lost_banner(tmp_path, port, browser):
     from monotracker.ui.app import MonoTrackerApp
 
     s = Session(SessionConfig(home=tmp_path, arm_pin="2468"))
-    app = MonoTrackerApp(s, "127.0.0.1", port)
+    app = MonoTrackerApp(s, "127.0.0.1", port, **APP_OPTIONS)
     app.start()
     try:
         page = open_page(browser, app, (1280, 800), ready="#mt-robot-state")

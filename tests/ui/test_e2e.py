@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from browser_helpers import (STREAM_FPS, T_STATE, _click, _command, _input, _msg, _pin_pad, _state, _take_control,
+from browser_helpers import (APP_OPTIONS, T_STATE, _click, _command, _input, _msg, _pin_pad, _state, _take_control,
                              _wait, open_page)
 
 pytestmark = pytest.mark.timeout(900)
@@ -32,7 +32,7 @@ def served(tmp_path, monkeypatch, port):
     s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="breathing", robot="sim", arm_pin="2468"))
     ages = _record_pose_ages(s)
     s.start()
-    app = MonoTrackerApp(s, "127.0.0.1", port, max_stream_fps=STREAM_FPS)  # the camera and pipeline at 30 fps
+    app = MonoTrackerApp(s, "127.0.0.1", port, **APP_OPTIONS)  # the camera and pipeline at 30 fps
     app.start()
     yield s, app, ages
     app.stop()

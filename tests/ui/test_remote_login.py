@@ -20,7 +20,7 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-from browser_helpers import T_PAGE_MS, _wait
+from browser_helpers import APP_OPTIONS, T_PAGE_MS, _wait
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -148,7 +148,7 @@ def remote(tmp_path, port):
 
     s = Session(SessionConfig(home=tmp_path, arm_pin="2468"))
     gate = for_session(s, PASSWORD, ttl_s=3600.0, max_tries=3, lockout_s=5.0)
-    app = MonoTrackerApp(s, "127.0.0.1", port, login=gate)
+    app = MonoTrackerApp(s, "127.0.0.1", port, login=gate, **APP_OPTIONS)
     app.start()
     yield s, app, gate
     app.stop()

@@ -8,7 +8,7 @@ only (it must hold with CPU hogs beside it: ``MONOTRACKER_TEST_HOGS=4``)."""
 from __future__ import annotations
 
 import pytest
-from browser_helpers import T_STATE, _wait, open_page
+from browser_helpers import APP_OPTIONS, T_STATE, _wait, open_page
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -27,7 +27,7 @@ def served_robot(tmp_path, monkeypatch, port):
     try:
         assert s.connect_robot().ok
         _wait(lambda: s.snapshot().robot.state == "disarmed" and s.snapshot().robot.connected, what="robot connected")
-        app = MonoTrackerApp(s, "127.0.0.1", port)
+        app = MonoTrackerApp(s, "127.0.0.1", port, **APP_OPTIONS)
         app.start()
         yield s, app
     finally:

@@ -18,7 +18,7 @@ import threading
 import time
 
 import pytest
-from browser_helpers import open_page
+from browser_helpers import APP_OPTIONS, open_page
 
 pytestmark = pytest.mark.timeout(300)
 CLIENTS = 6
@@ -191,7 +191,7 @@ def test_app_protects_its_buffers(tmp_path, port, browser):
     from monotracker.ui.viser_threads import LoopSafeEvent
 
     s = Session(SessionConfig(home=tmp_path, arm_pin="2468"))
-    app = MonoTrackerApp(s, "127.0.0.1", port)
+    app = MonoTrackerApp(s, "127.0.0.1", port, **APP_OPTIONS)
     app.start()
     try:
         assert isinstance(app.server._websock_server._broadcast_buffer.message_event, LoopSafeEvent)

@@ -46,10 +46,16 @@ class MonoTrackerApp:
     the streamed image (benchmark only). ``display_width``: px width of the live overlay as sent
     to the browsers (frames are downscaled once for all tabs). ``login``: a
     :class:`~monotracker.ui.remote_login.LoginGate` (``serve --allow-remote``): viser then listens
-    on 127.0.0.1 (an ephemeral port) and the login proxy on ``host:port``."""
+    on 127.0.0.1 (an ephemeral port) and the login proxy on ``host:port``. ``environment_map``
+    (True): viser's HDR environment map lights the 3D view besides the default lights; False: the
+    default lights only. A browser without a GPU draws WebGL in software (SwiftShader), and the
+    environment map (its prefiltered cube map and the shaders that sample it) cost it ~10 CPU s
+    at each page load on the sample scene (4 CPU s without it; the browser tests turn it off:
+    they check the page's logic, not its shading)."""
 
     def __init__(self, session, host: str = "127.0.0.1", port: int = 8080, *, stream_code: bool = False,
-                 jpeg_quality: int = 80, max_stream_fps: float = 30.0, display_width: int = 960, login=None):
+                 jpeg_quality: int = 80, max_stream_fps: float = 30.0, display_width: int = 960, login=None,
+                 environment_map: bool = True):
         self.session = session
         self.host, self.port = host, int(port)
         self.login, self.proxy = login, None
@@ -59,6 +65,7 @@ class MonoTrackerApp:
             self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
         self.stream = OverlayStream(display_width=display_width, jpeg_quality=jpeg_quality, stream_code=stream_code)
         self.max_stream_fps = float(max_stream_fps)
+        self.environment_map = bool(environment_map)
         #: (client id, station label, wall time) of the newest STOP pressed in a tab, or None:
         #: every other tab says where STOP was pressed (ClientView.changes_elsewhere)
         self.last_stop: tuple | None = None
@@ -89,6 +96,8 @@ class MonoTrackerApp:
         # no shadow pass: every 3D redraw costs a browser without a GPU one pass less (the live
         # image beside it gets the time; benchmarks/web_overlay.py)
         self.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
+        if not self.environment_map:
+            self.server.scene.configure_environment_map(hdri=None)
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
         # a robot state change (a STOP acknowledged by the controller, from any tab or cause)
