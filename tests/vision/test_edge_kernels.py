@@ -139,6 +139,29 @@ def test_ray_layout_hand_checked():
             x, y = e[b, 0] + s * np.cos(ph), e[b, 1] + s * np.sin(ph)
             assert x.min() >= x0 and x.max() < x1 - 1 and y.min() >= y0 and y.max() < y1 - 1
     assert len(phi) == len(s0) == counts.sum()
+    # a cap on the rays (edge_fit.MAX_RAYS) caps only the balls above it: 78 -> 48, 96 -> 48
+    capped = edge_kernels.ray_geometry(e[:, 0], e[:, 1], e[:, 2], e[:, 3], e[:, 4], k, blur, 200, 300, 48)
+    assert capped[0].tolist() == [39, 48, 32, 48, 0]
+    assert capped[2][:4] == pytest.approx(w_in[:4]) and capped[3][:4] == pytest.approx(step[:4])
+
+
+def test_luma_at_matches_remap():
+    """edge_kernels.luma_at (the contact-shadow test's luma samples) against cv2.remap of the
+    linearised window (the NumPy body of edge_fit._without_shadow_rays), at random points."""
+    import cv2
+
+    from monotracker.vision import edge_kernels
+
+    rng = np.random.default_rng(4)
+    img = rng.integers(0, 256, (120, 160, 3)).astype(np.uint8)
+    x0, y0, x1, y1 = 20, 10, 90, 70
+    q = np.column_stack([rng.uniform(0, x1 - x0 - 2, 400), rng.uniform(0, y1 - y0 - 2, 400)]).astype(np.float32)
+    q[:8] = np.round(q[:8] * 32) / 32 + 1 / 64       # ties of the 1/32 px grid
+    lin = (edge_fit.LINEAR_LUT[img[y0:y1, x0:x1]] @ edge_fit.COLOUR_WEIGHTS[0]).astype(np.float32)
+    ref = cv2.remap(lin, q[None, :, 0], q[None, :, 1], cv2.INTER_LINEAR)[0]
+    got = edge_kernels.luma_at(img, edge_fit.LINEAR_LUT, edge_fit._LUMA_WEIGHTS, x0, y0, x1, y1,
+                               np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]))
+    assert np.abs(got - ref).max() < 1e-6
 
 
 def _reference_profiles(img, balls, layout, smooth):

@@ -536,11 +536,11 @@ def shaped_fits(P, valid, usable, ratio, major_deg, min_share, blur_px, window_s
 
 
 @_compiled
-def ray_geometry(cx, cy, d1, d2, ang_deg, k, blur_px, img_h, img_w):
+def ray_geometry(cx, cy, d1, d2, ang_deg, k, blur_px, img_h, img_w, max_rays=96):
     """The rays of m balls given by their coarse OpenCV ellipses (centre ``cx``, ``cy`` px, full
     axes ``d1``, ``d2`` px, ``ang_deg``), for blur ``blur_px`` px and ``k`` samples per ray: the
     edge fit's one ray layout (both bodies of :func:`.edge_fit._edge_points` take it from here,
-    through ``edge_fit._ray_layout``). Per ball n = clip(2 pi a / 1.6, 32, 96) rays (a the
+    through ``edge_fit._ray_layout``). Per ball n = clip(2 pi a / 1.6, 32, ``max_rays``) rays (a the
     semi-major axis) at angles 2 pi i / n from +x towards +y; each starts ``w_in`` px inside the
     ellipse and ends ``w_out`` = 3 + b / 4 + ``blur_px`` px outside it (b the semi-minor axis),
     w_in = min(w_out, 0.65 x the shortest ray radius), k samples ``step`` apart; the window is
@@ -557,7 +557,7 @@ def ray_geometry(cx, cy, d1, d2, ang_deg, k, blur_px, img_h, img_w):
     N = 0
     for b in range(m):
         a_ = max(d1[b], d2[b]) / 2
-        n = int(min(max(2 * np.pi * a_ / 1.6, 32.0), 96.0))
+        n = int(min(max(2 * np.pi * a_ / 1.6, 32.0), float(max(max_rays, 32))))
         n_all[b] = n
         w_out = 3.0 + 0.25 * (min(d1[b], d2[b]) / 2) + blur_px
         mm = int(math.ceil(a_ + w_out + 2))
@@ -618,6 +618,31 @@ def contour_fit_rms(contour, ex, ey, d1, d2, ang_deg):
     for i in range(m):
         a += (dev[i] - mean) ** 2
     return math.sqrt(a / m)
+
+
+@_compiled
+def luma_at(img, lut, cw0, x0, y0, x1, y1, xs, ys):
+    """Linear luma at points (``xs``, ``ys`` px from the window's corner ``x0``, ``y0``, float32), sampled as ``cv2.remap`` samples
+    the window ``img[y0:y1, x0:x1]`` linearised (``lut``, float32) and weighted (``cw0`` (3,)
+    float32: linear BGR -> luma): bilinear at 1/32 px, round half to even, border replicated at
+    the window's edge. (n,) float32. For :func:`.edge_fit._without_shadow_rays`: a few dozen
+    points a ball, where linearising the whole window cost ~50 us a ball."""
+    ww, hh = x1 - x0, y1 - y0
+    one = np.float32(1.0)
+    out = np.empty(len(xs), np.float32)
+    for q in range(len(xs)):
+        ix = np.int64(np.rint(xs[q] * np.float32(32.0)))
+        iy = np.int64(np.rint(ys[q] * np.float32(32.0)))
+        xi, yi = ix >> 5, iy >> 5
+        ax, ay = np.float32(ix & 31) * np.float32(1.0 / 32), np.float32(iy & 31) * np.float32(1.0 / 32)
+        xa, xb = min(max(xi, 0), ww - 1), min(max(xi + 1, 0), ww - 1)
+        ya, yb = min(max(yi, 0), hh - 1), min(max(yi + 1, 0), hh - 1)
+        v = np.float32(0.0)
+        for ch in range(3):
+            v += cw0[ch] * ((one - ay) * ((one - ax) * lut[img[y0 + ya, x0 + xa, ch]] + ax * lut[img[y0 + ya, x0 + xb, ch]])
+                            + ay * ((one - ax) * lut[img[y0 + yb, x0 + xa, ch]] + ax * lut[img[y0 + yb, x0 + xb, ch]]))
+        out[q] = v
+    return out
 
 
 #: :func:`fine_lut`'s entries per display value
@@ -757,6 +782,8 @@ def warm_up() -> None:
     ellipse_residuals(P[0, :, 0], P[0, :, 1], 0.0, 0.0, 20.0, 20.0, 0.0, np.empty(32))     # strided views
     contour_fit_rms(np.zeros((8, 1, 2), np.int32), 0.0, 0.0, 2.0, 1.0, 0.0)
     img = np.random.default_rng(1).integers(0, 256, (64, 64, 3)).astype(np.uint8)
+    lut32 = np.linspace(0, 1, 256).astype(np.float32)
+    luma_at(img, lut32, lut32[:3].copy(), 2, 2, 30, 30, np.full(4, 10.5, np.float32), np.full(4, 9.25, np.float32))
     one = np.ones(1)
     cnt, box, _w, st, ph, s0 = ray_geometry(32.0 * one, 32.0 * one, 20.0 * one, 18.0 * one, 0.0 * one, k, 1.5, 64, 64)
     lut = np.linspace(0, 1, 256).astype(np.float32)
