@@ -98,3 +98,27 @@ def test_whole_head_sample_uses_the_coarse_grid_and_finds_every_ball(monkeypatch
     assert (missed, false) == (0, 0) and err.max() < 0.1
     clip = np.mean(default_phantom().clip_segment_lps, axis=0)
     assert any(np.linalg.norm(r.centre_lps - clip) < 2.0 for r in det.rejected)
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.float32])
+def test_label_stats_equal_scipy_per_component(dtype):
+    """The blob search's one-pass statistics (ct/label_kernels.py) against SciPy's sizes,
+    boxes and first densest voxel per component, on a view of a larger array (as a crop)."""
+    from scipy import ndimage
+
+    from monotracker.ct.label_kernels import label_stats
+
+    rng = np.random.default_rng(5)
+    big = rng.integers(-1000, 3000, (14, 15, 16)).astype(dtype)
+    big[3, 4, 5] = big[3, 4, 6] = 2999  # a tie: the first in C order wins
+    sub = big[1:13, 2:14, 3:15]
+    labels, n = ndimage.label(sub > 2800, structure=np.ones((3, 3, 3), bool))
+    assert n > 5
+    counts, lo, hi, peak, pos = label_stats(labels, sub, n)
+    assert np.array_equal(counts[1:], np.bincount(labels.ravel(), minlength=n + 1)[1:])
+    for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
+        assert tuple(lo[lab]) == tuple(s.start for s in sl) and tuple(hi[lab]) == tuple(s.stop for s in sl)
+        vals = np.where(labels[sl] == lab, sub[sl], -np.inf)
+        at = np.unravel_index(int(np.argmax(vals)), vals.shape)
+        assert peak[lab] == vals[at]
+        assert tuple(pos[lab]) == tuple(s.start + a for s, a in zip(sl, at))

@@ -52,6 +52,7 @@ import numpy as np
 from scipy import ndimage
 
 from monotracker.ct.detection_result import RejectedBlob
+from monotracker.ct.label_kernels import label_stats
 from monotracker.ct.volume import Volume
 
 #: Number of thresholds from the lowest level to 85 % of the densest (or the kit's density).
@@ -241,31 +242,27 @@ class _LadderSearch:
         labels, n = ndimage.label(mask, structure=_STRUCTURE)
         if n == 0:
             return False
-        counts = np.bincount(labels.ravel(), minlength=n + 1)
+        # sizes, boxes and densest voxels of all components in one pass
+        counts, box_lo, box_hi, peak, peak_at = label_stats(labels, sub, n)
         st.components += n
         sizable = np.flatnonzero(counts >= self.min_voxels)
         sizable = sizable[sizable > 0]
         st.specks += n - len(sizable)
         if len(sizable) == 0:
             return False
-        objs = ndimage.find_objects(labels)
+
+        def box(lab):
+            return tuple(slice(int(box_lo[lab, a]), int(box_hi[lab, a])) for a in range(3))
+
         small = counts[sizable] <= self.max_ball_voxels
-        peaks = np.full(len(sizable), np.inf)
+        peaks = peak[sizable]
         keep = np.ones(len(sizable), bool)
         running_out = np.zeros(len(sizable), bool)
-        for q, lab in enumerate(sizable):
-            sl = objs[lab - 1]
-            if not small[q] and crop is None:
-                continue  # peaks only of the ball-sized ones (a pass over a whole head's labels is slow)
-            vals = np.where(labels[sl] == lab, sub[sl], self.low)
-            at = np.unravel_index(int(np.argmax(vals)), vals.shape)
-            peaks[q] = float(vals[at])
-            if crop is not None:
-                g = lo + np.array([s.start for s in sl]) + np.array(at)  # the peak, full grid
-                keep[q] = bool(crop.core[tuple(g - crop.lo)])
-                glo = lo + np.array([s.start for s in sl])
-                ghi = lo + np.array([s.stop for s in sl])
-                running_out[q] = bool(np.any((glo <= crop.lo) & crop.open_lo) or np.any((ghi >= crop.hi) & crop.open_hi))
+        if crop is not None:
+            g = lo + peak_at[sizable] - crop.lo  # the peaks, in the crop
+            keep = crop.core[g[:, 0], g[:, 1], g[:, 2]].astype(bool)
+            glo, ghi = lo + box_lo[sizable], lo + box_hi[sizable]
+            running_out = np.any((glo <= crop.lo) & crop.open_lo, axis=1) | np.any((ghi >= crop.hi) & crop.open_hi, axis=1)
         faint = small & (peaks < T + max(6.0 * self.noise, 0.15 * (T - self.tissue)))
         st.specks += int((faint & keep).sum())
         sel = keep & ~faint
@@ -278,7 +275,7 @@ class _LadderSearch:
         for lab in sizable[~faint]:
             if counts[lab] > 3 * self.max_ball_voxels:
                 continue
-            sl = objs[lab - 1]
+            sl = box(lab)
             comp = labels[sl] == lab
             comps[lab] = (sl, comp, np.argwhere(comp) + lo + np.array([s.start for s in sl]))
         cents = {lab: self.volume.zyx_to_lps(kji.mean(axis=0)[None])[0] for lab, (_, _, kji) in comps.items()}
@@ -288,7 +285,7 @@ class _LadderSearch:
             c = int(counts[lab])
             if self.over_budget():
                 return found
-            sl = objs[lab - 1]
+            sl = box(lab)
             glo = lo + np.array([s.start for s in sl])
             ghi = lo + np.array([s.stop for s in sl])
             if out_of_crop:  # part of something larger outside the crop: only what separates higher up
