@@ -52,7 +52,7 @@ import numpy as np
 from scipy import ndimage
 
 from monotracker.ct.detection_result import RejectedBlob
-from monotracker.ct.label_kernels import label_stats
+from monotracker.ct.label_kernels import threshold_label
 from monotracker.ct.volume import Volume
 
 #: Number of thresholds from the lowest level to 85 % of the densest (or the kit's density).
@@ -235,15 +235,11 @@ class _LadderSearch:
         arr, ladder, st = self.arr, self.ladder, self.stats
         T = float(ladder[level])
         sub = arr[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-        mask = sub > T
-        if restrict is not None:
-            mask &= restrict
-        st.labelled_voxels += mask.size
-        labels, n = ndimage.label(mask, structure=_STRUCTURE)
+        st.labelled_voxels += sub.size
+        # the components (26-connected) and their sizes, boxes and densest voxels, in two passes
+        labels, n, counts, box_lo, box_hi, peak, peak_at = threshold_label(sub, T, restrict)
         if n == 0:
             return False
-        # sizes, boxes and densest voxels of all components in one pass
-        counts, box_lo, box_hi, peak, peak_at = label_stats(labels, sub, n)
         st.components += n
         sizable = np.flatnonzero(counts >= self.min_voxels)
         sizable = sizable[sizable > 0]

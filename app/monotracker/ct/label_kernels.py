@@ -1,9 +1,11 @@
-"""Per-component statistics of a labelled box in one pass (numba), for :mod:`.blob_search`.
+"""Connected components of a thresholded box and their statistics (numba), for :mod:`.blob_search`.
 
-``scipy.ndimage`` gives them one at a time (``bincount`` for the sizes, ``find_objects`` for
-the boxes, then a pass over each component's box for its densest voxel): three or more passes
-over a crop of up to ~2 M voxels per threshold level. :func:`label_stats` reads the labels and
-the values once.
+``scipy.ndimage`` gives them one at a time (a mask, ``label``, ``bincount`` for the sizes,
+``find_objects`` for the boxes, then a pass over each component's box for its densest voxel):
+five or more passes over a crop of up to ~2 M voxels per threshold level.
+:func:`threshold_label` thresholds, labels (26-connected, union-find, numbered in the raster
+order of each component's first voxel, as ``ndimage.label``) and measures in two passes;
+:func:`label_stats` measures given labels in one.
 """
 
 from __future__ import annotations
@@ -51,6 +53,105 @@ def _label_stats(labels, values, n):
     return counts, lo, hi, peak, pos
 
 
+@compiled
+def _find(parent, a):
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@compiled
+def _threshold_label(values, T, restrict, use_restrict):
+    nk, nj, ni = values.shape
+    labels = np.zeros((nk, nj, ni), np.int32)
+    parent = np.zeros(1024, np.int32)
+    n = 0
+    for k in range(nk):
+        for j in range(nj):
+            for i in range(ni):
+                if not values[k, j, i] > T:
+                    continue
+                if use_restrict and not restrict[k, j, i]:
+                    continue
+                cur = 0
+                # the 13 neighbours already visited: the plane before (9), the row before (3), the voxel before
+                for dk in range(-1, 1):
+                    kk = k + dk
+                    if kk < 0:
+                        continue
+                    for dj in range(-1, 2):
+                        if dk == 0 and dj > -1:
+                            break
+                        jj = j + dj
+                        if jj < 0 or jj >= nj:
+                            continue
+                        for di in range(-1, 2):
+                            ii = i + di
+                            if ii < 0 or ii >= ni:
+                                continue
+                            lab = labels[kk, jj, ii]
+                            if lab == 0:
+                                continue
+                            r = _find(parent, lab)
+                            if cur == 0:
+                                cur = r
+                            elif r < cur:
+                                parent[cur] = r
+                                cur = r
+                            elif r > cur:
+                                parent[r] = cur
+                if i > 0 and labels[k, j, i - 1] != 0:
+                    r = _find(parent, labels[k, j, i - 1])
+                    if cur == 0:
+                        cur = r
+                    elif r < cur:
+                        parent[cur] = r
+                        cur = r
+                    elif r > cur:
+                        parent[r] = cur
+                if cur == 0:
+                    n += 1
+                    if n >= parent.shape[0]:
+                        grown = np.zeros(2 * parent.shape[0], np.int32)
+                        grown[: parent.shape[0]] = parent
+                        parent = grown
+                    parent[n] = n
+                    cur = n
+                labels[k, j, i] = cur
+    # roots are the smallest provisional label of their set: the one of its first voxel
+    final = np.zeros(n + 1, np.int32)
+    m = 0
+    for a in range(1, n + 1):
+        r = _find(parent, a)
+        if r == a:
+            m += 1
+            final[a] = m
+        else:
+            final[a] = final[r]
+    for k in range(nk):
+        for j in range(nj):
+            for i in range(ni):
+                lab = labels[k, j, i]
+                if lab != 0:
+                    labels[k, j, i] = final[lab]
+    return labels, m
+
+
+def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | None = None):
+    """The 26-connected components of ``values > T`` (and ``restrict``, bool of the same shape,
+    when given), numbered 1..n in the raster order of their first voxel (as ``ndimage.label``
+    with a full 3 x 3 x 3 structure), and their statistics: ``(labels, n, counts, lo, hi,
+    peak, pos)``, the last five as :func:`label_stats`."""
+    use = restrict is not None
+    r = np.ascontiguousarray(restrict, bool) if use else _NO_RESTRICT
+    labels, n = _threshold_label(values, float(T), r, use)
+    return (labels, int(n), *_label_stats(labels, values, int(n)))
+
+
+_NO_RESTRICT = np.ones((1, 1, 1), bool)
+
+
 def label_stats(labels: np.ndarray, values: np.ndarray, n: int):
     """For the components ``1..n`` of ``labels`` (3-D, int, 0 = background) over ``values``
     (same shape, e.g. HU): ``counts`` (n + 1,) voxels (index 0 unused: 0), ``lo``/``hi`` (n + 1, 3)
@@ -60,11 +161,13 @@ def label_stats(labels: np.ndarray, values: np.ndarray, n: int):
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's cache) :func:`label_stats` for the crops a detection
-    passes (int32 labels; int16, float32 and float64 values, views of a larger array)."""
+    """Compile (or load from numba's cache) :func:`threshold_label` and :func:`label_stats`
+    for the crops a detection passes (int32 labels; int16, float32 and float64 values, views of a larger array)."""
     labels = np.zeros((3, 3, 3), np.int32)
     labels[1, 1, 1] = 1
     for dt in (np.int16, np.float32, np.float64):
         big = np.zeros((4, 4, 4), dt)
-        label_stats(labels, big[1:, 1:, 1:], 1)  # a crop (a view)
-        label_stats(labels, big[:3].copy(), 1)  # a whole (contiguous) volume
+        for vals in (big[1:, 1:, 1:], big[:3].copy()):  # a crop (a view), a whole (contiguous) volume
+            label_stats(labels, vals, 1)
+            threshold_label(vals, 0.5)
+            threshold_label(vals, 0.5, labels > 0)
