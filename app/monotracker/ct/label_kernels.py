@@ -75,7 +75,15 @@ def _threshold_label(values, T, restrict, use_restrict):
                 if use_restrict and not restrict[k, j, i]:
                     continue
                 cur = 0
-                # the 13 neighbours already visited: the plane before (9), the row before (3), the voxel before
+                if i > 0 and labels[k, j, i - 1] != 0:
+                    # joined to the voxel before, and through it to all its neighbours: only the
+                    # 4 visited neighbours that are not also its own (one step ahead along i)
+                    cur = _find(parent, labels[k, j, i - 1])
+                    di_lo = 1
+                else:
+                    di_lo = -1
+                # the 13 neighbours already visited: the plane before (9), the row before (3)
+                # (and the voxel before, above)
                 for dk in range(-1, 1):
                     kk = k + dk
                     if kk < 0:
@@ -86,7 +94,7 @@ def _threshold_label(values, T, restrict, use_restrict):
                         jj = j + dj
                         if jj < 0 or jj >= nj:
                             continue
-                        for di in range(-1, 2):
+                        for di in range(di_lo, 2):
                             ii = i + di
                             if ii < 0 or ii >= ni:
                                 continue
@@ -101,15 +109,6 @@ def _threshold_label(values, T, restrict, use_restrict):
                                 cur = r
                             elif r > cur:
                                 parent[r] = cur
-                if i > 0 and labels[k, j, i - 1] != 0:
-                    r = _find(parent, labels[k, j, i - 1])
-                    if cur == 0:
-                        cur = r
-                    elif r < cur:
-                        parent[cur] = r
-                        cur = r
-                    elif r > cur:
-                        parent[r] = cur
                 if cur == 0:
                     n += 1
                     if n >= parent.shape[0]:
