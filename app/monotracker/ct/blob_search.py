@@ -52,7 +52,7 @@ import numpy as np
 from scipy import ndimage
 
 from monotracker.ct.detection_result import RejectedBlob
-from monotracker.ct.label_kernels import threshold_label
+from monotracker.ct.label_kernels import block_max_int, threshold_label
 from monotracker.ct.volume import Volume
 
 #: Number of thresholds from the lowest level to 85 % of the densest (or the kit's density).
@@ -100,6 +100,8 @@ def block_max(arr: np.ndarray, b) -> np.ndarray:
     block along an axis may be shorter). Element-wise maxima of strided views: about one pass
     over ``arr`` (a reshape-and-reduce over the short block axes is several times slower)."""
     bb = (int(b),) * 3 if np.isscalar(b) else tuple(int(x) for x in b)
+    if arr.dtype.kind in "iu" and arr.ndim == 3:
+        return block_max_int(arr, bb)  # compiled: one read (floats keep NumPy's NaN handling)
     out = arr
     for ax, f in enumerate(bb):  # the slowest axis first: later passes read less
         if f <= 1:

@@ -5,7 +5,8 @@
 five or more passes over a crop of up to ~2 M voxels per threshold level.
 :func:`threshold_label` thresholds, labels (26-connected, union-find, numbered in the raster
 order of each component's first voxel, as ``ndimage.label``) and measures in two passes;
-:func:`label_stats` measures given labels in one.
+:func:`label_stats` measures given labels in one. :func:`block_max_int`: the coarse grid of a
+large integer volume (:func:`.blob_search.block_max`) in one read of its voxels.
 """
 
 from __future__ import annotations
@@ -159,11 +160,42 @@ def label_stats(labels: np.ndarray, values: np.ndarray, n: int):
     return _label_stats(labels, values, int(n))
 
 
+@compiled
+def _block_max(arr, bk, bj, bi):
+    nk, nj, ni = arr.shape
+    mk, mj, mi = (nk + bk - 1) // bk, (nj + bj - 1) // bj, (ni + bi - 1) // bi
+    out = np.empty((mk, mj, mi), arr.dtype)
+    buf = np.empty(ni, arr.dtype)
+    for ok in range(mk):
+        for oj in range(mj):
+            k0, j0 = ok * bk, oj * bj
+            for i in range(ni):
+                buf[i] = arr[k0, j0, i]
+            for k in range(k0, min(nk, k0 + bk)):
+                for j in range(j0, min(nj, j0 + bj)):
+                    for i in range(ni):  # element-wise over a row: vectorised
+                        buf[i] = max(buf[i], arr[k, j, i])
+            for oi in range(mi):
+                i0 = oi * bi
+                m = buf[i0]
+                for i in range(i0 + 1, min(ni, i0 + bi)):
+                    m = max(m, buf[i])
+                out[ok, oj, oi] = m
+    return out
+
+
+def block_max_int(arr: np.ndarray, blocks: tuple) -> np.ndarray:
+    """Maximum over blocks of ``blocks`` (k, j, i) voxels of an integer array (the last block
+    along an axis may be shorter): one read of ``arr``, a row buffer of maxima per block row."""
+    return _block_max(arr, int(blocks[0]), int(blocks[1]), int(blocks[2]))
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) :func:`threshold_label` and :func:`label_stats`
     for the crops a detection passes (int32 labels; int16, float32 and float64 values, views of a larger array)."""
     labels = np.zeros((3, 3, 3), np.int32)
     labels[1, 1, 1] = 1
+    block_max_int(np.zeros((4, 4, 4), np.int16), (2, 2, 2))  # the coarse grid of an int16 scan
     for dt in (np.int16, np.float32, np.float64):
         big = np.zeros((4, 4, 4), dt)
         for vals in (big[1:, 1:, 1:], big[:3].copy()):  # a crop (a view), a whole (contiguous) volume
