@@ -17,6 +17,30 @@ from monotracker.registration.compiled import compiled
 
 
 @compiled
+def _add(counts, lo, hi, peak, pos, lab, k, j, i, v):
+    """Voxel (k, j, i) of value ``v`` into the statistics of component ``lab`` (C order)."""
+    if counts[lab] == 0:
+        lo[lab, 0], lo[lab, 1], lo[lab, 2] = k, j, i
+        hi[lab, 0], hi[lab, 1], hi[lab, 2] = k + 1, j + 1, i + 1
+        peak[lab] = v
+        pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, i
+    else:
+        hi[lab, 0] = k + 1  # k only grows in C order; j and i may go either way
+        if j < lo[lab, 1]:
+            lo[lab, 1] = j
+        if j + 1 > hi[lab, 1]:
+            hi[lab, 1] = j + 1
+        if i < lo[lab, 2]:
+            lo[lab, 2] = i
+        if i + 1 > hi[lab, 2]:
+            hi[lab, 2] = i + 1
+        if v > peak[lab]:
+            peak[lab] = v
+            pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, i
+    counts[lab] += 1
+
+
+@compiled
 def _label_stats(labels, values, n):
     counts = np.zeros(n + 1, np.int64)
     lo = np.empty((n + 1, 3), np.int64)
@@ -28,29 +52,8 @@ def _label_stats(labels, values, n):
         for j in range(nj):
             for i in range(ni):
                 lab = labels[k, j, i]
-                if lab == 0:
-                    continue
-                v = float(values[k, j, i])
-                if counts[lab] == 0:
-                    lo[lab, 0], lo[lab, 1], lo[lab, 2] = k, j, i
-                    hi[lab, 0], hi[lab, 1], hi[lab, 2] = k + 1, j + 1, i + 1
-                    peak[lab] = v
-                    pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, i
-                else:
-                    # k only grows in C order; j and i may go either way
-                    hi[lab, 0] = k + 1
-                    if j < lo[lab, 1]:
-                        lo[lab, 1] = j
-                    if j + 1 > hi[lab, 1]:
-                        hi[lab, 1] = j + 1
-                    if i < lo[lab, 2]:
-                        lo[lab, 2] = i
-                    if i + 1 > hi[lab, 2]:
-                        hi[lab, 2] = i + 1
-                    if v > peak[lab]:
-                        peak[lab] = v
-                        pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, i
-                counts[lab] += 1
+                if lab != 0:
+                    _add(counts, lo, hi, peak, pos, lab, k, j, i, float(values[k, j, i]))
     return counts, lo, hi, peak, pos
 
 
@@ -129,13 +132,20 @@ def _threshold_label(values, T, restrict, use_restrict):
             final[a] = m
         else:
             final[a] = final[r]
+    counts = np.zeros(m + 1, np.int64)
+    lo = np.empty((m + 1, 3), np.int64)
+    hi = np.zeros((m + 1, 3), np.int64)
+    peak = np.empty(m + 1, np.float64)
+    pos = np.zeros((m + 1, 3), np.int64)
     for k in range(nk):
         for j in range(nj):
             for i in range(ni):
                 lab = labels[k, j, i]
                 if lab != 0:
-                    labels[k, j, i] = final[lab]
-    return labels, m
+                    lab = final[lab]
+                    labels[k, j, i] = lab
+                    _add(counts, lo, hi, peak, pos, lab, k, j, i, float(values[k, j, i]))
+    return labels, m, counts, lo, hi, peak, pos
 
 
 def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | None = None):
@@ -145,8 +155,8 @@ def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | None = 
     peak, pos)``, the last five as :func:`label_stats`."""
     use = restrict is not None
     r = np.ascontiguousarray(restrict, bool) if use else _NO_RESTRICT
-    labels, n = _threshold_label(values, float(T), r, use)
-    return (labels, int(n), *_label_stats(labels, values, int(n)))
+    labels, n, counts, lo, hi, peak, pos = _threshold_label(values, float(T), r, use)
+    return labels, int(n), counts, lo, hi, peak, pos
 
 
 _NO_RESTRICT = np.ones((1, 1, 1), bool)
