@@ -98,3 +98,72 @@ def test_whole_head_sample_uses_the_coarse_grid_and_finds_every_ball(monkeypatch
     assert (missed, false) == (0, 0) and err.max() < 0.1
     clip = np.mean(default_phantom().clip_segment_lps, axis=0)
     assert any(np.linalg.norm(r.centre_lps - clip) < 2.0 for r in det.rejected)
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.float32])
+def test_label_stats_equal_scipy_per_component(dtype):
+    """The blob search's one-pass statistics (ct/label_kernels.py) against SciPy's sizes,
+    boxes and first densest voxel per component, on a view of a larger array (as a crop)."""
+    from scipy import ndimage
+
+    from monotracker.ct.label_kernels import label_stats
+
+    rng = np.random.default_rng(5)
+    big = rng.integers(-1000, 3000, (14, 15, 16)).astype(dtype)
+    big[3, 4, 5] = big[3, 4, 6] = 2999  # a tie: the first in C order wins
+    sub = big[1:13, 2:14, 3:15]
+    labels, n = ndimage.label(sub > 2800, structure=np.ones((3, 3, 3), bool))
+    assert n > 5
+    counts, lo, hi, peak, pos = label_stats(labels, sub, n)
+    assert np.array_equal(counts[1:], np.bincount(labels.ravel(), minlength=n + 1)[1:])
+    for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
+        assert tuple(lo[lab]) == tuple(s.start for s in sl) and tuple(hi[lab]) == tuple(s.stop for s in sl)
+        vals = np.where(labels[sl] == lab, sub[sl], -np.inf)
+        at = np.unravel_index(int(np.argmax(vals)), vals.shape)
+        assert peak[lab] == vals[at]
+        assert tuple(pos[lab]) == tuple(s.start + a for s, a in zip(sl, at))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_threshold_label_equals_scipy_label(seed):
+    """The blob search's compiled labelling (26-connected union-find) against
+    ``ndimage.label``: the same components, numbered the same, with and without a restriction,
+    on a view of a larger array; and statistics equal to SciPy's."""
+    from scipy import ndimage
+
+    from monotracker.ct.label_kernels import threshold_label
+
+    rng = np.random.default_rng(seed)
+    # smoothed noise: blobs of every shape (U-shapes that merge late in the raster scan too)
+    big = ndimage.gaussian_filter(rng.normal(0, 1, (30, 34, 38)), 1.5)
+    big = (1000 * big / big.std()).astype(np.int16)
+    sub = big[2:28, 3:31, 1:37]
+    restrict = rng.random(sub.shape) < 0.8
+    for T, r in [(600.0, None), (300.0, None), (600.0, restrict), (-5000.0, None)]:
+        mask = sub > T if r is None else (sub > T) & r
+        ref, n_ref = ndimage.label(mask, structure=np.ones((3, 3, 3), bool))
+        labels, n, counts, lo, hi, peak, pos = threshold_label(sub, T, r)
+        assert n == n_ref and n > (0 if T < -1000 else 3)
+        assert np.array_equal(labels, ref)
+        assert np.array_equal(counts[1:], np.bincount(ref.ravel(), minlength=n + 1)[1:])
+        for lab, sl in enumerate(ndimage.find_objects(ref), start=1):
+            assert tuple(lo[lab]) == tuple(s.start for s in sl) and tuple(hi[lab]) == tuple(s.stop for s in sl)
+            assert peak[lab] == sub[tuple(pos[lab])] == sub[sl][ref[sl] == lab].max()
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.uint16, np.int32])
+def test_compiled_block_max_equals_numpy(dtype):
+    """Integer volumes take the compiled block maxima (label_kernels.block_max_int): equal to
+    a reshape-and-reduce for blocks that do not divide the shape, on a view as on a copy."""
+    from monotracker.ct.label_kernels import block_max_int
+
+    rng = np.random.default_rng(7)
+    big = rng.integers(0, 3000, (23, 30, 41)).astype(dtype)
+    for a in (big, big[1:, 2:, 3:]):
+        for bb in [(3, 5, 5), (1, 2, 7), (4, 4, 4)]:
+            pad = [(-s) % b for s, b in zip(a.shape, bb)]
+            p = np.pad(a, [(0, x) for x in pad], constant_values=np.iinfo(dtype).min)
+            s = p.shape
+            ref = p.reshape(s[0] // bb[0], bb[0], s[1] // bb[1], bb[1], s[2] // bb[2], bb[2]).max(axis=(1, 3, 5))
+            assert np.array_equal(block_max_int(a, bb), ref)
+            assert np.array_equal(blob_search.block_max(a, bb), ref)

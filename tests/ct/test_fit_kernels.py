@@ -80,18 +80,21 @@ def test_detection_with_either_solver_gives_the_same_balls(monkeypatch):
 
 _WARM_SCRIPT = """
 import numpy as np
-from monotracker.ct import fit_kernels, sphere_fit
+from monotracker.ct import fit_kernels, label_kernels, sphere_fit
 from monotracker.ct.fiducials import detect_fiducials
 from monotracker.ct.volume import Volume
 from monotracker.sim.ct_phantom import generate_ct, patch_scan_params
 from monotracker.sim.phantom import default_phantom
 
-assert not fit_kernels.robust_lm.signatures
+kernels = (label_kernels._threshold_label, label_kernels._label_stats, label_kernels._add)
+assert not fit_kernels.robust_lm.signatures and not any(k.signatures for k in kernels)
 sphere_fit.warm_up()
 warm = set(fit_kernels.robust_lm.signatures)
+warm_labels = [set(k.signatures) for k in kernels]
 ct = generate_ct(default_phantom(), patch_scan_params(None, 7.0))
 det = detect_fiducials(Volume.from_image(ct.to_sitk()))
 assert det.ok, det.reason
+assert all(not set(k.signatures) - w for k, w in zip(kernels, warm_labels)), "the blob search compiled a new signature"
 print(len(warm), len(set(fit_kernels.robust_lm.signatures) - warm))
 """
 

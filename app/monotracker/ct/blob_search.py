@@ -18,6 +18,9 @@ component (26-connected, on the voxel grid) is handled by size:
 The ladder is a handful of levels (:data:`LADDER_LEVELS`), so the work is bounded: each level
 labels at most the boxes of the components it refines, fits are capped (``max_fits``) and a
 time budget stops the search with a note instead of running for minutes on a head full of metal.
+Each box is thresholded, labelled and measured (sizes, boxes, densest voxels) by the compiled
+:func:`~.label_kernels.threshold_label` in two passes over it (the same components and numbering
+as ``ndimage.label``).
 
 **Large volumes** (more than :data:`FINE_BOX_MAX` voxels: a whole head). Labelling a whole
 head on the full grid costs ~20 passes over its voxels, so it is never done. One pass builds a
@@ -52,6 +55,7 @@ import numpy as np
 from scipy import ndimage
 
 from monotracker.ct.detection_result import RejectedBlob
+from monotracker.ct.label_kernels import block_max_int, threshold_label
 from monotracker.ct.volume import Volume
 
 #: Number of thresholds from the lowest level to 85 % of the densest (or the kit's density).
@@ -99,6 +103,8 @@ def block_max(arr: np.ndarray, b) -> np.ndarray:
     block along an axis may be shorter). Element-wise maxima of strided views: about one pass
     over ``arr`` (a reshape-and-reduce over the short block axes is several times slower)."""
     bb = (int(b),) * 3 if np.isscalar(b) else tuple(int(x) for x in b)
+    if arr.dtype.kind in "iu" and arr.ndim == 3:
+        return block_max_int(arr, bb)  # compiled: one read (floats keep NumPy's NaN handling)
     out = arr
     for ax, f in enumerate(bb):  # the slowest axis first: later passes read less
         if f <= 1:
@@ -234,38 +240,30 @@ class _LadderSearch:
         arr, ladder, st = self.arr, self.ladder, self.stats
         T = float(ladder[level])
         sub = arr[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-        mask = sub > T
-        if restrict is not None:
-            mask &= restrict
-        st.labelled_voxels += mask.size
-        labels, n = ndimage.label(mask, structure=_STRUCTURE)
+        st.labelled_voxels += sub.size
+        # the components (26-connected) and their sizes, boxes and densest voxels, in two passes
+        labels, n, counts, box_lo, box_hi, peak, peak_at = threshold_label(sub, T, restrict)
         if n == 0:
             return False
-        counts = np.bincount(labels.ravel(), minlength=n + 1)
         st.components += n
         sizable = np.flatnonzero(counts >= self.min_voxels)
         sizable = sizable[sizable > 0]
         st.specks += n - len(sizable)
         if len(sizable) == 0:
             return False
-        objs = ndimage.find_objects(labels)
+
+        def box(lab):
+            return tuple(slice(int(box_lo[lab, a]), int(box_hi[lab, a])) for a in range(3))
+
         small = counts[sizable] <= self.max_ball_voxels
-        peaks = np.full(len(sizable), np.inf)
+        peaks = peak[sizable]
         keep = np.ones(len(sizable), bool)
         running_out = np.zeros(len(sizable), bool)
-        for q, lab in enumerate(sizable):
-            sl = objs[lab - 1]
-            if not small[q] and crop is None:
-                continue  # peaks only of the ball-sized ones (a pass over a whole head's labels is slow)
-            vals = np.where(labels[sl] == lab, sub[sl], self.low)
-            at = np.unravel_index(int(np.argmax(vals)), vals.shape)
-            peaks[q] = float(vals[at])
-            if crop is not None:
-                g = lo + np.array([s.start for s in sl]) + np.array(at)  # the peak, full grid
-                keep[q] = bool(crop.core[tuple(g - crop.lo)])
-                glo = lo + np.array([s.start for s in sl])
-                ghi = lo + np.array([s.stop for s in sl])
-                running_out[q] = bool(np.any((glo <= crop.lo) & crop.open_lo) or np.any((ghi >= crop.hi) & crop.open_hi))
+        if crop is not None:
+            g = lo + peak_at[sizable] - crop.lo  # the peaks, in the crop
+            keep = crop.core[g[:, 0], g[:, 1], g[:, 2]].astype(bool)
+            glo, ghi = lo + box_lo[sizable], lo + box_hi[sizable]
+            running_out = np.any((glo <= crop.lo) & crop.open_lo, axis=1) | np.any((ghi >= crop.hi) & crop.open_hi, axis=1)
         faint = small & (peaks < T + max(6.0 * self.noise, 0.15 * (T - self.tissue)))
         st.specks += int((faint & keep).sum())
         sel = keep & ~faint
@@ -278,7 +276,7 @@ class _LadderSearch:
         for lab in sizable[~faint]:
             if counts[lab] > 3 * self.max_ball_voxels:
                 continue
-            sl = objs[lab - 1]
+            sl = box(lab)
             comp = labels[sl] == lab
             comps[lab] = (sl, comp, np.argwhere(comp) + lo + np.array([s.start for s in sl]))
         cents = {lab: self.volume.zyx_to_lps(kji.mean(axis=0)[None])[0] for lab, (_, _, kji) in comps.items()}
@@ -288,7 +286,7 @@ class _LadderSearch:
             c = int(counts[lab])
             if self.over_budget():
                 return found
-            sl = objs[lab - 1]
+            sl = box(lab)
             glo = lo + np.array([s.start for s in sl])
             ghi = lo + np.array([s.stop for s in sl])
             if out_of_crop:  # part of something larger outside the crop: only what separates higher up

@@ -1,0 +1,214 @@
+"""Connected components of a thresholded box and their statistics (numba), for :mod:`.blob_search`.
+
+``scipy.ndimage`` gives them one at a time (a mask, ``label``, ``bincount`` for the sizes,
+``find_objects`` for the boxes, then a pass over each component's box for its densest voxel):
+five or more passes over a crop of up to ~2 M voxels per threshold level.
+:func:`threshold_label` thresholds, labels (26-connected, union-find, numbered in the raster
+order of each component's first voxel, as ``ndimage.label``) and measures in two passes;
+:func:`label_stats` measures given labels in one. :func:`block_max_int`: the coarse grid of a
+large integer volume (:func:`.blob_search.block_max`) in one read of its voxels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from monotracker.registration.compiled import compiled
+
+
+@compiled
+def _add(counts, lo, hi, peak, pos, lab, k, j, i, v):
+    """Voxel (k, j, i) of value ``v`` into the statistics of component ``lab`` (C order)."""
+    if counts[lab] == 0:
+        lo[lab, 0], lo[lab, 1], lo[lab, 2] = k, j, i
+        hi[lab, 0], hi[lab, 1], hi[lab, 2] = k + 1, j + 1, i + 1
+        peak[lab] = v
+        pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, i
+    else:
+        hi[lab, 0] = k + 1  # k only grows in C order; j and i may go either way
+        if j < lo[lab, 1]:
+            lo[lab, 1] = j
+        if j + 1 > hi[lab, 1]:
+            hi[lab, 1] = j + 1
+        if i < lo[lab, 2]:
+            lo[lab, 2] = i
+        if i + 1 > hi[lab, 2]:
+            hi[lab, 2] = i + 1
+        if v > peak[lab]:
+            peak[lab] = v
+            pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, i
+    counts[lab] += 1
+
+
+@compiled
+def _label_stats(labels, values, n):
+    counts = np.zeros(n + 1, np.int64)
+    lo = np.empty((n + 1, 3), np.int64)
+    hi = np.zeros((n + 1, 3), np.int64)
+    peak = np.empty(n + 1, np.float64)
+    pos = np.zeros((n + 1, 3), np.int64)
+    nk, nj, ni = labels.shape
+    for k in range(nk):
+        for j in range(nj):
+            for i in range(ni):
+                lab = labels[k, j, i]
+                if lab != 0:
+                    _add(counts, lo, hi, peak, pos, lab, k, j, i, float(values[k, j, i]))
+    return counts, lo, hi, peak, pos
+
+
+@compiled
+def _find(parent, a):
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@compiled
+def _threshold_label(values, T, restrict, use_restrict):
+    nk, nj, ni = values.shape
+    labels = np.zeros((nk, nj, ni), np.int32)
+    parent = np.zeros(1024, np.int32)
+    n = 0
+    for k in range(nk):
+        for j in range(nj):
+            for i in range(ni):
+                if not values[k, j, i] > T:
+                    continue
+                if use_restrict and not restrict[k, j, i]:
+                    continue
+                cur = 0
+                if i > 0 and labels[k, j, i - 1] != 0:
+                    # joined to the voxel before, and through it to all its neighbours: only the
+                    # 4 visited neighbours that are not also its own (one step ahead along i)
+                    cur = _find(parent, labels[k, j, i - 1])
+                    di_lo = 1
+                else:
+                    di_lo = -1
+                # the 13 neighbours already visited: the plane before (9), the row before (3)
+                # (and the voxel before, above)
+                for dk in range(-1, 1):
+                    kk = k + dk
+                    if kk < 0:
+                        continue
+                    for dj in range(-1, 2):
+                        if dk == 0 and dj > -1:
+                            break
+                        jj = j + dj
+                        if jj < 0 or jj >= nj:
+                            continue
+                        for di in range(di_lo, 2):
+                            ii = i + di
+                            if ii < 0 or ii >= ni:
+                                continue
+                            lab = labels[kk, jj, ii]
+                            if lab == 0:
+                                continue
+                            r = _find(parent, lab)
+                            if cur == 0:
+                                cur = r
+                            elif r < cur:
+                                parent[cur] = r
+                                cur = r
+                            elif r > cur:
+                                parent[r] = cur
+                if cur == 0:
+                    n += 1
+                    if n >= parent.shape[0]:
+                        grown = np.zeros(2 * parent.shape[0], np.int32)
+                        grown[: parent.shape[0]] = parent
+                        parent = grown
+                    parent[n] = n
+                    cur = n
+                labels[k, j, i] = cur
+    # roots are the smallest provisional label of their set: the one of its first voxel
+    final = np.zeros(n + 1, np.int32)
+    m = 0
+    for a in range(1, n + 1):
+        r = _find(parent, a)
+        if r == a:
+            m += 1
+            final[a] = m
+        else:
+            final[a] = final[r]
+    counts = np.zeros(m + 1, np.int64)
+    lo = np.empty((m + 1, 3), np.int64)
+    hi = np.zeros((m + 1, 3), np.int64)
+    peak = np.empty(m + 1, np.float64)
+    pos = np.zeros((m + 1, 3), np.int64)
+    for k in range(nk):
+        for j in range(nj):
+            for i in range(ni):
+                lab = labels[k, j, i]
+                if lab != 0:
+                    lab = final[lab]
+                    labels[k, j, i] = lab
+                    _add(counts, lo, hi, peak, pos, lab, k, j, i, float(values[k, j, i]))
+    return labels, m, counts, lo, hi, peak, pos
+
+
+def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | None = None):
+    """The 26-connected components of ``values > T`` (and ``restrict``, bool of the same shape,
+    when given), numbered 1..n in the raster order of their first voxel (as ``ndimage.label``
+    with a full 3 x 3 x 3 structure), and their statistics: ``(labels, n, counts, lo, hi,
+    peak, pos)``, the last five as :func:`label_stats`."""
+    use = restrict is not None
+    r = np.ascontiguousarray(restrict, bool) if use else _NO_RESTRICT
+    labels, n, counts, lo, hi, peak, pos = _threshold_label(values, float(T), r, use)
+    return labels, int(n), counts, lo, hi, peak, pos
+
+
+_NO_RESTRICT = np.ones((1, 1, 1), bool)
+
+
+def label_stats(labels: np.ndarray, values: np.ndarray, n: int):
+    """For the components ``1..n`` of ``labels`` (3-D, int, 0 = background) over ``values``
+    (same shape, e.g. HU): ``counts`` (n + 1,) voxels (index 0 unused: 0), ``lo``/``hi`` (n + 1, 3)
+    the box of each (k, j, i, ``hi`` exclusive, as ``find_objects``), ``peak`` (n + 1,) the
+    densest value and ``pos`` (n + 1, 3) its index, the first in C order (as ``np.argmax``)."""
+    return _label_stats(labels, values, int(n))
+
+
+@compiled
+def _block_max(arr, bk, bj, bi):
+    nk, nj, ni = arr.shape
+    mk, mj, mi = (nk + bk - 1) // bk, (nj + bj - 1) // bj, (ni + bi - 1) // bi
+    out = np.empty((mk, mj, mi), arr.dtype)
+    buf = np.empty(ni, arr.dtype)
+    for ok in range(mk):
+        for oj in range(mj):
+            k0, j0 = ok * bk, oj * bj
+            for i in range(ni):
+                buf[i] = arr[k0, j0, i]
+            for k in range(k0, min(nk, k0 + bk)):
+                for j in range(j0, min(nj, j0 + bj)):
+                    for i in range(ni):  # element-wise over a row: vectorised
+                        buf[i] = max(buf[i], arr[k, j, i])
+            for oi in range(mi):
+                i0 = oi * bi
+                m = buf[i0]
+                for i in range(i0 + 1, min(ni, i0 + bi)):
+                    m = max(m, buf[i])
+                out[ok, oj, oi] = m
+    return out
+
+
+def block_max_int(arr: np.ndarray, blocks: tuple) -> np.ndarray:
+    """Maximum over blocks of ``blocks`` (k, j, i) voxels of an integer array (the last block
+    along an axis may be shorter): one read of ``arr``, a row buffer of maxima per block row."""
+    return _block_max(arr, int(blocks[0]), int(blocks[1]), int(blocks[2]))
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) :func:`threshold_label` and :func:`label_stats`
+    for the crops a detection passes (int32 labels; int16, float32 and float64 values, views of a larger array)."""
+    labels = np.zeros((3, 3, 3), np.int32)
+    labels[1, 1, 1] = 1
+    block_max_int(np.zeros((4, 4, 4), np.int16), (2, 2, 2))  # the coarse grid of an int16 scan
+    for dt in (np.int16, np.float32, np.float64):
+        big = np.zeros((4, 4, 4), dt)
+        for vals in (big[1:, 1:, 1:], big[:3].copy()):  # a crop (a view), a whole (contiguous) volume
+            label_stats(labels, vals, 1)
+            threshold_label(vals, 0.5)
+            threshold_label(vals, 0.5, labels > 0)
