@@ -14,7 +14,8 @@ number of balls, at the same image noise:
   over the exposed skin the demo's camera sees, seen from it;
 * **planner**: ``planning.plan_layout``'s balls and camera.
 
-Each layout's balls are placed on the phantom's analytic skin (``HeadPhantom.with_fiducials_at``;
+Each layout's balls are placed on the phantom's analytic skin (``HeadPhantom.with_fiducials_at``, which leaves a
+resting ball where it is, so the rendered balls are where the tracker is told they are;
 the registration is given those true centres for every layout, so no layout pays for CT
 localisation) and measured two ways through the real pose pipeline:
 

@@ -36,3 +36,33 @@ def test_sample_plan_goes_from_skin_to_inside_the_brain():
     assert abs(_ellipsoid_value(ph, ph.sample_entry_lps) - 1.0) < 1e-9
     inner = ph.skin_semi_axes_mm - ph.scalp_thickness_mm - ph.skull_thickness_mm
     assert np.sum(((ph.sample_target_lps - ph.centre_lps) / inner) ** 2) < 0.5
+
+
+def test_placing_a_layout_on_the_skin_moves_a_resting_ball_nowhere():
+    """``with_fiducials_at``: a ball whose centre already rests on the skin (one radius out along
+    the skin's normal) stays where it is, so a placed layout placed again is unchanged; and every
+    placed ball rests on the skin (independent check: the skin point found from the ball's own
+    centre by the analytic ellipsoid's normal). Before, each placement moved the phantom's own
+    balls by 0.2-0.97 mm (the layout benchmark rendered balls 1 mm from where its tracker was told
+    they were)."""
+    ph = default_phantom()
+    X0 = ph.fiducial_centres_lps
+    np.testing.assert_allclose(ph.with_fiducials_at(X0).fiducial_centres_lps, X0, atol=1e-5)
+    Y = X0 + np.random.default_rng(0).normal(scale=3.0, size=X0.shape)      # off the skin
+    Y1 = ph.with_fiducials_at(Y).fiducial_centres_lps
+    np.testing.assert_allclose(default_phantom().with_fiducials_at(Y1).fiducial_centres_lps, Y1, atol=1e-5)
+    from scipy.optimize import minimize
+
+    a = ph.skin_semi_axes_mm
+    for c in Y1:
+        # resting on the skin: the nearest point of the skin ellipsoid is one radius away
+        # (found by a general minimiser over the ellipsoid's angles, not by the phantom's own code)
+        d = (c - ph.centre_lps) / a
+        start = [np.arccos(d[2] / np.linalg.norm(d)), np.arctan2(d[1], d[0])]
+
+        def dist(t, c=c):
+            e = ph.centre_lps + a * np.array([np.sin(t[0]) * np.cos(t[1]), np.sin(t[0]) * np.sin(t[1]), np.cos(t[0])])
+            return float(np.linalg.norm(c - e))
+
+        best = minimize(dist, start, method="Nelder-Mead", options=dict(xatol=1e-9, fatol=1e-9, maxiter=4000))
+        assert abs(best.fun - ph.fiducial_radius_mm) < 1e-3, (best.fun, ph.fiducial_radius_mm)

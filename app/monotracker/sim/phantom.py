@@ -120,16 +120,25 @@ class HeadPhantom:
 
     def with_fiducials_at(self, centres_lps: np.ndarray) -> "HeadPhantom":
         """This phantom with its balls moved to ``centres_lps`` (n, 3) LPS mm (a planned layout):
-        each ball rests on the skin along the direction from the head's centre to its given centre
-        (within a millimetre or so of it for a centre one radius above the skin); all of them in
-        the registration set. The clip and the sample plan stay."""
+        each ball rests on the skin (its centre one radius out along the skin's normal) where its
+        centre comes nearest the given one: a centre that already rests on the skin stays where it
+        is (to ~1e-6 mm), so placing a placed layout again moves nothing; all of them in the
+        registration set. The clip and the sample plan stay. (Before, the ball went along the
+        direction from the head's centre, which moved a resting ball by up to 1 mm each time.)"""
         from dataclasses import replace
 
         v = self.view_direction_lps
         e1, e2 = _tangent_frame(v)
         angles = []
+        r = self.fiducial_radius_mm
         for c in np.asarray(centres_lps, float).reshape(-1, 3):
             u = _unit(c - self.centre_lps)
+            for _ in range(50):          # move the skin point by what the resting centre misses
+                p, n = self.skin_point(u)
+                miss = c - (p + r * n)
+                if np.linalg.norm(miss) < 1e-7:
+                    break
+                u = _unit(p + miss - self.centre_lps)
             theta = float(np.degrees(np.arccos(np.clip(u @ v, -1.0, 1.0))))
             phi = float(np.degrees(np.arctan2(u @ e2, u @ e1)))
             angles.append((theta, phi))
