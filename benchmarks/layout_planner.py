@@ -19,7 +19,7 @@ resting ball where it is, so the rendered balls are where the tracker is told th
 the registration is given those true centres for every layout, so no layout pays for CT
 localisation) and measured two ways through the real pose pipeline:
 
-1. **frames** (the measurement the done-means is judged on): our simulator's rendered frames
+1. **frames**: our simulator's rendered frames
    (``sim.camera_sim.SimulatedCamera``) of a still head carrying the layout's balls, seen from the
    layout's camera, through the camera path's own chain: ``PoseTracker`` with its default
    classical detector (the camera's ball outlines) and the session's per-frame trust rules
@@ -27,13 +27,21 @@ localisation) and measured two ways through the real pose pipeline:
    simple render the app's simulated camera streams) and ``photo`` (gloss, drapes, hair, defocus,
    Bayer, sensor noise, JPEG 85). Balls the planner says the robot or the drape hide are left out
    of the rendered head (the simulator draws no robot). The prediction is given at the stated image
-   noise (``--noise``) and at the noise the tracker measured on those frames;
-2. **points**: exact ball-image centres with Gaussian noise of ``--noise`` px through
+   noise (``--noise``) and at the noise the tracker measured on those frames. These renders are far
+   cleaner than physically rendered ones (centre noise 0.01-0.1 px): the error left is the
+   detector's constant centre bias per ball (0.01-0.16 px, largest on balls seen 50-60 deg off
+   their normal at the image's sides, towards their contact with the skin), which no first-order
+   model has;
+2. **frames + noise** (the measurement the done-means is judged on: "at the image noise the
+   camera-trust issue measures on rendered frames"): the detector's own centres from 1., bias
+   kept, plus Gaussian noise of ``--noise`` px, through ``PoseTracker``;
+3. **points**: exact ball-image centres with Gaussian noise of ``--noise`` px through
    ``PoseTracker`` (registration, noise pool, trust gates): does the model hold when the centres'
    noise is what it assumes; runs of 150 frames of a still head, a fresh tracker each run; also
    with the predicted worst ball hidden. Point centres carry no edge fit, so the tracker applies no
-   shading cover: their prediction is the planner's with ``edge_rms_px=0`` (the frames' prediction
-   keeps the default cover, edge spread = the noise, as the edge detector's tracker applies it).
+   shading cover: their prediction (and 2.'s) is the planner's with ``edge_rms_px=0`` (the frames'
+   prediction keeps the default cover, edge spread = the noise, as the edge detector's tracker
+   applies it).
 
 Image noise: ``--noise`` 0.3 px by default: the ball-centre error the edge detector shows on the
 held-out physically rendered frames of the camera-trust issue (issue 28: ~0.2-0.45 px mean over
@@ -41,7 +49,7 @@ conditions, docs/vision.md).
 
 Columns: predicted (planner's model) vs measured error at the target over trusted frames (mean,
 95th percentile, RMS; mm) and the trusted share. Done means (issue 31): planner p95 <= 0.6 x kit
-p95 (measured on frames) and >= 95 % trusted frames; if the geometry cannot reach that, the
+p95 (measured on frames + noise, 2.) and >= 95 % trusted frames; if the geometry cannot reach that, the
 planner says how many balls it takes (printed). Last line: JSON.
 """
 
@@ -139,21 +147,45 @@ def measure_images(T_cam_ct, X_seen, X_all, target, frames, optics, seed=0):
                           seed=seed, exposure_s=0.0)
     tr = PoseTracker(X_all, CAM, radius_mm=ph.fiducial_radius_mm, target_ct=target,
                      config=SessionConfig().frame_rules())
-    err, ok, sig, matched, why = [], 0, [], [], Counter()
+    err, ok, sig, matched, why, dets = [], 0, [], [], Counter(), []
     for k in range(frames):
         img, truth = cam.render(k / 30.0)
         e = tr.process(Frame(img, k / 30.0, k, truth))
         if np.isfinite(e.sigma_px):
             sig.append(e.sigma_px)
-        matched.append(int(np.isfinite(np.asarray(e.image_points_px, float)[:, 0]).sum())
-                       if e.image_points_px is not None else 0)
+        pts = np.asarray(e.image_points_px, float) if e.image_points_px is not None else np.zeros((0, 2))
+        found = np.isfinite(pts[:, 0]) if len(pts) else np.zeros(0, bool)
+        matched.append(int(found.sum()))
+        dets.append((pts[found], np.asarray(truth.radius_px, float)[: len(pts)][found]))
         if e.ok:
             ok += 1
             err.append(tre_mm(e.T_cam_ct, truth.T_cam_ct, target[None])[0])
         else:
             why[" ".join(str(e.reason).split()[:7])] += 1
     top = why.most_common(1)[0][0] if why else ""
-    return (np.array(err), ok / frames, float(sig[-1]) if sig else float("nan"), float(np.mean(matched)), top)
+    return (np.array(err), ok / frames, float(sig[-1]) if sig else float("nan"), float(np.mean(matched)), top,
+            dets)
+
+
+def measure_detections_noisy(T_cam_ct, X, target, dets, noise_px, runs, frames, seed=0):
+    """Errors at the target (mm) of the trusted frames and the trusted share, through PoseTracker
+    fed the detector's own centres on the rendered frames (``dets``: per frame (centres px,
+    radii px), replayed in turn) plus Gaussian noise of ``noise_px``: the detector's bias on these
+    balls at the image noise of physically rendered frames."""
+    det = PointDetector()
+    rng = np.random.default_rng(seed)
+    err, ok, n = [], 0, 0
+    for _ in range(runs):
+        tr = PoseTracker(X, CAM, detector=det, radius_mm=4.0, target_ct=target)
+        for k in range(frames):
+            px, r = dets[k % len(dets)]
+            det.set(px + rng.normal(scale=noise_px, size=px.shape), r)
+            e = tr.process(Frame(BLANK, k / 30.0, k))
+            n += 1
+            if e.ok:
+                ok += 1
+                err.append(tre_mm(e.T_cam_ct, T_cam_ct, target[None])[0])
+    return np.array(err), ok / max(n, 1)
 
 
 def stats(err):
@@ -214,11 +246,13 @@ def main() -> int:
           f"{'p95':>5} {'trust':>6} | {'pred@meas':>9} {'p95':>5} | {'meas mean':>9} {'p95':>5} {'rms':>5} "
           f"{'trust':>6} | commonest refusal")
     verdict = {}
+    detections = {}
     for r, (rname, optics) in enumerate(RENDERS.items()):
         for k, (name, (X, T_ct_cam, p)) in enumerate(list(placed.items())[:3]):
             seen = p.visibility.seen
-            err, trust, sig, found, why = measure_images(invert_transform(T_ct_cam), X[seen], X[seen], target,
-                                                         img_frames, optics, seed=k + 10 * r)
+            err, trust, sig, found, why, dets = measure_images(invert_transform(T_ct_cam), X[seen], X[seen], target,
+                                                               img_frames, optics, seed=k + 10 * r)
+            detections[(rname, name)] = dets
             a = p.all_seen
             q = predict(P, T_ct_cam, X, noise_px=sig).all_seen if np.isfinite(sig) else None
             m = stats(err)
@@ -233,9 +267,43 @@ def main() -> int:
         fr = {nm: res[nm]["frames"][rname] for nm in ("kit", "planner")}
         ratio = fr["planner"]["meas_p95_mm"] / fr["kit"]["meas_p95_mm"]
         verdict[rname] = {"planner_over_kit_p95": ratio, "planner_trusted": fr["planner"]["trusted"]}
-        met = bool(np.isfinite(ratio) and ratio <= 0.6 and fr["planner"]["trusted"] >= 0.95)
-        print(f"{rname}: planner / kit, measured p95 at the target {_fmt(ratio, 4)} (done: <= 0.60); planner "
-              f"trusted {100 * fr['planner']['trusted']:.0f} % (done: >= 95 %): {'MET' if met else 'NOT MET'}")
+        print(f"{rname}: planner / kit, measured p95 at the target {_fmt(ratio, 4)}, planner trusted "
+              f"{100 * fr['planner']['trusted']:.0f} %, at the render's own noise (the detector's bias, not the "
+              f"stated noise, decides the order here: see 2.)")
+
+    print(f"\n2. frames + noise (the done-means measurement): the detector's own centres on those frames (its "
+          f"bias per ball kept) plus Gaussian noise of {args.noise:g} px, the centre error the detector shows on "
+          f"physically rendered frames; through PoseTracker, {runs} runs x {frames} frames; predicted at "
+          f"{args.noise:g} px without the shading cover (point centres carry no edge fit)")
+    print(f"{'render':<6} {'layout':<22} | {'pred mean':>9} {'p95':>5} {'trust':>6} | {'meas mean':>9} {'p95':>5} "
+          f"{'rms':>5} {'trust':>6}")
+    for r, rname in enumerate(RENDERS):
+        for k, (name, (X, T_ct_cam, _)) in enumerate(list(placed.items())[:3]):
+            p = predict(replace(P, edge_rms_px=0.0), T_ct_cam, X)
+            seen = p.visibility.seen
+            err, trust = measure_detections_noisy(invert_transform(T_ct_cam), X[seen], target,
+                                                  detections[(rname, name)], args.noise, runs, frames,
+                                                  seed=30 + k + 10 * r)
+            m = stats(err)
+            a = p.all_seen
+            res[name]["frames"][rname]["plus_noise"] = {"meas_mean_mm": m[0], "meas_p95_mm": m[1],
+                                                        "meas_rms_mm": m[2], "trusted": trust,
+                                                        "pred_p95_mm": a.p95_mm, "pred_trusted": a.trusted}
+            print(f"{rname:<6} {name:<22} | {a.mean_mm:9.3f} {a.p95_mm:5.3f} {100 * a.trusted:5.0f}% | "
+                  f"{_fmt(m[0], 9)} {_fmt(m[1])} {_fmt(m[2])} {100 * trust:5.0f}%")
+        fr = {nm: res[nm]["frames"][rname]["plus_noise"] for nm in ("kit", "planner")}
+        ratio = fr["planner"]["meas_p95_mm"] / fr["kit"]["meas_p95_mm"]
+        kit_never = fr["kit"]["trusted"] == 0.0
+        # a kit that never gives a trusted pose has no error to compare: the planner's layout is
+        # better when it is trusted (said so in the line, not hidden in the ratio)
+        better = (kit_never and np.isfinite(fr["planner"]["meas_p95_mm"])) or (np.isfinite(ratio) and ratio <= 0.6)
+        met = bool(better and fr["planner"]["trusted"] >= 0.95)
+        verdict[rname].update({"plus_noise_planner_over_kit_p95": ratio, "plus_noise_kit_never_trusted": kit_never,
+                               "plus_noise_planner_trusted": fr["planner"]["trusted"], "met": met})
+        cmp = ("the kit gives no trusted pose to compare" if kit_never
+               else f"planner / kit, measured p95 at the target {_fmt(ratio, 4)} (done: <= 0.60)")
+        print(f"{rname} + {args.noise:g} px: {cmp}; planner trusted {100 * fr['planner']['trusted']:.0f} % "
+              f"(done: >= 95 %): {'MET' if met else 'NOT MET'}")
 
     ratio_pred = res["planner"]["pred"]["p95_mm"] / res["kit"]["pred"]["p95_mm"]   # replaced below by points
     ratio_meas = float("nan")
@@ -243,7 +311,7 @@ def main() -> int:
         hdr = (f"{'layout':<22} {'seen':>4} | {'pred mean':>9} {'p95':>5} {'rms':>5} {'trust':>6} | "
                f"{'meas mean':>9} {'p95':>5} {'rms':>5} {'trust':>6} | {'hidden: pred p95':>16} {'meas p95':>8} "
                f"{'trust':>6}")
-        print(f"\n2. points: exact ball-image centres + Gaussian noise of {args.noise:g} px through PoseTracker "
+        print(f"\n3. points: exact ball-image centres + Gaussian noise of {args.noise:g} px through PoseTracker "
               f"({runs} runs x {frames} frames each): the model at the noise it assumes")
         print(hdr)
         for k, (name, (X, T_ct_cam, _)) in enumerate(placed.items()):

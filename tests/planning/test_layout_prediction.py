@@ -222,6 +222,12 @@ def test_visibility_reasons_follow_the_geometry():
     assert vis.why[0] == "" and vis.why[3] == ""
     assert vis.why[2] == "under the drape"
     assert visibility(replace(P, drape=None), T, C, N).why == ("", "on the far side", "", "")
+    # the viewing angle off each ball's normal: its polar angle plus the angle the ball subtends
+    # at the eye from the sphere's axis (triangle centre-ball-eye, law of sines)
+    theta = np.radians([10.0, 120.0, 75.0, 30.0])
+    d_eye = np.linalg.norm(np.array([0.0, 0.0, 500.0]) - C, axis=1)
+    expect = np.degrees(theta + np.arcsin(84.0 * np.sin(theta) / d_eye))
+    assert np.allclose(vis.view_angle_deg, expect, atol=1e-6), (vis.view_angle_deg, expect)
     # a ball under the robot: line of sight from (-40 + dx, 0, ~75) straight up passes the capsule
     under_robot = np.array([-40.0, 0.0, np.sqrt(84.0**2 - 40.0**2)])
     v2 = visibility(P, T, under_robot[None], (under_robot / 84.0)[None])

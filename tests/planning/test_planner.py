@@ -15,6 +15,7 @@ from monotracker.planning import plan_layout, predict, rule_of_thumb_layout, sam
 from monotracker.planning.camera_poses import camera_pose
 from monotracker.planning.planner import pose_data
 from monotracker.planning.search import best_layout, objective
+from monotracker.planning.visibility import PLACE_MAX_VIEW_ANGLE_DEG
 from monotracker.registration.report import tre_mm
 from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised
 from monotracker.vision.frames import Frame
@@ -47,7 +48,10 @@ def test_exchange_search_finds_the_exhaustive_optimum(problem):
     assert np.isfinite(values := objective(pd, np.array(layouts), points=cands.centres)).sum() > 100
     S, val = best_layout(pd, cands.centres, 6, sep)
     assert val == pytest.approx(float(values.min()), rel=1e-6), (val, values.min())
-    assert sorted(S) == sorted(layouts[int(np.argmin(values))])
+    # ties are real: two layouts that differ only in the ball whose loss is the worst case leave
+    # the same five balls, hence the same objective
+    best = [sorted(c) for c, v in zip(layouts, values) if v <= values.min() * (1 + 1e-9)]
+    assert sorted(S) in best, (S, best)
     # and the objective is the prediction's "worst single ball hidden", squared, at 1 px, without the
     # shading cover (left out of the ranking: search.py)
     p = predict(replace(problem, noise_px=1.0, edge_rms_px=0.0), pose.T_ct_cam, cands.centres[S], cands.normals[S])
@@ -76,6 +80,13 @@ def test_plan_keeps_the_rules_and_the_camera_space(problem, quick_plan):
     assert np.all(np.abs(q - 1.0) < 0.01)
     assert plan.expected.visibility.count == 7
     eye = plan.T_ct_cam[:3, 3]
+    # each ball seen from the planned camera within the placement limit of its skin normal (the
+    # ellipsoid's normal, from scratch): no suggested ball the camera grazes
+    n_skin = (skin - PH.centre_lps) / PH.skin_semi_axes_mm**2
+    n_skin /= np.linalg.norm(n_skin, axis=1, keepdims=True)
+    sight = (eye - B) / np.linalg.norm(eye - B, axis=1, keepdims=True)
+    angle = np.degrees(np.arccos(np.sum(sight * n_skin, axis=1)))
+    assert angle.max() <= PLACE_MAX_VIEW_ANGLE_DEG + 0.5, angle
     look = plan.T_ct_cam[:3, 2]
     aim = plan.camera.aim
     assert np.degrees(np.arccos((eye - aim) @ P.space.axis / np.linalg.norm(eye - aim))) <= P.space.half_angle_deg + 1e-6
@@ -93,9 +104,10 @@ def test_plan_keeps_the_rules_and_the_camera_space(problem, quick_plan):
     assert np.nanmin(plan.error_map_mm) <= e.worst_hidden.rms_mm + 1e-9
 
 
-def _measure(T_cam_ct, X, target, noise, frames=120, seed=0):
+def _measure(T_cam_ct, X, target, noise, frames=120, seed=0, hide=None):
     """(RMS error at the target over trusted frames mm, trusted share) through the real PoseTracker
-    fed noisy exact ellipse centres of the balls X."""
+    fed noisy exact ellipse centres of the balls X (``hide``: a ball index left out of the image;
+    the tracker still knows it)."""
     from monotracker.vision.camera_model import default_camera
 
     cam = default_camera()
@@ -106,7 +118,8 @@ def _measure(T_cam_ct, X, target, noise, frames=120, seed=0):
     Xc = X @ T_cam_ct[:3, :3].T + T_cam_ct[:3, 3]
     px0 = _to_pixels(ellipse_centre_normalised(Xc, 4.0), cam.K, cam.dist)
     for k in range(frames):
-        det.set(px0 + rng.normal(scale=noise, size=px0.shape), cam.K[0, 0] * 4.0 / Xc[:, 2])
+        shown = np.arange(len(X)) != (-1 if hide is None else hide)
+        det.set((px0 + rng.normal(scale=noise, size=px0.shape))[shown], (cam.K[0, 0] * 4.0 / Xc[:, 2])[shown])
         e = tr.process(Frame(BLANK, k / 30.0, k))
         if e.ok:
             ok += 1
@@ -116,8 +129,10 @@ def _measure(T_cam_ct, X, target, noise, frames=120, seed=0):
 
 def test_a_layout_called_better_measures_better(problem, quick_plan):
     """The planned layout against the rule of thumb (the same count spread evenly over the
-    skin the planned camera sees) and seven of the phantom's own balls it sees, from the planned camera: the
-    predicted order is the measured order, and each measured RMS is near its prediction."""
+    skin the planned camera sees) and seven of the phantom's own balls it sees, from the planned camera,
+    on what the planner minimises (the error at the target with the worst single ball hidden): the
+    predicted order is the measured order, and each measured RMS (all seen, worst hidden) is near
+    its prediction."""
     plan = quick_plan
     T_ct_cam = plan.T_ct_cam
     T_cam_ct = invert_transform(T_ct_cam)
@@ -131,8 +146,21 @@ def test_a_layout_called_better_measures_better(problem, quick_plan):
     for name, X in layouts.items():
         p = predict(replace(problem, noise_px=noise), T_ct_cam, X)
         assert p.visibility.count == len(X), (name, p.visibility.why)
-        pred[name] = p.all_seen.rms_mm
-        meas[name], _ = _measure(T_cam_ct, X, problem.target, noise, seed=len(name))
-        assert meas[name] == pytest.approx(pred[name], rel=0.25), (name, meas[name], pred[name])
+        all_seen, _ = _measure(T_cam_ct, X, problem.target, noise, seed=len(name))
+        assert all_seen == pytest.approx(p.all_seen.rms_mm, rel=0.25), (name, all_seen, p.all_seen.rms_mm)
+        # the worst single hidden ball, measured by hiding each in turn (a ball whose loss leaves no
+        # trusted frame: inf), against the model's (None: losing some ball loses the pose: inf)
+        hid = [_measure(T_cam_ct, X, problem.target, noise, frames=60, seed=10 * i + len(name), hide=i)
+               for i in range(len(X))]
+        meas[name] = max(r for r, _ in hid)
+        w = p.worst_hidden
+        pred[name] = w.rms_mm if w is not None else np.inf
+        if w is None:                      # the model: some ball's loss loses the pose
+            assert min(t for _, t in hid) == 0.0, (name, hid, p.margin_reason)
+        elif w.trusted >= 0.5:             # the model: trusted without its worst ball, this accurate
+            assert meas[name] == pytest.approx(w.rms_mm, rel=0.25), (name, meas[name], w.rms_mm)
+        else:                              # the model: mostly refused without its worst ball
+            assert hid[p.worst_ball][1] <= w.trusted + 0.3, (name, hid[p.worst_ball], w.trusted)
+    assert np.isfinite(pred["planned"]) and np.isfinite(meas["planned"]), (pred, meas)
     assert pred["planned"] < pred["rule of thumb"] and pred["planned"] < pred["phantom's"]
     assert meas["planned"] < meas["rule of thumb"] and meas["planned"] < meas["phantom's"], (meas, pred)

@@ -35,14 +35,12 @@ from .candidates import Candidates, sample_candidates
 from .prediction import Prediction, predict
 from .problem import PlanningProblem
 from .search import PoseData, best_layout, objective, spread_seed, swap_map
-from .visibility import MAX_VIEW_ANGLE_DEG, visibility
+from .visibility import PLACE_MAX_VIEW_ANGLE_DEG, visibility
 
 #: the trusted share a plan should reach (the issue's 95 %)
 MIN_TRUSTED = 0.95
 #: most balls the planner will suggest when asked how many it takes
 MAX_BALLS = 16
-#: the rule of thumb keeps its balls this far (deg) inside the head's horizon seen from the camera
-THUMB_HORIZON_MARGIN_DEG = 15.0
 
 
 @dataclass(frozen=True)
@@ -118,6 +116,14 @@ class _Progress:
             self.fn(float(min(max(frac, 0.0), 1.0)), msg)
 
 
+def placeable(vis, cands: Candidates, idx=None) -> np.ndarray:
+    """(m,) bool: a NEW ball may go at candidates ``idx`` (all when None) whose visibility is
+    ``vis``: seen, allowed by the rules, and seen within ``PLACE_MAX_VIEW_ANGLE_DEG`` of its skin
+    normal (a ball the camera grazes is measured with a bias; see :mod:`.visibility`)."""
+    allowed = cands.allowed if idx is None else cands.allowed[np.asarray(idx, int)]
+    return vis.seen & allowed & (vis.view_angle_deg <= PLACE_MAX_VIEW_ANGLE_DEG)
+
+
 def pose_data(problem: PlanningProblem, cands: Candidates, pose: CameraPose) -> PoseData:
     """Visibility and each candidate's normal-matrix share (px^2 units) from ``pose``."""
     vis = visibility(problem, pose.T_ct_cam, cands.centres, cands.normals)
@@ -126,7 +132,7 @@ def pose_data(problem: PlanningProblem, cands: Candidates, pose: CameraPose) -> 
     if vis.count:
         fxy = np.array([problem.camera.K[0, 0], problem.camera.K[1, 1]])
         info[vis.seen] = fiducial_information(T_cam_ct, cands.centres[vis.seen], fxy, problem.radius_mm)
-    return PoseData(T_cam_ct, info, vis.seen.copy(), vis.seen & cands.allowed, problem.target)
+    return PoseData(T_cam_ct, info, vis.seen.copy(), placeable(vis, cands), problem.target)
 
 
 def plan_layout(problem: PlanningProblem, n_balls: int = 9, keep: tuple = (), progress=None,
@@ -220,6 +226,8 @@ def _refine_camera(problem, cands, pose, S, val, n, min_sep, keep_idx, cfg):
             if space.where_not(p.eye, problem.head.centre):
                 continue
             pd = pose_data_subset(problem, cands, p, S)
+            if not all(pd.usable[i] or i in keep_idx for i in S):
+                continue     # this camera would graze a suggested ball (or lose it)
             v = float(objective(pd, L, cfg.min_fiducials, cands.centres)[0])
             if v < best[0] * (1 - 1e-9):
                 best = (v, p, None)
@@ -238,12 +246,14 @@ def pose_data_subset(problem, cands, pose, idx) -> PoseData:
     vis = visibility(problem, pose.T_ct_cam, cands.centres[idx], cands.normals[idx])
     seen = np.zeros(m, bool)
     seen[idx[vis.seen]] = True
+    usable = np.zeros(m, bool)
+    usable[idx[placeable(vis, cands, idx)]] = True
     T_cam_ct = invert_transform(pose.T_ct_cam)
     info = np.zeros((m, 6, 6))
     if vis.count:
         fxy = np.array([problem.camera.K[0, 0], problem.camera.K[1, 1]])
         info[idx[vis.seen]] = fiducial_information(T_cam_ct, cands.centres[idx[vis.seen]], fxy, problem.radius_mm)
-    return PoseData(T_cam_ct, info, seen, seen & cands.allowed, problem.target)
+    return PoseData(T_cam_ct, info, seen, usable, problem.target)
 
 
 def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_trusted, n) -> LayoutPlan:
@@ -275,6 +285,8 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
     ref = expected.worst_hidden or expected.all_seen
     floor, c0 = (ref.floor_px, ref.common_mm2) if ref is not None else (0.0, 0.0)
     emap = np.sqrt(emap**2 * max(problem.noise_px, floor) ** 2 + c0)
+    if ref is not None:      # the suggestion's own positions show exactly what is promised for it
+        emap[np.asarray(S, int)] = ref.rms_mm
     notes = []
     if n < cfg.min_fiducials + 1:
         notes.append(f"with {n} balls losing any one loses the pose; take at least {cfg.min_fiducials + 1}")
@@ -322,13 +334,12 @@ def rule_of_thumb_layout(problem: PlanningProblem, T_ct_cam: np.ndarray, n_balls
                          candidates: Candidates | None = None) -> np.ndarray:
     """The rule of thumb, for comparison: ``n_balls`` spread as evenly and widely as possible
     (farthest-point sampling) over the allowed skin the camera at ``T_ct_cam`` sees, without
-    looking at the target, and not within ``THUMB_HORIZON_MARGIN_DEG`` of the head's horizon seen
-    from the camera (nobody sticks a ball where the camera grazes the skin). (n, 3) centres LPS mm."""
+    looking at the target, on the same skin the planner may use (seen within
+    ``PLACE_MAX_VIEW_ANGLE_DEG`` of the normal: nobody sticks a ball where the camera grazes the
+    skin), so the two differ in where they put the balls, not in which skin they may use.
+    (n, 3) centres LPS mm."""
     cands = candidates if candidates is not None else sample_candidates(problem)
     vis = visibility(problem, T_ct_cam, cands.centres, cands.normals)
-    v = np.asarray(T_ct_cam, float)[:3, 3] - cands.centres
-    v /= np.linalg.norm(v, axis=1, keepdims=True)
-    facing = np.einsum("ij,ij->i", v, cands.normals) >= np.cos(np.radians(MAX_VIEW_ANGLE_DEG - THUMB_HORIZON_MARGIN_DEG))
-    pool = np.flatnonzero(vis.seen & cands.allowed & facing)
+    pool = np.flatnonzero(placeable(vis, cands))
     S = spread_seed(cands.centres, pool, int(n_balls), problem.min_separation_mm)
     return cands.centres[S]
