@@ -164,6 +164,48 @@ def test_luma_at_matches_remap():
     assert np.abs(got - ref).max() < 1e-6
 
 
+def test_shadow_rays_equal_the_reference():
+    """edge_kernels.shadow_rays (the contact-shadow test of all balls in one call) leaves out the
+    same rays of the same balls as the per-ball NumPy loop with cv2.remap (edge_fit.COMPILED
+    False): on balls with a contact shadow drawn by test_edge_fit_shadow (the shadow rays found),
+    and on random edge points over a random image, some balls' windows leaving it."""
+    from test_edge_fit_shadow import shadowed_ball
+
+    rng = np.random.default_rng(7)
+    changed = 0
+    for _ in range(6):
+        radius = float(rng.uniform(8, 18))
+        size = int(2 * radius + 40)
+        c = size / 2 + rng.uniform(-1, 1, 2)
+        img, _ = shadowed_ball(c, radius, size, shadow_deg=float(rng.uniform(0, 360)))
+        ells = [((c[0] + 0.4, c[1] - 0.3), (2 * radius + 0.8, 2 * radius + 0.8), 0.0),
+                ((c[0] - 0.3, c[1] + 0.5), (2 * radius + 0.2, 2 * radius - 0.4), 10.0)]
+        balls = {b: got for b, got in enumerate(edge_fit._edge_points(img, ells, 1.5)) if got is not None}
+        fits = edge_fit._shaped_fits(balls, [(1.0, 0.0)] * len(ells), 1.5)
+        got, ref = _both(lambda img=img, balls=balls, fits=fits: edge_fit._without_shadow_rays(img, balls, fits, 1.5))
+        assert got.keys() == ref.keys()
+        for i in got:
+            assert np.array_equal(got[i], ref[i])
+        changed += len(got)
+    assert changed >= 4                     # the shadow rays were found, not only the empty answer
+    img = rng.integers(0, 256, (90, 120, 3)).astype(np.uint8)
+    balls, fits = {}, {}
+    for i in range(40):
+        n = int(rng.integers(32, 65))
+        c = rng.uniform(-5, 125, 2) * [1.0, 0.75]
+        r = rng.uniform(4, 15)
+        ratio, major = rng.uniform(0.85, 1.0), rng.uniform(-90, 90)
+        phi = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        rad = r + rng.normal(0, 0.4, n) + rng.uniform(0, 2, n) * (rng.random(n) < 0.3)
+        balls[i] = (c + rad[:, None] * np.column_stack([np.cos(phi), np.sin(phi)]), rng.random(n) > 0.1)
+        ell = ((float(c[0]), float(c[1])), (2 * r / ratio, 2 * r), float(major))
+        fits[i] = (None if i % 9 == 0 else (ell, np.ones(n, bool), 0.1), False)
+    got, ref = _both(lambda: edge_fit._without_shadow_rays(img, balls, fits, 1.8))
+    assert got.keys() == ref.keys() and 5 <= len(got) < 40
+    for i in got:
+        assert np.array_equal(got[i], ref[i])
+
+
 def _reference_profiles(img, balls, layout, smooth):
     """The ray profiles of the rays ``layout`` (edge_kernels.ray_geometry's, checked by hand in
     test_ray_layout_hand_checked) as edge_fit._edge_points' NumPy body samples them (cv2.remap

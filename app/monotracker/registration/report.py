@@ -149,15 +149,17 @@ def fre_mm(T_cam_ct: np.ndarray, X_ct: np.ndarray, xn: np.ndarray, radius_mm: fl
     return float(np.sqrt(np.mean(np.sum(perp**2, axis=1))))
 
 
-def common_shift_covariance(J: np.ndarray, sigma_px: float) -> np.ndarray:
+def common_shift_covariance(J: np.ndarray, sigma_px: float, A: np.ndarray | None = None) -> np.ndarray:
     """(6, 6) pose covariance (rotation vector rad, translation mm) that a shift shared by all
     image points leaves in a least-squares fit with Jacobian ``J`` ((2k, 6), px per parameter,
     rows x0, y0, x1, y1, ...): the shift is ``N(0, sigma_px^2 I2)``, the same vector for every
     point, so its image covariance is ``sigma^2 (1 1^T kron I2)`` and the fit passes it on as
-    ``A C A^T`` with ``A = (J^T J)^-1 J^T``. The residuals cannot show such a shift."""
+    ``A C A^T`` with ``A = (J^T J)^-1 J^T`` (pass ``A`` (6, 2k) when the caller has it: one
+    pseudo-inverse a frame less). The residuals cannot show such a shift."""
     J = np.asarray(J, float)
     k = J.shape[0] // 2
-    A = np.linalg.pinv(J.T @ J) @ J.T
+    if A is None:
+        A = np.linalg.pinv(J.T @ J) @ J.T
     S = np.tile(np.eye(2), (k, 1))                  # (2k, 2): each point moves by the same 2-vector
     B = A @ S
     return float(sigma_px) ** 2 * (B @ B.T)

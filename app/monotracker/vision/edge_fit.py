@@ -840,6 +840,18 @@ def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px
     h, w = image_bgr.shape[:2]
     img = image_bgr if image_bgr.flags.c_contiguous else np.ascontiguousarray(image_bgr)
     r_near = blur_px / (BLUR_PER_WIDTH * DISC_WIDTH_PER_RADIUS) + NEAR_BG_MARGIN_PX
+    if COMPILED:       # all balls in one call (edge_kernels.shadow_rays), the loop below the reference
+        ids = [i for i, (fit, _cut) in fits.items() if fit is not None]
+        if not ids:
+            return {}
+        P, valid, use = _padded({i: balls[i] for i in ids})
+        ell = np.array([[fits[i][0][0][0][0], fits[i][0][0][0][1], fits[i][0][0][1][0], fits[i][0][0][1][1],
+                         fits[i][0][0][2]] for i in ids], float)
+        use_out, changed = edge_kernels.shadow_rays(
+            img, LINEAR_LUT, _LUMA_WEIGHTS, P, valid, use, np.ones(len(ids), bool), ell[:, 0], ell[:, 1], ell[:, 2],
+            ell[:, 3], ell[:, 4], float(r_near), float(SHADOW_FAR_PX), float(SHADOW_OUT_PX), float(SHADOW_NF),
+            float(MIN_RAY_SHARE))
+        return {i: use_out[b, :len(balls[i][0])].copy() for b, i in enumerate(ids) if changed[b]}
     out = {}
     for i, (fit, _cut) in fits.items():
         if fit is None:
@@ -863,12 +875,8 @@ def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px
         if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
             continue
         q = (both - [x0, y0]).astype(np.float32)
-        if COMPILED:      # the same samples, only at these points (edge_kernels.luma_at)
-            y = edge_kernels.luma_at(img, LINEAR_LUT, _LUMA_WEIGHTS, int(x0), int(y0), int(x1), int(y1),
-                                     np.ascontiguousarray(q[:, 0]), np.ascontiguousarray(q[:, 1]))
-        else:
-            lin = LINEAR_LUT[image_bgr[y0:y1, x0:x1]] @ COLOUR_WEIGHTS[0]
-            y = cv2.remap(lin.astype(np.float32), q[None, :, 0], q[None, :, 1], cv2.INTER_LINEAR)[0]
+        lin = LINEAR_LUT[image_bgr[y0:y1, x0:x1]] @ COLOUR_WEIGHTS[0]
+        y = cv2.remap(lin.astype(np.float32), q[None, :, 0], q[None, :, 1], cv2.INTER_LINEAR)[0]
         m = int(cand.sum())
         shadow = np.zeros(len(pts), bool)
         shadow[cand] = y[:m] < SHADOW_NF * np.maximum(y[m:], 1e-6)
@@ -876,6 +884,21 @@ def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px
         if shadow.any() and use.sum() >= MIN_RAY_SHARE * len(pts):
             out[i] = use
     return out
+
+
+def _padded(balls: dict) -> tuple:
+    """Edge points of several balls ({index: (points (n, 2) px, usable (n,) bool)}, in the dict's
+    order) padded for the kernels: (P (m, R, 2), valid (m, R), usable (m, R)), R the most rays."""
+    m = len(balls)
+    R = max(len(pts) for pts, _u in balls.values())
+    P = np.zeros((m, R, 2))
+    valid = np.zeros((m, R), bool)
+    use = np.zeros((m, R), bool)
+    for b, (pts, usable) in enumerate(balls.values()):
+        P[b, :len(pts)] = pts
+        valid[b, :len(pts)] = True
+        use[b, :len(pts)] = usable
+    return P, valid, use
 
 
 def _shaped_fits(balls: dict, shapes: list, blur_px: float) -> dict:
@@ -894,16 +917,7 @@ def _shaped_fits(balls: dict, shapes: list, blur_px: float) -> dict:
             fit = _robust_ellipse(pts, usable, shapes[i])
             out[i] = (fit, fit is not None and _hidden_arc(pts, usable, fit[0], shapes[i], blur_px))
         return out
-    m = len(ids)
-    R = max(len(balls[i][0]) for i in ids)
-    P = np.zeros((m, R, 2))
-    valid = np.zeros((m, R), bool)
-    use = np.zeros((m, R), bool)
-    for b, i in enumerate(ids):
-        pts, usable = balls[i]
-        P[b, :len(pts)] = pts
-        valid[b, :len(pts)] = True
-        use[b, :len(pts)] = usable
+    P, valid, use = _padded(balls)
     ratio = np.array([float(shapes[i][0]) for i in ids])
     major = np.array([float(shapes[i][1]) for i in ids])
     ok, c, d1, d2, keep, rms, cut = edge_kernels.shaped_fits(

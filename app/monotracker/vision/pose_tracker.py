@@ -539,7 +539,7 @@ class PoseTracker:
                                            float(self.radius_mm or 0.0), np.empty(0), r, J)
         A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
         shade = np.repeat((cfg.edge_bias_per_rms * rms) ** 2, 2)
-        common = common_shift_covariance(J, cfg.edge_common_per_rms * float(np.median(rms)))  # shared by all balls
+        common = common_shift_covariance(J, cfg.edge_common_per_rms * float(np.median(rms)), A)  # shared by all balls
 
         def cov(noise_px: float) -> np.ndarray:
             return (A * np.maximum(noise_px**2, shade)) @ A.T + common
@@ -594,7 +594,7 @@ class PoseTracker:
         ps = pooled_sigma(rss, dof, noise, n_h, bias.ball_sigma(radius_px), bias.prior_dof,
                           cfg.noise_bound_confidence)
         H_inv = np.linalg.pinv(fit.J.T @ fit.J)
-        common = common_shift_covariance(fit.J, bias.common_sigma(radius_px))
+        common = common_shift_covariance(fit.J, bias.common_sigma(radius_px), H_inv @ fit.J.T)
         cov_est = ps.sigma_px**2 * H_inv + common
         cov_hi = ps.upper_px**2 * H_inv + common
         src = f"{st.frames} frame{'s' if st.frames > 1 else ''}, {ps.source}"
