@@ -160,6 +160,33 @@ def hybrid(rgb, x0, step, blur, margin=0.2, sigma_px=1.0, q="median"):
     return np.minimum(x0, xc + off + margin)
 
 
+def first_step(rgb, x0, step, blur, cw=1.0, frac=0.35, lo_px=3.0, hi_px=1.0, sigma_px=0.7):
+    """The innermost local maximum of the colour gradient's magnitude (luma and colour differences
+    weighted ``cw``, relative to the pixel's brightness) in [x0 - lo_px, x0 + hi_px] that reaches
+    ``frac`` of the window's largest: the ball's own edge, before a shadow's ramp further out."""
+    P = rgb @ chroma_weights(cw).T
+    k = P.shape[1]
+    j = np.arange(k)
+    ker = np.exp(-0.5 * ((j[:, None] - j[None, :]) * step / sigma_px) ** 2)
+    ker /= ker.sum(1, keepdims=True)
+    Ps = np.einsum("jk,nkc->njc", ker, P)
+    bright = np.maximum(Ps[..., 0], 1e-4)
+    g = np.sqrt((np.gradient(Ps, axis=1) ** 2).sum(2)) / bright
+    s = j * step
+    bad = (s[None, :] < (x0 - lo_px)[:, None]) | (s[None, :] > (x0 + hi_px)[:, None])
+    g[bad] = 0.0
+    gmax = g.max(1, keepdims=True)
+    peak = np.zeros_like(g, bool)
+    peak[:, 1:-1] = (g[:, 1:-1] >= g[:, :-2]) & (g[:, 1:-1] >= g[:, 2:]) & (g[:, 1:-1] >= frac * gmax)
+    jm = np.where(peak.any(1), np.argmax(peak, 1), np.argmax(g, 1))
+    jm = np.clip(jm, 1, k - 2)
+    r = np.arange(len(jm))
+    y0, y1, y2 = g[r, jm - 1], g[r, jm], g[r, jm + 1]
+    den = y0 - 2 * y1 + y2
+    off = np.where(np.abs(den) > 1e-12, 0.5 * (y0 - y2) / np.where(np.abs(den) > 1e-12, den, 1), 0.0)
+    return (jm + np.clip(off, -1, 1)) * step
+
+
 def chroma_weights(cw):
     return np.array([[0.114, 0.587, 0.299],
                      [cw * 0.886, -cw * 0.587, -cw * 0.299],
@@ -172,6 +199,10 @@ LOCATORS = {
     "local_bgfree": lambda P, rgb, x0, st, bl: local_plateau(P, x0, st, bl, mode="bgfree"),
     "steep": lambda P, rgb, x0, st, bl: steepest(P, x0, st, bl),
     "chroma_steep": lambda P, rgb, x0, st, bl: chroma_steep(rgb, x0, st, bl, sigma_px=1.0),
+    "first_step": lambda P, rgb, x0, st, bl: first_step(rgb, x0, st, bl),
+    "first_step_f5": lambda P, rgb, x0, st, bl: first_step(rgb, x0, st, bl, frac=0.5),
+    "first_step_c3": lambda P, rgb, x0, st, bl: first_step(rgb, x0, st, bl, cw=3.0),
+    "first_step_abs": lambda P, rgb, x0, st, bl: first_step(rgb, x0, st, bl, cw=0.35),
     "clip_m0": lambda P, rgb, x0, st, bl: hybrid(rgb, x0, st, bl, margin=0.0),
     "clip_m3": lambda P, rgb, x0, st, bl: hybrid(rgb, x0, st, bl, margin=0.3),
 }
