@@ -15,6 +15,7 @@ import numpy as np
 sys.path.insert(0, "tests/ui")
 from browser_helpers import _click, _wait, open_page_in_control
 from conftest import CHROMIUM_ARGS, display_browser_path, free_port
+from make_screenshots import _close_notifications
 from playwright.sync_api import sync_playwright
 
 from monotracker.engine import Session, SessionConfig
@@ -42,8 +43,8 @@ def side_view(lay, mesh):
     d = (e - c) / np.linalg.norm(e - c)
     side = np.cross(d, [0.0, 0.0, 1.0])
     side /= np.linalg.norm(side)
-    look = c + 0.45 * (e - c)
-    pos = look + 520.0 * side + 120.0 * np.array([0.0, 0.0, 1.0]) - 150.0 * d
+    look = c + 0.5 * (e - c)
+    pos = look + 800.0 * side + 150.0 * np.array([0.0, 0.0, 1.0])
     for client in app.server.get_clients().values():
         with client.atomic():
             client.camera.up_direction = (0.0, 0.0, 1.0)
@@ -67,6 +68,7 @@ try:
             side_view(s.snapshot().layout, s.snapshot().head_mesh)
             page.locator("#mt-layout-table").first.scroll_into_view_if_needed()
             time.sleep(4)
+            _close_notifications(page)
             page.screenshot(path=str(out / f"ui_layout_{w}x{h}.jpg"), type="jpeg", quality=70)
             print("shot", w, h, flush=True)
             page.close()
