@@ -123,3 +123,52 @@ def test_overlay_fills_the_main_view_texts_fit_and_no_stale_number(tmp_path, mon
         assert not bad, bad
         _shoot(page, artifacts, "robot_occluded", *SIZES[0])
         page.close()
+
+
+#: the docked panels' regions as the page lays them out, CSS px
+DOCKS_JS = """() => { const reg = e => { const el = document.querySelector(`[data-dock-region="${e}"]`);
+  return el ? el.getBoundingClientRect().width : 0; };
+  return {left: reg('left'), right: reg('right'), vw: innerWidth, dpr: devicePixelRatio}; }"""
+
+
+def _wait_for_panels(view, page, px: dict, what: str) -> None:
+    """Until the server has settled on the panels ``px`` for this page: the canvas it reported
+    came back after the panel widths now set, and those widths are ``px``'s."""
+    _wait(lambda: view._canvas is not None and view._panel_width == (px["status"], px["steps_main_live"]),
+          what=lambda: f"{what} (server: wide={view._wide}, panels {view._panel_width}, page "
+                       f"{page.evaluate(DOCKS_JS)}, canvas reported {view.client.camera.image_width} px)")
+
+
+def test_layout_switch_reads_the_pages_css_width_on_a_hidpi_screen(tmp_path, monkeypatch, port, browser):
+    """On a screen with devicePixelRatio 2, a 1440x900 page (narrower than the wide layout's
+    threshold, ``status.WIDE_PX``) keeps the compact panels and the live image is encoded for
+    the width it is shown at; resized to 1920x1080 it switches to the wide ones. viser's camera
+    message gives the canvas in drawing-buffer px (2x here): the switch read it as the page's
+    width and picked the wide panels on the 1440 px page (ui/page_width.py)."""
+    from monotracker.ui.status import PANEL_PX, PANEL_PX_WIDE, WIDE_PX
+
+    from browser_helpers import T_PAGE_MS
+
+    with served_locked_sample(tmp_path, monkeypatch, port, sample_plan=True) as (s, app):
+        page = browser.new_page(viewport={"width": 1440, "height": 900}, device_scale_factor=2)
+        page.set_default_timeout(T_PAGE_MS)
+        page.goto(app.url)
+        page.locator("#mt-control").wait_for()
+        view = app.views()[0]
+        _click(page, "3 Register")
+        _wait(lambda: view.step == "register", what="the tab at Register")
+        for (w, h), wide in (((1440, 900), False), ((1920, 1080), True)):
+            if w != 1440:
+                page.set_viewport_size({"width": w, "height": h})
+            assert (w >= WIDE_PX[1]) == wide  # the truth: the page's CSS width against the threshold
+            px = PANEL_PX_WIDE if wide else PANEL_PX
+            _wait_for_panels(view, page, px, f"the {'wide' if wide else 'compact'} panels at {w}x{h}")
+            page.wait_for_function(f"(() => {{ const d = ({DOCKS_JS})(); return d.vw === {w} && "
+                                   f"Math.abs(d.left - {px['status']}) <= 6 && "
+                                   f"Math.abs(d.right - {px['steps_main_live']}) <= 6; }})()")
+            d = page.evaluate(DOCKS_JS)
+            assert d["dpr"] == 2, d
+            # the stream is encoded for the width the image is shown at, never wider than the
+            # space the docked panels leave (CSS px, measured in the page)
+            assert view.live_width <= d["vw"] - d["left"] - d["right"], (view.live_width, d)
+        page.close()

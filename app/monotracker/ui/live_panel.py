@@ -11,8 +11,9 @@ view** (in the step panel, per tab) hides it to give the 3D view the whole area 
 then encoded or sent to that tab). CT and Plan never show it.
 
 Why the browser sizes it: viser does not tell the server the canvas's size in CSS px (its
-camera message carries the drawing buffer's size, scaled by an adaptive pixel ratio that drops
-to 0.75 on a slow machine); the server knows its own panel widths. Why not a floating viser
+camera message carries the drawing buffer's size, scaled by the screen's pixel ratio and an
+adaptive one that drops to 0.75 on a slow machine; the page's CSS width comes later, from a
+script of ours, ``ui/page_width.py``); the server knows its own panel widths. Why not a floating viser
 panel: with the live image in one (``gui.add_panel().float()``, sized by viser's ``float`` or by
 an ``!important`` rule, or only its image placed by this stylesheet) the page stopped drawing
 frames once the stream began: the browser test's click on "3 Register" was done, then
@@ -56,8 +57,8 @@ def live_css(status_px: int, steps_px: int, aspect_w_over_h: float) -> str:
 
 def shown_width(canvas_px: tuple[int, int] | None, aspect_w_over_h: float, fallback: int) -> int:
     """About the width (CSS px) :func:`live_css` gives the image on a canvas of ``canvas_px``
-    (w, h) as the page's camera message says (drawing-buffer px: at most 25 % under CSS px on
-    a slow machine), ``fallback`` when not known: the width to encode the stream at."""
+    (w, h, CSS px: the page's width less the docked panels, ``ui/page_width.py``), ``fallback``
+    when not known: the width to encode the stream at."""
     if not canvas_px or canvas_px[0] <= 0 or canvas_px[1] <= 0:
         return int(fallback)
     a = max(0.5, min(4.0, float(aspect_w_over_h)))

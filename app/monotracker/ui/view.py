@@ -19,7 +19,8 @@ import threading
 import time
 
 from monotracker.ui import status as st
-from monotracker.ui.live_panel import MAIN_LIVE_STEPS, shown_width
+from monotracker.ui.live_panel import DOCK_EDGE_PX, MAIN_LIVE_STEPS, shown_width
+from monotracker.ui.page_width import PageWidth
 from monotracker.ui.status import PANEL_PX, PANEL_PX_WIDE, WIDE_PX
 
 log = logging.getLogger(__name__)
@@ -120,6 +121,7 @@ class ClientView:
         self._job_watch = False  # this tab started a CT job: report its end on the result line
         self.notice = app.notice
         self.nav_scene = NavigationScene(self)  # the navigation view's worker (slices in the canvas)
+        self.page_width = PageWidth(client)  # the page's CSS width (the compact / wide switch)
 
         gui = self.gui
         gui.configure_theme(control_width="large", show_share_button=False, brand_color=(43, 108, 176))
@@ -214,17 +216,23 @@ class ClientView:
         # the live camera is the view that matters in Register / Robot: a wider step panel there;
         # the panels grow on a wide screen (the browser's canvas width + the panels = the page)
         with self.lock:
-            viewport = canvas = None
+            # the page's own CSS width (ui/page_width.py): the canvas's size in the camera
+            # message is in drawing-buffer px (x devicePixelRatio x an adaptive 0.75-1), which read
+            # a 1440 px page on a HiDPI screen as ~1800-2100 px and picked the wide panels
+            viewport, canvas = self.page_width.width, None
             try:
                 cam = self.client.camera
-                if self._panel_width is not None and cam.update_timestamp and cam.image_width > 0:
-                    viewport = cam.image_width + sum(self._panel_width)
-                    # the canvas as the page last reported it; only once it reflects the panel
-                    # widths now set (a width change reaches the page, then its canvas size comes back)
-                    if cam.update_timestamp > self._widths_set_at:
-                        canvas = (cam.image_width, cam.image_height)
+                if (viewport is not None and self._panel_width is not None and cam.update_timestamp
+                        and cam.image_width > 0 and cam.image_height > 0
+                        and cam.update_timestamp > self._widths_set_at):
+                    # the canvas between the docked panels in CSS px, once the page's report
+                    # reflects the panel widths now set (a width change reaches the page, then
+                    # its canvas size comes back); its height from the canvas's aspect
+                    w = viewport - sum(self._panel_width) - 2 * DOCK_EDGE_PX
+                    if w > 0:
+                        canvas = (int(w), int(w * cam.image_height / cam.image_width))
             except Exception:  # noqa: BLE001 - no camera message from the browser yet
-                viewport = None
+                canvas = None
             self._wide = is_wide(viewport, self._wide)
             widths = panel_widths(step, self._wide)
             tick = step in MAIN_LIVE_STEPS
