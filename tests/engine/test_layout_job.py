@@ -149,31 +149,61 @@ def _job(robot_state, **kw):
     return job, bus, plan
 
 
-def test_cancel_keeps_the_previous_layout():
-    calls = [0]
-    holder = {}
+@pytest.fixture(scope="module")
+def replanned():
+    """One LayoutJob on the analytic head with a finished quick 6-ball plan, for the tests that
+    stop a second plan and check that this first one stays (planned once: ~8 s). The test steers
+    it through ``ctl``: ``on_read()`` is called at each read of the robot state (always
+    "disarmed"), ``step`` is how much later (s) each read of the job's clock is. The job's time
+    limit is 300 s; with ``step`` 0 no time passes."""
+    ctl = {"on_read": None, "step": 0.0, "now": 0.0}
 
     def robot_state():
-        calls[0] += 1
-        if holder.get("cancel_at") == calls[0]:
-            assert holder["job"].cancel().ok  # the operator's click, mid-run
+        if ctl["on_read"] is not None:
+            ctl["on_read"]()
         return "disarmed"
 
-    job, bus, _ = _job(robot_state)
-    holder["job"] = job
+    def clock():
+        ctl["now"] += ctl["step"]
+        return ctl["now"]
+
+    job, bus, _ = _job(robot_state, time_limit_s=300.0, clock=clock)
     assert job.start(6, quick=True).ok
     first = job.wait(300)
-    assert first.done and first.error is None, first
+    assert first.done and first.error is None, first  # no time passes: the plan completes
     before = job.summary()
     assert before.ready and before.balls_lps_mm.shape == (6, 3)
-    holder["cancel_at"] = calls[0] + 3  # three progress steps into the second plan
+    assert bus.codes.count("layout_planned") == 1
+    return job, bus, before, ctl
+
+
+@pytest.fixture
+def replan(replanned):
+    """:func:`replanned` with its steering put back after the test."""
+    yield replanned
+    ctl = replanned[3]
+    ctl.update(on_read=None, step=0.0)
+
+
+def test_cancel_keeps_the_previous_layout(replan):
+    job, bus, before, ctl = replan
+    assert job.wait(300).done          # nothing runs before the second plan
+    reads = [0]
+
+    def on_read():
+        reads[0] += 1
+        if reads[0] == 3:               # three progress steps into the second plan
+            assert job.cancel().ok      # the operator's click, mid-run
+
+    ctl["on_read"] = on_read
+    n0 = len(bus.codes)
     assert job.start(7, quick=True).ok
     end = job.wait(300)
     assert end.done and end.error == "cancelled by the operator" and end.message == "layout planning stopped"
     after = job.summary()
     assert after.job is end and after.balls_lps_mm is before.balls_lps_mm  # the first plan stays
     assert not job.cancel().ok  # nothing runs now
-    assert bus.codes.count("layout_planned") == 1 and "layout_stopped" in bus.codes
+    assert "layout_planned" not in bus.codes[n0:] and "layout_stopped" in bus.codes[n0:]
 
 
 def test_arming_while_planning_stops_the_plan():
@@ -190,26 +220,17 @@ def test_arming_while_planning_stops_the_plan():
     assert "layout_planned" not in bus.codes
 
 
-def test_a_plan_past_its_time_limit_stops_with_a_reason_and_keeps_the_previous_layout():
-    now = [0.0]  # a simulated clock (s): each read of it is one minute later once armed below
-    step = [0.0]
-
-    def clock():
-        now[0] += step[0]
-        return now[0]
-
-    job, bus, _ = _job(lambda: "disarmed", time_limit_s=300.0, clock=clock)
-    assert job.start(6, quick=True).ok
-    first = job.wait(300)
-    assert first.done and first.error is None, first  # no time passes: the plan completes
-    before = job.summary()
-    step[0] = 60.0
+def test_a_plan_past_its_time_limit_stops_with_a_reason_and_keeps_the_previous_layout(replan):
+    job, bus, before, ctl = replan     # its first plan completed with no time passing
+    assert job.time_limit_s == 300.0
+    ctl["step"] = 60.0                 # each read of the clock is one minute later from now on
+    n0 = len(bus.codes)
     assert job.start(7, quick=True).ok
     end = job.wait(300)
     assert end.done and end.message == "layout planning stopped", end
     assert end.error.startswith("planning took longer than its 300 s limit"), end.error
     assert job.summary().balls_lps_mm is before.balls_lps_mm  # the first plan stays
-    assert bus.codes.count("layout_planned") == 1 and "layout_stopped" in bus.codes
+    assert "layout_planned" not in bus.codes[n0:] and "layout_stopped" in bus.codes[n0:]
 
 
 def test_a_plan_the_planner_refuses_is_one_line():

@@ -134,3 +134,59 @@ def test_recording_refuses_a_folder_that_holds_one(points_recording, fresh_home)
         assert s.snapshot().recording is None
     finally:
         s.shutdown()
+
+
+def test_a_recording_holds_every_frame_the_tracker_estimated_through_a_stale_spell(fresh_home, tmp_path):
+    """The silent-wrong behind the demo replay that differed by 0.0068 mm under load: a slow
+    estimate (on the simulated clock its cost is its thread CPU time, so a loaded machine makes
+    one) made a pose stale; the fresh poses of the resume dwell that followed were estimated (the
+    tracker's prior and noise estimate moved on) but never reached the recording, so the replay
+    ran a different history. Here one estimate burns a fixed 0.25 s of its own CPU time (machine
+    speed and load do not matter): every estimated frame must be recorded, and the replay must
+    reproduce every pose exactly. Independent truth: the frames the rig estimated, counted around
+    its ``estimate``."""
+    import time
+
+    from monotracker.engine.alarms import FRESHNESS_CODES
+    from monotracker.engine.rigs.factory import build_camera_rig
+
+    estimated = []
+    slow_at = 30   # the estimate that burns 0.25 s (> max_pose_age_s 0.15 s: that pose is stale)
+
+    def factory(source, calibration_path, plan, cfg, session):
+        rig = build_camera_rig(source, calibration_path, plan, cfg, session)
+        estimate = rig.estimate
+
+        def counted(frame):
+            estimated.append((frame.index, frame.t_capture))
+            if len(estimated) == slow_at:
+                c0 = time.thread_time()
+                while time.thread_time() - c0 < 0.25:
+                    pass
+            return estimate(frame)
+
+        rig.estimate = counted
+        return rig
+
+    s = Session(SessionConfig(home=fresh_home, camera="sim-points", clock="sim"), camera_factory=factory)
+    rec = tmp_path / "stale"
+    try:
+        holds = []   # (session s, why the engine holds) at every control tick
+        s.add_tick_listener(lambda t: holds.append((t, s._loop.holding_state()[0])))
+        assert s.start_recording(rec).ok and s.start_camera().ok
+        s.advance(2.0)
+        assert s.stop_recording().ok
+    finally:
+        s.shutdown()
+    assert len(estimated) > slow_at + 20
+    # the slow estimate made the engine hold for freshness (the spell this test is about)
+    t_slow = estimated[slow_at - 1][1]
+    assert any(code in FRESHNESS_CODES for t, code in holds if t > t_slow), sorted({c for _, c in holds} - {None})
+    rows = [json.loads(line) for line in (rec / "frames.jsonl").read_text().splitlines()]
+    # every estimate is in the recording, in order, but the last ones still in flight (transport
+    # + compute) when the recording stopped: at most 2 at 30 fps with the 30 ms transport delay
+    recorded = [(r["index"], r["t_capture"]) for r in rows]
+    assert recorded == estimated[: len(recorded)] and len(recorded) >= len(estimated) - 2, \
+        sorted(set(estimated) - set(recorded))
+    r = replay_recording(rec)
+    assert r.ok and r.ok_mismatches == 0 and r.max_pose_diff_mm <= 1e-9, r

@@ -15,10 +15,14 @@ from monotracker.geometry import apply_transform
 from monotracker.sim.phantom import default_phantom
 
 
-@pytest.fixture
-def image_recording(fresh_home, tmp_path):
-    s = Session(SessionConfig(home=fresh_home, camera="sim", clock="sim"))
-    rec = tmp_path / "rec"
+@pytest.fixture(scope="module")
+def image_recording(planned_home, tmp_path_factory):
+    """A 1 s recording of the rendered twin (made once per module: the tests that change it
+    change a copy)."""
+    home = tmp_path_factory.mktemp("rec-home")
+    shutil.copy(planned_home / "plan.json", home / "plan.json")
+    s = Session(SessionConfig(home=home, camera="sim", clock="sim"))
+    rec = tmp_path_factory.mktemp("image-recording") / "rec"
     try:
         assert s.start_recording(rec).ok
         assert s.start_camera().ok
@@ -82,9 +86,11 @@ def test_replay_camera_reproduces_the_recorded_poses(image_recording, planned_ho
     assert live and all(np.array_equal(smp.T_cam_ct, by_index[smp.frame_index].T_cam_ct) for smp in live if smp.ok)
 
 
-def test_replay_camera_refuses_a_broken_recording(image_recording, fresh_home):
-    (image_recording / "frames.jsonl").write_text("")
-    s = Session(SessionConfig(home=fresh_home, camera=f"replay:{image_recording}", clock="real"))
+def test_replay_camera_refuses_a_broken_recording(image_recording, fresh_home, tmp_path):
+    broken = tmp_path / "broken"
+    shutil.copytree(image_recording, broken)
+    (broken / "frames.jsonl").write_text("")
+    s = Session(SessionConfig(home=fresh_home, camera=f"replay:{broken}", clock="real"))
     try:
         r = s.start_camera()
         assert not r.ok and "incomplete" in r.message

@@ -274,14 +274,17 @@ class TrackingLoop:
                 return
             if holding and code in FRESHNESS_CODES and fresh_for < dwell:
                 # hysteresis: after a stale/frozen stream, resume only once poses have been
-                # arriving fresh for resume_dwell_s (the arm keeps holding meanwhile)
+                # arriving fresh for resume_dwell_s (the arm keeps holding meanwhile); the pose
+                # still goes to the pose hooks below: the recording must hold every estimate the
+                # tracker made (its prior and noise estimate moved on with it), or a replay runs
+                # another history
                 with self._lock:
                     self._holding_reason = (f"pose stale: fresh again for {1000 * fresh_for:.0f} ms; resuming after "
                                             f"{1000 * dwell:.0f} ms")
-                return
-            self.push_target(sample, now)
-            if holding:
-                self.resume(f"pose trusted again ({sample.n_matched} fiducials)", self.registration_data(sample))
+            else:
+                self.push_target(sample, now)
+                if holding:
+                    self.resume(f"pose trusted again ({sample.n_matched} fiducials)", self.registration_data(sample))
         else:
             self.hold(VERDICT_CODES.get(v.code, v.code), v.reason)
         self._run_pose_hooks(sample, v.trusted, now)
