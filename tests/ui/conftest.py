@@ -39,6 +39,36 @@ def chromium_path() -> str:
 BROWSER_NICE = 0
 
 
+def _own_session() -> str:
+    """Put the test process (the app under test: its pose pipeline, its camera and control
+    processes, which inherit it) in a session of its own, as a deployed service runs (systemd
+    starts each service in its own session). The kernel shares the CPU between sessions first
+    (autogroups), then between a session's threads: CPU hogs started beside the tests in the same
+    session as them (``hogrun``, a CI step) otherwise compete with the app thread by thread, and
+    with the browser in a session of its own taking half the 2 cores, the pose pipeline got 0.09
+    of a core and every pose came in stale (issue 33: 8 poses/s, 60 % over the 150 ms limit;
+    with the app in its own session beside the same 4 hogs, 19.7 poses/s). Not done when the
+    tests' standard input is a terminal (Ctrl-C there must still reach them) or
+    ``MONOTRACKER_TEST_OWN_SESSION=0``; a process-group leader (pytest started straight from an
+    interactive shell) cannot, and keeps its session. Returns what was done, for the log."""
+    if os.environ.get("MONOTRACKER_TEST_OWN_SESSION", "1") == "0":
+        return "kept (MONOTRACKER_TEST_OWN_SESSION=0)"
+    try:
+        if os.isatty(0):
+            return "kept (standard input is a terminal)"
+    except OSError:
+        pass
+    try:
+        os.setsid()
+        return "own session"
+    except OSError as e:
+        return f"kept ({e.strerror})"
+
+
+#: done when pytest first imports this file (collection, before any app starts)
+OWN_SESSION = _own_session()
+
+
 def display_browser_path() -> str:
     """A launcher for :func:`chromium_path` at niceness :data:`BROWSER_NICE` (the process and its
     session's autogroup) that cannot raise its priority again (``setpriv`` drops CAP_SYS_NICE where
