@@ -3,9 +3,8 @@
 ``scipy.ndimage`` gives them one at a time (a mask, ``label``, ``bincount`` for the sizes,
 ``find_objects`` for the boxes, then a pass over each component's box for its densest voxel):
 five or more passes over a crop of up to ~2 M voxels per threshold level.
-:func:`threshold_label` thresholds, labels (26-connected, union-find over the runs of voxels
-above the threshold along a row, numbered in the raster order of each component's first voxel,
-as ``ndimage.label``) and measures in two passes;
+:func:`threshold_label` thresholds, labels (26-connected, union-find, numbered in the raster
+order of each component's first voxel, as ``ndimage.label``) and measures in two passes;
 :func:`label_stats` measures given labels in one. :func:`block_max_int`: the coarse grid of a
 large integer volume (:func:`.blob_search.block_max`) in one read of its voxels.
 """
@@ -67,11 +66,6 @@ def _find(parent, a):
 
 
 @compiled
-def _above(values, T, restrict, use_restrict, k, j, i):
-    return values[k, j, i] > T and (not use_restrict or restrict[k, j, i])
-
-
-@compiled
 def _threshold_label(values, T, restrict, use_restrict):
     nk, nj, ni = values.shape
     labels = np.zeros((nk, nj, ni), np.int32)
@@ -79,41 +73,46 @@ def _threshold_label(values, T, restrict, use_restrict):
     n = 0
     for k in range(nk):
         for j in range(nj):
-            i = 0
-            while i < ni:
-                if not _above(values, T, restrict, use_restrict, k, j, i):
-                    i += 1
+            for i in range(ni):
+                if not values[k, j, i] > T:
                     continue
-                # a run of voxels above T along i, s..e-1: one provisional label, joined with the
-                # runs it touches (26-connected: i from s-1 to e) in the 4 rows visited before
-                # it (the row before in this plane; the rows j-1, j, j+1 of the plane before)
-                s = i
-                while i < ni and _above(values, T, restrict, use_restrict, k, j, i):
-                    i += 1
-                e = i
-                a0 = s - 1 if s > 0 else 0
-                a1 = e + 1 if e < ni else ni
+                if use_restrict and not restrict[k, j, i]:
+                    continue
                 cur = 0
-                for nb in range(4):
-                    kk = k - 1 if nb < 3 else k
-                    jj = j + nb - 1 if nb < 3 else j - 1
-                    if kk < 0 or jj < 0 or jj >= nj:
+                if i > 0 and labels[k, j, i - 1] != 0:
+                    # joined to the voxel before, and through it to all its neighbours: only the
+                    # 4 visited neighbours that are not also its own (one step ahead along i)
+                    cur = _find(parent, labels[k, j, i - 1])
+                    di_lo = 1
+                else:
+                    di_lo = -1
+                # the 13 neighbours already visited: the plane before (9), the row before (3)
+                # (and the voxel before, above)
+                for dk in range(-1, 1):
+                    kk = k + dk
+                    if kk < 0:
                         continue
-                    last = 0
-                    for ii in range(a0, a1):
-                        lab = labels[kk, jj, ii]
-                        if lab == 0 or lab == last:  # a run's voxels share a label: one find per run
-                            last = lab
+                    for dj in range(-1, 2):
+                        if dk == 0 and dj > -1:
+                            break
+                        jj = j + dj
+                        if jj < 0 or jj >= nj:
                             continue
-                        last = lab
-                        r = _find(parent, lab)
-                        if cur == 0:
-                            cur = r
-                        elif r < cur:
-                            parent[cur] = r
-                            cur = r
-                        elif r > cur:
-                            parent[r] = cur
+                        for di in range(di_lo, 2):
+                            ii = i + di
+                            if ii < 0 or ii >= ni:
+                                continue
+                            lab = labels[kk, jj, ii]
+                            if lab == 0:
+                                continue
+                            r = _find(parent, lab)
+                            if cur == 0:
+                                cur = r
+                            elif r < cur:
+                                parent[cur] = r
+                                cur = r
+                            elif r > cur:
+                                parent[r] = cur
                 if cur == 0:
                     n += 1
                     if n >= parent.shape[0]:
@@ -122,8 +121,7 @@ def _threshold_label(values, T, restrict, use_restrict):
                         parent = grown
                     parent[n] = n
                     cur = n
-                for ii in range(s, e):
-                    labels[k, j, ii] = cur
+                labels[k, j, i] = cur
     # roots are the smallest provisional label of their set: the one of its first voxel
     final = np.zeros(n + 1, np.int32)
     m = 0
