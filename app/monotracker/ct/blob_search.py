@@ -344,21 +344,19 @@ class _LadderSearch:
         self.stats.block = max(self.stats.block, max(b))
         values = grid.values
         T = float(self.ladder[0])
-        groups, n = ndimage.label(values > T, structure=_STRUCTURE)
+        groups, n, counts, g_lo, g_hi, peak, _ = threshold_label(values, T)
         self.stats.labelled_voxels += values.size
         big = np.zeros(values.shape, bool)
         found = False
-        for g, sl in enumerate(ndimage.find_objects(groups), start=1):
-            if sl is None:
-                continue
+        for g in range(1, n + 1):
             if self.over_budget():
                 return found
-            gm = groups[sl] == g
-            piece = values[sl][gm]
-            if len(piece) * int(np.prod(b)) < self.min_voxels or self.faint(float(piece.max()), T):
+            if counts[g] * int(np.prod(b)) < self.min_voxels or self.faint(float(peak[g]), T):
                 self.stats.specks += 1
                 continue
-            c_lo = np.array([s.start for s in sl])
+            sl = tuple(slice(int(g_lo[g, a]), int(g_hi[g, a])) for a in range(3))
+            gm = groups[sl] == g
+            c_lo = g_lo[g].copy()
             f_lo = lo + c_lo * b
             f_hi = np.minimum(lo + np.array([s.stop for s in sl]) * b, hi)
             if np.prod(f_hi - f_lo) <= FINE_BOX_MAX or len(self.ladder) == 1:
@@ -396,19 +394,16 @@ class _LadderSearch:
             blo = np.array([x.min() for x in nz])
             bhi = np.array([x.max() + 1 for x in nz])
             box = tuple(slice(blo[a], bhi[a]) for a in range(3))
-            groups = np.zeros(current.shape, np.int32)
-            groups[box], n = ndimage.label((vals2[box] > T) & current[box], structure=_STRUCTURE)
+            groups, n, counts, g_lo, g_hi, peak, _ = threshold_label(vals2[box], T, current[box])
             self.stats.labelled_voxels += int(np.prod(bhi - blo))
             nxt = np.zeros_like(current)
-            for g, sl in enumerate(ndimage.find_objects(groups), start=1):
-                if sl is None:
-                    continue
-                gm = groups[sl] == g
-                piece = vals2[sl][gm]
-                if len(piece) * int(np.prod(b2)) < self.min_voxels or self.faint(float(piece.max()), T):
+            for g in range(1, n + 1):
+                if counts[g] * int(np.prod(b2)) < self.min_voxels or self.faint(float(peak[g]), T):
                     self.stats.specks += 1
                     continue
-                c_lo = np.array([s.start for s in sl])
+                gm = groups[tuple(slice(int(g_lo[g, a]), int(g_hi[g, a])) for a in range(3))] == g
+                c_lo = blo + g_lo[g]
+                sl = tuple(slice(int(c_lo[a]), int(c_lo[a] + gm.shape[a])) for a in range(3))
                 f_lo = c_lo * b2
                 f_hi = np.minimum(np.array([s.stop for s in sl]) * b2, hi)
                 if np.prod(f_hi - f_lo) > FINE_BOX_MAX:

@@ -29,26 +29,37 @@ _LOSSES = {"soft_l1": fit_kernels.LOSS_SOFT_L1, "cauchy": fit_kernels.LOSS_CAUCH
 #: ``benchmarks/ct_detection.py``: 1.01 -> 0.71 M with dental metal, 0.86 -> 0.42 M without).
 SUBSAMPLE_MIN_POINTS = 2400
 SUBSAMPLE = 6
+#: The compiled fits' extra stopping tests (:func:`.fit_kernels.robust_lm`): the undamped
+#: Gauss-Newton step predicts a decrease below this fraction of the cost (SciPy's ``ftol``) with
+#: a trusted model (for the polish on all voxels: from the start, a converged subsample fit);
+#: or, after a rejected step, would move the centre and radius by at most
+#: :data:`STOP_STEP_MM` (a thousandth of the 0.1 mm the detection is held to).
+STOP_DECREMENT = 1e-8
+STOP_STEP_MM = 1e-4
 
 
 def _compiled_fit(model: str, pts: np.ndarray, values: np.ndarray, M: np.ndarray | None, x0: np.ndarray, lo: np.ndarray,
                   hi: np.ndarray, f_scale: float, max_nfev: int, loss: str) -> tuple[np.ndarray, float, bool]:
-    """:func:`.fit_kernels.robust_lm` with SciPy's default tolerances (1e-8); started from a
-    fit on a subsample when there are many voxels (:data:`SUBSAMPLE_MIN_POINTS`)."""
+    """:func:`.fit_kernels.robust_lm` with SciPy's default tolerances (1e-8) and the extra
+    stopping tests (:data:`STOP_DECREMENT`, :data:`STOP_STEP_MM`); started from a fit on a
+    subsample when there are many voxels (:data:`SUBSAMPLE_MIN_POINTS`)."""
     use_M = M is not None
     M = np.zeros((3, 3)) if M is None else np.ascontiguousarray(M, float)
     pts = np.ascontiguousarray(pts, float)
     values = np.ascontiguousarray(values, float)
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     x_start = np.asarray(x0, float)
+    polish = False
     if len(pts) >= SUBSAMPLE_MIN_POINTS:
         xs, _, ok_s, _ = fit_kernels.robust_lm(_MODELS[model], x_start, lo, hi, np.ascontiguousarray(pts[::SUBSAMPLE]),
                                                np.ascontiguousarray(values[::SUBSAMPLE]), M, use_M, float(f_scale),
-                                               _LOSSES[loss], int(max_nfev), 1e-8, 1e-8, 1e-8)
+                                               _LOSSES[loss], int(max_nfev), 1e-8, 1e-8, 1e-8, STOP_DECREMENT, False,
+                                               STOP_STEP_MM)
         if ok_s and np.all(np.isfinite(xs)):
-            x_start = xs
+            x_start, polish = xs, True
     x, rms, ok, _ = fit_kernels.robust_lm(_MODELS[model], x_start, lo, hi, pts, values, M, use_M,
-                                          float(f_scale), _LOSSES[loss], int(max_nfev), 1e-8, 1e-8, 1e-8)
+                                          float(f_scale), _LOSSES[loss], int(max_nfev), 1e-8, 1e-8, 1e-8, STOP_DECREMENT,
+                                          polish, STOP_STEP_MM)
     return x, float(rms), bool(ok)
 
 
