@@ -138,12 +138,16 @@ def test_calibration_step_in_browser(served, browser, artifacts, tmp_path):
     assert "refused" in msg and "no 7x5 chessboard found" in msg, msg
     page.wait_for_function("document.querySelector('#mt-cal-last') && "
                            "document.querySelector('#mt-cal-last').dataset.accepted === '0'")
-    rays = truth.pixel_rays(1)
+    # boards drawn with 2x2 samples a pixel: drawn with one, their aliased corners biased the solved
+    # principal point by 2-4 px depending on which views were taken (the same 12 boards solved
+    # offline: 3.1-3.7 px off with one sample, 0.0-0.6 px with four), which once crossed the
+    # 4 px check below in CI
+    rays = truth.pixel_rays(2)
     rng = np.random.default_rng(11)
     poses = _intrinsic_board_poses(truth, rng, 12)
     accepted = 0
     for k, T in enumerate(poses):
-        _show(feed, s, render_chessboard(truth, T, PATTERN, SQUARE, supersample=1, rays=rays))
+        _show(feed, s, render_chessboard(truth, T, PATTERN, SQUARE, supersample=2, rays=rays))
         msg = _command(page, "Capture view")
         accepted += "Capture view: accepted" in msg
         if k == 0:  # the same board again: a duplicate, refused with the reason
@@ -171,7 +175,7 @@ def test_calibration_step_in_browser(served, browser, artifacts, tmp_path):
     solved = CameraModel.load(cam_path)
     K, K0 = solved.K, truth.K
     assert abs(K[0, 0] - K0[0, 0]) < 0.01 * K0[0, 0] and abs(K[1, 1] - K0[1, 1]) < 0.01 * K0[1, 1]
-    assert abs(K[0, 2] - K0[0, 2]) < 4 and abs(K[1, 2] - K0[1, 2]) < 4
+    assert abs(K[0, 2] - K0[0, 2]) < 4 and abs(K[1, 2] - K0[1, 2]) < 4, (accepted, rms_page, K, K0)
     _wait(lambda: s.snapshot().camera.calibration_path == cam_path and s.snapshot().camera.running,
           what="the camera restarted with the saved calibration")
     page.screenshot(path=str(artifacts / "calibration_intrinsics.png"), full_page=True)
@@ -211,7 +215,7 @@ def test_calibration_step_in_browser(served, browser, artifacts, tmp_path):
         px = truth.project(pc)
         if np.any(px < 5) or np.any(px[:, 0] > w - 5) or np.any(px[:, 1] > h - 5):
             continue
-        _show(feed, s, render_chessboard(truth, T_cam_board, PATTERN, SQUARE, supersample=1, rays=rays))
+        _show(feed, s, render_chessboard(truth, T_cam_board, PATTERN, SQUARE, supersample=2, rays=rays))
         msg = _command(page, "Record pose + view")
         he_accepted += "Record pose: accepted" in msg
     assert he_accepted >= 8, he_accepted
