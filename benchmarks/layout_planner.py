@@ -105,29 +105,36 @@ def sample_problem(noise_px: float):
     return replace(P, drape=DrapeLine(head.centre, up)), T_demo, lay
 
 
-def measure_points(T_cam_ct, X, target, noise_px, runs, frames, hide=None, seed=0):
-    """Errors at the target (mm) of the trusted frames and the trusted share, through PoseTracker
-    fed exact ellipse centres of the balls X (CT mm) plus Gaussian noise; ``hide`` a ball index
-    left out of the image (the tracker still knows it)."""
+def _track_points(T_cam_ct, X, target, runs, frames, centres, seed):
+    """Errors at the target (mm) of the trusted frames and the trusted share, through ``runs``
+    fresh PoseTrackers of the balls X (CT mm) fed point centres: ``centres(k, rng)`` gives frame
+    k's (centres px, radii px)."""
     det = PointDetector()
     rng = np.random.default_rng(seed)
-    Xc = X @ T_cam_ct[:3, :3].T + T_cam_ct[:3, 3]
-    px0 = _to_pixels(ellipse_centre_normalised(Xc, 4.0), CAM.K, CAM.dist)
-    minor = CAM.K[0, 0] * 4.0 / Xc[:, 2]
-    shown = np.ones(len(X), bool)
-    if hide is not None:
-        shown[hide] = False
     err, ok, n = [], 0, 0
     for _ in range(runs):
         tr = PoseTracker(X, CAM, detector=det, radius_mm=4.0, target_ct=target)
         for k in range(frames):
-            det.set((px0 + rng.normal(scale=noise_px, size=px0.shape))[shown], minor[shown])
+            det.set(*centres(k, rng))
             e = tr.process(Frame(BLANK, k / 30.0, k))
             n += 1
             if e.ok:
                 ok += 1
                 err.append(tre_mm(e.T_cam_ct, T_cam_ct, target[None])[0])
     return np.array(err), ok / max(n, 1)
+
+
+def measure_points(T_cam_ct, X, target, noise_px, runs, frames, hide=None, seed=0):
+    """:func:`_track_points` fed exact ellipse centres of the balls X (CT mm) plus Gaussian noise;
+    ``hide`` a ball index left out of the image (the tracker still knows it)."""
+    Xc = X @ T_cam_ct[:3, :3].T + T_cam_ct[:3, 3]
+    px0 = _to_pixels(ellipse_centre_normalised(Xc, 4.0), CAM.K, CAM.dist)
+    minor = CAM.K[0, 0] * 4.0 / Xc[:, 2]
+    shown = np.ones(len(X), bool)
+    if hide is not None:
+        shown[hide] = False
+    return _track_points(T_cam_ct, X, target, runs, frames, seed=seed, centres=lambda k, rng: (
+        (px0 + rng.normal(scale=noise_px, size=px0.shape))[shown], minor[shown]))
 
 
 def measure_images(T_cam_ct, X_seen, X_all, target, frames, optics, seed=0):
@@ -168,24 +175,14 @@ def measure_images(T_cam_ct, X_seen, X_all, target, frames, optics, seed=0):
 
 
 def measure_detections_noisy(T_cam_ct, X, target, dets, noise_px, runs, frames, seed=0):
-    """Errors at the target (mm) of the trusted frames and the trusted share, through PoseTracker
-    fed the detector's own centres on the rendered frames (``dets``: per frame (centres px,
-    radii px), replayed in turn) plus Gaussian noise of ``noise_px``: the detector's bias on these
-    balls at the image noise of physically rendered frames."""
-    det = PointDetector()
-    rng = np.random.default_rng(seed)
-    err, ok, n = [], 0, 0
-    for _ in range(runs):
-        tr = PoseTracker(X, CAM, detector=det, radius_mm=4.0, target_ct=target)
-        for k in range(frames):
-            px, r = dets[k % len(dets)]
-            det.set(px + rng.normal(scale=noise_px, size=px.shape), r)
-            e = tr.process(Frame(BLANK, k / 30.0, k))
-            n += 1
-            if e.ok:
-                ok += 1
-                err.append(tre_mm(e.T_cam_ct, T_cam_ct, target[None])[0])
-    return np.array(err), ok / max(n, 1)
+    """:func:`_track_points` fed the detector's own centres on the rendered frames (``dets``: per
+    frame (centres px, radii px), replayed in turn) plus Gaussian noise of ``noise_px``: the
+    detector's bias on these balls at the image noise of physically rendered frames."""
+    def centres(k, rng):
+        px, r = dets[k % len(dets)]
+        return px + rng.normal(scale=noise_px, size=px.shape), r
+
+    return _track_points(T_cam_ct, X, target, runs, frames, centres, seed)
 
 
 def stats(err):
