@@ -17,13 +17,16 @@ def _lin(c):
     return (np.asarray(c, float) / 255.0) ** 2.2
 
 
-def shadowed_ball(centre, radius, size, shadow_deg=200.0, depth=0.8, width_px=2.0, lobe=4, blur_sigma=1.0):
+def _draw_ball(centre, radius, size, shadow_deg, depth, width_px, lobe, ambient, diffuse, tint, blur_sigma,
+               cut_x=None):
     """BGR uint8 image of a Lambertian sphere (radius px, centre px; pixel (i, j) covers
     [j - 0.5, j + 0.5]) on skin, lit from the side opposite ``shadow_deg`` (image angle, deg,
-    from +x towards +y), with a contact shadow on the background beside the outline: the skin's
-    light times 1 - depth x exp(-d / width_px) x cos^lobe (the angle from ``shadow_deg``), d the
-    distance outside the outline (px); then pixel integration, a Gaussian lens blur in linear
-    light and gamma 2.2."""
+    from +x towards +y; shading ``ambient + diffuse x cos``), with a contact shadow on the
+    background beside the outline: the skin's light times 1 - depth x exp(-d / width_px) x
+    cos^lobe (the angle from ``shadow_deg``), d the distance outside the outline (px); the limb
+    takes on the skin's colour (``tint`` at the outline, 0 from half the radius in); ``cut_x``
+    (px): every pixel right of x = cut_x is a grey instrument instead; then pixel integration, a
+    Gaussian lens blur in linear light and gamma 2.2. Also returns the shadow's unit direction."""
     n = size * SS
     g = (np.arange(n) + 0.5) / SS - 0.5
     xx, yy = np.meshgrid(g, g)
@@ -36,11 +39,20 @@ def shadowed_ball(centre, radius, size, shadow_deg=200.0, depth=0.8, width_px=2.
     inside = rr <= radius
     nz = np.sqrt(np.clip(1.0 - (rr / radius) ** 2, 0.0, 1.0))
     light = np.array([-0.6 * sv[0], -0.6 * sv[1], 0.8])
-    shade = 0.15 + 0.85 * np.clip((dx * light[0] + dy * light[1]) / radius + nz * light[2], 0.0, 1.0)
-    img[inside] = (_lin(BALL)[None, None, :] * shade[..., None])[inside]
+    shade = ambient + diffuse * np.clip((dx * light[0] + dy * light[1]) / radius + nz * light[2], 0.0, 1.0)
+    w = tint * np.clip((rr / radius - 0.5) / 0.5, 0.0, 1.0)
+    colour = _lin(BALL)[None, None, :] * (1.0 - w[..., None]) + 0.3 * _lin(SKIN)[None, None, :] * w[..., None]
+    img[inside] = (colour * shade[..., None])[inside]
+    if cut_x is not None:
+        img[xx > cut_x] = _lin([120.0, 120.0, 125.0])
     img = cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
     img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
     return np.clip(np.clip(img, 0, 1) ** (1 / 2.2) * 255 + 0.5, 0, 255).astype(np.uint8), sv
+
+
+def shadowed_ball(centre, radius, size, shadow_deg=200.0, depth=0.8, width_px=2.0, lobe=4, blur_sigma=1.0):
+    """:func:`_draw_ball` with a moderate shadow and the ball's own colour to its outline."""
+    return _draw_ball(centre, radius, size, shadow_deg, depth, width_px, lobe, 0.15, 0.85, 0.0, blur_sigma)
 
 
 def _fit(img, centre, radius):
@@ -70,32 +82,11 @@ def test_contact_shadow_does_not_pull_the_centre(radius, offset, monkeypatch):
 
 
 def tinted_ball(centre, radius, size, shadow_deg=200.0, tint=0.5, blur_sigma=0.6, cut_x=None):
-    """As :func:`shadowed_ball`, as the Mitsuba frames show it (issue 28): the shadow is deep (0.95
+    """:func:`_draw_ball` as the Mitsuba frames show it (issue 28): the shadow is deep (0.95
     beside the unlit limb) and wide (2.5 px), and the ball's limb takes on the skin's colour (light
     the skin throws back: the ball's colour mixed with the skin's, ``tint`` at the outline falling
-    to 0 at half the radius in); ``cut_x`` (px): every pixel right of x = cut_x is a grey
-    instrument instead (a ball cut by a straight occluder)."""
-    n = size * SS
-    g = (np.arange(n) + 0.5) / SS - 0.5
-    xx, yy = np.meshgrid(g, g)
-    dx, dy = xx - centre[0], yy - centre[1]
-    rr = np.hypot(dx, dy)
-    sv = np.array([np.cos(np.radians(shadow_deg)), np.sin(np.radians(shadow_deg))])
-    facing = np.clip((dx * sv[0] + dy * sv[1]) / np.maximum(rr, 1e-9), 0.0, 1.0) ** 2
-    shadow = 0.95 * facing * np.exp(-np.clip(rr - radius, 0.0, None) / 2.5)
-    img = _lin(SKIN)[None, None, :] * (1.0 - shadow)[..., None]
-    inside = rr <= radius
-    nz = np.sqrt(np.clip(1.0 - (rr / radius) ** 2, 0.0, 1.0))
-    light = np.array([-0.6 * sv[0], -0.6 * sv[1], 0.8])
-    shade = 0.1 + 0.9 * np.clip((dx * light[0] + dy * light[1]) / radius + nz * light[2], 0.0, 1.0)
-    w = tint * np.clip((rr / radius - 0.5) / 0.5, 0.0, 1.0)
-    colour = _lin(BALL)[None, None, :] * (1.0 - w[..., None]) + 0.3 * _lin(SKIN)[None, None, :] * w[..., None]
-    img[inside] = (colour * shade[..., None])[inside]
-    if cut_x is not None:
-        img[xx > cut_x] = _lin([120.0, 120.0, 125.0])
-    img = cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA)
-    img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
-    return np.clip(np.clip(img, 0, 1) ** (1 / 2.2) * 255 + 0.5, 0, 255).astype(np.uint8), sv
+    to 0 at half the radius in); ``cut_x`` (px): a ball cut by a straight grey occluder."""
+    return _draw_ball(centre, radius, size, shadow_deg, 0.95, 2.5, 2, 0.1, 0.9, tint, blur_sigma, cut_x)
 
 
 @pytest.mark.xfail(strict=True, reason="issue 28 item 2 open: a deep contact shadow beside a limb that takes "
