@@ -96,6 +96,20 @@ def local_plateau(P, x0, step, blur, margin=0.5, width=1.0, iters=2, mode="proj"
     return x
 
 
+def _peak_position(prof, step):
+    """(n,) position along each ray (px) of the largest sample of ``prof`` (n, k) (-inf outside
+    the search window), refined to a parabola through it and its neighbours."""
+    k = prof.shape[1]
+    j = np.clip(np.argmax(prof, 1), 1, k - 2)
+    r = np.arange(len(j))
+    y0, y1, y2 = prof[r, j - 1], prof[r, j], prof[r, j + 1]
+    y0 = np.where(np.isfinite(y0), y0, y1)
+    y2 = np.where(np.isfinite(y2), y2, y1)
+    den = y0 - 2 * y1 + y2
+    off = np.where(np.abs(den) > 1e-12, 0.5 * (y0 - y2) / np.where(np.abs(den) > 1e-12, den, 1), 0.0)
+    return (j + np.clip(off, -1, 1)) * step
+
+
 def steepest(P, x0, step, blur, Wm=None):
     """Position of the steepest change of the local ball->background projection (parabola peak)."""
     if Wm is not None:
@@ -111,14 +125,7 @@ def steepest(P, x0, step, blur, Wm=None):
     a = np.einsum("nkc,nc->nk", P - G[:, None], d) / np.maximum((d * d).sum(1), 1e-12)[:, None]
     da = -np.gradient(a, axis=1)
     da[(s[None, :] < lo[:, None]) | (s[None, :] > hi[:, None])] = -np.inf
-    j = np.clip(np.argmax(da, 1), 1, k - 2)
-    r = np.arange(len(j))
-    y0, y1, y2 = da[r, j - 1], da[r, j], da[r, j + 1]
-    y0 = np.where(np.isfinite(y0), y0, y1)
-    y2 = np.where(np.isfinite(y2), y2, y1)
-    den = y0 - 2 * y1 + y2
-    off = np.where(np.abs(den) > 1e-12, 0.5 * (y0 - y2) / np.where(np.abs(den) > 1e-12, den, 1), 0.0)
-    return (j + np.clip(off, -1, 1)) * step
+    return _peak_position(da, step)
 
 
 def chroma_steep(rgb, x0, step, blur, lo_px=3.0, hi_px=1.0, sigma_px=0.0, far_bg=True):
@@ -142,14 +149,7 @@ def chroma_steep(rgb, x0, step, blur, lo_px=3.0, hi_px=1.0, sigma_px=0.0, far_bg
     dh = -np.gradient(h, axis=1)
     bad = (s[None, :] < (x0 - lo_px)[:, None]) | (s[None, :] > (x0 + hi_px)[:, None])
     dh[bad] = -np.inf
-    j = np.clip(np.argmax(dh, 1), 1, k - 2)
-    r = np.arange(len(j))
-    y0, y1, y2 = dh[r, j - 1], dh[r, j], dh[r, j + 1]
-    y0 = np.where(np.isfinite(y0), y0, y1)
-    y2 = np.where(np.isfinite(y2), y2, y1)
-    den = y0 - 2 * y1 + y2
-    off = np.where(np.abs(den) > 1e-12, 0.5 * (y0 - y2) / np.where(np.abs(den) > 1e-12, den, 1), 0.0)
-    return (j + np.clip(off, -1, 1)) * step
+    return _peak_position(dh, step)
 
 
 def hybrid(rgb, x0, step, blur, margin=0.2, sigma_px=1.0, q="median"):
