@@ -3,28 +3,11 @@ a mesh), a plan on it and a camera space, built once per session (CT-free: fast)
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
-import trimesh
+from analytic_head import PH, ellipsoid_head
 
-from monotracker.planning import BallRules, CameraSpace, DrapeLine, HeadSurface, PlanningProblem, robot_keep_out
-from monotracker.sim.phantom import default_phantom
+from monotracker.planning import BallRules, CameraSpace, DrapeLine, PlanningProblem, robot_keep_out
 from monotracker.vision.camera_model import default_camera
-
-PH = default_phantom()
-
-
-def ellipsoid_head(subdivisions: int = 5) -> HeadSurface:
-    """The phantom's skin ellipsoid (LPS mm, semi-axes 72 x 92 x 86) as a closed mesh."""
-    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
-    v = np.asarray(m.vertices) * PH.skin_semi_axes_mm + PH.centre_lps
-    return HeadSurface(v, np.asarray(m.faces))
-
-
-def skin_ball(direction, radius_mm: float = 4.0) -> np.ndarray:
-    """A ball centre resting on the phantom's skin along ``direction`` from its centre (LPS mm)."""
-    p, n = PH.skin_point(np.asarray(direction, float))
-    return p + radius_mm * n
 
 
 @pytest.fixture(scope="session")

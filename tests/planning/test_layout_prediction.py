@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import trimesh
-from conftest import PH, skin_ball
+from analytic_head import PH, skin_ball
 
 from monotracker.geometry import invert_transform, look_at
 from monotracker.planning import Capsule, DrapeLine, HeadSurface, PlanningProblem, CameraSpace, predict, visibility

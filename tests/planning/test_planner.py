@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import PH
+from analytic_head import PH
 
 from monotracker.geometry import invert_transform
 from monotracker.planning import plan_layout, predict, rule_of_thumb_layout, sample_candidates
