@@ -23,6 +23,7 @@ from monotracker.engine.robot_transitions import TransitionLog
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
 from monotracker.geometry import apply_transform, invert_transform
+from monotracker.robot.tip_speed import TipSpeed
 
 log = logging.getLogger(__name__)
 
@@ -84,9 +85,7 @@ class TrackerRobotRig(RobotRig):
         r = self.tracker.connect()
         if not r.ok:
             raise MonoTrackerError(f"robot did not connect: {r.reason}")
-        self._prev_tip: np.ndarray | None = None
-        self._prev_t: float | None = None
-        self._speed = 0.0
+        self._tip_speed = TipSpeed()
         self._head_ct: tuple[np.ndarray, float] | None = None
         self._status_cache = None
         self._status_lock = threading.Lock()
@@ -223,10 +222,7 @@ class TrackerRobotRig(RobotRig):
             q, qd = snap.q, snap.dq
             T_tip = snap.T_base_tip_mm if np.all(np.isfinite(snap.T_base_tip_mm)) else None
             t_state = snap.t
-        if T_tip is not None and self._prev_t is not None and t_state > self._prev_t:
-            self._speed = float(np.linalg.norm(T_tip[:3, 3] - self._prev_tip[:3, 3]) / (t_state - self._prev_t))
-        if T_tip is not None and (self._prev_t is None or t_state > self._prev_t):
-            self._prev_tip, self._prev_t = T_tip, t_state
+        speed = self._tip_speed.update(T_tip, t_state)
         msg = snap.last_transition.reason if snap.last_transition is not None else ""
         if snap.program_fault and snap.state == "estopped":
             msg = snap.program_fault_reason
@@ -234,7 +230,7 @@ class TrackerRobotRig(RobotRig):
         stamp = safety.target_stamp if np.isfinite(safety.target_stamp) else None
         # the state machine's live state (the snapshot is from the last control step)
         st = RobotStatus(state=self.tracker.state.value, connected=bool(self.tracker.arm_backend.is_connected()),
-                         message=msg, q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=self._speed, command_stamp=stamp,
+                         message=msg, q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=speed, command_stamp=stamp,
                          t_command=snap.t, program_fault=snap.program_fault,
                          control="in-process thread" if self.tracker._thread is not None else "in-process, stepped",
                          response_s=self._response_s)

@@ -21,6 +21,7 @@ from monotracker.engine.rigs.robot import TrackerRobotRig, arm_setup
 from monotracker.engine.robot_transitions import TransitionLog
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
+from monotracker.robot.tip_speed import TipSpeed
 
 log = logging.getLogger(__name__)
 
@@ -58,9 +59,7 @@ class ProcessRobotRig(TrackerRobotRig):
             session.alert("warning", "control_priority", f"robot control process runs without real-time "
                                                          f"priority: {self.proc.priority}")
         session.record("control_process", self.control, {"pid": self.proc.pid, "priority": self.proc.priority})
-        self._prev_tip: np.ndarray | None = None
-        self._prev_t: float | None = None
-        self._speed = 0.0
+        self._tip_speed = TipSpeed()
         self._head_ct: tuple[np.ndarray, float] | None = None
         self._status_cache = None
         self._status_lock = threading.Lock()
@@ -141,13 +140,10 @@ class ProcessRobotRig(TrackerRobotRig):
             q, qd = st.q, st.dq
             T_tip = st.T_base_tip_mm if np.all(np.isfinite(st.T_base_tip_mm)) else None
         t_state = st.t_published
-        if T_tip is not None and self._prev_t is not None and t_state > self._prev_t:
-            self._speed = float(np.linalg.norm(T_tip[:3, 3] - self._prev_tip[:3, 3]) / (t_state - self._prev_t))
-        if T_tip is not None and (self._prev_t is None or t_state > self._prev_t):
-            self._prev_tip, self._prev_t = T_tip, t_state
+        speed = self._tip_speed.update(T_tip, t_state)
         stamp = st.target_stamp if np.isfinite(st.target_stamp) else None
         status = RobotStatus(state=self.proc.live_state(), connected=st.connected, message=self.proc.last_reason,
-                             q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=self._speed, command_stamp=stamp,
+                             q=q, qd=qd, T_base_tip=T_tip, speed_mm_s=speed, command_stamp=stamp,
                              t_command=st.t, program_fault=st.program_fault, control=self.control)
         self._status_cache = (key, status)
         return status
