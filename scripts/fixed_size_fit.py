@@ -24,7 +24,9 @@ Per ray (usable rays): the edge's error against the true outline (px, + outside)
 RMS, and its mean on the third of the rays facing the lamp and on the third facing away; and how
 much of it a linear model of what the image shows round the ray predicts (:func:`regression`).
 
-Usage: PYTHONPATH=app python scripts/fixed_size_fit.py [--frames N] [--size-err PCT ...] [--json]
+``--drawn``: the same fits on the drawn tinted ball of ``tests/vision/test_edge_fit_shadow.py``.
+
+Usage: PYTHONPATH=app python scripts/fixed_size_fit.py [--frames N] [--size-err PCT ...] [--drawn] [--json]
 """
 
 from __future__ import annotations
@@ -255,6 +257,39 @@ def regression(balls: list) -> dict:
     return res
 
 
+def drawn_rows() -> list:
+    """The drawn tinted ball of ``tests/vision/test_edge_fit_shadow.py`` (a deep contact shadow, a
+    limb tinted by the skin; lamp at 20 deg) at three radii and two sub-pixel offsets: centre error
+    (px) of the product's fit and of centre-only fits of the exact size (all rays; the lamp's half
+    by the interior luma, least squares and :func:`_l1_centre` up to cos > -0.3)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "vision"))
+    from test_edge_fit_shadow import _fit, tinted_ball
+
+    rows = []
+    for radius in (6.0, 10.0, 16.0):
+        for off in ((0.3, 0.6), (0.8, 0.1)):
+            size = int(2 * radius + 40)
+            centre = np.array([size / 2 + off[0], size / 2 + off[1]])
+            img, _ = tinted_ball(centre, radius, size)
+            prod = _fit(img, centre, radius)
+            ell = ((centre[0] + 0.4, centre[1] - 0.3), (2 * radius + 0.8, 2 * radius + 0.8), 0.0)
+            blur = edge_fit.measure_edge_blur(img, [ell]) or edge_fit.BLUR_PROBE_PX
+            pts, u = edge_fit._edge_points(img, [ell], blur)[0]
+            d = pts - np.array(ell[0])
+            phi = np.arctan2(d[:, 1], d[:, 0])
+            pr = profiles(img, ell, blur)
+            sp = pr["s0"][:, None] + np.arange(pr["rgb"].shape[1])[None, :] * pr["step"]
+            j = np.argmin(np.abs(sp - 0.6 * radius), axis=1)
+            lit = _harmonic_dir(phi[u], (pr["rgb"] @ _Y)[np.arange(len(j)), j][u])
+            ax = (radius, radius)
+            got = {"product": prod.centre_px if prod.ok else None, "fix_all": fit_centre(pts, u, ax, 0.0, ell[0]),
+                   "lit_fix": fit_centre(pts, u & (np.cos(phi - lit) > 0), ax, 0.0, ell[0]),
+                   "lit_L1": _l1_centre(pts, u & (np.cos(phi - lit) > -0.3), ax, 0.0, ell[0])}
+            rows.append({"radius_px": radius, "offset_px": off, "lamp_deg": float(np.degrees(lit)),
+                         **{k: None if v is None else float(np.linalg.norm(v - centre)) for k, v in got.items()}})
+    return rows
+
+
 def _nanmean(v):
     v = v[np.isfinite(v)]
     return float(v.mean()) if len(v) else float("nan")
@@ -273,7 +308,16 @@ def main(argv=None) -> int:
                     help="errors of the fixed outline's size, percent (default 0 2 -2)")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--json", action="store_true", help="print only the JSON line")
+    ap.add_argument("--drawn", action="store_true", help="only the drawn ball of test_edge_fit_shadow.py")
     a = ap.parse_args(argv)
+    if a.drawn:
+        rows = drawn_rows()
+        if not a.json:
+            for r in rows:
+                print(f"r {r['radius_px']:4.1f} px, offset {r['offset_px']}, lamp found at {r['lamp_deg']:.0f} deg: "
+                      + "  ".join(f"{k} {r[k]:.3f}" for k in ("product", "fix_all", "lit_fix", "lit_L1")))
+        print(json.dumps(rows))
+        return 0
     rows = run(a.frames, [c for c in a.conditions.split(",") if c], a.size_err)
     if not a.json:
         for cond, o in rows.items():
