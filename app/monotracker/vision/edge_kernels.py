@@ -891,3 +891,19 @@ def warm_up() -> None:
     for smooth in (True, False):
         sample_rays(img, lut, np.eye(3, dtype=np.float32), 32.0 * one, 32.0 * one, cnt, box, st, ph, s0, k, smooth, 2.0,
                     fine_lut())
+    # as edge_fit passes them: the balls' ellipses as columns of an (m, 5) array (strided views,
+    # numba's 'A' layout, when m > 1; one ball's column is contiguous) and max_rays given. Without
+    # these the first frame with 2+ balls compiled ray_geometry, sample_rays and shadow_rays
+    # again (~5 CPU s after an install): the demo's first pose came stale (issue 35)
+    e = np.array([[20.0, 20.0, 20.0, 18.0, 0.0], [44.0, 44.0, 20.0, 18.0, 30.0]])
+    for ell in (e, e[:1].copy()):
+        cnt, box, _w, st, ph, s0 = ray_geometry(ell[:, 0], ell[:, 1], ell[:, 2], ell[:, 3], ell[:, 4], k, 1.5, 64, 64,
+                                                96)
+        for smooth in (True, False):
+            sample_rays(img, lut, np.eye(3, dtype=np.float32), ell[:, 0], ell[:, 1], cnt, box, st, ph, s0, k, smooth,
+                        2.0, fine_lut())
+        m = len(ell)
+        Pm = np.repeat(P, m, axis=0) + 32.0
+        okm = np.ones(m, np.bool_)
+        shadow_rays(img, lut32, lut32[:3].copy(), Pm, np.ones((m, 32), np.bool_), np.ones((m, 32), np.bool_), okm,
+                    ell[:, 0], ell[:, 1], ell[:, 2], ell[:, 3], ell[:, 4], 1.5, 3.0, 0.3, 0.9, 0.6)
