@@ -1,6 +1,7 @@
 """The pose pipeline at camera rate (issue 29 item 4): per stage, per frame, and the closed loop's
 rate, pose age and tracking, this checkout against a baseline commit in the same run, quiet and
-with 4 CPU hogs beside it.
+with 4 CPU hogs beside it (a neighbour's load: the 4 loops in a session of their own,
+``_hogs.py``).
 
 Per stage (median / p99 ms, wall time, one frame at a time on one thread): ``read`` (the frame
 handed over: a copy of the image), ``hint`` (the balls' predicted ellipses), ``detect``,
