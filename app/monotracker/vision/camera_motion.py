@@ -12,8 +12,7 @@ How (:class:`CameraMotionMonitor`): at the first usable frame it keeps a referen
 background (grey, half resolution, high-passed and normalised so that a global lighting change
 does not look like motion) and up to ``max_features`` corners outside the head (a disc around
 the fiducials given by the caller). Every ``every_n_frames`` it tracks those corners from the
-reference into the frame (pyramidal Lucas-Kanade; with ``spread``, on the next frame, so that the
-check's cost is split between two frames) and fits one
+reference into the frame (pyramidal Lucas-Kanade) and fits one
 similarity transform to them with RANSAC: the background's motion, robust to the head, hands,
 instruments or the arm moving in front of part of it. ``shift_px`` is the largest displacement
 that transform gives over the background's extent (full-resolution px); ``angle_deg`` the camera rotation
@@ -46,11 +45,6 @@ class MotionConfig:
 
     #: check one frame in this many (the others cost nothing)
     every_n_frames: int = 3
-    #: with ``every_n_frames`` >= 2, spread a check over two frames: the checked frame's image is
-    #: prepared on that frame (~1.5 ms at 1280x720), tracked and fitted on the next (~2 ms), so no
-    #: frame carries the whole check (~3.5-5 ms: the frames that did were the pose pipeline's
-    #: slowest 5 %, issue 29). The verdict is about the checked frame and comes one frame later.
-    spread: bool = True
     #: work at this share of the image size (a quarter: the sensor noise averages out over 4 x 4
     #: pixels, the drape's texture stays, a check costs ~2 ms at 1280x720)
     scale: float = 0.25
@@ -123,7 +117,6 @@ class CameraMotionMonitor:
         self._pts = None              # (n, 1, 2) float32 corners in the reference (work scale)
         self._A_ref = np.eye(3)       # reference -> rest (3x3 similarity, full-res px)
         self._frames = 0
-        self._pending = None          # (prepared image, fiducials) of a checked frame, fitted on the next
         self._over = 0
         self.moved = False
         self.last: MotionReport | None = None
@@ -133,23 +126,14 @@ class CameraMotionMonitor:
     def update(self, image: np.ndarray, fiducials_px: np.ndarray | None = None) -> MotionReport | None:
         """Feed one frame (BGR or grey uint8); ``fiducials_px`` (n, 2) the balls' image positions
         (full-res px; NaN rows ignored) to keep the head out of the background. Returns the
-        check's :class:`MotionReport` (with ``spread``: on the frame after the checked one, about the
-        checked one), or None on frames that finish no check."""
+        check's :class:`MotionReport`, or None on frames that are not checked."""
         cfg = self.config
         self._frames += 1
-        every = max(1, cfg.every_n_frames)
-        if self._pending is not None:          # the second half of a spread check: the checked frame's
-            img, fid = self._pending           # image tracked from the reference (see ``spread``)
-            self._pending = None
-            return self._check(img, fid)
-        if self._ref is not None and (self._frames - 1) % every:
+        if self._ref is not None and (self._frames - 1) % max(1, cfg.every_n_frames):
             return None
         img = _prepare(image, cfg.scale)
         if self._ref is None:
             return self._anchor(img, fiducials_px)
-        if cfg.spread and every >= 2:
-            self._pending = (img, None if fiducials_px is None else np.array(fiducials_px, float, copy=True))
-            return None
         return self._check(img, fiducials_px)
 
     def _head_disc(self, fiducials_px):
