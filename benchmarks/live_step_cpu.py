@@ -80,7 +80,7 @@ def main() -> None:
     assert s.use_sample_plan().ok
     app = MonoTrackerApp(s, "127.0.0.1", free_port(), **APP_OPTIONS)
     app.start()
-    with hogs(a.hogs), sync_playwright() as p:
+    with hogs(a.hogs, own_session=False), sync_playwright() as p:
         b = CappedBrowser(p.chromium.launch(executable_path=display_browser_path(), headless=True,
                                             args=CHROMIUM_ARGS))
         if not a.no_page:

@@ -1,12 +1,14 @@
 """The pose pipeline at camera rate (issue 29 item 4): per stage, per frame, and the closed loop's
 rate, pose age and tracking, this checkout against a baseline commit in the same run, quiet and
-with 4 CPU hogs beside it.
+with 4 CPU hogs beside it (a neighbour's load: the 4 loops in a session of their own,
+``_hogs.py``).
 
 Per stage (median / p99 ms, wall time, one frame at a time on one thread): ``read`` (the frame
 handed over: a copy of the image), ``hint`` (the balls' predicted ellipses), ``detect``,
 ``register``, ``screen`` (the moved-fiducial test), ``gates`` (the checks after the
-registration), ``other`` (the rest of the tracker's frame: size and grayscale checks, the
-camera-motion watch where the tree's app has one), ``publish`` (the estimate to the engine's
+registration), ``motion`` (the camera-motion watch, where the tree's tracker times it apart),
+``other`` (the rest of the tracker's frame: size and grayscale checks, and the camera-motion watch
+in a tree that does not time it apart), ``publish`` (the estimate to the engine's
 sample); on photo-like frames of our simulator (9 balls, breathing head) at 1280x720 with balls
 of 13 and 20 px and at 1920x1080 with 20 px balls. Rendering is not timed. ``detect_register`` =
 hint + detect + register + screen + gates (issue 29's budget: <= 10 ms median, <= 16 ms p99 at
@@ -113,7 +115,7 @@ def main(argv=None):
             results[(name, hogs)] = run_child(app, home, a, hogs)
             print(f"    ({time.time() - t0:.0f} s, load {os.getloadavg()[0]:.2f})", flush=True)
     print("\nPer stage, ms median/p99 (wall, one thread), photo-like frames, breathing head:")
-    stages = ("read", "hint", "detect", "register", "screen", "gates", "other", "publish", "detect_register")
+    stages = ("read", "hint", "detect", "register", "screen", "gates", "motion", "other", "publish", "detect_register")
     print(f"{'case':<14} {'tree':<13} {'hogs':>4} " + " ".join(f"{s[:9]:>11}" for s in stages)
           + f" {'trusted':>7} {'err px':>6}")
     for (name, hogs), r in results.items():
@@ -133,6 +135,10 @@ def main(argv=None):
             print(f"{traj:<10} {name:<13} {hogs:>4} {d['fps']:6.2f} {100 * d['tracking_fraction']:7.2f}% "
                   f"{_f(d, 'latency_ms', 'p95'):>7} {_f(d, 'pose_age_ms', 'p50'):>7} {_f(d, 'pose_age_ms', 'p95'):>7} "
                   f"{_f(d, 'detect_register_ms', 'p50', nd=2):>11} {comp:>20}  {','.join(d['alerts']) or '-'}")
+            slow = d.get("slowest_5pct_stages_ms")
+            if slow:
+                print(f"{'':<10} {'':<13} {'':>4}   the slowest 5 % of frames, median ms: "
+                      + ", ".join(f"{k} {v:.2f}" for k, v in slow.items()))
     print(f"(load {os.getloadavg()[0]:.2f} at the end)")
     ours = results.get(("ours", 0)) or {}
     dr = [st["detect_register"]["p50"] for c, st in ours.get("stages", {}).items() if c.startswith("720p")]

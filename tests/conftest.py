@@ -52,7 +52,9 @@ def pytest_sessionstart(session):
     if not _is_xdist_worker(config):
         n = _hog_count()
         if n:
-            config._mt_hogs = _hogs_module().start_hogs(n)
+            # in the tests' own session (``own_session=False``): the app under test competes with
+            # them thread by thread, harder than a neighbour's session would load it
+            config._mt_hogs = _hogs_module().start_hogs(n, own_session=False)
 
 
 def pytest_sessionfinish(session):

@@ -103,7 +103,8 @@ class PoseEstimate:
         stages_s: wall time (s) per stage of this frame: ``hint`` (the balls' predicted
             ellipses for the detector), ``detect``, ``register`` (the first
             registration), ``screen`` (the moved-fiducial screening after it), ``gates`` (the
-            checks after the registration, to the estimate); and ``detect.<stage>`` for the
+            checks after the registration, to the estimate), ``motion`` (the camera-motion
+            watch's share of this frame, 0 without one); and ``detect.<stage>`` for the
             detector's own stages (:attr:`~.detection.Detection.stages_s`).
         truth: the simulator's ground truth of the frame, or None (real cameras).
         code: alert code when not ok ("frame_size", "camera_freeze", "occlusion", "pose_lost",
@@ -349,8 +350,11 @@ class PoseTracker:
             self._last_full_index = frame.index
         det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
         pts = det.centres
+        t_motion = 0.0
         if self.camera_motion is not None:
+            t_m0 = time.perf_counter()
             self.camera_motion.update(frame.image, pts)
+            t_motion = time.perf_counter() - t_m0
             if self.camera_motion.moved:
                 return self._invalid(frame.index, frame.t_capture, "camera_moved", self.camera_motion.last.reason,
                                      truth=frame.truth)
@@ -494,7 +498,7 @@ class PoseTracker:
 
         T = T_pose if ok else None
         stages = {"hint": t_hint, "detect": det.time_s, "register": scr.register_s, "screen": scr.screen_s,
-                  "gates": time.perf_counter() - t_gates0}
+                  "gates": time.perf_counter() - t_gates0, "motion": t_motion}
         stages.update({f"detect.{k}": v for k, v in getattr(det, "stages_s", {}).items()})
         if ok:
             self._last_T = T_pose
