@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from monotracker.ct import sphere_fit
+from monotracker.ct import fit_kernels, sphere_fit
 from monotracker.ct.fiducials import detect_fiducials
 
 
@@ -133,7 +133,7 @@ from monotracker.ct.volume import Volume
 from monotracker.sim.ct_phantom import generate_ct, patch_scan_params
 from monotracker.sim.phantom import default_phantom
 
-kernels = (label_kernels._threshold_label, label_kernels._label_stats, label_kernels._add)
+kernels = (label_kernels._threshold_label, label_kernels._label_stats, label_kernels._add, fit_kernels.fit_window)
 assert not fit_kernels.robust_lm.signatures and not any(k.signatures for k in kernels)
 sphere_fit.warm_up()
 warm = set(fit_kernels.robust_lm.signatures)
@@ -141,7 +141,7 @@ warm_labels = [set(k.signatures) for k in kernels]
 ct = generate_ct(default_phantom(), patch_scan_params(None, 7.0))
 det = detect_fiducials(Volume.from_image(ct.to_sitk()))
 assert det.ok, det.reason
-assert all(not set(k.signatures) - w for k, w in zip(kernels, warm_labels)), "the blob search compiled a new signature"
+assert all(not set(k.signatures) - w for k, w in zip(kernels, warm_labels)), "the blob search or a fit window compiled a new signature"
 print(len(warm), len(set(fit_kernels.robust_lm.signatures) - warm))
 """
 
@@ -176,3 +176,41 @@ def test_loading_a_ct_starts_the_warm_up(tmp_path):
     assert t is not None and t.name == "ct-fit-warm-up"
     t.join()
     assert sphere_fit.warm_up_in_background() is t
+
+
+def test_fit_window_matches_numpy():
+    """The compiled fit window (one pass over the box) keeps the voxels the array code of
+    before kept: within the blurred reach of the centre, nearer to this blob than to each
+    neighbour, positions from the grid's own affine (an oblique, sheared one here), C order;
+    and lists every padding voxel of the box."""
+    rng = np.random.default_rng(5)
+    D = np.linalg.qr(rng.normal(size=(3, 3)))[0] @ np.array([[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    sp = np.array([0.45, 0.6, 1.3])
+    A, origin = D * sp[None, :], np.array([-20.0, 7.0, 3.0])
+    vol = rng.integers(-1024, 2000, size=(30, 40, 36)).astype(np.int16)
+    vol[3:6, 4:9, 2:5] = -1024
+    lo, hi = np.array([2, 3, 1]), np.array([22, 31, 30])
+    sub = vol[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+    kji = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), -1).reshape(-1, 3)
+    pts = kji[:, ::-1].astype(float) @ A.T + origin
+    vals = sub.astype(float).ravel()
+    centre = pts[len(pts) // 2] + 0.3
+    r0 = 3.0
+    M = (D * (sp**2 / 12.0)) @ D.T
+    sib_c, sib_r = np.array([centre + [4.0, 0.5, -1.0], centre + [-2.0, 5.0, 0.0]]), np.array([2.0, 1.5])
+    rel = pts - centre
+    dist = np.linalg.norm(rel, axis=1)
+    e = rel / np.maximum(dist, 1e-9)[:, None]
+    near = dist < r0 + 1.5 + 2.5 * np.sqrt(0.25 + np.einsum("ij,jk,ik->i", e, M, e))
+    for c, r in zip(sib_c, sib_r):
+        near &= np.linalg.norm(pts - c, axis=1) - r > dist - r0
+    got_pts, got_vals, got_dist, got_pad = fit_kernels.fit_window(sub, lo.astype(np.int64), A, origin, centre, r0, M,
+                                                                  sib_c, sib_r, -1024.0, True)
+    assert 100 < near.sum() < len(near) and len(got_pts) == near.sum()
+    np.testing.assert_allclose(got_pts, pts[near], atol=1e-9)
+    np.testing.assert_array_equal(got_vals, vals[near])
+    np.testing.assert_allclose(got_dist, dist[near], atol=1e-9)
+    np.testing.assert_allclose(got_pad, pts[vals == -1024.0], atol=1e-9)
+    assert len(got_pad) >= 45  # the padded block (3 x 5 x 3), and random -1024s
+    none = fit_kernels.fit_window(sub, lo.astype(np.int64), A, origin, centre, r0, M, np.zeros((0, 3)), np.zeros(0), 0.0, False)
+    assert len(none[3]) == 0 and len(none[0]) > len(got_pts)

@@ -184,15 +184,27 @@ class Sibling:
 
 @dataclass
 class _Crop:
-    """A full-grid crop for one coarse piece: the box ``lo``..``hi`` (k, j, i) and ``core``, the
-    piece's voxels in it (bool, the crop's shape); ``open_lo``/``open_hi`` which faces of the
-    box lie inside the scan (a component reaching one runs on outside the crop)."""
+    """A full-grid crop for one coarse piece: the box ``lo``..``hi`` (k, j, i); the piece's
+    blocks ``core_blocks`` (bool, coarse grid of ``blocks`` voxels, from coarse index
+    ``c_lo``), looked up per voxel by :meth:`in_core`; ``open_lo``/``open_hi`` which faces of
+    the box lie inside the scan (a component reaching one runs on outside the crop)."""
 
     lo: np.ndarray
     hi: np.ndarray
-    core: np.ndarray
+    core_blocks: np.ndarray
+    c_lo: np.ndarray
+    blocks: tuple
     open_lo: np.ndarray
     open_hi: np.ndarray
+
+    def in_core(self, kji: np.ndarray) -> np.ndarray:
+        """Whether the full-grid voxels ``kji`` (n, 3; k, j, i) lie in the piece's blocks (bool
+        (n,)): the block of each, looked up (no full-resolution mask of the crop is built)."""
+        b = self.core_blocks
+        idx = np.asarray(kji) // np.asarray(self.blocks) - self.c_lo
+        ok = np.all((idx >= 0) & (idx < np.array(b.shape)), axis=1)
+        idx = np.clip(idx, 0, np.array(b.shape) - 1)
+        return ok & b[idx[:, 0], idx[:, 1], idx[:, 2]].astype(bool)
 
 
 class _LadderSearch:
@@ -260,8 +272,7 @@ class _LadderSearch:
         keep = np.ones(len(sizable), bool)
         running_out = np.zeros(len(sizable), bool)
         if crop is not None:
-            g = lo + peak_at[sizable] - crop.lo  # the peaks, in the crop
-            keep = crop.core[g[:, 0], g[:, 1], g[:, 2]].astype(bool)
+            keep = crop.in_core(lo + peak_at[sizable])  # the peaks, on the full grid
             glo, ghi = lo + box_lo[sizable], lo + box_hi[sizable]
             running_out = np.any((glo <= crop.lo) & crop.open_lo, axis=1) | np.any((ghi >= crop.hi) & crop.open_hi, axis=1)
         faint = small & (peaks < T + max(6.0 * self.noise, 0.15 * (T - self.tissue)))
@@ -329,12 +340,9 @@ class _LadderSearch:
         margin = np.ceil(SIBLING_MARGIN_MM / self.volume.spacing_mm[::-1] - 1e-6).astype(int)
         lo = np.maximum(f_lo - margin, 0)
         hi = np.minimum(f_hi + margin, shape)
-        idx = [np.arange(lo[a], hi[a]) // blocks[a] - c_lo[a] for a in range(3)]
-        valid = [(ix >= 0) & (ix < core_blocks.shape[a]) for a, ix in enumerate(idx)]
-        core = core_blocks[np.ix_(*[np.clip(ix, 0, core_blocks.shape[a] - 1) for a, ix in enumerate(idx)])]
-        core &= valid[0][:, None, None] & valid[1][None, :, None] & valid[2][None, None, :]
         self.stats.crops += 1
-        return self.visit(lo, hi, None, 0, _Crop(lo, hi, core, lo > 0, hi < shape))
+        crop = _Crop(lo, hi, core_blocks, np.asarray(c_lo), tuple(int(x) for x in blocks), lo > 0, hi < shape)
+        return self.visit(lo, hi, None, 0, crop)
 
     def coarse_search(self, grid: CoarseGrid) -> bool:
         """Search a large volume on its coarse grid (module docstring): the first level's

@@ -46,6 +46,7 @@ from monotracker.ct.blob_search import principal_axes as _principal_axes
 from monotracker.ct.blob_search import coarse_grid, search_blobs, threshold_ladder, too_large_blob
 from monotracker.ct.coverage import PAD_REACH_MM, blob_touches_border, cut_reason, pad_value
 from monotracker.ct.detection_result import Fiducial, FiducialDetection, RejectedBlob
+from monotracker.ct.fit_kernels import fit_window
 from monotracker.ct.fiducials_paper import MAX_CANDIDATES, detect_fiducials_paper
 from monotracker.ct.kit import FiducialKit
 from monotracker.ct.levels import _strided_sample, estimate_levels, soft_tissue_levels
@@ -89,6 +90,18 @@ def _box_points(volume: Volume, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndar
     sub = volume.array[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]].astype(float)
     grid = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
     return volume.zyx_to_lps(grid), sub.ravel()
+
+
+def _pad_points(volume: Volume, lo: np.ndarray, hi: np.ndarray, pad_hu: float | None):
+    """The voxels of the index box ``lo``..``hi`` (k, j, i) whose value is the scan's padding
+    ``pad_hu``: LPS positions (n, 3) mm and values (n,), the only ones
+    :func:`~.coverage.cut_reason`'s padding check counts; (None, None) when there is no
+    padding value (the check is then skipped)."""
+    if pad_hu is None:
+        return None, None
+    sub = volume.array[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]]
+    kji = np.argwhere(sub == pad_hu)
+    return volume.zyx_to_lps(kji + np.asarray(lo)), np.full(len(kji), float(pad_hu))
 
 
 def _ball_box(volume: Volume, centre_lps: np.ndarray, reach_mm: float, lo: np.ndarray, hi: np.ndarray):
@@ -248,7 +261,7 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
     # the edge check needs only the window's voxels within reach of the blob's ball: those
     # first, so that a blob refused as not round never has its whole window built
     blo, bhi = _ball_box(volume, centroid, r0 + PAD_REACH_MM, lo, hi)
-    cut = cut_reason(volume, centroid, r0, *_box_points(volume, blo, bhi), pad_hu)
+    cut = cut_reason(volume, centroid, r0, *_pad_points(volume, blo, bhi, pad_hu), pad_hu)
     if cut:
         return None, RejectedBlob(centroid, cut, n, kind="cut")
     axes = _principal_axes(cpts, volume)
@@ -257,24 +270,25 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
         return None, RejectedBlob(
             centroid, f"not round: {2 * axes[0]:.1f} x {2 * axes[2]:.1f} mm (elongation {elong:.2f}), e.g. clip, rod, "
                       f"streak or bone{_touching_hint(n, voxel_mm3, kit.radius_mm, elong, float(axes[2]))}", n)
-    wpts, vals = _box_points(volume, lo, hi)
-    all_pts, all_vals = wpts, vals
-    rel0 = wpts - centroid
-    dist = np.linalg.norm(rel0, axis=1)
     # window: the ball plus ~2.5 edge sigmas of the slice profile in each direction (thick slices
-    # reach further along z), so little of the tissue beyond (skull under the scalp) comes in
-    e0 = rel0 / np.maximum(dist, 1e-9)[:, None]
+    # reach further along z), so little of the tissue beyond (skull under the scalp) comes in,
+    # less what belongs to a neighbouring blob (touching balls, a clip): built in one compiled
+    # pass over the box (fit_kernels.fit_window), with the box's padding voxels for the edge
+    # check after the fit (the only ones it counts)
     box_cov = (volume.direction * (sp**2 / 12.0)) @ volume.direction.T
-    s_dir = np.sqrt(0.25 + np.einsum("ij,jk,ik->i", e0, box_cov, e0))
-    near = dist < r0 + 1.5 + 2.5 * s_dir
-    for s in sibs:  # leave out what belongs to a neighbouring blob (touching balls, a clip)
-        if np.linalg.norm(s.centroid - centroid) < r0 + s.radius + 6.0:
-            near &= np.linalg.norm(wpts - s.centroid, axis=1) - s.radius > dist - r0
-    wpts, vals = wpts[near], vals[near]
+    close = [s for s in sibs if np.linalg.norm(s.centroid - centroid) < r0 + s.radius + 6.0]
+    sib_c = np.array([s.centroid for s in close], float).reshape(-1, 3)
+    sib_r = np.array([s.radius for s in close], float)
+    wpts, vals, dist, pad_pts = fit_window(arr[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], np.asarray(lo, np.int64),
+                                           volume.direction * sp[None, :], np.asarray(volume.origin_mm, float),
+                                           np.asarray(centroid, float), r0, box_cov, sib_c, sib_r,
+                                           0.0 if pad_hu is None else float(pad_hu), pad_hu is not None)
+    pad_vals = None if pad_hu is None else np.full(len(pad_pts), float(pad_hu))
+    pad_pts = None if pad_hu is None else pad_pts
     if len(vals) < 20:
         return None, RejectedBlob(centroid, "too little around the blob to fit a sphere", n)
     peak = float(np.percentile(vals, 99))
-    shell = vals[np.linalg.norm(wpts - centroid, axis=1) > r0 + 1.0]
+    shell = vals[dist > r0 + 1.0]
     b0 = float(np.percentile(shell, 20)) if shell.size else levels["air"]
     x0 = np.r_[centroid, r0 + 0.2, 0.4, peak, b0]
     f_scale = max(3.0 * noise, 0.03 * (peak - b0))
@@ -305,7 +319,7 @@ def _fit_blob(volume: Volume, ckji: np.ndarray, T: float, sibs, levels: dict, ki
     rel = rms / max(contrast, 1.0)
     if not success or contrast <= 0 or H < T:
         return None, RejectedBlob(centroid, "no sphere fits this blob", n, r)
-    cut = cut_reason(volume, c, r, all_pts, all_vals, pad_hu)
+    cut = cut_reason(volume, c, r, pad_pts, pad_vals, pad_hu)
     if cut:
         return None, RejectedBlob(c, cut, n, r, kind="cut")
     if rel > MAX_REL_RESIDUAL:

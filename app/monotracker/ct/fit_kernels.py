@@ -277,3 +277,58 @@ def robust_lm(model, x0, lo, hi, pts, vals, M, use_M, f_scale, loss, max_nfev, f
                 break
     rms = math.sqrt(ss / n_in) if n_in > 0 else math.inf
     return x, rms, success, nfev
+
+
+@compiled
+def fit_window(sub, lo, A, origin, centre, r0, M, sib_c, sib_r, pad, use_pad):
+    """The voxels of a blob's fit window, in one pass over its index box (``sub``: the box's
+    values, k, j, i, starting at index ``lo``): LPS position ``A (i, j, k) + origin`` (mm;
+    ``A`` the direction times the spacing), kept when nearer to ``centre`` than ``r0 + 1.5 +
+    2.5 sqrt(0.25 + e^T M e)`` (``e`` the unit vector from the centre, ``M`` the voxel box's
+    covariance, mm^2) and, for every neighbouring blob ``(sib_c[m], sib_r[m])``, nearer to this
+    blob's surface than to that one's. Returns ``(pts (n, 3) mm, vals (n,) HU, dist (n,) mm
+    from the centre)`` of the kept voxels, in C order of the box, and ``pad_pts`` (q, 3): every
+    voxel of the box whose value is ``pad`` (when ``use_pad``), kept or not."""
+    nk, nj, ni = sub.shape
+    n_box = nk * nj * ni
+    pts = np.empty((n_box, 3))
+    vals = np.empty(n_box)
+    dist = np.empty(n_box)
+    pad_pts = np.empty((n_box if use_pad else 0, 3))
+    m = 0
+    q = 0
+    cx, cy, cz = centre[0], centre[1], centre[2]
+    for kk in range(nk):
+        k = float(lo[0] + kk)
+        for jj in range(nj):
+            j = float(lo[1] + jj)
+            for ii in range(ni):
+                i = float(lo[2] + ii)
+                px = i * A[0, 0] + j * A[0, 1] + k * A[0, 2] + origin[0]
+                py = i * A[1, 0] + j * A[1, 1] + k * A[1, 2] + origin[1]
+                pz = i * A[2, 0] + j * A[2, 1] + k * A[2, 2] + origin[2]
+                v = float(sub[kk, jj, ii])
+                if use_pad and v == pad:
+                    pad_pts[q, 0], pad_pts[q, 1], pad_pts[q, 2] = px, py, pz
+                    q += 1
+                rx, ry, rz = px - cx, py - cy, pz - cz
+                d = math.sqrt(rx * rx + ry * ry + rz * rz)
+                dd = d if d > 1e-9 else 1e-9
+                ex, ey, ez = rx / dd, ry / dd, rz / dd
+                quad = (ex * (M[0, 0] * ex + M[0, 1] * ey + M[0, 2] * ez) + ey * (M[1, 0] * ex + M[1, 1] * ey + M[1, 2] * ez)
+                        + ez * (M[2, 0] * ex + M[2, 1] * ey + M[2, 2] * ez))
+                if not d < r0 + 1.5 + 2.5 * math.sqrt(0.25 + quad):
+                    continue
+                keep = True
+                for s in range(sib_r.shape[0]):
+                    sx, sy, sz = px - sib_c[s, 0], py - sib_c[s, 1], pz - sib_c[s, 2]
+                    if not math.sqrt(sx * sx + sy * sy + sz * sz) - sib_r[s] > d - r0:
+                        keep = False
+                        break
+                if not keep:
+                    continue
+                pts[m, 0], pts[m, 1], pts[m, 2] = px, py, pz
+                vals[m] = v
+                dist[m] = d
+                m += 1
+    return pts[:m].copy(), vals[:m].copy(), dist[:m].copy(), pad_pts[:q].copy()

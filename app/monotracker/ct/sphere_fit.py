@@ -291,6 +291,11 @@ def warm_up() -> None:
     xs = np.r_[x0[:6], 0.0, 40.0, 3.0, 0.0, 2.0]
     for loss in ("soft_l1", "cauchy"):
         fit_ball_on_surface(pts, vals, xs, 60.0, M, max_tissue_hu=1000.0, loss=loss, solver="compiled")
+    for dt in (np.int16, np.float32, np.float64):  # the fit windows of int16 and float scans (views)
+        box = np.zeros((4, 4, 4), dt)[1:, 1:, 1:]
+        for sib in (np.zeros((0, 3)), np.ones((1, 3))):
+            fit_kernels.fit_window(box, np.zeros(3, np.int64), np.eye(3), np.zeros(3), np.zeros(3), 1.0, M, sib,
+                                   np.ones(len(sib)), -1024.0, True)
     label_kernels.warm_up()  # the blob search's per-component statistics
 
 
