@@ -87,6 +87,12 @@ class SessionConfig:
     restarted. 6 frames at 30 fps: a knock is refused within 0.2 s, a sag over 0.1 deg within
     0.4 s of reaching it, for ~0.5 ms per frame on average (``benchmarks/pose_rate.py``); 0 = not
     watched.
+    ``compute_charge_s`` (None): clock="sim" only: what the simulated clock charges each estimate
+    (detection + registration) as compute time, s. None (the default) = its measured CPU time
+    (``time.thread_time()`` of the stepping thread: slow registration shows as pose age and
+    latency); a number >= 0 = exactly that for every estimate, so that a test of the loop's logic
+    (faults, holds, recordings) gives the same figures whatever else the machine runs. Refused
+    with clock="real" (the real clock charges what the time really was).
     ``extra``: free-form settings for experiments; nothing in the engine reads it.
 
     Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
@@ -128,6 +134,7 @@ class SessionConfig:
     pose_rt_priority: int = 0
     sim_camera_process: bool = True
     camera_motion_every: int = 6
+    compute_charge_s: float | None = None
     extra: dict = field(default_factory=dict)
 
     def frame_rules(self):
@@ -183,6 +190,13 @@ class SessionConfig:
             if self.camera != "sim":
                 raise InputError(f"camera_optics applies to the rendered simulated camera (camera='sim') only, "
                                  f"not camera={self.camera!r}")
+        c = self.compute_charge_s
+        if c is not None:
+            if isinstance(c, bool) or not isinstance(c, (int, float)) or not (0.0 <= float(c) <= 10.0):
+                raise InputError(f"compute_charge_s must be a number of seconds from 0 to 10 (or unset for the "
+                                 f"measured CPU time), not {c!r}")
+            if self.clock != "sim":
+                raise InputError("compute_charge_s applies to clock='sim' only (the real clock charges the real time)")
         from monotracker.engine.pipeline_priority import pose_priority_problem
 
         why = pose_priority_problem(self.pose_nice, self.pose_rt_priority)

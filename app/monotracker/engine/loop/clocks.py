@@ -58,6 +58,8 @@ class SimStepper:
         cam, robot = loop.camera, loop.robot
         period = 1.0 / loop.cfg.control_hz
         frame_period = 1.0 / loop.cfg.camera_fps
+        charge = getattr(loop.cfg, "compute_charge_s", None)
+        charge = None if charge is None else float(charge)
         n = int(round(dt / period))
         for _ in range(n):
             self._t += period
@@ -72,10 +74,11 @@ class SimStepper:
                     # A frozen camera hands back the same frame: nothing new to estimate.
                     if frame is not None and cam.note_frame(frame.t_capture, t, rig.frame_digest(frame)):
                         # compute time of detection + registration: this thread's CPU time, so
-                        # the model does not depend on what else the machine runs meanwhile
+                        # the model does not depend on what else the machine runs meanwhile, or
+                        # the fixed charge the session asked for (SessionConfig.compute_charge_s)
                         w0 = time.thread_time()
                         sample = rig.estimate(frame)
-                        w = time.thread_time() - w0
+                        w = time.thread_time() - w0 if charge is None else charge
                         ready = t + rig.transport_delay_s + w
                         sample.t_ready = ready
                         sample.stages["pipeline_s"] = w   # the pipeline's own time (engine/loop/load.py)
