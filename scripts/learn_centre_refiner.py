@@ -6,7 +6,8 @@ family T, see ``sim.pbr.spec``), each through the conditions' camera chains
 jittered centre (truth + N(0, 0.1 r) px per axis), jittered scale (r x U(0.9, 1.1)) and a random
 rotation / mirror of the sampling grid; the target is the offset (crop frame, radius units) from
 the crop centre to the true ellipse centre. Model: ridge regression (scikit-learn) on the crop's
-normalised colour pixels (``CROP`` x ``CROP`` x 3, half-width ``SPAN`` radii).
+normalised colour pixels (``CROP`` x ``CROP`` x 3, half-width ``SPAN`` radii), or ``--model mlp``
+(one hidden layer of 64).
 
 Score: the committed TUNING crops only (``tests/data/pbr/tuning``), through the product's chain
 (``PoseTracker`` with the edge detector and the camera's outlines, as ``benchmarks/camera_pbr.py``):
@@ -144,6 +145,7 @@ def main() -> int:
     ap.add_argument("--per-ball", type=int, default=6)
     ap.add_argument("--val", type=int, default=4, help="train scenes held back for validation")
     ap.add_argument("--alpha", type=float, default=30.0)
+    ap.add_argument("--model", choices=("ridge", "mlp"), default="ridge")
     a = ap.parse_args()
     rng = np.random.default_rng(0)
     train = list_scenes(default_root() / "train")
@@ -151,7 +153,13 @@ def main() -> int:
     t0 = time.perf_counter()
     X, Y = train_samples(fit, 2, a.per_ball, rng)
     print(f"train: {len(fit)} scenes, {len(X)} crops ({time.perf_counter() - t0:.0f} s)", flush=True)
-    model = Ridge(alpha=a.alpha).fit(X, Y)
+    if a.model == "ridge":
+        model = Ridge(alpha=a.alpha).fit(X, Y)
+    else:
+        from sklearn.neural_network import MLPRegressor
+
+        model = MLPRegressor((64,), alpha=1e-3, max_iter=200, early_stopping=True, random_state=0).fit(X, Y)
+    print(f"model {a.model}, fitted in {time.perf_counter() - t0:.0f} s since start")
     r = model.predict(X) - Y
     print(f"fit rms residual {np.sqrt(np.mean(r ** 2)):.3f} r (target rms {np.sqrt(np.mean(Y ** 2)):.3f} r)")
     tuning = list_scenes(committed_root() / "tuning")
