@@ -66,7 +66,9 @@ def test_specs_are_deterministic_and_named_by_their_content(scenes):
         assert SceneSpec.from_dict(json.loads(json.dumps(s.spec.to_dict()))) == s.spec
     a, b = make_spec("tuning", "OR", 3), make_spec("held_out", "OR", 3)
     assert a.seed != b.seed and a.skin.family != b.skin.family and len(a.lamps) != len(b.lamps)
-    assert set(SPLITS) == {"tuning", "held_out"}
+    assert set(SPLITS) == {"tuning", "held_out", "train"}
+    t = make_spec("train", "OR", 3)    # the training split: its own seeds and skin family
+    assert t.seed not in (a.seed, b.seed) and t.skin.family not in (a.skin.family, b.skin.family)
 
 
 def test_rendered_balls_sit_where_the_geometry_puts_them(scenes):

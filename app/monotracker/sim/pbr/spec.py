@@ -30,6 +30,10 @@ Scene families (:func:`make_spec`; choices written down because the issue leaves
 skins A: light, freckled; hair dark brown) may be looked at and tuned on by anyone;
 ``held_out`` scenes (seeds from 900000, lamps family B: two lamps, 5000 K + 4000 K, more
 ambient; skins B: olive-brown, mottled, shinier; hair black or blond) are only ever scored.
+``train`` scenes (seeds from 500000, for learning; family T, chosen before any scoring): 1-3
+lamps of 2700-6500 K with shares 0.3-1.0, ambient 0.01-0.2 tinted 2700-8000 K; skin sRGB
+(235, 190, 160) x 0.35-1.05 with +-10 % per channel, roughness 0.2-0.75, specular 0.2-0.7; hair
+any of the three colours.
 """
 
 from __future__ import annotations
@@ -45,10 +49,10 @@ from monotracker.sim.phantom import HeadPhantom, default_phantom
 
 #: bump when the renderer's output for the same spec changes (part of every scene's hash)
 RENDERER_VERSION = "pbr-1"
-SPLITS = ("tuning", "held_out")
+SPLITS = ("tuning", "held_out", "train")
 KINDS = ("clean", "OR", "clutter")
 #: first seed of each split: disjoint ranges, so no held-out scene is ever a tuning scene
-SPLIT_SEED0 = {"tuning": 1000, "held_out": 900000}
+SPLIT_SEED0 = {"tuning": 1000, "held_out": 900000, "train": 500000}
 
 
 def srgb_to_linear(rgb) -> list[float]:
@@ -74,6 +78,7 @@ GLOVE_RGB = {"latex": srgb_to_linear((215, 195, 170)), "nitrile": srgb_to_linear
 FAMILIES = {
     "tuning": {"lamps": "A", "skin": "A", "hair": ("dark-brown",)},
     "held_out": {"lamps": "B", "skin": "B", "hair": ("black", "blond")},
+    "train": {"lamps": "T", "skin": "T", "hair": ("dark-brown", "black", "blond")},
 }
 HAIR_RGB = {"dark-brown": srgb_to_linear((60, 42, 30)), "black": srgb_to_linear((25, 22, 20)),
             "blond": srgb_to_linear((190, 160, 110))}
@@ -314,6 +319,11 @@ def _cct_rgb(kelvin: float) -> tuple:
 
 
 def _skin(family: str, rng: np.random.Generator) -> Skin:
+    if family == "T":     # train: broad, chosen up front (sRGB pale to dark, satin to shiny)
+        base = srgb_to_linear(np.array((235, 190, 160)) * rng.uniform(0.35, 1.05)
+                              * rng.uniform(0.9, 1.1, size=3))
+        return Skin("T", _t(base), float(rng.uniform(0.2, 0.75)), float(rng.uniform(0.2, 0.7)),
+                    int(rng.integers(1 << 30)))
     if family == "A":     # light, freckled, satin
         base = srgb_to_linear(np.array((226, 182, 152)) * rng.uniform(0.93, 1.04))
         return Skin("A", _t(base), float(rng.uniform(0.45, 0.6)), float(rng.uniform(0.3, 0.45)),
@@ -327,7 +337,11 @@ def _lamps(family: str, v: np.ndarray, centroid: np.ndarray, view_dir: np.ndarra
            rng: np.random.Generator) -> tuple[tuple, tuple]:
     """(lamps, ambient RGB) of one scene: family A one warm lamp, B two lamps + more ambient.
     A lamp is never within 8 deg of the camera's viewing direction (no coaxial light)."""
-    specs = [(4300.0, 1.0)] if family == "A" else [(5000.0, 0.65), (4000.0, 0.45)]
+    if family == "T":   # train: 1-3 lamps, 2700-6500 K, shares 0.3-1.0 (broad, chosen up front)
+        specs = [(float(rng.uniform(2700.0, 6500.0)), float(rng.uniform(0.3, 1.0)))
+                 for _ in range(int(rng.integers(1, 4)))]
+    else:
+        specs = [(4300.0, 1.0)] if family == "A" else [(5000.0, 0.65), (4000.0, 0.45)]
     lamps = []
     for kelvin, share in specs:
         for _ in range(100):
@@ -337,8 +351,12 @@ def _lamps(family: str, v: np.ndarray, centroid: np.ndarray, view_dir: np.ndarra
         dist = rng.uniform(900.0, 1300.0)
         lamps.append(Lamp(_t(centroid + dist * d), _t(-d), float(rng.uniform(200.0, 350.0)), _cct_rgb(kelvin),
                           float(share)))
-    amb = rng.uniform(0.03, 0.06) if family == "A" else rng.uniform(0.08, 0.14)
-    tint = np.array([1.0, 0.97, 0.92]) if family == "A" else np.array([0.92, 0.97, 1.0])
+    if family == "T":   # ambient 0.01-0.2, any tint from warm to cool
+        amb = rng.uniform(0.01, 0.2)
+        tint = np.array(_cct_rgb(float(rng.uniform(2700.0, 8000.0))))
+    else:
+        amb = rng.uniform(0.03, 0.06) if family == "A" else rng.uniform(0.08, 0.14)
+        tint = np.array([1.0, 0.97, 0.92]) if family == "A" else np.array([0.92, 0.97, 1.0])
     return tuple(lamps), _t(amb * tint)
 
 

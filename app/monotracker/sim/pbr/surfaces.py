@@ -149,7 +149,7 @@ def skin_texture(spec: SceneSpec, size: tuple = (2048, 1024)) -> np.ndarray:
     pores[ys, xs] = rng.uniform(0.3, 1.0, n_pores)
     pores = cv2.GaussianBlur(pores, (0, 0), 0.8)
     img *= (1.0 - 0.5 * np.clip(pores, 0, 1))[..., None]
-    if spec.skin.family == "A":
+    if spec.skin.family == "A" or (spec.skin.family == "T" and spec.skin.texture_seed % 2 == 0):
         spots = np.zeros((h, w), np.float32)
         for _ in range(int(0.0004 * w * h)):
             cv2.circle(spots, (int(rng.integers(w)), int(rng.integers(h))), int(rng.integers(2, 6)),
