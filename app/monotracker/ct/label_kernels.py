@@ -224,4 +224,4 @@ def warm_up() -> None:
         for vals in (big[1:, 1:, 1:], big[:3].copy()):  # a crop (a view), a whole (contiguous) volume
             label_stats(labels, vals, 1)
             threshold_label(vals, 0.5)
-            threshold_label(vals, 0.5, labels > 0)
+            threshold_label(vals, 0.5, np.ones(vals.shape, bool))
