@@ -3,8 +3,9 @@
 ``scipy.ndimage`` gives them one at a time (a mask, ``label``, ``bincount`` for the sizes,
 ``find_objects`` for the boxes, then a pass over each component's box for its densest voxel):
 five or more passes over a crop of up to ~2 M voxels per threshold level.
-:func:`threshold_label` thresholds, labels (26-connected, union-find, numbered in the raster
-order of each component's first voxel, as ``ndimage.label``) and measures in two passes;
+:func:`threshold_label` thresholds (NumPy's vectorised compare lists the voxels above), labels
+the listed voxels only (26-connected, union-find, numbered in the raster order of each
+component's first voxel, as ``ndimage.label``) and measures them;
 :func:`label_stats` measures given labels in one. :func:`block_max_int`: the coarse grid of a
 large integer volume (:func:`.blob_search.block_max`) in one read of its voxels.
 """
@@ -13,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from monotracker.registration.compiled import compiled
+from monotracker.registration.compiled import compiled, compiled_inline
 
 
-@compiled
+@compiled_inline
 def _add(counts, lo, hi, peak, pos, lab, k, j, i, v):
     """Voxel (k, j, i) of value ``v`` into the statistics of component ``lab`` (C order)."""
     if counts[lab] == 0:
@@ -57,7 +58,7 @@ def _label_stats(labels, values, n):
     return counts, lo, hi, peak, pos
 
 
-@compiled
+@compiled_inline
 def _find(parent, a):
     while parent[a] != a:
         parent[a] = parent[parent[a]]
@@ -66,62 +67,68 @@ def _find(parent, a):
 
 
 @compiled
-def _threshold_label(values, T, restrict, use_restrict):
-    nk, nj, ni = values.shape
+def _label_listed(values, cand, nk, nj, ni):
+    """Label the voxels ``cand`` (flat C-order indices into the (nk, nj, ni) box, ascending:
+    the voxels above the threshold, in raster order) 26-connected by union-find, and measure
+    the components over ``values``: only the listed voxels are visited, so a box that is
+    mostly below the threshold costs its listed voxels, not its size."""
     labels = np.zeros((nk, nj, ni), np.int32)
     parent = np.zeros(1024, np.int32)
     n = 0
-    for k in range(nk):
-        for j in range(nj):
-            for i in range(ni):
-                if not values[k, j, i] > T:
+    row_end = 0
+    base = k = j = 0
+    for c in cand:
+        if c >= row_end:  # a new row (k, j): divisions once a row, not once a voxel
+            row = c // ni
+            row_end = (row + 1) * ni
+            base = row * ni
+            k = row // nj
+            j = row - k * nj
+        i = c - base
+        cur = 0
+        if i > 0 and labels[k, j, i - 1] != 0:
+            # joined to the voxel before, and through it to all its neighbours: only the
+            # 4 visited neighbours that are not also its own (one step ahead along i)
+            cur = _find(parent, labels[k, j, i - 1])
+            di_lo = 1
+        else:
+            di_lo = -1
+        # the 13 neighbours already visited: the plane before (9), the row before (3)
+        # (and the voxel before, above)
+        for dk in range(-1, 1):
+            kk = k + dk
+            if kk < 0:
+                continue
+            for dj in range(-1, 2):
+                if dk == 0 and dj > -1:
+                    break
+                jj = j + dj
+                if jj < 0 or jj >= nj:
                     continue
-                if use_restrict and not restrict[k, j, i]:
-                    continue
-                cur = 0
-                if i > 0 and labels[k, j, i - 1] != 0:
-                    # joined to the voxel before, and through it to all its neighbours: only the
-                    # 4 visited neighbours that are not also its own (one step ahead along i)
-                    cur = _find(parent, labels[k, j, i - 1])
-                    di_lo = 1
-                else:
-                    di_lo = -1
-                # the 13 neighbours already visited: the plane before (9), the row before (3)
-                # (and the voxel before, above)
-                for dk in range(-1, 1):
-                    kk = k + dk
-                    if kk < 0:
+                for di in range(di_lo, 2):
+                    ii = i + di
+                    if ii < 0 or ii >= ni:
                         continue
-                    for dj in range(-1, 2):
-                        if dk == 0 and dj > -1:
-                            break
-                        jj = j + dj
-                        if jj < 0 or jj >= nj:
-                            continue
-                        for di in range(di_lo, 2):
-                            ii = i + di
-                            if ii < 0 or ii >= ni:
-                                continue
-                            lab = labels[kk, jj, ii]
-                            if lab == 0:
-                                continue
-                            r = _find(parent, lab)
-                            if cur == 0:
-                                cur = r
-                            elif r < cur:
-                                parent[cur] = r
-                                cur = r
-                            elif r > cur:
-                                parent[r] = cur
-                if cur == 0:
-                    n += 1
-                    if n >= parent.shape[0]:
-                        grown = np.zeros(2 * parent.shape[0], np.int32)
-                        grown[: parent.shape[0]] = parent
-                        parent = grown
-                    parent[n] = n
-                    cur = n
-                labels[k, j, i] = cur
+                    lab = labels[kk, jj, ii]
+                    if lab == 0:
+                        continue
+                    r = _find(parent, lab)
+                    if cur == 0:
+                        cur = r
+                    elif r < cur:
+                        parent[cur] = r
+                        cur = r
+                    elif r > cur:
+                        parent[r] = cur
+        if cur == 0:
+            n += 1
+            if n >= parent.shape[0]:
+                grown = np.zeros(2 * parent.shape[0], np.int32)
+                grown[: parent.shape[0]] = parent
+                parent = grown
+            parent[n] = n
+            cur = n
+        labels[k, j, i] = cur
     # roots are the smallest provisional label of their set: the one of its first voxel
     final = np.zeros(n + 1, np.int32)
     m = 0
@@ -137,14 +144,18 @@ def _threshold_label(values, T, restrict, use_restrict):
     hi = np.zeros((m + 1, 3), np.int64)
     peak = np.empty(m + 1, np.float64)
     pos = np.zeros((m + 1, 3), np.int64)
-    for k in range(nk):
-        for j in range(nj):
-            for i in range(ni):
-                lab = labels[k, j, i]
-                if lab != 0:
-                    lab = final[lab]
-                    labels[k, j, i] = lab
-                    _add(counts, lo, hi, peak, pos, lab, k, j, i, float(values[k, j, i]))
+    row_end = 0
+    for c in cand:
+        if c >= row_end:
+            row = c // ni
+            row_end = (row + 1) * ni
+            base = row * ni
+            k = row // nj
+            j = row - k * nj
+        i = c - base
+        lab = final[labels[k, j, i]]
+        labels[k, j, i] = lab
+        _add(counts, lo, hi, peak, pos, lab, k, j, i, float(values[k, j, i]))
     return labels, m, counts, lo, hi, peak, pos
 
 
@@ -153,13 +164,15 @@ def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | None = 
     when given), numbered 1..n in the raster order of their first voxel (as ``ndimage.label``
     with a full 3 x 3 x 3 structure), and their statistics: ``(labels, n, counts, lo, hi,
     peak, pos)``, the last five as :func:`label_stats`."""
-    use = restrict is not None
-    r = np.ascontiguousarray(restrict, bool) if use else _NO_RESTRICT
-    labels, n, counts, lo, hi, peak, pos = _threshold_label(values, float(T), r, use)
+    # the voxels above T, listed by NumPy's vectorised compare (a float64 threshold: the same
+    # test as ``value > T`` in double precision for every dtype), then labelled one by one
+    above = np.greater(values, np.float64(T))
+    if restrict is not None:
+        above &= np.asarray(restrict, bool)
+    cand = np.flatnonzero(above)
+    nk, nj, ni = values.shape
+    labels, n, counts, lo, hi, peak, pos = _label_listed(values, cand, nk, nj, ni)
     return labels, int(n), counts, lo, hi, peak, pos
-
-
-_NO_RESTRICT = np.ones((1, 1, 1), bool)
 
 
 def label_stats(labels: np.ndarray, values: np.ndarray, n: int):
@@ -211,4 +224,4 @@ def warm_up() -> None:
         for vals in (big[1:, 1:, 1:], big[:3].copy()):  # a crop (a view), a whole (contiguous) volume
             label_stats(labels, vals, 1)
             threshold_label(vals, 0.5)
-            threshold_label(vals, 0.5, labels > 0)
+            threshold_label(vals, 0.5, np.ones(vals.shape, bool))

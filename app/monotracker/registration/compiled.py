@@ -15,16 +15,23 @@ import tempfile
 import numba
 
 
-def compiled(fn):
-    """``fn`` compiled with numba (``njit``), its machine code cached on disk where possible."""
+def compiled(fn, **options):
+    """``fn`` compiled with numba (``njit``, with ``options``), its machine code cached on disk
+    where possible."""
     try:
-        return numba.njit(cache=True)(fn)
+        return numba.njit(cache=True, **options)(fn)
     except RuntimeError:
         pass
     if not numba.config.CACHE_DIR:
         numba.config.CACHE_DIR = os.path.join(tempfile.gettempdir(), f"monotracker-numba-{os.getuid()}")
         try:
-            return numba.njit(cache=True)(fn)
+            return numba.njit(cache=True, **options)(fn)
         except (RuntimeError, OSError):
             pass
-    return numba.njit(fn)
+    return numba.njit(**options)(fn)
+
+
+def compiled_inline(fn):
+    """A small helper of compiled kernels, inlined into each caller by numba (a call per voxel
+    would cost more than its body)."""
+    return compiled(fn, inline="always")
