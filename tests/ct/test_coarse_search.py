@@ -151,6 +151,54 @@ def test_threshold_label_equals_scipy_label(seed):
             assert peak[lab] == sub[tuple(pos[lab])] == sub[sl][ref[sl] == lab].max()
 
 
+@pytest.mark.parametrize("seed", [3, 4, 5, 6])
+def test_threshold_label_runs_equal_scipy_label(seed):
+    """The labelling joins runs of voxels along i (ct/label_kernels.py): masks made of runs
+    (long, short, one voxel; touching a run of a neighbouring row only corner to corner, one
+    voxel past its end; runs at the ends of rows, which must not join the next row) give the
+    components, numbering and statistics of ``ndimage.label`` (26-connected) and SciPy's."""
+    from scipy import ndimage
+
+    from monotracker.ct.label_kernels import threshold_label
+
+    rng = np.random.default_rng(seed)
+    shape = (9, 11, 13)
+    mask = np.zeros(shape, bool)
+    for k in range(6):  # random runs in slices 0-5, slice 6 empty, hand-made cases in 7-8
+        for j in range(shape[1]):
+            i = int(rng.integers(0, 4))
+            while i < shape[2] and rng.random() < 0.6:
+                n = int(rng.choice([1, 1, 2, 3, 6, 13]))
+                mask[k, j, i:i + n] = True
+                i += n + int(rng.integers(2, 7))
+    mask[7, 0, -1] = mask[7, 1, 0] = True  # the end of one row and the start of the next: apart
+    mask[7, 4, 2:5] = True
+    mask[8, 5, 5:8] = True  # corner to corner, one voxel past the end: joined
+    mask[7, 8, 2:5] = True
+    mask[8, 9, 6:9] = True  # two voxels past the end: apart
+    vals = rng.integers(-500, 3000, shape).astype(np.int16)
+    vals[mask] = rng.integers(1000, 1010, int(mask.sum()))  # ties: the first in C order wins
+    vals[~mask] = 0
+    big = np.zeros((11, 14, 16), np.int16)
+    big[1:10, 2:13, 3:16] = vals
+    sub = big[1:10, 2:13, 3:16]
+    restrict = rng.random(shape) < 0.85
+    for r in (None, restrict):
+        m = mask if r is None else mask & r
+        ref, n_ref = ndimage.label(m, structure=np.ones((3, 3, 3), bool))
+        labels, n, counts, lo, hi, peak, pos = threshold_label(sub, 500.0, r)
+        assert n == n_ref > 3
+        assert np.array_equal(labels, ref)
+        assert np.array_equal(counts[1:], np.bincount(ref.ravel(), minlength=n + 1)[1:])
+        for lab, sl in enumerate(ndimage.find_objects(ref), start=1):
+            assert tuple(lo[lab]) == tuple(s.start for s in sl) and tuple(hi[lab]) == tuple(s.stop for s in sl)
+            v = np.where(ref[sl] == lab, sub[sl], -1)
+            at = np.unravel_index(int(np.argmax(v)), v.shape)
+            assert peak[lab] == v[at] and tuple(pos[lab]) == tuple(s.start + a for s, a in zip(sl, at))
+    lab0 = threshold_label(sub, 500.0)[0]
+    assert lab0[7, 0, -1] != lab0[7, 1, 0] and lab0[7, 4, 2] == lab0[8, 5, 7] and lab0[7, 8, 4] != lab0[8, 9, 6]
+
+
 @pytest.mark.parametrize("dtype", [np.int16, np.uint16, np.int32])
 def test_compiled_block_max_equals_numpy(dtype):
     """Integer volumes take the compiled block maxima (label_kernels.block_max_int): equal to

@@ -4,8 +4,9 @@
 ``find_objects`` for the boxes, then a pass over each component's box for its densest voxel):
 five or more passes over a crop of up to ~2 M voxels per threshold level.
 :func:`threshold_label` thresholds (NumPy's vectorised compare lists the voxels above), labels
-the listed voxels only (26-connected, union-find, numbered in the raster order of each
-component's first voxel, as ``ndimage.label``) and measures them;
+the listed voxels only (26-connected, numbered in the raster order of each component's first
+voxel, as ``ndimage.label``: union-find over runs of consecutive voxels along i, so a dense
+component costs a union per pair of touching runs, not one per voxel) and measures them;
 :func:`label_stats` measures given labels in one. :func:`block_max_int`: the coarse grid of a
 large integer volume (:func:`.blob_search.block_max`) in one read of its voxels.
 """
@@ -67,96 +68,137 @@ def _find(parent, a):
 
 
 @compiled
-def _label_listed(values, cand, nk, nj, ni):
+def _label_runs(values, cand, nk, nj, ni):
     """Label the voxels ``cand`` (flat C-order indices into the (nk, nj, ni) box, ascending:
-    the voxels above the threshold, in raster order) 26-connected by union-find, and measure
-    the components over ``values``: only the listed voxels are visited, so a box that is
-    mostly below the threshold costs its listed voxels, not its size."""
+    the voxels above the threshold, in raster order) 26-connected, and measure the components
+    over ``values``. The listed voxels are taken as runs (consecutive voxels of one row k, j)
+    and the runs joined by union-find: a run touches a run of one of the four rows visited
+    before whose neighbours it can be ((k-1, j-1), (k-1, j), (k-1, j+1), (k, j-1)) when their
+    i ranges, one widened by a voxel each side, overlap. A dense component (bone, metal) costs
+    a union per pair of touching runs, not per voxel; only the listed voxels are visited."""
+    n_c = cand.shape[0]
+    # the runs, in raster order of their first voxel: row (k * nj + j), first i, end i
+    run_row = np.empty(n_c, np.int64)
+    run_s = np.empty(n_c, np.int64)
+    run_e = np.empty(n_c, np.int64)
+    n_r = 0
+    prev = -2
+    row_end = 0
+    row = 0
+    for c in cand:
+        if c >= row_end:  # a new row: divisions once a row, not once a voxel
+            row = c // ni
+            row_end = (row + 1) * ni
+            prev = -2
+        if c == prev + 1:
+            run_e[n_r - 1] += 1
+        else:
+            run_row[n_r] = row
+            run_s[n_r] = c - row * ni
+            run_e[n_r] = c - row * ni + 1
+            n_r += 1
+        prev = c
+    # the runs of each row: row_first[q] .. row_first[q + 1]
+    n_rows = nk * nj
+    row_first = np.zeros(n_rows + 1, np.int64)
+    for r in range(n_r):
+        row_first[run_row[r] + 1] += 1
+    for q in range(n_rows):
+        row_first[q + 1] += row_first[q]
+    # union-find over the runs; a set's root is its first run (the smallest index)
+    parent = np.arange(n_r)
+    ptr = np.empty(4, np.int64)
+    stop = np.empty(4, np.int64)
+    cur_row = -1
+    for r in range(n_r):
+        rw = run_row[r]
+        if rw != cur_row:  # a new row: a pointer into each neighbouring row's runs
+            cur_row = rw
+            k = rw // nj
+            j = rw - k * nj
+            for m in range(4):
+                ptr[m] = 0
+                stop[m] = 0
+            m = 0
+            if k > 0:
+                for dj in range(-1, 2):
+                    jj = j + dj
+                    if 0 <= jj < nj:
+                        q = rw - nj + dj
+                        ptr[m] = row_first[q]
+                        stop[m] = row_first[q + 1]
+                        m += 1
+            if j > 0:
+                ptr[m] = row_first[rw - 1]
+                stop[m] = row_first[rw]
+                m += 1
+        s, e = run_s[r], run_e[r]
+        root = _find(parent, r)
+        for m in range(4):
+            t = ptr[m]
+            # runs ending before this one's left neighbour touch neither it nor later ones
+            while t < stop[m] and run_e[t] < s:
+                t += 1
+            ptr[m] = t
+            while t < stop[m] and run_s[t] <= e:
+                o = _find(parent, t)
+                if o < root:
+                    parent[root] = o
+                    root = o
+                elif o > root:
+                    parent[o] = root
+                t += 1
+    # numbered in the raster order of each component's first run (its first voxel)
+    final = np.zeros(n_r, np.int32)
+    m_lab = 0
+    for r in range(n_r):
+        root = _find(parent, r)
+        if root == r:
+            m_lab += 1
+            final[r] = m_lab
+        else:
+            final[r] = final[root]
     labels = np.zeros((nk, nj, ni), np.int32)
-    parent = np.zeros(1024, np.int32)
-    n = 0
-    row_end = 0
-    base = k = j = 0
-    for c in cand:
-        if c >= row_end:  # a new row (k, j): divisions once a row, not once a voxel
-            row = c // ni
-            row_end = (row + 1) * ni
-            base = row * ni
-            k = row // nj
-            j = row - k * nj
-        i = c - base
-        cur = 0
-        if i > 0 and labels[k, j, i - 1] != 0:
-            # joined to the voxel before, and through it to all its neighbours: only the
-            # 4 visited neighbours that are not also its own (one step ahead along i)
-            cur = _find(parent, labels[k, j, i - 1])
-            di_lo = 1
+    counts = np.zeros(m_lab + 1, np.int64)
+    lo = np.empty((m_lab + 1, 3), np.int64)
+    hi = np.zeros((m_lab + 1, 3), np.int64)
+    peak = np.empty(m_lab + 1, np.float64)
+    pos = np.zeros((m_lab + 1, 3), np.int64)
+    for r in range(n_r):
+        lab = final[r]
+        rw = run_row[r]
+        k = rw // nj
+        j = rw - k * nj
+        s, e = run_s[r], run_e[r]
+        # the densest voxel of the run, the first in C order
+        best = float(values[k, j, s])
+        at = s
+        for i in range(s, e):
+            labels[k, j, i] = lab
+            v = float(values[k, j, i])
+            if v > best:
+                best = v
+                at = i
+        if counts[lab] == 0:
+            lo[lab, 0], lo[lab, 1], lo[lab, 2] = k, j, s
+            hi[lab, 0], hi[lab, 1], hi[lab, 2] = k + 1, j + 1, e
+            peak[lab] = best
+            pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, at
         else:
-            di_lo = -1
-        # the 13 neighbours already visited: the plane before (9), the row before (3)
-        # (and the voxel before, above)
-        for dk in range(-1, 1):
-            kk = k + dk
-            if kk < 0:
-                continue
-            for dj in range(-1, 2):
-                if dk == 0 and dj > -1:
-                    break
-                jj = j + dj
-                if jj < 0 or jj >= nj:
-                    continue
-                for di in range(di_lo, 2):
-                    ii = i + di
-                    if ii < 0 or ii >= ni:
-                        continue
-                    lab = labels[kk, jj, ii]
-                    if lab == 0:
-                        continue
-                    r = _find(parent, lab)
-                    if cur == 0:
-                        cur = r
-                    elif r < cur:
-                        parent[cur] = r
-                        cur = r
-                    elif r > cur:
-                        parent[r] = cur
-        if cur == 0:
-            n += 1
-            if n >= parent.shape[0]:
-                grown = np.zeros(2 * parent.shape[0], np.int32)
-                grown[: parent.shape[0]] = parent
-                parent = grown
-            parent[n] = n
-            cur = n
-        labels[k, j, i] = cur
-    # roots are the smallest provisional label of their set: the one of its first voxel
-    final = np.zeros(n + 1, np.int32)
-    m = 0
-    for a in range(1, n + 1):
-        r = _find(parent, a)
-        if r == a:
-            m += 1
-            final[a] = m
-        else:
-            final[a] = final[r]
-    counts = np.zeros(m + 1, np.int64)
-    lo = np.empty((m + 1, 3), np.int64)
-    hi = np.zeros((m + 1, 3), np.int64)
-    peak = np.empty(m + 1, np.float64)
-    pos = np.zeros((m + 1, 3), np.int64)
-    row_end = 0
-    for c in cand:
-        if c >= row_end:
-            row = c // ni
-            row_end = (row + 1) * ni
-            base = row * ni
-            k = row // nj
-            j = row - k * nj
-        i = c - base
-        lab = final[labels[k, j, i]]
-        labels[k, j, i] = lab
-        _add(counts, lo, hi, peak, pos, lab, k, j, i, float(values[k, j, i]))
-    return labels, m, counts, lo, hi, peak, pos
+            hi[lab, 0] = k + 1  # k only grows in raster order; j and i may go either way
+            if j < lo[lab, 1]:
+                lo[lab, 1] = j
+            if j + 1 > hi[lab, 1]:
+                hi[lab, 1] = j + 1
+            if s < lo[lab, 2]:
+                lo[lab, 2] = s
+            if e > hi[lab, 2]:
+                hi[lab, 2] = e
+            if best > peak[lab]:
+                peak[lab] = best
+                pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, at
+        counts[lab] += e - s
+    return labels, m_lab, counts, lo, hi, peak, pos
 
 
 def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | None = None):
@@ -171,7 +213,7 @@ def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | None = 
         above &= np.asarray(restrict, bool)
     cand = np.flatnonzero(above)
     nk, nj, ni = values.shape
-    labels, n, counts, lo, hi, peak, pos = _label_listed(values, cand, nk, nj, ni)
+    labels, n, counts, lo, hi, peak, pos = _label_runs(values, cand, nk, nj, ni)
     return labels, int(n), counts, lo, hi, peak, pos
 
 
