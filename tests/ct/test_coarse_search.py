@@ -215,3 +215,22 @@ def test_compiled_block_max_equals_numpy(dtype):
             ref = p.reshape(s[0] // bb[0], bb[0], s[1] // bb[1], bb[1], s[2] // bb[2], bb[2]).max(axis=(1, 3, 5))
             assert np.array_equal(block_max_int(a, bb), ref)
             assert np.array_equal(blob_search.block_max(a, bb), ref)
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.uint16, np.int32, np.float32])
+def test_sample_histogram_equals_numpy(dtype):
+    """The grey levels' histogram of a strided sample (ct/levels.py, compiled for integer
+    scans): NumPy's bincount of the clipped values and the sample's minimum, values beyond
+    -1024..4095 HU included."""
+    from monotracker.ct.levels import sample_histogram, soft_tissue_levels
+
+    rng = np.random.default_rng(11)
+    lo = 0 if dtype == np.uint16 else -3000
+    big = rng.integers(lo, 6000, (20, 22, 24)).astype(dtype)
+    big[3, 4, 5] = lo  # the minimum, inside the sample
+    sample = big[1::2, ::2, 1::2]
+    hist, smin = sample_histogram(sample)
+    ref = np.bincount(np.clip(sample.astype(np.int32), -1024, 4095).ravel() + 1024, minlength=5120)
+    assert hist.dtype == float and np.array_equal(hist, ref) and hist.sum() == sample.size
+    assert smin == float(sample.min()) == float(lo)
+    assert soft_tissue_levels(sample) == soft_tissue_levels(sample, hist)

@@ -49,7 +49,7 @@ from monotracker.ct.detection_result import Fiducial, FiducialDetection, Rejecte
 from monotracker.ct.fit_kernels import fit_window
 from monotracker.ct.fiducials_paper import MAX_CANDIDATES, detect_fiducials_paper
 from monotracker.ct.kit import FiducialKit
-from monotracker.ct.levels import _strided_sample, estimate_levels, soft_tissue_levels
+from monotracker.ct.levels import _strided_sample, estimate_levels, sample_histogram, soft_tissue_levels
 from monotracker.ct.sphere_fit import fit_ball_on_surface, fit_blurred_sphere, refine_on_surface
 from monotracker.ct.volume import Volume
 
@@ -147,7 +147,8 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
     if radius_mm is None:
         radius_mm = kit.radius_mm
     sample = _strided_sample(volume.array)
-    levels = soft_tissue_levels(sample)
+    hist, sample_min = sample_histogram(sample)  # one pass over the sample: its levels and its padding
+    levels = soft_tissue_levels(sample, hist)
     out = FiducialDetection(ok=False, reason="", levels=levels, method="robust")
     grid = coarse_grid(volume)  # a large volume: one pass, which also gives the densest value
     vmax = grid.vmax if grid is not None else float(np.max(volume.array))
@@ -164,7 +165,7 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
         out.elapsed_s = time.perf_counter() - t0
         return out
 
-    pad_hu = pad_value(volume, float(np.min(sample)))
+    pad_hu = pad_value(volume, sample_min)
 
     def fit(kji, T, sibs):
         return _fit_blob(volume, kji, T, sibs, levels, kit, pad_hu)

@@ -76,11 +76,17 @@ def _label_runs(values, cand, nk, nj, ni):
     before whose neighbours it can be ((k-1, j-1), (k-1, j), (k-1, j+1), (k, j-1)) when their
     i ranges, one widened by a voxel each side, overlap. A dense component (bone, metal) costs
     a union per pair of touching runs, not per voxel; only the listed voxels are visited."""
-    n_c = cand.shape[0]
-    # the runs, in raster order of their first voxel: row (k * nj + j), first i, end i
-    run_row = np.empty(n_c, np.int64)
-    run_s = np.empty(n_c, np.int64)
-    run_e = np.empty(n_c, np.int64)
+    # the runs, in raster order of their first voxel: row (k * nj + j), first i, end i (counted
+    # first: arrays of the runs' size, not of the voxels')
+    n_r = 0
+    prev = -2
+    for c in cand:
+        if c != prev + 1 or c % ni == 0:
+            n_r += 1
+        prev = c
+    run_row = np.empty(n_r, np.int64)
+    run_s = np.empty(n_r, np.int64)
+    run_e = np.empty(n_r, np.int64)
     n_r = 0
     prev = -2
     row_end = 0
