@@ -199,6 +199,41 @@ def test_threshold_label_runs_equal_scipy_label(seed):
     assert lab0[7, 0, -1] != lab0[7, 1, 0] and lab0[7, 4, 2] == lab0[8, 5, 7] and lab0[7, 8, 4] != lab0[8, 9, 6]
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_threshold_runs_equal_labels(seed):
+    """The blob search labels without a label array (label_kernels.threshold_runs): the same
+    components and statistics as threshold_label; each component's voxels (from its runs) are
+    ``np.argwhere(labels == lab)``; a search one level up restricted to a component's runs in
+    its own box equals one restricted to its mask (float32 values too: compared in double)."""
+    from scipy import ndimage
+
+    from monotracker.ct.label_kernels import threshold_label, threshold_runs
+
+    rng = np.random.default_rng(seed)
+    big = ndimage.gaussian_filter(rng.normal(0, 1, (30, 34, 38)), 1.5)
+    for dtype in (np.int16, np.float32):
+        big_t = (1000 * big / big.std()).astype(dtype)
+        sub = big_t[2:28, 3:31, 1:37]
+        for T, r in [(300.0, None), (200.0, rng.random(sub.shape) < 0.8)]:
+            labels, n, counts, lo, hi, peak, pos = threshold_label(sub, T, r)
+            n2, counts2, lo2, hi2, peak2, pos2, comps = threshold_runs(sub, T, r)
+            assert n2 == n > 3
+            for a, b in zip((counts, lo, hi, peak, pos), (counts2, lo2, hi2, peak2, pos2)):
+                assert np.array_equal(a[1:], b[1:])
+            for lab in range(1, n + 1):
+                assert np.array_equal(comps.voxels(lab), np.argwhere(labels == lab))
+                sl = tuple(slice(int(lo[lab, a]), int(hi[lab, a])) for a in range(3))
+                box = sub[sl]
+                T2 = T + 0.5 * (float(peak[lab]) - T)
+                ref = threshold_label(box, T2, labels[sl] == lab)
+                got = threshold_runs(box, T2, comps.runs_in(lab, lo[lab], hi[lab]))
+                assert got[0] == ref[1]
+                for a, b in zip(ref[2:], got[1:6]):
+                    assert np.array_equal(a[1:], b[1:])
+                for sub_lab in range(1, ref[1] + 1):
+                    assert np.array_equal(got[6].voxels(sub_lab), np.argwhere(ref[0] == sub_lab))
+
+
 @pytest.mark.parametrize("dtype", [np.int16, np.uint16, np.int32])
 def test_compiled_block_max_equals_numpy(dtype):
     """Integer volumes take the compiled block maxima (label_kernels.block_max_int): equal to

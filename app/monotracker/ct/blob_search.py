@@ -55,7 +55,7 @@ import numpy as np
 from scipy import ndimage
 
 from monotracker.ct.detection_result import RejectedBlob
-from monotracker.ct.label_kernels import block_max_int, threshold_label
+from monotracker.ct.label_kernels import Runs, block_max_int, threshold_label, threshold_runs
 from monotracker.ct.volume import Volume
 
 #: Number of thresholds from the lowest level to 85 % of the densest (or the kit's density).
@@ -245,16 +245,20 @@ class _LadderSearch:
         return peak < T + max(6.0 * self.noise, 0.15 * (T - self.tissue))
 
     # ------------------------------------------------------------------ the full grid
-    def visit(self, lo: np.ndarray, hi: np.ndarray, restrict: np.ndarray | None, level: int, crop: _Crop | None = None) -> bool:
-        """Search the box ``lo``..``hi`` (restricted to ``restrict``) at ``ladder[level]`` and up.
+    def visit(self, lo: np.ndarray, hi: np.ndarray, restrict: np.ndarray | Runs | None, level: int, crop: _Crop | None = None) -> bool:
+        """Search the box ``lo``..``hi`` (restricted to ``restrict``: a mask of the box, or the
+        runs of a component found one level down, which are all that is then compared) at
+        ``ladder[level]`` and up.
         ``crop``: the box lies in a crop (module docstring): only components whose densest voxel
         is in its core are handled, those running out of it are searched higher up unlisted."""
         arr, ladder, st = self.arr, self.ladder, self.stats
         T = float(ladder[level])
         sub = arr[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
         st.labelled_voxels += sub.size
-        # the components (26-connected) and their sizes, boxes and densest voxels, in two passes
-        labels, n, counts, box_lo, box_hi, peak, peak_at = threshold_label(sub, T, restrict)
+        # the components (26-connected) and their sizes, boxes, densest voxels and runs (no
+        # label array: only the voxels above T are read, and only the runs of a component are
+        # compared when it is searched again one level up)
+        n, counts, box_lo, box_hi, peak, peak_at, runs = threshold_runs(sub, T, restrict)
         if n == 0:
             return False
         st.components += n
@@ -287,10 +291,8 @@ class _LadderSearch:
         for lab in sizable[~faint]:
             if counts[lab] > 3 * self.max_ball_voxels:
                 continue
-            sl = box(lab)
-            comp = labels[sl] == lab
-            comps[lab] = (sl, comp, np.argwhere(comp) + lo + np.array([s.start for s in sl]))
-        cents = {lab: self.volume.zyx_to_lps(kji.mean(axis=0)[None])[0] for lab, (_, _, kji) in comps.items()}
+            comps[lab] = runs.voxels(lab) + lo
+        cents = {lab: self.volume.zyx_to_lps(kji.mean(axis=0)[None])[0] for lab, kji in comps.items()}
         radii = {lab: float((3.0 * counts[lab] * self.voxel_mm3 / (4.0 * np.pi)) ** (1.0 / 3.0)) for lab in comps}
         found = False
         for lab, out_of_crop in zip(todo, running_out):
@@ -302,16 +304,15 @@ class _LadderSearch:
             ghi = lo + np.array([s.stop for s in sl])
             if out_of_crop:  # part of something larger outside the crop: only what separates higher up
                 if level + 1 < len(ladder):
-                    found |= self.visit(glo, ghi, labels[sl] == lab, level + 1, crop)
+                    found |= self.visit(glo, ghi, runs.runs_in(lab, glo - lo, ghi - lo), level + 1, crop)
                 continue
             if c > self.max_ball_voxels:
-                comp = labels[sl] == lab
                 if level + 1 < len(ladder):
-                    found |= self.visit(glo, ghi, comp, level + 1, crop)
+                    found |= self.visit(glo, ghi, runs.runs_in(lab, glo - lo, ghi - lo), level + 1, crop)
                 elif not any(_inside(r.centre_lps, self.volume, glo, ghi) for r in self.rejected):
-                    self.rejected.append(self.describe_large(np.argwhere(comp) + glo, c))
+                    self.rejected.append(self.describe_large(runs.voxels(lab) + lo, c))
                 continue
-            _, comp, kji = comps[lab]
+            kji = comps[lab]
             sibs = [Sibling(cents[o], radii[o]) for o in comps if o != lab]
             st.fits += 1
             cand, rej = self.fit(kji, T, sibs)
@@ -322,7 +323,7 @@ class _LadderSearch:
                 continue
             # not a ball as one piece: it may hold balls that separate at a higher threshold
             n_rej = len(self.rejected)
-            if level + 1 < len(ladder) and self.visit(glo, ghi, comp, level + 1, crop):
+            if level + 1 < len(ladder) and self.visit(glo, ghi, runs.runs_in(lab, glo - lo, ghi - lo), level + 1, crop):
                 found = True
                 continue
             del self.rejected[n_rej:]  # the same object seen again higher up: list it once

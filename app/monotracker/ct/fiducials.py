@@ -40,7 +40,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from monotracker.ct.blob_search import principal_axes as _principal_axes
 from monotracker.ct.blob_search import coarse_grid, search_blobs, threshold_ladder, too_large_blob
@@ -74,6 +74,17 @@ MAX_ELONGATION = 1.35
 RADIUS_TOLERANCE = 0.2
 #: Largest fit residual (RMS of inliers / contrast) for a sphere.
 MAX_REL_RESIDUAL = 0.08
+
+
+_BLAS: list = []
+
+
+def _blas_controller() -> ThreadpoolController:
+    """The process's thread pools (BLAS, OpenMP), found once: ``threadpool_limits`` looks for
+    them on every call (~4 ms of a whole-head detection's ~200)."""
+    if not _BLAS:
+        _BLAS.append(ThreadpoolController())
+    return _BLAS[0]
 
 
 def _window(volume: Volume, kji: np.ndarray, pad_mm: float):
@@ -183,7 +194,7 @@ def detect_fiducials(volume: Volume, radius_mm: float | None = None, kit: Fiduci
 
     # The fits solve tiny (n x 11) problems: BLAS threads only add contention (seen: 0.06 s ->
     # 4.5 s of SVD on a loaded 2-core machine), so run them single-threaded.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _blas_controller().limit(limits=1, user_api="blas"):
         candidates, rejected, stats = search_blobs(volume, ladder, min_vox, max_vox, fit, time_budget_s=time_budget_s,
                                                     tissue_hu=levels["tissue"], noise_hu=levels["noise"], cancel=cancel,
                                                     describe_large=describe_large, grid=grid)

@@ -13,6 +13,8 @@ large integer volume (:func:`.blob_search.block_max`) in one read of its voxels.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from monotracker.registration.compiled import compiled, compiled_inline
@@ -68,14 +70,16 @@ def _find(parent, a):
 
 
 @compiled
-def _label_runs(values, cand, nk, nj, ni):
+def _label_runs(values, cand, nk, nj, ni, want_labels=True):
     """Label the voxels ``cand`` (flat C-order indices into the (nk, nj, ni) box, ascending:
     the voxels above the threshold, in raster order) 26-connected, and measure the components
     over ``values``. The listed voxels are taken as runs (consecutive voxels of one row k, j)
     and the runs joined by union-find: a run touches a run of one of the four rows visited
     before whose neighbours it can be ((k-1, j-1), (k-1, j), (k-1, j+1), (k, j-1)) when their
     i ranges, one widened by a voxel each side, overlap. A dense component (bone, metal) costs
-    a union per pair of touching runs, not per voxel; only the listed voxels are visited."""
+    a union per pair of touching runs, not per voxel; only the listed voxels are visited.
+    ``want_labels`` False: no label array (an empty one; the runs and their labels say it all),
+    so nothing of the size of the box is written."""
     # the runs, in raster order of their first voxel: row (k * nj + j), first i, end i (counted
     # first: arrays of the runs' size, not of the voxels')
     n_r = 0
@@ -164,7 +168,7 @@ def _label_runs(values, cand, nk, nj, ni):
             final[r] = m_lab
         else:
             final[r] = final[root]
-    labels = np.zeros((nk, nj, ni), np.int32)
+    labels = np.zeros((nk, nj, ni) if want_labels else (0, 0, 0), np.int32)
     counts = np.zeros(m_lab + 1, np.int64)
     lo = np.empty((m_lab + 1, 3), np.int64)
     hi = np.zeros((m_lab + 1, 3), np.int64)
@@ -180,7 +184,8 @@ def _label_runs(values, cand, nk, nj, ni):
         best = float(values[k, j, s])
         at = s
         for i in range(s, e):
-            labels[k, j, i] = lab
+            if want_labels:
+                labels[k, j, i] = lab
             v = float(values[k, j, i])
             if v > best:
                 best = v
@@ -204,23 +209,112 @@ def _label_runs(values, cand, nk, nj, ni):
                 peak[lab] = best
                 pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, at
         counts[lab] += e - s
-    return labels, m_lab, counts, lo, hi, peak, pos
+    return labels, m_lab, counts, lo, hi, peak, pos, run_row, run_s, run_e, final
 
 
-def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | None = None):
-    """The 26-connected components of ``values > T`` (and ``restrict``, bool of the same shape,
-    when given), numbered 1..n in the raster order of their first voxel (as ``ndimage.label``
-    with a full 3 x 3 x 3 structure), and their statistics: ``(labels, n, counts, lo, hi,
-    peak, pos)``, the last five as :func:`label_stats`."""
-    # the voxels above T, listed by NumPy's vectorised compare (a float64 threshold: the same
-    # test as ``value > T`` in double precision for every dtype), then labelled one by one
+@compiled
+def _listed_above(values, run_row, run_s, run_e, T):
+    """The voxels of the runs (rows ``k * nj + j`` of the box ``values``, i from ``run_s`` to
+    ``run_e``, in raster order) whose value is above ``T`` (compared in double precision, as
+    NumPy's ``values > np.float64(T)``): flat C-order indices into the box, ascending."""
+    nj, ni = values.shape[1], values.shape[2]
+    n = 0
+    for r in range(run_row.shape[0]):
+        n += run_e[r] - run_s[r]
+    cand = np.empty(n, np.int64)
+    m = 0
+    for r in range(run_row.shape[0]):
+        rw = run_row[r]
+        k = rw // nj
+        j = rw - k * nj
+        for i in range(run_s[r], run_e[r]):
+            if float(values[k, j, i]) > T:
+                cand[m] = rw * ni + i
+                m += 1
+    return cand[:m]
+
+
+@dataclass(frozen=True)
+class Runs:
+    """Voxels of a box given as runs along i, in raster order: row ``k * nj + j`` of the box
+    (``nj`` its size along j), first i and end i (exclusive), int64 arrays of one length."""
+
+    row: np.ndarray
+    start: np.ndarray
+    end: np.ndarray
+
+    def crop(self, nj: int, lo, hi) -> "Runs":
+        """These runs (of a box ``nj`` voxels along j) in the box ``lo``..``hi`` (k, j, i,
+        inside it, holding every voxel of the runs) in its own coordinates; the same order."""
+        k, j = np.divmod(self.row, nj)
+        return Runs((k - lo[0]) * (hi[1] - lo[1]) + (j - lo[1]), self.start - lo[2], self.end - lo[2])
+
+
+def _listed(values: np.ndarray, T: float, restrict) -> np.ndarray:
+    """The voxels of ``values`` above ``T`` (and in ``restrict``: a mask of the box or its
+    :class:`Runs`), flat C-order indices, ascending."""
+    if isinstance(restrict, Runs):  # only the voxels of the runs are compared
+        return _listed_above(values, restrict.row, restrict.start, restrict.end, np.float64(T))
+    # listed by NumPy's vectorised compare (a float64 threshold: the same test as
+    # ``value > T`` in double precision for every dtype)
     above = np.greater(values, np.float64(T))
     if restrict is not None:
         above &= np.asarray(restrict, bool)
-    cand = np.flatnonzero(above)
+    return np.flatnonzero(above)
+
+
+def threshold_label(values: np.ndarray, T: float, restrict: np.ndarray | Runs | None = None):
+    """The 26-connected components of ``values > T`` (and ``restrict``, bool of the same shape
+    or the :class:`Runs` of the voxels allowed, when given), numbered 1..n in the raster order
+    of their first voxel (as ``ndimage.label`` with a full 3 x 3 x 3 structure), and their
+    statistics: ``(labels, n, counts, lo, hi, peak, pos)``, the last five as
+    :func:`label_stats`."""
     nk, nj, ni = values.shape
-    labels, n, counts, lo, hi, peak, pos = _label_runs(values, cand, nk, nj, ni)
+    labels, n, counts, lo, hi, peak, pos, _, _, _, _ = _label_runs(values, _listed(values, T, restrict), nk, nj, ni, True)
     return labels, int(n), counts, lo, hi, peak, pos
+
+
+@dataclass(frozen=True)
+class ComponentRuns:
+    """The components of a box (``nj`` voxels along j) as runs: ``runs`` ordered by label (each
+    component's in raster order), those of label ``lab`` at ``first[lab]:first[lab + 1]``."""
+
+    runs: Runs
+    first: np.ndarray
+    nj: int
+
+    def _of(self, lab: int) -> Runs:
+        a, b = int(self.first[lab]), int(self.first[lab + 1])
+        return Runs(self.runs.row[a:b], self.runs.start[a:b], self.runs.end[a:b])
+
+    def runs_in(self, lab: int, lo, hi) -> Runs:
+        """The runs of component ``lab`` in the box ``lo``..``hi`` (k, j, i; holding them all,
+        e.g. the component's own box) in that box's coordinates."""
+        return self._of(lab).crop(self.nj, np.asarray(lo), np.asarray(hi))
+
+    def voxels(self, lab: int) -> np.ndarray:
+        """The voxels of component ``lab``, (n, 3) k, j, i in the box, in C order (as
+        ``np.argwhere(labels == lab)``)."""
+        r = self._of(lab)
+        n_run = r.end - r.start
+        k, j = np.divmod(r.row, self.nj)
+        start = np.cumsum(n_run) - n_run
+        i = np.repeat(r.start - start, n_run) + np.arange(int(n_run.sum()))
+        return np.column_stack([np.repeat(k, n_run), np.repeat(j, n_run), i])
+
+
+def threshold_runs(values: np.ndarray, T: float, restrict: np.ndarray | Runs | None = None):
+    """:func:`threshold_label` without a label array: ``(n, counts, lo, hi, peak, pos,
+    ComponentRuns)``. Nothing of the size of the box is written, only its voxels above ``T``
+    read: each component's voxels and runs come from its runs (:class:`ComponentRuns`), and a
+    later call restricted to one component (its :meth:`~ComponentRuns.runs_in`) compares only
+    those voxels."""
+    nk, nj, ni = values.shape
+    _, n, counts, lo, hi, peak, pos, row, start, end, lab = _label_runs(values, _listed(values, T, restrict), nk, nj, ni, False)
+    order = np.argsort(lab, kind="stable")
+    first = np.zeros(int(n) + 2, np.int64)
+    first[1:] = np.cumsum(np.bincount(lab, minlength=int(n) + 1))
+    return int(n), counts, lo, hi, peak, pos, ComponentRuns(Runs(row[order], start[order], end[order]), first, nj)
 
 
 def label_stats(labels: np.ndarray, values: np.ndarray, n: int):
@@ -273,3 +367,5 @@ def warm_up() -> None:
             label_stats(labels, vals, 1)
             threshold_label(vals, 0.5)
             threshold_label(vals, 0.5, np.ones(vals.shape, bool))
+            comps = threshold_runs(vals, -1.0)[-1]  # one component: the whole box
+            threshold_runs(vals, 0.5, comps.runs_in(1, (0, 0, 0), vals.shape))
