@@ -399,9 +399,10 @@ class _LadderSearch:
                 found |= self._full_grid_rest(current, b2)
                 break
             # only the box of what is still large is labelled
-            nz = np.nonzero(current)
-            blo = np.array([x.min() for x in nz])
-            bhi = np.array([x.max() + 1 for x in nz])
+            # (from the projections onto each axis: np.nonzero would list every block of it)
+            ext = [np.flatnonzero(current.any(axis=tuple(x for x in range(3) if x != a))) for a in range(3)]
+            blo = np.array([x[0] for x in ext])
+            bhi = np.array([x[-1] + 1 for x in ext])
             box = tuple(slice(blo[a], bhi[a]) for a in range(3))
             groups, n, counts, g_lo, g_hi, peak, _ = threshold_label(vals2[box], T, current[box])
             self.stats.labelled_voxels += int(np.prod(bhi - blo))
