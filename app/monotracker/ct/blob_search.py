@@ -19,8 +19,9 @@ The ladder is a handful of levels (:data:`LADDER_LEVELS`), so the work is bounde
 labels at most the boxes of the components it refines, fits are capped (``max_fits``) and a
 time budget stops the search with a note instead of running for minutes on a head full of metal.
 Each box is thresholded, labelled and measured (sizes, boxes, densest voxels) by the compiled
-:func:`~.label_kernels.threshold_label` in two passes over it (the same components and numbering
-as ``ndimage.label``).
+:func:`~.label_kernels.threshold_runs` (the same components and numbering as ``ndimage.label``,
+no label array: each component as its runs of voxels along i); a component searched again one
+level up is restricted to its runs, so only its own voxels are compared there.
 
 **Large volumes** (more than :data:`FINE_BOX_MAX` voxels: a whole head). Labelling a whole
 head on the full grid costs ~20 passes over its voxels, so it is never done. One pass builds a
