@@ -9,6 +9,8 @@ voxel, as ``ndimage.label``: union-find over runs of consecutive voxels along i,
 component costs a union per pair of touching runs, not one per voxel) and measures them;
 :func:`label_stats` measures given labels in one. :func:`block_max_int`: the coarse grid of a
 large integer volume (:func:`.blob_search.block_max`) in one read of its voxels.
+:func:`hist_min_int`: the histogram and minimum of an integer scan's strided sample
+(:func:`.levels.sample_histogram`) in one pass.
 """
 
 from __future__ import annotations
@@ -355,12 +357,32 @@ def block_max_int(arr: np.ndarray, blocks: tuple) -> np.ndarray:
     return _block_max(arr, int(blocks[0]), int(blocks[1]), int(blocks[2]))
 
 
+@compiled
+def hist_min_int(sample):
+    """Counts of the integer values of ``sample`` (3-D, any strides) clipped to -1024..4095
+    HU (bin ``v + 1024``), and the smallest value: one pass over the (strided) sample (the grey
+    levels' histogram, :func:`.levels.sample_histogram`)."""
+    hist = np.zeros(5120, np.int64)
+    lo = sample[0, 0, 0]
+    nk, nj, ni = sample.shape
+    for k in range(nk):
+        for j in range(nj):
+            for i in range(ni):
+                v = sample[k, j, i]
+                if v < lo:
+                    lo = v
+                x = min(max(np.int64(v), -1024), 4095) + 1024
+                hist[x] += 1
+    return hist, lo
+
+
 def warm_up() -> None:
     """Compile (or load from numba's cache) :func:`threshold_label` and :func:`label_stats`
     for the crops a detection passes (int32 labels; int16, float32 and float64 values, views of a larger array)."""
     labels = np.zeros((3, 3, 3), np.int32)
     labels[1, 1, 1] = 1
     block_max_int(np.zeros((4, 4, 4), np.int16), (2, 2, 2))  # the coarse grid of an int16 scan
+    hist_min_int(np.zeros((8, 8, 8), np.int16)[::2, ::2, ::2])  # an int16 scan's grey levels
     for dt in (np.int16, np.float32, np.float64):
         big = np.zeros((4, 4, 4), dt)
         for vals in (big[1:, 1:, 1:], big[:3].copy()):  # a crop (a view), a whole (contiguous) volume

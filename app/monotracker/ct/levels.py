@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from monotracker.ct.volume import Volume
-from monotracker.registration.compiled import compiled
+from monotracker.ct.label_kernels import hist_min_int
 
 
 def _strided_sample(arr: np.ndarray, target: int = 1_500_000) -> np.ndarray:
@@ -26,24 +26,6 @@ def _otsu(hist: np.ndarray) -> int:
     return int(np.argmax(between)) + 1
 
 
-@compiled
-def _hist_min_int(sample):
-    """Counts of the integer values of ``sample`` (3-D, any strides) clipped to -1024..4095
-    HU (bin ``v + 1024``), and the smallest value: one pass over the (strided) sample."""
-    hist = np.zeros(5120, np.int64)
-    lo = sample[0, 0, 0]
-    nk, nj, ni = sample.shape
-    for k in range(nk):
-        for j in range(nj):
-            for i in range(ni):
-                v = sample[k, j, i]
-                if v < lo:
-                    lo = v
-                x = min(max(np.int64(v), -1024), 4095) + 1024
-                hist[x] += 1
-    return hist, lo
-
-
 #: Integer types counted by the compiled pass (values that ``astype(int32)`` keeps as they are).
 _HIST_DTYPES = (np.dtype(np.int8), np.dtype(np.uint8), np.dtype(np.int16), np.dtype(np.uint16), np.dtype(np.int32))
 
@@ -54,7 +36,7 @@ def sample_histogram(sample: np.ndarray) -> tuple[np.ndarray, float]:
     integer samples (a scan's int16) in one compiled pass over the strided view, others by
     NumPy (the same counts)."""
     if sample.dtype in _HIST_DTYPES and sample.ndim == 3 and sample.size:
-        hist, lo = _hist_min_int(sample)
+        hist, lo = hist_min_int(sample)
         return hist.astype(float), float(lo)
     v = np.clip(sample.astype(np.int32, copy=False), -1024, 4095).ravel() + 1024
     return np.bincount(v, minlength=5120).astype(float), float(np.min(sample))

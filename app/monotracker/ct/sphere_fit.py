@@ -9,7 +9,7 @@ from scipy.special import erfc
 
 import threading
 
-from monotracker.ct import fit_kernels, label_kernels, levels
+from monotracker.ct import fit_kernels, label_kernels
 
 _SQRT2 = np.sqrt(2.0)
 _INV_SQRT_PI = 1.0 / np.sqrt(np.pi)
@@ -297,7 +297,6 @@ def warm_up() -> None:
             fit_kernels.fit_window(box, np.zeros(3, np.int64), np.eye(3), np.zeros(3), np.zeros(3), 1.0, M, sib,
                                    np.ones(len(sib)), -1024.0, True)
     label_kernels.warm_up()  # the blob search's per-component statistics
-    levels.sample_histogram(np.zeros((8, 8, 8), np.int16)[::2, ::2, ::2])  # an int16 scan's grey levels
 
 
 def warm_up_in_background() -> threading.Thread:
