@@ -9,7 +9,6 @@ by ``sim.dicom_writer`` (every pixel at its true place) or by ``sim.ct_phantom``
 
 from __future__ import annotations
 
-import itertools
 import re
 from dataclasses import replace
 
@@ -17,13 +16,20 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 from scipy.spatial.distance import cdist
-from scipy.special import erfc
 
 from monotracker.ct import FiducialKit, detect_fiducials, load_volume
 from monotracker.ct.volume import Volume
 from monotracker.geometry import rotation_about_axis
-from monotracker.sim.ct_phantom import generate_ct, patch_scan_params
-from monotracker.sim.dicom_writer import SliceSpec, pixel_points, write_series
+from monotracker.sim.ct_phantom import ball_grid_array, generate_ct, patch_scan_params
+from monotracker.sim.dicom_writer import (
+    SliceSpec,
+    acquisition_solid,
+    ball_field,
+    pixel_points,
+    points_inset,
+    specs_along,
+    write_series,
+)
 from monotracker.sim.phantom import default_phantom
 
 R = 3.0  # ball radius, mm
@@ -32,47 +38,20 @@ ROWS, COLS, PS = 64, 56, (0.8, 0.7)
 
 
 def _ball_field(centres, air_centre):
-    """HU at LPS points: soft tissue with a pocket of air (so the volume reads as a CT) and
-    blurred balls (edge sigma 0.5 mm) at ``centres``."""
-    def field(p):
-        v = np.full(len(p), TISSUE_HU)
-        v[np.linalg.norm(p - air_centre, axis=1) < 8.0] = -1000.0
-        for c in centres:
-            d = np.linalg.norm(p - c, axis=1) - R
-            v += (BALL_HU - TISSUE_HU) * 0.5 * erfc(d / (np.sqrt(2.0) * 0.5))
-        return v
-    return field
+    """HU at LPS points: soft tissue with a pocket of air and blurred balls (edge sigma 0.5 mm)."""
+    return ball_field(centres, R, air_centre, BALL_HU, TISSUE_HU, edge_sigma_mm=0.5)
 
 
 def _series(iop_rot: np.ndarray, steps: np.ndarray) -> list[SliceSpec]:
-    """Slices with orientation ``iop_rot`` (columns: row, column cosines) at positions
-    advancing by ``steps`` (n-1, 3) LPS mm."""
-    iop = np.r_[iop_rot[:, 0], iop_rot[:, 1]]
-    pos = np.vstack([np.zeros(3), np.cumsum(steps, axis=0)])
-    return [SliceSpec(p, iop, k + 1) for k, p in enumerate(pos)]
+    return specs_along(iop_rot, steps)
 
 
 def _acquisition_edges(specs):
-    """Origin and the three edge vectors (columns) of the acquired solid (first slice's corner
-    pixels, the line of slice positions): it is a parallelepiped for a straight stack."""
-    row, col = specs[0].iop[:3], specs[0].iop[3:]
-    E = np.column_stack([(COLS - 1) * PS[1] * row, (ROWS - 1) * PS[0] * col, specs[-1].ipp - specs[0].ipp])
-    return specs[0].ipp, E
+    return acquisition_solid(specs, ROWS, COLS, PS)
 
 
 def _inset_points(specs, inset_mm, where="corners"):
-    """Points ``inset_mm`` inside every face of the acquired parallelepiped: its 8 corners, or
-    the middles of 4 of its edges."""
-    o, E = _acquisition_edges(specs)
-    frac = []
-    for a in range(3):
-        n = np.cross(E[:, (a + 1) % 3], E[:, (a + 2) % 3])
-        frac.append(inset_mm / abs(E[:, a] @ n / np.linalg.norm(n)))
-    if where == "corners":
-        ab = itertools.product(*[(f, 1 - f) for f in frac])
-    else:
-        ab = [(0.5, frac[1], frac[2]), (1 - frac[0], 0.5, 1 - frac[2]), (frac[0], 1 - frac[1], 0.5), (0.5, 1 - frac[1], 1 - frac[2])]
-    return np.array([o + E @ np.array(s) for s in ab])
+    return points_inset(specs, inset_mm, ROWS, COLS, PS, where)
 
 
 t15 = np.radians(15.0)
@@ -157,17 +136,8 @@ def _cut(det, centre, tol=2.0):
 def _grid_volume(centres, shape=(40, 60, 60), sp=(0.5, 0.5, 1.0), noise=15.0):
     """A plain grid (identity direction, origin 0) of tissue with air on one side, bone slab,
     and balls at ``centres``; shape (k, j, i), spacing (i, j, k) mm."""
-    sp = np.asarray(sp, float)
-    kk, jj, ii = np.meshgrid(*[np.arange(n) * s for n, s in zip(shape, sp[::-1])], indexing="ij")
-    p = np.stack([ii, jj, kk], -1).reshape(-1, 3)
-    v = np.full(len(p), TISSUE_HU)
-    v[p[:, 1] < 4.0] = -1000.0
-    v[(p[:, 1] > 24.0) & (p[:, 1] < 27.0)] = 1200.0
-    for c in centres:
-        v += (BALL_HU - TISSUE_HU) * 0.5 * erfc((np.linalg.norm(p - c, axis=1) - R) / (np.sqrt(2.0) * 0.55))
-    v = v.reshape(shape) + np.random.default_rng(5).normal(0, noise, shape)
-    img = sitk.GetImageFromArray(np.rint(np.clip(v, -1024, 3071)).astype(np.int16))
-    img.SetSpacing(sp.tolist())
+    img = sitk.GetImageFromArray(ball_grid_array(centres, R, shape, sp, BALL_HU, TISSUE_HU, noise))
+    img.SetSpacing(tuple(float(x) for x in sp))
     return Volume.from_image(img)
 
 

@@ -412,3 +412,23 @@ def make_sample_ct(out_dir: Path | str, phantom: HeadPhantom | None = None, para
 def with_radius(phantom: HeadPhantom, radius_mm: float) -> HeadPhantom:
     """The same head with balls of another radius (still resting on the scalp)."""
     return replace(phantom, fiducial_radius_mm=float(radius_mm))
+
+
+def ball_grid_array(centres_mm, radius_mm: float, shape=(40, 60, 60), spacing_mm=(0.5, 0.5, 1.0),
+                    ball_hu: float = 2500.0, tissue_hu: float = 20.0, noise_hu: float = 15.0,
+                    seed: int = 5) -> np.ndarray:
+    """A small plain scan for the scan's-edge cases: int16 HU array of ``shape`` (k, j, i) on a
+    grid with origin 0, identity direction and ``spacing_mm`` (i, j, k): soft tissue with air
+    where y < 4 mm and a 3 mm bone slab at y 24-27 mm, and balls of ``radius_mm`` at
+    ``centres_mm`` (grid mm = LPS mm; edge blur 0.55 mm), Gaussian noise of ``noise_hu``. A ball
+    placed within its radius of the grid's box is cut by the edge of the scan."""
+    sp = np.asarray(spacing_mm, float)
+    kk, jj, ii = np.meshgrid(*[np.arange(n) * s for n, s in zip(shape, sp[::-1])], indexing="ij")
+    p = np.stack([ii, jj, kk], -1).reshape(-1, 3)
+    v = np.full(len(p), tissue_hu)
+    v[p[:, 1] < 4.0] = -1000.0
+    v[(p[:, 1] > 24.0) & (p[:, 1] < 27.0)] = 1200.0
+    for c in np.atleast_2d(np.asarray(centres_mm, float)):
+        v += (ball_hu - tissue_hu) * 0.5 * erfc((np.linalg.norm(p - c, axis=1) - radius_mm) / (np.sqrt(2.0) * 0.55))
+    v = v.reshape(shape) + np.random.default_rng(seed).normal(0, noise_hu, shape)
+    return np.rint(np.clip(v, -1024, 3071)).astype(np.int16)

@@ -181,3 +181,60 @@ def known_point_errors(write, load, specs: list[SliceSpec], points_lps: np.ndarr
         val = map_coordinates(vol.array.astype(np.float64), idx, order=1, mode="nearest")
         err[:, a] = (val + 1000.0) / FIELD_HU_PER_MM + lo[a] - points_lps[:, a]
     return err
+
+
+# ------------------------------------------------------------------ scenes at the scan's edges
+def specs_along(iop_rot: np.ndarray, steps_mm: np.ndarray) -> list[SliceSpec]:
+    """Slices of orientation ``iop_rot`` (3x3; columns: row and column cosines, LPS) at
+    positions that start at the origin and advance by ``steps_mm`` ((n-1, 3), LPS mm): gantry
+    tilt in either encoding, shear, uneven spacing and gaps are all a choice of steps."""
+    iop = np.r_[iop_rot[:, 0], iop_rot[:, 1]]
+    pos = np.vstack([np.zeros(3), np.cumsum(np.asarray(steps_mm, float), axis=0)])
+    return [SliceSpec(p, iop, k + 1) for k, p in enumerate(pos)]
+
+
+def acquisition_solid(specs: list[SliceSpec], rows: int, cols: int, pixel_spacing: tuple[float, float]):
+    """Origin (LPS mm) and the three edge vectors (3x3, columns: along a row, along a column,
+    first to last slice position) of the acquired solid, a parallelepiped for a straight stack
+    (its corners are the first and last slices' corner pixels)."""
+    row, col = specs[0].iop[:3], specs[0].iop[3:]
+    E = np.column_stack([(cols - 1) * pixel_spacing[1] * row, (rows - 1) * pixel_spacing[0] * col,
+                         specs[-1].ipp - specs[0].ipp])
+    return specs[0].ipp, E
+
+
+def points_inset(specs: list[SliceSpec], inset_mm: float, rows: int, cols: int,
+                 pixel_spacing: tuple[float, float], where: str = "corners") -> np.ndarray:
+    """Points ``inset_mm`` inside every face of the acquired solid (LPS mm): its 8 corners
+    (``where="corners"``) or the middles of 4 of its 12 edges (``"edges"``)."""
+    o, E = acquisition_solid(specs, rows, cols, pixel_spacing)
+    frac = []
+    for a in range(3):
+        n = np.cross(E[:, (a + 1) % 3], E[:, (a + 2) % 3])
+        frac.append(inset_mm / abs(E[:, a] @ n / np.linalg.norm(n)))
+    if where == "corners":
+        ab = [(x, y, z) for x in (frac[0], 1 - frac[0]) for y in (frac[1], 1 - frac[1]) for z in (frac[2], 1 - frac[2])]
+    else:
+        ab = [(0.5, frac[1], frac[2]), (1 - frac[0], 0.5, 1 - frac[2]), (frac[0], 1 - frac[1], 0.5),
+              (0.5, 1 - frac[1], 1 - frac[2])]
+    return np.array([o + E @ np.array(s) for s in ab])
+
+
+def ball_field(centres_lps, radius_mm: float, air_centre_lps, ball_hu: float = 2500.0,
+               tissue_hu: float = 20.0, edge_sigma_mm: float = 0.5, air_radius_mm: float = 8.0):
+    """A ``field`` for :func:`write_series`: soft tissue (``tissue_hu``) with a pocket of air
+    (so the volume reads as a CT) and balls of ``radius_mm`` at ``centres_lps`` whose edge is
+    blurred by a Gaussian of ``edge_sigma_mm`` (the scanner's point spread), HU."""
+    from scipy.special import erfc
+
+    centres = np.atleast_2d(np.asarray(centres_lps, float))
+    air = np.asarray(air_centre_lps, float)
+
+    def field(p):
+        v = np.full(len(p), tissue_hu)
+        v[np.linalg.norm(p - air, axis=1) < air_radius_mm] = -1000.0
+        for c in centres:
+            d = np.linalg.norm(p - c, axis=1) - radius_mm
+            v += (ball_hu - tissue_hu) * 0.5 * erfc(d / (np.sqrt(2.0) * edge_sigma_mm))
+        return v
+    return field
