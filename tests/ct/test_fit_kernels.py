@@ -133,7 +133,7 @@ from monotracker.ct.volume import Volume
 from monotracker.sim.ct_phantom import generate_ct, patch_scan_params
 from monotracker.sim.phantom import default_phantom
 
-kernels = (label_kernels._label_runs, label_kernels._listed_above, label_kernels._label_stats, label_kernels._add, fit_kernels.fit_window)
+kernels = (label_kernels._label_runs, label_kernels._listed_above, label_kernels._label_stats, label_kernels._add_run, fit_kernels.fit_window)
 assert not fit_kernels.robust_lm.signatures and not any(k.signatures for k in kernels)
 sphere_fit.warm_up()
 warm = set(fit_kernels.robust_lm.signatures)

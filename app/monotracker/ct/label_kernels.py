@@ -23,27 +23,28 @@ from monotracker.registration.compiled import compiled, compiled_inline
 
 
 @compiled_inline
-def _add(counts, lo, hi, peak, pos, lab, k, j, i, v):
-    """Voxel (k, j, i) of value ``v`` into the statistics of component ``lab`` (C order)."""
+def _add_run(counts, lo, hi, peak, pos, lab, k, j, s, e, best, at):
+    """The run of voxels (k, j, s..e-1) into the statistics of component ``lab``, in C order of
+    the runs: ``best`` its densest value, at voxel (k, j, at) (the first such in C order)."""
     if counts[lab] == 0:
-        lo[lab, 0], lo[lab, 1], lo[lab, 2] = k, j, i
-        hi[lab, 0], hi[lab, 1], hi[lab, 2] = k + 1, j + 1, i + 1
-        peak[lab] = v
-        pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, i
+        lo[lab, 0], lo[lab, 1], lo[lab, 2] = k, j, s
+        hi[lab, 0], hi[lab, 1], hi[lab, 2] = k + 1, j + 1, e
+        peak[lab] = best
+        pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, at
     else:
         hi[lab, 0] = k + 1  # k only grows in C order; j and i may go either way
         if j < lo[lab, 1]:
             lo[lab, 1] = j
         if j + 1 > hi[lab, 1]:
             hi[lab, 1] = j + 1
-        if i < lo[lab, 2]:
-            lo[lab, 2] = i
-        if i + 1 > hi[lab, 2]:
-            hi[lab, 2] = i + 1
-        if v > peak[lab]:
-            peak[lab] = v
-            pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, i
-    counts[lab] += 1
+        if s < lo[lab, 2]:
+            lo[lab, 2] = s
+        if e > hi[lab, 2]:
+            hi[lab, 2] = e
+        if best > peak[lab]:
+            peak[lab] = best
+            pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, at
+    counts[lab] += e - s
 
 
 @compiled
@@ -59,7 +60,7 @@ def _label_stats(labels, values, n):
             for i in range(ni):
                 lab = labels[k, j, i]
                 if lab != 0:
-                    _add(counts, lo, hi, peak, pos, lab, k, j, i, float(values[k, j, i]))
+                    _add_run(counts, lo, hi, peak, pos, lab, k, j, i, i + 1, float(values[k, j, i]), i)
     return counts, lo, hi, peak, pos
 
 
@@ -192,25 +193,7 @@ def _label_runs(values, cand, nk, nj, ni, want_labels=True):
             if v > best:
                 best = v
                 at = i
-        if counts[lab] == 0:
-            lo[lab, 0], lo[lab, 1], lo[lab, 2] = k, j, s
-            hi[lab, 0], hi[lab, 1], hi[lab, 2] = k + 1, j + 1, e
-            peak[lab] = best
-            pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, at
-        else:
-            hi[lab, 0] = k + 1  # k only grows in raster order; j and i may go either way
-            if j < lo[lab, 1]:
-                lo[lab, 1] = j
-            if j + 1 > hi[lab, 1]:
-                hi[lab, 1] = j + 1
-            if s < lo[lab, 2]:
-                lo[lab, 2] = s
-            if e > hi[lab, 2]:
-                hi[lab, 2] = e
-            if best > peak[lab]:
-                peak[lab] = best
-                pos[lab, 0], pos[lab, 1], pos[lab, 2] = k, j, at
-        counts[lab] += e - s
+        _add_run(counts, lo, hi, peak, pos, lab, k, j, s, e, best, at)
     return labels, m_lab, counts, lo, hi, peak, pos, run_row, run_s, run_e, final
 
 
