@@ -21,13 +21,14 @@ bash scripts/setup.sh
 # The suite in two parts (issue 35): everything outside tests/conftest.py's serial lane on
 # MONOTRACKER_TEST_WORKERS pytest-xdist workers (default 2; 0 = one process), then the serial lane
 # (browser, real-clock engine, realtime tests) one test after another with nothing beside it.
-# Extra arguments go to both parts; a part with no test selected (exit 5) is not a failure.
+# Extra arguments go to both parts; a part with no test selected (exit 5) is not a failure. Each
+# part prints its 30 slowest tests (--durations=30), so every CI log carries the profile.
 workers="${MONOTRACKER_TEST_WORKERS:-2}"
 par=(-n "$workers")
 [ "$workers" = "0" ] && par=()
 rc1=0; rc2=0
-.venv/bin/python -m pytest "${par[@]}" --lane parallel "$@" || rc1=$?
-.venv/bin/python -m pytest --lane serial "$@" || rc2=$?
+.venv/bin/python -m pytest "${par[@]}" --lane parallel --durations=30 "$@" || rc1=$?
+.venv/bin/python -m pytest --lane serial --durations=30 "$@" || rc2=$?
 if [ "$rc1" = 5 ] && [ "$rc2" = 5 ]; then exit 5; fi
 [ "$rc1" = 5 ] && rc1=0
 [ "$rc2" = 5 ] && rc2=0

@@ -83,7 +83,6 @@ def cpu_hogs(pytestconfig):
 #: mixes such tests with pure logic (a manual clock, no thread, no wall time) lists no file here:
 #: its lane tests carry ``@pytest.mark.serial`` and the rest run 2-wide.
 SERIAL_LANE = (
-    "tests/engine/test_digital_twin.py",  # its logic tests can leave once shown green beside hogs (issue 35)
     "tests/engine/test_pose_pipeline.py",
     "tests/interop/test_replay_camera.py",
     "tests/ui/test_viser_threads.py",

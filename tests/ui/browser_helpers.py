@@ -81,6 +81,16 @@ def _state(page):
     return page.locator("#mt-robot-state").first.get_attribute("data-state")
 
 
+def drawn(page, frames: int = 2) -> None:
+    """Wait until the page has drawn ``frames`` more animation frames (its ``requestAnimationFrame``,
+    capped at ``conftest.BROWSER_FPS`` in the tests: 0.2 s each there): what the page had received
+    is then on screen, for a screenshot. A wait on the page's state, not a guess at how long
+    drawing takes (the end-to-end test slept 1-1.5 s before each screenshot: 5.5 s in all)."""
+    page.evaluate("n => new Promise(done => { let k = 0; "
+                  "const tick = () => (++k >= n ? done() : requestAnimationFrame(tick)); "
+                  "requestAnimationFrame(tick); })", frames)
+
+
 def open_page(browser, app, size=(1600, 1000), ready: str = "#mt-control"):
     """A new tab of ``size`` (width, height px) on the app, once the element ``ready`` (a CSS
     selector) is there; every page wait in it has the generous :data:`T_PAGE_MS` limit."""

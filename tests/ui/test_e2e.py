@@ -12,7 +12,7 @@ import time
 import numpy as np
 import pytest
 from browser_helpers import (APP_OPTIONS, T_STATE, _click, _command, _input, _msg, _pin_pad, _state, _take_control,
-                             _wait, open_page)
+                             _wait, drawn, open_page)
 
 pytestmark = pytest.mark.timeout(900)
 
@@ -104,7 +104,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     _wait(lambda: s.snapshot().fiducials[3].status == "detected", what="undo")
     _click(page, "Confirm all detected")
     _wait(lambda: all(f.status == "confirmed" for f in s.snapshot().fiducials), what="confirm all")
-    time.sleep(1.0)
+    drawn(page)
     page.screenshot(path=str(artifacts / "1_ct.png"))
     _click(page, "Lock fiducials and go to Plan")
     _wait(lambda: s.snapshot().fiducials_locked, what="lock")
@@ -129,7 +129,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
         _command(page, "Set target")
     length = s.snapshot().plan.path_length_mm
     page.wait_for_function(f"document.querySelector('#mt-plan-metrics').innerText.includes('Length {length:.1f} mm')")
-    time.sleep(1.0)
+    drawn(page)
     page.screenshot(path=str(artifacts / "2_plan.png"))
     _click(page, "Path is good: go to Register")
 
@@ -140,7 +140,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
           what=lambda: f"trusted pose (last: {s.snapshot().pose})")
     page.wait_for_function("document.querySelector('#mt-pose-banner') && "
                            "document.querySelector('#mt-pose-banner').innerText.includes('POSE VALID')")
-    time.sleep(1.5)
+    drawn(page)
     page.screenshot(path=str(artifacts / "3_register.png"))
 
     print(f"[{time.monotonic() - t_start:5.1f} s] ---- step 4")
@@ -181,7 +181,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
           what=lambda: f"the tip on the entry while tracking (last: {s.snapshot().robot.state}, "
                        f"{s.snapshot().robot.tip_error_mm} mm, pose {s.snapshot().pose}; {_pose_age_report(s, ages)})")
     print(f"[{time.monotonic() - t_start:5.1f} s] tracking: tip on the entry; {_pose_age_report(s, ages)}")
-    time.sleep(1.0)
+    drawn(page)
     page.screenshot(path=str(artifacts / "4_robot_tracking.png"))
 
     print(f"[{time.monotonic() - t_start:5.1f} s] occlusion:")
@@ -198,7 +198,7 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     _wait(lambda: any(a.code in ("occlusion", "pose_lost") for a in s.snapshot().alarms), what="occlusion alarm")
     page.wait_for_function("[...document.querySelectorAll('#mt-alarms li')].some(l => "
                            "['occlusion', 'pose_lost'].includes(l.dataset.code))")
-    time.sleep(1.0)
+    drawn(page)
     page.screenshot(path=str(artifacts / "5_occlusion.png"))
 
     print(f"[{time.monotonic() - t_start:5.1f} s] stop tracking,")

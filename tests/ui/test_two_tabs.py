@@ -21,8 +21,14 @@ pytestmark = pytest.mark.timeout(1800)  # the whole two-tab flow took > 900 s at
 
 @pytest.fixture
 def served_ct(tmp_path, monkeypatch, port):
-    """A session with the sample CT loaded and its fiducials locked (the local operator did it)."""
-    with served_locked_sample(tmp_path, monkeypatch, port) as served:
+    """A session with the sample CT loaded and its fiducials locked (the local operator did it).
+    Its camera is the twin at the level of detected points (``camera="sim-points"``): these tests
+    check who may do what from which tab, and arming needs only a fresh trusted pose, not a
+    rendered image. With the rendered camera (``"sim"``: 30 frames a second drawn, detected and
+    streamed to both tabs) each PIN-pad digit of the arming step waited on the page for seconds on
+    2 cores (issue 35: the arming PIN took 29 s of the test's 80 s measured alone);
+    tests/ui/test_e2e.py drives the rendered camera through the page."""
+    with served_locked_sample(tmp_path, monkeypatch, port, {"camera": "sim-points"}) as served:
         yield served
 
 
