@@ -6,6 +6,8 @@ and never while the camera stands still, whatever the head, the hands or the lig
 
 from __future__ import annotations
 
+import cv2
+import numpy as np
 import pytest
 
 from monotracker.sim.camera_sim import SimulatedCamera, random_events
@@ -96,3 +98,47 @@ def test_the_pose_tracker_refuses_poses_once_the_camera_moved():
     first = codes.index("camera_moved")
     assert "camera_moved" not in codes[:12] and codes[11] == "", codes   # trusted while the camera stood still
     assert first <= 12 + 4 and all(c == "camera_moved" for c in codes[first:]), codes
+
+
+def test_the_check_beside_the_frame_gives_the_same_verdict_at_the_same_frame():
+    """Issue 29: the engine runs the check on a worker beside the frame's detection and
+    registration (BackgroundMotionWatch), given the previous frame's balls; the knock must be
+    acted on at the same frame, with the same alarm, as by the monitor run inline. Truth: the
+    same frames through the monitor inline."""
+    from monotracker.vision.camera_motion import BackgroundMotionWatch
+
+    cam = _camera()
+    cam.camera_motion = CameraMotion("camera-bump", 0.4)
+    ph = LAYOUT.phantom
+
+    def codes(watch):
+        trk = PoseTracker(ph.fiducial_centres_lps, cam.camera, radius_mm=ph.fiducial_radius_mm,
+                          target_ct=ph.sample_target_lps, camera_motion=watch)
+        out = []
+        for i in range(24):
+            img, truth = cam.render(i / cam.fps)
+            out.append(trk.process(Frame(img, i / cam.fps, i, truth)).code)
+        return out, trk
+
+    inline, ref = codes(CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=2)))
+    beside, trk = codes(BackgroundMotionWatch(CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=2))))
+    assert "camera_moved" in inline and beside == inline, (inline, beside)
+    assert trk.camera_motion.moved and "the camera moved since tracking started" in trk.camera_motion.last.reason
+    # the same knock measured (the head's disc is placed from the previous frame's balls, so the
+    # background corners differ a little after the knock)
+    assert abs(trk.camera_motion.max_shift_px / ref.camera_motion.max_shift_px - 1.0) < 0.1
+    assert trk.camera_motion.check_cpu_s > 0.0   # the checks ran on the worker
+
+
+def test_an_error_in_the_check_beside_the_frame_reaches_the_caller():
+    """A check that raises on the worker must not be lost: finish() raises it on the caller's
+    thread (the pose pipeline's error path then holds the arm)."""
+    from monotracker.vision.camera_motion import BackgroundMotionWatch
+
+    watch = BackgroundMotionWatch(CameraMotionMonitor(1000.0, MotionConfig(every_n_frames=1)))
+    assert watch.start(np.zeros((4, 4, 5), np.uint8), np.array([[1.0, 1.0]]))  # not an image
+    with pytest.raises(cv2.error):
+        watch.finish()
+    assert not watch.start(np.zeros((64, 64, 3), np.uint8), None)   # no previous balls: inline
+    watch.reset()
+    assert not watch.moved

@@ -242,7 +242,10 @@ class PoseTracker:
             not registered but whose predicted ellipses go into the detector's hint (indices
             n .. n+m-1), so that a detector searching windows finds them too.
         camera_motion: a :class:`~.camera_motion.CameraMotionMonitor` (the camera must not move
-            after the hand-eye calibration) or None (not watched).
+            after the hand-eye calibration; its verdict counts from the frame it checks), a
+            :class:`~.camera_motion.BackgroundMotionWatch` (the same check run beside the frame's
+            detection and registration on a worker thread, the same verdict: what the engine's
+            rigs use) or None (not watched).
 
     The detector is called ``detect(image, hint)`` (a detector whose ``detect`` takes no
     ``hint`` is called ``detect(image)``): ``hint`` is a :class:`~.detection.DetectionHint`
@@ -270,6 +273,9 @@ class PoseTracker:
         self.config = config or TrackerConfig()
         #: the static-background watch (:class:`~.camera_motion.CameraMotionMonitor`) or None
         self.camera_motion = camera_motion
+        #: the balls of the last frame (px), where a camera-motion check run beside the next
+        #: frame's detection keeps the head out of the background
+        self._motion_pts: np.ndarray | None = None
         self.watch_ct = np.zeros((0, 3)) if watch_ct is None else np.asarray(watch_ct, float).reshape(-1, 3)
         self._takes_hint = _takes_hint(self.detector)
         #: the hint's predicted ellipses, each reused between frames while its ball moved little
@@ -344,6 +350,10 @@ class PoseTracker:
         fresh = (frame.index == self._last_T_index + 1 or frame.t_capture - self._last_T_time <= cfg.prior_max_age_s)
         prior = self._last_T if fresh else None
         t_start = time.perf_counter()
+        # a due camera-motion check runs beside this frame's detection and registration (a
+        # BackgroundMotionWatch, given the previous frame's balls); otherwise inline below
+        watch = self.camera_motion
+        beside = watch is not None and hasattr(watch, "start") and watch.start(frame.image, self._motion_pts)
         hint = self.hint(frame.index, frame.t_capture) if self._takes_hint else None
         t_hint = time.perf_counter() - t_start
         if hint is None or hint.search_all:
@@ -351,13 +361,14 @@ class PoseTracker:
         det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
         pts = det.centres
         t_motion = 0.0
-        if self.camera_motion is not None:
+        if watch is not None and not beside:
             t_m0 = time.perf_counter()
-            self.camera_motion.update(frame.image, pts)
+            watch.update(frame.image, pts)
             t_motion = time.perf_counter() - t_m0
-            if self.camera_motion.moved:
-                return self._invalid(frame.index, frame.t_capture, "camera_moved", self.camera_motion.last.reason,
+            if watch.moved:
+                return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason,
                                      truth=frame.truth)
+        self._motion_pts = pts
         known_sigma = self.noise.peek(0.0, 0)
         t0 = time.perf_counter()
         scr = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
@@ -367,6 +378,13 @@ class PoseTracker:
                                 min_shift_mm=cfg.moved_min_shift_mm,
                                 max_exclusions=2 if cfg.check_moved else 0)
         reg = scr.registration
+        if beside:   # the check of this frame, begun before its detection: its verdict now
+            t_m0 = time.perf_counter()
+            watch.finish()
+            t_motion = time.perf_counter() - t_m0   # the wait for it (s), not its work
+            if watch.moved:
+                return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason,
+                                     truth=frame.truth)
         t_gates0 = time.perf_counter()
         t_reg = t_gates0 - t0
         alerts = []
