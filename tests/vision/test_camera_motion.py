@@ -142,3 +142,34 @@ def test_an_error_in_the_check_beside_the_frame_reaches_the_caller():
     assert not watch.start(np.zeros((64, 64, 3), np.uint8), None)   # no previous balls: inline
     watch.reset()
     assert not watch.moved
+
+
+def test_a_knock_between_checks_is_refused_before_any_pose_is_trusted():
+    """The watch checks one frame in six; a knock on a frame it skips moved the head ~12 mm in the
+    camera while every pose stayed consistent, so until the next check (up to 5 frames) the
+    knocked poses were trusted and the arm followed them (rate44's demo: 1.5 mm of travel). Now a
+    frame whose pose jumped more than TrackerConfig.motion_jump_mm (4 mm) from the last trusted one
+    is checked at once. Truth: the same frames with the jump rule off trust knocked poses."""
+    from monotracker.vision.camera_motion import BackgroundMotionWatch
+    from monotracker.vision.pose_tracker import TrackerConfig
+
+    cam = _camera()
+    knock = 14   # frames 0, 6, 12, 18 are the watch's; 14 is not
+    cam.camera_motion = CameraMotion("camera-bump", (knock - 0.5) / cam.fps)
+    ph = LAYOUT.phantom
+
+    def codes(jump_mm):
+        trk = PoseTracker(ph.fiducial_centres_lps, cam.camera, radius_mm=ph.fiducial_radius_mm,
+                          target_ct=ph.sample_target_lps, config=TrackerConfig(motion_jump_mm=jump_mm),
+                          camera_motion=BackgroundMotionWatch(CameraMotionMonitor(float(cam.camera.K[0, 0]),
+                                                                                  MotionConfig(every_n_frames=6))))
+        out = []
+        for i in range(22):
+            img, truth = cam.render(i / cam.fps)
+            out.append(trk.process(Frame(img, i / cam.fps, i, truth)).code)
+        return out
+
+    now, without = codes(4.0), codes(float("inf"))
+    assert now[:knock] == without[:knock] and now[knock - 1] == "", (now, without)
+    assert "" in without[knock:18], without          # the old rule trusted a knocked pose
+    assert "" not in now[knock:] and "camera_moved" in now[knock:knock + 3], now

@@ -125,13 +125,15 @@ class CameraMotionMonitor:
         self.max_shift_px = 0.0       # largest shift seen so far (full-res px), for the record
 
     # ------------------------------------------------------------------ main entry
-    def update(self, image: np.ndarray, fiducials_px: np.ndarray | None = None) -> MotionReport | None:
+    def update(self, image: np.ndarray, fiducials_px: np.ndarray | None = None,
+               force: bool = False) -> MotionReport | None:
         """Feed one frame (BGR or grey uint8); ``fiducials_px`` (n, 2) the balls' image positions
-        (full-res px; NaN rows ignored) to keep the head out of the background. Returns the
-        check's :class:`MotionReport`, or None on frames that are not checked."""
+        (full-res px; NaN rows ignored) to keep the head out of the background; ``force``: check
+        this frame although ``every_n_frames`` would skip it (the pose jumped: a knock?). Returns
+        the check's :class:`MotionReport`, or None on frames that are not checked."""
         cfg = self.config
         self._frames += 1
-        if self._ref is not None and (self._frames - 1) % max(1, cfg.every_n_frames):
+        if self._ref is not None and not force and (self._frames - 1) % max(1, cfg.every_n_frames):
             return None
         return self._check_frame(image, fiducials_px)
 
@@ -334,10 +336,11 @@ class BackgroundMotionWatch:
             exc, self._error = self._error, None
             raise exc
 
-    def update(self, image: np.ndarray, fiducials_px: np.ndarray | None = None) -> MotionReport | None:
+    def update(self, image: np.ndarray, fiducials_px: np.ndarray | None = None,
+               force: bool = False) -> MotionReport | None:
         """The monitor's :meth:`CameraMotionMonitor.update`, inline (after the check in flight)."""
         self.finish()
-        return self.monitor.update(image, fiducials_px)
+        return self.monitor.update(image, fiducials_px, force=force)
 
     def reset(self) -> None:
         """Wait for the check in flight, then forget the reference and the verdict (see

@@ -167,6 +167,11 @@ class TrackerConfig:
     #: the previous valid pose is the registration prior when it came from the previous frame
     #: or is younger than this (s)
     prior_max_age_s: float = 0.5
+    #: the camera-motion watch checks one frame in ``every_n_frames``; a frame it would skip
+    #: whose pose moved the fiducials' centroid more than this (mm) from the last trusted pose is
+    #: checked at once, before it can be trusted (a knocked camera: 1.5 deg at 450 mm is ~12 mm;
+    #: a breathing head moves < 1 mm a frame)
+    motion_jump_mm: float = 4.0
     method: str = "robust"
     #: refuse a pose whose predicted TRE at the planned target exceeds this (mm)
     max_predicted_tre_mm: float = 1.0
@@ -312,6 +317,15 @@ class PoseTracker:
         self.__init__(self.fiducials_ct, self.camera, self.detector, self.radius_mm, self.target_ct, self.config,
                       self.watch_ct, self.camera_motion)
 
+    def _jumped(self, T_cam_ct: np.ndarray) -> bool:
+        """The fiducials' centroid under ``T_cam_ct`` (4x4, CT -> camera, mm) lies more than
+        :attr:`TrackerConfig.motion_jump_mm` from where the last trusted pose put it."""
+        if self._last_T is None:
+            return False
+        c = self.fiducials_ct.mean(axis=0)[None]
+        return float(np.linalg.norm(apply_transform(T_cam_ct, c)[0] - apply_transform(self._last_T, c)[0])) \
+            > self.config.motion_jump_mm
+
     def set_target(self, target_ct: np.ndarray | None) -> None:
         """Planned target, (3,) CT LPS mm, for ``predicted_tre_mm`` (None: no target)."""
         self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
@@ -361,9 +375,10 @@ class PoseTracker:
         det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
         pts = det.centres
         t_motion = 0.0
+        checked = beside   # this frame's background checked (beside it, or inline below)
         if watch is not None and not beside:
             t_m0 = time.perf_counter()
-            watch.update(frame.image, pts)
+            checked = watch.update(frame.image, pts) is not None
             t_motion = time.perf_counter() - t_m0
             if watch.moved:
                 return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason,
@@ -378,13 +393,21 @@ class PoseTracker:
                                 min_shift_mm=cfg.moved_min_shift_mm,
                                 max_exclusions=2 if cfg.check_moved else 0)
         reg = scr.registration
+        beside_cpu = 0.0
         if beside:   # the check of this frame, begun before its detection: its verdict now
             t_m0 = time.perf_counter()
             watch.finish()
             t_motion = time.perf_counter() - t_m0   # the wait for it (s), not its work
-            if watch.moved:
-                return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason,
-                                     truth=frame.truth)
+            beside_cpu = watch.check_cpu_s
+        elif watch is not None and not checked and reg.ok and self._jumped(reg.T_cam_ct):
+            # the whole head jumped in the camera since the last trusted pose, on a frame the
+            # watch skips: a knocked camera looks like this, so the background is checked now,
+            # on the frame's path, before the pose can be trusted
+            t_m0 = time.perf_counter()
+            watch.update(frame.image, pts, force=True)
+            t_motion += time.perf_counter() - t_m0
+        if watch is not None and watch.moved:
+            return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason, truth=frame.truth)
         t_gates0 = time.perf_counter()
         t_reg = t_gates0 - t0
         alerts = []
@@ -516,7 +539,7 @@ class PoseTracker:
 
         T = T_pose if ok else None
         stages = {"hint": t_hint, "detect": det.time_s, "register": scr.register_s, "screen": scr.screen_s,
-                  "gates": time.perf_counter() - t_gates0, "motion": t_motion}
+                  "gates": time.perf_counter() - t_gates0, "motion": t_motion, "motion_beside_cpu": beside_cpu}
         stages.update({f"detect.{k}": v for k, v in getattr(det, "stages_s", {}).items()})
         if ok:
             self._last_T = T_pose

@@ -79,6 +79,11 @@ class SimStepper:
                         w0 = time.thread_time()
                         sample = rig.estimate(frame)
                         w = time.thread_time() - w0 if charge is None else charge
+                        if charge is None:
+                            # a camera-motion check run beside the frame on another core: the
+                            # pose waited for the longer of the two (vision.camera_motion)
+                            est = getattr(sample, "raw", None)
+                            w = max(w, float(getattr(est, "stages_s", {}).get("motion_beside_cpu", 0.0)))
                         ready = t + rig.transport_delay_s + w
                         sample.t_ready = ready
                         sample.stages["pipeline_s"] = w   # the pipeline's own time (engine/loop/load.py)
