@@ -64,9 +64,16 @@ class Probe:
         self._sampler = None
 
     def hook(self):
+        # the loop's robot part (engine/loop/robot.RobotControl) holds the rig; the rig of a
+        # control process holds it as ``proc`` (engine/rigs/robot_process.py)
         rob = self.s._loop.robot
-        proc = getattr(rob, "proc", None)
-        if proc is None or proc is self._hooked:
+        rig = getattr(rob, "rig", None) or rob
+        proc = getattr(rig, "proc", None)
+        if proc is None:
+            print("stop-bench: no control process found on the session's robot: ack / still are not measured",
+                  file=sys.stderr, flush=True)
+            return
+        if proc is self._hooked:
             return
         orig = proc.on_event
 
