@@ -10,7 +10,7 @@ registration), ``motion`` (the camera-motion watch, where the tree's tracker tim
 ``other`` (the rest of the tracker's frame: size and grayscale checks, and the camera-motion watch
 in a tree that does not time it apart), ``publish`` (the estimate to the engine's
 sample); on photo-like frames of our simulator (9 balls, breathing head) at 1280x720 with balls
-of 13 and 20 px and at 1920x1080 with 20 px balls. Rendering is not timed. ``detect_register`` =
+of 8, 13 and 20 px (radius) and at 1920x1080 with 20 px balls. Rendering is not timed. ``detect_register`` =
 hint + detect + register + screen + gates (issue 29's budget: <= 10 ms median, <= 16 ms p99 at
 720p, <= 20 ms at 1080p).
 
@@ -99,7 +99,7 @@ def main(argv=None):
     ap.add_argument("--no-hogs", action="store_true", help="quiet runs only")
     a = ap.parse_args(argv)
     a.frames, a.seconds = (60, 4.0) if a.quick else (150, 6.0)
-    a.cases = "720:13,720:20,1080:20"
+    a.cases = "720:8,720:13,720:20,1080:20"
     print(f"pose rate: {a.frames} frames per stage case, {a.seconds:g} s demos; {os.cpu_count()} CPUs, "
           f"load {os.getloadavg()[0]:.2f} at the start (run it under `cpu --quiet`)")
     home = planned_home("mt_pose_rate_plan_")

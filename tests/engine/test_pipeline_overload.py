@@ -74,3 +74,50 @@ def test_late_frames_from_the_camera_stay_pose_stale(make_session):
     s.advance(1.0)  # past pose_stale's 0.5 s dwell (engine/alarms.py)
     codes = [a.code for a in s.snapshot().alerts]
     assert "pose_stale" in codes and "pipeline_overloaded" not in codes, sorted(set(codes))
+
+
+def _beside(cpu):
+    """A camera factory whose rig reports ``cpu["s"]`` of work run beside each estimate (as the
+    camera-motion check on its worker does) without spending it on the estimate's own thread."""
+
+    def factory(source, calibration_path, plan, cfg, session):
+        rig = build_camera_rig(source, calibration_path, plan, cfg, session)
+        estimate = rig.estimate
+
+        def estimate_with_beside_work(frame):
+            smp = estimate(frame)
+            if cpu["s"] > 0:
+                smp.stages["beside_cpu_s"] = cpu["s"]
+            return smp
+
+        rig.estimate = estimate_with_beside_work
+        return rig
+    return factory
+
+
+def test_work_beside_the_estimate_is_charged_when_it_is_the_longer(make_session):
+    """The simulated clock charges a frame max(its own thread CPU, the CPU of the work it waited
+    for beside it): 80 ms beside every frame overloads the pipeline like 80 ms on its own thread."""
+    cpu = {"s": 0.0}
+    s = make_session(clock="sim", camera="sim-points", camera_factory=_beside(cpu), freeze_after_s=0.3)
+    plan_sample(s)
+    assert s.start_camera().ok
+    s.advance(0.5)
+    assert s.arm("1234").ok and s.start_tracking().ok
+    s.advance(0.5)
+    assert s.snapshot().robot.state == "tracking"
+    cpu["s"] = 0.080
+    s.advance(2.0)
+    codes = [a.code for a in s.snapshot().alerts]
+    assert "pipeline_overloaded" in codes and "pose_stale" not in codes, sorted(set(codes))
+    assert s.snapshot().robot.state == "holding"
+
+
+def test_the_vision_estimates_beside_work_reaches_the_sample():
+    from types import SimpleNamespace
+
+    from monotracker.engine.rigs.base import _beside_stage
+
+    assert _beside_stage(SimpleNamespace(stages_s={"detect": 0.004, "motion_beside_cpu": 0.0031})) == {"beside_cpu_s": 0.0031}
+    assert _beside_stage(SimpleNamespace(stages_s={"detect": 0.004, "motion_beside_cpu": 0.0})) == {}
+    assert _beside_stage(SimpleNamespace()) == {}

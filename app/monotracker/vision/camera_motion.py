@@ -296,10 +296,6 @@ class BackgroundMotionWatch:
     def max_shift_px(self) -> float:
         return self.monitor.max_shift_px
 
-    @property
-    def config(self) -> MotionConfig:
-        return self.monitor.config
-
     def start(self, image: np.ndarray, previous_fiducials_px: np.ndarray | None) -> bool:
         """Begin this frame's check on the worker when it is due and the balls of the previous
         frame are known ((n, 2) px, NaN rows ignored); True when begun (then call

@@ -80,10 +80,9 @@ class SimStepper:
                         sample = rig.estimate(frame)
                         w = time.thread_time() - w0 if charge is None else charge
                         if charge is None:
-                            # a camera-motion check run beside the frame on another core: the
-                            # pose waited for the longer of the two (vision.camera_motion)
-                            est = getattr(sample, "raw", None)
-                            w = max(w, float(getattr(est, "stages_s", {}).get("motion_beside_cpu", 0.0)))
+                            # work run beside the frame on another core (the camera-motion
+                            # check): the pose waited for the longer of the two
+                            w = max(w, float(sample.stages.get("beside_cpu_s", 0.0)))
                         ready = t + rig.transport_delay_s + w
                         sample.t_ready = ready
                         sample.stages["pipeline_s"] = w   # the pipeline's own time (engine/loop/load.py)

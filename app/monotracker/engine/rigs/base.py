@@ -62,7 +62,8 @@ class PoseSample:
     #: simulated rigs give ``late_s`` (frame started after its camera tick), ``render_s`` /
     #: ``render_cpu_s`` (the twin camera's render), ``arrived_s`` (exposure -> frame in memory),
     #: ``estimate_s`` / ``estimate_cpu_s`` (detection + registration + checks), ``detect_s``,
-    #: ``register_s``.
+    #: ``register_s``; any rig: ``beside_cpu_s`` (CPU time of work the estimate ran beside its own
+    #: thread and waited for, e.g. the camera-motion check; absent when none).
     stages: dict = field(default_factory=dict)
 
 
@@ -230,4 +231,12 @@ def estimate_to_sample(est, fiducial_ids: list[int]) -> PoseSample:
         T_cam_ct=None if est.T_cam_ct is None else np.array(est.T_cam_ct, float), n_matched=int(est.n_matched),
         fiducial_status=status, residuals_px=res, fre_mm=_nan_to_none(est.fre_mm),
         predicted_tre_mm=_nan_to_none(est.predicted_tre_mm), raw=est, code=getattr(est, "code", ""),
-        moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)})
+        moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)},
+        stages=_beside_stage(est))
+
+
+def _beside_stage(est) -> dict:
+    """``{"beside_cpu_s": s}`` when the estimate ran work beside its own thread (the camera-motion
+    check on a worker, vision's ``stages_s["motion_beside_cpu"]``), else {}."""
+    beside = float((getattr(est, "stages_s", None) or {}).get("motion_beside_cpu", 0.0))
+    return {"beside_cpu_s": beside} if beside > 0 else {}

@@ -236,7 +236,7 @@ class _SimRig(CameraRig):
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 continue
             raw = smp.raw
-            smp.stages = {"late_s": late_s, "render_s": w1 - w0, "render_cpu_s": c1 - c0,
+            smp.stages = {**smp.stages, "late_s": late_s, "render_s": w1 - w0, "render_cpu_s": c1 - c0,
                           "arrived_s": w_arrived - frame.t_capture, "estimate_s": w3 - w_arrived,
                           "estimate_cpu_s": c3 - c2, "detect_s": float(getattr(raw, "detect_s", np.nan)),
                           "register_s": float(getattr(raw, "register_s", np.nan))}
