@@ -28,12 +28,15 @@ def _slow(burn):
     return factory
 
 
-def _track(make_session, cpu_s, seconds=2.0):
+def _track(make_session, cpu_s, seconds=2.0, factory=None):
+    """Track the sample plan, then make every estimate cost ``cpu_s`` more (``factory``: how,
+    default :func:`_slow`) for ``seconds``; (session, alerts)."""
     burn = {"s": 0.0}
+    factory = factory or _slow
     # freeze_after_s 0.3: on the simulated clock frames arriving while the estimator is busy are
     # not noted, so a gap over 0.1 s (a ~70 ms estimate, or a loaded machine's slower CPU time)
     # would read as a frozen camera first; this test is about the pipeline's own verdict
-    s = make_session(clock="sim", camera="sim-points", camera_factory=_slow(burn), freeze_after_s=0.3)
+    s = make_session(clock="sim", camera="sim-points", camera_factory=factory(burn), freeze_after_s=0.3)
     plan_sample(s)
     assert s.start_camera().ok
     s.advance(0.5)
@@ -98,17 +101,8 @@ def _beside(cpu):
 def test_work_beside_the_estimate_is_charged_when_it_is_the_longer(make_session):
     """The simulated clock charges a frame max(its own thread CPU, the CPU of the work it waited
     for beside it): 80 ms beside every frame overloads the pipeline like 80 ms on its own thread."""
-    cpu = {"s": 0.0}
-    s = make_session(clock="sim", camera="sim-points", camera_factory=_beside(cpu), freeze_after_s=0.3)
-    plan_sample(s)
-    assert s.start_camera().ok
-    s.advance(0.5)
-    assert s.arm("1234").ok and s.start_tracking().ok
-    s.advance(0.5)
-    assert s.snapshot().robot.state == "tracking"
-    cpu["s"] = 0.080
-    s.advance(2.0)
-    codes = [a.code for a in s.snapshot().alerts]
+    s, alerts = _track(make_session, 0.080, factory=_beside)
+    codes = [a.code for a in alerts]
     assert "pipeline_overloaded" in codes and "pose_stale" not in codes, sorted(set(codes))
     assert s.snapshot().robot.state == "holding"
 
