@@ -155,9 +155,10 @@ def render_chessboard(camera: CameraModel, T_cam_board: np.ndarray, pattern: tup
     R, t = T_cam_board[:3, :3], T_cam_board[:3, 3]
     n = R[:, 2]                                  # board normal in camera frame
     s = (n @ t) / (d @ n)                        # ray parameter to the plane
-    P = d * s[..., None]                         # camera-frame points
-    B = (P - t) @ R                              # board-frame points
-    u, v = B[..., 0] / square_mm, B[..., 1] / square_mm
+    # board-frame x, y of the camera-frame point P = s d: (P - t) @ R per axis, without the
+    # (h, w, 3) float64 temporaries (a 1280x720 board at supersample 2 took 0.23 s with them)
+    u = (s * (d @ R[:, 0]) - t @ R[:, 0]) / square_mm
+    v = (s * (d @ R[:, 1]) - t @ R[:, 1]) / square_mm
     inside = (u > -2) & (u < cols + 1) & (v > -2) & (v < rows + 1) & (s > 0)
     on_board = (u > -1) & (u < cols) & (v > -1) & (v < rows)
     black = ((np.floor(u) + np.floor(v)) % 2 == 0) & on_board
