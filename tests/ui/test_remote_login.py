@@ -180,8 +180,30 @@ def _viser_payload(got: bytes) -> bytes:
     return out
 
 
+def _refusal_end(got: bytes) -> int | None:
+    """Where a complete HTTP response other than ``101`` ends in ``got`` (its header and the body
+    its Content-Length gives), or None (not complete yet, an upgrade, or no Content-Length)."""
+    head, sep, body = got.partition(b"\r\n\r\n")
+    if not sep or head.startswith(b"HTTP/1.1 101"):
+        return None
+    for line in head.split(b"\r\n")[1:]:
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == b"content-length":
+            n = int(value.strip())
+            return len(head) + 4 + n if len(body) >= n else None
+    return None
+
+
 def _raw_ws(port: int, cookie: str | None = None, origin: str | None = None, read_s: float = 3.0) -> bytes:
-    """A websocket upgrade by hand; every byte the server sends within ``read_s`` (or until it closes)."""
+    """A websocket upgrade by hand; every byte the server sends within ``read_s`` (or until it closes).
+
+    A refusal (a complete response other than ``101``) is not waited on for ``read_s`` (issue 35:
+    the server keeps the connection open, so each refused handshake cost the whole 3 s): once it
+    has come, a second request (``HEAD /login``) is sent on the same connection and the bytes are
+    read until that one's answer begins. The server answers a connection's requests in order, so
+    whatever the refused handshake sent after its response (a relayed viser stream) comes before
+    it: when the next bytes are not that answer, reading goes on for ``read_s`` and all is
+    returned; else the refusal alone is (the second answer is not)."""
     import viser
 
     hdr = ["GET / HTTP/1.1", f"Host: 127.0.0.1:{port}", "Upgrade: websocket", "Connection: Upgrade",
@@ -192,11 +214,21 @@ def _raw_ws(port: int, cookie: str | None = None, origin: str | None = None, rea
     if origin:
         hdr.append(f"Origin: {origin}")
     got = b""
+    probe = f"HEAD /login HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n".encode()
+    end = None  # where the refusal's response ends, once the second request is sent
+    probing = True  # False once something else than the second answer followed the refusal
     with socket.create_connection(("127.0.0.1", port), timeout=30) as so:
         so.sendall(("\r\n".join(hdr) + "\r\n\r\n").encode())
         so.settimeout(0.5)
         t0 = time.monotonic()
         while time.monotonic() - t0 < read_s:
+            if probing and end is None and (end := _refusal_end(got)) is not None:
+                so.sendall(probe)
+            if probing and end is not None and len(got) - end >= 12:
+                nxt = got[end:]
+                if nxt.startswith(b"HTTP/1.1 ") and not nxt.startswith(b"HTTP/1.1 101"):
+                    return got[:end]  # the second request's answer came next: nothing else was sent
+                probing = False  # something else came first: read on for read_s, as for any other reply
             try:
                 b = so.recv(65536)
             except socket.timeout:
