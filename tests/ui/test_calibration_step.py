@@ -36,12 +36,14 @@ def _board_rig_factory(feed: BoardFeed):
     from monotracker.engine.rigs.sim import SimImageRig
 
     class BoardRig(SimImageRig):
-        def capture(self, t):
-            fr = super().capture(t)
-            img = feed.image
-            if img is not None:
-                fr.image = np.repeat(img[:, :, None], 3, axis=2) if img.ndim == 2 else img.copy()
-            return fr
+        # the board replaces the rendered image before the frame becomes the newest one: swapped
+        # after it (as this test once did), a capture could read the head in between and report
+        # "no chessboard found" for a board in view (seen beside CPU load)
+        def _new_frame(self, img, t, truth):
+            board = feed.image
+            if board is not None:
+                img = np.repeat(board[:, :, None], 3, axis=2) if board.ndim == 2 else board.copy()
+            return super()._new_frame(img, t, truth)
 
     def factory(source, calibration_path, plan, cfg, session):
         rig = BoardRig(plan, trajectory=cfg.trajectory, seed=cfg.seed, fps=cfg.camera_fps)
