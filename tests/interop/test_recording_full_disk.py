@@ -25,6 +25,7 @@ from monotracker.engine import Session, SessionConfig
 from monotracker.engine import recording
 from monotracker.sim.phantom import default_phantom
 recording.MIN_FREE_BYTES = 0
+recording.RESERVE_BYTES = int(sys.argv[4])  # the reserve must fit under the limit: a test-sized one
 s = Session(SessionConfig(home=sys.argv[1], clock="sim", camera="sim-points"))
 ph = default_phantom()
 for c in ph.fiducial_centres_lps:
@@ -48,9 +49,9 @@ print("RESULT " + json.dumps(out))
 '''
 
 
-def _run_child(home, rec, limit):
+def _run_child(home, rec, limit, reserve=1 << 20):
     env = dict(os.environ, PYTHONPATH=str(ROOT / "app"))
-    p = subprocess.run([sys.executable, "-c", _CHILD, str(home), str(rec), str(limit)], capture_output=True,
+    p = subprocess.run([sys.executable, "-c", _CHILD, str(home), str(rec), str(limit), str(reserve)], capture_output=True,
                        text=True, env=env, cwd=ROOT, timeout=600)
     lines = [ln for ln in p.stdout.splitlines() if ln.startswith("RESULT ")]
     assert p.returncode == 0 and lines, p.stderr[-3000:]
@@ -59,7 +60,9 @@ def _run_child(home, rec, limit):
 
 def test_disk_full_during_a_recording_keeps_what_was_written(tmp_path):
     rec = tmp_path / "rec"
-    out = _run_child(tmp_path / "home", rec, 1_300_000)  # poses.jsonl reaches 1.3 MB after some 800 frames
+    # a 192 KiB reserve (the product's is 1 MiB) and a 500 kB file limit: ~560 frames (1.3 MB and
+    # the 1 MiB reserve took ~1470, 12 s of the child's 6.5 s now; issue 35)
+    out = _run_child(tmp_path / "home", rec, 500_000, reserve=192 << 10)
     assert out["start"][0], out
     stop_ok, stop_msg = out["stop"]
     assert not stop_ok and "incomplete" in stop_msg and "kept" in stop_msg, stop_msg
