@@ -167,10 +167,9 @@ def _ellipse_residuals(pts, ell):
     a call, ~20 calls a frame) unless :data:`COMPILED` is False."""
     (cx, cy), (d1, d2), ang = ell
     if COMPILED:
-        pts = np.asarray(pts, np.float64).reshape(-1, 2)
-        out = np.empty(len(pts))
-        edge_kernels.ellipse_residuals(pts[:, 0], pts[:, 1], float(cx), float(cy), float(d1), float(d2),
-                                       float(ang), out)
+        xy = np.ascontiguousarray(np.asarray(pts, np.float64).reshape(-1, 2).T)  # contiguous rows: one compiled signature
+        out = np.empty(xy.shape[1])
+        edge_kernels.ellipse_residuals(xy[0], xy[1], float(cx), float(cy), float(d1), float(d2), float(ang), out)
         return out
     th = np.radians(ang)
     c, s = np.cos(th), np.sin(th)
@@ -410,8 +409,16 @@ def _ray_layout(image_bgr: np.ndarray, balls: list, blur_px: float):
     Returns (the ellipses as an (m, 5) float array cx, cy, d1, d2, angle, ray_geometry's tuple)."""
     h, w = image_bgr.shape[:2]
     e = np.array([(c[0], c[1], d[0], d[1], a) for c, d, a in balls], float).reshape(-1, 5)
-    return e, edge_kernels.ray_geometry(e[:, 0], e[:, 1], e[:, 2], e[:, 3], e[:, 4], SAMPLES, float(blur_px), h, w,
+    ec = _rows(e)
+    return e, edge_kernels.ray_geometry(ec[0], ec[1], ec[2], ec[3], ec[4], SAMPLES, float(blur_px), h, w,
                                           int(MAX_RAYS))
+
+
+def _rows(e: np.ndarray) -> np.ndarray:
+    """The columns of an (m, k) array as the contiguous rows of a (k, m) one: the compiled kernels
+    then see one array layout whatever m is (strided columns were a second signature, compiled
+    again at the first frame with 2+ balls)."""
+    return np.ascontiguousarray(np.asarray(e, float).T)
 
 
 def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resid: float | None = None,
@@ -566,7 +573,8 @@ def _edge_points_compiled(image_bgr, balls, blur_px, widths, max_resid, chroma_l
             frame["chroma_band_limited"] = chroma_limited
     smooth = bool(CHROMA_SIGMA_PX > 0 and chroma_limited)
     img = image_bgr if image_bgr.flags.c_contiguous else np.ascontiguousarray(image_bgr)
-    prof, prof_e = edge_kernels.sample_rays(img, LINEAR_LUT, COLOUR_WEIGHTS, e[:, 0], e[:, 1], counts, boxes,
+    ec = _rows(e[:, :2])
+    prof, prof_e = edge_kernels.sample_rays(img, LINEAR_LUT, COLOUR_WEIGHTS, ec[0], ec[1], counts, boxes,
                                             step_b, phi, s0, k, smooth, float(CHROMA_SIGMA_PX),
                                             _FINE_LUT)
     cnt = counts[inside]
@@ -845,11 +853,11 @@ def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px
         if not ids:
             return {}
         P, valid, use = _padded({i: balls[i] for i in ids})
-        ell = np.array([[fits[i][0][0][0][0], fits[i][0][0][0][1], fits[i][0][0][1][0], fits[i][0][0][1][1],
-                         fits[i][0][0][2]] for i in ids], float)
+        ell = _rows([[fits[i][0][0][0][0], fits[i][0][0][0][1], fits[i][0][0][1][0], fits[i][0][0][1][1],
+                      fits[i][0][0][2]] for i in ids])
         use_out, changed = edge_kernels.shadow_rays(
-            img, LINEAR_LUT, _LUMA_WEIGHTS, P, valid, use, np.ones(len(ids), bool), ell[:, 0], ell[:, 1], ell[:, 2],
-            ell[:, 3], ell[:, 4], float(r_near), float(SHADOW_FAR_PX), float(SHADOW_OUT_PX), float(SHADOW_NF),
+            img, LINEAR_LUT, _LUMA_WEIGHTS, P, valid, use, np.ones(len(ids), bool), ell[0], ell[1], ell[2],
+            ell[3], ell[4], float(r_near), float(SHADOW_FAR_PX), float(SHADOW_OUT_PX), float(SHADOW_NF),
             float(MIN_RAY_SHARE))
         return {i: use_out[b, :len(balls[i][0])].copy() for b, i in enumerate(ids) if changed[b]}
     out = {}

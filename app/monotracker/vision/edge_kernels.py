@@ -32,9 +32,48 @@ _compiled = compiled
 
 
 @_compiled
+def _kth_smallest(x, k):
+    """The value ``np.sort(x)[k]`` (0 <= k < len(x); NaNs sort last), by selection (quickselect on a
+    copy of the finite values, O(n) on average; ``x`` is not changed). Written out rather than
+    ``np.partition`` / ``np.sort``: numba's implementations of those took ~6 and ~3 s of each
+    process's first compile (the kernels' cold start after an install), the same values."""
+    n = len(x)
+    a = np.empty(n)
+    m = 0
+    if k < 0:
+        return np.nan
+    for i in range(n):
+        if not math.isnan(x[i]):
+            a[m] = x[i]
+            m += 1
+    if k >= m:
+        return np.nan
+    lo, hi = 0, m - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@_compiled
 def _ball_directions(P, starts, counts, edge_k):
     """(N, 3): per ray its ball's colour direction, the component-wise median (upper middle for an
-    even count, as ``np.partition(v, len(v) // 2)``) of the unit colour vectors of the inner
+    even count, as ``np.sort(v)[len(v) // 2]``) of the unit colour vectors of the inner
     ``edge_k`` samples of all its rays, normalised."""
     N = P.shape[0]
     out = np.zeros((N, 3))
@@ -53,7 +92,7 @@ def _ball_directions(P, starts, counts, edge_k):
         for ch in range(3):
             # the (m // 2)-th smallest by selection, O(m): the value np.sort(v[ch])[m // 2] gives
             # (these sorts were a third of ray_edges' time)
-            bd[ch] = np.partition(v[ch], m // 2)[m // 2]
+            bd[ch] = _kth_smallest(v[ch], m // 2)
         nb = math.sqrt(bd[0] ** 2 + bd[1] ** 2 + bd[2] ** 2) + 1e-12
         for n in range(s, s + c):
             for ch in range(3):
@@ -111,9 +150,9 @@ def _crossing(row, level):
 
 @_compiled
 def _median(x):
-    s = np.sort(x)
-    n = len(s)
-    return 0.5 * (s[(n - 1) // 2] + s[n // 2])
+    """np.median's value (NaN last, as np.sort orders it)."""
+    n = len(x)
+    return 0.5 * (_kth_smallest(x, (n - 1) // 2) + _kth_smallest(x, n // 2))
 
 
 @_compiled
@@ -876,7 +915,6 @@ def warm_up() -> None:
                 0.125, 0.3, 0.04, 0.5)
     px = np.ascontiguousarray(P[0, :, 0])
     ellipse_residuals(px, np.ascontiguousarray(P[0, :, 1]), 0.0, 0.0, 20.0, 20.0, 0.0, np.empty(32))
-    ellipse_residuals(P[0, :, 0], P[0, :, 1], 0.0, 0.0, 20.0, 20.0, 0.0, np.empty(32))     # strided views
     contour_fit_rms(np.zeros((8, 1, 2), np.int32), 0.0, 0.0, 2.0, 1.0, 0.0)
     img = np.random.default_rng(1).integers(0, 256, (64, 64, 3)).astype(np.uint8)
     lut32 = np.linspace(0, 1, 256).astype(np.float32)
@@ -885,25 +923,15 @@ def warm_up() -> None:
     shadow_rays(img, lut32, lut32[:3].copy(), P + 32.0, np.ones((1, 32), np.bool_), okb.repeat(32).reshape(1, 32), okb,
                 32.0 * np.ones(1), 32.0 * np.ones(1), 19.0 * np.ones(1), 19.0 * np.ones(1), np.zeros(1), 1.5, 3.0, 0.3,
                 0.9, 0.6)
-    one = np.ones(1)
-    cnt, box, _w, st, ph, s0 = ray_geometry(32.0 * one, 32.0 * one, 20.0 * one, 18.0 * one, 0.0 * one, k, 1.5, 64, 64)
     lut = np.linspace(0, 1, 256).astype(np.float32)
+    # as edge_fit passes them: the balls' ellipses as contiguous rows of a (5, m) array, max_rays
+    # given (a frame with 2+ balls once compiled these again, ~5 CPU s after an install, because
+    # edge_fit passed strided columns then: the demo's first pose came stale, issue 35)
+    ell = np.ascontiguousarray(np.array([[20.0, 20.0, 20.0, 18.0, 0.0], [44.0, 44.0, 20.0, 18.0, 30.0]]).T)
+    cnt, box, _w, st, ph, s0 = ray_geometry(ell[0], ell[1], ell[2], ell[3], ell[4], k, 1.5, 64, 64, 96)
     for smooth in (True, False):
-        sample_rays(img, lut, np.eye(3, dtype=np.float32), 32.0 * one, 32.0 * one, cnt, box, st, ph, s0, k, smooth, 2.0,
+        sample_rays(img, lut, np.eye(3, dtype=np.float32), ell[0], ell[1], cnt, box, st, ph, s0, k, smooth, 2.0,
                     fine_lut())
-    # as edge_fit passes them: the balls' ellipses as columns of an (m, 5) array (strided views,
-    # numba's 'A' layout, when m > 1; one ball's column is contiguous) and max_rays given. Without
-    # these the first frame with 2+ balls compiled ray_geometry, sample_rays and shadow_rays
-    # again (~5 CPU s after an install): the demo's first pose came stale (issue 35)
-    e = np.array([[20.0, 20.0, 20.0, 18.0, 0.0], [44.0, 44.0, 20.0, 18.0, 30.0]])
-    for ell in (e, e[:1].copy()):
-        cnt, box, _w, st, ph, s0 = ray_geometry(ell[:, 0], ell[:, 1], ell[:, 2], ell[:, 3], ell[:, 4], k, 1.5, 64, 64,
-                                                96)
-        for smooth in (True, False):
-            sample_rays(img, lut, np.eye(3, dtype=np.float32), ell[:, 0], ell[:, 1], cnt, box, st, ph, s0, k, smooth,
-                        2.0, fine_lut())
-        m = len(ell)
-        Pm = np.repeat(P, m, axis=0) + 32.0
-        okm = np.ones(m, np.bool_)
-        shadow_rays(img, lut32, lut32[:3].copy(), Pm, np.ones((m, 32), np.bool_), np.ones((m, 32), np.bool_), okm,
-                    ell[:, 0], ell[:, 1], ell[:, 2], ell[:, 3], ell[:, 4], 1.5, 3.0, 0.3, 0.9, 0.6)
+    Pm = np.repeat(P, 2, axis=0) + 32.0
+    shadow_rays(img, lut32, lut32[:3].copy(), Pm, np.ones((2, 32), np.bool_), np.ones((2, 32), np.bool_),
+                np.ones(2, np.bool_), ell[0], ell[1], ell[2], ell[3], ell[4], 1.5, 3.0, 0.3, 0.9, 0.6)
