@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from browser_helpers import (T_PAGE_MS, T_STATE, _click, _command, _input, _msg, _pin_pad, _seq, _take_control,
-                             _wait, open_page, served_locked_sample)
+                             _wait, drawn, open_page, served_locked_sample)
 pytestmark = pytest.mark.timeout(1800)  # the whole two-tab flow took > 900 s at load 25-30 on 2 cores (each wait is on state)
 
 
@@ -36,6 +36,33 @@ def _open(browser, app, size=(1600, 1000)):
     page = open_page(browser, app, size)
     page.get_by_role("button", name="1 CT", exact=True).first.wait_for()
     return page
+
+
+def _count_renders(view) -> list:
+    """Count the render thread's updates of ``view`` (its ``render`` wrapped on the instance):
+    ``[n]``, n growing by one per tick that brought this tab up to date."""
+    n = [0]
+    orig = view.render
+
+    def render(snap):
+        orig(snap)
+        n[0] += 1
+
+    view.render = render
+    return n
+
+
+def _settled(page, view, renders: list, ticks: int = 2) -> None:
+    """Wait until the render thread has brought ``view``'s tab up to date ``ticks`` more times,
+    viser has handed all it queued for the tab to its connection, and the page has drawn two
+    more frames: whatever another tab's action made the server send this tab is on its page
+    (state, not a wall-clock guess)."""
+    from monotracker.ui.viser_threads import tab_caught_up
+
+    n0 = renders[0]
+    _wait(lambda: renders[0] >= n0 + ticks, what=f"{ticks} render ticks")
+    _wait(lambda: tab_caught_up(view.client), what="the tab caught up")
+    drawn(page)
 
 
 def _visible_step(page) -> str:
@@ -66,6 +93,9 @@ def test_second_tab_cannot_see_the_pin_nor_drive_but_can_stop(served_ct, browser
     assert "in control" in _command(a, "OK")
     _wait(lambda: s.snapshot().control.controller is not None, what="A in control")
     a_id = s.snapshot().control.controller
+    view_a = next(v for v in app.views() if v.client_id == a_id)
+    view_b = next(v for v in app.views() if v.client_id != a_id)
+    renders_a = _count_renders(view_a)
     a.wait_for_function("document.querySelector('#mt-control').dataset.mine === '1'")
     b.wait_for_function("document.querySelector('#mt-control').innerText.includes('VIEWING')")
     assert "is in control" in b.locator("#mt-control").inner_text()
@@ -76,8 +106,8 @@ def test_second_tab_cannot_see_the_pin_nor_drive_but_can_stop(served_ct, browser
     _wait(lambda: _visible_step(a) == "plan", what="A on Plan")
     _click(b, "3 Register")
     _wait(lambda: _visible_step(b) == "register", what="B on Register")
-    time.sleep(1.0)  # a render tick or more: A must still show its own step
-    assert _visible_step(a) == "plan"
+    _settled(a, view_a, renders_a)  # render ticks after B's switch: A must still show its own step
+    assert view_a.step == "plan" and _visible_step(a) == "plan"
 
     # B's fields are B's: typing a target in B does not change A's field
     a_target = [_input(a, "Target (LPS mm)").input_value()]
@@ -86,7 +116,9 @@ def test_second_tab_cannot_see_the_pin_nor_drive_but_can_stop(served_ct, browser
     boxes_b = b.locator("xpath=//label[normalize-space()='Target (LPS mm)']/../../following-sibling::div[1]//input")
     boxes_b.nth(0).fill("99.5")
     boxes_b.nth(0).press("Tab")
-    time.sleep(1.0)
+    _wait(lambda: view_b.steps["plan"].h_target.value[0] == 99.5, what="B's typed target on the server")
+    _settled(a, view_a, renders_a)
+    assert view_a.steps["plan"].h_target.value[0] != 99.5
     assert [_input(a, "Target (LPS mm)").input_value()] == a_target
 
     # B cannot drive: its command is refused on B's result line only, the session unchanged
