@@ -60,8 +60,8 @@ def _run_child(home, rec, limit, reserve=1 << 20):
 
 def test_disk_full_during_a_recording_keeps_what_was_written(tmp_path):
     rec = tmp_path / "rec"
-    # a 192 KiB reserve (the product's is 1 MiB) and a 500 kB file limit: ~560 frames (1.3 MB and
-    # the 1 MiB reserve took ~1470, 12 s of the child's 6.5 s now; issue 35)
+    # a 192 KiB reserve (the product's is 1 MiB) and a 500 kB file limit: ~565 frames, the child
+    # ~6.5 s (a 1.3 MB limit with the 1 MiB reserve took ~1470 frames, ~12 s; issue 35)
     out = _run_child(tmp_path / "home", rec, 500_000, reserve=192 << 10)
     assert out["start"][0], out
     stop_ok, stop_msg = out["stop"]
