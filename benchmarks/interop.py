@@ -6,7 +6,9 @@ Table 1, OpenIGTLink (real-clock session, as ``monotracker serve --igtl-port``):
 on 127.0.0.1 receives for a window of W seconds; rates of ``CTToCamera`` / ``Status`` messages
 received per wall second, and capture -> receipt latency (ms). Baseline measured in the same run:
 the camera's own rate (estimates the engine handled per second in the same window): the stream
-can only be as fast as the camera, and should be exactly that fast. Goal: >= 20 Hz.
+can only be as fast as the camera, and should be exactly that fast. Goal: >= 20 Hz (issue 29: >= 28
+Hz with the sim camera). The arm is armed and tracking the sample path in the window, so
+``NeedleTipToCT`` (sent with every fresh trusted pose while the arm's tip is known) is counted too.
 
 Table 2, recording and replay (simulated clock, rendered twin): frames recorded, MB per frame,
 wall time of the recorded run vs the same run without recording (baseline, same run), replay
@@ -56,13 +58,18 @@ def _fresh(planned: Path, root: Path, name: str) -> Path:
     return h
 
 
+#: the benchmark session's arming PIN (its own temporary home)
+PIN = "1234"
+
+
 def bench_igtl(planned: Path, root: Path, camera: str, window_s: float) -> dict:
     import pyigtl
 
     from monotracker.engine import Session, SessionConfig
     from monotracker.interop.igtl import IGTLStreamer
 
-    s = Session(SessionConfig(home=_fresh(planned, root, f"igtl-{camera}"), camera=camera, clock="real"))
+    s = Session(SessionConfig(home=_fresh(planned, root, f"igtl-{camera}"), camera=camera, clock="real",
+                              arm_pin=PIN))
     got = []
     lock = threading.Lock()
     handled = []
@@ -90,6 +97,10 @@ def bench_igtl(planned: Path, root: Path, camera: str, window_s: float) -> dict:
             if p is not None and p.trusted:
                 break
             time.sleep(0.05)
+        # the arm tracking the path: NeedleTipToCT goes out only then (the tip joined to the pose)
+        tracking = s.arm(PIN).ok and s.start_tracking().ok
+        while tracking and time.monotonic() < deadline and s.snapshot().robot.state != "tracking":
+            time.sleep(0.05)
         with lock:
             got.clear()
         n0 = len(handled)
@@ -105,10 +116,12 @@ def bench_igtl(planned: Path, root: Path, camera: str, window_s: float) -> dict:
         st.stop()
         s.shutdown()
     cam = [(t, m) for t, m in rows if m.device_name == "CTToCamera"]
+    tip = [m for _, m in rows if m.device_name == "NeedleTipToCT"]
     status = [m for _, m in rows if m.device_name == "Status"]
     lat = [1000 * (t - m.timestamp) for t, m in cam]
     return {"camera": camera, "window_s": dt, "camera_hz_baseline": cam_hz, "ct_to_camera_hz": len(cam) / dt,
-            "status_hz": len(status) / dt, "needle_msgs": sum(1 for _, m in rows if m.device_name == "NeedleTipToCT"),
+            "status_hz": len(status) / dt, "needle_tip_hz": len(tip) / dt,
+            "needle_tip_stamps_unique": len({m.timestamp for m in tip}) == len(tip), "arm_tracking": tracking,
             "latency_ms_median": float(np.median(lat)) if lat else None,
             "latency_ms_p95": float(np.percentile(lat, 95)) if lat else None}
 
@@ -155,11 +168,11 @@ def main() -> None:
     print(f"OpenIGTLink stream (real clock, pyigtl client on 127.0.0.1; load average {load:.1f} on "
           f"{os.cpu_count()} CPUs)")
     print(f"{'camera':<11} {'window s':>8} {'camera Hz (baseline)':>21} {'CTToCamera Hz':>14} {'Status Hz':>10} "
-          f"{'latency ms med/p95':>19}")
+          f"{'NeedleTipToCT Hz':>16} {'latency ms med/p95':>19}")
     for r in igtl:
         lat = "-" if r["latency_ms_median"] is None else f"{r['latency_ms_median']:.0f} / {r['latency_ms_p95']:.0f}"
         print(f"{r['camera']:<11} {r['window_s']:>8.1f} {r['camera_hz_baseline']:>21.1f} {r['ct_to_camera_hz']:>14.1f} "
-              f"{r['status_hz']:>10.1f} {lat:>19}")
+              f"{r['status_hz']:>10.1f} {r['needle_tip_hz']:>16.1f} {lat:>19}")
     print("\nRecording and replay (rendered twin, simulated clock)")
     print(f"  {rec['frames']} frames, {rec['mb_per_frame']:.2f} MB/frame (PNG); run wall {rec['run_wall_s_recording']:.1f} s "
           f"with recording vs {rec['run_wall_s_baseline']:.1f} s without (baseline)")
