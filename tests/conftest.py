@@ -124,6 +124,54 @@ def pytest_collection_modifyitems(config, items):
         items[:] = keep
 
 
+def _kind(item) -> str:
+    """What a test's time is spent on, for the profile at the end of a run (issue 35 item 1)."""
+    rel = _rel(item)
+    if "browser" in getattr(item, "fixturenames", ()):
+        return "browser (chromium + served app)"
+    if in_serial_lane(item) or item.get_closest_marker("realtime") is not None:
+        return "real clock / measured CPU (serial lane)"
+    if rel.startswith("tests/ct/"):
+        return "CT detection"
+    if rel.startswith(("tests/vision/", "tests/sim/")):
+        return "camera frames and detection"
+    if rel.startswith("tests/examples/"):
+        return "examples (subprocesses)"
+    return "engine, robot, UI logic, other"
+
+
+def pytest_itemcollected(item):
+    """Each test carries its kind in its reports (they reach the controller from xdist's workers)."""
+    item.user_properties.append(("mt_kind", _kind(item)))
+
+
+#: seconds per folder and per kind (setup + call + teardown of every test), collected in the
+#: process that writes the terminal summary
+_TIME_BY = {"folder": {}, "kind": {}}
+
+
+def pytest_runtest_logreport(report):
+    folder = report.nodeid.split("::")[0].rsplit("/", 1)[0]
+    kind = dict(report.user_properties).get("mt_kind", "?")
+    for table, key in (("folder", folder), ("kind", kind)):
+        n, s = _TIME_BY[table].get(key, (0, 0.0))
+        _TIME_BY[table][key] = (n + (report.when == "call"), s + float(report.duration))
+
+
+def pytest_terminal_summary(terminalreporter):
+    """Where the run's time went, by test folder and by kind (issue 35 item 1): the tests' own
+    setup + call + teardown seconds summed (with several workers the sum exceeds the wall time;
+    collection, start-up and the workers' idle time are not in it)."""
+    total = sum(s for _, s in _TIME_BY["folder"].values())
+    if total <= 0:
+        return
+    tr = terminalreporter
+    for table in ("folder", "kind"):
+        tr.write_sep("-", f"test time by {table} (s summed over tests; {total:.0f} s in all)")
+        for key, (n, s) in sorted(_TIME_BY[table].items(), key=lambda kv: -kv[1][1]):
+            tr.write_line(f"{s:8.1f} s {100 * s / total:5.1f} %  {n:4d} tests  {key}")
+
+
 def pytest_report_header(config):
     n = os.environ.get("MONOTRACKER_TEST_HOGS", "").strip()
     return f"MONOTRACKER_TEST_HOGS={n}: CPU hogs beside every test" if n and n != "0" else None
