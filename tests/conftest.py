@@ -129,7 +129,7 @@ def _kind(item) -> str:
     rel = _rel(item)
     if "browser" in getattr(item, "fixturenames", ()):
         return "browser (chromium + served app)"
-    if in_serial_lane(item) or item.get_closest_marker("realtime") is not None:
+    if in_serial_lane(item):  # a realtime test is in it too (collection refuses one outside)
         return "real clock / measured CPU (serial lane)"
     if rel.startswith("tests/ct/"):
         return "CT detection"
