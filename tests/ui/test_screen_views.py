@@ -228,6 +228,37 @@ def test_every_station_is_told_when_control_moves_and_where_stop_was_pressed():
     assert me.changes_elsewhere(_ctl("2", state="estopped")) == []  # the pressing tab has its own result
 
 
+def test_a_tab_that_closes_while_it_is_drawn_is_left_alone():
+    """The render thread drew on a tab whose browser had just closed it: viser warned of every
+    message queued on the closed connection ("Queued a GuiUpdateMessage on a closed connection"),
+    log noise in an OR. Now a closed tab is not drawn on, also when it closes between the parts
+    of one render, and no overlay frame is shown on it. Truth: the parts' own call records."""
+    calls = []
+    v = _view("1")
+    v.closed = False
+    v.step = v._last_session_step = "register"
+    v._job_watch, v._last_image_size, v.notice = False, None, None
+    v.show_step = lambda: calls.append("step bar")
+    v.nav_scene = NS(close=lambda: calls.append("nav closed"))
+    v.app = NS(last_stop=None, session=NS(release_control=lambda cid: calls.append(f"release {cid}")))
+
+    def status_render(snap, step):
+        calls.append("status")
+        v.close()   # the browser closes the tab while the status panel is drawn
+
+    v.status = NS(render=status_render)
+    v.steps = {"register": NS(render=lambda snap: calls.append("register panel"), show_frame=calls.append)}
+    v.scene3d = NS(render=lambda snap, step: calls.append("3D view"))
+    v.live = NS(show_frame=lambda jpeg: calls.append("live"))
+    snap = NS(step="register", job=None, camera=NS(image_size=(1280, 720)), robot=NS(state="disarmed"),
+              control=NS(controller=None, controller_label=""))
+    v.render(snap)
+    assert calls == ["step bar", "status", "nav closed", "release 1"], calls
+    v.render(snap)
+    v.show_frame(b"jpeg")
+    assert calls == ["step bar", "status", "nav closed", "release 1"], calls   # nothing more drawn
+
+
 def test_station_label_is_the_address():
     from monotracker.ui.view import station_label
 

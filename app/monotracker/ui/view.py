@@ -104,6 +104,9 @@ class ClientView:
         self.session = app.session.for_client(self.client_id)
         self.gui, self.scene = client.gui, client.scene
         self.lock = threading.RLock()
+        #: the tab went away (:meth:`close`): the render and overlay threads leave its handles
+        #: alone from then on (viser warns of every message queued on a closed connection)
+        self.closed = False
         snap = self.session.snapshot()
         self.step: str = snap.step
         self._last_session_step = snap.step
@@ -252,7 +255,10 @@ class ClientView:
 
     # ------------------------------------------------------------------ render (render thread)
     def render(self, snap) -> None:
-        """Bring this tab up to date with ``snap``."""
+        """Bring this tab up to date with ``snap`` (nothing once the tab is closed; checked again
+        between the parts, since the tab may close while they draw)."""
+        if self.closed:
+            return
         with self.lock:
             if snap.step != self._last_session_step:
                 # the session went back (fiducials unlocked, new plan): show the step that now
@@ -274,12 +280,16 @@ class ClientView:
                 self.say(True, f"CT loaded: {len(snap.fiducials)} fiducials found; check each, then lock the set")
         with self.lock:
             self._last_image_size = snap.camera.image_size
+        if self.closed:
+            return
         self.show_step()
         if snap.robot.state != "disarmed":
             self.notice = None
-        self.status.render(snap, step)
-        self.steps[step].render(snap)
-        self.scene3d.render(snap, step)
+        for part in (lambda: self.status.render(snap, step), lambda: self.steps[step].render(snap),
+                     lambda: self.scene3d.render(snap, step)):
+            if self.closed:
+                return
+            part()
 
     def changes_elsewhere(self, snap) -> list[tuple[bool, str]]:
         """Result lines for what changed without this tab's command: control moved to another
@@ -306,6 +316,8 @@ class ClientView:
 
     def show_frame(self, jpeg: bytes) -> None:
         """The newest overlay frame (JPEG bytes, encoded once for all tabs) on the shown step."""
+        if self.closed:
+            return
         with self.lock:
             step = self.step
         if step in MAIN_LIVE_STEPS:
@@ -355,7 +367,8 @@ class ClientView:
                 and not (nav is not None and nav.active))
 
     def close(self) -> None:
-        """The tab went away: give up control if it had it."""
+        """The tab went away: give up control if it had it; nothing is drawn on it any more."""
+        self.closed = True
         self.nav_scene.close()
         try:
             self.app.session.release_control(self.client_id)
