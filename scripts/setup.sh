@@ -18,15 +18,16 @@ want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   echo "setting up .venv (first run takes a minute or less)..." >&2
   # uv (Astral's installer, from PyPI) installs the same packages as pip resolves here (checked
-  # with `pip freeze`) in 21-33 s instead of pip's 77-82 s on a fresh 2-core machine (empty
-  # caches, downloads included; same hour): the first run of the README's commands is that much
-  # shorter (issue 35). It does not byte-compile what it installs (pip does, every module of
-  # every package): Python compiles the modules actually imported on first use and keeps them.
+  # with `pip freeze`) in 30-45 s instead of pip's 67-82 s on a fresh 2-core machine (empty
+  # caches, downloads included): the first run of the README's commands is that much
+  # shorter (issue 35). --compile-bytecode: byte-compiled as pip does (without it, on a machine
+  # with PYTHONDONTWRITEBYTECODE set, every process compiled what it imported: a fresh-clone
+  # CI run here took 827 s, against 714-719 s with pip the day before).
   # Where uv cannot be installed or fails (no wheel for the platform, an index only pip's
   # configuration knows), pip does the install as before; MONOTRACKER_INSTALLER=pip forces pip.
   if [ "${MONOTRACKER_INSTALLER:-uv}" = "uv" ] \
      && .venv/bin/python -m pip install -q --disable-pip-version-check "uv>=0.5" 2>/dev/null \
-     && .venv/bin/python -m uv pip install -q --python .venv/bin/python -e ".[test]"; then
+     && .venv/bin/python -m uv pip install -q --compile-bytecode --python .venv/bin/python -e ".[test]"; then
     :
   else
     echo "installing with pip..." >&2
