@@ -22,7 +22,7 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   # caches, downloads included): the first run of the README's commands is that much
   # shorter (issue 35). --compile-bytecode: byte-compiled as pip does (without it, on a machine
   # with PYTHONDONTWRITEBYTECODE set, every process compiled what it imported: a fresh-clone
-  # CI run here took 827 s, against 714-719 s with pip the day before).
+  # CI run here took 827 s, against 714-719 s with pip earlier the same day).
   # Where uv cannot be installed or fails (no wheel for the platform, an index only pip's
   # configuration knows), pip does the install as before; MONOTRACKER_INSTALLER=pip forces pip.
   if [ "${MONOTRACKER_INSTALLER:-uv}" = "uv" ] \
