@@ -257,6 +257,17 @@ def test_a_tab_that_closes_while_it_is_drawn_is_left_alone():
     v.render(snap)
     v.show_frame(b"jpeg")
     assert calls == ["step bar", "status", "nav closed", "release 1"], calls   # nothing more drawn
+    # viser has closed the connection and dropped the client, but not yet run the disconnect
+    # callback (its thread pool, later under load): nothing is drawn either
+    calls.clear()
+    clients = {7: object()}
+    v.closed, v.client = False, NS(client_id=7)
+    v.status = NS(render=lambda snap, step: (calls.append("status"), clients.clear()))
+    v.app = NS(last_stop=None, server=NS(get_clients=lambda: dict(clients)))
+    v.render(snap)
+    v.render(snap)
+    v.show_frame(b"jpeg")
+    assert calls == ["step bar", "status"], calls
 
 
 def test_station_label_is_the_address():

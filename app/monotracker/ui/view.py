@@ -257,7 +257,7 @@ class ClientView:
     def render(self, snap) -> None:
         """Bring this tab up to date with ``snap`` (nothing once the tab is closed; checked again
         between the parts, since the tab may close while they draw)."""
-        if self.closed:
+        if self.gone:
             return
         with self.lock:
             if snap.step != self._last_session_step:
@@ -280,16 +280,26 @@ class ClientView:
                 self.say(True, f"CT loaded: {len(snap.fiducials)} fiducials found; check each, then lock the set")
         with self.lock:
             self._last_image_size = snap.camera.image_size
-        if self.closed:
+        if self.gone:
             return
         self.show_step()
         if snap.robot.state != "disarmed":
             self.notice = None
         for part in (lambda: self.status.render(snap, step), lambda: self.steps[step].render(snap),
                      lambda: self.scene3d.render(snap, step)):
-            if self.closed:
+            if self.gone:
                 return
             part()
+
+    @property
+    def gone(self) -> bool:
+        """The tab is closed (:meth:`close`) or its connection is: viser closes the connection and
+        drops the client from ``get_clients()`` before it runs the disconnect callback (on its
+        thread pool, later under load), and every update queued in between only earns a warning."""
+        if self.closed:
+            return True
+        server = getattr(self.app, "server", None)
+        return server is not None and self.client.client_id not in server.get_clients()
 
     def changes_elsewhere(self, snap) -> list[tuple[bool, str]]:
         """Result lines for what changed without this tab's command: control moved to another
@@ -316,7 +326,7 @@ class ClientView:
 
     def show_frame(self, jpeg: bytes) -> None:
         """The newest overlay frame (JPEG bytes, encoded once for all tabs) on the shown step."""
-        if self.closed:
+        if self.gone:
             return
         with self.lock:
             step = self.step
