@@ -100,48 +100,92 @@ def test_the_pose_tracker_refuses_poses_once_the_camera_moved():
     assert first <= 12 + 4 and all(c == "camera_moved" for c in codes[first:]), codes
 
 
-def test_the_check_beside_the_frame_gives_the_same_verdict_at_the_same_frame():
-    """Issue 29: the engine runs the check on a worker beside the frame's detection and
-    registration (BackgroundMotionWatch), given the previous frame's balls; the knock must be
-    acted on at the same frame, with the same alarm, as by the monitor run inline. Truth: the
-    same frames through the monitor inline."""
-    from monotracker.vision.camera_motion import BackgroundMotionWatch
+def _codes(cam, watch, frames, after_publish=True, config=None):
+    """The pose tracker's codes on ``frames`` frames of ``cam`` with ``watch``; after each frame
+    the pipeline's :meth:`PoseTracker.after_publish` (``after_publish``) as the engine's rigs call it."""
+    ph = LAYOUT.phantom
+    trk = PoseTracker(ph.fiducial_centres_lps, cam.camera, radius_mm=ph.fiducial_radius_mm,
+                      target_ct=ph.sample_target_lps, camera_motion=watch, config=config)
+    out = []
+    for i in range(frames):
+        img, truth = cam.render(i / cam.fps)
+        out.append(trk.process(Frame(img, i / cam.fps, i, truth)).code)
+        if after_publish:
+            trk.after_publish()
+    return out, trk
+
+
+def test_a_knock_on_a_due_frame_is_refused_at_that_frame_when_its_check_is_deferred():
+    """Issue 29: the engine runs a due frame's check after that frame's pose is given out
+    (DeferredMotionWatch), so the frame's own path carries no check. A knock must still be acted
+    on at the frame it happens in, with the same alarm, as by the monitor run inline (the pose
+    jumped: checked on the frame's path). Truth: the same frames through the monitor inline."""
+    from monotracker.vision.camera_motion import DeferredMotionWatch
+
+    def bumped():
+        cam = _camera()
+        cam.camera_motion = CameraMotion("camera-bump", 0.4)   # frame 12, a due frame at every 2nd
+        return cam
+
+    f = float(bumped().camera.K[0, 0])
+    inline, ref = _codes(bumped(), CameraMotionMonitor(f, MotionConfig(every_n_frames=2)), 24)
+    deferred, trk = _codes(bumped(), DeferredMotionWatch(CameraMotionMonitor(f, MotionConfig(every_n_frames=2))), 24)
+    assert "camera_moved" in inline and deferred == inline, (inline, deferred)
+    assert trk.camera_motion.moved and "the camera moved since tracking started" in trk.camera_motion.last.reason
+    assert abs(trk.camera_motion.max_shift_px / ref.camera_motion.max_shift_px - 1.0) < 0.1  # the same knock
+    assert trk.camera_motion.check_cpu_s > 0.0   # due checks ran after their poses
+
+
+def test_a_sag_is_refused_at_most_one_frame_after_the_inline_check_and_never_skipped():
+    """A slow sag (no jump) is the case the deferral delays: a due frame's verdict counts from
+    the next frame. The monitor sees the same frames in the same order (the same reports), the
+    first refusal comes at most one frame after the inline monitor's, and a pipeline that never
+    calls after_publish gets the same verdicts (the next frame runs the check first)."""
+    from monotracker.vision.camera_motion import DeferredMotionWatch
+
+    def sagging():   # the same frames for each run (a camera renders its noise from its own stream)
+        cam = _camera()
+        cam.camera_motion = CameraMotion("camera-sag", 0.2)
+        return cam
+
+    cam = sagging()
+    f = float(cam.camera.K[0, 0])
+    n = 75
+    inline, ref = _codes(cam, CameraMotionMonitor(f, MotionConfig(every_n_frames=3)), n)
+    first = inline.index("camera_moved")
+    for after in (True, False):
+        deferred, trk = _codes(sagging(), DeferredMotionWatch(CameraMotionMonitor(f, MotionConfig(every_n_frames=3))), n,
+                               after_publish=after)
+        d_first = deferred.index("camera_moved")
+        assert first <= d_first <= first + 1, (after, inline, deferred)
+        assert deferred[:first] == inline[:first] and all(c == "camera_moved" for c in deferred[d_first:])
+        assert trk.camera_motion.max_shift_px == pytest.approx(ref.camera_motion.max_shift_px, rel=1e-9)
+
+
+def test_an_error_in_a_deferred_check_refuses_the_next_frame_through_the_callers_error_path():
+    """A check that raises after the pose was given out must not be lost: after_publish never
+    raises (the pipeline publishes on), the next process() raises it (the pose stream's error
+    path: an internal-error estimate, the arm holds), and the frame after that is judged again."""
+    from monotracker.vision.camera_motion import DeferredMotionWatch
 
     cam = _camera()
-    cam.camera_motion = CameraMotion("camera-bump", 0.4)
+    mon = CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=1))
+    watch = DeferredMotionWatch(mon)
     ph = LAYOUT.phantom
-
-    def codes(watch):
-        trk = PoseTracker(ph.fiducial_centres_lps, cam.camera, radius_mm=ph.fiducial_radius_mm,
-                          target_ct=ph.sample_target_lps, camera_motion=watch)
-        out = []
-        for i in range(24):
-            img, truth = cam.render(i / cam.fps)
-            out.append(trk.process(Frame(img, i / cam.fps, i, truth)).code)
-        return out, trk
-
-    inline, ref = codes(CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=2)))
-    beside, trk = codes(BackgroundMotionWatch(CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=2))))
-    assert "camera_moved" in inline and beside == inline, (inline, beside)
-    assert trk.camera_motion.moved and "the camera moved since tracking started" in trk.camera_motion.last.reason
-    # the same knock measured (the head's disc is placed from the previous frame's balls, so the
-    # background corners differ a little after the knock)
-    assert abs(trk.camera_motion.max_shift_px / ref.camera_motion.max_shift_px - 1.0) < 0.1
-    assert trk.camera_motion.check_cpu_s > 0.0   # the checks ran on the worker
-
-
-def test_an_error_in_the_check_beside_the_frame_reaches_the_caller():
-    """A check that raises on the worker must not be lost: finish() raises it on the caller's
-    thread (the pose pipeline's error path then holds the arm)."""
-    from monotracker.vision.camera_motion import BackgroundMotionWatch
-
-    watch = BackgroundMotionWatch(CameraMotionMonitor(1000.0, MotionConfig(every_n_frames=1)))
-    assert watch.start(np.zeros((4, 4, 5), np.uint8), np.array([[1.0, 1.0]]))  # not an image
+    trk = PoseTracker(ph.fiducial_centres_lps, cam.camera, radius_mm=ph.fiducial_radius_mm,
+                      target_ct=ph.sample_target_lps, camera_motion=watch)
+    img, truth = cam.render(0.0)
+    trk.process(Frame(img, 0.0, 0, truth))
+    assert watch.pending
+    watch._pending = (np.zeros((4, 4, 5), np.uint8), None)   # not an image: the check raises
+    assert trk.after_publish() >= 0.0 and not watch.pending
+    img, truth = cam.render(1 / cam.fps)
     with pytest.raises(cv2.error):
-        watch.finish()
-    assert not watch.start(np.zeros((64, 64, 3), np.uint8), None)   # no previous balls: inline
+        trk.process(Frame(img, 1 / cam.fps, 1, truth))
+    img, truth = cam.render(2 / cam.fps)
+    assert trk.process(Frame(img, 2 / cam.fps, 2, truth)).code in ("", "tre_limit")
     watch.reset()
-    assert not watch.moved
+    assert not watch.moved and not watch.pending
 
 
 def test_a_knock_between_checks_is_refused_before_any_pose_is_trusted():
@@ -150,24 +194,16 @@ def test_a_knock_between_checks_is_refused_before_any_pose_is_trusted():
     knocked poses were trusted and the arm followed them (rate44's demo: 1.5 mm of travel). Now a
     frame whose pose jumped more than TrackerConfig.motion_jump_mm (4 mm) from the last trusted one
     is checked at once. Truth: the same frames with the jump rule off trust knocked poses."""
-    from monotracker.vision.camera_motion import BackgroundMotionWatch
+    from monotracker.vision.camera_motion import DeferredMotionWatch
     from monotracker.vision.pose_tracker import TrackerConfig
 
     cam = _camera()
     knock = 14   # frames 0, 6, 12, 18 are the watch's; 14 is not
     cam.camera_motion = CameraMotion("camera-bump", (knock - 0.5) / cam.fps)
-    ph = LAYOUT.phantom
 
     def codes(jump_mm):
-        trk = PoseTracker(ph.fiducial_centres_lps, cam.camera, radius_mm=ph.fiducial_radius_mm,
-                          target_ct=ph.sample_target_lps, config=TrackerConfig(motion_jump_mm=jump_mm),
-                          camera_motion=BackgroundMotionWatch(CameraMotionMonitor(float(cam.camera.K[0, 0]),
-                                                                                  MotionConfig(every_n_frames=6))))
-        out = []
-        for i in range(22):
-            img, truth = cam.render(i / cam.fps)
-            out.append(trk.process(Frame(img, i / cam.fps, i, truth)).code)
-        return out
+        watch = DeferredMotionWatch(CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=6)))
+        return _codes(cam, watch, 22, config=TrackerConfig(motion_jump_mm=jump_mm))[0]
 
     now, without = codes(4.0), codes(float("inf"))
     assert now[:knock] == without[:knock] and now[knock - 1] == "", (now, without)

@@ -141,7 +141,7 @@ class _Recorder:
             self._seen_pose = rec.sample
             smp = rec.sample
             st = dict(getattr(smp.raw, "stages_s", None) or {})
-            st.update({k: v for k, v in (smp.stages or {}).items() if k == "pipeline_s"})
+            st.update({k: v for k, v in (smp.stages or {}).items() if k in ("pipeline_s", "after_pose_s")})
             self.stages.append(st)
             if rec.trusted:
                 self._trusted_capture = smp.t_capture
@@ -167,10 +167,11 @@ def _pipeline_figures(stages: list[dict]) -> dict:
         return None if a.size == 0 else {"p50": float(np.median(a)), "p95": float(np.percentile(a, 95)),
                                           "p99": float(np.percentile(a, 99)), "n": int(a.size)}
     dr = [sum(s.get(k, 0.0) for k in DETECT_REGISTER_STAGES) for s in stages if "detect" in s]
-    keys = sorted({k for s in stages for k in s if k != "pipeline_s"})
+    keys = sorted({k for s in stages for k in s if k not in ("pipeline_s", "after_pose_s")})
     return {"detect_register_ms_median": float(np.median(dr)) * 1000 if dr else None,
             "detect_register_ms": pct(dr),
             "pipeline_ms": pct([s["pipeline_s"] for s in stages if "pipeline_s" in s]),
+            "after_pose_ms": pct([s["after_pose_s"] for s in stages if "after_pose_s" in s]),
             "stages_ms": {k: float(np.nanmedian([s.get(k, np.nan) for s in stages])) * 1000 for k in keys}}
 
 

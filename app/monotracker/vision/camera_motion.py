@@ -33,7 +33,6 @@ it.
 
 from __future__ import annotations
 
-import threading
 import time
 from dataclasses import dataclass
 
@@ -256,34 +255,37 @@ class CameraMotionMonitor:
         return self.last
 
 
-class BackgroundMotionWatch:
-    """A :class:`CameraMotionMonitor` whose checks run beside the frame's own work (issue 29):
-    the check of a frame (~3 ms of CPU at 1280x720, on one frame in ``every_n_frames``) runs on a
-    short-lived worker thread while the same frame's detection and registration go on (OpenCV's
-    calls release the GIL), and its verdict is waited for before that frame's pose is given out:
-    a knock is acted on at the same frame as by the monitor alone, and the frame's own path no
-    longer carries the check (on a machine with a free core; the worker's CPU time of the last
-    check is ``check_cpu_s``, s).
+class DeferredMotionWatch:
+    """A :class:`CameraMotionMonitor` whose checks run after the frame's pose was given out
+    (issue 29): the check of a due frame (~2.5-3 ms of CPU at 1280x720, one frame in
+    ``every_n_frames``) is kept by :meth:`defer` and run by :meth:`run_pending`, which the pose
+    pipeline calls once it has published that frame's estimate, in the time before the next
+    frame arrives. The frame's own path then carries no check, and nothing runs beside it to slow
+    it down (the check on a worker thread beside the detection, the design before, cost the
+    frame 1-2.5 ms of its own CPU on two cores: the demo's latency p95 went over 45 ms with it).
 
-    :meth:`start` begins the check of a due frame, given where the balls were in the previous
-    frame (the head is kept out of the background by a disc around them, with a margin of tens of
-    px: a frame's motion of the head does not matter); :meth:`finish` waits for it and raises what
-    it raised (the caller's error path). A frame that is not due, or the first one (no previous
-    balls), goes through :meth:`update`, the monitor's own call, inline. The monitor is used by
-    one thread at a time (every call first waits for the check in flight). The image handed to
-    :meth:`start` must not be written to until :meth:`finish` (frames are never modified once
-    captured). Same verdict interface as the monitor (``moved``, ``last``, ``reset``,
-    ``max_shift_px``).
+    What that costs in safety, and why it is small: the verdict of a due frame counts from the
+    next frame (+1 frame, 33 ms at 30 fps). A knock still stops the frame it happens in: a pose
+    that jumped more than ``TrackerConfig.motion_jump_mm`` from the last trusted one is checked at
+    once, on its frame's path, due or not (:class:`~.pose_tracker.PoseTracker`); a slow sag
+    needs ``confirm_checks`` checks over the alarm anyway (>= 6 frames at the engine's every 6th
+    frame), and frames that are not due were never checked on their own path. A pipeline that
+    does not call :meth:`run_pending` gets the check run at the start of its next frame (the
+    tracker does it before it judges that frame): the verdict is never skipped.
+
+    The same verdict interface as the monitor (``moved``, ``last``, ``max_shift_px``,
+    ``next_is_checked``, ``update``, ``reset``); ``check_cpu_s``: CPU time (s) of the last check
+    run by :meth:`run_pending`. The image given to :meth:`defer` must not be written to until the
+    check ran (frames are never modified once captured). Not thread-safe: one pose pipeline uses it.
     """
 
     def __init__(self, monitor: CameraMotionMonitor):
         self.monitor = monitor
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
-        #: CPU time (s) of the last check run on the worker thread
+        self._pending: tuple[np.ndarray, np.ndarray | None] | None = None
+        #: CPU time (s) of the last check run by :meth:`run_pending`
         self.check_cpu_s = 0.0
 
-    # the monitor's verdict, as of the checks waited for
+    # the monitor's verdict, as of the checks run so far
     @property
     def moved(self) -> bool:
         return self.monitor.moved
@@ -296,52 +298,43 @@ class BackgroundMotionWatch:
     def max_shift_px(self) -> float:
         return self.monitor.max_shift_px
 
-    def start(self, image: np.ndarray, previous_fiducials_px: np.ndarray | None) -> bool:
-        """Begin this frame's check on the worker when it is due and the balls of the previous
-        frame are known ((n, 2) px, NaN rows ignored); True when begun (then call
-        :meth:`finish` before using the verdict). False: call :meth:`update` with this frame's
-        balls instead (it counts the frame, or checks it inline)."""
-        self.finish()
-        if previous_fiducials_px is None or not self.monitor.next_is_checked():
-            return False
-        pts = np.array(previous_fiducials_px, dtype=float, copy=True).reshape(-1, 2)
-        if not np.isfinite(pts).all(axis=1).any():
-            return False
-        th = threading.Thread(target=self._run, args=(image, pts), name="monotracker-camera-motion", daemon=True)
-        self._thread = th
-        th.start()
-        return True
+    @property
+    def pending(self) -> bool:
+        """A deferred check waits to be run."""
+        return self._pending is not None
 
-    def _run(self, image: np.ndarray, pts: np.ndarray) -> None:
-        t0 = time.thread_time()
+    def next_is_checked(self) -> bool:
+        """Whether the next frame fed is a due one (see :meth:`CameraMotionMonitor.next_is_checked`)."""
+        return self.monitor.next_is_checked()
+
+    def defer(self, image: np.ndarray, fiducials_px: np.ndarray | None) -> None:
+        """Keep this frame (and its balls, (n, 2) px, NaN rows ignored, copied) for
+        :meth:`run_pending`: the frame counts when its check runs. A check still waiting is run
+        first, so the monitor sees the frames in order."""
+        self.run_pending()
+        pts = None if fiducials_px is None else np.array(fiducials_px, dtype=float, copy=True).reshape(-1, 2)
+        self._pending = (image, pts)
+
+    def run_pending(self) -> MotionReport | None:
+        """Run the deferred check, if any (its verdict then shows in ``moved`` / ``last``; its CPU
+        time in ``check_cpu_s``); raises what the check raised (the caller's error path)."""
+        if self._pending is None:
+            return None
+        (image, pts), self._pending = self._pending, None
+        c0 = time.thread_time()
         try:
-            self.monitor.update(image, pts)
-        except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread by finish()
-            self._error = exc
+            return self.monitor.update(image, pts)
         finally:
-            self.check_cpu_s = time.thread_time() - t0
-
-    def finish(self) -> None:
-        """Wait for the check in flight, if any (its verdict then shows in ``moved`` / ``last``);
-        raise what it raised."""
-        th = self._thread
-        if th is not None:
-            th.join()
-            self._thread = None
-        if self._error is not None:
-            exc, self._error = self._error, None
-            raise exc
+            self.check_cpu_s = time.thread_time() - c0
 
     def update(self, image: np.ndarray, fiducials_px: np.ndarray | None = None,
                force: bool = False) -> MotionReport | None:
-        """The monitor's :meth:`CameraMotionMonitor.update`, inline (after the check in flight)."""
-        self.finish()
+        """The monitor's :meth:`CameraMotionMonitor.update`, inline (after a deferred check)."""
+        self.run_pending()
         return self.monitor.update(image, fiducials_px, force=force)
 
     def reset(self) -> None:
-        """Wait for the check in flight, then forget the reference and the verdict (see
+        """Drop a deferred check, then forget the reference and the verdict (see
         :meth:`CameraMotionMonitor.reset`)."""
-        try:
-            self.finish()
-        finally:
-            self.monitor.reset()
+        self._pending = None
+        self.monitor.reset()

@@ -203,6 +203,9 @@ class PoseStream:
                                    frame.t_capture, time.monotonic(), alerts=[f"internal error: {exc}"],
                                    code="pose_lost")
             self._publish(est)
+            after = getattr(self.tracker, "after_publish", None)
+            if after is not None:
+                after()   # a due frame's camera-motion check, now that its pose is out (never raises)
 
     def _watch(self) -> None:
         while not self._stop.wait(0.02):

@@ -248,9 +248,9 @@ class PoseTracker:
             n .. n+m-1), so that a detector searching windows finds them too.
         camera_motion: a :class:`~.camera_motion.CameraMotionMonitor` (the camera must not move
             after the hand-eye calibration; its verdict counts from the frame it checks), a
-            :class:`~.camera_motion.BackgroundMotionWatch` (the same check run beside the frame's
-            detection and registration on a worker thread, the same verdict: what the engine's
-            rigs use) or None (not watched).
+            :class:`~.camera_motion.DeferredMotionWatch` (the same checks, a due frame's run by
+            :meth:`after_publish` once its pose is out, its verdict from the next frame: what
+            the engine's rigs use) or None (not watched).
 
     The detector is called ``detect(image, hint)`` (a detector whose ``detect`` takes no
     ``hint`` is called ``detect(image)``): ``hint`` is a :class:`~.detection.DetectionHint`
@@ -278,9 +278,9 @@ class PoseTracker:
         self.config = config or TrackerConfig()
         #: the static-background watch (:class:`~.camera_motion.CameraMotionMonitor`) or None
         self.camera_motion = camera_motion
-        #: the balls of the last frame (px), where a camera-motion check run beside the next
-        #: frame's detection keeps the head out of the background
-        self._motion_pts: np.ndarray | None = None
+        #: an error of a camera-motion check run by :meth:`after_publish`, raised by the next
+        #: :meth:`process` (the caller's error path: that frame is refused, the arm holds)
+        self._check_error: BaseException | None = None
         self.watch_ct = np.zeros((0, 3)) if watch_ct is None else np.asarray(watch_ct, float).reshape(-1, 3)
         self._takes_hint = _takes_hint(self.detector)
         #: the hint's predicted ellipses, each reused between frames while its ball moved little
@@ -326,6 +326,33 @@ class PoseTracker:
         return float(np.linalg.norm(apply_transform(T_cam_ct, c)[0] - apply_transform(self._last_T, c)[0])) \
             > self.config.motion_jump_mm
 
+    def after_publish(self) -> float:
+        """Run the work this tracker deferred until the last frame's estimate was given out: the
+        camera-motion check of a due frame (a :class:`~.camera_motion.DeferredMotionWatch`).
+        A pose pipeline calls it right after it published the estimate, in the time before the
+        next frame; :meth:`process` runs whatever was left undone before it judges the next frame.
+        Returns the CPU time (s) it took (0.0 when nothing was due). Never raises: an error of
+        the check is raised by the next :meth:`process`."""
+        watch = self.camera_motion
+        if watch is None or not getattr(watch, "pending", False):
+            return 0.0
+        c0 = time.thread_time()
+        try:
+            watch.run_pending()
+        except Exception as exc:  # noqa: BLE001 - handed to the next process() call
+            self._check_error = exc
+        return time.thread_time() - c0
+
+    def _run_deferred_check(self) -> None:
+        """Before a frame is judged: raise the error of a check run after the last frame, or run
+        the check the pipeline left undone (its verdict counts for this frame)."""
+        exc, self._check_error = self._check_error, None
+        if exc is not None:
+            raise exc
+        watch = self.camera_motion
+        if watch is not None and getattr(watch, "pending", False):
+            watch.run_pending()
+
     def set_target(self, target_ct: np.ndarray | None) -> None:
         """Planned target, (3,) CT LPS mm, for ``predicted_tre_mm`` (None: no target)."""
         self.target_ct = None if target_ct is None else np.asarray(target_ct, float).reshape(3)
@@ -363,27 +390,17 @@ class PoseTracker:
             return self._invalid(frame.index, frame.t_capture, "frame_grayscale", grey, truth=frame.truth)
         fresh = (frame.index == self._last_T_index + 1 or frame.t_capture - self._last_T_time <= cfg.prior_max_age_s)
         prior = self._last_T if fresh else None
-        t_start = time.perf_counter()
-        # a due camera-motion check runs beside this frame's detection and registration (a
-        # BackgroundMotionWatch, given the previous frame's balls); otherwise inline below
         watch = self.camera_motion
-        beside = watch is not None and hasattr(watch, "start") and watch.start(frame.image, self._motion_pts)
+        t_m0 = time.perf_counter()
+        self._run_deferred_check()   # the last frame's check, if its pipeline left it undone
+        t_motion = time.perf_counter() - t_m0
+        t_start = time.perf_counter()
         hint = self.hint(frame.index, frame.t_capture) if self._takes_hint else None
         t_hint = time.perf_counter() - t_start
         if hint is None or hint.search_all:
             self._last_full_index = frame.index
         det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
         pts = det.centres
-        t_motion = 0.0
-        checked = beside   # this frame's background checked (beside it, or inline below)
-        if watch is not None and not beside:
-            t_m0 = time.perf_counter()
-            checked = watch.update(frame.image, pts) is not None
-            t_motion = time.perf_counter() - t_m0
-            if watch.moved:
-                return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason,
-                                     truth=frame.truth)
-        self._motion_pts = pts
         known_sigma = self.noise.peek(0.0, 0)
         t0 = time.perf_counter()
         scr = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
@@ -393,18 +410,20 @@ class PoseTracker:
                                 min_shift_mm=cfg.moved_min_shift_mm,
                                 max_exclusions=2 if cfg.check_moved else 0)
         reg = scr.registration
-        beside_cpu = 0.0
-        if beside:   # the check of this frame, begun before its detection: its verdict now
+        if watch is not None:
             t_m0 = time.perf_counter()
-            watch.finish()
-            t_motion = time.perf_counter() - t_m0   # the wait for it (s), not its work
-            beside_cpu = watch.check_cpu_s
-        elif watch is not None and not checked and reg.ok and self._jumped(reg.T_cam_ct):
-            # the whole head jumped in the camera since the last trusted pose, on a frame the
-            # watch skips: a knocked camera looks like this, so the background is checked now,
-            # on the frame's path, before the pose can be trusted
-            t_m0 = time.perf_counter()
-            watch.update(frame.image, pts, force=True)
+            if reg.ok and self._jumped(reg.T_cam_ct):
+                # the whole head jumped in the camera since the last trusted pose: a knocked
+                # camera looks like this, so the background is checked now, on the frame's path,
+                # before the pose can be trusted (due frame or not)
+                watch.update(frame.image, pts, force=True)
+            elif reg.ok and hasattr(watch, "defer") and watch.next_is_checked():
+                watch.defer(frame.image, pts)   # checked after this pose is given out (after_publish)
+            else:
+                # counts the frame; a due one is checked here when the watch is a plain monitor or
+                # the frame gives no pose (its latency does not matter; a knock that lost the
+                # balls is then called moved at this frame)
+                watch.update(frame.image, pts)
             t_motion += time.perf_counter() - t_m0
         if watch is not None and watch.moved:
             return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason, truth=frame.truth)
@@ -539,7 +558,7 @@ class PoseTracker:
 
         T = T_pose if ok else None
         stages = {"hint": t_hint, "detect": det.time_s, "register": scr.register_s, "screen": scr.screen_s,
-                  "gates": time.perf_counter() - t_gates0, "motion": t_motion, "motion_beside_cpu": beside_cpu}
+                  "gates": time.perf_counter() - t_gates0, "motion": t_motion}
         stages.update({f"detect.{k}": v for k, v in getattr(det, "stages_s", {}).items()})
         if ok:
             self._last_T = T_pose

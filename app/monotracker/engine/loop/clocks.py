@@ -79,14 +79,18 @@ class SimStepper:
                         w0 = time.thread_time()
                         sample = rig.estimate(frame)
                         w = time.thread_time() - w0 if charge is None else charge
-                        if charge is None:
-                            # work run beside the frame on another core (the camera-motion
-                            # check): the pose waited for the longer of the two
-                            w = max(w, float(sample.stages.get("beside_cpu_s", 0.0)))
                         ready = t + rig.transport_delay_s + w
                         sample.t_ready = ready
                         sample.stages["pipeline_s"] = w   # the pipeline's own time (engine/loop/load.py)
-                        self._busy_until = ready
+                        # the work deferred until the pose is out (a due frame's camera-motion
+                        # check): the estimator is busy with it after the pose is ready, so it
+                        # delays the next frame, never this pose (a fixed charge covers it all)
+                        a0 = time.thread_time()
+                        rig.after_publish()
+                        after = time.thread_time() - a0 if charge is None else 0.0
+                        if after > 0.0:
+                            sample.stages["after_pose_s"] = after
+                        self._busy_until = ready + after
                         self._in_flight.append((ready, sample))
             while self._in_flight and self._in_flight[0][0] <= t + 1e-12:
                 _, sample = self._in_flight.popleft()

@@ -234,8 +234,11 @@ class TrackingLoop:
     def on_pose(self, sample: rigs.PoseSample, now: float) -> None:
         """A new estimate is available (engine thread / sim tick)."""
         rig = self.camera.rig
-        self.load.note_pose(sample.t_capture, sample.t_ready, now, getattr(rig, "transport_delay_s", 0.0),
-                            (getattr(sample, "stages", None) or {}).get("pipeline_s"))
+        stages = getattr(sample, "stages", None) or {}
+        busy = stages.get("pipeline_s")   # the estimator's time per frame: the pose's, then what follows it
+        if busy is not None:
+            busy = float(busy) + float(stages.get("after_pose_s", 0.0))
+        self.load.note_pose(sample.t_capture, sample.t_ready, now, getattr(rig, "transport_delay_s", 0.0), busy)
         self._fiducial_changes(sample)
         for fid, shift in getattr(sample, "moved", {}).items():
             self.alarms.persistent("fiducial_moved", f"fiducial {fid} moved about {shift:.1f} mm relative to the "

@@ -62,8 +62,9 @@ class PoseSample:
     #: simulated rigs give ``late_s`` (frame started after its camera tick), ``render_s`` /
     #: ``render_cpu_s`` (the twin camera's render), ``arrived_s`` (exposure -> frame in memory),
     #: ``estimate_s`` / ``estimate_cpu_s`` (detection + registration + checks), ``detect_s``,
-    #: ``register_s``; any rig: ``beside_cpu_s`` (CPU time of work the estimate ran beside its own
-    #: thread and waited for, e.g. the camera-motion check; absent when none).
+    #: ``register_s``; the simulated clock: ``pipeline_s`` (the estimate's own compute time) and
+    #: ``after_pose_s`` (CPU time of the work run after the pose was given out, e.g. a due
+    #: frame's camera-motion check, :meth:`CameraRig.after_publish`; absent when none).
     stages: dict = field(default_factory=dict)
 
 
@@ -135,6 +136,15 @@ class CameraRig:
 
     def latest_sample(self) -> PoseSample | None:
         return None
+
+    def after_publish(self) -> float:
+        """Run the work the pose tracker deferred until the last estimate was given out (a due
+        frame's camera-motion check, :meth:`~monotracker.vision.pose_tracker.PoseTracker.after_publish`);
+        called by the pipeline right after it published the estimate. Returns its CPU time (s);
+        never raises (an error of that work is raised by the next estimate)."""
+        tracker = getattr(self, "tracker", None)
+        run = getattr(tracker, "after_publish", None)
+        return 0.0 if run is None else float(run())
 
     def latest_frame(self):
         return None
@@ -231,12 +241,4 @@ def estimate_to_sample(est, fiducial_ids: list[int]) -> PoseSample:
         T_cam_ct=None if est.T_cam_ct is None else np.array(est.T_cam_ct, float), n_matched=int(est.n_matched),
         fiducial_status=status, residuals_px=res, fre_mm=_nan_to_none(est.fre_mm),
         predicted_tre_mm=_nan_to_none(est.predicted_tre_mm), raw=est, code=getattr(est, "code", ""),
-        moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)},
-        stages=_beside_stage(est))
-
-
-def _beside_stage(est) -> dict:
-    """``{"beside_cpu_s": s}`` when the estimate ran work beside its own thread (the camera-motion
-    check on a worker, vision's ``stages_s["motion_beside_cpu"]``), else {}."""
-    beside = float((getattr(est, "stages_s", None) or {}).get("motion_beside_cpu", 0.0))
-    return {"beside_cpu_s": beside} if beside > 0 else {}
+        moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)})

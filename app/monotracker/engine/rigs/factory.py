@@ -77,11 +77,11 @@ def _watch_camera_motion(rig: CameraRig, every: int) -> None:
     tracker = getattr(rig, "tracker", None)
     if every <= 0 or tracker is None or not getattr(rig, "watches_background", False):
         return
-    from monotracker.vision.camera_motion import BackgroundMotionWatch, CameraMotionMonitor, MotionConfig
+    from monotracker.vision.camera_motion import CameraMotionMonitor, DeferredMotionWatch, MotionConfig
 
-    # each check runs on a worker beside its frame's detection and registration, its verdict
-    # waited for before that frame's pose is given out (issue 29)
-    tracker.camera_motion = BackgroundMotionWatch(CameraMotionMonitor(float(rig.K[0, 0]), MotionConfig(every_n_frames=every)))
+    # a due frame's check runs after its pose is given out (the rig calls after_publish), its
+    # verdict from the next frame; a frame whose pose jumped is checked on its own path (issue 29)
+    tracker.camera_motion = DeferredMotionWatch(CameraMotionMonitor(float(rig.K[0, 0]), MotionConfig(every_n_frames=every)))
 
 
 def make_robot_rig(cfg, session) -> RobotRig:

@@ -244,6 +244,7 @@ class _SimRig(CameraRig):
             with self._lock:
                 self._published = smp
             self.new_sample.set()
+            self.after_publish()   # a due frame's camera-motion check, now that its pose is out
 
     def _receive(self, camproc, timeout_s: float):
         raise NotImplementedError  # only rigs that render in a camera process
