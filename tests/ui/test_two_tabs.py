@@ -143,8 +143,17 @@ def test_second_tab_cannot_see_the_pin_nor_drive_but_can_stop(served_ct, browser
     # A arms; B's STOP works, always
     _click(a, "4 Robot")
     _wait(lambda: _visible_step(a) == "robot", what="A on Robot")
-    _click(a, "Arm (PIN)")
-    assert "Arm" in _pin_pad(a, "2468")
+    # the point-level twin carries the image detector's 0.15 px noise, so the trust gate may
+    # refuse a stretch of frames (the 2 mm tail rule near its 0.1 % limit: once in a suite run,
+    # "probability 0.11 % > 0.1 %"); Arm is then refused, as it must be, and the operator presses
+    # it again once the pose is trusted. This test is about the tabs, not the gate.
+    for _ in range(5):
+        _click(a, "Arm (PIN)")
+        res = _pin_pad(a, "2468")
+        if "no trusted, fresh pose" not in res:
+            break
+        _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted, what="trusted pose")
+    assert "Arm" in res and "no trusted, fresh pose" not in res, res
     _wait(lambda: s.snapshot().robot.state == "armed", what=f"armed ({_msg(a)})")
     _click(b, "STOP")
     _wait(lambda: s.snapshot().robot.state == "estopped", what="estop from the viewing tab")
