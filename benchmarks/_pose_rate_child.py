@@ -16,7 +16,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-STAGES = ("read", "hint", "detect", "register", "screen", "gates", "motion", "other", "publish")
+STAGES = ("read", "hint", "detect", "register", "screen", "gates", "motion", "other", "publish", "after")
 
 
 def _pct(a):
@@ -42,9 +42,11 @@ def stage_case(radius_px: float, hd: bool, n: int) -> dict:
     every = int(getattr(SessionConfig(), "camera_motion_every", 0))   # as this tree's app builds it
     watch = None
     if every > 0:
-        from monotracker.vision.camera_motion import CameraMotionMonitor, MotionConfig
+        from monotracker.vision import camera_motion as cm
 
-        watch = CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=every))
+        watch = cm.CameraMotionMonitor(float(cam.camera.K[0, 0]), cm.MotionConfig(every_n_frames=every))
+        if hasattr(cm, "DeferredMotionWatch"):   # as the app's rigs build it: a due check after the pose
+            watch = cm.DeferredMotionWatch(watch)
     ph = cam.phantom
     trk = PoseTracker(cam.fiducials_ct, cam.camera, detector=ClassicalDetector(_rules(radius_px, cam)),
                       radius_mm=ph.fiducial_radius_mm, target_ct=ph.sample_target_lps, camera_motion=watch)
@@ -58,6 +60,10 @@ def stage_case(radius_px: float, hd: bool, n: int) -> dict:
         t2 = time.perf_counter()
         estimate_to_sample(est, ids)
         t3 = time.perf_counter()
+        after = getattr(trk, "after_publish", None)
+        if after is not None:
+            after()           # the work after the pose is out (a due frame's motion check), as the rigs run it
+        t4 = time.perf_counter()
         ok += bool(est.ok)
         for j in np.flatnonzero(tr.visible):
             if np.all(np.isfinite(est.image_points_px[j])):
@@ -66,7 +72,7 @@ def stage_case(radius_px: float, hd: bool, n: int) -> dict:
             continue     # a cold start in every pipeline
         s = dict(est.stages_s)
         known = sum(s.get(k, 0.0) for k in ("hint", "detect", "register", "screen", "gates"))
-        s.update({"read": t1 - t0, "publish": t3 - t2, "other": max(0.0, (t2 - t1) - known - s.get("motion", 0.0)),
+        s.update({"read": t1 - t0, "publish": t3 - t2, "after": t4 - t3, "other": max(0.0, (t2 - t1) - known - s.get("motion", 0.0)),
                   "total": (t2 - t1) + (t3 - t2) + (t1 - t0), "detect_register": known})
         rows.append(s)
     out = {k: _pct([r.get(k, np.nan) for r in rows]) for k in STAGES + ("detect_register", "total")}

@@ -9,7 +9,9 @@ handed over: a copy of the image), ``hint`` (the balls' predicted ellipses), ``d
 registration), ``motion`` (the camera-motion watch, where the tree's tracker times it apart),
 ``other`` (the rest of the tracker's frame: size and grayscale checks, and the camera-motion watch
 in a tree that does not time it apart), ``publish`` (the estimate to the engine's
-sample); on photo-like frames of our simulator (9 balls, breathing head) at 1280x720 with balls
+sample), ``after`` (work after the pose is given out, not in the pose's time: a due frame's
+camera-motion check in a tree whose rigs defer it, ``PoseTracker.after_publish``; a tree without
+it checks inline, in ``motion``); on photo-like frames of our simulator (9 balls, breathing head) at 1280x720 with balls
 of 8, 13 and 20 px (radius) and at 1920x1080 with 20 px balls. Rendering is not timed. ``detect_register`` =
 hint + detect + register + screen + gates (issue 29's budget: <= 10 ms median, <= 16 ms p99 at
 720p, <= 20 ms at 1080p).
@@ -115,7 +117,8 @@ def main(argv=None):
             results[(name, hogs)] = run_child(app, home, a, hogs)
             print(f"    ({time.time() - t0:.0f} s, load {os.getloadavg()[0]:.2f})", flush=True)
     print("\nPer stage, ms median/p99 (wall, one thread), photo-like frames, breathing head:")
-    stages = ("read", "hint", "detect", "register", "screen", "gates", "motion", "other", "publish", "detect_register")
+    stages = ("read", "hint", "detect", "register", "screen", "gates", "motion", "other", "publish", "after",
+              "detect_register")
     print(f"{'case':<14} {'tree':<13} {'hogs':>4} " + " ".join(f"{s[:9]:>11}" for s in stages)
           + f" {'trusted':>7} {'err px':>6}")
     for (name, hogs), r in results.items():
