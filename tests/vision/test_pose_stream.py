@@ -110,6 +110,39 @@ def test_stream_thread_publishes_and_reports_unplugged_camera():
     assert threading.current_thread() is threading.main_thread()
 
 
+def test_stream_runs_the_deferred_motion_check_after_each_pose_is_published():
+    """Issue 29: a due frame's camera-motion check waits until its pose is out; the stream runs it
+    (PoseTracker.after_publish) right after publishing, before it reads the next frame, so the
+    check never lands on the next frame's path. Truth: the order of the calls on the stream thread."""
+    from monotracker.vision.camera_motion import CameraMotionMonitor, DeferredMotionWatch, MotionConfig
+
+    cam = SimulatedCamera(realtime=False, disconnect_at_frame=8, seed=1)
+    tr = _tracker(cam)
+    tr.camera_motion = DeferredMotionWatch(CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=2)))
+    calls = []
+    process, after = tr.process, tr.after_publish
+
+    def traced_process(frame):
+        calls.append(("process", tr.camera_motion.pending))   # a check left for this frame's path?
+        return process(frame)
+
+    def traced_after():
+        calls.append(("after", tr.camera_motion.pending))
+        return after()
+
+    tr.process, tr.after_publish = traced_process, traced_after
+    stream = PoseStream(cam, tracker=tr)
+    stream.subscribe(lambda e: calls.append(("published", e.ok)))
+    got = _collect(stream, lambda e: e.camera == "disconnected")
+    assert sum(e.ok for e in got) >= 7
+    names = [c[0] for c in calls]
+    n = names.count("process")
+    assert n >= 8 and names[:3 * n] == ["process", "published", "after"] * n, names
+    assert not any(pending for name, pending in calls if name == "process")   # none left for the frame's path
+    assert sum(pending for name, pending in calls if name == "after") >= 3    # the due frames' checks ran there
+    assert tr.camera_motion.check_cpu_s > 0.0 and not tr.camera_motion.moved
+
+
 @pytest.mark.serial  # the stream thread on a paced camera (real clock): tests/conftest.py
 def test_frozen_camera_reported_on_the_third_identical_frame():
     """Behaviour, not wall time (the 0.1 s latency on a quiet machine is a benchmark figure): the
