@@ -101,14 +101,17 @@ def test_the_pose_tracker_refuses_poses_once_the_camera_moved():
 
 
 def _codes(cam, watch, frames, after_publish=True, config=None):
-    """The pose tracker's codes on ``frames`` frames of ``cam`` with ``watch``; after each frame
-    the pipeline's :meth:`PoseTracker.after_publish` (``after_publish``) as the engine's rigs call it."""
+    """The pose tracker's codes on ``frames`` frames of ``cam`` (a number: rendered here; or a
+    list of ``cam.render`` results, rendered once for several runs) with ``watch``; after each
+    frame the pipeline's :meth:`PoseTracker.after_publish` (``after_publish``) as the engine's
+    rigs call it."""
     ph = LAYOUT.phantom
     trk = PoseTracker(ph.fiducial_centres_lps, cam.camera, radius_mm=ph.fiducial_radius_mm,
                       target_ct=ph.sample_target_lps, camera_motion=watch, config=config)
     out = []
-    for i in range(frames):
-        img, truth = cam.render(i / cam.fps)
+    rendered = frames if isinstance(frames, list) else None
+    for i in range(len(rendered) if rendered is not None else frames):
+        img, truth = rendered[i] if rendered is not None else cam.render(i / cam.fps)
         out.append(trk.process(Frame(img, i / cam.fps, i, truth)).code)
         if after_publish:
             trk.after_publish()
@@ -122,14 +125,12 @@ def test_a_knock_on_a_due_frame_is_refused_at_that_frame_when_its_check_is_defer
     jumped: checked on the frame's path). Truth: the same frames through the monitor inline."""
     from monotracker.vision.camera_motion import DeferredMotionWatch
 
-    def bumped():
-        cam = _camera()
-        cam.camera_motion = CameraMotion("camera-bump", 0.4)   # frame 12, a due frame at every 2nd
-        return cam
-
-    f = float(bumped().camera.K[0, 0])
-    inline, ref = _codes(bumped(), CameraMotionMonitor(f, MotionConfig(every_n_frames=2)), 24)
-    deferred, trk = _codes(bumped(), DeferredMotionWatch(CameraMotionMonitor(f, MotionConfig(every_n_frames=2))), 24)
+    cam = _camera()
+    cam.camera_motion = CameraMotion("camera-bump", 0.4)   # frame 12, a due frame at every 2nd
+    f = float(cam.camera.K[0, 0])
+    frames = [cam.render(i / cam.fps) for i in range(24)]   # the same frames for both runs
+    inline, ref = _codes(cam, CameraMotionMonitor(f, MotionConfig(every_n_frames=2)), frames)
+    deferred, trk = _codes(cam, DeferredMotionWatch(CameraMotionMonitor(f, MotionConfig(every_n_frames=2))), frames)
     assert "camera_moved" in inline and deferred == inline, (inline, deferred)
     assert trk.camera_motion.moved and "the camera moved since tracking started" in trk.camera_motion.last.reason
     assert abs(trk.camera_motion.max_shift_px / ref.camera_motion.max_shift_px - 1.0) < 0.1  # the same knock
@@ -143,18 +144,15 @@ def test_a_sag_is_refused_at_most_one_frame_after_the_inline_check_and_never_ski
     calls after_publish gets the same verdicts (the next frame runs the check first)."""
     from monotracker.vision.camera_motion import DeferredMotionWatch
 
-    def sagging():   # the same frames for each run (a camera renders its noise from its own stream)
-        cam = _camera()
-        cam.camera_motion = CameraMotion("camera-sag", 0.2)
-        return cam
-
-    cam = sagging()
+    cam = _camera()
+    cam.camera_motion = CameraMotion("camera-sag", 0.2)
     f = float(cam.camera.K[0, 0])
-    n = 75
-    inline, ref = _codes(cam, CameraMotionMonitor(f, MotionConfig(every_n_frames=3)), n)
+    # the same frames for each run; the inline monitor calls it moved at frame 42 (0.1 deg/s from 0.2 s)
+    frames = [cam.render(i / cam.fps) for i in range(54)]
+    inline, ref = _codes(cam, CameraMotionMonitor(f, MotionConfig(every_n_frames=3)), frames)
     first = inline.index("camera_moved")
     for after in (True, False):
-        deferred, trk = _codes(sagging(), DeferredMotionWatch(CameraMotionMonitor(f, MotionConfig(every_n_frames=3))), n,
+        deferred, trk = _codes(cam, DeferredMotionWatch(CameraMotionMonitor(f, MotionConfig(every_n_frames=3))), frames,
                                after_publish=after)
         d_first = deferred.index("camera_moved")
         assert first <= d_first <= first + 1, (after, inline, deferred)
@@ -201,9 +199,11 @@ def test_a_knock_between_checks_is_refused_before_any_pose_is_trusted():
     knock = 14   # frames 0, 6, 12, 18 are the watch's; 14 is not
     cam.camera_motion = CameraMotion("camera-bump", (knock - 0.5) / cam.fps)
 
+    frames = [cam.render(i / cam.fps) for i in range(22)]   # the same frames for both runs
+
     def codes(jump_mm):
         watch = DeferredMotionWatch(CameraMotionMonitor(float(cam.camera.K[0, 0]), MotionConfig(every_n_frames=6)))
-        return _codes(cam, watch, 22, config=TrackerConfig(motion_jump_mm=jump_mm))[0]
+        return _codes(cam, watch, frames, config=TrackerConfig(motion_jump_mm=jump_mm))[0]
 
     now, without = codes(4.0), codes(float("inf"))
     assert now[:knock] == without[:knock] and now[knock - 1] == "", (now, without)
