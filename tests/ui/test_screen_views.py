@@ -270,6 +270,28 @@ def test_a_tab_that_closes_while_it_is_drawn_is_left_alone():
     assert calls == ["step bar", "status"], calls
 
 
+def test_a_gone_tab_gets_no_result_line():
+    """The render thread's first half says what changed elsewhere (control moved, STOP pressed at
+    another station) before its parts are drawn: said to a tab that had just closed, each line
+    earned viser's "closed connection" warning. Now say() leaves a gone tab alone, and a live one
+    gets its line. Truth: the result line's content."""
+    v = _view("1")
+    v._msg_seq = 0
+    v.status = NS(h_msg=NS(content="before"))
+    clients = {7: object()}
+    v.closed, v.client = False, NS(client_id=7)
+    v.app = NS(last_stop=None, server=NS(get_clients=lambda: dict(clients)))
+    v.say(True, "control moved to station 2")
+    assert "control moved to station 2" in v.status.h_msg.content
+    v.status.h_msg.content = "before"
+    clients.clear()   # viser dropped the connection; its disconnect callback has not run yet
+    v.say(False, "STOP pressed at station 2")
+    assert v.status.h_msg.content == "before"
+    v.closed = True
+    v.say(False, "late line")
+    assert v.status.h_msg.content == "before"
+
+
 def test_station_label_is_the_address():
     from monotracker.ui.view import station_label
 

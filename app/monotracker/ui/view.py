@@ -159,7 +159,10 @@ class ClientView:
 
     # ------------------------------------------------------------------ commands
     def say(self, ok: bool, text: str) -> None:
-        """Show ``text`` on this tab's result line (green tick or red cross)."""
+        """Show ``text`` on this tab's result line (green tick or red cross); nothing once the
+        tab is gone (a line said to a closed connection only earns viser's warning)."""
+        if self.gone:
+            return
         with self.lock:
             self._msg_seq += 1
             seq = self._msg_seq
