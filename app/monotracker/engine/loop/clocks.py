@@ -88,8 +88,7 @@ class SimStepper:
                         a0 = time.thread_time()
                         rig.after_publish()
                         after = time.thread_time() - a0 if charge is None else 0.0
-                        if after > 0.0:
-                            sample.stages["after_pose_s"] = after
+                        sample.stages["after_pose_s"] = after
                         self._busy_until = ready + after
                         self._in_flight.append((ready, sample))
             while self._in_flight and self._in_flight[0][0] <= t + 1e-12:

@@ -64,7 +64,7 @@ class PoseSample:
     #: ``estimate_s`` / ``estimate_cpu_s`` (detection + registration + checks), ``detect_s``,
     #: ``register_s``; the simulated clock: ``pipeline_s`` (the estimate's own compute time) and
     #: ``after_pose_s`` (CPU time of the work run after the pose was given out, e.g. a due
-    #: frame's camera-motion check, :meth:`CameraRig.after_publish`; absent when none).
+    #: frame's camera-motion check, :meth:`CameraRig.after_publish`; a few us when none ran).
     stages: dict = field(default_factory=dict)
 
 
