@@ -58,12 +58,14 @@ class Probe:
         self.armed = False
         self.ack_t = None
         self.still_t = None
+        self.recv_t = None  # the web server's STOP handler called Session.request_estop
         self.speed = None  # the arm's fastest joint (rad/s) in the last state before the stop
         self.proc = None
         self._hooked = None
         self._sampler = None
 
     def hook(self):
+        self._hook_request()
         # the loop's robot part (engine/loop/robot.RobotControl) holds the rig; the rig of a
         # control process holds it as ``proc`` (engine/rigs/robot_process.py)
         rob = self.s._loop.robot
@@ -88,10 +90,28 @@ class Probe:
         proc.on_event = on_event
         self.proc = self._hooked = proc
 
+    def _hook_request(self):
+        """Stamp the moment the web server's STOP handler enters ``Session.request_estop`` (both
+        trees have it; the handler looks it up on the session at each press), to split a press's
+        latency into browser -> server handler (``recv``) and handler -> the control process's
+        latch (``latch``)."""
+        orig = getattr(self.s, "request_estop", None)
+        if orig is None or getattr(orig, "_stop_probe", False):
+            return
+
+        def request_estop(*a, **k):
+            with self.lock:
+                if self.armed and self.recv_t is None:
+                    self.recv_t = time.time()
+            return orig(*a, **k)
+
+        request_estop._stop_probe = True
+        self.s.request_estop = request_estop
+
     def arm(self):
         self.hook()
         with self.lock:
-            self.armed, self.ack_t, self.still_t, self.speed = True, None, None, None
+            self.armed, self.ack_t, self.still_t, self.speed, self.recv_t = True, None, None, None, None
         self._sampler = threading.Thread(target=self._sample, daemon=True)
         self._sampler.start()
 
@@ -122,7 +142,7 @@ class Probe:
             still = self.still_t
             if still is not None and self.ack_t is not None:
                 still = max(still, self.ack_t)  # the arm already stood still when the stop latched
-            return {"ack_t": self.ack_t, "still_t": still, "speed_rad_s": self.speed}
+            return {"ack_t": self.ack_t, "still_t": still, "speed_rad_s": self.speed, "recv_t": self.recv_t}
 
 
 def wait(pred, timeout_s: float, poll_s: float = 0.02):

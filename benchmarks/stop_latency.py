@@ -24,7 +24,17 @@ Times (ms) from the press (the browser's own time stamp of the input event) to:
   (rad/s) in the last state before the stop: tracking a breathing head the arm moves slowly;
   on its first approach to the entry it moves fast;
 * ``page``: the page's robot state block reads E-STOPPED (a MutationObserver in the page; the
-  paint follows within a frame).
+  paint follows within a frame);
+* ``held``: press -> its release (pointerup / keyup; viser's button and hotkeys act on the
+  release, a click: Playwright sends the mouse's down and up as two commands, so under load a
+  gap a finger's tap would also have);
+* ``send``: press -> the first message the page hands on for its websocket after the press
+  (viser's client keeps the socket in a web worker: the page's postMessage to it; the browser's
+  own part: the STOP's message, unless another of the page's went first);
+* ``recv`` and ``latch``: ``ack`` split where the web server's STOP handler calls
+  ``Session.request_estop`` (the app under test stamps it): press -> that call (the browser
+  sending, the kernel, the server's event loop getting the CPU and the GIL) and that call -> the
+  control process's latch (shared memory, its e-stop watcher waking).
 
 A press counts as working when the page shows E-STOPPED within ``--press-timeout`` s; the p50 /
 p99 / max are over working presses. A round where the page did not show the armed arm (TRACKING,
@@ -78,9 +88,23 @@ INSTRUMENT = """
 () => {
   if (window.__mt) return;
   const now = () => performance.timeOrigin + performance.now();
-  window.__mt = {armed: false, press: null, shown: null, cond: null};
+  window.__mt = {armed: false, press: null, shown: null, cond: null, sent: null, release: null};
   const onPress = (e) => { const m = window.__mt;
     if (m.armed && m.press === null) m.press = performance.timeOrigin + e.timeStamp; };
+  const onRelease = (e) => { const m = window.__mt;
+    if (m.armed && m.press !== null && m.release === null) m.release = performance.timeOrigin + e.timeStamp; };
+  window.addEventListener('pointerup', onRelease, true);
+  window.addEventListener('keyup', onRelease, true);
+  // the first message the page hands on for its websocket after the press (viser's client keeps
+  // the socket in a web worker: a postMessage to it; the STOP's, unless another message of the
+  // page's happened to go first: then earlier than the STOP's)
+  for (const proto of [Worker.prototype, WebSocket.prototype]) {
+    const key = proto === Worker.prototype ? 'postMessage' : 'send';
+    const orig = proto[key];
+    proto[key] = function (...args) { const m = window.__mt;
+      if (m.armed && m.press !== null && m.sent === null) m.sent = now();
+      return orig.apply(this, args); };
+  }
   window.addEventListener('pointerdown', onPress, true);
   window.addEventListener('keydown', onPress, true);
   const check = () => { const m = window.__mt;
@@ -90,7 +114,7 @@ INSTRUMENT = """
 }
 """
 ARM_STOP = """
-() => { const m = window.__mt; m.press = null; m.shown = null; m.armed = true;
+() => { const m = window.__mt; m.press = null; m.shown = null; m.sent = null; m.release = null; m.armed = true;
   m.cond = () => { const el = document.querySelector('#mt-robot-state');
                    return !!el && el.dataset.state === 'estopped'; }; }
 """
@@ -235,7 +259,7 @@ def press_stop(page, srv: Server, kind: str, i: int, timeout_s: float) -> dict:
         shown = True
     except Exception:  # noqa: BLE001 - playwright's TimeoutError
         shown = False
-    m = page.evaluate("() => { window.__mt.armed = false; return [window.__mt.press, window.__mt.shown]; }")
+    m = page.evaluate("() => { window.__mt.armed = false; return [window.__mt.press, window.__mt.shown, window.__mt.sent, window.__mt.release]; }")
     wait_s = 30.0 if shown else 2.0  # how long the app waits for the stop's times
     res = srv.ask(cmd="result", wait_s=wait_s, timeout_s=wait_s + 60.0)
     press_ms = m[0] if m[0] is not None else 1000 * t_py
@@ -243,6 +267,11 @@ def press_stop(page, srv: Server, kind: str, i: int, timeout_s: float) -> dict:
     row["page_ms"] = (m[1] - press_ms) if shown and m[1] is not None else None
     row["ack_ms"] = 1000 * res["ack_t"] - press_ms if res.get("ack_t") else None
     row["still_ms"] = 1000 * res["still_t"] - press_ms if res.get("still_t") else None
+    # the press split at the server's STOP handler: browser -> handler, handler -> the latch
+    row["recv_ms"] = 1000 * res["recv_t"] - press_ms if res.get("recv_t") else None
+    row["send_ms"] = (m[2] - press_ms) if m[2] is not None else None  # press -> the page's websocket send
+    row["held_ms"] = (m[3] - press_ms) if m[3] is not None else None  # press -> release (pointerup / keyup)
+    row["latch_ms"] = 1000 * (res["ack_t"] - res["recv_t"]) if res.get("recv_t") and res.get("ack_t") else None
     row["py_skew_ms"] = press_ms - 1000 * t_py  # browser stamp - harness send time (sanity)
     row["speed_rad_s"] = res.get("speed_rad_s")  # the arm's fastest joint just before the stop
     return row
@@ -329,7 +358,7 @@ def summarise(label, hogs, rows, others, api, control, load, wall_s) -> dict:
         d = {"n": len(sel), "worked": len(ok),
              "not_pressed": len([r for r in rows if (kind == "all" or r["kind"] == kind) and "worked" not in r]),
              "arm_rad_s_p50": pct([r.get("speed_rad_s") for r in ok], 50)}
-        for k in ("ack_ms", "still_ms", "page_ms"):
+        for k in ("ack_ms", "still_ms", "page_ms", "held_ms", "send_ms", "recv_ms", "latch_ms"):
             v = [r[k] for r in ok if r.get(k) is not None]
             d[k] = {"p50": pct(v, 50), "p99": pct(v, 99), "max": max(v) if v else float("nan"), "n": len(v)}
         out["by_kind"][kind] = d
@@ -354,13 +383,17 @@ def _qs(d: dict, *qs: str) -> str:
 
 def table(results: list[dict]) -> str:
     lines = [f"{'tree':9s} {'hogs':>4s} {'press':9s} {'works':>6s} {'skip':>4s} | {'ack p50/p99/max':>17s} | "
-             f"{'still p50/p99/max':>17s} | {'page p50/p99/max':>18s} | arm rad/s p50"]
+             f"{'still p50/p99/max':>17s} | {'page p50/p99/max':>18s} | arm rad/s p50 | "
+             f"{'held p50/p99/max':>16s} | {'send p50/p99/max':>16s} | {'recv p50/p99/max':>16s} | "
+             f"{'latch p50/p99/max':>17s}"]
     for r in results:
         for kind in KINDS + ("all",):
             d = r["by_kind"][kind]
             lines.append(f"{r['tree']:9s} {r['hogs']:4d} {kind:9s} {d['worked']:2d}/{d['n']:<3d} {d['not_pressed']:4d} | {_qs(d['ack_ms'], *P3):>17s} | "
                          f"{_qs(d['still_ms'], *P3):>17s} | {_qs(d['page_ms'], *P3):>18s} | "
-                         f"{'-' if np.isnan(d['arm_rad_s_p50']) else format(d['arm_rad_s_p50'], '.3f')}")
+                         f"{'-' if np.isnan(d['arm_rad_s_p50']) else format(d['arm_rad_s_p50'], '.3f'):>13s} | "
+                         f"{_qs(d['held_ms'], *P3):>16s} | {_qs(d['send_ms'], *P3):>16s} | {_qs(d['recv_ms'], *P3):>16s} | "
+                         f"{_qs(d['latch_ms'], *P3):>17s}")
     lines.append("")
     lines.append(f"{'tree':9s} {'hogs':>4s} | other click p50/p95 | other key p50/p95 | api call p50/p99/max | "
                  f"api snapshot p50/p99/max | load 1-min")
