@@ -59,6 +59,8 @@ class Probe:
         self.ack_t = None
         self.still_t = None
         self.recv_t = None  # the web server's STOP handler called Session.request_estop
+        self.sock_t = None  # the last message viser read off a websocket before that call
+        self._last_msg_t = None
         self.speed = None  # the arm's fastest joint (rad/s) in the last state before the stop
         self.proc = None
         self._hooked = None
@@ -103,7 +105,26 @@ class Probe:
             with self.lock:
                 if self.armed and self.recv_t is None:
                     self.recv_t = time.time()
+                    self.sock_t = self._last_msg_t
             return orig(*a, **k)
+
+        # viser's websocket consumer decodes each incoming message (Message.deserialize) on its
+        # event loop as it reads it; the STOP handler runs as a task after that: the last decode
+        # before the handler is the STOP's (measurement only; absent in a viser without it)
+        try:
+            from viser.infra._messages import Message
+        except ImportError:
+            Message = None
+        des = getattr(Message, "deserialize", None)
+        if des is not None and not getattr(des, "_stop_probe", False):
+            fn = des.__func__
+
+            def deserialize(cls, raw):
+                self._last_msg_t = time.time()
+                return fn(cls, raw)
+
+            deserialize._stop_probe = True
+            Message.deserialize = classmethod(deserialize)
 
         request_estop._stop_probe = True
         self.s.request_estop = request_estop
@@ -111,7 +132,7 @@ class Probe:
     def arm(self):
         self.hook()
         with self.lock:
-            self.armed, self.ack_t, self.still_t, self.speed, self.recv_t = True, None, None, None, None
+            self.armed, self.ack_t, self.still_t, self.speed, self.recv_t, self.sock_t = True, None, None, None, None, None
         self._sampler = threading.Thread(target=self._sample, daemon=True)
         self._sampler.start()
 
@@ -142,7 +163,8 @@ class Probe:
             still = self.still_t
             if still is not None and self.ack_t is not None:
                 still = max(still, self.ack_t)  # the arm already stood still when the stop latched
-            return {"ack_t": self.ack_t, "still_t": still, "speed_rad_s": self.speed, "recv_t": self.recv_t}
+            return {"ack_t": self.ack_t, "still_t": still, "speed_rad_s": self.speed, "recv_t": self.recv_t,
+                    "sock_t": self.sock_t}
 
 
 def wait(pred, timeout_s: float, poll_s: float = 0.02):

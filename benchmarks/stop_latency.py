@@ -31,6 +31,8 @@ Times (ms) from the press (the browser's own time stamp of the input event) to:
 * ``send``: press -> the first message the page hands on for its websocket after the press
   (viser's client keeps the socket in a web worker: the page's postMessage to it; the browser's
   own part: the STOP's message, unless another of the page's went first);
+* ``read``: press -> viser's websocket consumer decoding the STOP's message on the server's
+  event loop (the last message decoded before the handler ran);
 * ``recv`` and ``latch``: ``ack`` split where the web server's STOP handler calls
   ``Session.request_estop`` (the app under test stamps it): press -> that call (the browser
   sending, the kernel, the server's event loop getting the CPU and the GIL) and that call -> the
@@ -269,6 +271,7 @@ def press_stop(page, srv: Server, kind: str, i: int, timeout_s: float) -> dict:
     row["still_ms"] = 1000 * res["still_t"] - press_ms if res.get("still_t") else None
     # the press split at the server's STOP handler: browser -> handler, handler -> the latch
     row["recv_ms"] = 1000 * res["recv_t"] - press_ms if res.get("recv_t") else None
+    row["read_ms"] = 1000 * res["sock_t"] - press_ms if res.get("sock_t") else None  # press -> viser read it
     row["send_ms"] = (m[2] - press_ms) if m[2] is not None else None  # press -> the page's websocket send
     row["held_ms"] = (m[3] - press_ms) if m[3] is not None else None  # press -> release (pointerup / keyup)
     row["latch_ms"] = 1000 * (res["ack_t"] - res["recv_t"]) if res.get("recv_t") and res.get("ack_t") else None
@@ -358,7 +361,7 @@ def summarise(label, hogs, rows, others, api, control, load, wall_s) -> dict:
         d = {"n": len(sel), "worked": len(ok),
              "not_pressed": len([r for r in rows if (kind == "all" or r["kind"] == kind) and "worked" not in r]),
              "arm_rad_s_p50": pct([r.get("speed_rad_s") for r in ok], 50)}
-        for k in ("ack_ms", "still_ms", "page_ms", "held_ms", "send_ms", "recv_ms", "latch_ms"):
+        for k in ("ack_ms", "still_ms", "page_ms", "held_ms", "send_ms", "read_ms", "recv_ms", "latch_ms"):
             v = [r[k] for r in ok if r.get(k) is not None]
             d[k] = {"p50": pct(v, 50), "p99": pct(v, 99), "max": max(v) if v else float("nan"), "n": len(v)}
         out["by_kind"][kind] = d
@@ -384,7 +387,8 @@ def _qs(d: dict, *qs: str) -> str:
 def table(results: list[dict]) -> str:
     lines = [f"{'tree':9s} {'hogs':>4s} {'press':9s} {'works':>6s} {'skip':>4s} | {'ack p50/p99/max':>17s} | "
              f"{'still p50/p99/max':>17s} | {'page p50/p99/max':>18s} | arm rad/s p50 | "
-             f"{'held p50/p99/max':>16s} | {'send p50/p99/max':>16s} | {'recv p50/p99/max':>16s} | "
+             f"{'held p50/p99/max':>16s} | {'send p50/p99/max':>16s} | {'read p50/p99/max':>16s} | "
+             f"{'recv p50/p99/max':>16s} | "
              f"{'latch p50/p99/max':>17s}"]
     for r in results:
         for kind in KINDS + ("all",):
@@ -392,7 +396,8 @@ def table(results: list[dict]) -> str:
             lines.append(f"{r['tree']:9s} {r['hogs']:4d} {kind:9s} {d['worked']:2d}/{d['n']:<3d} {d['not_pressed']:4d} | {_qs(d['ack_ms'], *P3):>17s} | "
                          f"{_qs(d['still_ms'], *P3):>17s} | {_qs(d['page_ms'], *P3):>18s} | "
                          f"{'-' if np.isnan(d['arm_rad_s_p50']) else format(d['arm_rad_s_p50'], '.3f'):>13s} | "
-                         f"{_qs(d['held_ms'], *P3):>16s} | {_qs(d['send_ms'], *P3):>16s} | {_qs(d['recv_ms'], *P3):>16s} | "
+                         f"{_qs(d['held_ms'], *P3):>16s} | {_qs(d['send_ms'], *P3):>16s} | "
+                         f"{_qs(d['read_ms'], *P3):>16s} | {_qs(d['recv_ms'], *P3):>16s} | "
                          f"{_qs(d['latch_ms'], *P3):>17s}")
     lines.append("")
     lines.append(f"{'tree':9s} {'hogs':>4s} | other click p50/p95 | other key p50/p95 | api call p50/p99/max | "
