@@ -60,6 +60,7 @@ class Probe:
         self.still_t = None
         self.recv_t = None  # the web server's STOP handler called Session.request_estop
         self.sock_t = None  # the last message viser read off a websocket before that call
+        self.signal_t = None  # the engine wrote the stop into the control process's stop slot
         self._last_msg_t = None
         self.speed = None  # the arm's fastest joint (rad/s) in the last state before the stop
         self.proc = None
@@ -86,6 +87,10 @@ class Probe:
                 with self.lock:
                     if self.armed and self.ack_t is None:
                         self.ack_t = float(payload["t"]) + WALL
+                        # when the engine signalled it: the stop slot's [request, monotonic time]
+                        slot = getattr(proc, "stop_slot", None)
+                        got = slot.read() if slot is not None else None
+                        self.signal_t = float(got[1][1]) + WALL if got is not None else None
             if orig is not None:
                 orig(kind, payload)
 
@@ -132,7 +137,8 @@ class Probe:
     def arm(self):
         self.hook()
         with self.lock:
-            self.armed, self.ack_t, self.still_t, self.speed, self.recv_t, self.sock_t = True, None, None, None, None, None
+            self.armed, self.ack_t, self.still_t, self.speed = True, None, None, None
+            self.recv_t, self.sock_t, self.signal_t = None, None, None
         self._sampler = threading.Thread(target=self._sample, daemon=True)
         self._sampler.start()
 
@@ -164,7 +170,7 @@ class Probe:
             if still is not None and self.ack_t is not None:
                 still = max(still, self.ack_t)  # the arm already stood still when the stop latched
             return {"ack_t": self.ack_t, "still_t": still, "speed_rad_s": self.speed, "recv_t": self.recv_t,
-                    "sock_t": self.sock_t}
+                    "sock_t": self.sock_t, "signal_t": self.signal_t}
 
 
 def wait(pred, timeout_s: float, poll_s: float = 0.02):

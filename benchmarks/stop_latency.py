@@ -36,7 +36,9 @@ Times (ms) from the press (the browser's own time stamp of the input event) to:
 * ``recv`` and ``latch``: ``ack`` split where the web server's STOP handler calls
   ``Session.request_estop`` (the app under test stamps it): press -> that call (the browser
   sending, the kernel, the server's event loop getting the CPU and the GIL) and that call -> the
-  control process's latch (shared memory, its e-stop watcher waking).
+  control process's latch (shared memory, its e-stop watcher waking); ``wake``: the engine's
+  write of the stop into the control process's stop slot -> its latch (the control process
+  alone, one monotonic clock).
 
 A press counts as working when the page shows E-STOPPED within ``--press-timeout`` s; the p50 /
 p99 / max are over working presses. A round where the page did not show the armed arm (TRACKING,
@@ -274,6 +276,7 @@ def press_stop(page, srv: Server, kind: str, i: int, timeout_s: float) -> dict:
     row["read_ms"] = 1000 * res["sock_t"] - press_ms if res.get("sock_t") else None  # press -> viser read it
     row["send_ms"] = (m[2] - press_ms) if m[2] is not None else None  # press -> the page's websocket send
     row["held_ms"] = (m[3] - press_ms) if m[3] is not None else None  # press -> release (pointerup / keyup)
+    row["wake_ms"] = 1000 * (res["ack_t"] - res["signal_t"]) if res.get("signal_t") and res.get("ack_t") else None
     row["latch_ms"] = 1000 * (res["ack_t"] - res["recv_t"]) if res.get("recv_t") and res.get("ack_t") else None
     row["py_skew_ms"] = press_ms - 1000 * t_py  # browser stamp - harness send time (sanity)
     row["speed_rad_s"] = res.get("speed_rad_s")  # the arm's fastest joint just before the stop
@@ -361,7 +364,7 @@ def summarise(label, hogs, rows, others, api, control, load, wall_s) -> dict:
         d = {"n": len(sel), "worked": len(ok),
              "not_pressed": len([r for r in rows if (kind == "all" or r["kind"] == kind) and "worked" not in r]),
              "arm_rad_s_p50": pct([r.get("speed_rad_s") for r in ok], 50)}
-        for k in ("ack_ms", "still_ms", "page_ms", "held_ms", "send_ms", "read_ms", "recv_ms", "latch_ms"):
+        for k in ("ack_ms", "still_ms", "page_ms", "held_ms", "send_ms", "read_ms", "recv_ms", "latch_ms", "wake_ms"):
             v = [r[k] for r in ok if r.get(k) is not None]
             d[k] = {"p50": pct(v, 50), "p99": pct(v, 99), "max": max(v) if v else float("nan"), "n": len(v)}
         out["by_kind"][kind] = d
@@ -389,7 +392,7 @@ def table(results: list[dict]) -> str:
              f"{'still p50/p99/max':>17s} | {'page p50/p99/max':>18s} | arm rad/s p50 | "
              f"{'held p50/p99/max':>16s} | {'send p50/p99/max':>16s} | {'read p50/p99/max':>16s} | "
              f"{'recv p50/p99/max':>16s} | "
-             f"{'latch p50/p99/max':>17s}"]
+             f"{'latch p50/p99/max':>17s} | {'wake p50/p99/max':>16s}"]
     for r in results:
         for kind in KINDS + ("all",):
             d = r["by_kind"][kind]
@@ -398,7 +401,7 @@ def table(results: list[dict]) -> str:
                          f"{'-' if np.isnan(d['arm_rad_s_p50']) else format(d['arm_rad_s_p50'], '.3f'):>13s} | "
                          f"{_qs(d['held_ms'], *P3):>16s} | {_qs(d['send_ms'], *P3):>16s} | "
                          f"{_qs(d['read_ms'], *P3):>16s} | {_qs(d['recv_ms'], *P3):>16s} | "
-                         f"{_qs(d['latch_ms'], *P3):>17s}")
+                         f"{_qs(d['latch_ms'], *P3):>17s} | {_qs(d['wake_ms'], *P3):>16s}")
     lines.append("")
     lines.append(f"{'tree':9s} {'hogs':>4s} | other click p50/p95 | other key p50/p95 | api call p50/p99/max | "
                  f"api snapshot p50/p99/max | load 1-min")
