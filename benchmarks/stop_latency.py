@@ -102,8 +102,7 @@ INSTRUMENT = """
   // the first message the page hands on for its websocket after the press (viser's client keeps
   // the socket in a web worker: a postMessage to it; the STOP's, unless another message of the
   // page's happened to go first: then earlier than the STOP's)
-  for (const proto of [Worker.prototype, WebSocket.prototype]) {
-    const key = proto === Worker.prototype ? 'postMessage' : 'send';
+  for (const [proto, key] of [[Worker.prototype, 'postMessage'], [WebSocket.prototype, 'send']]) {
     const orig = proto[key];
     proto[key] = function (...args) { const m = window.__mt;
       if (m.armed && m.press !== null && m.sent === null) m.sent = now();
@@ -269,15 +268,20 @@ def press_stop(page, srv: Server, kind: str, i: int, timeout_s: float) -> dict:
     press_ms = m[0] if m[0] is not None else 1000 * t_py
     row["worked"] = shown
     row["page_ms"] = (m[1] - press_ms) if shown and m[1] is not None else None
-    row["ack_ms"] = 1000 * res["ack_t"] - press_ms if res.get("ack_t") else None
-    row["still_ms"] = 1000 * res["still_t"] - press_ms if res.get("still_t") else None
+    def ms(later, earlier):  # app times are s, page times ms; None when either is unknown
+        return None if later is None or earlier is None else later - earlier
+
+    app = {k: (None if res.get(k) is None else 1000 * res[k])      # ms
+           for k in ("ack_t", "still_t", "recv_t", "sock_t", "signal_t")}
+    row["ack_ms"] = ms(app["ack_t"], press_ms)
+    row["still_ms"] = ms(app["still_t"], press_ms)
     # the press split at the server's STOP handler: browser -> handler, handler -> the latch
-    row["recv_ms"] = 1000 * res["recv_t"] - press_ms if res.get("recv_t") else None
-    row["read_ms"] = 1000 * res["sock_t"] - press_ms if res.get("sock_t") else None  # press -> viser read it
-    row["send_ms"] = (m[2] - press_ms) if m[2] is not None else None  # press -> the page's websocket send
-    row["held_ms"] = (m[3] - press_ms) if m[3] is not None else None  # press -> release (pointerup / keyup)
-    row["wake_ms"] = 1000 * (res["ack_t"] - res["signal_t"]) if res.get("signal_t") and res.get("ack_t") else None
-    row["latch_ms"] = 1000 * (res["ack_t"] - res["recv_t"]) if res.get("recv_t") and res.get("ack_t") else None
+    row["recv_ms"] = ms(app["recv_t"], press_ms)
+    row["read_ms"] = ms(app["sock_t"], press_ms)    # press -> viser read it
+    row["send_ms"] = ms(m[2], press_ms)             # press -> the page's websocket send
+    row["held_ms"] = ms(m[3], press_ms)             # press -> release (pointerup / keyup)
+    row["wake_ms"] = ms(app["ack_t"], app["signal_t"])
+    row["latch_ms"] = ms(app["ack_t"], app["recv_t"])
     row["py_skew_ms"] = press_ms - 1000 * t_py  # browser stamp - harness send time (sanity)
     row["speed_rad_s"] = res.get("speed_rad_s")  # the arm's fastest joint just before the stop
     return row

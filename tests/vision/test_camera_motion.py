@@ -101,17 +101,14 @@ def test_the_pose_tracker_refuses_poses_once_the_camera_moved():
 
 
 def _codes(cam, watch, frames, after_publish=True, config=None):
-    """The pose tracker's codes on ``frames`` frames of ``cam`` (a number: rendered here; or a
-    list of ``cam.render`` results, rendered once for several runs) with ``watch``; after each
-    frame the pipeline's :meth:`PoseTracker.after_publish` (``after_publish``) as the engine's
-    rigs call it."""
+    """The pose tracker's codes on ``frames`` (a list of ``cam.render`` results, rendered once for
+    the runs a test compares) with ``watch``; after each frame the pipeline's
+    :meth:`PoseTracker.after_publish` (``after_publish``) as the engine's rigs call it."""
     ph = LAYOUT.phantom
     trk = PoseTracker(ph.fiducial_centres_lps, cam.camera, radius_mm=ph.fiducial_radius_mm,
                       target_ct=ph.sample_target_lps, camera_motion=watch, config=config)
     out = []
-    rendered = frames if isinstance(frames, list) else None
-    for i in range(len(rendered) if rendered is not None else frames):
-        img, truth = rendered[i] if rendered is not None else cam.render(i / cam.fps)
+    for i, (img, truth) in enumerate(frames):
         out.append(trk.process(Frame(img, i / cam.fps, i, truth)).code)
         if after_publish:
             trk.after_publish()
