@@ -35,4 +35,8 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
   fi
   echo "$want" > "$stamp"
+  # the numba kernels compiled now, not at the first CT detection or camera frame (~50 CPU s
+  # after an install; app/monotracker/engine/kernels.py)
+  echo "compiling the kernels (half a minute)..." >&2
+  bash scripts/compile_kernels.sh
 fi

@@ -23,6 +23,10 @@ bash scripts/setup.sh
 # 8.4-12.6 s -> 4.4-5.4 s; the parallel part 348 -> 317 s in one back-to-back pair, load ~1).
 # The caches are __pycache__ folders, ignored by git.
 unset PYTHONDONTWRITEBYTECODE
+# The compiled kernels into numba's cache before any worker needs them (setup.sh does it after an
+# install; here ~1 s when cached, else a kernel edited since is compiled once, not by each worker
+# at once: a fresh clone's parallel part took 282 s with an empty cache, 240-253 s with it filled)
+bash scripts/compile_kernels.sh
 .venv/bin/ruff check --quiet app tests benchmarks examples scripts
 .venv/bin/lint-imports --no-cache --no-logo >/dev/null || .venv/bin/lint-imports --no-cache --no-logo
 # The suite in two parts (issue 35): everything outside tests/conftest.py's serial lane on
