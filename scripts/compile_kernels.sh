@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Compiles the package's numba kernels into their disk cache (app/monotracker/engine/kernels.py),
-# its two groups in two processes side by side (~25 s on 2 cores after an install; ~1 s when
+# its two groups in two processes side by side (~31 s on 2 cores after an install; ~1.5 s when
 # cached). Run by setup.sh after an install and by test.sh before the tests. A failure is only a
 # warning: the kernels then compile at first use, as without this step.
 set -uo pipefail

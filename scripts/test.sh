@@ -24,8 +24,7 @@ bash scripts/setup.sh
 # The caches are __pycache__ folders, ignored by git.
 unset PYTHONDONTWRITEBYTECODE
 # The compiled kernels into numba's cache before any worker needs them (setup.sh does it after an
-# install; here ~1 s when cached, else a kernel edited since is compiled once, not by each worker
-# at once: a fresh clone's parallel part took 282 s with an empty cache, 240-253 s with it filled)
+# install; here ~1.5 s when cached, else a kernel edited since is compiled here, in one place)
 bash scripts/compile_kernels.sh
 .venv/bin/ruff check --quiet app tests benchmarks examples scripts
 .venv/bin/lint-imports --no-cache --no-logo >/dev/null || .venv/bin/lint-imports --no-cache --no-logo

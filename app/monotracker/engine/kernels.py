@@ -5,11 +5,11 @@ disk cache (:mod:`monotracker.registration.compiled`); later processes load it i
 After an install (a fresh clone, an upgraded package, a new machine) the cache is empty, and the
 first compile costs ~50 CPU s in all on a 2-core machine (measured 2026-11-29: vision 20 s, CT
 blob statistics 17 s, CT ball fits 8 s, pose refinement 2.6 s). Left to first use, that lands on
-the first CT detection and the first camera frames of the app (the fits wait, the first pose
-comes late), and in a test run every worker process compiled the same kernels at once
-(a fresh clone's parallel tests 282 s against 240-253 s with the cache filled). So the installer
-(``scripts/setup.sh``) and the test command compile them first, in two processes side by side:
-:data:`GROUPS` splits the kernels into halves of about equal cost.
+the first CT detection and the first camera frames of the app (the sample CT's detection 20.0 s
+against 4.6 s cached; a 2 s headless demo 55.6 s of wall time against 6.8 s). So the installer
+(``scripts/setup.sh``) compiles them first, in two processes side by side (~31 s on 2 cores):
+:data:`GROUPS` splits the kernels into halves of about equal cost. For the test suite it is
+about neutral: its two workers had compiled ~46 CPU s between them, about once.
 
 One table: a group's name, what it covers, and the ``warm_up`` functions that compile (or load)
 its kernels for the argument types the product passes.
