@@ -7,10 +7,10 @@ then between the threads of a session. A test run started from a shell competes 
 thread with everything else that shell's session runs (a build, CPU hogs started beside it),
 while the app it serves, the browser (Playwright starts chromium in a session of its own) and a
 deployed MonoTracker service each get a session's share. Measured (issue 35, docs/performance.md
-"Tests under load"): the end-to-end browser test beside 4 busy loops started from the same shell
-took 110-160 s with 11-14 % of its poses over the engine's 150 ms limit; in a session of its own
-69-83 s and 5-8 %. Nothing changes where the autogroup scheduler is off or where the other load
-runs in other sessions already.
+"Tests under load"): the end-to-end browser test beside 4 busy loops started from the same shell,
+5 runs each way: 56-160 s (median 110) with 2-14 % of its poses over the engine's 150 ms limit in
+the shell's session; in a session of its own 53-83 s (median 69) and 3-8 %. Nothing changes
+where the autogroup scheduler is off or where the other load runs in other sessions already.
 
 What a session of its own must not cost: Ctrl-C, ``kill`` and a closed terminal still stop the
 run. SIGINT, SIGTERM and SIGHUP sent to this launcher are passed on to the command's whole

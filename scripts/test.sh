@@ -41,7 +41,7 @@ par=(-n "$workers")
 # serve) get a session's share beside whatever else the caller's session runs, as a deployed
 # service and the browser do, instead of one thread's share among them. Ctrl-C, kill and a closed
 # terminal still stop the tests. Beside 4 busy loops started from the same shell, the end-to-end
-# browser test took 69-83 s instead of 110-160 s (docs/performance.md "Tests under load").
+# browser test took 53-83 s (5 runs) instead of 56-160 s (docs/performance.md "Tests under load").
 lane=(.venv/bin/python scripts/own_session.py .venv/bin/python -m pytest)
 rc1=0; rc2=0
 "${lane[@]}" "${par[@]}" --lane parallel --durations=30 "$@" || rc1=$?
