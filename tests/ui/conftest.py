@@ -139,11 +139,31 @@ FRAME_CAP_JS = """(() => {
   };
 })();""" % BROWSER_FPS
 
+#: the init script that gives every WebGL context of a test page no multisample anti-aliasing
+#: (``antialias: false`` whatever the page asks; viser's client asks for react-three-fiber's
+#: default, 4x MSAA). Without a GPU, chromium's SwiftShader renders and resolves the samples in
+#: software at every frame: in the end-to-end test its GPU process took 27 CPU s of a 46 s run
+#: with them and 7-10 s of a 24-30 s run without (alternating pairs, quiet, 2026-11-30); the
+#: calibration, screen, two-tab, layout and navigation browser tests 166 -> 112 s together. The
+#: tests check the page's widgets, the session, where a click lands and the pixels inside images
+#: (slices, the camera view), never how smooth a 3D edge looks. Only the tests' pages: the app
+#: serves viser's client unchanged.
+NO_MSAA_JS = """(() => {
+  const getContext = HTMLCanvasElement.prototype.getContext;
+  HTMLCanvasElement.prototype.getContext = function (type, attrs) {
+    if (type === "webgl2" || type === "webgl" || type === "experimental-webgl") {
+      attrs = Object.assign({}, attrs || {}, {antialias: false});
+    }
+    return getContext.call(this, type, attrs);
+  };
+})();"""
+
 
 class CappedBrowser:
     """A Playwright ``Browser`` whose new pages and contexts draw at most :data:`BROWSER_FPS`
-    frames a second (:data:`FRAME_CAP_JS` added before any page script runs); everything else is
-    the browser's own (attributes are passed through)."""
+    frames a second, without multisampling (:data:`FRAME_CAP_JS` and :data:`NO_MSAA_JS` added
+    before any page script runs); everything else is the browser's own (attributes are passed
+    through)."""
 
     def __init__(self, browser):
         self._browser = browser
@@ -151,7 +171,13 @@ class CappedBrowser:
     def new_context(self, **kw):
         ctx = self._browser.new_context(**kw)
         ctx.add_init_script(FRAME_CAP_JS)
+        ctx.add_init_script(NO_MSAA_JS)
         return ctx
+
+    @property
+    def plain(self):
+        """The browser itself: its pages get neither init script (the peer in their tests)."""
+        return self._browser
 
     def new_page(self, **kw):
         ctx = self.new_context(**kw)
@@ -165,7 +191,8 @@ class CappedBrowser:
 @pytest.fixture(scope="session")
 def browser():
     """One headless chromium for the whole run (issue 35: it was launched again for every test
-    module), its pages capped at :data:`BROWSER_FPS` (:class:`CappedBrowser`). Each test opens
+    module), its pages capped at :data:`BROWSER_FPS` and drawn without multisampling
+    (:class:`CappedBrowser`). Each test opens
     its own pages; :func:`_close_pages_left_open` closes whatever a test left open, so no tab of
     an earlier test keeps rendering (or reconnecting to a stopped server) beside the next one."""
     from playwright.sync_api import sync_playwright

@@ -64,6 +64,9 @@ def _hammer(fixed: bool, seconds: float) -> tuple[list[str], int, int]:
         buf_box["tasks"] = [loop.create_task(consume(buf, k)) for k in range(CLIENTS)]
         ready.set()
         loop.run_forever()
+        # stopped (below): the cancelled senders end on the loop before it closes
+        loop.run_until_complete(asyncio.gather(*buf_box["tasks"], return_exceptions=True))
+        loop.close()
 
     th = threading.Thread(target=run_loop, daemon=True)
     th.start()
@@ -106,9 +109,12 @@ def _hammer(fixed: bool, seconds: float) -> tuple[list[str], int, int]:
     while time.monotonic() - t0 < 30 and behind():
         time.sleep(0.05)
     drained = not behind()
-    for t in buf_box["tasks"]:
-        loop.call_soon_threadsafe(t.cancel)
-    loop.call_soon_threadsafe(loop.stop)
+    def stop():
+        for t in buf_box["tasks"]:
+            t.cancel()
+        loop.stop()
+
+    loop.call_soon_threadsafe(stop)
     th.join(30)
     assert drained, "the sender stopped draining the buffer"
     return errors, pushed[0], received[0]
@@ -135,13 +141,20 @@ def _event_race(fixed: bool, seconds: float) -> tuple[int, int, int]:
                 pass
             ev.clear()
 
+    tasks: list = []
+
     def run():
         asyncio.set_event_loop(loop)
         for _ in range(8):
-            loop.create_task(waiter())
+            tasks.append(loop.create_task(waiter()))
         loop.run_forever()
+        # stopped (below): the cancelled waiters end on the loop before it closes (a task left
+        # pending printed "Task was destroyed but it is pending!" when the lane's process exited)
+        loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+        loop.close()
 
-    threading.Thread(target=run, daemon=True).start()
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
     old = sys.getswitchinterval()
     sys.setswitchinterval(1e-6)
     calls = errors = 0
@@ -161,7 +174,14 @@ def _event_race(fixed: bool, seconds: float) -> tuple[int, int, int]:
             time.sleep(0.0002)
     finally:
         sys.setswitchinterval(old)
-        loop.call_soon_threadsafe(loop.stop)
+
+        def stop():
+            for t in tasks:
+                t.cancel()
+            loop.stop()
+
+        loop.call_soon_threadsafe(stop)
+        th.join(30)
     return calls, errors, woken[0]
 
 
