@@ -70,3 +70,44 @@ def test_an_unknown_group_is_one_line_and_compiles_nothing(capsys, monkeypatch):
     with pytest.raises(ValueError, match="unknown kernel group 'gpu'"):
         kernels.compile_groups(["gpu"])
     assert imported == []     # checked before any group is compiled
+
+
+def test_side_by_side_starts_one_process_per_group_before_waiting(monkeypatch):
+    """``--side-by-side``: every group's child is started before the first is waited for (so they
+    run at once), with the group's name and the quiet flag; the first failing child's exit status
+    is the command's."""
+    import subprocess
+
+    events = []
+
+    class Child:
+        def __init__(self, argv):
+            self.argv = argv
+            events.append(("start", argv[-1]))
+
+        def wait(self):
+            events.append(("wait", self.argv[-1]))
+            return 3 if self.argv[-1] == "ct" and fail else 0
+
+    monkeypatch.setattr(subprocess, "Popen", Child)
+    fail = False
+    assert main(["compile-kernels", "--side-by-side", "--quiet"]) == 0
+    names = list(kernels.group_names())
+    assert len(names) >= 2
+    assert events == [("start", n) for n in names] + [("wait", n) for n in names]
+    events.clear()
+    fail = True
+    assert main(["compile-kernels", "--side-by-side", "ct", "camera"]) == 3
+    assert events == [("start", "ct"), ("start", "camera"), ("wait", "ct"), ("wait", "camera")]
+
+
+def test_side_by_side_really_compiles_each_group(tmp_path):
+    """The children are real ``python -m monotracker`` processes: one group's run ends 0 and says
+    what it compiled (numba's cache already holds it after the suite's own warm-up)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "monotracker", "compile-kernels", "--side-by-side", "camera"],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("compiled kernels: camera (")
