@@ -48,19 +48,20 @@ def register(subparsers) -> None:
 
 
 def _compile_kernels(args) -> int:
-    from monotracker.engine.kernels import compile_groups, group_names
+    from monotracker.engine.kernels import checked_groups, compile_groups
 
-    unknown = [n for n in args.groups if n not in group_names()]
-    if unknown:
-        raise InputError(f"unknown kernel group {unknown[0]!r} (groups: {', '.join(group_names())})")
+    try:
+        wanted = checked_groups(args.groups or None)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     if args.side_by_side:
-        return _compile_side_by_side(args.groups or list(group_names()), args.quiet)
+        return _compile_side_by_side(list(wanted), args.quiet)
 
     def done(name, seconds):
         if not args.quiet:
             print(f"compiled kernels: {name} ({seconds:.1f} s)", flush=True)
 
-    compile_groups(args.groups or None, on_done=done)
+    compile_groups(wanted, on_done=done)
     return 0
 
 

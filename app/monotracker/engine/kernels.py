@@ -45,14 +45,21 @@ def group_names() -> tuple[str, ...]:
     return tuple(g.name for g in GROUPS)
 
 
-def compile_groups(names=None, on_done=None) -> list[tuple[str, float]]:
-    """Compile (or load from numba's cache) the kernels of the groups ``names`` (None = all), in
-    this process, one after another. ``on_done(name, seconds)`` is called after each group.
-    Returns ``[(name, seconds)]``. Raises ``ValueError`` naming an unknown group."""
+def checked_groups(names=None) -> tuple[str, ...]:
+    """The group names ``names`` (None = all) as a tuple; ``ValueError`` naming the first
+    unknown one."""
     wanted = group_names() if names is None else tuple(names)
     unknown = [n for n in wanted if n not in group_names()]
     if unknown:
         raise ValueError(f"unknown kernel group {unknown[0]!r} (groups: {', '.join(group_names())})")
+    return wanted
+
+
+def compile_groups(names=None, on_done=None) -> list[tuple[str, float]]:
+    """Compile (or load from numba's cache) the kernels of the groups ``names`` (None = all), in
+    this process, one after another. ``on_done(name, seconds)`` is called after each group.
+    Returns ``[(name, seconds)]``. Raises ``ValueError`` naming an unknown group."""
+    wanted = checked_groups(names)
     out = []
     for g in GROUPS:
         if g.name not in wanted:
