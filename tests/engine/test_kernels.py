@@ -101,7 +101,7 @@ def test_side_by_side_starts_one_process_per_group_before_waiting(monkeypatch):
     assert events == [("start", "ct"), ("start", "camera"), ("wait", "ct"), ("wait", "camera")]
 
 
-def test_side_by_side_really_compiles_each_group(tmp_path):
+def test_side_by_side_really_compiles_each_group():
     """The children are real ``python -m monotracker`` processes: one group's run ends 0 and says
     what it compiled (numba's cache already holds it after the suite's own warm-up)."""
     import subprocess

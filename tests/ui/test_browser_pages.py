@@ -41,7 +41,6 @@ def test_webgl_on_test_pages_has_no_multisampling(browser):
     assert asked["antialias"] is True  # what a page asking for it gets without the script
     got = _page(browser).evaluate(ATTRIBUTES_JS)
     assert got is not None and got["antialias"] is False
-    plain.context.close()
 
 
 def test_test_pages_draw_at_most_browser_fps(browser):

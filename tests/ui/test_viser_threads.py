@@ -35,6 +35,26 @@ RACE_HUNT_S = float(os.environ.get("MONOTRACKER_RACE_HUNT_S", "5"))
 STRESS_S = max(3.0, float(os.environ.get("MONOTRACKER_RACE_HUNT_S", "3")))
 
 
+def _cancel_and_stop(loop, tasks: list, thread) -> None:
+    """From another thread: cancel ``tasks`` and stop ``loop`` (one call on the loop), then join
+    the loop's ``thread``, which ends them with :func:`_end_tasks_and_close`."""
+    def stop():
+        for t in tasks:
+            t.cancel()
+        loop.stop()
+
+    loop.call_soon_threadsafe(stop)
+    thread.join(30)
+
+
+def _end_tasks_and_close(loop, tasks: list) -> None:
+    """On the loop's thread once ``run_forever()`` returned: the cancelled tasks end on the loop,
+    then it closes (a task left pending printed "Task was destroyed but it is pending!" when the
+    serial lane's process exited)."""
+    loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
+    loop.close()
+
+
 def _hammer(fixed: bool, seconds: float) -> tuple[list[str], int, int]:
     """Push updates from 2 threads into a buffer whose sender runs on its loop; (errors, pushed, received)."""
     from viser import _messages
@@ -64,9 +84,7 @@ def _hammer(fixed: bool, seconds: float) -> tuple[list[str], int, int]:
         buf_box["tasks"] = [loop.create_task(consume(buf, k)) for k in range(CLIENTS)]
         ready.set()
         loop.run_forever()
-        # stopped (below): the cancelled senders end on the loop before it closes
-        loop.run_until_complete(asyncio.gather(*buf_box["tasks"], return_exceptions=True))
-        loop.close()
+        _end_tasks_and_close(loop, buf_box["tasks"])
 
     th = threading.Thread(target=run_loop, daemon=True)
     th.start()
@@ -109,13 +127,7 @@ def _hammer(fixed: bool, seconds: float) -> tuple[list[str], int, int]:
     while time.monotonic() - t0 < 30 and behind():
         time.sleep(0.05)
     drained = not behind()
-    def stop():
-        for t in buf_box["tasks"]:
-            t.cancel()
-        loop.stop()
-
-    loop.call_soon_threadsafe(stop)
-    th.join(30)
+    _cancel_and_stop(loop, buf_box["tasks"], th)
     assert drained, "the sender stopped draining the buffer"
     return errors, pushed[0], received[0]
 
@@ -148,10 +160,7 @@ def _event_race(fixed: bool, seconds: float) -> tuple[int, int, int]:
         for _ in range(8):
             tasks.append(loop.create_task(waiter()))
         loop.run_forever()
-        # stopped (below): the cancelled waiters end on the loop before it closes (a task left
-        # pending printed "Task was destroyed but it is pending!" when the lane's process exited)
-        loop.run_until_complete(asyncio.gather(*tasks, return_exceptions=True))
-        loop.close()
+        _end_tasks_and_close(loop, tasks)
 
     th = threading.Thread(target=run, daemon=True)
     th.start()
@@ -174,14 +183,7 @@ def _event_race(fixed: bool, seconds: float) -> tuple[int, int, int]:
             time.sleep(0.0002)
     finally:
         sys.setswitchinterval(old)
-
-        def stop():
-            for t in tasks:
-                t.cancel()
-            loop.stop()
-
-        loop.call_soon_threadsafe(stop)
-        th.join(30)
+        _cancel_and_stop(loop, tasks, th)
     return calls, errors, woken[0]
 
 
