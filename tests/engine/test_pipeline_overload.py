@@ -28,9 +28,10 @@ def _slow(burn):
     return factory
 
 
-def _track(make_session, cpu_s, seconds=2.0, factory=None):
+def _track(make_session, cpu_s, seconds=2.0, factory=None, marks=None):
     """Track the sample plan, then make every estimate cost ``cpu_s`` more (``factory``: how,
-    default :func:`_slow`) for ``seconds``; (session, alerts)."""
+    default :func:`_slow`) for ``seconds``; (session, alerts). ``marks`` (a dict), if given, gets
+    ``"commands_before"``: the count of control commands when the extra cost began."""
     burn = {"s": 0.0}
     factory = factory or _slow
     # freeze_after_s 0.3: on the simulated clock frames arriving while the estimator is busy are
@@ -42,6 +43,8 @@ def _track(make_session, cpu_s, seconds=2.0, factory=None):
     s.advance(0.5)
     assert s.arm("1234").ok and s.start_tracking().ok
     s.advance(0.5)
+    if marks is not None:
+        marks["commands_before"] = len(s.latencies_s())
     burn["s"] = cpu_s      # the machine gets busy while tracking
     s.advance(seconds)
     return s, [a for a in s.snapshot().alerts]
@@ -152,10 +155,15 @@ def test_work_after_the_pose_that_fits_the_frame_costs_the_pose_nothing(tmp_path
             return made[-1]
 
         try:
-            s, alerts = _track(make, cpu_s, factory=_after_with_even_estimates)
+            marks = {}
+            s, alerts = _track(make, cpu_s, factory=_after_with_even_estimates, marks=marks)
             assert "pipeline_overloaded" not in [a.code for a in alerts] and s.snapshot().robot.state == "tracking"
             lat[cpu_s] = [round(v * 1000) for v in s.latencies_s()[-40:]]
-            used[cpu_s] = (len(s.latencies_s()), s.snapshot().pose.t)   # poses used, the newest's capture
+            # poses used while the after-work ran (not before it: the first estimates of a fresh
+            # worker process can pay a one-off cost that the clock charges, so when tracking first
+            # locks can differ between the two runs; seen once in CI: 61 against 76 in all), and
+            # the newest one's capture
+            used[cpu_s] = (len(s.latencies_s()) - marks["commands_before"], s.snapshot().pose.t)
         finally:
             for m in made:
                 m.shutdown()
