@@ -19,12 +19,18 @@ script stops too. The command is also stopped (SIGTERM, then SIGKILL after
 :data:`GRACE_S`) when the process that started this launcher dies, and gets SIGTERM from the
 kernel if this launcher is killed outright (``PR_SET_PDEATHSIG``).
 
-Usage: ``python scripts/own_session.py COMMAND [ARG ...]``
+``--nice N`` runs the command's session (its autogroup) at niceness N, ``--while PID`` only until
+process PID has ended: ``scripts/test.sh`` runs the parallel part of the suite at 19 while the
+serial lane runs beside it, so that it takes only what the serial lane leaves idle, then at the
+normal weight again (beside CPU hogs a session at 19 would get almost nothing).
+
+Usage: ``python scripts/own_session.py [--nice N [--while PID]] COMMAND [ARG ...]``
 """
 
 from __future__ import annotations
 
 import ctypes
+import errno
 import os
 import signal
 import subprocess
@@ -47,6 +53,48 @@ def _die_with_parent() -> None:
         pass
 
 
+def autogroup_nice(pid: int | str = "self") -> int | None:
+    """The niceness of ``pid``'s autogroup (the kernel shares the CPU between autogroups first, by
+    their weight; a session is one autogroup), or None where the kernel has none."""
+    try:
+        with open(f"/proc/{pid}/autogroup") as f:
+            return int(f.read().split()[-1])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def set_autogroup_nice(pid: int | str, nice: int, tries: int = 60) -> bool:
+    """Set ``pid``'s autogroup (its whole session) to niceness ``nice``: weight 15 at 19 against a
+    nice-0 group's 1024, so a session at 19 takes almost only what the other sessions leave idle.
+    Raising it, or lowering it back to 0 or more, needs no privilege; the kernel takes such a
+    change at most every 0.1 s from an unprivileged caller (EAGAIN: tried again). False where the
+    kernel has no autogroups or refused."""
+    for _ in range(tries):
+        try:
+            with open(f"/proc/{pid}/autogroup", "w") as f:
+                f.write(str(nice))
+            return True
+        except OSError as exc:
+            if exc.errno != errno.EAGAIN:
+                return False
+            time.sleep(0.05)
+    return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:   # a zombie has ended
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[-1].split()[0] != "Z"
+    except OSError:
+        return True
+
+
 def _signal_group(pgid: int, sig: int) -> None:
     try:
         os.killpg(pgid, sig)
@@ -54,11 +102,22 @@ def _signal_group(pgid: int, sig: int) -> None:
         pass
 
 
-def run(cmd: list[str]) -> int:
-    """Run ``cmd`` in a new session; its exit status (128 + n when it died of signal n)."""
+def run(cmd: list[str], nice: int = 0, while_pid: int | None = None) -> int:
+    """Run ``cmd`` in a new session; its exit status (128 + n when it died of signal n). With
+    ``nice`` > 0 the new session's autogroup runs at that niceness (:func:`set_autogroup_nice`;
+    the processes' own niceness is left alone, so it can be undone without privilege), until
+    process ``while_pid`` has ended if given (checked every :data:`POLL_S`), then at this
+    launcher's own autogroup niceness again."""
     caller = os.getppid()
+    normal = autogroup_nice()
+
+    def in_child():   # after the new session is made (subprocess calls setsid() first)
+        _die_with_parent()
+        if nice > 0:
+            set_autogroup_nice("self", nice)
+
     try:
-        child = subprocess.Popen(cmd, start_new_session=True, preexec_fn=_die_with_parent)
+        child = subprocess.Popen(cmd, start_new_session=True, preexec_fn=in_child)
     except OSError as exc:
         print(f"own_session: cannot run {cmd[0]!r}: {exc.strerror or exc}", file=sys.stderr)
         return 127
@@ -71,8 +130,16 @@ def run(cmd: list[str]) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, forward)
 
+    lowered = nice > 0 and while_pid is not None and normal is not None
+
     def watch_caller():
+        nonlocal lowered
         while child.poll() is None:
+            if lowered and not _alive(while_pid):   # its time beside that process is over
+                lowered = False
+                if not set_autogroup_nice(child.pid, max(normal, 0)):
+                    print(f"own_session: could not set the command's priority back to {max(normal, 0)}",
+                          file=sys.stderr)
             if os.getppid() != caller:      # re-parented: whoever started us is gone
                 _signal_group(child.pid, signal.SIGTERM)
                 try:
@@ -92,11 +159,21 @@ def run(cmd: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
+    args = list(sys.argv[1:] if argv is None else argv)
+    nice, while_pid = 0, None
+    try:
+        if args[:1] == ["--nice"]:
+            nice = int(args[1])
+            args = args[2:] if 0 <= nice <= 19 else []
+        if args[:1] == ["--while"]:
+            while_pid = int(args[1])
+            args = args[2:] if while_pid > 0 and nice > 0 else []
+    except (IndexError, ValueError):
+        args = []
     if not args:
-        print("usage: own_session.py COMMAND [ARG ...]", file=sys.stderr)
+        print("usage: own_session.py [--nice 0-19 [--while PID]] COMMAND [ARG ...]", file=sys.stderr)
         return 2
-    return run(args)
+    return run(args, nice, while_pid)
 
 
 if __name__ == "__main__":

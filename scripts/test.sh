@@ -29,23 +29,51 @@ bash scripts/compile_kernels.sh
 .venv/bin/ruff check --quiet app tests benchmarks examples scripts
 .venv/bin/lint-imports --no-cache --no-logo >/dev/null || .venv/bin/lint-imports --no-cache --no-logo
 # The suite in two parts (issue 35): everything outside tests/conftest.py's serial lane on
-# MONOTRACKER_TEST_WORKERS pytest-xdist workers (default 2; 0 = one process), then the serial lane
-# (browser, real-clock engine, realtime tests) one test after another with nothing beside it.
+# MONOTRACKER_TEST_WORKERS pytest-xdist workers (default 2; 0 = one process), and the serial lane
+# (browser, real-clock engine, realtime tests) one test after another. Each part runs in a session
+# of its own (scripts/own_session.py): with the kernel's autogroup scheduler the CPU is shared
+# between sessions first, so the tests (and the app the browser tests serve) get a session's share
+# beside whatever else the caller's session runs, as a deployed service and the browser do,
+# instead of one thread's share among them (beside 4 busy loops started from the same shell, the
+# end-to-end browser test took 53-83 s in 5 runs instead of 56-160 s: docs/performance.md "Tests
+# under load"). Ctrl-C, kill and a closed terminal still stop the tests.
+#
+# Where the kernel has autogroups, both parts start together: the serial lane at normal weight,
+# the parallel part's session at nice 19 while the serial lane runs (weight 15 against 1024:
+# own_session.py --nice 19 --while PID), so it takes only the CPU the serial lane leaves idle (the
+# browser tests wait on the app and the browser: ~0.6 of a core) and the serial lane keeps the
+# machine as if alone; then the parallel part gets its normal weight back (beside CPU hogs it
+# would get almost nothing at 19). Its workers stay in its session (MONOTRACKER_TEST_OWN_SESSION=0:
+# tests/ui/conftest.py would otherwise move each worker to a new session at normal weight). The
+# parallel part prints as it runs; the serial lane's output follows it. Elsewhere, or with
+# MONOTRACKER_TEST_LANES=one-after-other, the parallel part runs first, then the serial lane.
 # Extra arguments go to both parts; a part with no test selected (exit 5) is not a failure. Each
 # part prints its 30 slowest tests (--durations=30), so every CI log carries the profile.
 workers="${MONOTRACKER_TEST_WORKERS:-2}"
 par=(-n "$workers")
 [ "$workers" = "0" ] && par=()
-# Each part runs in a session of its own (scripts/own_session.py): with the kernel's autogroup
-# scheduler the CPU is shared between sessions first, so the tests (and the app the browser tests
-# serve) get a session's share beside whatever else the caller's session runs, as a deployed
-# service and the browser do, instead of one thread's share among them. Ctrl-C, kill and a closed
-# terminal still stop the tests. Beside 4 busy loops started from the same shell, the end-to-end
-# browser test took 53-83 s (5 runs) instead of 56-160 s (docs/performance.md "Tests under load").
-lane=(.venv/bin/python scripts/own_session.py .venv/bin/python -m pytest)
+launcher=(.venv/bin/python scripts/own_session.py)
+pytest_=(.venv/bin/python -m pytest)
+lanes="${MONOTRACKER_TEST_LANES:-together}"
+if [ "$lanes" = together ] && ! { [ "$(cat /proc/sys/kernel/sched_autogroup_enabled 2>/dev/null)" = 1 ] \
+                                   && [ -w /proc/self/autogroup ]; }; then
+  lanes=one-after-other
+fi
 rc1=0; rc2=0
-"${lane[@]}" "${par[@]}" --lane parallel --durations=30 "$@" || rc1=$?
-"${lane[@]}" --lane serial --durations=30 "$@" || rc2=$?
+if [ "$lanes" = together ]; then
+  serial_log="$(mktemp -t monotracker-serial-lane.XXXXXX)"
+  trap 'rm -f "$serial_log"' EXIT
+  "${launcher[@]}" "${pytest_[@]}" --lane serial --durations=30 "$@" >"$serial_log" 2>&1 &
+  serial_pid=$!
+  MONOTRACKER_TEST_OWN_SESSION=0 "${launcher[@]}" --nice 19 --while "$serial_pid" \
+    "${pytest_[@]}" "${par[@]}" --lane parallel --durations=30 "$@" || rc1=$?
+  wait "$serial_pid" || rc2=$?
+  echo "--- the serial lane (it ran beside the parallel part, which ran at nice 19 meanwhile) ---"
+  cat "$serial_log"
+else
+  "${launcher[@]}" "${pytest_[@]}" "${par[@]}" --lane parallel --durations=30 "$@" || rc1=$?
+  "${launcher[@]}" "${pytest_[@]}" --lane serial --durations=30 "$@" || rc2=$?
+fi
 if [ "$rc1" = 5 ] && [ "$rc2" = 5 ]; then exit 5; fi
 [ "$rc1" = 5 ] && rc1=0
 [ "$rc2" = 5 ] && rc2=0

@@ -130,3 +130,63 @@ def test_the_command_is_stopped_when_its_caller_or_the_launcher_is_killed(tmp_pa
         for q in (pid, gc):
             if _alive(q):
                 os.kill(q, signal.SIGKILL)
+
+
+
+#: the command under ``--nice``: rewrites its file every 50 ms with its session id, its own
+#: niceness and its autogroup's niceness
+SHOW_PRIORITY = r"""
+import os, sys, time
+out = sys.argv[1]
+while True:
+    group = open("/proc/self/autogroup").read().split()[-1]
+    open(out + ".tmp", "w").write(f"{os.getsid(0)} {os.getpid()} {os.getpriority(os.PRIO_PROCESS, 0)} {group}")
+    os.replace(out + ".tmp", out)
+    time.sleep(0.05)
+"""
+
+
+def _read_priority(out):
+    try:
+        return tuple(int(x) for x in out.read_text().split())
+    except (OSError, ValueError):
+        return None
+
+
+@pytest.mark.skipif(not Path("/proc/self/autogroup").exists(), reason="this kernel has no autogroup scheduling "
+                    "(scripts/test.sh then runs the two parts one after the other)")
+def test_nice_lowers_the_commands_session_while_the_other_process_runs_then_gives_it_back(tmp_path):
+    """``--nice 19 --while PID`` (scripts/test.sh's parallel part beside the serial lane): the
+    command's session (its autogroup) runs at niceness 19 while process PID lives, then at the
+    launcher's own autogroup niceness again; the command's own niceness and the caller's session
+    are never touched (so no privilege is needed to give the weight back). Every wait is on the
+    command's file."""
+    mine = os.getpriority(os.PRIO_PROCESS, 0)
+    my_group = int(Path("/proc/self/autogroup").read_text().split()[-1])
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    script, out = tmp_path / "show.py", tmp_path / "priority.txt"
+    script.write_text(SHOW_PRIORITY)
+    p = subprocess.Popen([sys.executable, str(LAUNCHER), "--nice", "19", "--while", str(other.pid),
+                          sys.executable, str(script), str(out)])
+    try:
+        _wait_for(lambda: _read_priority(out) is not None, "the command to start")
+        sid, pid, nice, group = _read_priority(out)
+        assert sid == pid != os.getsid(0)
+        assert (nice, group) == (mine, 19)
+        assert int(Path("/proc/self/autogroup").read_text().split()[-1]) == my_group
+        other.kill()
+        other.wait()
+        _wait_for(lambda: _read_priority(out)[3] == max(my_group, 0), "the session's weight to come back")
+        assert _read_priority(out)[2] == mine
+    finally:
+        for q in (other, p):
+            if q.poll() is None:
+                q.terminate()
+                q.wait()
+
+
+def test_nice_and_while_need_valid_values():
+    for bad in (["--nice"], ["--nice", "x", "true"], ["--nice", "20", "true"], ["--nice", "-5", "true"],
+                ["--while", "1", "true"], ["--nice", "19", "--while", "0", "true"], ["--nice", "19", "--while"]):
+        r = subprocess.run([sys.executable, str(LAUNCHER), *bad], capture_output=True, text=True)
+        assert r.returncode == 2 and "usage" in r.stderr and "Traceback" not in r.stderr, (bad, r.stderr)
