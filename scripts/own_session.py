@@ -22,7 +22,9 @@ kernel if this launcher is killed outright (``PR_SET_PDEATHSIG``).
 ``--nice N`` runs the command's session (its autogroup) at niceness N, ``--while PID`` only until
 process PID has ended: ``scripts/test.sh`` runs the parallel part of the suite at 19 while the
 serial lane runs beside it, so that it takes only what the serial lane leaves idle, then at the
-normal weight again (beside CPU hogs a session at 19 would get almost nothing).
+normal weight again (beside CPU hogs a session at 19 would get almost nothing); also, at once, if
+the lowered session got under :data:`STARVED_SHARE` of a core for :data:`STARVED_S` seconds (other
+load came: its tests' own waits must not run out while it is starved).
 
 Usage: ``python scripts/own_session.py [--nice N [--while PID]] COMMAND [ARG ...]``
 """
@@ -43,6 +45,13 @@ GRACE_S = 10.0
 #: seconds between checks that the caller is still alive
 POLL_S = 1.0
 _PR_SET_PDEATHSIG = 1
+#: a lowered session that got less than :data:`STARVED_SHARE` of a core over the last
+#: :data:`STARVED_S` seconds is starved by other load (its low weight takes only idle CPU, and there
+#: is none): it gets its normal weight back at once, so that its tests' own waits do not run out
+#: (a session that used that little because it was idle gets it back too: no harm). The tests set
+#: a shorter window with OWN_SESSION_STARVED_S.
+STARVED_S = float(os.environ.get("OWN_SESSION_STARVED_S", "20"))
+STARVED_SHARE = 0.05
 
 
 def _die_with_parent() -> None:
@@ -95,6 +104,24 @@ def _alive(pid: int) -> bool:
         return True
 
 
+def session_cpu_s(sid: int) -> float:
+    """CPU seconds used so far by the processes of session ``sid`` and the children they reaped
+    (from /proc; a process that ended unreaped drops out, so the sum can step down)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/stat") as f:
+                fields = f.read().rsplit(")", 1)[-1].split()
+        except OSError:
+            continue
+        if len(fields) > 14 and int(fields[3]) == sid:     # fields after the name: state, ppid, pgrp, session, ...
+            total += sum(int(x) for x in fields[11:15])    # utime, stime, cutime, cstime
+    return total / tick
+
+
 def _signal_group(pgid: int, sig: int) -> None:
     try:
         os.killpg(pgid, sig)
@@ -132,14 +159,27 @@ def run(cmd: list[str], nice: int = 0, while_pid: int | None = None) -> int:
 
     lowered = nice > 0 and while_pid is not None and normal is not None
 
-    def watch_caller():
+    def give_weight_back(why: str) -> None:
         nonlocal lowered
+        lowered = False
+        if why:
+            print(f"own_session: {why}: the command's session back to its normal weight", file=sys.stderr)
+        if not set_autogroup_nice(child.pid, max(normal, 0)):
+            print(f"own_session: could not set the command's priority back to {max(normal, 0)}", file=sys.stderr)
+
+    def watch_caller():
+        used: list[tuple[float, float]] = []   # (monotonic s, the session's CPU s) while lowered
         while child.poll() is None:
             if lowered and not _alive(while_pid):   # its time beside that process is over
-                lowered = False
-                if not set_autogroup_nice(child.pid, max(normal, 0)):
-                    print(f"own_session: could not set the command's priority back to {max(normal, 0)}",
-                          file=sys.stderr)
+                give_weight_back("")
+            elif lowered:
+                now = time.monotonic()
+                used.append((now, session_cpu_s(child.pid)))
+                while used and used[0][0] < now - STARVED_S:
+                    used.pop(0)
+                t0, c0 = used[0]
+                if now - t0 >= STARVED_S - 2 * POLL_S and used[-1][1] - c0 < STARVED_SHARE * (now - t0):
+                    give_weight_back(f"under {STARVED_SHARE:.0%} of a core for {now - t0:.0f} s beside other load")
             if os.getppid() != caller:      # re-parented: whoever started us is gone
                 _signal_group(child.pid, signal.SIGTERM)
                 try:

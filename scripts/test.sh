@@ -45,8 +45,10 @@ bash scripts/compile_kernels.sh
 # machine as if alone; then the parallel part gets its normal weight back (beside CPU hogs it
 # would get almost nothing at 19). Its workers stay in its session (MONOTRACKER_TEST_OWN_SESSION=0:
 # tests/ui/conftest.py would otherwise move each worker to a new session at normal weight). The
-# parallel part prints as it runs; the serial lane's output follows it. Elsewhere, or with
-# MONOTRACKER_TEST_LANES=one-after-other, the parallel part runs first, then the serial lane.
+# parallel part prints as it runs; the serial lane's output follows it. On a machine already busy
+# at the start (under 60 % idle over a second), where the kernel has no autogroups, or with
+# MONOTRACKER_TEST_LANES=one-after-other, the parallel part runs first, then the serial lane;
+# load that comes later is own_session.py's to notice (a starved session gets its weight back).
 # Extra arguments go to both parts; a part with no test selected (exit 5) is not a failure. Each
 # part prints its 30 slowest tests (--durations=30), so every CI log carries the profile.
 workers="${MONOTRACKER_TEST_WORKERS:-2}"
@@ -54,10 +56,22 @@ par=(-n "$workers")
 [ "$workers" = "0" ] && par=()
 launcher=(.venv/bin/python scripts/own_session.py)
 pytest_=(.venv/bin/python -m pytest)
+# the machine's idle share over one second, in % (from /proc/stat: idle + iowait over all)
+idle_pct() {
+  local a b
+  read -r -a a < /proc/stat; sleep 1; read -r -a b < /proc/stat
+  local total=$(( b[1]+b[2]+b[3]+b[4]+b[5]+b[6]+b[7]+b[8] - a[1]-a[2]-a[3]-a[4]-a[5]-a[6]-a[7]-a[8] ))
+  echo $(( total > 0 ? 100 * (b[4]+b[5]-a[4]-a[5]) / total : 0 ))
+}
 lanes="${MONOTRACKER_TEST_LANES:-together}"
-if [ "$lanes" = together ] && ! { [ "$(cat /proc/sys/kernel/sched_autogroup_enabled 2>/dev/null)" = 1 ] \
-                                   && [ -w /proc/self/autogroup ]; }; then
-  lanes=one-after-other
+if [ "$lanes" = together ]; then
+  if ! { [ "$(cat /proc/sys/kernel/sched_autogroup_enabled 2>/dev/null)" = 1 ] && [ -w /proc/self/autogroup ]; }; then
+    lanes=one-after-other
+  elif idle=$(idle_pct) && [ "$idle" -lt 60 ]; then
+    # other load already: the parallel part at nice 19 would get almost nothing beside it
+    echo "test.sh: the machine is busy (${idle} % idle): the two parts run one after the other" >&2
+    lanes=one-after-other
+  fi
 fi
 rc1=0; rc2=0
 if [ "$lanes" = together ]; then

@@ -190,3 +190,31 @@ def test_nice_and_while_need_valid_values():
                 ["--while", "1", "true"], ["--nice", "19", "--while", "0", "true"], ["--nice", "19", "--while"]):
         r = subprocess.run([sys.executable, str(LAUNCHER), *bad], capture_output=True, text=True)
         assert r.returncode == 2 and "usage" in r.stderr and "Traceback" not in r.stderr, (bad, r.stderr)
+
+
+@pytest.mark.skipif(not Path("/proc/self/autogroup").exists(), reason="this kernel has no autogroup scheduling "
+                    "(scripts/test.sh then runs the two parts one after the other)")
+def test_a_lowered_session_that_gets_no_cpu_gets_its_weight_back_early(tmp_path):
+    """Load that comes after the start (CPU hogs beside the suite) leaves a session at nice 19
+    almost no CPU, and its tests' own waits would run out: a lowered session that used under 5 %
+    of a core over the window (``OWN_SESSION_STARVED_S``, 20 s by default; 2 s here) gets its
+    normal weight back while process PID still runs, and says so on stderr. The command here
+    sleeps (it uses no CPU, as a starved one), so no CPU is burnt to show it."""
+    my_group = int(Path("/proc/self/autogroup").read_text().split()[-1])
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
+    script, out = tmp_path / "show.py", tmp_path / "priority.txt"
+    script.write_text(SHOW_PRIORITY.replace("time.sleep(0.05)", "time.sleep(0.2)"))
+    p = subprocess.Popen([sys.executable, str(LAUNCHER), "--nice", "19", "--while", str(other.pid),
+                          sys.executable, str(script), str(out)], stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "OWN_SESSION_STARVED_S": "2"})
+    try:
+        _wait_for(lambda: _read_priority(out) is not None, "the command to start")
+        assert _read_priority(out)[3] == 19
+        _wait_for(lambda: _read_priority(out)[3] == max(my_group, 0), "the starved session's weight to come back")
+        assert other.poll() is None                # the other process still runs
+    finally:
+        for q in (other, p):
+            if q.poll() is None:
+                q.terminate()
+                q.wait()
+    assert "back to its normal weight" in p.stderr.read()
