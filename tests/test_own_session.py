@@ -162,21 +162,23 @@ def test_nice_lowers_the_commands_session_while_the_other_process_runs_then_give
     are never touched (so no privilege is needed to give the weight back). Every wait is on the
     command's file."""
     mine = os.getpriority(os.PRIO_PROCESS, 0)
-    my_group = int(Path("/proc/self/autogroup").read_text().split()[-1])
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
     script, out = tmp_path / "show.py", tmp_path / "priority.txt"
     script.write_text(SHOW_PRIORITY)
+    # the launcher in a session of its own, whose autogroup starts at niceness 0 (the weight it
+    # gives back), whatever this test's session runs at (the suite's parallel part: 19 or 0)
     p = subprocess.Popen([sys.executable, str(LAUNCHER), "--nice", "19", "--while", str(other.pid),
-                          sys.executable, str(script), str(out)])
+                          sys.executable, str(script), str(out)], start_new_session=True)
     try:
         _wait_for(lambda: _read_priority(out) is not None, "the command to start")
+        assert int(Path(f"/proc/{p.pid}/autogroup").read_text().split()[-1]) == 0
         sid, pid, nice, group = _read_priority(out)
-        assert sid == pid != os.getsid(0)
+        assert sid == pid != os.getsid(0) and sid != p.pid
         assert (nice, group) == (mine, 19)
-        assert int(Path("/proc/self/autogroup").read_text().split()[-1]) == my_group
+        assert int(Path(f"/proc/{p.pid}/autogroup").read_text().split()[-1]) == 0   # the caller's left alone
         other.kill()
         other.wait()
-        _wait_for(lambda: _read_priority(out)[3] == max(my_group, 0), "the session's weight to come back")
+        _wait_for(lambda: _read_priority(out)[3] == 0, "the session's weight to come back")
         assert _read_priority(out)[2] == mine
     finally:
         for q in (other, p):
@@ -200,17 +202,16 @@ def test_a_lowered_session_that_gets_no_cpu_gets_its_weight_back_early(tmp_path)
     of a core over the window (``OWN_SESSION_STARVED_S``, 20 s by default; 2 s here) gets its
     normal weight back while process PID still runs, and says so on stderr. The command here
     sleeps (it uses no CPU, as a starved one), so no CPU is burnt to show it."""
-    my_group = int(Path("/proc/self/autogroup").read_text().split()[-1])
     other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
     script, out = tmp_path / "show.py", tmp_path / "priority.txt"
     script.write_text(SHOW_PRIORITY.replace("time.sleep(0.05)", "time.sleep(0.2)"))
     p = subprocess.Popen([sys.executable, str(LAUNCHER), "--nice", "19", "--while", str(other.pid),
                           sys.executable, str(script), str(out)], stderr=subprocess.PIPE, text=True,
-                         env={**os.environ, "OWN_SESSION_STARVED_S": "2"})
+                         env={**os.environ, "OWN_SESSION_STARVED_S": "2"}, start_new_session=True)
     try:
         _wait_for(lambda: _read_priority(out) is not None, "the command to start")
         assert _read_priority(out)[3] == 19
-        _wait_for(lambda: _read_priority(out)[3] == max(my_group, 0), "the starved session's weight to come back")
+        _wait_for(lambda: _read_priority(out)[3] == 0, "the starved session's weight to come back")
         assert other.poll() is None                # the other process still runs
     finally:
         for q in (other, p):
