@@ -127,6 +127,7 @@ def test_pin_lockout_is_an_active_condition_until_it_ends(make_session):
     assert [a.code for a in s.snapshot().alarms] == []
 
 
+@pytest.mark.serial  # the engine on the real clock: the serial lane (tests/conftest.py)
 def test_camera_start_failure_is_shown_until_a_start_succeeds(make_session):
     s = make_session(clock="sim")
     plan_sample(s)

@@ -146,6 +146,7 @@ def test_reset_before_the_robot_is_connected_releases_the_latch(make_session):
     assert r.ok, r.message
 
 
+@pytest.mark.serial  # the engine on the real clock: the serial lane (tests/conftest.py)
 def test_the_control_process_connected_after_an_early_stop_starts_e_stopped(make_session):
     """clock="real": the robot's control loop runs in its own process (``robot/control_process.py``);
     the latched stop reaches it as it connects, acknowledged by the child itself."""

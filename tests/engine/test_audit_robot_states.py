@@ -15,6 +15,8 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
 from monotracker.engine.audit import verify
 
 from .conftest import plan_sample
@@ -80,6 +82,7 @@ OPERATOR_REASONS = {("disarmed", "armed"): "operator armed", ("armed", "tracking
                     ("estopped", "disarmed"): "operator reset the e-stop"}
 
 
+@pytest.mark.serial  # the engine on the real clock: the serial lane (tests/conftest.py)
 def test_control_process_rows_follow_each_other_with_their_own_reasons(make_session):
     """Real clock, the robot in its control process (where the state in shared memory runs
     ahead of the report explaining it): arm / track / hold / STOP / reset."""

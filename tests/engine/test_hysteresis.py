@@ -168,6 +168,7 @@ def _wait_for(s, pred, timeout=30.0):
     return False
 
 
+@pytest.mark.serial  # the engine on the real clock: the serial lane (tests/conftest.py)
 def test_start_tracking_waits_for_the_next_fresh_pose_on_a_real_clock(make_session):
     """A click that lands inside a short stale episode succeeds once fresh poses flow again; a
     stopped stream is refused with the reason (stale), after the bounded wait."""
@@ -237,6 +238,7 @@ class StartRecordingRobotRig(FollowerRobotRig):
         return super().start_tracking()
 
 
+@pytest.mark.serial  # the engine on the real clock: the serial lane (tests/conftest.py)
 def test_start_tracking_is_sent_only_on_a_pose_that_just_arrived(make_session):
     """The arm's safety layer starts only on a target that *arrived* within its frame gap
     (``SafetyConfig.stale_s``, 0.1 s), a rule apart from the engine's capture-age limit: on a

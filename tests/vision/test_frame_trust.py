@@ -177,6 +177,7 @@ def test_video_end_is_camera_ended(sim_frames, tmp_path):
 
 
 # ---------------------------------------------------------------- the engine with a folder source
+@pytest.mark.serial  # the engine on the real clock: the serial lane (tests/conftest.py)
 def test_engine_folder_source_no_freeze_alarm_and_the_end_is_camera_ended(sim_frames, tmp_path):
     """A folder is read only as fast as frames are processed (first frame: full search), and it
     ends: neither is a camera freeze, and the end is not an occlusion."""
