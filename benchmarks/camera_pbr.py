@@ -64,6 +64,8 @@ from monotracker.vision.frames import Frame
 from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
 
 FPS = 30.0
+#: the centre refiner's network for the ``refined`` detector (``--refiner``; None = the shipped one)
+REFINER_MODEL = None
 
 
 def make_detector(name: str, radius_mm: float, focal_px: float):
@@ -75,11 +77,15 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         return ClassicalDetector(rules)
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
+    if name == "refined":
+        from monotracker.vision.centre_refiner import CentreRefiner
+
+        return ClassicalDetector(rules, refiner=CentreRefiner(REFINER_MODEL))
     if name == "learned":
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, chroma, learned)")
+    raise InputError(f"unknown detector {name!r} (edge, refined, chroma, learned)")
 
 
 class Recording:
@@ -296,9 +302,13 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", type=int, default=0, help="at most this many scenes per kind (0 = all)")
     ap.add_argument("--detectors", default="edge,chroma,learned")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
+    ap.add_argument("--refiner", type=Path, default=None,
+                    help="the centre refiner's ONNX network for the 'refined' detector (default: the shipped one)")
     ap.add_argument("--fit-bias", action="store_true",
                     help="measure the detectors' centre bias on the tuning set (px per coordinate)")
     a = ap.parse_args(argv)
+    global REFINER_MODEL
+    REFINER_MODEL = a.refiner
     if a.fit_bias and a.held_out:
         print("error: the centre bias is fitted on the tuning set only, never on the held-out set", file=sys.stderr)
         return 2

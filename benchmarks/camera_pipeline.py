@@ -10,6 +10,7 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    hair). Detectors: ``chroma`` = the classical detector with today's soft-chromaticity
    centroid (baseline), ``edge`` = the classical detector with edge-fit centres (default),
    ``edge+colour`` = the same with the ball colour learned from one click on the first frame,
+   ``edge+ref`` = ``edge`` with the learned centre refiner (opt-in, issue 28; when its network is there),
    ``learned`` = the ONNX segmenter (opt-in). Columns: centre error vs the exact ellipse centre
    (what a detector must report; the registration corrects ellipse -> sphere centre), recall
    of fully visible balls, partly hidden balls accepted, and per frame through the pose
@@ -41,6 +42,7 @@ import argparse
 import os
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -49,11 +51,18 @@ from monotracker.geometry import apply_transform, rotation_angle_deg
 from monotracker.registration import register
 from monotracker.sim.camera_sim import SceneEvents, SimulatedCamera, Stray, random_events
 from monotracker.sim.trajectories import make_trajectory
+from monotracker.vision.centre_refiner import CentreRefiner
+from monotracker.vision.centre_refiner import default_model_path as refiner_model_path
 from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detect_learned import LearnedDetector
 from monotracker.vision.detection import Detection, ImageFiducial
 from monotracker.vision.frames import Frame
 from monotracker.vision.pose_stream import NEWLY_LOST, PoseTracker
+
+
+#: the ``edge+ref`` row's network (``MONOTRACKER_CENTRE_REFINER`` or the shipped one)
+REFINER_MODEL = Path(os.environ.get("MONOTRACKER_CENTRE_REFINER", "")) if os.environ.get(
+    "MONOTRACKER_CENTRE_REFINER") else refiner_model_path()
 
 
 class BaselineDetector:
@@ -182,6 +191,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge-r6", ClassicalDetector(rules)),
                 ("edge", ClassicalDetector(with_camera))]
         dets.append(("edge+colour", ClassicalDetector(with_camera, colour=colour) if colour is not None else None))
+        if REFINER_MODEL.is_file():     # the learned centre refiner (opt-in; issue 28)
+            dets.append(("edge+ref", ClassicalDetector(with_camera, refiner=CentreRefiner(REFINER_MODEL))))
         if with_learned:
             dets.append(("learned", LearnedDetector(rules=with_camera)))
         for name, det in dets:

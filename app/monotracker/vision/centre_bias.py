@@ -24,6 +24,13 @@ CENTRE_BIAS = {
     # same run, 10 scenes: ball 0.179 px / common 0.319 px
     "learned": CentreBias(ball_per_radius=0.022, common_per_radius=0.0415, prior_dof=6, noise_prior_px=0.15,
                           source="learned detector, 10 Mitsuba tuning scenes, 2026-11-26 (issue 28)"),
+    # benchmarks/camera_pbr.py --fit-bias --detectors refined,edge --frames 8, 2026-11-30, tuning set (26
+    # Mitsuba scenes, 18 with >= 4 whole balls found): the edge detector with the learned centre
+    # refiner (static/centre_refiner.onnx, trained on the train split only); RMS over scenes, per
+    # coordinate, ball 0.090 px / common 0.113 px (radius 8-9 px); by condition common 0.052 (clutter)
+    # to 0.166 px (degraded). The edge detector in the same run: ball 0.151 / common 0.270 px
+    "refined": CentreBias(ball_per_radius=0.0137, common_per_radius=0.0261, prior_dof=6, noise_prior_px=0.15,
+                          source="edge detector + centre refiner, 18 Mitsuba tuning scenes, 2026-11-30 (issue 28)"),
 }
 #: a detector this table does not know (the chroma centroid included: not measured): the largest
 #: of the measured ones in each part
@@ -33,10 +40,13 @@ UNKNOWN = CentreBias(ball_per_radius=max(b.ball_per_radius for b in CENTRE_BIAS.
 
 
 def detector_key(detector) -> str:
-    """``edge``, ``chroma`` or ``learned`` for our detectors; the detector's ``name`` else."""
+    """``edge``, ``refined`` (the edge detector with a centre refiner), ``chroma`` or ``learned``
+    for our detectors; the detector's ``name`` else."""
     name = str(getattr(detector, "name", ""))
     if name == "learned":
         return "learned"
+    if getattr(detector, "refiner", None) is not None:
+        return "refined"
     method = getattr(detector, "centre_method", None)
     return str(method) if method in ("edge", "chroma") else name
 

@@ -46,8 +46,10 @@ def register(subparsers) -> None:
 
     d = subparsers.add_parser("detect-image", help="detect the fiducial balls in one image")
     d.add_argument("image")
-    d.add_argument("--detector", choices=("classical", "learned"), default="classical",
-                   help="classical (the default); learned: NOT for clinical use (trained on a simple render only)")
+    d.add_argument("--detector", choices=("classical", "refined", "learned"), default="classical",
+                   help="classical (the default); refined: classical with the learned centre refiner (issue 28, "
+                        "opt-in: about half the centre error on physically rendered frames, ~2 ms more per frame); "
+                        "learned: NOT for clinical use (trained on a simple render only)")
     d.add_argument("--radius-mm", type=float, default=4.0, help="ball radius (mm)")
     d.add_argument("--focal-px", type=float, default=None, help="focal length (px) for the size check")
     d.add_argument("--camera", default=None, help="camera calibration file (gives the focal length); the image "
@@ -138,7 +140,12 @@ def _detect(args) -> int:
     else:
         from .detect_classical import ClassicalDetector
 
-        det = ClassicalDetector(rules)
+        refiner = None
+        if args.detector == "refined":
+            from .centre_refiner import CentreRefiner
+
+            refiner = CentreRefiner()
+        det = ClassicalDetector(rules, refiner=refiner)
     res = det.detect(img)
     if args.json:
         print(json.dumps({"detector": res.detector, "time_ms": 1000 * res.time_s, "fiducials": [

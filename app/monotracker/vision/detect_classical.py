@@ -41,6 +41,9 @@ class ClassicalDetector:
     #: the balls' colour band; None = the four fields above (default green). Set by
     #: :meth:`set_colour` (e.g. learned from a click, or loaded with the camera calibration).
     colour: BallColour | None = None
+    #: a learned correction of each accepted ball's centre for its shading
+    #: (:class:`~.centre_refiner.CentreRefiner`, issue 28); None = the edge fit's centre as it is
+    refiner: object | None = None
     #: what the last searches measured of the imaging (``blur_px``: the edge blur, px;
     #: ``chroma_band_limited``: bool) and found (``centres_px``: the accepted balls' centres, px,
     #: where the next search's edge rays start, :data:`~.detection.START_AT_LAST_PX`), reused by
@@ -91,6 +94,10 @@ class ClassicalDetector:
         accepted, rejected = analyse_blobs(image, mask, self.rules, self.name, centre_method=self.centre_method,
                                            edge_blur_px=blur, contours=contours, info=info, frame=frame,
                                            hint=hint, start_px=self._imaging.get("centres_px") if warm else None)
+        if self.refiner is not None and accepted:
+            t_ref = time.perf_counter()
+            self.refiner.refine(image, accepted)
+            info.setdefault("stages_s", {})["refine"] = time.perf_counter() - t_ref
         self._imaging["centres_px"] = np.array([f.centre_px for f in accepted], float).reshape(-1, 2)
         rejected += cut
         new_blur = frame.get("blur_px_measured") or info.get("edge_blur_px")

@@ -56,6 +56,7 @@ from monotracker.geometry import apply_transform
 from monotracker.registration.quantiles import chi2_ppf as chi2_quantile
 
 from .camera_model import CameraModel
+from .centre_refiner import REFINED_BIAS_PER_RMS, REFINED_COMMON_PER_RMS
 from .frames import Frame, grayscale_problem
 from .sphere_outline import SphereEllipseCache
 
@@ -227,6 +228,12 @@ class TrackerConfig:
     #: no edge RMS and are gated as before
     edge_bias_per_rms: float = 1.0
     edge_common_per_rms: float = 1.0
+    #: the same two factors for a centre the learned refiner moved (``features["edge_centre_px"]``
+    #: set: :class:`~.centre_refiner.CentreRefiner`): its error per edge RMS, measured on the
+    #: rendered tuning set (see :mod:`.centre_refiner`); the largest factor of the frame's balls
+    #: sets the common shift
+    refined_bias_per_rms: float = REFINED_BIAS_PER_RMS
+    refined_common_per_rms: float = REFINED_COMMON_PER_RMS
 
 
 class PoseTracker:
@@ -586,7 +593,9 @@ class PoseTracker:
         cfg = self.config
         if cfg.edge_bias_per_rms <= 0 and cfg.edge_common_per_rms <= 0:
             return None
-        rms = np.array([float(det.fiducials[i].features.get("edge_rms_px", np.nan)) for i, _ in reg.pairs])
+        feats = [det.fiducials[i].features for i, _ in reg.pairs]
+        rms = np.array([float(f.get("edge_rms_px", np.nan)) for f in feats])
+        refined = np.array(["edge_centre_px" in f for f in feats], bool)
         if not len(rms) or not np.all(np.isfinite(rms)) or not (sigma_px > 0 and np.isfinite(upper_px)):
             return None
         from monotracker.registration import pnp_kernels
@@ -601,8 +610,11 @@ class PoseTracker:
                                            np.zeros((k, 2)), float(K[0, 0]), float(K[1, 1]),
                                            float(self.radius_mm or 0.0), np.empty(0), r, J)
         A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
-        shade = np.repeat((cfg.edge_bias_per_rms * rms) ** 2, 2)
-        common = common_shift_covariance(J, cfg.edge_common_per_rms * float(np.median(rms)), A)  # shared by all balls
+        per_ball = np.where(refined, cfg.refined_bias_per_rms, cfg.edge_bias_per_rms)
+        common_factor = max(cfg.refined_common_per_rms if refined.any() else 0.0,
+                            cfg.edge_common_per_rms if not refined.all() else 0.0)
+        shade = np.repeat((per_ball * rms) ** 2, 2)
+        common = common_shift_covariance(J, common_factor * float(np.median(rms)), A)  # shared by all balls
 
         def cov(noise_px: float) -> np.ndarray:
             return (A * np.maximum(noise_px**2, shade)) @ A.T + common
