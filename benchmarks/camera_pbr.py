@@ -23,7 +23,8 @@ gloved fingers, steel and hair; 1.5 px defocus, Bayer, raw noise, JPEG 85), ``de
 clean scenes at 60 % light, 2.5 px defocus, noisier sensor, JPEG 70), ``clutter`` (OR + green
 strays, dense and loose hair). Detectors: ``edge`` (today's default, with the camera's ball
 outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid baseline),
-``learned`` (the ONNX segmenter). Each runs through the product's own chain: vision's
+``learned`` (the ONNX segmenter), ``refined`` (``edge`` with the learned centre refiner,
+``vision/centre_refiner.py``; opt-in; ``--refiner PATH`` scores another network). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
 
 Columns, per condition x detector x trust model (``before``: each frame alone, the trust model

@@ -138,3 +138,19 @@ def test_the_trust_model_covers_refined_centres_with_their_own_factors():
                              edge_common_per_rms=0.1)
     assert half == pytest.approx(0.5 * base, rel=0.05), (base, half)
     assert edge_changed == pytest.approx(base, rel=1e-9)
+
+
+def test_the_calibrated_trust_model_knows_a_refined_detector():
+    """The calibrated model looks up the refined detector's own measured bias (smaller than the
+    edge detector's), also through a wrapper such as the camera rigs' ``KeepDetections``."""
+    from monotracker.engine.rigs.validation import KeepDetections
+    from monotracker.vision.centre_bias import CENTRE_BIAS, centre_bias_of
+
+    rules = BlobRules(radius_mm=4.0, focal_px=1100.0)
+    refined = ClassicalDetector(rules, refiner=CentreRefiner())
+    assert centre_bias_of(refined) is CENTRE_BIAS["refined"]
+    assert centre_bias_of(ClassicalDetector(rules)) is CENTRE_BIAS["edge"]
+    wrapped = KeepDetections(np.diag([1100.0, 1100.0, 1.0]), 4.0)
+    wrapped.inner = refined
+    assert centre_bias_of(wrapped) is CENTRE_BIAS["refined"]
+    assert CENTRE_BIAS["refined"].common_per_radius < CENTRE_BIAS["edge"].common_per_radius
