@@ -646,13 +646,21 @@ class PoseTracker:
         fxy = np.array([K[0, 0], K[1, 1]])
         if new_moved or not usable:
             self.pool.reset()        # a fiducial was just excluded, or the frame is unusable
-        if usable and not new_moved:
+        if usable:
+            # the frame that found a fiducial moved starts the new pool: its fit (``reg``) has
+            # that fiducial left out already, so it is judged like any other frame (before, it
+            # was given out trusted with no predicted error at all: 1.19 mm off in
+            # tests/vision/test_pose_trust.py's 0.6 px stream)
             idx = np.array([i for i, _ in reg.pairs], int)
             fids = [j for _, j in reg.pairs]
             xn = undistort_to_normalised(pts[idx], K, self.camera.dist)
             self.pool.add(frame_index, fids, xn, fxy, frame_sigma_px)
         st = self.pool.stats()
         if st is None or len(st.fiducials) < cfg.min_fiducials:
+            if ok and self.target_ct is not None:
+                # never trusted without a predicted error at the target
+                ok, code = False, "tre_limit"
+                reason = f"no predicted error at the target: fewer than {cfg.min_fiducials} fiducials pooled"
             return reg.T_cam_ct, float("nan"), frame_sigma_px, "frame", ok, code, reason, 1
         X = self.fiducials_ct[st.fiducials]
         fit = refine_pose(reg.T_cam_ct, X, st.means, fxy, self.radius_mm)
