@@ -10,7 +10,8 @@ Prints, per imaging condition and background, per detector (the classical detect
 ``chroma`` centres: the baseline; ``edge-line``: the edge fit as of issue 13's round 4, each
 ray's background the line through its two outer eighths; ``edge``: today's default, the near
 background, see ``edge_fit.NEAR_BACKGROUND``; ``edge-r5``: that fit with the unmixing's residual
-tolerance 0.12 whatever the blur, before ``edge_fit.SHARP_UNMIX_RESIDUAL``), mean and p95 centre error (px) of the balls found
+tolerance 0.12 whatever the blur, before ``edge_fit.SHARP_UNMIX_RESIDUAL``; ``edge+ref``: ``edge``
+with the learned centre refiner, opt-in, issue 28), mean and p95 centre error (px) of the balls found
 within 3 px, recall, the mean error on the balls all edge fits accept (``common``), and the
 edge blur the fit measured. Then the edge fit with the blur-per-width factor at other values
 (see ``edge_fit.BLUR_PER_WIDTH``), over both backgrounds. Then balls cut by a straight occluder
@@ -43,6 +44,7 @@ from independent_render import (FRAME_F_PX, FRAME_K, FRAME_SIZE, Imaging, Occlud
 
 from monotracker.vision import edge_fit
 from monotracker.vision.camera_model import CameraModel
+from monotracker.vision.centre_refiner import CentreRefiner
 from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detection import BlobRules
 
@@ -114,7 +116,7 @@ def main(argv=None):
     dets = [("chroma", ClassicalDetector(centre_method="chroma")),
             ("edge-line", EdgeSettings(ClassicalDetector(), **EDGE_LINE)),
             ("edge-r5", EdgeSettings(ClassicalDetector(), **EDGE_R5)),
-            ("edge", ClassicalDetector())]
+            ("edge", ClassicalDetector()), ("edge+ref", ClassicalDetector(refiner=CentreRefiner()))]
     print(f"{'condition':<26} {'background':<10} {'detector':<9} {'err mean':>8} {'err p95':>7} {'recall':>6} "
           f"{'common':>6} {'cpu ms':>6} {'blur px':>7}")
     for ci, (cname, im) in enumerate(CONDITIONS.items()):
@@ -149,7 +151,8 @@ def cut_table(n: int, seed: int) -> None:
     cam = CameraModel(FRAME_K, np.zeros(5), FRAME_SIZE)
     rules = BlobRules(radius_mm=4.0, focal_px=FRAME_F_PX, min_distance_mm=250.0)
     dets = (("edge-free", ClassicalDetector(rules)),
-            ("edge", ClassicalDetector(replace(rules, camera=cam))))
+            ("edge", ClassicalDetector(replace(rules, camera=cam))),
+            ("edge+ref", ClassicalDetector(replace(rules, camera=cam), refiner=CentreRefiner())))
     print(f"\nCut balls (15-35 % of the radius hidden) and whole balls in 1280 x 720 frames, {n} per cell")
     print(f"{'condition':<26} {'balls':<6} {'detector':<9} {'accepted':>8} {'> 0.5 px':>8} {'worst px':>8} "
           f"{'mean px':>7}")

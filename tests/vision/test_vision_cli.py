@@ -36,6 +36,7 @@ def test_simulate_then_detect(tmp_path):
     r = _run(["detect-image", "sim/frame_00001.png", "--camera", "sim/camera.yml", "--json", "--detector", "refined"],
              tmp_path)
     assert r.returncode == 0, r.stderr
+    assert "not for clinical use" in r.stderr
     c = np.array([f["centre_px"] for f in json.loads(r.stdout)["fiducials"]])
     assert len(c) == 9
     assert np.linalg.norm(c[:, None] - t[None], axis=2).min(1).max() < 0.35

@@ -21,8 +21,11 @@ refined``; the ``refined`` rows of ``benchmarks/camera_pbr.py`` and ``edge+ref``
 refiner"): the centre error of whole rendered balls about halved in every condition (held-out:
 clean 0.213 -> 0.111 px, OR 0.402 -> 0.155, degraded 0.444 -> 0.206, clutter 0.500 -> 0.237), no
 trusted pose over 1 mm; on our simulator's frames a little worse (clean 0.022 -> 0.043 px,
-degraded 0.137 -> 0.213); ~2 ms of CPU per frame of 9 balls (one orientation). Not the default
-yet: the whole suite has not run with it, and it does not find more balls.
+degraded 0.137 -> 0.213); ~2 ms of CPU per frame of 9 balls (one orientation). **Not for
+clinical use** (:data:`NOT_FOR_CLINICAL_USE`): on our independent renders (Lambert + Phong balls
+without contact shadows, ``benchmarks/independent_optics.py``) it makes the centres 3-6x worse
+(sharp 0.055 -> 0.336 px): it learned the correction Mitsuba's shaded balls need and applies it
+where there is no such shadow; the held-out set shares the training split's scene generator.
 
 The refined centre replaces ``centre_px`` (the ellipse centre, distorted px, as every detector
 reports it); the edge fit's own centre stays in ``features["edge_centre_px"]``, and
@@ -38,6 +41,11 @@ import numpy as np
 
 from monotracker.errors import InputError
 
+#: shown wherever the refiner is chosen (``detect-image --detector refined``): the measured reason
+NOT_FOR_CLINICAL_USE = (
+    "WARNING: the centre refiner is for research, not for clinical use: it halves the centre error on "
+    "Mitsuba-rendered frames like those it was trained on, but makes it 3-6x worse on other renders "
+    "(benchmarks/independent_optics.py); use the classical detector")
 #: crop size (samples per side) and half-width (radii) the network was trained with
 CROP = 32
 SPAN = 1.6

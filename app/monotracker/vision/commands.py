@@ -48,7 +48,8 @@ def register(subparsers) -> None:
     d.add_argument("image")
     d.add_argument("--detector", choices=("classical", "refined", "learned"), default="classical",
                    help="classical (the default); refined: classical with the learned centre refiner (issue 28, "
-                        "opt-in: about half the centre error on physically rendered frames, ~2 ms more per frame); "
+                        "research only, NOT for clinical use: half the centre error on Mitsuba frames like its "
+                        "training frames, 3-6x worse on other renders); "
                         "learned: NOT for clinical use (trained on a simple render only)")
     d.add_argument("--radius-mm", type=float, default=4.0, help="ball radius (mm)")
     d.add_argument("--focal-px", type=float, default=None, help="focal length (px) for the size check")
@@ -142,8 +143,10 @@ def _detect(args) -> int:
 
         refiner = None
         if args.detector == "refined":
+            from .centre_refiner import NOT_FOR_CLINICAL_USE as REFINER_WARNING
             from .centre_refiner import CentreRefiner
 
+            print(REFINER_WARNING, file=sys.stderr)
             refiner = CentreRefiner()
         det = ClassicalDetector(rules, refiner=refiner)
     res = det.detect(img)
