@@ -28,6 +28,7 @@ import numpy as np
 
 from monotracker.sim.pbr.frameset import CONDITIONS, camera_frames, committed_root, default_root, list_scenes
 from monotracker.sim.pbr.truth import sphere_centre_px
+from train_centre_refiner import product_detections   # scripts/: the product's chain on a rendered scene
 
 CROP = 24
 SPAN = 1.7
@@ -76,33 +77,6 @@ def train_samples(scenes, n_frames: int, per_ball: int, rng) -> tuple[np.ndarray
                         X.append(crop_features(img, c, r, ang, mir))
                         Y.append(to_crop_frame((e - c) / r, ang, mir))
     return np.array(X, np.float32), np.array(Y, np.float32)
-
-
-def product_detections(sc, cond: str, n_frames: int):
-    """(frames, detections) of the product's chain on one scene (as benchmarks/camera_pbr.py)."""
-    from monotracker.vision.detect_classical import ClassicalDetector
-    from monotracker.vision.detection import BlobRules
-    from monotracker.vision.frames import Frame
-    from monotracker.vision.pose_tracker import PoseTracker
-
-    cam = sc.camera_model()
-    tr = sc.truth
-    det = ClassicalDetector(BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0])))
-    log = []
-
-    class Rec:
-        rules = det.rules
-
-        def detect(self, image, hint=None):
-            d = det.detect(image) if hint is None else det.detect(image, hint)
-            log.append(d)
-            return d
-
-    frames = camera_frames(sc, cond, n_frames)
-    trk = PoseTracker(tr.fiducials_ct, cam, detector=Rec(), radius_mm=tr.radius_mm, target_ct=tr.target_ct)
-    for k, img in enumerate(frames):
-        trk.process(Frame(img, k / 30.0, k, None))
-    return frames, log
 
 
 def score(scenes, conds, model, n_frames: int) -> dict:
