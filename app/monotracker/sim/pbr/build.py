@@ -1,6 +1,7 @@
 """Render frame sets (cached by scene hash) and cut the small committed set.
 
     python -m monotracker.sim.pbr render --split tuning [--counts clean=20,OR=20,clutter=20] [--root DIR]
+                                         [--renderer mitsuba|blender [--blender-python PATH]]
     python -m monotracker.sim.pbr crops --split tuning --out tests/data/pbr/tuning [--per-kind 6]
 
 ``render`` skips every scene whose ``<hash>.json`` exists (the hash covers the whole spec and the
@@ -27,34 +28,63 @@ from .spec import KINDS, SPLITS, SceneSpec, SetPlan, field_window, make_spec, sc
 from .truth import scene_truth
 
 
-def render_scene(spec: SceneSpec, folder: Path, log=print) -> Path:
-    """Render ``spec`` into ``folder`` unless cached; returns the JSON path."""
-    from .mitsuba_render import auto_exposure, encode_srgb, render_linear
+#: the renderers a frame set can come from: name -> (module of ``render_linear``, the spec the
+#: frames record: Blender renders a pinhole, :func:`.blender_render.blender_spec`)
+RENDERERS = ("mitsuba", "blender")
 
+
+def _backend(renderer: str, spec: SceneSpec, blender_python: str | None):
+    """(the spec the frame records, a function rendering it: () -> (linear, coverage, info))."""
+    if renderer == "mitsuba":
+        from .mitsuba_render import render_linear
+
+        return spec, lambda: render_linear(spec)
+    if renderer == "blender":
+        from . import blender_render
+
+        bspec = blender_render.blender_spec(spec)
+        return bspec, lambda: blender_render.render_linear(bspec, blender_python)
+    raise InputError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
+
+
+def default_folder(split: str, renderer: str = "mitsuba", root: Path | None = None) -> Path:
+    """Where a split's frames live: ``<root>/<split>`` (Mitsuba) or ``<root>/blender/<split>``."""
+    base = root or default_root()
+    return base / split if renderer == "mitsuba" or root is not None else base / renderer / split
+
+
+def render_scene(spec: SceneSpec, folder: Path, log=print, renderer: str = "mitsuba",
+                 blender_python: str | None = None) -> Path:
+    """Render ``spec`` with ``renderer`` (:data:`RENDERERS`) into ``folder`` unless cached;
+    returns the JSON path."""
+    from .mitsuba_render import auto_exposure, encode_srgb
+
+    spec, render = _backend(renderer, spec, blender_python)
     out = folder / f"{scene_hash(spec)}.json"
     if out.exists():
         return out
     t0 = time.perf_counter()
-    lin, cov, info = render_linear(spec)
+    lin, cov, info = render()
     truth = scene_truth(spec, info["visible_fraction"])
     c = truth.ellipse_centres_px
     gain = auto_exposure(lin, (*c.min(axis=0), *c.max(axis=0)))
     save_scene(folder, spec, encode_srgb(lin * gain), truth, info, gain, coverage=cov)
     log(f"{spec.split}/{spec.kind}/{spec.index:03d} {out.stem}: rendered in {time.perf_counter() - t0:.1f} s "
-        f"(mitsuba {info['render_s']} s), visible {np.round(info['visible_fraction'], 2).tolist()}")
+        f"({renderer} {info['render_s']} s), visible {np.round(info['visible_fraction'], 2).tolist()}")
     return out
 
 
-def render_set(split: str, counts: dict, root: Path | None = None, log=print) -> Path:
+def render_set(split: str, counts: dict, root: Path | None = None, log=print, renderer: str = "mitsuba",
+               blender_python: str | None = None) -> Path:
     """Render (or reuse) every scene of ``split``; write the manifest; returns the set folder."""
-    folder = (root or default_root()) / split
+    folder = default_folder(split, renderer, root)
     folder.mkdir(parents=True, exist_ok=True)
     specs = SetPlan(split, counts).specs()
     entries = []
     for spec in specs:
-        render_scene(spec, folder, log)
-        entries.append({"hash": scene_hash(spec), "kind": spec.kind, "index": spec.index})
-        (folder / "manifest.json").write_text(json.dumps({"split": split, "renderer": spec.renderer,
+        path = render_scene(spec, folder, log, renderer, blender_python)
+        entries.append({"hash": path.stem, "kind": spec.kind, "index": spec.index})
+        (folder / "manifest.json").write_text(json.dumps({"split": split, "renderer": renderer,
                                                           "scenes": entries}, indent=1))
     if split == "held_out":
         (folder / "README").write_text("Held-out frames: only ever scored (benchmarks/camera_pbr.py --held-out).\n"
@@ -112,6 +142,9 @@ def main(argv=None) -> int:
     r.add_argument("--root", type=Path, default=None)
     r.add_argument("--scene", action="append", default=[], metavar="KIND:INDEX",
                    help="render only this scene (repeatable): lets a wrapper take one CPU slot per scene")
+    r.add_argument("--renderer", choices=RENDERERS, default="mitsuba",
+                   help="mitsuba (default; <root>/<split>) or blender (Cycles, pinhole; <root>/blender/<split>)")
+    r.add_argument("--blender-python", default=None, help="the Python with the bpy wheel (blender only)")
     c = sub.add_parser("crops", help="cut the committed tuning crops")
     c.add_argument("--split", choices=SPLITS, default="tuning")
     c.add_argument("--out", type=Path, required=True)
@@ -120,14 +153,16 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     try:
         if a.cmd == "render" and a.scene:
-            folder = (a.root or default_root()) / a.split
+            folder = default_folder(a.split, a.renderer, a.root)
             for item in a.scene:
                 kind, _, idx = item.partition(":")
                 if kind not in KINDS or not idx.isdigit():
                     raise InputError(f"--scene: expected KIND:INDEX with KIND in {KINDS}, got {item!r}")
-                render_scene(make_spec(a.split, kind, int(idx)), folder)
+                render_scene(make_spec(a.split, kind, int(idx)), folder, renderer=a.renderer,
+                             blender_python=a.blender_python)
         elif a.cmd == "render":
-            print(render_set(a.split, _counts(a.counts), a.root))
+            print(render_set(a.split, _counts(a.counts), a.root, renderer=a.renderer,
+                             blender_python=a.blender_python))
         else:
             write_crops(a.split, a.out, a.per_kind, a.root)
     except InputError as exc:

@@ -35,6 +35,7 @@ from monotracker.errors import InputError
 from .spec import GLOVE_RGB, HAIR_RGB, SceneSpec, _perp_frame, _unit
 from .surfaces import (HAIR_RADIUS_MM, drape_sheet, drape_texture, hair_curves, head_mesh, plain_texture,
                        skin_texture, towel_band)
+from .truth import visibility_rays
 
 VARIANT = "llvm_ad_rgb"
 _LLVM_CANDIDATES = ("/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1", "/usr/lib/x86_64-linux-gnu/libLLVM-19.so")
@@ -359,49 +360,22 @@ def _render_passes(mi, scene, seed: int, spp: int) -> np.ndarray:
     return acc / passes
 
 
-def cone_samples(n: int = 2048) -> np.ndarray:
-    """(n, 2) points uniform over the unit disc (a golden-angle spiral: deterministic, even)."""
-    k = np.arange(n) + 0.5
-    r = np.sqrt(k / n)
-    a = k * np.pi * (3.0 - np.sqrt(5.0))
-    return np.stack([r * np.cos(a), r * np.sin(a)], -1)
-
-
 def visible_fractions(spec: SceneSpec, scene, n: int = 2048) -> np.ndarray:
-    """Per ball, the share of its silhouette that the camera sees inside the frame: rays from
-    the camera centre spread evenly over the cone tangent to the sphere (``n`` per ball) are
-    intersected with the whole scene by Mitsuba (``scene.ray_intersect``); a ray counts when its
-    first hit is the ball (within 0.01 mm of the ray's analytic entry into the sphere) and its
-    pixel (distorted, the camera model) lies in the image."""
+    """Per ball, the share of its silhouette that the camera sees inside the frame
+    (:func:`~.truth.visibility_rays`: ``n`` rays per ball spread evenly over the cone tangent to
+    the sphere) intersected with the whole scene by Mitsuba (``scene.ray_intersect``); a ray
+    counts when its first hit is the ball (within 0.01 mm of the ray's analytic entry into the
+    sphere) and its pixel lies in the image."""
     mi = load_mitsuba()
-    cam = spec.camera_model()
-    T = spec.T
-    eye = spec.eye_ct
-    W, H = spec.image_size
-    disc = cone_samples(n)
     out = []
-    for c_ct in spec.fiducials:
-        c = T[:3, :3] @ c_ct + T[:3, 3]                    # camera frame
-        dist = np.linalg.norm(c)
-        axis = c / dist
-        e1, e2 = _perp_frame(axis)
-        tan_r = spec.radius_mm / np.sqrt(dist**2 - spec.radius_mm**2)
-        d_cam = axis[None, :] + tan_r * 0.9999 * (disc[:, :1] * e1 + disc[:, 1:] * e2)
-        d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
-        px = cam.project(d_cam)
-        inside = (px[:, 0] >= -0.5) & (px[:, 0] <= W - 0.5) & (px[:, 1] >= -0.5) & (px[:, 1] <= H - 0.5)
-        d_ct = d_cam @ T[:3, :3]                            # camera -> CT directions (R^T)
-        # analytic entry into the sphere
-        oc = eye - c_ct
-        b = d_ct @ oc
-        disc_ = b**2 - (oc @ oc - spec.radius_mm**2)
-        t_in = -b - np.sqrt(np.maximum(disc_, 0.0))
-        rays = mi.Ray3f(mi.Point3f(*[np.full(n, v, np.float32) for v in eye]),
-                        mi.Vector3f(*[d_ct[:, k].astype(np.float32) for k in range(3)]))
-        si = scene.ray_intersect(rays)
+    for rays in visibility_rays(spec, n):
+        eye, d_ct = rays.origin_ct, rays.directions_ct
+        mrays = mi.Ray3f(mi.Point3f(*[np.full(len(d_ct), v, np.float32) for v in eye]),
+                         mi.Vector3f(*[d_ct[:, k].astype(np.float32) for k in range(3)]))
+        si = scene.ray_intersect(mrays)
         t_hit = np.array(si.t, dtype=np.float64)
-        hit_ball = np.abs(t_hit - t_in) < 0.01
-        out.append(float(np.mean(hit_ball & inside & (disc_ > 0))))
+        hit_ball = np.abs(t_hit - rays.t_entry) < 0.01
+        out.append(float(np.mean(hit_ball & rays.counts)))
     return np.array(out)
 
 

@@ -3,7 +3,8 @@
 Per ball: the sphere centre in CT and camera mm, the projection of the sphere centre and the
 centre of the sphere's image ellipse (distorted px, both through OpenCV's ``cv2.projectPoints``,
 independent of the registration package's projection), the image radius (px) and the visible
-fraction that the renderer's ray cast measured (:func:`~.mitsuba_render.visible_fractions`).
+fraction that the renderer's ray cast measured against the rays of :func:`visibility_rays`
+(Mitsuba: :func:`~.mitsuba_render.visible_fractions`; Blender: the scene script's ray cast).
 A ball is *whole* when at least :data:`WHOLE` of its silhouette is seen inside the frame.
 """
 
@@ -16,7 +17,7 @@ import numpy as np
 
 from monotracker.sim.scenes import ellipse_centre_normalised
 
-from .spec import SceneSpec
+from .spec import SceneSpec, _perp_frame
 
 #: a ball at least this visible (share of its silhouette, in the frame) counts as whole
 WHOLE = 0.98
@@ -90,3 +91,52 @@ def sphere_centre_px(ellipse_px: np.ndarray, depth_mm: np.ndarray, radius_mm: fl
     e = cv2.undistortPointsIter(p, K, dist, None, None, crit).reshape(-1, 2)
     z = np.asarray(depth_mm, float).reshape(-1, 1)
     return _project(e * (1.0 - radius_mm**2 / z**2), K, dist)
+
+
+def cone_samples(n: int = 2048) -> np.ndarray:
+    """(n, 2) points uniform over the unit disc (a golden-angle spiral: deterministic, even)."""
+    k = np.arange(n) + 0.5
+    r = np.sqrt(k / n)
+    a = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(a), r * np.sin(a)], -1)
+
+
+@dataclass
+class BallRays:
+    """The rays that measure one ball's visible fraction: from the camera centre ``origin_ct``
+    (CT mm) along ``directions_ct`` ((n, 3) unit, spread evenly over the cone tangent to the
+    sphere, 0.9999 of its half-angle), each ray's analytic entry into the sphere ``t_entry``
+    (mm) and ``counts`` (n,) bool: its pixel lies in the image and it meets the sphere."""
+
+    origin_ct: np.ndarray
+    directions_ct: np.ndarray
+    t_entry: np.ndarray
+    counts: np.ndarray
+
+
+def visibility_rays(spec: SceneSpec, n: int = 2048) -> list[BallRays]:
+    """Per ball of ``spec``, the rays a renderer intersects with its scene to measure the
+    ball's visible fraction (the share of rays whose first hit is the ball, of ``n``)."""
+    cam = spec.camera_model()
+    T = spec.T
+    eye = spec.eye_ct
+    W, H = spec.image_size
+    disc = cone_samples(n)
+    out = []
+    for c_ct in spec.fiducials:
+        c = T[:3, :3] @ c_ct + T[:3, 3]                    # camera frame
+        dist = np.linalg.norm(c)
+        axis = c / dist
+        e1, e2 = _perp_frame(axis)
+        tan_r = spec.radius_mm / np.sqrt(dist**2 - spec.radius_mm**2)
+        d_cam = axis[None, :] + tan_r * 0.9999 * (disc[:, :1] * e1 + disc[:, 1:] * e2)
+        d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
+        px = cam.project(d_cam)
+        inside = (px[:, 0] >= -0.5) & (px[:, 0] <= W - 0.5) & (px[:, 1] >= -0.5) & (px[:, 1] <= H - 0.5)
+        d_ct = d_cam @ T[:3, :3]                            # camera -> CT directions (R^T)
+        oc = eye - c_ct
+        b = d_ct @ oc
+        disc_ = b**2 - (oc @ oc - spec.radius_mm**2)
+        t_in = -b - np.sqrt(np.maximum(disc_, 0.0))
+        out.append(BallRays(eye.copy(), d_ct, t_in, inside & (disc_ > 0)))
+    return out
