@@ -15,8 +15,11 @@ condition's camera chain, new sensor noise every frame (``sim.pbr.frameset.camer
   looking at its numbers is said so in the commit;
 * ``--quick``: the committed tuning crops (``tests/data/pbr``; a few scenes per kind, no Mitsuba
   needed) unless ``--root`` says otherwise.
-Render a set first: ``python -m monotracker.sim.pbr render --split tuning|held_out`` (cached by
-scene hash; needs the ``render`` extra).
+* ``--renderer blender``: the same scenes rendered by Blender's Cycles (a second renderer nobody
+  here wrote; skin with sub-surface scattering, a pinhole lens; ``<root>/blender/<split>``,
+  ``sim/pbr/blender_render.py``), same split rules.
+Render a set first: ``python -m monotracker.sim.pbr render --split tuning|held_out [--renderer
+blender]`` (cached by scene hash; needs the ``render`` extra, or a Python with ``bpy``).
 
 Conditions: ``clean`` (clean scenes, sharp lens, a good uncompressed sensor), ``OR`` (scenes with
 gloved fingers, steel and hair; 1.5 px defocus, Bayer, raw noise, JPEG 85), ``degraded`` (the
@@ -58,8 +61,9 @@ from pathlib import Path
 import numpy as np
 
 from monotracker.errors import InputError
-from monotracker.registration.report import tre_mm
-from monotracker.sim.pbr.frameset import CONDITIONS, camera_frames, committed_root, default_root, list_scenes
+from monotracker.registration.report import layout_units, tre_mm
+from monotracker.sim.pbr.build import RENDERERS, default_folder
+from monotracker.sim.pbr.frameset import CONDITIONS, camera_frames, committed_root, list_scenes
 from monotracker.sim.pbr.truth import sphere_centre_px
 from monotracker.vision.frames import Frame
 from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
@@ -209,7 +213,9 @@ def fit_bias(scenes, conds, n_frames: int, say=print, detector: str = "edge") ->
     """Measure the centre bias of the default detector on the (tuning) scenes: per scene and
     condition, each whole ball's mean error over ``n_frames`` frames (balls found in at least half
     of them) against the true ellipse centre; its common part c (the mean over the balls) and the
-    per-ball rest u; the frame-to-frame noise from the scatter (its share removed from both).
+    per-ball rest u, and of that the part changing linearly across the layout (u = U G^T + w,
+    ``registration.report.layout_units``; the gradient's four entries); the frame-to-frame noise
+    from the scatter (its share removed from each).
     Returns the figures per condition and the centre bias they give: per coordinate,
     ``sigma = per_radius * r`` with ``per_radius`` the RMS over scenes of (bias / radius) / sqrt(2)
     (a calibrated variance, not a bound: the pooled residuals adapt the per-ball part per scene;
@@ -244,15 +250,22 @@ def fit_bias(scenes, conds, n_frames: int, say=print, detector: str = "edge") ->
             c_var = max(float(c @ c) / 2 - noise2 / (k * np.mean(n)), 0.0)
             u = m - c
             u_var = max(float(np.sum(u**2)) / (2 * (k - 1)) - noise2 / float(np.mean(n)), 0.0)
-            rows.setdefault(cond, []).append((float(np.mean(r)), noise2, c_var, u_var))
+            # the part that changes linearly across the layout: u = U G^T + w (U: layout_units)
+            U = layout_units(tr.ellipse_centres_px[use])
+            G = np.linalg.pinv(U) @ u                                        # (2, 2)
+            g_noise = noise2 / float(np.mean(n)) * float(np.trace(np.linalg.pinv(U.T @ U))) / 2
+            g_var = max(float(np.sum(G**2)) / 4 - g_noise, 0.0)
+            rows.setdefault(cond, []).append((float(np.mean(r)), noise2, c_var, u_var, g_var))
     out = {"conditions": {}}
-    allc, allu, allcpx, allupx = [], [], [], []
+    allc, allu, allcpx, allupx, allg = [], [], [], [], []
     for cond, rs in rows.items():
         r = np.array([x[0] for x in rs])
         cr = np.array([x[2] for x in rs]) / r**2
         ur = np.array([x[3] for x in rs]) / r**2
         cpx = np.array([x[2] for x in rs])
         upx = np.array([x[3] for x in rs])
+        gr = np.array([x[4] for x in rs]) / r**2
+        allg += list(gr)
         allc += list(cr)
         allu += list(ur)
         allcpx += list(cpx)
@@ -263,20 +276,25 @@ def fit_bias(scenes, conds, n_frames: int, say=print, detector: str = "edge") ->
                                    "common_per_radius": float(np.sqrt(np.mean(cr))),
                                    "common_per_radius_p90": float(np.sqrt(np.percentile(cr, 90))),
                                    "ball_per_radius": float(np.sqrt(np.mean(ur))),
-                                   "ball_per_radius_p90": float(np.sqrt(np.percentile(ur, 90)))}
+                                   "ball_per_radius_p90": float(np.sqrt(np.percentile(ur, 90))),
+                                   "gradient_per_radius": float(np.sqrt(np.mean(gr))),
+                                   "gradient_per_radius_p90": float(np.sqrt(np.percentile(gr, 90)))}
         o = out["conditions"][cond]
         say(f"{cond:<9} {o['scenes']:>3} scenes  radius {o['radius_px']:5.1f} px  noise {o['noise_px']:.3f} px  "
             f"common {o['common_px']:.3f} px  ball {o['ball_px']:.3f} px  "
             f"common {o['common_per_radius']:.4f} r (p90 {o['common_per_radius_p90']:.4f})  "
-            f"ball {o['ball_per_radius']:.4f} r (p90 {o['ball_per_radius_p90']:.4f})")
+            f"ball {o['ball_per_radius']:.4f} r (p90 {o['ball_per_radius_p90']:.4f})  "
+            f"gradient {o['gradient_per_radius']:.4f} r (p90 {o['gradient_per_radius_p90']:.4f})")
     if allc:
         out["common_px"] = float(np.sqrt(np.mean(allcpx)))
         out["ball_px"] = float(np.sqrt(np.mean(allupx)))
         say(f"all: bias (ball_px={out['ball_px']:.3f}, common_px={out['common_px']:.3f}) per coordinate")
         out["common_per_radius"] = float(np.sqrt(np.mean(allc)))
         out["ball_per_radius"] = float(np.sqrt(np.mean(allu)))
+        out["gradient_per_radius"] = float(np.sqrt(np.mean(allg)))
         say(f"all: bias (ball_per_radius={out['ball_per_radius']:.4f}, "
-            f"common_per_radius={out['common_per_radius']:.4f}) per coordinate")
+            f"common_per_radius={out['common_per_radius']:.4f}, "
+            f"gradient_per_radius={out['gradient_per_radius']:.4f}) per coordinate")
     return out
 
 
@@ -300,6 +318,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print only the JSON line")
     ap.add_argument("--frames", type=int, default=8, help="frames streamed per still scene (default 8)")
     ap.add_argument("--root", type=Path, default=None, help="folder holding tuning/ and held_out/")
+    ap.add_argument("--renderer", choices=RENDERERS, default="mitsuba",
+                    help="whose frames: mitsuba (default) or blender (<root>/blender/<split>)")
     ap.add_argument("--scenes", type=int, default=0, help="at most this many scenes per kind (0 = all)")
     ap.add_argument("--detectors", default="edge,chroma,learned")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
@@ -317,8 +337,7 @@ def main(argv=None) -> int:
     if a.quick and a.held_out:
         print("error: --quick reads the committed tuning crops; the held-out set is never committed", file=sys.stderr)
         return 2
-    root = a.root or (committed_root() if a.quick else default_root())
-    folder = root / split
+    folder = (a.root or committed_root()) / split if a.quick else default_folder(split, a.renderer, a.root)
     try:
         scenes = list_scenes(folder) if folder.is_dir() else []
     except InputError as exc:
@@ -326,7 +345,7 @@ def main(argv=None) -> int:
         return 2
     if not scenes:
         print(f"error: no rendered {split} set in {folder}: python -m monotracker.sim.pbr render --split {split} "
-              "(needs pip install -e '.[render]')", file=sys.stderr)
+              f"--renderer {a.renderer} (needs pip install -e '.[render]', or a Python with bpy)", file=sys.stderr)
         return 2
     dets = [d.strip() for d in a.detectors.split(",") if d.strip()]
     conds = [c.strip() for c in a.conditions.split(",") if c.strip()]
@@ -344,14 +363,15 @@ def main(argv=None) -> int:
         return 0
     label = ("HELD-OUT set: only ever scored, never tuned on" if a.held_out else
              "TUNING set: may be looked at and tuned on")
-    say(f"camera path on physically rendered frames (Mitsuba 3) - {label}")
+    renderers = sorted({s.spec.renderer for s in scenes})
+    say(f"camera path on physically rendered frames ({', '.join(renderers)}) - {label}")
     say(f"frames: {folder} ({len(scenes)} scenes), a still head streamed {a.frames} frames at {FPS:g} fps; "
         f"target 80 mm deep; trust models: {', '.join(trust_models())}")
     hdr = (f"{'condition':<9} {'detector':<8} {'trust':<7} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
            f"{'err px':>6} {'p95 px':>6} {'tr@1 %':>6} {'tr@' + str(a.frames) + ' %':>6} {'med mm':>6} "
            f"{'p99 mm':>6} {'max mm':>6} {'>2mm':>4} {'1-2mm':>9} {'pred/act':>8}")
     say(hdr)
-    result = {"set": split, "folder": str(folder), "frames": a.frames, "conditions": {}}
+    result = {"set": split, "folder": str(folder), "renderers": renderers, "frames": a.frames, "conditions": {}}
     t0 = time.perf_counter()
     for cond in conds:
         kind = CONDITIONS[cond]["kind"]

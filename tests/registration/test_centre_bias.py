@@ -7,7 +7,8 @@ import numpy as np
 
 from monotracker.registration.noise import pooled_sigma
 from monotracker.registration.pnp import refine_pose, so3_exp
-from monotracker.registration.report import common_shift_covariance, target_covariance, tre_mm
+from monotracker.registration.report import (common_shift_covariance, layout_gradient_covariance, layout_units,
+                                             target_covariance, tre_mm)
 
 FXY = np.array([1000.0, 1000.0])
 
@@ -45,6 +46,37 @@ def test_a_shift_common_to_all_balls_moves_the_pose_as_predicted():
     assert predicted_rms > 0.05, "a common shift must move the target"
     np.testing.assert_allclose(actual_rms, predicted_rms, rtol=0.12)
     assert np.median(rms_res) < 0.1 * sigma, "the residuals would have shown the shift"
+
+
+def test_a_bias_changing_linearly_across_the_layout_moves_the_pose_as_predicted():
+    """Each ball's centre moved by G u_i (u_i: its position about the balls' centroid over their
+    RMS distance; G a random 2x2 matrix, 0.15 px per entry, as on Blender's frames): the spread
+    of the refitted poses' error at the target is what ``layout_gradient_covariance`` predicts;
+    the residuals show little of it (a pose absorbs most of an affine field)."""
+    X, T, obs, target = _scene()
+    sigma = 0.15
+    fit0 = refine_pose(T, X, obs, FXY)
+    px = obs * FXY
+    cov3 = target_covariance(T, layout_gradient_covariance(fit0.J, px, sigma), target)
+    predicted_rms = float(np.sqrt(np.trace(cov3)))
+    u = layout_units(px)
+    assert np.allclose(u.mean(axis=0), 0) and np.isclose(np.mean(np.sum(u**2, axis=1)), 1.0)
+    rng = np.random.default_rng(8)
+    errs, rms_res, rms_field = [], [], []
+    for _ in range(300):
+        G = rng.normal(0.0, sigma, (2, 2))
+        field = u @ G.T
+        fit = refine_pose(T, X, obs + field / FXY, FXY)
+        errs.append(float(tre_mm(fit.T, T, target)[0]))
+        rms_res.append(float(np.sqrt(np.mean(fit.residuals**2))))
+        rms_field.append(float(np.sqrt(np.mean(field**2))))
+    actual_rms = float(np.sqrt(np.mean(np.square(errs))))
+    assert predicted_rms > 0.1, "a gradient must move the target"
+    np.testing.assert_allclose(actual_rms, predicted_rms, rtol=0.12)
+    assert np.median(rms_res) < 0.5 * np.median(rms_field), "the residuals would have shown the field"
+    # a common shift is no gradient: the two covers are different things
+    cov_c = target_covariance(T, common_shift_covariance(fit0.J, sigma), target)
+    assert abs(np.sqrt(np.trace(cov_c)) - predicted_rms) > 0.1 * predicted_rms
 
 
 def test_pooled_sigma_covers_the_true_ball_error_and_never_hides_a_larger_one():

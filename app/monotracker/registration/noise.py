@@ -120,16 +120,25 @@ class CentreBias:
       degrees of freedom (the first frames and 4-5 balls have few of their own);
     * ``common_px``: a shift shared by all balls (the light comes from one side for all of
       them). A pose absorbs a common shift almost entirely, so the residuals never show it;
-      it is added to the pose covariance as it is (:func:`~.report.common_shift_covariance`).
+      it is added to the pose covariance as it is (:func:`~.report.common_shift_covariance`);
+    * ``gradient_px``: a bias that changes linearly across the layout (each ball sees the lamp
+      and the camera at its own angle on the curved head): ``G u_i`` with ``u_i`` the ball's
+      image position about the balls' centroid over their RMS distance from it (unit-free) and
+      G a 2x2 matrix whose entries have this standard deviation. A pose absorbs such a field
+      too (it is what a small tilt or change of depth does to the image), into its weakest
+      directions: on Blender's frames 0.15 px of it put trusted poses 1.0-1.3 mm off at the
+      target (:func:`~.report.layout_gradient_covariance`).
 
-    Both scale with the ball's image radius (``*_per_radius``: px of bias per px of radius,
-    a shading bias is a fraction of the ball's size) above a floor (``*_px``).
+    All three scale with the ball's image radius (``*_per_radius``: px of bias per px of
+    radius, a shading bias is a fraction of the ball's size) above a floor (``*_px``).
     """
 
     ball_px: float = 0.0
     ball_per_radius: float = 0.0
     common_px: float = 0.0
     common_per_radius: float = 0.0
+    gradient_px: float = 0.0
+    gradient_per_radius: float = 0.0
     prior_dof: int = 6
     #: image noise (px per coordinate) assumed for a frame before the pool has measured its own
     noise_prior_px: float = 0.15
@@ -141,6 +150,9 @@ class CentreBias:
 
     def common_sigma(self, radius_px: float) -> float:
         return float(np.hypot(self.common_px, self.common_per_radius * radius_px))
+
+    def gradient_sigma(self, radius_px: float) -> float:
+        return float(np.hypot(self.gradient_px, self.gradient_per_radius * radius_px))
 
 
 @dataclass(frozen=True)

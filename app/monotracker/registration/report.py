@@ -163,3 +163,35 @@ def common_shift_covariance(J: np.ndarray, sigma_px: float, A: np.ndarray | None
     S = np.tile(np.eye(2), (k, 1))                  # (2k, 2): each point moves by the same 2-vector
     B = A @ S
     return float(sigma_px) ** 2 * (B @ B.T)
+
+
+def layout_units(points_px: np.ndarray) -> np.ndarray:
+    """(k, 2) the points about their centroid over their RMS distance from it (unit-free; RMS
+    norm 1): the coordinates a bias that changes linearly across the layout is written in."""
+    P = np.asarray(points_px, float).reshape(-1, 2)
+    u = P - P.mean(axis=0)
+    L = float(np.sqrt(np.mean(np.sum(u**2, axis=1))))
+    return u / L if L > 0 else np.zeros_like(u)
+
+
+def layout_gradient_covariance(J: np.ndarray, points_px: np.ndarray, sigma_px: float,
+                               A: np.ndarray | None = None) -> np.ndarray:
+    """(6, 6) pose covariance that an image error changing linearly across the points leaves in
+    a least-squares fit with Jacobian ``J`` ((2k, 6), rows x0, y0, x1, y1, ...): point i moves by
+    ``G u_i`` (``u_i``: :func:`layout_units` of ``points_px`` (k, 2)), G a 2x2 matrix of
+    independent ``N(0, sigma_px^2)`` entries, so the image covariance is ``sigma^2 (U U^T kron
+    I2)``; the fit passes it on as ``A C A^T`` with ``A = (J^T J)^-1 J^T``. A pose absorbs most
+    of such a field (a tilt or a change of depth moves the image so), so the residuals show
+    little of it."""
+    J = np.asarray(J, float)
+    k = J.shape[0] // 2
+    if A is None:
+        A = np.linalg.pinv(J.T @ J) @ J.T
+    u = layout_units(points_px)
+    if u.shape[0] != k:
+        raise ValueError(f"{u.shape[0]} points for a Jacobian of {k}")
+    S = np.zeros((2 * k, 4))                        # columns: G_xx, G_xy, G_yx, G_yy
+    S[0::2, 0:2] = u
+    S[1::2, 2:4] = u
+    B = A @ S
+    return float(sigma_px) ** 2 * (B @ B.T)

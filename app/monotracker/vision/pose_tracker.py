@@ -631,7 +631,9 @@ class PoseTracker:
         those means comes from the refit's residuals with the bias prior
         (:func:`~monotracker.registration.noise.pooled_sigma`), the frame-to-frame noise from the
         pool's scatter; a shift common to all balls (which no residual shows) is added as the
-        prior says (:func:`~monotracker.registration.report.common_shift_covariance`). The gates
+        prior says (:func:`~monotracker.registration.report.common_shift_covariance`), and so is
+        a bias that changes linearly across the layout
+        (:func:`~monotracker.registration.report.layout_gradient_covariance`). The gates
         use the upper bound of the per-ball error (``noise_bound_confidence``): RMS at the target
         <= ``max_predicted_tre_mm``, P(> ``wrong_mm``) <= ``max_wrong_probability``, P(>
         ``right_mm``) <= ``max_not_right_probability``."""
@@ -639,7 +641,7 @@ class PoseTracker:
         from monotracker.registration.pnp import refine_pose
         from monotracker.registration.projection import undistort_to_normalised
         from monotracker.registration.report import (common_shift_covariance, exceed_probability,
-                                                     predicted_tre, target_covariance)
+                                                     layout_gradient_covariance, predicted_tre, target_covariance)
 
         cfg, bias = self.config, self.centre_bias
         K = self.camera.K
@@ -677,7 +679,10 @@ class PoseTracker:
         ps = pooled_sigma(rss, dof, noise, n_h, bias.ball_sigma(radius_px), bias.prior_dof,
                           cfg.noise_bound_confidence)
         H_inv = np.linalg.pinv(fit.J.T @ fit.J)
-        common = common_shift_covariance(fit.J, bias.common_sigma(radius_px), H_inv @ fit.J.T)
+        A = H_inv @ fit.J.T
+        common = common_shift_covariance(fit.J, bias.common_sigma(radius_px), A)
+        if bias.gradient_sigma(radius_px) > 0:
+            common = common + layout_gradient_covariance(fit.J, st.means * fxy, bias.gradient_sigma(radius_px), A)
         cov_est = ps.sigma_px**2 * H_inv + common
         cov_hi = ps.upper_px**2 * H_inv + common
         src = f"{st.frames} frame{'s' if st.frames > 1 else ''}, {ps.source}"
