@@ -231,12 +231,15 @@ def fit_bias(scenes, conds, n_frames: int, say=print, detector: str = "edge") ->
             if isinstance(getattr(det, "rules", None), BlobRules):
                 det.rules.camera = cam       # the camera's outlines, as the pose tracker sets them
             E = np.full((len(tr.fiducials_ct), n_frames, 2), np.nan)
+            S = np.full((len(tr.fiducials_ct), n_frames), np.nan)         # each ball's edge RMS px
             for k, img in enumerate(camera_frames(s, cond, n_frames)):
-                for p in det.detect(img).centres:
+                for f in det.detect(img).fiducials:
+                    p = np.asarray(f.centre_px, float)
                     d = np.linalg.norm(tr.ellipse_centres_px - p, axis=1)
                     j = int(np.argmin(d))
                     if d[j] < max(2.0, 0.5 * tr.radius_px[j]) and tr.whole[j]:
                         E[j, k] = p - tr.ellipse_centres_px[j]
+                        S[j, k] = float(f.features.get("edge_rms_px", np.nan))
             cnt = np.sum(np.isfinite(E[:, :, 0]), axis=1)
             use = cnt >= max(2, n_frames // 2)
             if use.sum() < 4:
@@ -255,7 +258,9 @@ def fit_bias(scenes, conds, n_frames: int, say=print, detector: str = "edge") ->
             G = np.linalg.pinv(U) @ u                                        # (2, 2)
             g_noise = noise2 / float(np.mean(n)) * float(np.trace(np.linalg.pinv(U.T @ U))) / 2
             g_var = max(float(np.sum(G**2)) / 4 - g_noise, 0.0)
-            rows.setdefault(cond, []).append((float(np.mean(r)), noise2, c_var, u_var, g_var))
+            with np.errstate(all="ignore"):
+                med_rms = float(np.nanmedian(S[use]))
+            rows.setdefault(cond, []).append((float(np.mean(r)), noise2, c_var, u_var, g_var, med_rms))
     out = {"conditions": {}}
     allc, allu, allcpx, allupx, allg = [], [], [], [], []
     for cond, rs in rows.items():
@@ -279,7 +284,19 @@ def fit_bias(scenes, conds, n_frames: int, say=print, detector: str = "edge") ->
                                    "ball_per_radius_p90": float(np.sqrt(np.percentile(ur, 90))),
                                    "gradient_per_radius": float(np.sqrt(np.mean(gr))),
                                    "gradient_per_radius_p90": float(np.sqrt(np.percentile(gr, 90)))}
+        rms = np.array([x[5] for x in rs])
+        if np.all(np.isfinite(rms)) and np.all(rms > 0):
+            # the per-frame model's factors: bias over the balls' median edge RMS (TrackerConfig.
+            # edge_bias_per_rms / edge_common_per_rms; the gradient has no per-frame term)
+            out["conditions"][cond].update(
+                edge_rms_px=float(np.mean(rms)),
+                ball_per_rms=float(np.sqrt(np.mean(upx / rms**2))),
+                common_per_rms=float(np.sqrt(np.mean(cpx / rms**2))),
+                gradient_per_rms=float(np.sqrt(np.mean(np.array([x[4] for x in rs]) / rms**2))))
         o = out["conditions"][cond]
+        if "ball_per_rms" in o:
+            say(f"{'':<9} per edge RMS ({o['edge_rms_px']:.3f} px): ball {o['ball_per_rms']:.2f}  "
+                f"common {o['common_per_rms']:.2f}  gradient {o['gradient_per_rms']:.2f}")
         say(f"{cond:<9} {o['scenes']:>3} scenes  radius {o['radius_px']:5.1f} px  noise {o['noise_px']:.3f} px  "
             f"common {o['common_px']:.3f} px  ball {o['ball_px']:.3f} px  "
             f"common {o['common_per_radius']:.4f} r (p90 {o['common_per_radius_p90']:.4f})  "
