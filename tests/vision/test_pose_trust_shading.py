@@ -188,3 +188,15 @@ def test_the_calibrated_model_covers_a_bias_that_changes_across_the_layout(scene
     with_gradient = stream(ref)
     assert ref.gradient_per_radius > 0
     assert with_gradient.predicted_tre_mm >= 0.5 * off, (with_gradient.predicted_tre_mm, off)
+
+
+def test_the_per_frame_gradient_term_is_off_by_default_and_adds_to_the_prediction(scene):
+    """``TrackerConfig.edge_gradient_per_rms`` (off by default: covering the measured gradient
+    frame by frame trusted nothing on the rendered tuning sets) adds the field's cover to the
+    per-frame model's prediction when set, and changes nothing when 0."""
+    s, target = scene
+    ests = {g: _stream(s, target, s.T_cam_ct, 0.3, 4, TrackerConfig(edge_gradient_per_rms=g)) for g in (0.0, 1.0)}
+    default = _stream(s, target, s.T_cam_ct, 0.3, 4, TrackerConfig())
+    assert TrackerConfig().edge_gradient_per_rms == 0.0
+    assert [e.predicted_tre_mm for e in default] == [e.predicted_tre_mm for e in ests[0.0]]
+    assert all(b.predicted_tre_mm > 1.05 * a.predicted_tre_mm for a, b in zip(ests[0.0], ests[1.0]))

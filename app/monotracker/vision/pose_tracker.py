@@ -234,6 +234,12 @@ class TrackerConfig:
     #: sets the common shift
     refined_bias_per_rms: float = REFINED_BIAS_PER_RMS
     refined_common_per_rms: float = REFINED_COMMON_PER_RMS
+    #: a bias changing linearly across the layout, x the balls' median edge RMS (px per coordinate
+    #: per gradient entry; :func:`~monotracker.registration.report.layout_gradient_covariance`).
+    #: 0 = off (the default): measured on the rendered tuning sets at 0.35-0.87 x (Mitsuba) and
+    #: 0.48-1.30 x (Blender) for the edge detector, but the per-ball term already covers part of
+    #: it, and the per-frame model trusted no pose over 1 mm with the edge detector on any set
+    edge_gradient_per_rms: float = 0.0
 
 
 class PoseTracker:
@@ -599,7 +605,7 @@ class PoseTracker:
         if not len(rms) or not np.all(np.isfinite(rms)) or not (sigma_px > 0 and np.isfinite(upper_px)):
             return None
         from monotracker.registration import pnp_kernels
-        from monotracker.registration.report import common_shift_covariance
+        from monotracker.registration.report import common_shift_covariance, layout_gradient_covariance
 
         K = self.camera.K
         T = reg.T_cam_ct
@@ -615,6 +621,9 @@ class PoseTracker:
                             cfg.edge_common_per_rms if not refined.all() else 0.0)
         shade = np.repeat((per_ball * rms) ** 2, 2)
         common = common_shift_covariance(J, common_factor * float(np.median(rms)), A)  # shared by all balls
+        if cfg.edge_gradient_per_rms > 0:
+            pts = np.array([det.fiducials[i].centre_px for i, _ in reg.pairs], float)
+            common = common + layout_gradient_covariance(J, pts, cfg.edge_gradient_per_rms * float(np.median(rms)), A)
 
         def cov(noise_px: float) -> np.ndarray:
             return (A * np.maximum(noise_px**2, shade)) @ A.T + common
