@@ -129,7 +129,8 @@ def load_scene(json_path: Path) -> RenderedScene:
     expect = (crop[3], crop[2]) if crop else (spec.image_size[1], spec.image_size[0])
     if img.shape[:2] != expect:
         raise InputError(f"{json_path}: image is {img.shape[1]}x{img.shape[0]}, its record says {expect[1]}x{expect[0]}")
-    cov = cv2.imread(str(json_path.with_name(json_path.stem + "_cov.png")), cv2.IMREAD_UNCHANGED)
+    cov_path = json_path.with_name(json_path.stem + "_cov.png")     # none for Blender's frames
+    cov = cv2.imread(str(cov_path), cv2.IMREAD_UNCHANGED) if cov_path.exists() else None
     if cov is not None:
         cov = (cov.astype(np.float32) / 65535.0) if cov.dtype == np.uint16 else None
     return RenderedScene(img, spec, truth, crop, float(meta.get("exposure", 1.0)), json_path, cov)
