@@ -54,3 +54,43 @@ def test_no_trusted_pose_is_wrong_on_rendered_frames(scenes):
     assert np.all(calibrated <= 1.0), np.sort(calibrated)[-5:]
 
 
+
+
+@pytest.fixture(scope="module")
+def blender_scenes():
+    return list_scenes(committed_root().parent / "pbr_blender" / "tuning")
+
+
+def test_blender_frames_balls_are_where_the_scene_says_and_no_trusted_pose_over_2mm(blender_scenes):
+    """The committed crops of the second renderer (Blender's Cycles: skin with sub-surface
+    scattering, a pinhole lens; tests/data/pbr_blender, tuning split, 2 scenes per kind): the
+    default detector's accepted balls lie where the scene geometry projects them (within 1.5 px:
+    the Blender export, its camera and the truth agree), and neither trust model trusts a pose
+    more than 2 mm off at the target in any condition (issue 28's hard limit)."""
+    from monotracker.vision.detect_classical import ClassicalDetector
+    from monotracker.vision.detection import BlobRules
+
+    assert {s.spec.renderer for s in blender_scenes} == {"blender-cycles-1"}
+    assert {s.spec.split for s in blender_scenes} == {"tuning"}, "held-out frames are never committed"
+    assert {s.spec.kind for s in blender_scenes} == {"clean", "OR", "clutter"}
+    near = 0
+    for s in blender_scenes:
+        cam, tr = s.camera_model(), s.truth
+        det = ClassicalDetector(BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0]), camera=cam))
+        for p in det.detect(s.image).centres:
+            d = np.linalg.norm(tr.ellipse_centres_px - p, axis=1)
+            near += int(d.min() < 1.5)
+    assert near >= 10, near
+    for config in (TrackerConfig(), TrackerConfig(centre_bias="detector")):
+        errs = _trusted_errors(blender_scenes, config)
+        assert np.all(errs <= 2.0), np.sort(errs)[-5:]
+
+
+@pytest.mark.xfail(strict=True, reason="known (2026-11-30): on the Blender OR crop b0c7930b the default per-frame "
+                   "model trusts frames 4 and 7 at 1.06-1.07 mm off, predicted 0.37-0.43 mm: every accepted ball "
+                   "is whole, but ball 4 is 0.42-0.67 px off at an edge RMS of 0.13-0.25 px (3x the per-ball "
+                   "cover). Remove this mark when the trust model or the detector covers it.")
+def test_blender_frames_no_trusted_pose_over_1mm(blender_scenes):
+    for config in (TrackerConfig(), TrackerConfig(centre_bias="detector")):
+        errs = _trusted_errors(blender_scenes, config)
+        assert np.all(errs <= 1.0), np.sort(errs)[-5:]
