@@ -13,8 +13,9 @@ condition's camera chain, new sensor noise every frame (``sim.pbr.frameset.camer
   (two, 5000 K + 4000 K, more ambient), other skin (olive-brown, shinier), other hair. Only ever
   scored: never tune a detector or a gate on it, never commit it; a threshold changed after
   looking at its numbers is said so in the commit;
-* ``--quick``: the committed tuning crops (``tests/data/pbr``; a few scenes per kind, no Mitsuba
-  needed) unless ``--root`` says otherwise.
+* ``--quick``: the committed tuning crops (``tests/data/pbr``, with ``--renderer blender``
+  ``tests/data/pbr_blender``; a few scenes per kind, no renderer needed) unless ``--root`` says
+  otherwise.
 * ``--renderer blender``: the same scenes rendered by Blender's Cycles (a second renderer nobody
   here wrote; skin with sub-surface scattering, a pinhole lens; ``<root>/blender/<split>``,
   ``sim/pbr/blender_render.py``), same split rules.
@@ -354,7 +355,11 @@ def main(argv=None) -> int:
     if a.quick and a.held_out:
         print("error: --quick reads the committed tuning crops; the held-out set is never committed", file=sys.stderr)
         return 2
-    folder = (a.root or committed_root()) / split if a.quick else default_folder(split, a.renderer, a.root)
+    if a.quick:      # the committed crops: tests/data/pbr (Mitsuba) or tests/data/pbr_blender
+        base = a.root or (committed_root() if a.renderer == "mitsuba" else committed_root().parent / "pbr_blender")
+        folder = base / split
+    else:
+        folder = default_folder(split, a.renderer, a.root)
     try:
         scenes = list_scenes(folder) if folder.is_dir() else []
     except InputError as exc:
