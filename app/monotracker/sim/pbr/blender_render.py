@@ -87,10 +87,11 @@ def _disc_mesh(centre, normal, radius, n: int = 96) -> tuple[np.ndarray, np.ndar
     return V, F.astype(np.int32)
 
 
-def export_package(spec: SceneSpec, folder: Path, n_rays: int = 2048) -> Path:
+def export_package(spec: SceneSpec, folder: Path, n_rays: int = 2048, rays: list | None = None) -> Path:
     """Write ``spec`` as a Blender scene package into ``folder``: ``scene.json`` (camera,
     window, samples, materials, objects) and ``arrays.npz`` (meshes, textures, hair, the
-    visibility rays). ``spec`` should be a :func:`blender_spec` (pinhole). Returns the JSON path."""
+    visibility rays: ``rays``, else :func:`~.truth.visibility_rays` of ``n_rays`` per ball).
+    ``spec`` should be a :func:`blender_spec` (pinhole). Returns the JSON path."""
     from monotracker.sim.phantom import default_phantom
 
     if any(abs(float(d)) > 0 for d in spec.dist):
@@ -173,7 +174,7 @@ def export_package(spec: SceneSpec, folder: Path, n_rays: int = 2048) -> Path:
     if strands:
         arrays["hair.points"] = np.concatenate(strands).astype(np.float64)
         arrays["hair.counts"] = np.array([len(s) for s in strands], np.int32)
-    rays = visibility_rays(spec, n_rays)
+    rays = visibility_rays(spec, n_rays) if rays is None else rays
     for j, r in enumerate(rays):
         arrays[f"rays{j:02d}.d"] = r.directions_ct
     x, y, w, h = field_window(spec)
@@ -203,7 +204,8 @@ def render_linear(spec: SceneSpec, python: str | None = None, threads: int | Non
     threads = int(threads or os.environ.get("MONOTRACKER_RENDER_THREADS", "1"))
     with tempfile.TemporaryDirectory(prefix="mt_blender_") as tmp:
         t0 = time.perf_counter()
-        pkg = export_package(spec, Path(tmp))
+        rays = visibility_rays(spec)
+        pkg = export_package(spec, Path(tmp), rays=rays)
         t_export = time.perf_counter() - t0
         proc = subprocess.run([py, str(SCENE_SCRIPT), str(pkg), str(Path(tmp) / "out"), "--threads", str(threads)],
                               capture_output=True, text=True)
@@ -212,7 +214,6 @@ def render_linear(spec: SceneSpec, python: str | None = None, threads: int | Non
             raise InputError("Blender render failed: " + " | ".join(tail))
         lin = np.load(Path(tmp) / "out" / "linear.npy")
         res = json.loads((Path(tmp) / "out" / "result.json").read_text())
-    rays = visibility_rays(spec, len(res["first_hit_is_ball"][0]) if res["first_hit_is_ball"] else 2048)
     vis = [float(np.mean(np.asarray(hit, bool) & r.counts)) for hit, r in zip(res["first_hit_is_ball"], rays)]
     info = {"renderer": RENDERER_VERSION, "blender": res["blender"], "spp": int(spec.spp),
             "spp_outside": int(spec.spp_outside), "field_window": res["window"], "threads": threads,

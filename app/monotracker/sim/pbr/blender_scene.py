@@ -32,10 +32,12 @@ SENSOR_WIDTH_MM = 36.0
 
 
 # ------------------------------------------------------------------------------- geometry
-def _mesh_object(name: str, V: np.ndarray, F: np.ndarray, material, uv: np.ndarray | None = None,
+def _mesh_object(name: str, V: np.ndarray, faces, material, uv: np.ndarray | None = None,
                  smooth: bool = True):
+    """A mesh object of vertices ``V`` (n, 3) mm and ``faces`` (index tuples, triangles or
+    quads), linked to the scene, with ``material`` and optional per-vertex ``uv``."""
     me = bpy.data.meshes.new(name)
-    me.from_pydata([tuple(v) for v in np.asarray(V, float)], [], [tuple(f) for f in np.asarray(F, int)])
+    me.from_pydata([tuple(v) for v in np.asarray(V, float)], [], [tuple(int(i) for i in f) for f in faces])
     if uv is not None:
         layer = me.uv_layers.new(name="UVMap")
         loops = np.empty(len(me.loops), np.int32)
@@ -85,27 +87,13 @@ def _cylinder(a, b, r, n: int = 96) -> tuple[np.ndarray, list]:
 
 
 def _add_sphere(name, c, r, material):
-    V, F = _uv_sphere(c, r)
-    me = bpy.data.meshes.new(name)
-    me.from_pydata([tuple(v) for v in V], [], F)
-    me.polygons.foreach_set("use_smooth", [True] * len(me.polygons))
-    me.update()
-    ob = bpy.data.objects.new(name, me)
-    ob.data.materials.append(material)
-    bpy.context.scene.collection.objects.link(ob)
-    return ob
+    return _mesh_object(name, *_uv_sphere(c, r), material)
 
 
 def _add_capsule(name, a, b, r, material):
     for part, (V, F) in (("body", _cylinder(a, b, r)), ("end0", _uv_sphere(a, r, 96, 48)),
                          ("end1", _uv_sphere(b, r, 96, 48))):
-        me = bpy.data.meshes.new(f"{name}_{part}")
-        me.from_pydata([tuple(v) for v in V], [], F)
-        me.polygons.foreach_set("use_smooth", [True] * len(me.polygons))
-        me.update()
-        ob = bpy.data.objects.new(f"{name}_{part}", me)
-        ob.data.materials.append(material)
-        bpy.context.scene.collection.objects.link(ob)
+        _mesh_object(f"{name}_{part}", V, F, material)
 
 
 def _add_hair(points: np.ndarray, counts: np.ndarray, radius: float, material):
@@ -190,21 +178,6 @@ def _material(name: str, spec: dict, arrays) -> "bpy.types.Material":
     elif kind == "metal":
         bsdf.inputs["Metallic"].default_value = 1.0
         bsdf.inputs["Roughness"].default_value = float(spec["roughness"])
-    return mat
-
-
-def _emitter(name: str, radiance) -> "bpy.types.Material":
-    mat = bpy.data.materials.new(name)
-    mat.use_nodes = True
-    nt = mat.node_tree
-    for n in list(nt.nodes):
-        if n.type != "OUTPUT_MATERIAL":
-            nt.nodes.remove(n)
-    em = nt.nodes.new("ShaderNodeEmission")
-    rgb = np.asarray(radiance, float)
-    em.inputs["Color"].default_value = (*(rgb / rgb.max()), 1.0)
-    em.inputs["Strength"].default_value = float(rgb.max())
-    nt.links.new(em.outputs["Emission"], nt.nodes["Material Output"].inputs["Surface"])
     return mat
 
 
@@ -299,8 +272,8 @@ def build(scene: dict, arrays) -> None:
         elif ob["type"] == "capsule":
             _add_capsule(ob["name"], ob["a"], ob["b"], ob["radius"], m)
     for lamp in scene["lamps"]:
-        _mesh_object(lamp["name"], arrays[f"{lamp['name']}.V"], arrays[f"{lamp['name']}.F"],
-                     _emitter(lamp["name"], lamp["radiance"]), smooth=False)
+        emitter = _material(lamp["name"], {"kind": "emission", "rgb": lamp["radiance"]}, arrays)
+        _mesh_object(lamp["name"], arrays[f"{lamp['name']}.V"], arrays[f"{lamp['name']}.F"], emitter, smooth=False)
     if scene.get("hair"):
         _add_hair(arrays["hair.points"], arrays["hair.counts"], scene["hair"]["radius"], mats[scene["hair"]["material"]])
     _camera(scene["camera"])

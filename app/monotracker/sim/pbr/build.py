@@ -28,8 +28,8 @@ from .spec import KINDS, SPLITS, SceneSpec, SetPlan, field_window, make_spec, sc
 from .truth import scene_truth
 
 
-#: the renderers a frame set can come from: name -> (module of ``render_linear``, the spec the
-#: frames record: Blender renders a pinhole, :func:`.blender_render.blender_spec`)
+#: the renderers a frame set can come from (:func:`_backend` maps each to its ``render_linear``
+#: and to the spec its frames record: Blender renders a pinhole, :func:`.blender_render.blender_spec`)
 RENDERERS = ("mitsuba", "blender")
 
 
@@ -48,7 +48,9 @@ def _backend(renderer: str, spec: SceneSpec, blender_python: str | None):
 
 
 def default_folder(split: str, renderer: str = "mitsuba", root: Path | None = None) -> Path:
-    """Where a split's frames live: ``<root>/<split>`` (Mitsuba) or ``<root>/blender/<split>``."""
+    """Where a split's frames live: ``<root>/<split>`` for Mitsuba and for any renderer when
+    ``root`` is given; else ``$MONOTRACKER_PBR/<split>`` (Mitsuba) or
+    ``$MONOTRACKER_PBR/blender/<split>`` (Blender)."""
     base = root or default_root()
     return base / split if renderer == "mitsuba" or root is not None else base / renderer / split
 
