@@ -87,10 +87,50 @@ def test_blender_frames_balls_are_where_the_scene_says_and_no_trusted_pose_over_
 
 
 @pytest.mark.xfail(strict=True, reason="known (2026-11-30): on the Blender OR crop b0c7930b the default per-frame "
-                   "model trusts frames 4 and 7 at 1.06-1.07 mm off, predicted 0.37-0.43 mm: every accepted ball "
-                   "is whole, but ball 4 is 0.42-0.67 px off at an edge RMS of 0.13-0.25 px (3x the per-ball "
-                   "cover). Remove this mark when the trust model or the detector covers it.")
+                   "model trusts frames 4 and 7 at 1.06-1.07 mm off, predicted 0.37-0.43 mm without the size-excess "
+                   "cover: every accepted ball is whole, but they are 0.2-0.44 px off in different directions at "
+                   "an edge RMS of 0.09-0.13 px; their outlines are 0.1-0.36 px smaller than the spheres' at the "
+                   "pose. The opt-in size-excess cover at the factor its data calibrate (1.0) still trusts them; 1.5-2.0 "
+                   "would not (and would refuse JPEG frames of our simulator it need not). Remove this mark when "
+                   "the trust model or the detector covers it.")
 def test_blender_frames_no_trusted_pose_over_1mm(blender_scenes):
     for config in (TrackerConfig(), TrackerConfig(centre_bias="detector")):
         errs = _trusted_errors(blender_scenes, config)
         assert np.all(errs <= 1.0), np.sort(errs)[-5:]
+
+
+@pytest.mark.parametrize("renderer", ["mitsuba", "blender"])
+def test_the_size_excess_covers_centre_errors_the_edge_spread_misses(renderer):
+    """Against the rendered truth (the committed tuning crops of either renderer, 2 frames per
+    scene, accepted whole balls): each ball's centre error per coordinate over its cover. The
+    edge RMS alone leaves a long tail (p90 1.6 on Mitsuba's crops, 2.7 on Blender's); the cover
+    the opt-in size cover gives (``TrackerConfig.edge_size_per_excess`` 1.0), max(edge RMS, |size
+    excess|) with the excess measured against the TRUE sphere outline, shortens it on both
+    (Blender's by more than a quarter)."""
+    from monotracker.vision.detect_classical import ClassicalDetector
+    from monotracker.vision.detection import BlobRules
+    from monotracker.vision.sphere_outline import sphere_ellipses
+
+    root = committed_root() / "tuning" if renderer == "mitsuba" else committed_root().parent / "pbr_blender" / "tuning"
+    err, rms, excess = [], [], []
+    for cond, c in CONDITIONS.items():
+        for s in (x for x in list_scenes(root) if x.spec.kind == c["kind"]):
+            cam, tr = s.camera_model(), s.truth
+            det = ClassicalDetector(BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0]), camera=cam))
+            outline = sphere_ellipses(cam, tr.fiducials_ct @ tr.T_cam_ct[:3, :3].T + tr.T_cam_ct[:3, 3],
+                                      tr.radius_mm)[1][:, 1]
+            for img in camera_frames(s, cond, 2):
+                for f in det.detect(img).fiducials:
+                    d = np.linalg.norm(tr.ellipse_centres_px - f.centre_px, axis=1)
+                    j = int(np.argmin(d))
+                    if d[j] <= 2.0 and tr.whole[j]:
+                        err.append(d[j] / np.sqrt(2.0))
+                        rms.append(f.features["edge_rms_px"])
+                        excess.append(abs(f.features["edge_minor_px"] - outline[j]))
+    err, rms, excess = map(np.array, (err, rms, excess))
+    assert len(err) >= 50, len(err)
+    before = np.percentile(err / rms, 90)
+    now = np.percentile(err / np.maximum(rms, 1.0 * excess), 90)
+    assert now < before, (now, before)
+    if renderer == "blender":
+        assert now < 0.75 * before, (now, before)

@@ -19,6 +19,7 @@ from monotracker.vision.camera_model import CameraModel
 from monotracker.vision.detection import Detection, ImageFiducial
 from monotracker.vision.frames import Frame
 from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
+from monotracker.vision.sphere_outline import sphere_ellipses
 
 BLANK = np.zeros((720, 1280, 3), np.uint8)
 
@@ -28,10 +29,19 @@ class _EdgeDetector:
 
     def __init__(self):
         self.points, self.minor, self.edge_rms = np.zeros((0, 2)), np.zeros(0), 0.0
+        #: None: no fitted size reported; else added to each ball's true minor semi-axis (px,
+        #: ``outline_minor``: the sphere's outline through the lens) and reported as the edge
+        #: fit's ``edge_minor_px``
+        self.size_excess, self.outline_minor = None, np.zeros(0)
 
     def detect(self, image, hint=None) -> Detection:
-        fids = [ImageFiducial(np.array(p, float), (float(b), float(b)), 0.0, 1.0, float(np.pi * b * b),
-                              features={"edge_rms_px": self.edge_rms}) for p, b in zip(self.points, self.minor)]
+        fids = []
+        for i, (p, b) in enumerate(zip(self.points, self.minor)):
+            feats = {"edge_rms_px": self.edge_rms}
+            if self.size_excess is not None:
+                feats["edge_minor_px"] = float(self.outline_minor[i]) + self.size_excess
+            fids.append(ImageFiducial(np.array(p, float), (float(b), float(b)), 0.0, 1.0, float(np.pi * b * b),
+                                      features=feats))
         return Detection(fids, [], 0.0, "edge-double")
 
 
@@ -73,16 +83,18 @@ def _hidden_pose(s, target, image_rms_px):
     return _moved(T, d)
 
 
-def _stream(s, target, T_seen, edge_rms, frames, config):
+def _stream(s, target, T_seen, edge_rms, frames, config, size_excess=None):
     rng = np.random.default_rng(3)
     det = _EdgeDetector()
-    trk = PoseTracker(s.fiducials_ct, CameraModel(s.K, s.dist, (1280, 720)), detector=det, radius_mm=s.radius_mm,
-                      target_ct=target, config=config)
+    det.size_excess = size_excess
+    camera = CameraModel(s.K, s.dist, (1280, 720))
+    trk = PoseTracker(s.fiducials_ct, camera, detector=det, radius_mm=s.radius_mm, target_ct=target, config=config)
     out = []
     for k in range(frames):
         px, Xc = _pixels(s, T_seen)
         det.points = px + rng.normal(scale=0.03, size=px.shape)
         det.minor = s.K[0, 0] * s.radius_mm / np.sqrt(Xc[:, 2] ** 2 - s.radius_mm**2)
+        det.outline_minor = sphere_ellipses(camera, Xc, s.radius_mm)[1][:, 1]
         det.edge_rms = edge_rms
         out.append(trk.process(Frame(BLANK, k / 30.0, k)))
     return out
@@ -200,3 +212,34 @@ def test_the_per_frame_gradient_term_is_off_by_default_and_adds_to_the_predictio
     assert TrackerConfig().edge_gradient_per_rms == 0.0
     assert [e.predicted_tre_mm for e in default] == [e.predicted_tre_mm for e in ests[0.0]]
     assert all(b.predicted_tre_mm > 1.05 * a.predicted_tre_mm for a, b in zip(ests[0.0], ests[1.0]))
+
+
+def test_an_outline_wider_than_its_sphere_is_covered_as_an_edge_spread_of_that_size(scene):
+    """``TrackerConfig.edge_size_per_excess`` (opt-in; 1.0, the factor measured on rendered frames): a
+    ball whose fitted outline is x px wider (or
+    narrower) than the sphere's at the pose is taken to err by |x| per coordinate when that is
+    more than its edge RMS, in the per-ball and the common cover alike: balls 0.3 px too wide
+    with a 0.05 px edge spread predict what a 0.3 px edge spread predicts; sizes that agree
+    with the pose (|x| below the edge spread) change nothing; and a pose 1.4 mm off that the
+    small edge spread would let through is refused once the outlines are 0.4 px too wide."""
+    s, target = scene
+
+    size = TrackerConfig(edge_size_per_excess=1.0)
+    assert TrackerConfig().edge_size_per_excess == 0.0                 # opt-in
+
+    def pred(edge_rms, excess, T=None, cfg=None):
+        return [e.predicted_tre_mm for e in _stream(s, target, s.T_cam_ct if T is None else T, edge_rms, 4,
+                                                    cfg or size, size_excess=excess)]
+
+    wide = pred(0.05, 0.3)
+    np.testing.assert_allclose(wide, pred(0.3, None), rtol=0.02)
+    np.testing.assert_allclose(pred(0.05, 0.0), pred(0.05, None), rtol=1e-6)
+    assert wide[-1] > 3.0 * pred(0.05, 0.3, cfg=TrackerConfig(edge_size_per_excess=0.0))[-1]
+
+    T_seen = _hidden_pose(s, target, 0.2)
+    assert float(tre_mm(T_seen, s.T_cam_ct, target)[0]) > 1.0
+    small = _stream(s, target, T_seen, 0.1, 8, size, size_excess=0.0)
+    assert any(e.ok for e in small), [e.reason for e in small]      # the spread alone lets it through
+    wider = _stream(s, target, T_seen, 0.1, 8, size, size_excess=0.4)
+    assert any(e.ok for e in _stream(s, target, T_seen, 0.1, 8, TrackerConfig(), size_excess=0.4))  # default: off
+    assert not any(e.ok for e in wider), [float(tre_mm(e.T_cam_ct, s.T_cam_ct, target)[0]) for e in wider if e.ok]

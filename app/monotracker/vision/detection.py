@@ -414,7 +414,8 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
         c.features.pop("contour_ellipse")
         fit = edge_fits.get(i)
         if fit is not None:
-            c.features.update(edge_rms_px=fit.rms_px, edge_rays_kept=fit.kept, centre_sigma_px=fit.centre_sigma_px)
+            c.features.update(edge_rms_px=fit.rms_px, edge_rays_kept=fit.kept, centre_sigma_px=fit.centre_sigma_px,
+                              edge_minor_px=fit.axes_px[1])
             if not fit.ok:
                 c.reason = fit.reason
                 rejected.append(c)

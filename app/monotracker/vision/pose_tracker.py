@@ -240,6 +240,31 @@ class TrackerConfig:
     #: 0.48-1.30 x (Blender) for the edge detector, but the per-ball term already covers part of
     #: it, and the per-frame model trusted no pose over 1 mm with the edge detector on any set
     edge_gradient_per_rms: float = 0.0
+    #: a ball's fitted outline larger or smaller than the sphere's at the frame's pose (its minor
+    #: semi-axis, ``features["edge_minor_px"]``, minus the one the pose predicts: the size excess
+    #: x, px) also covers its centre's error per coordinate, as this factor x |x|: shading read as
+    #: ball on one side (a contact or cast shadow, a dark limb's halo) pushes that side's edge out
+    #: by about 2 d, which a fit with free size splits into a size excess d and a centre shift d
+    #: towards that side (d / sqrt(2) = 0.71 d per coordinate); the edge RMS hardly sees it (a
+    #: half-ring push leaves ~0.3 d of residual). Measured on the rendered tuning sets (Mitsuba 26
+    #: + Blender 20 scenes, 4 frames each, 791 accepted whole balls, x against the true size):
+    #: rank correlation of the centre error with |x| 0.47 (within a condition 0.11-0.74), with the
+    #: edge RMS 0.12; binned by |x|, the error per coordinate has median 0.13-0.16 px below
+    #: |x| = 0.2 px (the edge RMS term covers it) and 0.27 / 0.33 / 0.40 px at |x| = 0.35 / 0.45 /
+    #: 0.6 px (0.66-0.78 x |x|): the factor 1.0 covers the median ball there as
+    #: ``edge_bias_per_rms`` does elsewhere (e / edge RMS has p90 2.5-4.2 at |x| > 0.3 px, 1.5-1.7
+    #: below 0.1). The frame's common shift is covered from the balls' median cover (edge RMS or
+    #: size term, whichever larger): the share of that shift the covers miss on OR frames (RMS
+    #: over frames) drops from 1.95 / 1.65 to 0.83 / 0.58 x (Mitsuba / Blender). A uniform excess
+    #: that moves no centre (JPEG's halved chroma widens every outline by 0.1-0.2 px) is covered
+    #: too, and that is why it is OFF by default: on our simulator's frames (2-3 px blur, JPEG:
+    #: every outline 0.2-0.5 px wide, centres right) it refuses most degraded frames
+    #: (``camera_pipeline.py --quick``, ``edge``: right 91.7 -> 16.7 %), and at 1.0 it does not
+    #: catch the one wrong trusted pose known on rendered frames (the Blender crop of
+    #: tests/vision/test_pose_trust_pbr.py; 1.5-2.0 would). Size alone cannot tell a one-sided push
+    #: (centre moved) from a uniform one (centre right). Not for a centre the learned refiner
+    #: moved (its own factors below). 0 = off (the default); 1.0 = the factor measured above
+    edge_size_per_excess: float = 0.0
 
 
 class PoseTracker:
@@ -619,8 +644,18 @@ class PoseTracker:
         per_ball = np.where(refined, cfg.refined_bias_per_rms, cfg.edge_bias_per_rms)
         common_factor = max(cfg.refined_common_per_rms if refined.any() else 0.0,
                             cfg.edge_common_per_rms if not refined.all() else 0.0)
-        shade = np.repeat((per_ball * rms) ** 2, 2)
-        common = common_shift_covariance(J, common_factor * float(np.median(rms)), A)  # shared by all balls
+        cover = per_ball * rms
+        spread = rms
+        if cfg.edge_size_per_excess > 0:
+            excess = self._size_excess(T, [j for _, j in reg.pairs], feats)
+            if excess is not None:
+                # a centre the refiner moved has its own measured factors (the excess is the
+                # edge fit's, whose bias the refiner corrects)
+                size_cover = np.where(refined, 0.0, cfg.edge_size_per_excess * np.abs(excess))
+                cover = np.maximum(cover, size_cover)
+                spread = np.maximum(rms, size_cover)
+        shade = np.repeat(cover ** 2, 2)
+        common = common_shift_covariance(J, common_factor * float(np.median(spread)), A)  # shared by all balls
         if cfg.edge_gradient_per_rms > 0:
             pts = np.array([det.fiducials[i].centre_px for i, _ in reg.pairs], float)
             common = common + layout_gradient_covariance(J, pts, cfg.edge_gradient_per_rms * float(np.median(rms)), A)
@@ -629,6 +664,21 @@ class PoseTracker:
             return (A * np.maximum(noise_px**2, shade)) @ A.T + common
 
         return cov(sigma_px), cov(upper_px), float(np.median(rms))
+
+    def _size_excess(self, T_cam_ct: np.ndarray, fiducials: list, feats: list):
+        """Per matched ball (``fiducials`` their indices, ``feats`` their detections' features),
+        its fitted outline's minor semi-axis (``features["edge_minor_px"]``) minus that of the
+        sphere of ``radius_mm`` at the pose ``T_cam_ct`` (px; > 0: the outline is too large);
+        None when a ball has no fitted size or its outline does not project. The outlines of all
+        fiducials come from the hint's cache (the same pose: no new computation)."""
+        minor = np.array([float(f.get("edge_minor_px", np.nan)) for f in feats])
+        if not (self.radius_mm > 0) or not np.all(np.isfinite(minor)):
+            return None
+        C = self.fiducials_ct @ T_cam_ct[:3, :3].T + T_cam_ct[:3, 3]
+        _cen, axes, _ang, ok = self._hint_ellipses(self.camera, C, self.radius_mm)
+        if not np.all(ok[fiducials]):
+            return None
+        return minor - axes[fiducials, 1]
 
     def _pooled_trust(self, frame_index: int, reg, pts: np.ndarray, det, frame_sigma_px: float, new_moved: list,
                       usable: bool, ok: bool, code: str, reason: str):
