@@ -28,11 +28,14 @@ clean scenes at 60 % light, 2.5 px defocus, noisier sensor, JPEG 70), ``clutter`
 strays, dense and loose hair). Detectors: ``edge`` (today's default, with the camera's ball
 outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid baseline),
 ``learned`` (the ONNX segmenter), ``refined`` (``edge`` with the learned centre refiner,
-``vision/centre_refiner.py``; opt-in; ``--refiner PATH`` scores another network). Each runs through the product's own chain: vision's
+``vision/centre_refiner.py``; opt-in; ``--refiner PATH`` scores another network), ``idealS``
+(not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
+ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
 
 Columns, per condition x detector x trust model (``before``: each frame alone, the trust model
-before issue 28 and still the default; ``calibrated``: still frames pooled, the centre bias
+before issue 28 and still the default; ``size``: the same with each ball's size excess covered
+too, opt-in; ``calibrated``: still frames pooled, the centre bias
 covered; same frames, same detections; ``before`` covers each ball's edge spread since the
 per-frame model does, ``TrackerConfig.edge_bias_per_rms``):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
@@ -44,7 +47,10 @@ per-frame model does, ``TrackerConfig.edge_bias_per_rms``):
   truth at the 80 mm deep target (80 mm below the fiducials' centroid along the patch normal);
 * err med / p99 / max: error at that target of every trusted pose (mm);
 * >2mm and 1-2mm: trusted poses that far off (wrong-but-valid), count and share of trusted;
-* pred/act: RMS predicted TRE over RMS actual error, trusted poses (< 1: over-confident).
+* pred/act: RMS predicted TRE over RMS actual error, trusted poses (< 1: over-confident);
+* pose % / <=1mm %: scenes whose frame-N centres give a pose at all (>= 4 balls matched), and
+  one within 1 mm at the target, trusted or not (:func:`fitted_pose_error`): the ceiling of any
+  trust model on these detections (the same for every trust model; trusted@N can only reach it).
 Last line: one JSON object with every figure.
 
 Usage: PYTHONPATH=app python benchmarks/camera_pbr.py [--quick] [--held-out] [--json] [--frames N]
@@ -94,6 +100,27 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
     raise InputError(f"unknown detector {name!r} (edge, refined, chroma, learned)")
 
 
+class IdealDetector:
+    """The trust model's ceiling on a scene (``--detectors idealS``): every whole ball found at its
+    true ellipse centre plus 0.03 px of noise, reporting an edge RMS of S px (default 0.1), no
+    partly hidden ball, no stray; the image is not looked at. What the scene's geometry (camera
+    distance, how many balls are whole, their layout) and the gates allow a perfect detector whose
+    centres are known to S px; compare with ``pose %`` / ``<=1mm %`` of the real detectors."""
+
+    def __init__(self, truth, edge_rms_px: float = 0.1, seed: int = 0):
+        self.truth, self.edge_rms_px = truth, float(edge_rms_px)
+        self.rng = np.random.default_rng(seed)
+
+    def detect(self, image, hint=None):
+        from monotracker.vision.detection import Detection, ImageFiducial
+
+        tr = self.truth
+        fids = [ImageFiducial(np.asarray(p, float) + self.rng.normal(scale=0.03, size=2), (float(r), float(r)), 0.0,
+                              1.0, float(np.pi * r * r), features={"edge_rms_px": self.edge_rms_px})
+                for p, r in zip(tr.ellipse_centres_px[tr.whole], tr.radius_px[tr.whole])]
+        return Detection(fids, [], 0.0, "ideal")
+
+
 class Recording:
     """Wraps a detector: keeps every Detection (the tracker calls ``detect``); ``rules`` shared
     so that the tracker gives the detector the camera's outlines as in the product."""
@@ -123,9 +150,11 @@ class Replay:
 def trust_models() -> dict:
     """Trust models compared in one run: name -> TrackerConfig. ``before``: each frame alone,
     image noise from the residuals and each ball's edge spread (the default:
-    ``centre_bias=None``); ``calibrated``: frames of a still head pooled, the detector's
+    ``centre_bias=None``); ``size``: the same with each ball's size excess covered too (opt-in,
+    ``edge_size_per_excess`` 1.0); ``calibrated``: frames of a still head pooled, the detector's
     measured centre bias covered (``centre_bias="detector"``)."""
-    return {"before": TrackerConfig(centre_bias=None), "calibrated": TrackerConfig(centre_bias="detector")}
+    return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
+            "calibrated": TrackerConfig(centre_bias="detector")}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -161,20 +190,53 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
     cam = scene.camera_model()
     tr = scene.truth
     frames = frames if frames is not None else camera_frames(scene, condition, n_frames)
-    rec = Recording(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
+    if det_name.startswith("ideal"):
+        rec = Recording(IdealDetector(tr, float(det_name[len("ideal"):] or 0.1)))
+    else:
+        rec = Recording(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
     res = {}
     for m, (name, cfg) in enumerate(trust_models().items()):
         det = rec if m == 0 else Replay(list(rec.log), rec.det)
         trk = PoseTracker(tr.fiducials_ct, cam, detector=det, radius_mm=tr.radius_mm, target_ct=tr.target_ct,
                           config=cfg)
-        rows = []
+        rows, fitted = [], []
         for k, img in enumerate(frames):
             e = trk.process(Frame(img, k / FPS, k, None))
             err = float(tre_mm(e.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]) if e.ok else float("nan")
             rows.append((bool(e.ok), err, float(e.predicted_tre_mm), e.code))
+            if m == 0:
+                fitted.append(fitted_pose_error(e, scene))
         res[name] = rows
+        if m == 0:
+            res["_fitted"] = fitted
     res["_det"] = detection_stats(rec.log, tr, cam)
     return res
+
+
+def fitted_pose_error(est, scene) -> float:
+    """Error at the target (mm) of the pose fitted to a frame's matched centres, trusted or not
+    (the registration's least squares from the centres the tracker matched,
+    ``est.image_points_px``, started at the true pose); NaN with fewer than 4 matched. Over a
+    set it is the ceiling of any trust model on these detections: a scene whose fitted pose is
+    more than 1 mm off can only be refused or trusted wrongly."""
+    from monotracker.registration.pnp import refine_pose
+    from monotracker.registration.projection import undistort_to_normalised
+
+    seen = np.isfinite(est.image_points_px[:, 0])
+    if seen.sum() < 4:
+        return float("nan")
+    cam, tr = scene.camera_model(), scene.truth
+    xn = undistort_to_normalised(est.image_points_px[seen], cam.K, cam.dist)
+    fit = refine_pose(tr.T_cam_ct, tr.fiducials_ct[seen], xn, np.array([cam.K[0, 0], cam.K[1, 1]]), tr.radius_mm)
+    return float(tre_mm(fit.T, tr.T_cam_ct, tr.target_ct)[0])
+
+
+def ceiling(fitted: list, n_frames: int) -> dict:
+    """Per condition x detector: scenes with a fitted pose at frame N, and with one within 1 mm
+    at the target (trusted or not: what a perfect trust model could trust), percent."""
+    last = np.array([f[n_frames - 1] for f in fitted])
+    return {f"pose_at_{n_frames}_pct": 100.0 * float(np.mean(np.isfinite(last))) if len(last) else float("nan"),
+            f"within_1mm_at_{n_frames}_pct": 100.0 * float(np.mean(last <= 1.0)) if len(last) else float("nan")}
 
 
 def summarise(per_scene: list, n_frames: int) -> dict:
@@ -391,7 +453,7 @@ def main(argv=None) -> int:
         f"target 80 mm deep; trust models: {', '.join(trust_models())}")
     hdr = (f"{'condition':<9} {'detector':<8} {'trust':<7} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
            f"{'err px':>6} {'p95 px':>6} {'tr@1 %':>6} {'tr@' + str(a.frames) + ' %':>6} {'med mm':>6} "
-           f"{'p99 mm':>6} {'max mm':>6} {'>2mm':>4} {'1-2mm':>9} {'pred/act':>8}")
+           f"{'p99 mm':>6} {'max mm':>6} {'>2mm':>4} {'1-2mm':>9} {'pred/act':>8} {'pose %':>6} {'<=1mm %':>7}")
     say(hdr)
     result = {"set": split, "folder": str(folder), "renderers": renderers, "frames": a.frames, "conditions": {}}
     t0 = time.perf_counter()
@@ -407,6 +469,7 @@ def main(argv=None) -> int:
         for dn in dets:
             runs = [run_scene(s, cond, dn, a.frames, streams[s.hash]) for s in cs]
             ds = det_summary([r["_det"] for r in runs])
+            ds.update(ceiling([r["_fitted"] for r in runs], a.frames))
             result["conditions"][cond][dn] = {"detection": ds}
             for tm in trust_models():
                 sm = summarise([r[tm] for r in runs], a.frames)
@@ -416,7 +479,8 @@ def main(argv=None) -> int:
                     f"{sm['trusted_at_1_pct']:>6.0f} {sm[f'trusted_at_{a.frames}_pct']:>6.0f} "
                     f"{sm['err_median_mm']:>6.2f} {sm['err_p99_mm']:>6.2f} {sm['err_max_mm']:>6.2f} "
                     f"{sm['over_2mm']:>4} {sm['between_1_2mm']:>3} ({sm['between_1_2mm_pct']:>3.0f}%) "
-                    f"{sm['pred_over_act']:>8.2f}")
+                    f"{sm['pred_over_act']:>8.2f} {ds[f'pose_at_{a.frames}_pct']:>6.0f} "
+                    f"{ds[f'within_1mm_at_{a.frames}_pct']:>7.0f}")
     result["seconds"] = round(time.perf_counter() - t0, 1)
     say(f"({result['seconds']:.0f} s)")
     print(json.dumps(_finite(result)))
