@@ -670,7 +670,8 @@ class PoseTracker:
         its fitted outline's minor semi-axis (``features["edge_minor_px"]``) minus that of the
         sphere of ``radius_mm`` at the pose ``T_cam_ct`` (px; > 0: the outline is too large);
         None when a ball has no fitted size or its outline does not project. The outlines of all
-        fiducials come from the hint's cache (the same pose: no new computation)."""
+        fiducials come from the hint's cache (:class:`~.sphere_outline.SphereEllipseCache`: this
+        pose is near the hint's, so they are mostly reused, moved and scaled)."""
         minor = np.array([float(f.get("edge_minor_px", np.nan)) for f in feats])
         if not (self.radius_mm > 0) or not np.all(np.isfinite(minor)):
             return None
