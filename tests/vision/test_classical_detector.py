@@ -177,3 +177,43 @@ def test_windows_masked_in_one_mosaic_equal_each_window_masked_alone():
             assert got.shape == ref.shape and np.array_equal(got, ref), (x0, y0, x1, y1)
             n_set += int(got.any())
     assert n_set >= 9
+
+
+def _ring_contour(r: float, dent, n: int = 400) -> np.ndarray:
+    """An OpenCV contour (int px, as findContours gives) of a circle of radius ``r`` px at (100,
+    100) whose radius at angle t is ``r + dent(t)``."""
+    t = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    rho = r + dent(t)
+    pts = np.stack([100.0 + rho * np.cos(t), 100.0 + rho * np.sin(t)], axis=1)
+    return np.round(pts).astype(np.int32).reshape(-1, 1, 2)
+
+
+def test_the_boundary_tolerance_grows_with_the_ball():
+    """The boundary factor's tolerance is 0.6 px up to an 8 px radius and 7.5 % of the radius above
+    (shading dents a ball's colour mask by a share of its size): a 13 px ball whose mask is dented
+    by 0.2 r over its lit side (0.52 px RMS off an ellipse) is kept, where the fixed 0.6 px refused
+    it (the formula before, written out here); a 6 px ball dented the same way scores as before; a
+    13 px ball cut by a chord a quarter of its diameter in still scores far below the 0.5 floor."""
+    import math
+
+    import cv2
+
+    from monotracker.vision.detection import BlobRules, score_blob
+
+    rules = BlobRules(radius_mm=4.0, focal_px=1100.0)
+
+    def score(contour):
+        s, f, _ = score_blob(contour, float(cv2.contourArea(contour)), rules)
+        return s, s / f["f_fit"] * math.exp(-(f["fit_rms_px"] / 0.6) ** 2), f
+
+    def dent(r):
+        return lambda t: -0.2 * r * np.clip(np.cos(t), 0.0, None) ** 8
+
+    near, near_before, f = score(_ring_contour(13.0, dent(13.0)))
+    assert near >= 0.5 > near_before, (near, near_before, f["fit_rms_px"])
+    far, far_before, _ = score(_ring_contour(6.0, dent(6.0)))
+    assert far == far_before >= 0.5
+    t = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
+    x = np.minimum(13.0 * np.cos(t), 13.0 * 0.5)                   # a chord a quarter diameter in
+    cut = np.round(np.stack([100 + x, 100 + 13.0 * np.sin(t)], axis=1)).astype(np.int32).reshape(-1, 1, 2)
+    assert score(cut)[0] < 0.2, score(cut)[2]
