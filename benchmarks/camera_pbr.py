@@ -16,6 +16,9 @@ condition's camera chain, new sensor noise every frame (``sim.pbr.frameset.camer
 * ``--quick``: the committed tuning crops (``tests/data/pbr``, with ``--renderer blender``
   ``tests/data/pbr_blender``; a few scenes per kind, no renderer needed) unless ``--root`` says
   otherwise.
+* ``--root $MONOTRACKER_PBR/planned``: scenes whose camera stands where the layout planner
+  approves it (``scripts/render_planned.py``: the same scenes' draws, cameras drawn until the
+  planner predicts the pose trusted; 300-450 mm in practice), same split rules;
 * ``--renderer blender``: the same scenes rendered by Blender's Cycles (a second renderer nobody
   here wrote; skin with sub-surface scattering, a pinhole lens; ``<root>/blender/<split>``,
   ``sim/pbr/blender_render.py``), same split rules.

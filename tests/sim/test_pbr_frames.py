@@ -122,3 +122,26 @@ def test_camera_frames_are_deterministic_and_noisy(scenes, condition):
     assert all(np.array_equal(a, b) for a, b in zip(f1, f2))
     assert not np.array_equal(f1[0], f1[1]), "each frame needs its own sensor noise"
     assert f1[0].shape == s.image.shape
+
+
+def test_a_camera_acceptance_rule_chooses_among_the_same_draws():
+    """``make_spec(camera_accept=...)`` (the planned scenes of ``scripts/render_planned.py``):
+    the camera is drawn from the same distribution until the rule accepts it; everything before
+    the camera (layout, seed) is the plain scene's; without a rule the scene is unchanged; a rule
+    nothing satisfies is an error, not a silently different scene."""
+    plain = make_spec("tuning", "clean", 7)
+    seen = []
+
+    def near(X, T):
+        depth = float(np.median(X @ np.asarray(T)[:3, :3].T[:, 2] + np.asarray(T)[2, 3]))
+        seen.append(depth)
+        return depth < 400.0
+
+    near_spec = make_spec("tuning", "clean", 7, camera_accept=near)
+    assert near_spec.fiducials_ct == plain.fiducials_ct and near_spec.seed == plain.seed
+    X, T = np.array(near_spec.fiducials_ct), np.array(near_spec.T_cam_ct)
+    assert np.median((X @ T[:3, :3].T + T[:3, 3])[:, 2]) < 400.0
+    assert seen[-1] < 400.0 and (len(seen) == 1 or all(d >= 400.0 for d in seen[:-1]))
+    assert scene_hash(make_spec("tuning", "clean", 7)) == scene_hash(plain)
+    with pytest.raises(RuntimeError):
+        make_spec("tuning", "clean", 7, camera_accept=lambda X, T: False)

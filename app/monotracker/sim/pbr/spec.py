@@ -361,14 +361,15 @@ def _lamps(family: str, v: np.ndarray, centroid: np.ndarray, view_dir: np.ndarra
 
 
 def _camera(rng: np.random.Generator, X: np.ndarray, v: np.ndarray, phantom: HeadPhantom, K: np.ndarray,
-            dist: np.ndarray, size: tuple, radius_mm: float) -> np.ndarray:
+            dist: np.ndarray, size: tuple, radius_mm: float, accept=None) -> np.ndarray:
     """T_cam_ct: 300-800 mm from the centroid, up to 45 deg off ``v``, any roll, centroid in the
-    central half of the image, every ball's centre projected >= 40 px inside the frame."""
+    central half of the image, every ball's centre projected >= 40 px inside the frame; and, when
+    ``accept`` is given, ``accept(X, T_cam_ct)`` true (e.g. a placement planner's verdict)."""
     import cv2
 
     centroid = X.mean(axis=0)
     W, H = size
-    for _ in range(2000):
+    for _ in range(5000 if accept is not None else 2000):
         d = _tilted(v, 45.0 * np.sqrt(rng.uniform()), rng.uniform(0, 2 * np.pi))
         distance = rng.uniform(300.0, 800.0)
         eye = centroid + distance * d
@@ -390,7 +391,8 @@ def _camera(rng: np.random.Generator, X: np.ndarray, v: np.ndarray, phantom: Hea
         r_px = K[0, 0] * radius_mm / Xc[:, 2]
         m = 40.0 + r_px
         if np.all((px[:, 0] > m) & (px[:, 0] < W - 1 - m) & (px[:, 1] > m) & (px[:, 1] < H - 1 - m)):
-            return T
+            if accept is None or accept(X, T):
+                return T
     raise RuntimeError("could not place the camera")
 
 
@@ -461,8 +463,12 @@ def _strays(rng, X, phantom: HeadPhantom, v: np.ndarray) -> tuple:
     return tuple(out)
 
 
-def make_spec(split: str, kind: str, index: int, phantom: HeadPhantom | None = None) -> SceneSpec:
-    """Scene ``index`` of ``kind`` in ``split`` (see the module docstring). Deterministic."""
+def make_spec(split: str, kind: str, index: int, phantom: HeadPhantom | None = None,
+              camera_accept=None) -> SceneSpec:
+    """Scene ``index`` of ``kind`` in ``split`` (see the module docstring). Deterministic.
+    ``camera_accept``: None, or ``f(fiducials_ct (n, 3) mm, T_cam_ct) -> bool``: camera poses
+    are drawn from the same distribution until it accepts one (a placement the layout planner
+    would approve: ``scripts/render_planned.py``; the caller picks an index range of its own)."""
     from monotracker.sim.scenes import head_like_layout
     from monotracker.vision.camera_model import default_camera
 
@@ -481,7 +487,7 @@ def make_spec(split: str, kind: str, index: int, phantom: HeadPhantom | None = N
         X = head_like_layout(rng, int(rng.integers(7, 10)), max_angle_deg=40.0)
     R = ph.fiducial_radius_mm
     cam = default_camera()
-    T = _camera(rng, X, v, ph, cam.K, cam.dist, cam.image_size, R)
+    T = _camera(rng, X, v, ph, cam.K, cam.dist, cam.image_size, R, camera_accept)
     eye = invert_transform(T)[:3, 3]
     centroid = X.mean(axis=0)
     view_dir = _unit(eye - centroid)
