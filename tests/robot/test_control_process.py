@@ -253,3 +253,25 @@ def test_a_start_is_judged_on_the_target_written_just_before_it():
     finally:
         p.close()
     assert not p.proc.is_alive()
+
+
+def test_the_reader_ends_quietly_when_the_connection_is_closed_under_it():
+    """close() from the engine's thread while the reader waits in recv(): CPython's Connection then
+    raises TypeError inside recv (its handle is gone; seen once in CI as an unhandled thread
+    exception). The reader ends without raising and answers every waiting command "not running"
+    (the same as when the child dies); an error on an open connection is logged, not raised."""
+    class _Conn:
+        def __init__(self, closed):
+            self.closed = closed
+
+        def recv(self):
+            raise TypeError("'NoneType' object cannot be interpreted as an integer")
+
+    for closed in (True, False):
+        cp = ControlProcess.__new__(ControlProcess)
+        cp._conn, cp._alive = _Conn(closed), True
+        cp._pending_lock, waiting = threading.Lock(), [threading.Event(), None]
+        cp._pending = {7: waiting}
+        cp._read_loop()                                  # returns; raises nothing
+        assert not cp._alive and waiting[0].is_set()
+        assert waiting[1] == (False, "the robot control process is not running")

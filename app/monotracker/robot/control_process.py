@@ -165,6 +165,13 @@ class ControlProcess:
                 msg = self._conn.recv()
             except (EOFError, OSError):
                 break
+            except Exception:
+                # close() from another thread while recv() waited leaves the connection without a
+                # handle (CPython then raises TypeError inside recv); anything else is logged.
+                # Either way the reader ends and every waiting command is answered "not running"
+                if not self._conn.closed:
+                    log.exception("robot control reader failed")
+                break
             kind = msg[0]
             if kind == "reply":
                 with self._pending_lock:
