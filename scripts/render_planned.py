@@ -9,11 +9,13 @@ least ``planning.planner.MIN_TRUSTED`` of frames with the worst single ball hidd
 ``plan_layout`` uses. The planner sees only the head: fingers, instruments and strays are placed
 afterwards, as a team's would be, and may hide more than one ball. Scene indices start at
 :data:`INDEX0` so that a planned scene never shares a seed with a scene of the plain sets; the
-folder is ``<root>/<split>`` (default root ``$MONOTRACKER_PBR/planned``), scored with
-``benchmarks/camera_pbr.py --root <root> [--held-out]``. The held-out split is only ever scored.
+folder is ``<root>/<split>`` (default root ``$MONOTRACKER_PBR/planned``; Blender's
+``<root>/blender/<split>``), scored with ``benchmarks/camera_pbr.py --root <root> [--held-out]``
+(Blender: ``--root <root>/blender --renderer blender``). The held-out split is only ever scored.
 
 Usage: PYTHONPATH=app python scripts/render_planned.py --split tuning|held_out --counts clean=10,OR=10,clutter=10
        [--root DIR] [--scene KIND:I] (one scene, for one CPU slot at a time)
+       [--renderer blender --blender-python /work/bpyenv/bin/python]
 """
 
 from __future__ import annotations
@@ -71,9 +73,12 @@ def main(argv=None) -> int:
     ap.add_argument("--counts", default="clean=10,OR=10,clutter=10")
     ap.add_argument("--scene", default=None, help="KIND:I: render that one scene only (no manifest)")
     ap.add_argument("--root", type=Path, default=None)
+    ap.add_argument("--renderer", choices=("mitsuba", "blender"), default="mitsuba",
+                    help="blender: Cycles in a Python with bpy (--blender-python), into <root>/blender/<split>")
+    ap.add_argument("--blender-python", default=None)
     a = ap.parse_args(argv)
     root = a.root or default_root() / "planned"
-    folder = root / a.split
+    folder = root / a.split if a.renderer == "mitsuba" else root / "blender" / a.split
     folder.mkdir(parents=True, exist_ok=True)
     ph = default_phantom()
     accept = planner_accept(ph)
@@ -90,10 +95,10 @@ def main(argv=None) -> int:
         except RuntimeError:      # no camera pose the planner approves for this layout: skipped
             print(f"{a.split}/{kind}/{INDEX0 + i}: the planner approves no camera pose for this layout; skipped")
             continue
-        path = render_scene(spec, folder)
+        path = render_scene(spec, folder, renderer=a.renderer, blender_python=a.blender_python)
         entries.append({"hash": path.stem, "kind": kind, "index": INDEX0 + i})
     if not a.scene:
-        (folder / "manifest.json").write_text(json.dumps({"split": a.split, "renderer": "mitsuba",
+        (folder / "manifest.json").write_text(json.dumps({"split": a.split, "renderer": a.renderer,
                                                           "scenes": entries}, indent=1))
     return 0
 
