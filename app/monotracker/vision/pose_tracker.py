@@ -634,7 +634,8 @@ class PoseTracker:
 
         K = self.camera.K
         T = reg.T_cam_ct
-        X = np.ascontiguousarray(self.fiducials_ct[[j for _, j in reg.pairs]], dtype=float)
+        fids = [j for _, j in reg.pairs]
+        X = np.ascontiguousarray(self.fiducials_ct[fids], dtype=float)
         k = len(X)
         r, J = np.empty(2 * k), np.empty((2 * k, 6))              # J: px per pose parameter at the pose
         pnp_kernels.residuals_and_jacobian(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), X,
@@ -647,7 +648,7 @@ class PoseTracker:
         cover = per_ball * rms
         spread = rms
         if cfg.edge_size_per_excess > 0:
-            excess = self._size_excess(T, [j for _, j in reg.pairs], feats)
+            excess = self._size_excess(T, fids, feats)
             if excess is not None:
                 # a centre the refiner moved has its own measured factors (the excess is the
                 # edge fit's, whose bias the refiner corrects)
