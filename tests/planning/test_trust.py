@@ -71,3 +71,22 @@ def test_trusted_fraction_matches_the_frame_by_frame_loop(n_balls, noise_px):
         assert got == want
     if n_balls >= cfg.min_fiducials:
         assert 0.0 < trusted_fraction(cov, n_balls, near, frames=120, config=cfg, seed=7, runs=5) < 1.0
+
+
+def test_the_planner_keeps_the_one_mm_promise_gate_when_it_is_set():
+    """With ``max_not_right_probability`` set the tracker also gates on P(error > ``right_mm``);
+    the planner's largest gated noise must follow it: at that noise errors drawn from the
+    predicted Gaussian exceed 1 mm in at most ~5 % of frames (sampled, not the closed form), a
+    little more noise breaks that, and the limit lies below the RMS gate's."""
+    cov = np.diag([0.02, 0.03, 0.25])                 # mm^2 at 1 px: one long axis (depth)
+    strict = dataclasses.replace(TrackerConfig(), max_not_right_probability=0.05)
+    u_default, u = gate_noise_px(cov, TrackerConfig()), gate_noise_px(cov, strict)
+    assert 0.0 < u < 0.9 * u_default
+    rng = np.random.default_rng(3)
+
+    def share(noise):
+        draws = rng.multivariate_normal(np.zeros(3), cov * noise**2, size=200_000)
+        return float(np.mean(np.linalg.norm(draws, axis=1) > strict.right_mm))
+
+    assert share(u) <= 0.05 + 0.003
+    assert share(1.1 * u) > 0.05 + 0.003

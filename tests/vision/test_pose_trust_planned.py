@@ -51,7 +51,9 @@ def test_planner_placed_frames_are_trusted_and_never_over_2mm(planned):
                    "1.39 mm off (predicted 0.58 mm; balls 0 and 1 whole but 0.64-0.69 px off at an edge RMS of "
                    "0.14-0.26 px) and the degraded scene's frame 6 1.24 mm off (predicted 0.68 mm; ball 7 whole but "
                    "1.44 px off at an edge RMS of 0.32 px): the per-ball tail, a whole ball's bias several times its "
-                   "edge spread. Remove this mark when the trust model or the detector covers it.")
+                   "edge spread (and the RMS gate's own statistics: both are under 1 mm by their predictions' RMS). The "
+                   "opt-in gate max_not_right_probability=0.05 refuses both, with most of the trust on the rendered "
+                   "sets (docs/vision.md). Remove this mark when the trust model or the detector covers it.")
 def test_planner_placed_frames_no_trusted_pose_over_1mm(planned):
     for config in (TrackerConfig(), TrackerConfig(centre_bias="detector")):
         errs = [e for s in planned for e in _trusted(s, config)]

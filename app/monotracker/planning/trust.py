@@ -1,10 +1,11 @@
 """How many frames the pose stream will trust, predicted before there is a frame.
 
 The pose stream (:class:`~monotracker.vision.pose_tracker.PoseTracker`) trusts a frame when the
-error at the target predicted with an upper bound of its online noise estimate passes two gates
+error at the target predicted with an upper bound of its online noise estimate passes its gates
 (:class:`~monotracker.vision.pose_tracker.TrackerConfig`): the RMS under
-``max_predicted_tre_mm`` and the probability of more than ``wrong_mm`` under
-``max_wrong_probability``. Both scale with the noise, so for a layout and camera pose there is
+``max_predicted_tre_mm``, the probability of more than ``wrong_mm`` under
+``max_wrong_probability`` and, where set, of more than ``right_mm`` under
+``max_not_right_probability``. All scale with the noise, so for a layout and camera pose there is
 one largest noise the gates let through (:func:`gate_noise_px`), and a frame is trusted when the
 tracker's noise bound stays under it.
 
@@ -46,10 +47,19 @@ def shading_cover(noise_px: float, edge_rms_px: float | None,
     return max(cfg.edge_bias_per_rms, 0.0) * e, max(cfg.edge_common_per_rms, 0.0) * e
 
 
+def _tails_pass(cov3: np.ndarray, cfg: TrackerConfig) -> bool:
+    """The tracker's tail gates on a target covariance (mm^2): more than ``wrong_mm`` at most
+    ``max_wrong_probability``, and, where set (< 1), more than ``right_mm`` at most
+    ``max_not_right_probability``."""
+    if exceed_probability(cov3, cfg.wrong_mm) > cfg.max_wrong_probability:
+        return False
+    return cfg.max_not_right_probability >= 1.0 or \
+        exceed_probability(cov3, cfg.right_mm) <= cfg.max_not_right_probability
+
+
 def _passes(cov3: np.ndarray, cfg: TrackerConfig) -> bool:
-    """The tracker's two per-frame TRE gates on a target covariance (mm^2)."""
-    return (float(np.sqrt(max(np.trace(cov3), 0.0))) <= cfg.max_predicted_tre_mm
-            and exceed_probability(cov3, cfg.wrong_mm) <= cfg.max_wrong_probability)
+    """The tracker's per-frame TRE gates on a target covariance (mm^2): the RMS and the tails."""
+    return float(np.sqrt(max(np.trace(cov3), 0.0))) <= cfg.max_predicted_tre_mm and _tails_pass(cov3, cfg)
 
 
 def gate_noise_px(cov3_per_px2: np.ndarray, config: TrackerConfig | None = None, floor_px: float = 0.0,
@@ -72,7 +82,7 @@ def gate_noise_px(cov3_per_px2: np.ndarray, config: TrackerConfig | None = None,
     hi = float(np.sqrt(max(room, 0.0))) / rms1        # the RMS gate's limit: no larger u passes
     if hi <= floor:
         return floor
-    if exceed_probability(cov * hi**2 + fixed, cfg.wrong_mm) <= cfg.max_wrong_probability:
+    if _tails_pass(cov * hi**2 + fixed, cfg):
         return hi                                      # (the RMS gate holds at hi by construction)
     lo = floor
     for _ in range(40):   # exceed_probability grows with the noise: bisect for the limit
