@@ -7,6 +7,7 @@ import pytest
 from monotracker.engine import SessionConfig
 from monotracker.engine.loop.gate import PoseGate
 from monotracker.engine.plan import load_plan
+from monotracker.errors import InputError
 from monotracker.engine.rigs.sim import ProjectedFiducialRig
 
 from .conftest import plan_sample
@@ -15,7 +16,7 @@ from .conftest import plan_sample
 @pytest.mark.parametrize("camera", ["sim-points", "sim"])
 def test_min_fiducials_and_the_tre_limit_reach_every_rigs_pose_tracker(make_session, camera):
     s = make_session(clock="sim", camera=camera, min_fiducials=3, max_predicted_tre_mm=0.8,
-                     sim_camera_process=False)
+                     tre_confidence=0.9, sim_camera_process=False)
     plan_sample(s)
     assert s.start_camera().ok
     s.advance(0.2)  # the sim-points rig builds its tracker at its first estimate
@@ -23,6 +24,7 @@ def test_min_fiducials_and_the_tre_limit_reach_every_rigs_pose_tracker(make_sess
     assert tracker is not None
     assert tracker.config.min_fiducials == 3 == s._loop.gate.min_fiducials
     assert tracker.config.max_predicted_tre_mm == 0.8 == s._loop.gate.max_predicted_tre_mm
+    assert tracker.config.right_mm == 0.8 and abs(tracker.config.max_not_right_probability - 0.1) < 1e-12
 
 
 def test_frame_rules_follow_the_session_configuration():
@@ -32,6 +34,19 @@ def test_frame_rules_follow_the_session_configuration():
     assert (rules.min_fiducials, rules.max_predicted_tre_mm) == (5, 0.7)
     assert (gate.frame_rules.min_fiducials, gate.frame_rules.max_predicted_tre_mm) == (5, 0.7)
     assert cfg.frame_rules() is not rules  # each rig gets its own
+
+
+def test_the_tre_confidence_setting_reaches_the_frame_rules_and_bad_values_are_refused():
+    """``tre_confidence`` 0.95: trusted only within the session's TRE limit at 95 % (vision's
+    ``right_mm`` is that limit, ``max_not_right_probability`` 0.05); off (0) by default."""
+    rules = SessionConfig().frame_rules()
+    assert rules.max_not_right_probability == 1.0
+    rules = SessionConfig(max_predicted_tre_mm=0.8, tre_confidence=0.95).frame_rules()
+    assert rules.right_mm == 0.8 and abs(rules.max_not_right_probability - 0.05) < 1e-12
+    SessionConfig(tre_confidence=0.95).validate()
+    for bad in (0.3, 1.0, -0.1, True, "0.95"):
+        with pytest.raises(InputError, match="tre_confidence"):
+            SessionConfig(tre_confidence=bad).validate()
 
 
 def test_point_twin_refuses_what_the_image_rigs_would(tmp_path, make_session):

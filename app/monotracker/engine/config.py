@@ -44,7 +44,12 @@ class SessionConfig:
     followed after a short hold; a single wrong pose never moves the arm).
     ``max_predicted_tre_mm`` (1.0): a pose whose predicted error at the planned target (image
     noise estimated online from the residuals, propagated through the pose covariance) exceeds
-    this is not trusted. ``camera_adapt``: "" or the user's explicit statement that a real camera
+    this is not trusted. ``tre_confidence`` (0 = off): when set (0.5-0.999, e.g. 0.95), a pose is
+    trusted only when its error at the target stays within ``max_predicted_tre_mm`` with this
+    probability by its own predicted distribution, not only its RMS (vision's
+    ``max_not_right_probability``: with the RMS limit alone ~7 % of trusted poses exceed it
+    even with ideal centres; 0.95 costs about half of the trusted scenes on the rendered frames,
+    docs/vision.md). ``camera_adapt``: "" or the user's explicit statement that a real camera
     runs the calibrated sensor binned or cropped (``"bin:2"``, ``"scale:0.5"``,
     ``"crop:X,Y,W,H"``); without it a frame whose size differs from the calibration is refused.
     ``max_validation_tre_mm`` (1.5): arming is refused while any validation fiducial (a fiducial
@@ -123,6 +128,7 @@ class SessionConfig:
     controller: str = "APF-A-II"
     predict_target: bool = True
     max_predicted_tre_mm: float = 1.0
+    tre_confidence: float = 0.0
     camera_adapt: str = ""
     control_process: bool = True
     max_validation_tre_mm: float = 1.5
@@ -139,13 +145,18 @@ class SessionConfig:
 
     def frame_rules(self):
         """The per-frame trust rules (vision's :class:`~monotracker.vision.pose_tracker.TrackerConfig`)
-        every camera rig's pose tracker applies: this session's ``min_fiducials`` and
-        ``max_predicted_tre_mm`` (mm), vision's defaults for the rest. A new object on each call
-        (a rig's tracker may keep state on it). The loop's gate (``engine/loop/gate.py``) judges
-        what the rigs deliver with the same limits: one verdict from one configuration."""
+        every camera rig's pose tracker applies: this session's ``min_fiducials``,
+        ``max_predicted_tre_mm`` (mm) and ``tre_confidence`` (the chance of exceeding that limit
+        at most ``1 - tre_confidence``; 0 = no such rule), vision's defaults for the rest. A new
+        object on each call (a rig's tracker may keep state on it). The loop's gate
+        (``engine/loop/gate.py``) judges what the rigs deliver with the same limits: one verdict
+        from one configuration."""
         from monotracker.vision.pose_tracker import TrackerConfig
 
-        return TrackerConfig(min_fiducials=int(self.min_fiducials), max_predicted_tre_mm=float(self.max_predicted_tre_mm))
+        c = float(self.tre_confidence)
+        return TrackerConfig(min_fiducials=int(self.min_fiducials), max_predicted_tre_mm=float(self.max_predicted_tre_mm),
+                             right_mm=float(self.max_predicted_tre_mm),
+                             max_not_right_probability=1.0 - c if c > 0 else 1.0)
 
     def validate(self) -> None:
         """Raise :class:`InputError` with one line for a bad setting."""
@@ -177,6 +188,9 @@ class SessionConfig:
             raise InputError(f"camera_motion_every must be a whole number of frames >= 0, not {self.camera_motion_every!r}")
         if not (self.max_predicted_tre_mm > 0):
             raise InputError("max_predicted_tre_mm must be a positive number of mm")
+        c = self.tre_confidence
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not (c == 0 or 0.5 <= float(c) <= 0.999):
+            raise InputError(f"tre_confidence must be 0 (off) or a probability from 0.5 to 0.999 (e.g. 0.95), not {c!r}")
         if self.camera_adapt:
             kind = str(self.camera_adapt).partition(":")[0]
             if kind not in ("bin", "scale", "crop"):

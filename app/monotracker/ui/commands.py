@@ -54,6 +54,10 @@ def register(subparsers) -> None:
                    help="camera calibration file (OpenCV YAML/JSON) for a real camera; checked at start")
     p.add_argument("--robot", type=robot_spec, default="sim", help="sim | ur:IP (default sim; an IP address, no host names)")
     p.add_argument("--pin", default=None, help="operator PIN for arming (default $MONOTRACKER_PIN, else a random one)")
+    p.add_argument("--tre-confidence", type=finite_float(0.0, 0.999), default=0.0, metavar="P",
+                   help="trust a pose only when its error at the target stays within the 1 mm limit with "
+                        "probability P by its predicted distribution (e.g. 0.95; default 0: the limit on the "
+                        "predicted RMS error, and at most 0.1 %% over 2 mm)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
     p.add_argument("--home", type=home_folder, default=None, help="session folder, locked while the server runs (default $MONOTRACKER_HOME, else your ~/.monotracker)")
     p.add_argument("--record", type=home_folder, default=None, metavar="DIR",
@@ -170,7 +174,7 @@ def _serve(args) -> int:
     if args.igtl_allow_remote and args.igtl_port is None:
         raise InputError("--igtl-allow-remote needs --igtl-port PORT")
     cfg = SessionConfig(home=args.home, camera=args.camera, robot=args.robot, arm_pin=pin,
-                        trajectory=args.trajectory, clock="real")
+                        trajectory=args.trajectory, clock="real", tre_confidence=args.tre_confidence)
     cfg.validate()
     signals = StopSignals()  # from here on a stop signal is a flag the main thread acts on
     if args.calibration is not None:  # a bad file is refused now, not when the camera starts
