@@ -156,6 +156,51 @@ def learn_ball_colour(image_bgr: np.ndarray, xy_px) -> BallColour:
                      "same hue and saturation); use balls of another colour")
 
 
+#: :func:`band_of_balls`: the core of each found ball sampled (this share of its minor
+#: semi-axis), the hue band is the 2nd-98th percentile of those pixels widened by this much
+#: (OpenCV hue units), and at least this many balls must speak for it
+CORE_SHARE = 0.6
+HUE_PERCENTILE = 10
+HUE_MARGIN = 8
+MIN_BALLS = 1
+
+
+def band_of_balls(image_bgr: np.ndarray, balls: list, within: BallColour) -> BallColour | None:
+    """The hue band of the balls a detector found in ``image_bgr`` (``balls``: objects with
+    ``centre_px`` and ``axes_px`` px), inside the band ``within`` it searched with: the
+    10th-90th percentile (:data:`HUE_PERCENTILE`) of the hue of their cores' in-band pixels
+    (:data:`CORE_SHARE`; a dark limb's and a highlight's hue stray) widened by :data:`HUE_MARGIN`, intersected with ``within`` (same saturation and value floors). None when
+    fewer than :data:`MIN_BALLS` balls, a band that wraps through hue 0, or no narrower band.
+    What it is for: the balls of one kit share one dye, while a drape of a neighbouring hue (a
+    teal one beside green balls) passes the wide default band and merges with a ball touching
+    it into one blob that is no ball; thresholded with the balls' own band they part."""
+    if len(balls) < MIN_BALLS or within.hue_lo > within.hue_hi:
+        return None
+    h, w = image_bgr.shape[:2]
+    hues = []
+    for b in balls:
+        cx, cy = float(b.centre_px[0]), float(b.centre_px[1])
+        r = CORE_SHARE * float(min(b.axes_px))
+        x0, y0 = max(int(np.floor(cx - r)), 0), max(int(np.floor(cy - r)), 0)
+        x1, y1 = min(int(np.ceil(cx + r)) + 1, w), min(int(np.ceil(cy + r)) + 1, h)
+        if r < 1.0 or x1 <= x0 or y1 <= y0:
+            continue
+        crop = np.ascontiguousarray(image_bgr[y0:y1, x0:x1])
+        hsv = cv2.cvtColor(crop, cv2.COLOR_BGR2HSV)
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        core = ((xx - cx) ** 2 + (yy - cy) ** 2 <= r * r) & (within.mask(crop) > 0)
+        if core.any():
+            hues.append(hsv[..., 0][core].astype(float))
+    if len(hues) < MIN_BALLS:
+        return None
+    hue = np.concatenate(hues)
+    lo, hi = np.percentile(hue, [HUE_PERCENTILE, 100 - HUE_PERCENTILE])
+    lo, hi = max(int(np.floor(lo)) - HUE_MARGIN, within.hue_lo), min(int(np.ceil(hi)) + HUE_MARGIN, within.hue_hi)
+    if hi < lo or (lo, hi) == (within.hue_lo, within.hue_hi):
+        return None
+    return BallColour(lo, hi, within.sat_min, within.val_min)
+
+
 def _separate(colour: BallColour, roi: np.ndarray, click, area: float, region: np.ndarray) -> bool:
     """True when, thresholded with ``colour``, the blob under ``click`` is about the clicked
     region's size (<= 2x its ``area`` px) and not connected to the window's border, and the
