@@ -461,7 +461,7 @@ def main(argv=None) -> int:
     say(f"camera path on physically rendered frames ({', '.join(renderers)}) - {label}")
     say(f"frames: {folder} ({len(scenes)} scenes), a still head streamed {a.frames} frames at {FPS:g} fps; "
         f"target 80 mm deep; trust models: {', '.join(trust_models())}")
-    hdr = (f"{'condition':<9} {'detector':<8} {'trust':<7} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
+    hdr = (f"{'condition':<9} {'detector':<9} {'trust':<10} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
            f"{'err px':>6} {'p95 px':>6} {'tr@1 %':>6} {'tr@' + str(a.frames) + ' %':>6} {'med mm':>6} "
            f"{'p99 mm':>6} {'max mm':>6} {'>2mm':>4} {'1-2mm':>9} {'pred/act':>8} {'pose %':>6} {'<=1mm %':>7}")
     say(hdr)
@@ -484,7 +484,7 @@ def main(argv=None) -> int:
             for tm in trust_models():
                 sm = summarise([r[tm] for r in runs], a.frames)
                 result["conditions"][cond][dn][tm] = sm
-                say(f"{cond:<9} {dn:<8} {tm:<7} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
+                say(f"{cond:<9} {dn:<9} {tm:<10} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
                     f"{ds['partial_accepted']:>7} {ds['centre_err_mean_px']:>6.3f} {ds['centre_err_p95_px']:>6.2f} "
                     f"{sm['trusted_at_1_pct']:>6.0f} {sm[f'trusted_at_{a.frames}_pct']:>6.0f} "
                     f"{sm['err_median_mm']:>6.2f} {sm['err_p99_mm']:>6.2f} {sm['err_max_mm']:>6.2f} "

@@ -125,10 +125,14 @@ def test_every_trusted_pose_is_sent_once_stamped_with_its_capture_time(fresh_hom
               for d in ("CTToCamera", "NeedleTipToCT")}
     cam = stamps["CTToCamera"]
     assert len(cam) and np.all(np.diff(cam) > 0)  # in order, none twice
-    # the window the client saw whole: from the first pose both it and the listener saw to the
-    # last message received (the stream stops with the demo)
+    assert len(stamps["NeedleTipToCT"]) and np.all(np.diff(stamps["NeedleTipToCT"]) > 0)
+    # the window the client saw whole: from the first pose whose every message it and the
+    # listener saw to the last pose whose every message was received (the client connects and
+    # the stream stops between a pose's two messages: the last pose's CTToCamera arrived
+    # without its NeedleTipToCT once in CI)
     trusted = np.array([t for t, ok in poses if ok])
-    lo, hi = max(cam[0], min(t for t, _ in poses)), cam[-1]
+    lo = max(max(float(s[0]) for s in stamps.values()), min(t for t, _ in poses))
+    hi = min(float(s[-1]) for s in stamps.values())
     want = trusted[(trusted >= lo - 1e-6) & (trusted <= hi + 1e-6)]
     assert len(want) >= 60, len(want)  # 2+ s of tracking at 30 Hz
     for device, got in stamps.items():
