@@ -108,15 +108,15 @@ class ClassicalDetector:
         accepted, rejected = analyse_blobs(image, mask, self.rules, self.name, centre_method=self.centre_method,
                                            edge_blur_px=blur, contours=contours, info=info, frame=frame,
                                            hint=hint, start_px=self._imaging.get("centres_px") if warm else None)
-        if self.refiner is not None and accepted:
-            t_ref = time.perf_counter()
-            self.refiner.refine(image, accepted)
-            info.setdefault("stages_s", {})["refine"] = time.perf_counter() - t_ref
         rejected += cut
         if self.narrow_second_pass and rejected:
             t_nar = time.perf_counter()
             accepted, rejected = self._narrowed_pass(image, accepted, rejected, hint, info, frame, warm)
             info.setdefault("stages_s", {})["narrow"] = time.perf_counter() - t_nar
+        if self.refiner is not None and accepted:
+            t_ref = time.perf_counter()
+            self.refiner.refine(image, accepted)
+            info.setdefault("stages_s", {})["refine"] = time.perf_counter() - t_ref
         self._imaging["centres_px"] = np.array([f.centre_px for f in accepted], float).reshape(-1, 2)
         new_blur = frame.get("blur_px_measured") or info.get("edge_blur_px")
         if new_blur is not None:
@@ -128,7 +128,7 @@ class ClassicalDetector:
 
     def _narrowed_pass(self, image: np.ndarray, accepted: list, rejected: list, hint, info: dict, frame: dict,
                        warm: bool) -> tuple[list, list]:
-        """The second look of :data:`NARROW_SECOND_PASS`: around every rejected blob, the blobs
+        """The second look of :attr:`narrow_second_pass`: around the rejected blobs, the blobs
         of the accepted balls' own hue band (:func:`~.ball_colour.band_of_balls`; the band of an
         earlier frame of the stream when this one found too few balls) analysed as the first
         pass does (same shape score, edge fit and its checks, the blur the first pass used); a
@@ -159,7 +159,8 @@ class ClassicalDetector:
         if not contours:
             return accepted, rejected
         more, _ = analyse_blobs(image, None, self.rules, self.name, centre_method=self.centre_method,
-                                edge_blur_px=info.get("edge_blur_px"), contours=contours, frame=frame, hint=hint)
+                                edge_blur_px=info.get("edge_blur_px"), contours=contours,
+                                frame=dict(frame), hint=hint)    # a copy: the first pass's blur stands
 
         def on(f, others) -> bool:
             return any(np.hypot(*(np.asarray(f.centre_px) - o.centre_px)) <= max(2.0, 0.5 * min(o.axes_px))
