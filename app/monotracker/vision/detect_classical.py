@@ -50,9 +50,9 @@ class ClassicalDetector:
     #: bends its outline; thresholded with the hue band of the balls this frame found (or an
     #: earlier frame of the stream), they part. Only rejected blobs are looked at again, with the
     #: first pass's checks; the balls it accepted stay. Rendered tuning sets: whole balls found
-    #: +4-9 % and scenes trusted within 1 mm after 8 frames 13 -> 19 of 96, but trusted poses
-    #: 1-2 mm off 2 -> 6 (of 79 -> 114): more balls expose the trust model's blind spot (a shift
-    #: the balls share, docs/vision.md), so it stays off until that is covered
+    #: +4-8 % and scenes trusted within 1 mm after 8 frames 13 -> 18 of 96, but trusted poses
+    #: 1-2 mm off 2 -> 4 (of 79 -> 115): more balls expose the trust model's blind spot (a
+    #: per-ball tail the pose absorbs, docs/vision.md), so it stays off until that is covered
     narrow_second_pass: bool = False
     #: what the last searches measured of the imaging (``blur_px``: the edge blur, px;
     #: ``chroma_band_limited``: bool) and found (``centres_px``: the accepted balls' centres, px,
