@@ -31,9 +31,9 @@ clean scenes at 60 % light, 2.5 px defocus, noisier sensor, JPEG 70), ``clutter`
 strays, dense and loose hair). Detectors: ``edge`` (today's default, with the camera's ball
 outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid baseline),
 ``learned`` (the ONNX segmenter), ``refined`` (``edge`` with the learned centre refiner,
-``vision/centre_refiner.py``; opt-in; ``--refiner PATH`` scores another network), ``narrow``
-(``edge`` with a second look at rejected blobs in the balls' own hue band,
-``ClassicalDetector.narrow_second_pass``; opt-in), ``idealS``
+``vision/centre_refiner.py``; opt-in; ``--refiner PATH`` scores another network), ``first``
+(``edge`` without its second look at rejected blobs in the balls' own hue band,
+``ClassicalDetector.narrow_second_pass``), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
@@ -93,8 +93,8 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
     rules = BlobRules(radius_mm=radius_mm, focal_px=focal_px)
     if name == "edge":
         return ClassicalDetector(rules)
-    if name == "narrow":
-        return ClassicalDetector(rules, narrow_second_pass=True)
+    if name == "first":
+        return ClassicalDetector(rules, narrow_second_pass=False)
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":
@@ -105,7 +105,7 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, narrow, refined, chroma, learned)")
+    raise InputError(f"unknown detector {name!r} (edge, first, refined, chroma, learned)")
 
 
 class IdealDetector:

@@ -22,7 +22,7 @@ from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised
 from monotracker.vision.camera_model import default_camera
 from monotracker.vision.frames import Frame
 from monotracker.vision.point_detector import PointDetector
-from monotracker.vision.pose_tracker import PoseTracker
+from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
 
 CAM = default_camera()
 BLANK = np.zeros((720, 1280, 3), np.uint8)
@@ -179,6 +179,36 @@ def test_shading_cover_is_the_pose_streams_own(problem):
             det.set(px, minor)
             trusted += tr.process(Frame(BLANK, k / 30.0, k)).ok
         assert abs(trusted / 60 - predicted) < 0.1, (det.name, trusted, predicted)
+
+
+def test_the_few_ball_cover_is_the_pose_streams_own(problem):
+    """With at most ``TrackerConfig.few_balls`` balls the tracker widens each ball's cover by
+    ``few_balls_cover`` (a ball's error reaches the target nearly whole when 4-5 balls hold the
+    pose); the planner predicts the same. Five balls whose edge spread the plain cover lets
+    through and the widened one does not (the common shift left out to isolate it): the real
+    PoseTracker trusts them as often as the planner predicts, with the factor and without."""
+    P = replace(problem, space=replace(problem.space, keep_out=()))
+    T_ct_cam = _demo_pose(560.0)
+    X = PH.fiducial_centres_lps[:5]
+    plain = TrackerConfig(edge_common_per_rms=0.0, few_balls_cover=1.0)
+    widened = TrackerConfig(edge_common_per_rms=0.0)
+    assert widened.few_balls_cover > 1.0 and widened.few_balls >= 5
+    g = predict(replace(P, edge_rms_px=0.0), T_ct_cam, X, config=plain).all_seen.gate_noise_px
+    noise, spread = g / 1.6, g / 1.25
+    Pn = replace(P, noise_px=float(noise), edge_rms_px=float(spread))
+    want = {id(c): predict(Pn, T_ct_cam, X, config=c).all_seen.trusted for c in (plain, widened)}
+    assert want[id(plain)] > 0.9 and want[id(widened)] == 0.0, want
+    T_cam_ct = invert_transform(T_ct_cam)
+    rng = np.random.default_rng(5)
+    for cfg in (plain, widened):
+        det = _EdgeSpreadDetector(spread)
+        tr = PoseTracker(X, CAM, detector=det, radius_mm=4.0, target_ct=P.target, config=cfg)
+        trusted = 0
+        for k in range(60):
+            px, minor = _observe(T_cam_ct, X, rng, noise)
+            det.set(px, minor)
+            trusted += tr.process(Frame(BLANK, k / 30.0, k)).ok
+        assert abs(trusted / 60 - want[id(cfg)]) < 0.1, (cfg.few_balls_cover, trusted, want[id(cfg)])
 
 
 # ------------------------------------------------------------------ visibility

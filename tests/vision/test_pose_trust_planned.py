@@ -47,14 +47,11 @@ def test_planner_placed_frames_are_trusted_and_never_over_2mm(planned):
         assert all(e <= 2.0 for e in errs), errs
 
 
-@pytest.mark.xfail(strict=True, reason="known (2026-11-30): the default per-frame model trusts the clutter scene's frame 6 "
-                   "1.39 mm off (predicted 0.58 mm; balls 0 and 1 whole but 0.64-0.69 px off at an edge RMS of "
-                   "0.14-0.26 px) and the degraded scene's frame 6 1.24 mm off (predicted 0.68 mm; ball 7 whole but "
-                   "1.44 px off at an edge RMS of 0.32 px): the per-ball tail, a whole ball's bias several times its "
-                   "edge spread (and the RMS gate's own statistics: both are under 1 mm by their predictions' RMS). The "
-                   "opt-in gate max_not_right_probability=0.05 refuses both, with most of the trust on the rendered "
-                   "sets (docs/vision.md). Remove this mark when the trust model or the detector covers it.")
 def test_planner_placed_frames_no_trusted_pose_over_1mm(planned):
+    """Until 2026-11-30 (fifth session) the default trusted the clutter scene's frame 6 1.39 mm
+    off (predicted 0.58 mm) and the degraded scene's frame 6 1.24 mm off (0.68 mm), both with 5
+    balls whose errors the pose absorbed (a whole ball 0.6-1.4 px off at an edge RMS of
+    0.14-0.32 px): the few-ball cover (``TrackerConfig.few_balls_cover``) refuses them."""
     for config in (TrackerConfig(), TrackerConfig(centre_bias="detector")):
         errs = [e for s in planned for e in _trusted(s, config)]
         assert all(e <= 1.0 for e in errs), errs

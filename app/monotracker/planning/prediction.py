@@ -76,7 +76,7 @@ def predict_error(problem, T_ct_cam: np.ndarray, centres: np.ndarray, seen: np.n
     if pose_problem(C, seen, config):
         return None
     sigma = problem.noise_px if noise_px is None else float(noise_px)
-    floor, common = shading_cover(sigma, problem.edge_rms_px, config)
+    floor, common = shading_cover(sigma, problem.edge_rms_px, config, int(seen.sum()))
     T_cam_ct = invert_transform(np.asarray(T_ct_cam, float))
     fxy = np.array([problem.camera.K[0, 0], problem.camera.K[1, 1]])
     J = fiducial_jacobian(T_cam_ct, C[seen], fxy, problem.radius_mm)           # (k, 2, 6)

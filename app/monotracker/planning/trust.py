@@ -35,16 +35,21 @@ from monotracker.vision.pose_tracker import TrackerConfig
 
 
 def shading_cover(noise_px: float, edge_rms_px: float | None,
-                  config: TrackerConfig | None = None) -> tuple[float, float]:
+                  config: TrackerConfig | None = None, n_balls: int | None = None) -> tuple[float, float]:
     """(per-ball floor px, common shift px) the pose tracker adds for shading when the balls'
     edge fits spread ``edge_rms_px`` (None: the planned image noise ``noise_px``, what the
     default edge-fitted detector shows; 0: a detector without an edge fit, no cover), per
-    coordinate: ``TrackerConfig.edge_bias_per_rms`` and ``edge_common_per_rms`` times it."""
+    coordinate: ``TrackerConfig.edge_bias_per_rms`` and ``edge_common_per_rms`` times it, the
+    per-ball part times ``few_balls_cover`` when ``n_balls`` (the balls seen; None: many) is at
+    most ``few_balls``, as the tracker does."""
     cfg = config or TrackerConfig()
     e = float(noise_px) if edge_rms_px is None else float(edge_rms_px)
     if not (e > 0):
         return 0.0, 0.0
-    return max(cfg.edge_bias_per_rms, 0.0) * e, max(cfg.edge_common_per_rms, 0.0) * e
+    per_ball = max(cfg.edge_bias_per_rms, 0.0) * e
+    if n_balls is not None and n_balls <= cfg.few_balls:
+        per_ball *= max(cfg.few_balls_cover, 0.0)
+    return per_ball, max(cfg.edge_common_per_rms, 0.0) * e
 
 
 def _tails_pass(cov3: np.ndarray, cfg: TrackerConfig) -> bool:

@@ -44,16 +44,17 @@ class ClassicalDetector:
     #: a learned correction of each accepted ball's centre for its shading
     #: (:class:`~.centre_refiner.CentreRefiner`, issue 28); None = the edge fit's centre as it is
     refiner: object | None = None
-    #: opt-in (issue 28): a second look at the rejected blobs with the balls' own hue
-    #: (:meth:`_narrowed_pass`). A drape of a neighbouring hue inside the default band (teal
-    #: beside green balls) merges with a ball that touches it into one blob that is no ball, or
-    #: bends its outline; thresholded with the hue band of the balls this frame found (or an
-    #: earlier frame of the stream), they part. Only rejected blobs are looked at again, with the
-    #: first pass's checks; the balls it accepted stay. Rendered tuning sets: whole balls found
-    #: +4-8 % and scenes trusted within 1 mm after 8 frames 13 -> 18 of 96, but trusted poses
-    #: 1-2 mm off 2 -> 4 (of 79 -> 115): more balls expose the trust model's blind spot (a
-    #: per-ball tail the pose absorbs, docs/vision.md), so it stays off until that is covered
-    narrow_second_pass: bool = False
+    #: a second look at the rejected blobs with the balls' own hue (:meth:`_narrowed_pass`; issue
+    #: 28). A drape of a neighbouring hue inside the default band (teal beside green balls)
+    #: merges with a ball that touches it into one blob that is no ball, or bends its outline;
+    #: thresholded with the hue band of the balls this frame found (or an earlier frame of the
+    #: stream), they part. Only rejected blobs are looked at again, with the first pass's checks;
+    #: the balls it accepted stay. Rendered tuning sets: whole balls found +4-8 %; alone it let
+    #: more 4-5-ball poses be trusted 1-2 mm off (2 -> 4); with the tracker's few-ball cover
+    #: (``TrackerConfig.few_balls_cover``), against the previous default: trusted frames 79 -> 94,
+    #: 1-2 mm off 2 -> 1, scenes trusted within 1 mm after 8 frames 13 -> 14 of 96 (docs/vision.md).
+    #: While tracking only inside the search windows. False = the first pass only
+    narrow_second_pass: bool = True
     #: what the last searches measured of the imaging (``blur_px``: the edge blur, px;
     #: ``chroma_band_limited``: bool) and found (``centres_px``: the accepted balls' centres, px,
     #: where the next search's edge rays start, :data:`~.detection.START_AT_LAST_PX`), reused by
@@ -133,7 +134,11 @@ class ClassicalDetector:
         earlier frame of the stream when this one found too few balls) analysed as the first
         pass does (same shape score, edge fit and its checks, the blur the first pass used); a
         ball found there that no first-pass ball lies on is accepted and the rejected records
-        it lies on are dropped. (accepted, rejected)."""
+        it lies on are dropped. While tracking (a hint, also with ``search_all``) only inside the
+        search windows; around every large rejected blob only in a cold search. (accepted,
+        rejected)."""
+        h, w = image.shape[:2]
+        tracking = hint is not None and len(hint) > 0       # search_all too: its budget is a tracked frame's
         band = band_of_balls(image, accepted, self.band())
         if band is not None:
             self._imaging["ball_band"] = band
@@ -141,7 +146,6 @@ class ClassicalDetector:
             band = self._imaging.get("ball_band")
         if band is None:
             return accepted, rejected
-        h, w = image.shape[:2]
         lo = float(self.rules.radius_range_px[0])
         big = sorted((r for r in rejected if r.area_px >= np.pi * lo * lo), key=lambda r: -r.area_px)[:NARROW_MAX_BLOBS]
         boxes = []
@@ -152,15 +156,30 @@ class ClassicalDetector:
             if np.isfinite(cx) and np.isfinite(cy) and np.isfinite(g):
                 boxes.append((max(int(cx - g), 0), max(int(cy - g), 0), min(int(np.ceil(cx + g)) + 1, w),
                               min(int(np.ceil(cy + g)) + 1, h)))
+        if tracking:
+            # only inside the search windows (a drape filling the view would cost a full-frame
+            # mask each frame)
+            windows = search_windows(hint, (h, w))
+            boxes = [(max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3]))
+                     for a in windows for b in boxes if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]]
         boxes = [b for b in _merged(boxes) if b[2] - b[0] >= 3 and b[3] - b[1] >= 3]
         if not boxes:
             return accepted, rejected
         contours, _cut_boxes, _cut = self._contours_in(image, boxes, band)
+        # the balls the first pass accepted are found again here: not fitted a second time
+        done = np.array([f.centre_px for f in accepted], float).reshape(-1, 2)
+        tol = np.array([max(3.0, 0.5 * float(min(f.axes_px))) for f in accepted], float)
+        if len(done):
+            rects = np.array([cv2.boundingRect(c) for c in contours], float).reshape(-1, 4)
+            mid = rects[:, :2] + rects[:, 2:] / 2.0
+            near = (np.hypot(mid[:, None, 0] - done[None, :, 0], mid[:, None, 1] - done[None, :, 1]) <= tol).any(axis=1)
+            contours = [c for c, n in zip(contours, near) if not n]
         if not contours:
             return accepted, rejected
         more, _ = analyse_blobs(image, None, self.rules, self.name, centre_method=self.centre_method,
                                 edge_blur_px=info.get("edge_blur_px"), contours=contours,
-                                frame=dict(frame), hint=hint)    # a copy: the first pass's blur stands
+                                frame=dict(frame), hint=hint,    # a copy: the first pass's blur stands
+                                size_peers=[f.axes_px[1] for f in accepted])
 
         def on(f, others) -> bool:
             return any(np.hypot(*(np.asarray(f.centre_px) - o.centre_px)) <= max(2.0, 0.5 * min(o.axes_px))
@@ -282,13 +301,14 @@ WINDOW_BBOX_FACTOR = 3.0
 WINDOW_BBOX_PX = 10000
 
 
-def search_windows(hint: DetectionHint, shape) -> list:
+def search_windows(hint: DetectionHint, shape, only=None) -> list:
     """The image windows (x0, y0, x1, y1) px, clipped to the image of ``shape`` (h, w), that
-    cover the hint's predicted balls with their margins (:data:`WINDOW_MARGIN_PX`);
-    overlapping windows are merged into their bounding box."""
+    cover the hint's predicted balls (``only``: those indices; None = all) with their margins
+    (:data:`WINDOW_MARGIN_PX`); overlapping windows are merged into their bounding box."""
     h, w = shape[:2]
     boxes = []
-    for (cx, cy), (a, _b) in zip(hint.centres_px, hint.axes_px):
+    rows = range(len(hint.centres_px)) if only is None else only
+    for (cx, cy), (a, _b) in ((hint.centres_px[i], hint.axes_px[i]) for i in rows):
         half = a + WINDOW_MARGIN_PX + WINDOW_MARGIN_PER_RADIUS * a + WINDOW_MARGIN_PER_AGE_PX * (hint.age_frames - 1)
         if not (np.isfinite(cx) and np.isfinite(cy) and np.isfinite(half)):
             continue

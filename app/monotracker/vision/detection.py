@@ -338,7 +338,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                   refine_image: np.ndarray | None = None, centre_method: str = "edge",
                   edge_blur_px: float | None = None, contours: list | None = None,
                   info: dict | None = None, frame: dict | None = None,
-                  hint: "DetectionHint | None" = None, start_px=None) -> tuple[list, list]:
+                  hint: "DetectionHint | None" = None, start_px=None, size_peers=()) -> tuple[list, list]:
     """Contours of a binary ``mask`` -> (accepted, rejected) :class:`ImageFiducial` lists.
     ``refine_image`` (default ``image``) is the full-resolution BGR image for sub-pixel centres;
     ``centre_method`` one of :data:`CENTRE_METHODS` (see the module docstring);
@@ -352,7 +352,9 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
     (:class:`DetectionHint`): a blob lying on a predicted ball takes that ball's outline shape
     (from the pose: no need to compute it from the blob, :func:`_hinted_shapes`); ``start_px``:
     None or (n, 2) px, the balls' own edge-fit centres in the previous frame of a stream: a blob
-    within :data:`START_AT_LAST_PX` of one starts its edge rays there (:func:`_started_centres`)."""
+    within :data:`START_AT_LAST_PX` of one starts its edge rays there (:func:`_started_centres`);
+    ``size_peers``: the minor semi-axes (px) of balls already found in this frame, which join the
+    size consensus (a second look at part of a frame judges sizes against the whole frame's)."""
     if centre_method not in CENTRE_METHODS:
         raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {centre_method!r}")
     refine_image = image if refine_image is None else refine_image
@@ -389,7 +391,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
         centre, soft_area, _ = ref
         cands.append(ImageFiducial(centre, ell[1], float(ell[2]), score, soft_area, "", feats))
     # size consensus: balls lie at similar depths, so their minor axes agree
-    good = [c.axes_px[1] for c in cands if c.score >= rules.min_score]
+    good = [c.axes_px[1] for c in cands if c.score >= rules.min_score] + [float(p) for p in size_peers]
     if len(good) >= 3:
         med = float(np.median(good))
         for c in cands:

@@ -271,6 +271,18 @@ class TrackerConfig:
     #: (centre moved) from a uniform one (centre right). Not for a centre the learned refiner
     #: moved (its own factors below). 0 = off (the default); 1.0 = the factor measured above
     edge_size_per_excess: float = 0.0
+    #: with at most ``few_balls`` matched balls each ball's cover (``edge_bias_per_rms`` x its edge
+    #: RMS, the refined factor likewise) is multiplied by ``few_balls_cover`` (1.0 = no change).
+    #: A ball's centre error per edge RMS is heavy-tailed (rendered tuning sets, 2615 accepted
+    #: whole balls: the larger coordinate's error over edge RMS has median 1.1, p90 2.8, p99 5.7),
+    #: and with 4-5 balls (2-4 residual dof, leverages near 1) one ball's error reaches the target
+    #: nearly whole and the residuals hardly show it: every trusted pose 1-2 mm off on the three
+    #: rendered tuning sets had 4 or 5 balls (2 of 42 such frames with the default detector, 4 of
+    #: 39 with the narrowed second pass; 0 of 37 / 76 with 6 or more). 1.5 is the smallest of 1.5 /
+    #: 2 / 3 that left none there (tuning sets, docs/vision.md); the planner applies it too
+    #: (:func:`monotracker.planning.trust.shading_cover`)
+    few_balls: int = 5
+    few_balls_cover: float = 1.5
 
 
 class PoseTracker:
@@ -657,6 +669,8 @@ class PoseTracker:
                                            float(self.radius_mm or 0.0), np.empty(0), r, J)
         A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
         per_ball = np.where(refined, cfg.refined_bias_per_rms, cfg.edge_bias_per_rms)
+        if k <= cfg.few_balls:
+            per_ball = per_ball * cfg.few_balls_cover
         common_factor = max(cfg.refined_common_per_rms if refined.any() else 0.0,
                             cfg.edge_common_per_rms if not refined.all() else 0.0)
         cover = per_ball * rms
