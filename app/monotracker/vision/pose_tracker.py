@@ -279,8 +279,9 @@ class TrackerConfig:
     #: nearly whole and the residuals hardly show it: every trusted pose 1-2 mm off on the three
     #: rendered tuning sets had 4 or 5 balls (2 of 42 such frames with the default detector, 4 of
     #: 39 with the narrowed second pass; 0 of 37 / 76 with 6 or more). 1.5 is the smallest of 1.5 /
-    #: 2 / 3 that left none there (tuning sets, docs/vision.md); the planner applies it too
-    #: (:func:`monotracker.planning.trust.shading_cover`)
+    #: 2 / 3 that left none there on the build it was chosen with; the shipped default leaves one
+    #: Blender OR frame at 1.01-1.02 mm (5 balls; tuning sets, docs/vision.md). The planner
+    #: applies it too (:func:`monotracker.planning.trust.shading_cover`)
     few_balls: int = 5
     few_balls_cover: float = 1.5
 
