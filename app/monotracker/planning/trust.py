@@ -30,8 +30,7 @@ import numpy as np
 
 from monotracker.registration.noise import OnlineNoise
 from monotracker.registration.quantiles import chi2_ppf, f_ppf
-from monotracker.registration.report import exceed_probability
-from monotracker.vision.pose_tracker import TrackerConfig
+from monotracker.vision.pose_tracker import TrackerConfig, tail_problem
 
 
 def shading_cover(noise_px: float, edge_rms_px: float | None,
@@ -53,13 +52,9 @@ def shading_cover(noise_px: float, edge_rms_px: float | None,
 
 
 def _tails_pass(cov3: np.ndarray, cfg: TrackerConfig) -> bool:
-    """The tracker's tail gates on a target covariance (mm^2): more than ``wrong_mm`` at most
-    ``max_wrong_probability``, and, where set (< 1), more than ``right_mm`` at most
-    ``max_not_right_probability``."""
-    if exceed_probability(cov3, cfg.wrong_mm) > cfg.max_wrong_probability:
-        return False
-    return cfg.max_not_right_probability >= 1.0 or \
-        exceed_probability(cov3, cfg.right_mm) <= cfg.max_not_right_probability
+    """The tracker's tail gates on a target covariance (mm^2): its own
+    :func:`~monotracker.vision.pose_tracker.tail_problem`."""
+    return not tail_problem(cov3, cfg)
 
 
 def _passes(cov3: np.ndarray, cfg: TrackerConfig) -> bool:

@@ -286,6 +286,24 @@ class TrackerConfig:
     few_balls_cover: float = 1.5
 
 
+def tail_problem(cov3: np.ndarray, cfg: TrackerConfig) -> str:
+    """'' when an error at the target with covariance ``cov3`` (mm^2) passes the tail gates of
+    ``cfg`` (more than ``wrong_mm`` at most ``max_wrong_probability``; where set, < 1, more than
+    ``right_mm`` at most ``max_not_right_probability``), else why not ("it may exceed 2 mm
+    (probability ...)"). Both trust models gate on it, and the layout planner predicts with it."""
+    from monotracker.registration.report import exceed_probability
+
+    p = exceed_probability(cov3, cfg.wrong_mm)
+    if p > cfg.max_wrong_probability:
+        return f"it may exceed {cfg.wrong_mm:g} mm (probability {100 * p:.2f} % > {100 * cfg.max_wrong_probability:g} %)"
+    if cfg.max_not_right_probability < 1.0:
+        p = exceed_probability(cov3, cfg.right_mm)
+        if p > cfg.max_not_right_probability:
+            return (f"it may exceed {cfg.right_mm:g} mm (probability {100 * p:.1f} % > "
+                    f"{100 * cfg.max_not_right_probability:g} %)")
+    return ""
+
+
 class PoseTracker:
     """Per-frame detect + register + status logic (no threads).
 
@@ -432,7 +450,7 @@ class PoseTracker:
         target over the gates of :class:`TrackerConfig` (``tre_limit``).
         """
         from monotracker.registration.consistency import register_screened
-        from monotracker.registration.report import exceed_probability, predicted_tre, target_covariance
+        from monotracker.registration.report import predicted_tre, target_covariance
 
         from .pose_checks import PhysicalLimits, physical_problem, weak_geometry
 
@@ -564,21 +582,11 @@ class PoseTracker:
                             cov3 = cov3 * (upper / reg.sigma_px) ** 2
                         else:
                             cov3 = target_covariance(reg.T_cam_ct, covs[1], self.target_ct)
-                        p_wrong = exceed_probability(cov3, cfg.wrong_mm)
-                        p_out = (exceed_probability(cov3, cfg.right_mm) if cfg.max_not_right_probability < 1.0
-                                 else 0.0)
-                        if p_wrong > cfg.max_wrong_probability:
+                        why = tail_problem(cov3, cfg)
+                        if why:
                             ok, code = False, "tre_limit"
-                            reason = (f"predicted error at the target {tre:.2f} mm, but it may exceed "
-                                      f"{cfg.wrong_mm:g} mm (probability {100 * p_wrong:.2f} % > "
-                                      f"{100 * cfg.max_wrong_probability:g} %; image noise {sigma:.2f} px{shading}, "
-                                      f"{len(reg.pairs)} fiducials)")
-                        elif p_out > cfg.max_not_right_probability:
-                            ok, code = False, "tre_limit"
-                            reason = (f"predicted error at the target {tre:.2f} mm, but it may exceed "
-                                      f"{cfg.right_mm:g} mm (probability {100 * p_out:.1f} % > "
-                                      f"{100 * cfg.max_not_right_probability:g} %; image noise {sigma:.2f} px{shading}, "
-                                      f"{len(reg.pairs)} fiducials)")
+                            reason = (f"predicted error at the target {tre:.2f} mm, but {why} (image noise "
+                                      f"{sigma:.2f} px{shading}, {len(reg.pairs)} fiducials)")
             else:
                 self.pool.reset()
         else:
@@ -730,8 +738,8 @@ class PoseTracker:
         from monotracker.registration.noise import pooled_sigma
         from monotracker.registration.pnp import refine_pose
         from monotracker.registration.projection import undistort_to_normalised
-        from monotracker.registration.report import (common_shift_covariance, exceed_probability,
-                                                     layout_gradient_covariance, predicted_tre, target_covariance)
+        from monotracker.registration.report import (common_shift_covariance, layout_gradient_covariance, predicted_tre,
+                                                     target_covariance)
 
         cfg, bias = self.config, self.centre_bias
         K = self.camera.K
@@ -787,14 +795,7 @@ class PoseTracker:
                 why = f"up to {tre_hi:.2f} mm at {100 * cfg.noise_bound_confidence:.0f} %: over the " \
                       f"{cfg.max_predicted_tre_mm:g} mm limit"
             else:
-                p_wrong = exceed_probability(cov3, cfg.wrong_mm)
-                p_out = exceed_probability(cov3, cfg.right_mm) if cfg.max_not_right_probability < 1.0 else 0.0
-                if p_wrong > cfg.max_wrong_probability:
-                    why = (f"it may exceed {cfg.wrong_mm:g} mm (probability {100 * p_wrong:.2f} % > "
-                           f"{100 * cfg.max_wrong_probability:g} %)")
-                elif p_out > cfg.max_not_right_probability:
-                    why = (f"it may exceed {cfg.right_mm:g} mm (probability {100 * p_out:.1f} % > "
-                           f"{100 * cfg.max_not_right_probability:g} %)")
+                why = tail_problem(cov3, cfg)
             if why:
                 ok, code = False, "tre_limit"
                 reason = (f"predicted error at the target {tre:.2f} mm, {why} (centre error {ps.sigma_px:.2f} px per "
