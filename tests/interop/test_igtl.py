@@ -112,7 +112,9 @@ def test_every_trusted_pose_is_sent_once_stamped_with_its_capture_time(fresh_hom
     poses = []
 
     def listen(s):
-        s.add_pose_listener(lambda smp, trusted, now: poses.append((float(smp.t_capture), trusted)))
+        age = s.config.max_pose_age_s
+        s.add_pose_listener(lambda smp, trusted, now: poses.append(
+            (float(smp.t_capture), trusted, now - smp.t_capture <= age)))
 
     try:
         r = run_demo(DemoOptions(seconds=3.0, home=fresh_home, igtl_port=port,
@@ -130,17 +132,21 @@ def test_every_trusted_pose_is_sent_once_stamped_with_its_capture_time(fresh_hom
     # listener saw to the last pose whose every message was received (the client connects and
     # the stream stops between a pose's two messages: the last pose's CTToCamera arrived
     # without its NeedleTipToCT once in CI)
-    trusted = np.array([t for t, ok in poses if ok])
-    lo = max(max(float(s[0]) for s in stamps.values()), min(t for t, _ in poses))
+    # CTToCamera goes with every trusted pose; NeedleTipToCT only with a fresh one (the tip is the
+    # arm's now: for a pose older than max_pose_age_s the head may have moved; a loaded CI machine
+    # made one such late pose once)
+    trusted = np.array([t for t, ok, _ in poses if ok])
+    fresh = np.array([t for t, ok, f in poses if ok and f])
+    lo = max(max(float(s[0]) for s in stamps.values()), min(t for t, _, _ in poses))
     hi = min(float(s[-1]) for s in stamps.values())
-    want = trusted[(trusted >= lo - 1e-6) & (trusted <= hi + 1e-6)]
-    assert len(want) >= 60, len(want)  # 2+ s of tracking at 30 Hz
-    for device, got in stamps.items():
-        got = got[(got >= lo - 1e-6) & (got <= hi + 1e-6)]
-        assert len(got) == len(want), (device, len(got), len(want))  # one message per trusted pose
+    within = (lambda x: x[(x >= lo - 1e-6) & (x <= hi + 1e-6)])
+    assert len(within(trusted)) >= 60, len(within(trusted))  # 2+ s of tracking at 30 Hz
+    for device, want in (("CTToCamera", within(trusted)), ("NeedleTipToCT", within(fresh))):
+        got = within(stamps[device])
+        assert len(got) == len(want), (device, len(got), len(want))  # one message per pose it is due
         assert np.allclose(got, want, atol=1e-5), device  # each with its own capture time
     # and nothing else: no message for an untrusted pose
-    untrusted = np.array([t for t, ok in poses if not ok]).reshape(-1, 1)
+    untrusted = np.array([t for t, ok, _ in poses if not ok]).reshape(-1, 1)
     assert not np.isclose(untrusted, cam[None, :], atol=1e-6).any()
 
 
