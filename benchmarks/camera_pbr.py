@@ -57,10 +57,15 @@ per-frame model does, ``TrackerConfig.edge_bias_per_rms``):
 * pose % / <=1mm %: scenes whose frame-N centres give a pose at all (>= 4 balls matched), and
   one within 1 mm at the target, trusted or not (:func:`fitted_pose_error`): the ceiling of any
   trust model on these detections (the same for every trust model; trusted@N can only reach it).
+``--planner``: a second table, per condition, the layout planner's prediction for each scene's
+balls and camera (``planning.predict``: every ball seen, the worst one hidden, and with the
+detector's measured losses, ``planning/ball_losses.py``; mean over scenes) against the share of
+scenes trusted within 1 mm at frame N (first detector, default trust), overall and among the
+scenes the planner approves.
 Last line: one JSON object with every figure.
 
 Usage: PYTHONPATH=app python benchmarks/camera_pbr.py [--quick] [--held-out] [--json] [--frames N]
-       [--root DIR] [--scenes N] [--detectors edge,chroma,learned]
+       [--root DIR] [--scenes N] [--detectors edge,chroma,learned] [--planner]
 """
 
 from __future__ import annotations
@@ -388,6 +393,65 @@ def fit_bias(scenes, conds, n_frames: int, say=print, detector: str = "edge") ->
     return out
 
 
+_HEAD = {}
+
+
+def planner_outlook(scene) -> dict:
+    """The layout planner's prediction for the scene's balls seen from its camera
+    (``planning.predict`` with the outlook of the detector's losses, ``planning/ball_losses.py``;
+    the phantom's head mesh, the planner's default image noise and found probability, the scene's
+    own target), as shares 0..1: ``all_seen`` and ``worst_hidden`` (its verdict: approved when
+    >= ``MIN_TRUSTED``), ``with_losses`` and ``pose_with_losses``."""
+    from monotracker.geometry import invert_transform
+    from monotracker.planning import HeadSurface, predict
+    from monotracker.planning.defaults import build_problem
+    from monotracker.sim.pbr.surfaces import head_mesh
+    from monotracker.sim.phantom import default_phantom
+
+    if "head" not in _HEAD:
+        ph = default_phantom()
+        V, _n, _uv, F = head_mesh(ph, nu=200, nv=100)
+        _HEAD.update(head=HeadSurface(V, F), ph=ph)
+    ph, tr = _HEAD["ph"], scene.truth
+    X = np.asarray(tr.fiducials_ct, float)
+    problem = build_problem(_HEAD["head"], tr.target_ct, existing=X, radius_mm=tr.radius_mm, drape_offset_mm=None,
+                            camera=scene.camera_model())
+    n = (X - ph.centre_lps) / np.asarray(ph.skin_semi_axes_mm, float) ** 2   # the ellipsoid's exact normals
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    p = predict(problem, invert_transform(tr.T_cam_ct), X, n, losses=True)
+    return {"all_seen": 0.0 if p.all_seen is None else p.all_seen.trusted,
+            "worst_hidden": 0.0 if p.worst_hidden is None else p.worst_hidden.trusted,
+            "with_losses": p.with_losses.trusted, "pose_with_losses": p.with_losses.pose}
+
+
+def planner_table(rows: dict, n_frames: int, say) -> dict:
+    """Per condition: the planner's predictions (mean over scenes, %) against the scenes trusted
+    within 1 mm at frame ``n_frames`` (default detector and trust); ``rows[cond]`` a list of
+    (outlook dict, trusted bool)."""
+    from monotracker.planning.planner import MIN_TRUSTED
+
+    say(f"\nthe layout planner's prediction against the outcome (default detector and trust; trusted within 1 mm at "
+        f"frame {n_frames}; % of scenes; approved: predicted >= {100 * MIN_TRUSTED:.0f} % with the worst ball hidden)")
+    say(f"{'condition':<9} {'scenes':>6} {'all seen':>8} {'worst hid':>9} {'w/ losses':>9} {'pose w/l':>8} "
+        f"{'observed':>8}   {'approved':>8} {'w/ losses':>9} {'observed':>8}")
+    out = {}
+    for cond, rs in list(rows.items()) + [("all", [r for v in rows.values() for r in v])]:
+        if not rs:
+            continue
+        P = {k: np.array([o[k] for o, _ in rs]) for k in rs[0][0]}
+        ok = np.array([t for _, t in rs], bool)
+        app = P["worst_hidden"] >= MIN_TRUSTED
+        d = {"scenes": len(rs), **{f"{k}_pct": 100.0 * float(v.mean()) for k, v in P.items()},
+             "observed_pct": 100.0 * float(ok.mean()), "approved": int(app.sum()),
+             "approved_with_losses_pct": 100.0 * float(P["with_losses"][app].mean()) if app.any() else float("nan"),
+             "approved_observed_pct": 100.0 * float(ok[app].mean()) if app.any() else float("nan")}
+        out[cond] = d
+        say(f"{cond:<9} {d['scenes']:>6} {d['all_seen_pct']:>8.0f} {d['worst_hidden_pct']:>9.0f} "
+            f"{d['with_losses_pct']:>9.0f} {d['pose_with_losses_pct']:>8.0f} {d['observed_pct']:>8.0f}   "
+            f"{d['approved']:>8} {d['approved_with_losses_pct']:>9.0f} {d['approved_observed_pct']:>8.0f}")
+    return out
+
+
 def _finite(obj):
     """NaN / inf -> None, so the JSON line is valid JSON."""
     if isinstance(obj, dict):
@@ -415,6 +479,8 @@ def main(argv=None) -> int:
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--refiner", type=Path, default=None,
                     help="the centre refiner's ONNX network for the 'refined' detector (default: the shipped one)")
+    ap.add_argument("--planner", action="store_true",
+                    help="also the layout planner's prediction per scene against the outcome (first detector)")
     ap.add_argument("--fit-bias", action="store_true",
                     help="measure the detectors' centre bias on the tuning set (px per coordinate)")
     a = ap.parse_args(argv)
@@ -467,6 +533,7 @@ def main(argv=None) -> int:
     say(hdr)
     result = {"set": split, "folder": str(folder), "renderers": renderers, "frames": a.frames, "conditions": {}}
     t0 = time.perf_counter()
+    planner_rows = {}
     for cond in conds:
         kind = CONDITIONS[cond]["kind"]
         cs = [s for s in scenes if s.spec.kind == kind]
@@ -480,6 +547,10 @@ def main(argv=None) -> int:
             runs = [run_scene(s, cond, dn, a.frames, streams[s.hash]) for s in cs]
             ds = det_summary([r["_det"] for r in runs])
             ds.update(ceiling([r["_fitted"] for r in runs], a.frames))
+            if a.planner and dn == dets[0]:
+                first = next(iter(trust_models()))
+                planner_rows[cond] = [(planner_outlook(s), bool(r[first][a.frames - 1][0] and r[first][a.frames - 1][1] <= 1.0))
+                                      for s, r in zip(cs, runs)]
             result["conditions"][cond][dn] = {"detection": ds}
             for tm in trust_models():
                 sm = summarise([r[tm] for r in runs], a.frames)
@@ -491,6 +562,8 @@ def main(argv=None) -> int:
                     f"{sm['over_2mm']:>4} {sm['between_1_2mm']:>3} ({sm['between_1_2mm_pct']:>3.0f}%) "
                     f"{sm['pred_over_act']:>8.2f} {ds[f'pose_at_{a.frames}_pct']:>6.0f} "
                     f"{ds[f'within_1mm_at_{a.frames}_pct']:>7.0f}")
+    if a.planner:
+        result["planner"] = planner_table(planner_rows, a.frames, say)
     result["seconds"] = round(time.perf_counter() - t0, 1)
     say(f"({result['seconds']:.0f} s)")
     print(json.dumps(_finite(result)))

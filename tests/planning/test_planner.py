@@ -102,6 +102,13 @@ def test_plan_keeps_the_rules_and_the_camera_space(problem, quick_plan):
     assert len(plan.moves) == 7 and sorted(m[1] for m in plan.moves) == list(range(7))
     assert np.isfinite(plan.error_map_mm).sum() > 50
     assert np.nanmin(plan.error_map_mm) <= e.worst_hidden.rms_mm + 1e-9
+    # and with the detector's losses (each seen ball found at the measured rate): fewer trusted
+    lo = e.with_losses
+    assert lo is not None and lo.found_probability == P.found_probability
+    assert 0.0 <= lo.trusted < e.all_seen.trusted and 0.0 < lo.pose < 1.0
+    assert any(f"expect a pose in {100 * lo.pose:.0f} % of setups" in n for n in plan.notes)
+    assert plan.to_dict()["expected"]["with_detector_losses"]["trusted_fraction"] == round(lo.trusted, 4)
+    assert plan.at_near.with_losses is None        # asked for only where it is shown
 
 
 def _measure(T_cam_ct, X, target, noise, frames=120, seed=0, hide=None):

@@ -70,6 +70,16 @@ def test_plan_step_text_shows_what_to_expect():
     assert "8 balls needed</b> for 95 % trusted frames with one hidden" in needed
     assert "plan again" in layout_html(_layout(stale=True))
     assert "camera pose 3 of 8 (40 %)" in layout_html(_layout(done=False))
+    # with the detector's losses: the verdict says it, amber under the trusted share asked for
+    import dataclasses
+    lay = _layout()
+    lossy = dataclasses.replace(lay, suggestion=dataclasses.replace(lay.suggestion, found_probability=0.6,
+                                                                     trusted_with_losses=0.41, pose_with_losses=0.83))
+    html = layout_html(lossy)
+    assert "color:#b7791f'>41 % with the detector's losses</b> (each ball found at 60 %)" in html
+    assert "each ball found at 60 % (the detector, measured)</td><td colspan='2'>a pose in 83 % of setups</td>" \
+        "<td>41 %</td>" in html
+    assert "with the detector's losses" not in layout_html(lay)
     failed = layout_html(LayoutSummary(job=Job("plan_layout", 1.0, "layout not planned", "set the target first", True)))
     assert "layout not planned:</b> set the target first" in failed
 

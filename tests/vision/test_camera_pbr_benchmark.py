@@ -21,7 +21,8 @@ def result():
     spec.loader.exec_module(mod)
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        rc = mod.main(["--quick", "--json", "--frames", "3", "--detectors", "edge,ideal0.1", "--conditions", "clean,OR"])
+        rc = mod.main(["--quick", "--json", "--frames", "3", "--detectors", "edge,ideal0.1", "--conditions", "clean,OR",
+                       "--planner"])
     assert rc == 0
     return json.loads(out.getvalue().strip().splitlines()[-1])
 
@@ -46,3 +47,14 @@ def test_the_ideal_detector_finds_every_whole_ball_at_its_centre(result):
     clean = result["conditions"]["clean"]
     assert clean["ideal0.1"]["detection"]["within_1mm_at_3_pct"] == 100.0
     assert clean["ideal0.1"]["before"]["trusted_at_3_pct"] >= clean["edge"]["before"]["trusted_at_3_pct"]
+
+
+def test_the_planner_table_scores_the_first_detectors_outcome(result):
+    """Its observed share is the first detector's trusted@N with the default trust, per condition;
+    fewer balls found cannot be trusted more often than all of them, nor than the chance of a pose."""
+    plan = result["planner"]
+    for cond, dets in result["conditions"].items():
+        p = plan[cond]
+        assert p["observed_pct"] == pytest.approx(dets["edge"]["before"]["trusted_at_3_pct"]), cond
+        assert p["with_losses_pct"] <= p["all_seen_pct"] + 1e-9 and p["with_losses_pct"] <= p["pose_with_losses_pct"]
+    assert plan["all"]["scenes"] == sum(plan[c]["scenes"] for c in result["conditions"])

@@ -92,9 +92,12 @@ def expectation(pred) -> LayoutExpectation | None:
     """A :class:`~monotracker.planning.Prediction` as the snapshot's :class:`LayoutExpectation`."""
     if pred is None:
         return None
+    lo = pred.with_losses
     return LayoutExpectation(int(len(pred.centres)), int(pred.visibility.count), _error(pred.all_seen),
                              _error(pred.worst_hidden), None if pred.worst_ball is None else int(pred.worst_ball),
-                             pred.reason or pred.margin_reason)
+                             pred.reason or pred.margin_reason,
+                             None if lo is None else float(lo.found_probability),
+                             None if lo is None else float(lo.trusted), None if lo is None else float(lo.pose))
 
 
 class LayoutJob:

@@ -277,7 +277,10 @@ class LayoutExpectation:
     """What a layout of balls gives from one camera placement: ``all_seen`` (every ball the
     camera sees) and ``worst_hidden`` (the one ball whose loss hurts most hidden too; its index
     ``worst_ball`` in that layout) as :class:`LayoutError`, None when they give no pose
-    (``reason`` says why, one line); ``balls_seen`` of ``balls``."""
+    (``reason`` says why, one line); ``balls_seen`` of ``balls``; with the detector finding
+    each seen ball with probability ``found_probability``: ``trusted_with_losses`` the expected
+    share of trusted frames and ``pose_with_losses`` the chance of a pose at all (0..1; None
+    when not predicted)."""
 
     balls: int
     balls_seen: int
@@ -285,6 +288,9 @@ class LayoutExpectation:
     worst_hidden: LayoutError | None
     worst_ball: int | None
     reason: str = ""
+    found_probability: float | None = None
+    trusted_with_losses: float | None = None
+    pose_with_losses: float | None = None
 
 
 @dataclass(frozen=True)

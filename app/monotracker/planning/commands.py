@@ -22,7 +22,7 @@ from monotracker.errors import InputError
 
 
 def register(subparsers) -> None:
-    from .noise_default import DEFAULT_NOISE_PX
+    from .detector_defaults import DEFAULT_FOUND_PROBABILITY, DEFAULT_NOISE_PX
 
     p = subparsers.add_parser(
         "plan-layout",
@@ -44,6 +44,9 @@ def register(subparsers) -> None:
     p.add_argument("--edge-rms", type=finite_float(0.0, 5.0), default=None, metavar="PX",
                    help="edge-fit spread of the balls that the pose tracker's shading cover will see, px "
                         "(default: the noise, as the default edge-fitted detector; 0: a detector without edge fits)")
+    p.add_argument("--found", type=finite_float(0.05, 1.0), default=None, metavar="P",
+                   help="each ball the camera sees is found by the detector with this probability, for the outlook "
+                        f"with the detector's losses (default {DEFAULT_FOUND_PROBABILITY:g}, measured on rendered frames)")
     p.add_argument("--keep", default="", metavar="I,J,...",
                    help="indices of the CT's fiducials (as detect-ct numbers them) that stay where they are")
     p.add_argument("--quick", action="store_true", help="a coarser, quicker search (8 camera directions, no refinement)")
@@ -89,7 +92,7 @@ def _plan_layout(args: argparse.Namespace) -> int:
         problem = build_problem(head, np.array(args.target), entry=None if args.entry is None else np.array(args.entry),
                                 existing=existing, radius_mm=radius, camera=camera,
                                 noise_px=args.noise if args.noise is not None else DEFAULT_NOISE_PX,
-                                edge_rms_px=args.edge_rms)
+                                edge_rms_px=args.edge_rms, found_probability=args.found)
         progress = None if args.json else _progress_line
         plan = plan_layout(problem, args.balls, keep=keep, progress=progress,
                            n_directions=8 if args.quick else 24, refine=not args.quick)
@@ -123,6 +126,10 @@ def _row(label: str, p) -> list[str]:
                    f"{w.rms_mm:5.2f}  {100 * w.trusted:3.0f} %")
     elif p.margin_reason:
         out.append(f"  {'  ... one ball hidden':<36} {p.margin_reason}")
+    lo = p.with_losses
+    if lo is not None:
+        label = f"  ... each found at {100 * lo.found_probability:.0f} %"
+        out.append(f"  {label:<36} {'':17} {100 * lo.trusted:3.0f} %  (a pose in {100 * lo.pose:.0f} % of setups)")
     return out
 
 

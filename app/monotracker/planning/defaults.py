@@ -19,6 +19,7 @@ import numpy as np
 
 from monotracker.vision.camera_model import CameraModel, default_camera
 
+from .detector_defaults import DEFAULT_FOUND_PROBABILITY
 from .problem import DEFAULT_NOISE_PX, BallRules, CameraSpace, Capsule, DrapeLine, HeadSurface, PlanningProblem
 
 #: (name, radius mm, from mm, to mm along the path's line outside the entry)
@@ -52,11 +53,13 @@ def build_problem(head: HeadSurface, target, *, entry=None, existing=None, radiu
                   camera: CameraModel | None = None, noise_px: float = DEFAULT_NOISE_PX, axis=None,
                   half_angle_deg: float = 35.0, distance_mm: tuple = (400.0, 700.0),
                   drape_offset_mm: float | None = 0.0, keep_out: tuple | None = None,
-                  rules: BallRules | None = None, edge_rms_px: float | None = None) -> PlanningProblem:
+                  rules: BallRules | None = None, edge_rms_px: float | None = None,
+                  found_probability: float | None = None) -> PlanningProblem:
     """A :class:`~.problem.PlanningProblem` with the defaults of the module docstring for what
     is not given. ``drape_offset_mm`` None: no drape; ``keep_out`` None: the robot's capsules when
     there is an entry (:func:`robot_keep_out`); ``edge_rms_px``: the shading cover's edge spread
-    (:class:`~.problem.PlanningProblem`; None: the noise)."""
+    (:class:`~.problem.PlanningProblem`; None: the noise); ``found_probability`` each seen ball's
+    chance of being found (None: the measured default, :mod:`.detector_defaults`)."""
     ax = default_axis(head, target, entry, existing) if axis is None else np.asarray(axis, float)
     if keep_out is None:
         keep_out = robot_keep_out(entry, target) if entry is not None else ()
@@ -69,4 +72,6 @@ def build_problem(head: HeadSurface, target, *, entry=None, existing=None, radiu
                            radius_mm=float(radius_mm), noise_px=float(noise_px), drape=drape,
                            rules=rules or BallRules(),
                            existing=np.zeros((0, 3)) if existing is None else np.asarray(existing, float),
-                           edge_rms_px=None if edge_rms_px is None else float(edge_rms_px))
+                           edge_rms_px=None if edge_rms_px is None else float(edge_rms_px),
+                           found_probability=DEFAULT_FOUND_PROBABILITY if found_probability is None
+                           else float(found_probability))

@@ -26,6 +26,7 @@ from monotracker.registration.report import (common_shift_covariance, error_norm
 from monotracker.vision.pose_checks import weak_geometry
 from monotracker.vision.pose_tracker import TrackerConfig
 
+from .ball_losses import LossOutlook, loss_outlook
 from .trust import gate_noise_px, shading_cover, trusted_fraction
 from .visibility import Visibility, visibility
 
@@ -98,6 +99,17 @@ def predict_error(problem, T_ct_cam: np.ndarray, centres: np.ndarray, seen: np.n
                        gate_noise_px(cov1, config, floor, fixed), floor, common, c0)
 
 
+def outlook_with_losses(problem, T_ct_cam: np.ndarray, centres: np.ndarray, seen: np.ndarray,
+                        found_probability: float | None = None, noise_px: float | None = None,
+                        config: TrackerConfig | None = None, **kw) -> LossOutlook:
+    """:func:`~.ball_losses.loss_outlook` of the balls ``centres[seen]`` (LPS mm) from
+    ``T_ct_cam``, each pattern of found balls predicted by :func:`predict_error`;
+    ``found_probability`` None: the problem's. ``kw``: ``per_count``, ``min_weight``, ``seed``."""
+    C = np.asarray(centres, float).reshape(-1, 3)
+    q = problem.found_probability if found_probability is None else float(found_probability)
+    return loss_outlook(lambda keep: predict_error(problem, T_ct_cam, C, keep, noise_px, config), seen, q, **kw)
+
+
 @dataclass(frozen=True)
 class Prediction:
     """What to expect from balls ``centres`` (n, 3) LPS mm seen from ``T_ct_cam`` (4x4).
@@ -106,6 +118,8 @@ class Prediction:
     the target with every seeable ball (None: they cannot give a pose; ``reason`` says why);
     ``worst_hidden``: the error when the one ball whose loss hurts most is hidden too
     (``worst_ball`` its index; None when losing any one ball loses the pose: ``margin_reason``);
+    ``with_losses`` the outlook when the detector finds each seen ball with the problem's
+    ``found_probability`` (:mod:`.ball_losses`; None unless asked for);
     ``noise_px`` the image noise assumed; ``distance_mm`` camera to the seen balls' centroid."""
 
     T_ct_cam: np.ndarray
@@ -118,6 +132,7 @@ class Prediction:
     distance_mm: float
     reason: str = ""
     margin_reason: str = ""
+    with_losses: LossOutlook | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -129,15 +144,18 @@ class Prediction:
             "all_seen": None if self.all_seen is None else self.all_seen.to_dict(),
             "worst_hidden_ball": self.worst_ball,
             "worst_hidden": None if self.worst_hidden is None else self.worst_hidden.to_dict(),
+            "with_detector_losses": None if self.with_losses is None else self.with_losses.to_dict(),
             "reason": self.reason, "margin_reason": self.margin_reason,
         }
 
 
 def predict(problem, T_ct_cam: np.ndarray, centres: np.ndarray, normals: np.ndarray | None = None,
-            noise_px: float | None = None, config: TrackerConfig | None = None, full: bool = True) -> Prediction:
+            noise_px: float | None = None, config: TrackerConfig | None = None, full: bool = True,
+            losses: bool = False) -> Prediction:
     """The :class:`Prediction` for balls ``centres`` (n, 3) LPS mm with skin normals ``normals``
     (None: estimated from the head surface around each ball) and a camera at ``T_ct_cam``.
-    ``full`` False: RMS errors only (see :func:`predict_error`), cheap enough to run live."""
+    ``full`` False: RMS errors only (see :func:`predict_error`), cheap enough to run live;
+    ``losses``: also the outlook with the detector's losses (``with_losses``; ~0.5 s)."""
     from .candidates import skin_normals_under
 
     C = np.asarray(centres, float).reshape(-1, 3)
@@ -147,10 +165,11 @@ def predict(problem, T_ct_cam: np.ndarray, centres: np.ndarray, normals: np.ndar
     eye = np.asarray(T_ct_cam, float)[:3, 3]
     dist = float(np.linalg.norm(C[vis.seen].mean(axis=0) - eye)) if vis.count else float("nan")
     allp = predict_error(problem, T_ct_cam, C, vis.seen, sigma, config, full=full)
+    outlook = outlook_with_losses(problem, T_ct_cam, C, vis.seen, noise_px=sigma, config=config) if losses else None
     if allp is None:
         why = pose_problem(C, vis.seen, config)
         return Prediction(np.asarray(T_ct_cam, float), C, vis, None, None, None, sigma, dist,
-                          reason=f"{vis.count} of {len(C)} balls seen: {why}")
+                          reason=f"{vis.count} of {len(C)} balls seen: {why}", with_losses=outlook)
     worst, worst_i, margin = None, None, ""
     for i in np.flatnonzero(vis.seen):
         s = vis.seen.copy()
@@ -162,4 +181,5 @@ def predict(problem, T_ct_cam: np.ndarray, centres: np.ndarray, normals: np.ndar
             break
         if worst is None or e.rms_mm > worst.rms_mm:
             worst, worst_i = e, int(i)
-    return Prediction(np.asarray(T_ct_cam, float), C, vis, allp, worst, worst_i, sigma, dist, margin_reason=margin)
+    return Prediction(np.asarray(T_ct_cam, float), C, vis, allp, worst, worst_i, sigma, dist, margin_reason=margin,
+                      with_losses=outlook)

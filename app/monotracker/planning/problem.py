@@ -28,7 +28,7 @@ import numpy as np
 
 from monotracker.vision.camera_model import CameraModel
 
-from .noise_default import DEFAULT_NOISE_PX
+from .detector_defaults import DEFAULT_FOUND_PROBABILITY, DEFAULT_NOISE_PX
 
 
 def _unit(v) -> np.ndarray:
@@ -247,6 +247,7 @@ class PlanningProblem:
     rules: BallRules = field(default_factory=BallRules)
     existing: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     edge_rms_px: float | None = None
+    found_probability: float = DEFAULT_FOUND_PROBABILITY
 
     def __post_init__(self):
         object.__setattr__(self, "target", _point(self.target, "target"))
@@ -262,6 +263,8 @@ class PlanningProblem:
             raise ValueError(f"image noise {self.noise_px} px is implausible (0.005-5 px)")
         if self.edge_rms_px is not None and not (np.isfinite(self.edge_rms_px) and 0.0 <= self.edge_rms_px <= 5.0):
             raise ValueError(f"edge spread {self.edge_rms_px} px is implausible (0-5 px)")
+        if not (np.isfinite(self.found_probability) and 0.05 <= self.found_probability <= 1.0):
+            raise ValueError(f"found probability {self.found_probability} is implausible (0.05-1)")
 
     @property
     def min_separation_mm(self) -> float:
