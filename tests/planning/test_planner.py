@@ -106,7 +106,7 @@ def test_plan_keeps_the_rules_and_the_camera_space(problem, quick_plan):
     lo = e.with_losses
     assert lo is not None and lo.found_probability == P.found_probability
     assert 0.0 <= lo.trusted < e.all_seen.trusted and 0.0 < lo.pose < 1.0
-    assert any(f"expect a pose in {100 * lo.pose:.0f} % of setups" in n for n in plan.notes)
+    assert any(f"expect a pose in {100 * lo.pose:.0f} % of setups like this" in n for n in plan.notes)
     assert plan.to_dict()["expected"]["with_detector_losses"]["trusted_fraction"] == round(lo.trusted, 4)
     assert plan.at_near.with_losses is None        # asked for only where it is shown
 

@@ -77,7 +77,7 @@ def test_plan_step_text_shows_what_to_expect():
                                                                      trusted_with_losses=0.41, pose_with_losses=0.83))
     html = layout_html(lossy)
     assert "color:#b7791f'>41 % with the detector's losses</b> (each ball found at 60 %)" in html
-    assert "each ball found at 60 % (the detector, measured)</td><td colspan='2'>a pose in 83 % of setups</td>" \
+    assert "each ball found at 60 % (the detector's losses)</td><td colspan='2'>a pose in 83 % of setups</td>" \
         "<td>41 %</td>" in html
     assert "with the detector's losses" not in layout_html(lay)
     failed = layout_html(LayoutSummary(job=Job("plan_layout", 1.0, "layout not planned", "set the target first", True)))

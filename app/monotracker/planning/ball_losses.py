@@ -9,10 +9,11 @@ hidden, and 20-50 % were trusted after 8 frames.
 
 :func:`loss_outlook` models each seen ball as found independently with probability
 ``found_probability`` (the planning problem's; by default
-:data:`~.detector_defaults.DEFAULT_FOUND_PROBABILITY`, measured) and averages, over which balls
-are found, the tracker's trusted share of frames (:func:`~.prediction.outlook_with_losses` with
-:func:`~.prediction.predict_error`, the same model as ``all_seen``): the share of setups like this one whose pose the stream trusts, and
-the probability that enough balls are found for a pose at all. A ball the detector loses in one
+:data:`~.detector_defaults.DEFAULT_FOUND_PROBABILITY`, calibrated on rendered frames) and
+averages, over which balls are found, the tracker's trusted share of frames
+(:func:`~.prediction.outlook_with_losses` with :func:`~.prediction.predict_error`, the same model
+as ``all_seen``): the share of setups like this one whose pose the stream trusts, and the
+probability that enough balls are found for a pose at all. A ball the detector loses in one
 frame of a still head is mostly lost in the next ones too (the same shading, the same glove), so
 the average is over setups, not over frames. Exact over every subset when there are few of them;
 otherwise a fixed number of subsets per count of lost balls (seeded: the same answer each time).
@@ -27,7 +28,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-
 
 #: subsets of the seen balls tried per count of lost balls when there are more of them
 SUBSETS_PER_COUNT = 12

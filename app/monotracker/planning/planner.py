@@ -11,7 +11,9 @@ with a margin for losing any one ball.
 4. the camera refined around it (finer directions and distances, the layout fixed), and the
    layout exchanged once more there;
 5. what to expect (:mod:`.prediction`): the error at the target with every ball seen and with
-   the worst one hidden, the outlook with the detector's measured losses (:mod:`.ball_losses`), at the camera's distance limits, for the CT's own fiducials (from the
+   the worst one hidden, the outlook with the detector's losses (:mod:`.ball_losses`; for the
+   suggestion and the CT's balls from the planned camera), at the camera's distance limits, for
+   the CT's own fiducials (from the
    planned camera and from the best camera for them), the moves from the CT's balls to the
    suggestion, a map of the error per candidate position, and, when the trusted share stays
    under ``min_trusted``, how many balls it would take.
@@ -302,12 +304,12 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
                          "hidden from this camera: bring the camera nearer, lower the noise or move the target")
         else:
             notes.append(f"{needed} balls reach {100 * min_trusted:.0f} % trusted frames with one hidden")
-    lo_ = expected.with_losses
-    if lo_ is not None:
-        notes.append(f"the detector finds about {100 * lo_.found_probability:.0f} % of the balls a camera sees on "
-                     f"realistic frames (gloves, instruments, shading): with this layout expect a pose in "
-                     f"{100 * lo_.pose:.0f} % of setups and trusted frames in {100 * lo_.trusted:.0f} %; more balls "
-                     "or a nearer camera raise both")
+    outlook = expected.with_losses
+    if outlook is not None:
+        notes.append(f"with the detector's losses on realistic frames (gloves, instruments, shading; each seen ball "
+                     f"counted as found at {100 * outlook.found_probability:.0f} %, calibrated on rendered frames) "
+                     f"expect a pose in {100 * outlook.pose:.0f} % of setups like this and trusted frames in "
+                     f"{100 * outlook.trusted:.0f} %; more balls or a nearer camera raise both")
     from_existing = cands.existing[S]
     return LayoutPlan(problem, balls, normals, from_existing, pose, expected, at_near, at_far, ex_here, ex_best,
                       ex_cam, moves, cands, emap, needed, tuple(notes))

@@ -69,7 +69,7 @@ def _rows(label: str, x) -> str:
            f"<tr><td>&nbsp;&nbsp;worst ball hidden"
            + ("" if x.worst_ball is None else f" (#{x.worst_ball + 1})") + f"</td>{_err_cells(x.worst_hidden)}</tr>")
     if x.trusted_with_losses is not None:
-        out += (f"<tr><td>&nbsp;&nbsp;each ball found at {100 * x.found_probability:.0f} % (the detector, measured)"
+        out += (f"<tr><td>&nbsp;&nbsp;each ball found at {100 * x.found_probability:.0f} % (the detector's losses)"
                 f"</td><td colspan='2'>a pose in {100 * x.pose_with_losses:.0f} % of setups</td>"
                 f"<td>{100 * x.trusted_with_losses:.0f} %</td></tr>")
     if x.all_seen is None or x.worst_hidden is None:
