@@ -144,3 +144,21 @@ def test_alerts_of_a_catalogued_code_carry_its_rows_level(make_session):
     assert ev.level == CATALOGUE["ct_failed"].level == "alarm"
     ev = s.alert("warning", "resumed", "history only: no row, the caller's level")
     assert ev.level == "warning"
+
+
+def test_a_pose_the_scene_keeps_from_being_trusted_says_what_to_do():
+    """Issue 28: on realistic frames the pose is refused often; the refusals the team can act on
+    (too few balls, too large an error, balls on a line, a mismatch) carry a remedy from their row,
+    and the alarm list shows it; a condition whose message says it all shows none."""
+    from monotracker.ui.status import alarms_html
+
+    scene = ("occlusion", "tre_limit", "weak_geometry", "pose_lost", "bad_pose", "pose_jump", "colour_clash")
+    assert all(CATALOGUE[c].remedy for c in scene), [c for c in scene if not CATALOGUE[c].remedy]
+    assert not CATALOGUE["estop"].remedy
+    b = AlarmBoard()
+    b.set("estop", "e-stop pressed", 1.0)
+    b.set("tre_limit", "predicted error at the target 1.4 mm", 1.0)
+    active = {a.code: a for a in b.active(1.5)}
+    assert active["tre_limit"].remedy == CATALOGUE["tre_limit"].remedy and active["estop"].remedy == ""
+    html = alarms_html(type("Snap", (), {"alarms": tuple(active.values())})())
+    assert html.count("What to do:") == 1 and "bring the camera nearer" in html

@@ -103,6 +103,7 @@ class AlarmKind:
     ``verdict``: the trust verdict's code for it where that differs (``GateVerdict.code``).
     ``raise_after_s`` / ``clear_after_s``: the dwell of a condition that may flap (see the module
     docstring): an episode only once it stood this long, over only once absent this long (s).
+    ``remedy``: what the team can do about it, one line ("" where the message says it).
     """
 
     level: str
@@ -117,9 +118,14 @@ class AlarmKind:
     verdict: str = ""
     raise_after_s: float = 0.0
     clear_after_s: float = 0.0
+    remedy: str = ""
 
 
 _HOLD = {"holds_arm": True}
+#: too few balls found for a pose: what the team can change (issue 28: gloves, instruments and
+#: drapes take most of the balls lost on realistic frames)
+_R_FEW = ("uncover the balls (hands, instruments, drapes) so that at least 4 are in the camera's view; more balls or "
+          "a nearer camera help")
 #: the dwell of the freshness conditions that flap on a busy machine (s): raised once they stood
 #: 0.5 s (a single late frame is no alarm, a busy spell is), ended once absent for 60 s (a spell
 #: that comes back within a minute is the same episode: at most one episode a minute)
@@ -135,10 +141,12 @@ CATALOGUE: dict[str, AlarmKind] = {
     "estop_unconfirmed": AlarmKind("alarm", 0, linger_s=0.0),
     "robot_disconnected": AlarmKind("alarm", 1, linger_s=0.0),
     "engine_error": AlarmKind("alarm", 2, linger_s=2.0, **_HOLD),
-    "pose_lost": AlarmKind("warning", 3, verdict="estimator", **_HOLD),  # the estimator failed
-    "bad_pose": AlarmKind("warning", 3, verdict="fre", **_HOLD),  # FRE too large
-    "pose_jump": AlarmKind("warning", 3, verdict="jump", **_HOLD),  # pose disagrees with the last trusted one
-    "occlusion": AlarmKind("warning", 4, **_HOLD),
+    "pose_lost": AlarmKind("warning", 3, verdict="estimator", remedy=_R_FEW, **_HOLD),  # the estimator failed
+    "bad_pose": AlarmKind("warning", 3, verdict="fre", remedy="check that no ball moved since the CT and that nothing "
+                          "of the balls' colour lies near them", **_HOLD),  # FRE too large
+    "pose_jump": AlarmKind("warning", 3, verdict="jump", remedy="if the head did not move, check that every ball is "
+                           "firmly attached", **_HOLD),  # pose disagrees with the last trusted one
+    "occlusion": AlarmKind("warning", 4, remedy=_R_FEW, **_HOLD),
     # bit-identical frames: a frozen driver, at once (tests/engine/test_frozen_camera.py)
     "camera_freeze": AlarmKind("alarm", 5, freshness=True, **_HOLD),
     # no new frame at all for stall_after_s: the camera stopped delivering
@@ -151,8 +159,10 @@ CATALOGUE: dict[str, AlarmKind] = {
     "frame_grayscale": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),  # a monochrome camera or grayscale files
     "camera_moved": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),  # the camera moved after the hand-eye
     "frame_unreadable": AlarmKind("warning", 6, **_HOLD),
-    "tre_limit": AlarmKind("warning", 3, **_HOLD),  # predicted error at the target over the limit
-    "weak_geometry": AlarmKind("warning", 3, **_HOLD),
+    "tre_limit": AlarmKind("warning", 3, remedy="uncover more balls or bring the camera nearer (the Plan step's layout "
+                           "says what this camera needs); the estimate tightens over the next frames", **_HOLD),  # predicted error at the target over the limit
+    "weak_geometry": AlarmKind("warning", 3, remedy="the balls found lie nearly on a line or a plane: uncover the "
+                               "others", **_HOLD),
     "pose_implausible": AlarmKind("warning", 3, **_HOLD),
     "fiducial_moved": AlarmKind("warning", 3, linger_s=0.0),
     # freshness on a busy machine (issue 33): the arm holds at once, the board shows one episode
@@ -191,7 +201,8 @@ CATALOGUE: dict[str, AlarmKind] = {
     "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0, pulse=True),
     "camera_uncalibrated": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),
     "camera_compressed": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),  # frames through JPEG/lossy video
-    "colour_clash": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),  # a drape of the balls' hue
+    "colour_clash": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True,
+                              remedy="click a ball in the camera view to learn its colour, or cover that area"),  # a drape of the balls' hue
     "plan_unreadable": AlarmKind("alarm", 23, linger_s=0.0),
     "ct_failed": AlarmKind("alarm", 24, linger_s=0.0),
     "acquiring": AlarmKind("info", 30, technical=True, **_HOLD),
@@ -352,7 +363,7 @@ class AlarmBoard:
             for code in [c for c, st in self._active.items() if _over(st, self.kind(c), now)]:
                 del self._active[code]
             items = [Alarm(code, st.level, self.kind(code).priority, self._shown(code, st, now), st.since,
-                           self._episodes[code])
+                           self._episodes[code], self.kind(code).remedy)
                      for code, st in self._active.items() if st.raised]
         items.sort(key=lambda a: (a.priority, LEVEL_RANK.get(a.level, 1), a.since, a.code))
         return tuple(items)

@@ -237,7 +237,8 @@ class Alarm:
     ``code`` stable name (e.g. ``"estop"``, ``"occlusion"``, ``"pin_lockout"``); ``level``
     ``"alarm" | "warning" | "info"``; ``priority`` 0 = most important; ``message`` one line;
     ``since`` session clock (s) when the condition began; ``count`` how many times it began
-    (episodes) since the session started."""
+    (episodes) since the session started; ``remedy`` what the team can do, one line ("" when
+    the message says it)."""
 
     code: str
     level: str
@@ -245,6 +246,7 @@ class Alarm:
     message: str
     since: float
     count: int = 1
+    remedy: str = ""
 
 
 @dataclass(frozen=True)

@@ -69,6 +69,7 @@ div[style*="pointer-events: none"] .mt-state { filter: grayscale(1); }
 .mt-alarm { color: white; border-radius: 6px; padding: 6px 10px; font-size: 1.05rem; margin-bottom: 4px; }
 .mt-alarm { overflow-wrap: anywhere; }
 .mt-alarm .mt-since { display: block; font-weight: 400; font-size: 0.9rem; opacity: 0.9; }
+.mt-alarm .mt-remedy { display: block; font-weight: 400; font-size: 0.9rem; }
 .mt-pin-dots { font-size: 2.2rem; letter-spacing: 0.2em; text-align: center; min-height: 3rem; }
 .mt-state b { display: block; font-size: 2.0rem; line-height: 1.15; letter-spacing: 0.05em; white-space: nowrap; }
 .mt-state span { display: block; font-size: 0.95rem; line-height: 1.2; white-space: normal; overflow-wrap: anywhere; }
@@ -168,10 +169,12 @@ def alarms_html(snap, wall_of=None) -> str:
     for a in alarms:
         when = "" if wall_of is None else time.strftime("%H:%M:%S", time.localtime(wall_of(a.since)))
         count = f" (x{a.count})" if a.count > 1 else ""
+        remedy = getattr(a, "remedy", "")
+        todo = f"<span class='mt-remedy'>What to do: {_esc(remedy)}</span>" if remedy else ""
         items.append(f"<li class='mt-alarm' data-code='{_esc(a.code)}' data-level='{_esc(a.level)}' "
                      f"style='background:{LEVEL_COLOUR.get(a.level, '#555')}'>"
                      f"<b>{'ALARM' if a.level == 'alarm' else a.level.upper()}</b> {_esc(a.message)}"
-                     f"<span class='mt-since'>since {when}{count}</span></li>")
+                     f"{todo}<span class='mt-since'>since {when}{count}</span></li>")
     return f"<ul class='mt-alarms' id='mt-alarms'>{''.join(items)}</ul>"
 
 
