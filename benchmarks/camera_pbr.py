@@ -33,7 +33,8 @@ outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid basel
 ``learned`` (the ONNX segmenter), ``refined`` (``edge`` with the learned centre refiner,
 ``vision/centre_refiner.py``; opt-in; ``--refiner PATH`` scores another network), ``first``
 (``edge`` without its second look at rejected blobs in the balls' own hue band,
-``ClassicalDetector.narrow_second_pass``), ``idealS``
+``ClassicalDetector.narrow_second_pass``), ``narrow-lenient`` (``edge`` whose second look asks a
+blob score of 0.35, not the first pass's 0.5: ``ClassicalDetector.narrow_min_score``, opt-in), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
@@ -100,6 +101,8 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         return ClassicalDetector(rules)
     if name == "first":
         return ClassicalDetector(rules, narrow_second_pass=False)
+    if name == "narrow-lenient":
+        return ClassicalDetector(rules, narrow_min_score=0.35)
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":
