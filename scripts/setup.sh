@@ -25,15 +25,28 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   # CI run here took 827 s, against 714-719 s with pip earlier the same day).
   # Where uv cannot be installed or fails (no wheel for the platform, an index only pip's
   # configuration knows), pip does the install as before; MONOTRACKER_INSTALLER=pip forces pip.
-  if [ "${MONOTRACKER_INSTALLER:-uv}" = "uv" ] \
-     && .venv/bin/python -m pip install -q --disable-pip-version-check "uv>=0.5" 2>/dev/null \
-     && .venv/bin/python -m uv pip install -q --compile-bytecode --python .venv/bin/python -e ".[test]"; then
-    :
-  else
+  # A download cut off by the network (seen once: pip gave up on a 140 MB wheel after 6 resumes)
+  # is tried again, up to 3 times, before the set-up fails.
+  install() {
+    if [ "${MONOTRACKER_INSTALLER:-uv}" = "uv" ] \
+       && .venv/bin/python -m pip install -q --disable-pip-version-check "uv>=0.5" 2>/dev/null \
+       && .venv/bin/python -m uv pip install -q --compile-bytecode --python .venv/bin/python -e ".[test]"; then
+      return 0
+    fi
     echo "installing with pip..." >&2
-    .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip
-    .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[test]"
-  fi
+    .venv/bin/python -m pip install -q --disable-pip-version-check --retries 10 --upgrade pip \
+      && .venv/bin/python -m pip install -q --disable-pip-version-check --retries 10 -e ".[test]"
+  }
+  tries=1
+  until install; do
+    if [ "$tries" -ge 3 ]; then
+      echo "error: installing MonoTracker's packages failed $tries times (network?); run the command again" >&2
+      exit 1
+    fi
+    tries=$((tries + 1))
+    echo "the install failed; trying again ($tries of 3) in 10 s..." >&2
+    sleep 10
+  done
   echo "$want" > "$stamp"
   # the numba kernels compiled now, not at the first CT detection or camera frame (~50 CPU s
   # after an install; app/monotracker/engine/kernels.py)
