@@ -7,7 +7,8 @@ detected fiducials, plans the sample path, starts the simulated camera, arms wit
 tracks a breathing head for a few seconds, and prints the needle tip error against the truth;
 then it exports fiducials and path as 3D Slicer markups (``.mrk.json``, LPS) and shows the audit
 log. Every command returns ``CommandResult(ok, message)`` and never raises for operator
-mistakes. The session's files (plan, audit log) go to a temporary folder unless ``--home``.
+mistakes. The session's files (plan, audit log) go to a temporary folder (removed at the end) unless
+``--home``.
 
 Run: ``python examples/06_headless_session.py [--seconds 3] [--home DIR]``
 """
@@ -32,10 +33,16 @@ def need(result, what: str):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=3.0)
-    ap.add_argument("--home", help="folder for plan.json and audit.sqlite (default: a temporary folder)")
+    ap.add_argument("--home", help="folder for plan.json and audit.sqlite (default: a temporary folder, "
+                                   "removed at the end)")
     args = ap.parse_args(argv)
-    home = Path(args.home) if args.home else Path(tempfile.mkdtemp(prefix="monotracker-example-"))
+    if args.home:
+        return run(Path(args.home), args.seconds)
+    with tempfile.TemporaryDirectory(prefix="monotracker-example-") as home:
+        return run(Path(home), args.seconds)
 
+
+def run(home: Path, seconds: float) -> int:
     s = Session(SessionConfig(home=home, clock="sim", camera="sim", robot="sim", arm_pin="2468",
                               trajectory="breathing"))
     try:
@@ -66,7 +73,7 @@ def main(argv=None) -> int:
         need(s.arm("2468"), "arm")
         need(s.start_tracking(), "start tracking")
         errors = []
-        t_end = s.snapshot().t + args.seconds
+        t_end = s.snapshot().t + seconds
         while s.snapshot().t < t_end:
             s.advance(0.1)
             r = s.snapshot().robot

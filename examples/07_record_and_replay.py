@@ -28,17 +28,17 @@ from monotracker.interop.replay import format_report, replay_recording
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=2.0)
-    ap.add_argument("--out", help="recording folder (default: a temporary folder)")
+    ap.add_argument("--out", help="recording folder (default: a temporary folder, removed at the end)")
     args = ap.parse_args(argv)
-    work = Path(tempfile.mkdtemp(prefix="monotracker-example-"))
-    rec = Path(args.out) if args.out else work / "recording"
-
-    r = run_demo(DemoOptions(seconds=args.seconds, home=work / "home", record=rec))
-    print(f"recorded {r['frames']} frames of a {args.seconds:.0f} s tracking run into {rec}")
-    print("files:", ", ".join(sorted(p.name for p in rec.iterdir() if p.is_file())))
-    report = replay_recording(rec, tolerance_mm=1e-3)
-    print(format_report(report))
-    return 0 if report.ok and report.frames > 0 else 1
+    with tempfile.TemporaryDirectory(prefix="monotracker-example-") as tmp:    # ~90 MB: not left behind
+        work = Path(tmp)
+        rec = Path(args.out) if args.out else work / "recording"
+        r = run_demo(DemoOptions(seconds=args.seconds, home=work / "home", record=rec))
+        print(f"recorded {r['frames']} frames of a {args.seconds:.0f} s tracking run into {rec}")
+        print("files:", ", ".join(sorted(p.name for p in rec.iterdir() if p.is_file())))
+        report = replay_recording(rec, tolerance_mm=1e-3)
+        print(format_report(report))
+        return 0 if report.ok and report.frames > 0 else 1
 
 
 if __name__ == "__main__":

@@ -55,8 +55,8 @@ def main(argv=None) -> int:
     client.incoming_messages = _EveryMessage()
     client.start()
     try:
-        run_demo(DemoOptions(seconds=2.0, home=Path(tempfile.mkdtemp(prefix="monotracker-example-")),
-                             igtl_port=port))
+        with tempfile.TemporaryDirectory(prefix="monotracker-example-") as home:     # removed at the end
+            run_demo(DemoOptions(seconds=2.0, home=Path(home), igtl_port=port))
     finally:
         client.stop()
     by_device = {}
