@@ -109,6 +109,20 @@ def test_plan_keeps_the_rules_and_the_camera_space(problem, quick_plan):
     assert any(f"expect a pose in {100 * lo.pose:.0f} % of setups like this" in n for n in plan.notes)
     assert plan.to_dict()["expected"]["with_detector_losses"]["trusted_fraction"] == round(lo.trusted, 4)
     assert plan.at_near.with_losses is None        # asked for only where it is shown
+    # how many balls reach 85 % with those losses from this camera: that count's layout does (the
+    # full outlook, 12 subsets per count, against the search's 4), the count one fewer does not
+    from monotracker.planning.planner import MIN_TRUSTED_WITH_LOSSES
+    from monotracker.planning.prediction import outlook_with_losses
+
+    k = plan.balls_for_losses
+    assert k is not None and 7 < k <= 16 and any(f"{k} balls reach 85 %" in n for n in plan.notes), plan.notes
+    pd = pose_data(P, plan.candidates, plan.camera)
+    def share(m):
+        S, _ = best_layout(pd, plan.candidates.centres, m, P.min_separation_mm, np.array([], int), 4, max_passes=2)
+        return outlook_with_losses(P, plan.T_ct_cam, plan.candidates.centres[S], np.ones(len(S), bool)).trusted
+    assert share(k) >= MIN_TRUSTED_WITH_LOSSES - 0.05, share(k)
+    assert k == 8 or share(k - 1) < MIN_TRUSTED_WITH_LOSSES + 0.05
+    assert plan.to_dict()["balls_for_losses"] == k
 
 
 def _measure(T_cam_ct, X, target, noise, frames=120, seed=0, hide=None):
