@@ -229,20 +229,16 @@ def plan_layout(problem: PlanningProblem, n_balls: int = 9, keep: tuple = (), pr
 
 
 def _balls_for_losses(problem, cands, pd, n, keep_idx, cfg, target) -> int | None:
-    """The smallest count above ``n`` whose layout from this camera (the exchange search's, as
-    for ``balls_needed``) reaches ``target`` trusted share with the detector's losses
-    (:func:`~.prediction.outlook_with_losses`, :data:`LOSS_SEARCH_SUBSETS` subsets per count of
-    lost balls); None: not up to ``MAX_BALLS``. Full plans only (1-3 s per count)."""
-    T_ct_cam = invert_transform(pd.T_cam_ct)
-    for k in range(n + 1, MAX_BALLS + 1):
-        S, _ = best_layout(pd, cands.centres, k, problem.min_separation_mm, keep_idx, cfg.min_fiducials, max_passes=2)
-        if len(S) < k:
-            return None
+    """The smallest count above ``n`` whose layout from this camera reaches ``target`` trusted
+    share with the detector's losses (:func:`~.prediction.outlook_with_losses`,
+    :data:`LOSS_SEARCH_SUBSETS` subsets per count of lost balls; :func:`_smallest_count`). Full
+    plans only (1-3 s per count)."""
+    def reaches(T_ct_cam, S) -> bool:
         seen = np.ones(len(S), bool)       # the search places balls only where this camera sees them
         o = outlook_with_losses(problem, T_ct_cam, cands.centres[S], seen, config=cfg, per_count=LOSS_SEARCH_SUBSETS)
-        if o.trusted >= target:
-            return k
-    return None
+        return o.trusted >= target
+
+    return _smallest_count(problem, cands, pd, n, keep_idx, cfg, reaches)
 
 
 def _refine_camera(problem, cands, pose, S, val, n, min_sep, keep_idx, cfg):
@@ -352,14 +348,24 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
 
 def _balls_needed(problem, cands, pd, n, keep_idx, cfg, min_trusted) -> int | None:
     """The smallest count above ``n`` whose layout from this camera is trusted in
-    ``min_trusted`` of frames with the worst ball hidden (None: not up to ``MAX_BALLS``)."""
+    ``min_trusted`` of frames with the worst ball hidden (:func:`_smallest_count`)."""
+    def reaches(T_ct_cam, S) -> bool:
+        p = predict(problem, T_ct_cam, cands.centres[S], cands.normals[S], config=cfg)
+        return p.worst_hidden is not None and p.worst_hidden.trusted >= min_trusted
+
+    return _smallest_count(problem, cands, pd, n, keep_idx, cfg, reaches)
+
+
+def _smallest_count(problem, cands, pd, n, keep_idx, cfg, reaches) -> int | None:
+    """The smallest ball count above ``n`` (up to ``MAX_BALLS``) whose exchange-search layout
+    ``S`` (candidate indices) from the camera of ``pd`` satisfies ``reaches(T_ct_cam, S)``;
+    None when none does or the skin holds no more balls."""
+    T_ct_cam = invert_transform(pd.T_cam_ct)
     for k in range(n + 1, MAX_BALLS + 1):
         S, _ = best_layout(pd, cands.centres, k, problem.min_separation_mm, keep_idx, cfg.min_fiducials, max_passes=2)
         if len(S) < k:
             return None
-        T_ct_cam = invert_transform(pd.T_cam_ct)
-        p = predict(problem, T_ct_cam, cands.centres[S], cands.normals[S], config=cfg)
-        if p.worst_hidden is not None and p.worst_hidden.trusted >= min_trusted:
+        if reaches(T_ct_cam, S):
             return k
     return None
 

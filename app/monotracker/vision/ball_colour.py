@@ -48,7 +48,10 @@ class BallColour:
 
     def mask(self, image_bgr: np.ndarray) -> np.ndarray:
         """uint8 0/255 mask of the pixels inside the band (no morphology)."""
-        hsv = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2HSV)
+        return self.mask_hsv(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2HSV))
+
+    def mask_hsv(self, hsv: np.ndarray) -> np.ndarray:
+        """:meth:`mask` of an image already converted to HSV (OpenCV's scale)."""
         if self.hue_lo <= self.hue_hi:
             return cv2.inRange(hsv, (self.hue_lo, self.sat_min, self.val_min), (self.hue_hi, 255, 255))
         a = cv2.inRange(hsv, (self.hue_lo, self.sat_min, self.val_min), (180, 255, 255))
@@ -157,7 +160,7 @@ def learn_ball_colour(image_bgr: np.ndarray, xy_px) -> BallColour:
 
 
 #: :func:`band_of_balls`: the core of each found ball sampled (this share of its minor
-#: semi-axis), the hue band is the 2nd-98th percentile of those pixels widened by this much
+#: semi-axis), the hue band is the 10th-90th percentile of those pixels widened by this much
 #: (OpenCV hue units), and at least this many balls must speak for it
 CORE_SHARE = 0.6
 HUE_PERCENTILE = 10
@@ -169,7 +172,8 @@ def band_of_balls(image_bgr: np.ndarray, balls: list, within: BallColour) -> Bal
     """The hue band of the balls a detector found in ``image_bgr`` (``balls``: objects with
     ``centre_px`` and ``axes_px`` px), inside the band ``within`` it searched with: the
     10th-90th percentile (:data:`HUE_PERCENTILE`) of the hue of their cores' in-band pixels
-    (:data:`CORE_SHARE`; a dark limb's and a highlight's hue stray) widened by :data:`HUE_MARGIN`, intersected with ``within`` (same saturation and value floors). None when
+    (:data:`CORE_SHARE`; a dark limb's and a highlight's hue stray) widened by
+    :data:`HUE_MARGIN`, intersected with ``within`` (same saturation and value floors). None when
     fewer than :data:`MIN_BALLS` balls, a band that wraps through hue 0, or no narrower band.
     What it is for: the balls of one kit share one dye, while a drape of a neighbouring hue (a
     teal one beside green balls) passes the wide default band and merges with a ball touching
@@ -188,7 +192,7 @@ def band_of_balls(image_bgr: np.ndarray, balls: list, within: BallColour) -> Bal
         crop = np.ascontiguousarray(image_bgr[y0:y1, x0:x1])
         hsv = cv2.cvtColor(crop, cv2.COLOR_BGR2HSV)
         yy, xx = np.mgrid[y0:y1, x0:x1]
-        core = ((xx - cx) ** 2 + (yy - cy) ** 2 <= r * r) & (within.mask(crop) > 0)
+        core = ((xx - cx) ** 2 + (yy - cy) ** 2 <= r * r) & (within.mask_hsv(hsv) > 0)
         if core.any():
             hues.append(hsv[..., 0][core].astype(float))
     if len(hues) < MIN_BALLS:

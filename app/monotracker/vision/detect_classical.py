@@ -311,14 +311,13 @@ WINDOW_BBOX_FACTOR = 3.0
 WINDOW_BBOX_PX = 10000
 
 
-def search_windows(hint: DetectionHint, shape, only=None) -> list:
+def search_windows(hint: DetectionHint, shape) -> list:
     """The image windows (x0, y0, x1, y1) px, clipped to the image of ``shape`` (h, w), that
-    cover the hint's predicted balls (``only``: those indices; None = all) with their margins
-    (:data:`WINDOW_MARGIN_PX`); overlapping windows are merged into their bounding box."""
+    cover the hint's predicted balls with their margins (:data:`WINDOW_MARGIN_PX`);
+    overlapping windows are merged into their bounding box."""
     h, w = shape[:2]
     boxes = []
-    rows = range(len(hint.centres_px)) if only is None else only
-    for (cx, cy), (a, _b) in ((hint.centres_px[i], hint.axes_px[i]) for i in rows):
+    for (cx, cy), (a, _b) in zip(hint.centres_px, hint.axes_px):
         half = a + WINDOW_MARGIN_PX + WINDOW_MARGIN_PER_RADIUS * a + WINDOW_MARGIN_PER_AGE_PX * (hint.age_frames - 1)
         if not (np.isfinite(cx) and np.isfinite(cy) and np.isfinite(half)):
             continue
