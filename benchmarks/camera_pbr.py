@@ -113,7 +113,7 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, first, refined, chroma, learned)")
+    raise InputError(f"unknown detector {name!r} (edge, first, narrow-lenient, refined, chroma, learned, idealS)")
 
 
 class IdealDetector:
@@ -516,6 +516,19 @@ def main(argv=None) -> int:
     if bad:
         print(f"error: unknown condition(s) {bad} (have {list(CONDITIONS)})", file=sys.stderr)
         return 2
+    for dn in dets:     # a bad name is one line now, not a traceback in the middle of a run
+        try:
+            if dn.startswith("ideal"):
+                if not float(dn[len("ideal"):] or 0.1) >= 0:
+                    raise ValueError
+            else:
+                make_detector(dn, 4.0, 1100.0)
+        except ValueError:
+            print(f"error: {dn!r}: idealS takes an edge RMS in px, e.g. ideal0.1", file=sys.stderr)
+            return 2
+        except InputError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     say = (lambda *x, **k: None) if a.json else print
     if a.fit_bias:
         fits = {}

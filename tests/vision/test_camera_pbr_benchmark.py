@@ -58,3 +58,13 @@ def test_the_planner_table_scores_the_first_detectors_outcome(result):
         assert p["observed_pct"] == pytest.approx(dets["edge"]["before"]["trusted_at_3_pct"]), cond
         assert p["with_losses_pct"] <= p["all_seen_pct"] + 1e-9 and p["with_losses_pct"] <= p["pose_with_losses_pct"]
     assert plan["all"]["scenes"] == sum(plan[c]["scenes"] for c in result["conditions"])
+
+
+@pytest.mark.parametrize("name", ["nope", "idealx"])
+def test_a_bad_detector_name_is_one_line_not_a_traceback(name, capsys):
+    spec = importlib.util.spec_from_file_location("camera_pbr_bench_bad", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--quick", "--detectors", f"edge,{name}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and name in err and "\n" not in err
