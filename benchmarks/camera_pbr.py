@@ -34,7 +34,9 @@ outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid basel
 ``vision/centre_refiner.py``; opt-in; ``--refiner PATH`` scores another network), ``first``
 (``edge`` without its second look at rejected blobs in the balls' own hue band,
 ``ClassicalDetector.narrow_second_pass``), ``narrow-lenient`` (``edge`` whose second look asks a
-blob score of 0.35, not the first pass's 0.5: ``ClassicalDetector.narrow_min_score``, opt-in), ``idealS``
+blob score of 0.35, not the first pass's 0.5: ``ClassicalDetector.narrow_min_score``, opt-in),
+``shadow-inside`` (``edge`` whose contact-shadow test also leaves out shadowed rays inside the
+ball's outline: ``edge_fit.SHADOW_IN_PX`` 0.6, :class:`WithShadowRaysInside`; opt-in), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
@@ -103,6 +105,8 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         return ClassicalDetector(rules, narrow_second_pass=False)
     if name == "narrow-lenient":
         return ClassicalDetector(rules, narrow_min_score=0.35)
+    if name == "shadow-inside":
+        return WithShadowRaysInside(ClassicalDetector(rules), 0.6)
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":
@@ -113,7 +117,31 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, first, narrow-lenient, refined, chroma, learned, idealS)")
+    raise InputError(f"unknown detector {name!r} (edge, shadow-inside, first, narrow-lenient, refined, chroma, learned, "
+                     "idealS)")
+
+
+class WithShadowRaysInside:
+    """``shadow-inside``: the default detector with the edge fit's contact-shadow test on rays
+    INSIDE the fitted outline too (``edge_fit.SHADOW_IN_PX`` set to ``depth_px`` during its
+    ``detect``; opt-in, not kept as the default: docs/vision.md). Other attributes are the wrapped
+    detector's (the tracker sets the camera's outlines on its ``rules``)."""
+
+    def __init__(self, det, depth_px: float):
+        self.det, self.depth_px = det, float(depth_px)
+
+    def __getattr__(self, name):
+        return getattr(self.det, name)
+
+    def detect(self, image, hint=None):
+        from monotracker.vision import edge_fit
+
+        kept = edge_fit.SHADOW_IN_PX
+        edge_fit.SHADOW_IN_PX = self.depth_px
+        try:
+            return self.det.detect(image) if hint is None else self.det.detect(image, hint)
+        finally:
+            edge_fit.SHADOW_IN_PX = kept
 
 
 class IdealDetector:
@@ -543,7 +571,8 @@ def main(argv=None) -> int:
     say(f"camera path on physically rendered frames ({', '.join(renderers)}) - {label}")
     say(f"frames: {folder} ({len(scenes)} scenes), a still head streamed {a.frames} frames at {FPS:g} fps; "
         f"target 80 mm deep; trust models: {', '.join(trust_models())}")
-    hdr = (f"{'condition':<9} {'detector':<9} {'trust':<10} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
+    dw = max([9] + [len(d) for d in dets])
+    hdr = (f"{'condition':<9} {'detector':<{dw}} {'trust':<10} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
            f"{'err px':>6} {'p95 px':>6} {'tr@1 %':>6} {'tr@' + str(a.frames) + ' %':>6} {'med mm':>6} "
            f"{'p99 mm':>6} {'max mm':>6} {'>2mm':>4} {'1-2mm':>9} {'pred/act':>8} {'pose %':>6} {'<=1mm %':>7}")
     say(hdr)
@@ -571,7 +600,7 @@ def main(argv=None) -> int:
             for tm in trust_models():
                 sm = summarise([r[tm] for r in runs], a.frames)
                 result["conditions"][cond][dn][tm] = sm
-                say(f"{cond:<9} {dn:<9} {tm:<10} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
+                say(f"{cond:<9} {dn:<{dw}} {tm:<10} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
                     f"{ds['partial_accepted']:>7} {ds['centre_err_mean_px']:>6.3f} {ds['centre_err_p95_px']:>6.2f} "
                     f"{sm['trusted_at_1_pct']:>6.0f} {sm[f'trusted_at_{a.frames}_pct']:>6.0f} "
                     f"{sm['err_median_mm']:>6.2f} {sm['err_p99_mm']:>6.2f} {sm['err_max_mm']:>6.2f} "

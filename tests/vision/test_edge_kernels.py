@@ -164,12 +164,16 @@ def test_luma_at_matches_remap():
     assert np.abs(got - ref).max() < 1e-6
 
 
-def test_shadow_rays_equal_the_reference():
+@pytest.mark.parametrize("inside_px", [float("inf"), 0.6])
+def test_shadow_rays_equal_the_reference(inside_px, monkeypatch):
     """edge_kernels.shadow_rays (the contact-shadow test of all balls in one call) leaves out the
     same rays of the same balls as the per-ball NumPy loop with cv2.remap (edge_fit.COMPILED
     False): on balls with a contact shadow drawn by test_edge_fit_shadow (the shadow rays found),
-    and on random edge points over a random image, some balls' windows leaving it."""
+    and on random edge points over a random image, some balls' windows leaving it; with only rays
+    outside the outline tested (the default) and with rays inside too (SHADOW_IN_PX, opt-in)."""
     from test_edge_fit_shadow import shadowed_ball
+
+    monkeypatch.setattr(edge_fit, "SHADOW_IN_PX", inside_px)
 
     rng = np.random.default_rng(7)
     changed = 0
