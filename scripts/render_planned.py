@@ -15,6 +15,7 @@ folder is ``<root>/<split>`` (default root ``$MONOTRACKER_PBR/planned``; Blender
 
 Usage: PYTHONPATH=app python scripts/render_planned.py --split tuning|held_out --counts clean=10,OR=10,clutter=10
        [--root DIR] [--scene KIND:I] (one scene, for one CPU slot at a time)
+       [--plan-balls N] (the planner's layout AND camera for N balls in every scene, <root>/plan<N>)
        [--renderer blender --blender-python /work/bpyenv/bin/python]
 """
 
@@ -29,6 +30,9 @@ import numpy as np
 
 #: first scene index of the planned scenes (the plain sets use 0, 1, 2, ...)
 INDEX0 = 5000
+#: ``--plan-balls``: balls are kept this far (deg, about the head's centre) inside the scenes'
+#: towel, which starts 60 deg off the view direction and rises up to ~14 mm off the skin
+TOWEL_POLAR_DEG = 50.0
 
 
 def planner_accept(phantom):
@@ -62,6 +66,37 @@ def planner_accept(phantom):
     return accept
 
 
+def planned_layout(phantom, n_balls: int) -> tuple:
+    """The layout planner's full plan for ``n_balls`` balls on ``phantom``'s head (no drape; the
+    target 80 mm below the phantom's own balls' centroid): (ball centres (n, 3) CT mm, T_cam_ct,
+    the plan). What ``--plan-balls`` renders: a layout and a camera the planner chose."""
+    from monotracker.geometry import invert_transform
+    from monotracker.planning import HeadSurface, plan_layout
+    from monotracker.planning.defaults import build_problem
+    from monotracker.sim.pbr.surfaces import head_mesh
+
+    V, _N, _uv, F = head_mesh(phantom, nu=200, nv=100)
+    v = phantom.view_direction_lps / np.linalg.norm(phantom.view_direction_lps)
+    target = phantom.fiducial_centres_lps.mean(axis=0) - 80.0 * v
+    head = HeadSurface(V, F[:, ::-1])        # head_mesh winds its faces inwards; the planner needs them out
+    # the scenes' towel covers the skin from TOWEL_POLAR_DEG off the view direction (about the
+    # phantom's centre, surfaces.towel_band): the planner's drape plane where the skin is that far
+    # off it, at its highest, so that no ball goes under the towel
+    e1 = np.cross(v, [1.0, 0.0, 0.0] if abs(v[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(v, e1)
+    phi = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    th = np.radians(TOWEL_POLAR_DEG)
+    d = np.cos(th) * v + np.sin(th) * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
+    a = np.asarray(phantom.skin_semi_axes_mm, float)
+    rim = phantom.centre_lps + d / np.sqrt(np.sum(d**2 / a**2, axis=1))[:, None]
+    offset = float(np.max((rim - head.centre) @ v))
+    problem = build_problem(head, target, radius_mm=phantom.fiducial_radius_mm, drape_offset_mm=offset,
+                            axis=v)     # cameras around the scenes' own view direction
+    plan = plan_layout(problem, n_balls=int(n_balls))
+    return plan.balls, invert_transform(plan.T_ct_cam), plan
+
+
 def main(argv=None) -> int:
     from monotracker.sim.pbr.build import render_scene
     from monotracker.sim.pbr.frameset import default_root
@@ -76,12 +111,25 @@ def main(argv=None) -> int:
     ap.add_argument("--renderer", choices=("mitsuba", "blender"), default="mitsuba",
                     help="blender: Cycles in a Python with bpy (--blender-python), into <root>/blender/<split>")
     ap.add_argument("--blender-python", default=None)
+    ap.add_argument("--plan-balls", type=int, default=None,
+                    help="N: every scene uses the layout planner's full plan for N balls (its layout AND its "
+                         "camera), into <root>/plan<N>/<split>; lamps, skin, occluders drawn per scene")
     a = ap.parse_args(argv)
     root = a.root or default_root() / "planned"
+    if a.plan_balls is not None:
+        root = root / f"plan{a.plan_balls}"
     folder = root / a.split if a.renderer == "mitsuba" else root / "blender" / a.split
     folder.mkdir(parents=True, exist_ok=True)
     ph = default_phantom()
     accept = planner_accept(ph)
+    fixed = {}
+    if a.plan_balls is not None:
+        X, T, plan = planned_layout(ph, a.plan_balls)
+        fixed = {"layout": X, "T_cam_ct": T}
+        wl = plan.expected.with_losses
+        print(f"plan for {a.plan_balls} balls: camera {plan.expected.distance_mm:.0f} mm, "
+              f"worst hidden trusted {plan.expected.worst_hidden.trusted if plan.expected.worst_hidden else 0:.2f}, "
+              f"with losses {wl.trusted if wl else float('nan'):.2f}, balls for losses {plan.balls_for_losses}")
     if a.scene:
         kind, i = a.scene.split(":")
         wanted = [(kind, int(i))]
@@ -91,7 +139,7 @@ def main(argv=None) -> int:
     entries = []
     for kind, i in wanted:
         try:
-            spec = make_spec(a.split, kind, INDEX0 + i, ph, camera_accept=accept)
+            spec = make_spec(a.split, kind, INDEX0 + i, ph, camera_accept=None if fixed else accept, **fixed)
         except RuntimeError:      # no camera pose the planner approves for this layout: skipped
             print(f"{a.split}/{kind}/{INDEX0 + i}: the planner approves no camera pose for this layout; skipped")
             continue

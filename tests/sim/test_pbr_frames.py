@@ -17,6 +17,7 @@ import pytest
 
 from monotracker.sim.pbr.frameset import CONDITIONS, camera_frames, committed_root, list_scenes
 from monotracker.sim.pbr.spec import SPLITS, SceneSpec, make_spec, scene_hash
+from monotracker.sim.phantom import default_phantom
 
 SET = committed_root() / "tuning"
 
@@ -145,3 +146,22 @@ def test_a_camera_acceptance_rule_chooses_among_the_same_draws():
     assert scene_hash(make_spec("tuning", "clean", 7)) == scene_hash(plain)
     with pytest.raises(RuntimeError):
         make_spec("tuning", "clean", 7, camera_accept=lambda X, T: False)
+
+
+def test_a_given_layout_and_camera_are_rendered_as_given():
+    """``make_spec(layout=..., T_cam_ct=...)`` (``render_planned.py --plan-balls``: the planner's
+    layout and camera): the scene holds exactly those balls and that camera, its target lies 80 mm
+    below their centroid along the view direction as in every scene, the rest is still drawn per
+    seed (two indices differ in lamps), and the plain scene is unchanged."""
+    plain = make_spec("tuning", "OR", 4)
+    X = np.array(plain.fiducials_ct)[:5] + [1.0, -2.0, 0.5]
+    T = np.array(make_spec("tuning", "OR", 5).T_cam_ct)
+    a = make_spec("tuning", "OR", 4, layout=X, T_cam_ct=T)
+    b = make_spec("tuning", "OR", 6, layout=X, T_cam_ct=T)
+    for s in (a, b):
+        assert np.allclose(s.fiducials_ct, X) and np.allclose(s.T_cam_ct, T)
+        v = np.asarray(default_phantom().view_direction_lps, float)
+        v /= np.linalg.norm(v)
+        assert np.allclose(s.target_ct, X.mean(axis=0) - 80.0 * v)
+    assert a.lamps != b.lamps
+    assert scene_hash(make_spec("tuning", "OR", 4)) == scene_hash(plain)

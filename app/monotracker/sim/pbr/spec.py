@@ -464,11 +464,15 @@ def _strays(rng, X, phantom: HeadPhantom, v: np.ndarray) -> tuple:
 
 
 def make_spec(split: str, kind: str, index: int, phantom: HeadPhantom | None = None,
-              camera_accept=None) -> SceneSpec:
+              camera_accept=None, layout: np.ndarray | None = None,
+              T_cam_ct: np.ndarray | None = None) -> SceneSpec:
     """Scene ``index`` of ``kind`` in ``split`` (see the module docstring). Deterministic.
     ``camera_accept``: None, or ``f(fiducials_ct (n, 3) mm, T_cam_ct) -> bool``: camera poses
     are drawn from the same distribution until it accepts one (a placement the layout planner
-    would approve: ``scripts/render_planned.py``; the caller picks an index range of its own)."""
+    would approve: ``scripts/render_planned.py``; the caller picks an index range of its own).
+    ``layout`` (n, 3) CT mm ball centres and ``T_cam_ct`` (4, 4): given instead of drawn (a
+    layout and camera the planner chose: ``render_planned.py --plan-balls``); everything else
+    (lamps, skin, drapes, occluders, hair) is drawn as for any scene."""
     from monotracker.sim.scenes import head_like_layout
     from monotracker.vision.camera_model import default_camera
 
@@ -485,9 +489,14 @@ def make_spec(split: str, kind: str, index: int, phantom: HeadPhantom | None = N
         X = ph.fiducial_centres_lps
     else:
         X = head_like_layout(rng, int(rng.integers(7, 10)), max_angle_deg=40.0)
+    if layout is not None:
+        X = np.asarray(layout, float).reshape(-1, 3)
     R = ph.fiducial_radius_mm
     cam = default_camera()
-    T = _camera(rng, X, v, ph, cam.K, cam.dist, cam.image_size, R, camera_accept)
+    if T_cam_ct is not None:
+        T = np.asarray(T_cam_ct, float).reshape(4, 4)
+    else:
+        T = _camera(rng, X, v, ph, cam.K, cam.dist, cam.image_size, R, camera_accept)
     eye = invert_transform(T)[:3, 3]
     centroid = X.mean(axis=0)
     view_dir = _unit(eye - centroid)
