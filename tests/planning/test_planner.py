@@ -107,6 +107,10 @@ def test_plan_keeps_the_rules_and_the_camera_space(problem, quick_plan):
     assert lo is not None and lo.found_probability == P.found_probability
     assert 0.0 <= lo.trusted < e.all_seen.trusted and 0.0 < lo.pose < 1.0
     assert any(f"expect a pose in {100 * lo.pose:.0f} % of setups like this" in n for n in plan.notes)
+    # and it is said to be an estimate, with the range measured on rendered scenes
+    from monotracker.planning.detector_defaults import OUTLOOK_OBSERVED_RANGE_POINTS as rng
+    assert rng[0] < 0 < rng[1]
+    assert any(f"outcome lay {-rng[0]} points below to {rng[1]} above it" in n for n in plan.notes)
     assert plan.to_dict()["expected"]["with_detector_losses"]["trusted_fraction"] == round(lo.trusted, 4)
     assert plan.at_near.with_losses is None        # asked for only where it is shown
     # how many balls reach 85 % with those losses from this camera: that count's layout does (the
