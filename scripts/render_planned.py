@@ -67,7 +67,8 @@ def planner_accept(phantom):
 
 
 def planned_layout(phantom, n_balls: int) -> tuple:
-    """The layout planner's full plan for ``n_balls`` balls on ``phantom``'s head (no drape; the
+    """The layout planner's full plan for ``n_balls`` balls on ``phantom``'s head (cameras about
+    the phantom's view direction, a drape plane that keeps the balls off the scenes' towel, the
     target 80 mm below the phantom's own balls' centroid): (ball centres (n, 3) CT mm, T_cam_ct,
     the plan). What ``--plan-balls`` renders: a layout and a camera the planner chose."""
     from monotracker.geometry import invert_transform
@@ -121,9 +122,10 @@ def main(argv=None) -> int:
     folder = root / a.split if a.renderer == "mitsuba" else root / "blender" / a.split
     folder.mkdir(parents=True, exist_ok=True)
     ph = default_phantom()
-    accept = planner_accept(ph)
-    fixed = {}
-    if a.plan_balls is not None:
+    accept, fixed = None, {}
+    if a.plan_balls is None:
+        accept = planner_accept(ph)
+    else:
         X, T, plan = planned_layout(ph, a.plan_balls)
         fixed = {"layout": X, "T_cam_ct": T}
         wl = plan.expected.with_losses
@@ -139,7 +141,7 @@ def main(argv=None) -> int:
     entries = []
     for kind, i in wanted:
         try:
-            spec = make_spec(a.split, kind, INDEX0 + i, ph, camera_accept=None if fixed else accept, **fixed)
+            spec = make_spec(a.split, kind, INDEX0 + i, ph, camera_accept=accept, **fixed)
         except RuntimeError:      # no camera pose the planner approves for this layout: skipped
             print(f"{a.split}/{kind}/{INDEX0 + i}: the planner approves no camera pose for this layout; skipped")
             continue

@@ -692,9 +692,9 @@ def shadow_rays(img, lut, cw0, P, valid, usable, okfit, cx, cy, d1, d2, ang_deg,
     shape at once: edge points ``P`` (m, R, 2) px padded (``valid`` (m, R)), ``usable`` (m, R),
     each ball's fitted outline (``okfit`` (m,) bool: fitted at all; centre ``cx``, ``cy`` px, full
     axes ``d1``, ``d2`` px, major axis ``ang_deg``). A usable ray whose edge lies more than
-    ``out_px`` outside the outline or more than ``in_px`` inside it is a shadow's when the linear luma (``img`` uint8 BGR,
-    ``lut``, ``cw0`` as :func:`luma_at`) ``r_near`` px beyond the outline along the ray is below
-    ``nf`` x the luma ``far_px`` further out. Returns (use (m, R): usable without the shadow rays,
+    ``out_px`` outside the outline (or more than ``in_px`` inside it; inf = none) is a shadow's
+    when the linear luma (``img`` uint8 BGR, ``lut``, ``cw0`` as :func:`luma_at`) ``r_near`` px
+    beyond the outline along the ray is below ``nf`` x the luma ``far_px`` further out. Returns (use (m, R): usable without the shadow rays,
     changed (m,): True where some were found, the ball's window lay inside the image and at least
     ``min_share`` of its rays remain; only there does ``use`` differ from what the fit used)."""
     m, R, _ = P.shape
