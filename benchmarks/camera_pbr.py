@@ -46,7 +46,9 @@ before issue 28 and still the default; ``size``: the same with each ball's size 
 too, opt-in; ``calibrated``: still frames pooled, the centre bias
 covered; ``p95``: the default with "trusted" read as "within 1 mm at 95 %"
 (``max_not_right_probability`` 0.05), opt-in; same frames, same detections; ``before`` covers each ball's edge spread since the
-per-frame model does, ``TrackerConfig.edge_bias_per_rms``):
+per-frame model does, ``TrackerConfig.edge_bias_per_rms``; ``arm``: the ``before`` poses through
+the session's own gate, what may move the arm: a pose agreeing with the last one the gate
+trusted, or after a refusal spell 3 consecutive agreeing estimates, :func:`session_gate`):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
   detections that are a ball; partial: accepted balls that were partly hidden;
 * centre err: mean / p95 px between the detected centre, carried to the sphere centre with the
@@ -241,6 +243,7 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
     else:
         rec = Recording(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
     res = {}
+    gate, arm = session_gate(), []
     for m, (name, cfg) in enumerate(trust_models().items()):
         det = rec if m == 0 else Replay(list(rec.log), rec.det)
         trk = PoseTracker(tr.fiducials_ct, cam, detector=det, radius_mm=tr.radius_mm, target_ct=tr.target_ct,
@@ -252,11 +255,39 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
             rows.append((bool(e.ok), err, float(e.predicted_tre_mm), e.code))
             if m == 0:
                 fitted.append(fitted_pose_error(e, scene))
+                arm.append(_through_the_gate(gate, e, k, scene))
         res[name] = rows
         if m == 0:
             res["_fitted"] = fitted
+            res[ARM] = arm
     res["_det"] = detection_stats(rec.log, tr, cam)
     return res
+
+
+#: the row of what may move the arm: the default trust model's poses through the session's gate
+ARM = "arm"
+
+
+def session_gate():
+    """The session's own trust verdict over time (``engine.loop.gate.PoseGate`` with the default
+    ``SessionConfig``): a pose the tracker trusts drives the arm only when it agrees with the last
+    pose the gate trusted (within ``max_jump_mm`` / ``max_jump_deg``, that pose younger than 0.5
+    s), or, with no such pose (first lock, after a refusal spell), once ``confirm_frames`` (3)
+    consecutive estimates agree."""
+    from monotracker.engine.config import SessionConfig
+    from monotracker.engine.loop.gate import PoseGate
+
+    return PoseGate.from_config(SessionConfig())
+
+
+def _through_the_gate(gate, est, k: int, scene) -> tuple:
+    """(trusted by the gate, error mm at the target or NaN, predicted TRE mm, the gate's code)
+    of frame ``k``'s estimate ``est`` (captured at k / FPS s)."""
+    v = gate.check(bool(est.ok), est.reason, est.T_cam_ct, int(est.n_matched), est.fre_mm, k / FPS,
+                   code=est.code or "", predicted_tre_mm=est.predicted_tre_mm)
+    tr = scene.truth
+    err = float(tre_mm(est.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]) if v.trusted else float("nan")
+    return (bool(v.trusted), err, float(est.predicted_tre_mm), v.code)
 
 
 def fitted_pose_error(est, scene) -> float:
@@ -570,7 +601,7 @@ def main(argv=None) -> int:
     renderers = sorted({s.spec.renderer for s in scenes})
     say(f"camera path on physically rendered frames ({', '.join(renderers)}) - {label}")
     say(f"frames: {folder} ({len(scenes)} scenes), a still head streamed {a.frames} frames at {FPS:g} fps; "
-        f"target 80 mm deep; trust models: {', '.join(trust_models())}")
+        f"target 80 mm deep; trust models: {', '.join(trust_models())}, and {ARM} (before, through the session's gate)")
     dw = max([9] + [len(d) for d in dets])
     hdr = (f"{'condition':<9} {'detector':<{dw}} {'trust':<10} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
            f"{'err px':>6} {'p95 px':>6} {'tr@1 %':>6} {'tr@' + str(a.frames) + ' %':>6} {'med mm':>6} "
@@ -597,7 +628,7 @@ def main(argv=None) -> int:
                 planner_rows[cond] = [(planner_outlook(s), bool(r[first][a.frames - 1][0] and r[first][a.frames - 1][1] <= 1.0))
                                       for s, r in zip(cs, runs)]
             result["conditions"][cond][dn] = {"detection": ds}
-            for tm in trust_models():
+            for tm in [*trust_models(), ARM]:
                 sm = summarise([r[tm] for r in runs], a.frames)
                 result["conditions"][cond][dn][tm] = sm
                 say(f"{cond:<9} {dn:<{dw}} {tm:<10} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "

@@ -60,6 +60,24 @@ def test_the_planner_table_scores_the_first_detectors_outcome(result):
     assert plan["all"]["scenes"] == sum(plan[c]["scenes"] for c in result["conditions"])
 
 
+def test_the_arm_row_is_the_default_through_the_sessions_gate(result):
+    """``arm``: the default model's poses through the session's gate (engine.loop.gate). From a
+    cold start the gate trusts nothing before 3 consecutive agreeing estimates (confirm_frames):
+    in 3-frame streams only frame 3 of a scene, and never a frame the default refused. With the
+    ideal detector on the clean crops (the same pose every frame) a scene the default trusts in
+    all 3 frames is the gate's at frame 3 (3 of the 4 scenes, 9 of 12 frames, when written)."""
+    for cond, dets in result["conditions"].items():
+        for name, d in dets.items():
+            arm, before = d["arm"], d["before"]
+            assert arm["trusted_at_1_pct"] == 0.0, (cond, name)
+            assert arm["trusted_frames"] <= min(before["trusted_frames"], before["scenes"]), (cond, name)
+    clean = result["conditions"]["clean"]["ideal0.1"]
+    fully = round(clean["before"]["trusted_at_3_pct"] * clean["before"]["scenes"] / 100)
+    assert fully > 0 and clean["before"]["trusted_frames"] == 3 * fully
+    assert clean["arm"]["trusted_at_3_pct"] == clean["before"]["trusted_at_3_pct"]
+    assert clean["arm"]["trusted_frames"] == fully
+
+
 @pytest.mark.parametrize("name", ["nope", "idealx"])
 def test_a_bad_detector_name_is_one_line_not_a_traceback(name, capsys):
     spec = importlib.util.spec_from_file_location("camera_pbr_bench_bad", BENCH)
