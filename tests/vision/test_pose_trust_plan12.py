@@ -54,3 +54,25 @@ def test_the_planners_layout_has_no_trusted_pose_over_1mm(scene):
     planner layouts (docs/vision.md)."""
     errs = _trusted(scene, TrackerConfig())
     assert all(e <= 1.0 for e in errs), errs
+
+
+def test_the_sessions_gate_lets_none_of_them_move_the_arm(scene):
+    """What the arm follows: the tracker's poses through the session's gate (engine.loop.gate,
+    default SessionConfig: 3 consecutive agreeing estimates after a cold start or refusals). The
+    wrong frames above stand alone (trust flags ..T..T.T when written): none is the gate's."""
+    from monotracker.engine.config import SessionConfig
+    from monotracker.engine.loop.gate import PoseGate
+
+    tr = scene.truth
+    trk = PoseTracker(tr.fiducials_ct, scene.camera_model(), radius_mm=tr.radius_mm, target_ct=tr.target_ct)
+    gate = PoseGate.from_config(SessionConfig())
+    tracker_trusted, gate_errs = 0, []
+    for k, img in enumerate(camera_frames(scene, "clutter", 8)):
+        e = trk.process(Frame(img, k / 30.0, k, None))
+        tracker_trusted += bool(e.ok)
+        v = gate.check(bool(e.ok), e.reason, e.T_cam_ct, int(e.n_matched), e.fre_mm, k / 30.0, code=e.code or "",
+                       predicted_tre_mm=e.predicted_tre_mm)
+        if v.trusted:
+            gate_errs.append(float(tre_mm(e.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]))
+    assert tracker_trusted >= 2
+    assert all(err <= 1.0 for err in gate_errs), gate_errs
