@@ -255,7 +255,7 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
             rows.append((bool(e.ok), err, float(e.predicted_tre_mm), e.code))
             if m == 0:
                 fitted.append(fitted_pose_error(e, scene))
-                arm.append(_through_the_gate(gate, e, k, scene))
+                arm.append(_through_the_gate(gate, e, err))
         res[name] = rows
         if m == 0:
             res["_fitted"] = fitted
@@ -280,14 +280,14 @@ def session_gate():
     return PoseGate.from_config(SessionConfig())
 
 
-def _through_the_gate(gate, est, k: int, scene) -> tuple:
+def _through_the_gate(gate, est, err: float) -> tuple:
     """(trusted by the gate, error mm at the target or NaN, predicted TRE mm, the gate's code)
-    of frame ``k``'s estimate ``est`` (captured at k / FPS s)."""
-    v = gate.check(bool(est.ok), est.reason, est.T_cam_ct, int(est.n_matched), est.fre_mm, k / FPS,
-                   code=est.code or "", predicted_tre_mm=est.predicted_tre_mm)
-    tr = scene.truth
-    err = float(tre_mm(est.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]) if v.trusted else float("nan")
-    return (bool(v.trusted), err, float(est.predicted_tre_mm), v.code)
+    of the estimate ``est`` whose error at the target is ``err`` (mm, NaN unless the tracker
+    trusted it: the gate never trusts more), fed to the gate as the tracking loop feeds it."""
+    from monotracker.engine.rigs.base import estimate_to_sample
+
+    v = gate.check_sample(estimate_to_sample(est, list(range(len(est.status)))))
+    return (bool(v.trusted), err if v.trusted else float("nan"), float(est.predicted_tre_mm), v.code)
 
 
 def fitted_pose_error(est, scene) -> float:

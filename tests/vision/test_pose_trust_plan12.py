@@ -62,6 +62,7 @@ def test_the_sessions_gate_lets_none_of_them_move_the_arm(scene):
     wrong frames above stand alone (trust flags ..T..T.T when written): none is the gate's."""
     from monotracker.engine.config import SessionConfig
     from monotracker.engine.loop.gate import PoseGate
+    from monotracker.engine.rigs.base import estimate_to_sample
 
     tr = scene.truth
     trk = PoseTracker(tr.fiducials_ct, scene.camera_model(), radius_mm=tr.radius_mm, target_ct=tr.target_ct)
@@ -70,8 +71,7 @@ def test_the_sessions_gate_lets_none_of_them_move_the_arm(scene):
     for k, img in enumerate(camera_frames(scene, "clutter", 8)):
         e = trk.process(Frame(img, k / 30.0, k, None))
         tracker_trusted += bool(e.ok)
-        v = gate.check(bool(e.ok), e.reason, e.T_cam_ct, int(e.n_matched), e.fre_mm, k / 30.0, code=e.code or "",
-                       predicted_tre_mm=e.predicted_tre_mm)
+        v = gate.check_sample(estimate_to_sample(e, list(range(len(tr.fiducials_ct)))))
         if v.trusted:
             gate_errs.append(float(tre_mm(e.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]))
     assert tracker_trusted >= 2

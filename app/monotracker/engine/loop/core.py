@@ -244,9 +244,7 @@ class TrackingLoop:
             self.alarms.persistent("fiducial_moved", f"fiducial {fid} moved about {shift:.1f} mm relative to the "
                          "others since the CT: excluded from registration (check it is firmly attached)",
                          {"fiducial": fid, "shift_mm": shift})
-        v = self.gate.check(sample.ok, sample.reason, sample.T_cam_ct, sample.n_matched, sample.fre_mm,
-                            sample.t_capture, code=getattr(sample, "code", ""),
-                            predicted_tre_mm=sample.predicted_tre_mm)
+        v = self.gate.check_sample(sample)
         rec = PoseRecord(sample, v.trusted, v.code, v.reason)
         age = now - sample.t_capture
         limit = self.cfg.max_pose_age_s

@@ -125,5 +125,12 @@ class PoseGate:
         return GateVerdict(False, code, f"{why}; confirming ({len(self._candidates)} of {self.confirm_frames} "
                                         "consistent frames)")
 
+    def check_sample(self, sample) -> GateVerdict:
+        """:meth:`check` of a rig's :class:`~monotracker.engine.rigs.base.PoseSample` (a vision
+        estimate becomes one through ``rigs.base.estimate_to_sample``): how the tracking loop
+        feeds every estimate, and how a benchmark or test replays what may move the arm."""
+        return self.check(sample.ok, sample.reason, sample.T_cam_ct, sample.n_matched, sample.fre_mm,
+                          sample.t_capture, code=getattr(sample, "code", ""), predicted_tre_mm=sample.predicted_tre_mm)
+
     def _accept(self, T: np.ndarray, t: float) -> None:
         self._ref_T, self._ref_t, self._candidates = T, t, []
