@@ -35,7 +35,9 @@ outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid basel
 (``edge`` without its second look at rejected blobs in the balls' own hue band,
 ``ClassicalDetector.narrow_second_pass``), ``narrow-lenient`` (``edge`` whose second look asks a
 blob score of 0.35, not the first pass's 0.5: ``ClassicalDetector.narrow_min_score``, opt-in),
-``shadow-inside`` (``edge`` whose contact-shadow test also leaves out shadowed rays inside the
+``shading`` (``edge`` with each shaded ball's centre moved towards its lit side and its colour
+blob's centre, :mod:`monotracker.vision.shading_shift`; opt-in), ``shadow-inside`` (``edge``
+whose contact-shadow test also leaves out shadowed rays inside the
 ball's outline: ``edge_fit.SHADOW_IN_PX`` 0.6, :class:`WithShadowRaysInside`; opt-in), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
@@ -107,6 +109,9 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         return ClassicalDetector(rules, narrow_second_pass=False)
     if name == "narrow-lenient":
         return ClassicalDetector(rules, narrow_min_score=0.35)
+    if name == "shading":
+        rules.shading_shift = True
+        return ClassicalDetector(rules)
     if name == "shadow-inside":
         return WithShadowRaysInside(ClassicalDetector(rules), 0.6)
     if name == "chroma":
@@ -119,7 +124,7 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, shadow-inside, first, narrow-lenient, refined, chroma, learned, "
+    raise InputError(f"unknown detector {name!r} (edge, shading, shadow-inside, first, narrow-lenient, refined, chroma, learned, "
                      "idealS)")
 
 

@@ -10,6 +10,7 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    hair). Detectors: ``chroma`` = the classical detector with today's soft-chromaticity
    centroid (baseline), ``edge`` = the classical detector with edge-fit centres (default),
    ``edge+colour`` = the same with the ball colour learned from one click on the first frame,
+   ``edge+shade`` = ``edge`` with the opt-in shading shift (``vision/shading_shift.py``, issue 28),
    ``edge+ref`` = ``edge`` with the learned centre refiner (opt-in, issue 28; when its network is there),
    ``learned`` = the ONNX segmenter (opt-in). Columns: centre error vs the exact ellipse centre
    (what a detector must report; the registration corrects ellipse -> sphere centre), recall
@@ -189,7 +190,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)),
                 ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)),
                 ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge-r6", ClassicalDetector(rules)),
-                ("edge", ClassicalDetector(with_camera))]
+                ("edge", ClassicalDetector(with_camera)),
+                ("edge+shade", ClassicalDetector(replace(with_camera, shading_shift=True)))]
         dets.append(("edge+colour", ClassicalDetector(with_camera, colour=colour) if colour is not None else None))
         if REFINER_MODEL.is_file():     # the learned centre refiner (opt-in; issue 28)
             dets.append(("edge+ref", ClassicalDetector(with_camera, refiner=CentreRefiner(REFINER_MODEL))))
@@ -250,7 +252,8 @@ def scale_table(seed: int, n_frames: int, with_learned: bool = True):
         dets = [("chroma", ClassicalDetector(rules, centre_method="chroma")),
                 ("edge-v1", EdgeSettings(ClassicalDetector(rules), **EDGE_V1)),
                 ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)), ("edge-r6", ClassicalDetector(rules)),
-                ("edge", ClassicalDetector(replace(rules, camera=cam.camera)))]
+                ("edge", ClassicalDetector(replace(rules, camera=cam.camera))),
+                ("edge+shade", ClassicalDetector(replace(rules, camera=cam.camera, shading_shift=True)))]
         if with_learned:
             dets.append(("learned", LearnedDetector(rules=replace(rules, camera=cam.camera))))
         for name, det in dets:

@@ -45,6 +45,7 @@ import numpy as np
 
 from . import edge_fit, edge_kernels
 from .edge_fit import fit_ball_edges, measure_edge_blur
+from .shading_shift import shaded_centre
 from .sphere_outline import expected_shapes
 
 #: sub-pixel centre methods of :func:`analyse_blobs`
@@ -182,6 +183,9 @@ class BlobRules:
     #: share one BlobRules between detectors of different cameras. Images of another size than
     #: the camera's are refused (ValueError)
     camera: object = None
+    #: move an edge-fitted shaded ball's centre back towards the sphere's
+    #: (:mod:`.shading_shift`: the push of an unlit limb read with its contact shadow)
+    shading_shift: bool = False
 
     @property
     def radius_range_px(self) -> tuple[float, float]:
@@ -428,7 +432,8 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
         info["stages_s"] = clock.stages
     accepted = []
     for i, c in enumerate(cands):
-        c.features.pop("contour_ellipse")
+        _ce = c.features.pop("contour_ellipse")
+        c.features["blob_centre_px"] = (float(_ce[0][0]), float(_ce[0][1]))
         fit = edge_fits.get(i)
         if fit is not None:
             c.features.update(edge_rms_px=fit.rms_px, edge_rays_kept=fit.kept, centre_sigma_px=fit.centre_sigma_px,
@@ -438,6 +443,10 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                 rejected.append(c)
                 continue
             c.centre_px = fit.centre_px
+            if rules.shading_shift:
+                c.centre_px, moved = shaded_centre(refine_image, fit.centre_px, c.features["blob_centre_px"],
+                                                   fit.axes_px[1])
+                c.features["shading_shift_px"] = moved
         if c.score >= rules.min_score:
             accepted.append(c)
         else:
