@@ -56,10 +56,9 @@ def test_the_planners_layout_has_no_trusted_pose_over_1mm(scene):
     assert all(e <= 1.0 for e in errs), errs
 
 
-def test_the_sessions_gate_lets_none_of_them_move_the_arm(scene):
-    """What the arm follows: the tracker's poses through the session's gate (engine.loop.gate,
-    default SessionConfig: 3 consecutive agreeing estimates after a cold start or refusals). The
-    wrong frames above stand alone (trust flags ..T..T.T when written): none is the gate's."""
+def _through_the_gate(scene, n_frames: int) -> tuple[int, list]:
+    """(frames the tracker trusted, errors at the target (mm) of the poses the session's gate
+    trusted) over a still-head stream of ``n_frames`` frames."""
     from monotracker.engine.config import SessionConfig
     from monotracker.engine.loop.gate import PoseGate
     from monotracker.engine.rigs.base import estimate_to_sample
@@ -68,11 +67,39 @@ def test_the_sessions_gate_lets_none_of_them_move_the_arm(scene):
     trk = PoseTracker(tr.fiducials_ct, scene.camera_model(), radius_mm=tr.radius_mm, target_ct=tr.target_ct)
     gate = PoseGate.from_config(SessionConfig())
     tracker_trusted, gate_errs = 0, []
-    for k, img in enumerate(camera_frames(scene, "clutter", 8)):
+    for k, img in enumerate(camera_frames(scene, "clutter", n_frames)):
         e = trk.process(Frame(img, k / 30.0, k, None))
         tracker_trusted += bool(e.ok)
         v = gate.check_sample(estimate_to_sample(e, list(range(len(tr.fiducials_ct)))))
         if v.trusted:
             gate_errs.append(float(tre_mm(e.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]))
+    return tracker_trusted, gate_errs
+
+
+def test_the_sessions_gate_lets_none_of_them_move_the_arm(scene):
+    """What the arm follows: the tracker's poses through the session's gate (engine.loop.gate,
+    default SessionConfig: 3 consecutive agreeing estimates after a cold start or refusals). In
+    the first 8 frames the wrong frames above stand alone (trust flags ..T..T.T when written):
+    none is the gate's. A longer stream is another matter (below)."""
+    tracker_trusted, gate_errs = _through_the_gate(scene, 8)
     assert tracker_trusted >= 2
+    assert all(err <= 1.0 for err in gate_errs), gate_errs
+
+
+def test_over_a_second_of_stream_the_gate_passes_no_pose_over_2mm(scene):
+    """The hard limit through the gate over 30 frames (1 s at 30 fps): the gate does trust poses
+    here, and none is over 2 mm."""
+    _, gate_errs = _through_the_gate(scene, 30)
+    assert len(gate_errs) >= 3, gate_errs
+    assert all(err <= 2.0 for err in gate_errs), gate_errs
+
+
+@pytest.mark.xfail(strict=True, reason="issue 28 open: over 30 frames the tracker trusts runs of 3 or more "
+                   "agreeing frames 1-2 mm off here and the gate, which checks agreement (5 mm / 3 deg), passes "
+                   "them; their error is a bias that changes across the layout, which the trust model covers "
+                   "only in part (docs/vision.md, 'Longer streams')")
+def test_over_a_second_of_stream_the_gate_passes_no_pose_over_1mm(scene):
+    """The goal for what moves the arm: within 1 mm whenever the gate trusts it, however long
+    the stream. Fails today (strict xfail: it says so when it passes)."""
+    _, gate_errs = _through_the_gate(scene, 30)
     assert all(err <= 1.0 for err in gate_errs), gate_errs
