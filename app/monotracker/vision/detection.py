@@ -432,8 +432,8 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
         info["stages_s"] = clock.stages
     accepted = []
     for i, c in enumerate(cands):
-        _ce = c.features.pop("contour_ellipse")
-        c.features["blob_centre_px"] = (float(_ce[0][0]), float(_ce[0][1]))
+        contour_ellipse = c.features.pop("contour_ellipse")   # the colour blob's (cv2.fitEllipse)
+        c.features["blob_centre_px"] = (float(contour_ellipse[0][0]), float(contour_ellipse[0][1]))
         fit = edge_fits.get(i)
         if fit is not None:
             c.features.update(edge_rms_px=fit.rms_px, edge_rays_kept=fit.kept, centre_sigma_px=fit.centre_sigma_px,
