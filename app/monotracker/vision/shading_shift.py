@@ -30,8 +30,9 @@ the pose's trust: trusted frames 1-2 mm off went from 3 to 7 of 142-153 (a small
 scatter with the common shift left). See docs/vision.md.
 
 A ball with no visible shading (``|u|`` under ``MIN_LIT``, brightness centroid within 5 % of
-the radius of the centre: a ball of flat colour or lit head-on) keeps its edge centre; the shift is never more than ``MAX_SHIFT`` x the ball's radius (a blob cut by a finger
-or an instrument, whose contour is not the ball's, moves nothing beyond that).
+the radius of the centre: a ball of flat colour or lit head-on) keeps its edge centre; the shift
+is never more than ``MAX_SHIFT`` x the ball's radius (a blob cut by a finger or an instrument,
+whose contour is not the ball's, moves nothing beyond that).
 """
 
 from __future__ import annotations
