@@ -47,10 +47,13 @@ Columns, per condition x detector x trust model (``before``: each frame alone, t
 before issue 28 and still the default; ``size``: the same with each ball's size excess covered
 too, opt-in; ``calibrated``: still frames pooled, the centre bias
 covered; ``p95``: the default with "trusted" read as "within 1 mm at 95 %"
-(``max_not_right_probability`` 0.05), opt-in; same frames, same detections; ``before`` covers each ball's edge spread since the
+(``max_not_right_probability`` 0.05), opt-in; ``no-check``: the default without the shading
+check (:mod:`monotracker.vision.shading_check`), the default before 2026-12-01; same frames,
+same detections; ``before`` covers each ball's edge spread since the
 per-frame model does, ``TrackerConfig.edge_bias_per_rms``; ``arm``: the ``before`` poses through
 the session's own gate, what may move the arm: a pose agreeing with the last one the gate
-trusted, or after a refusal spell 3 consecutive agreeing estimates, :func:`session_gate`):
+trusted, or after a refusal spell 3 consecutive agreeing estimates, :func:`session_gate`;
+``arm-no-check``: the ``no-check`` poses through it):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
   detections that are a ball; partial: accepted balls that were partly hidden;
 * centre err: mean / p95 px between the detected centre, carried to the sphere centre with the
@@ -205,9 +208,11 @@ def trust_models() -> dict:
     ``edge_size_per_excess`` 1.0); ``calibrated``: frames of a still head pooled, the detector's
     measured centre bias covered (``centre_bias="detector"``); ``p95``: the default with its
     promise read as "within 1 mm at 95 %" (``max_not_right_probability`` 0.05: the predicted
-    error's distribution, not only its RMS, under 1 mm)."""
+    error's distribution, not only its RMS, under 1 mm); ``no-check``: the default without the
+    shading check (``shading_check_factor`` 0: the default before 2026-12-01)."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
-            "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05)}
+            "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
+            "no-check": TrackerConfig(shading_check_factor=0.0)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -248,29 +253,34 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
     else:
         rec = Recording(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
     res = {}
-    gate, arm = session_gate(), []
     for m, (name, cfg) in enumerate(trust_models().items()):
         det = rec if m == 0 else Replay(list(rec.log), rec.det)
         trk = PoseTracker(tr.fiducials_ct, cam, detector=det, radius_mm=tr.radius_mm, target_ct=tr.target_ct,
                           config=cfg)
         rows, fitted = [], []
+        gate, arm = session_gate(), []
         for k, img in enumerate(frames):
             e = trk.process(Frame(img, k / FPS, k, None))
             err = float(tre_mm(e.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]) if e.ok else float("nan")
             rows.append((bool(e.ok), err, float(e.predicted_tre_mm), e.code))
             if m == 0:
                 fitted.append(fitted_pose_error(e, scene))
+            if name in GATED:
                 arm.append(_through_the_gate(gate, e, err))
         res[name] = rows
         if m == 0:
             res["_fitted"] = fitted
-            res[ARM] = arm
+        if name in GATED:
+            res[GATED[name]] = arm
     res["_det"] = detection_stats(rec.log, tr, cam)
     return res
 
 
 #: the row of what may move the arm: the default trust model's poses through the session's gate
 ARM = "arm"
+#: trust model -> its row through the session's gate: the default's, and the default's without
+#: the shading check (the baseline of issue 28's last change, measured in the same run)
+GATED = {"before": ARM, "no-check": "arm-no-check"}
 
 
 def session_gate():
@@ -606,9 +616,10 @@ def main(argv=None) -> int:
     renderers = sorted({s.spec.renderer for s in scenes})
     say(f"camera path on physically rendered frames ({', '.join(renderers)}) - {label}")
     say(f"frames: {folder} ({len(scenes)} scenes), a still head streamed {a.frames} frames at {FPS:g} fps; "
-        f"target 80 mm deep; trust models: {', '.join(trust_models())}, and {ARM} (before, through the session's gate)")
+        f"target 80 mm deep; trust models: {', '.join(trust_models())}, and through the session's gate: "
+        f"{', '.join(f'{v} ({k})' for k, v in GATED.items())}")
     dw = max([9] + [len(d) for d in dets])
-    hdr = (f"{'condition':<9} {'detector':<{dw}} {'trust':<10} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
+    hdr = (f"{'condition':<9} {'detector':<{dw}} {'trust':<12} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
            f"{'err px':>6} {'p95 px':>6} {'tr@1 %':>6} {'tr@' + str(a.frames) + ' %':>6} {'med mm':>6} "
            f"{'p99 mm':>6} {'max mm':>6} {'>2mm':>4} {'1-2mm':>9} {'pred/act':>8} {'pose %':>6} {'<=1mm %':>7}")
     say(hdr)
@@ -633,10 +644,10 @@ def main(argv=None) -> int:
                 planner_rows[cond] = [(planner_outlook(s), bool(r[first][a.frames - 1][0] and r[first][a.frames - 1][1] <= 1.0))
                                       for s, r in zip(cs, runs)]
             result["conditions"][cond][dn] = {"detection": ds}
-            for tm in [*trust_models(), ARM]:
+            for tm in [*trust_models(), *GATED.values()]:
                 sm = summarise([r[tm] for r in runs], a.frames)
                 result["conditions"][cond][dn][tm] = sm
-                say(f"{cond:<9} {dn:<{dw}} {tm:<10} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
+                say(f"{cond:<9} {dn:<{dw}} {tm:<12} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
                     f"{ds['partial_accepted']:>7} {ds['centre_err_mean_px']:>6.3f} {ds['centre_err_p95_px']:>6.2f} "
                     f"{sm['trusted_at_1_pct']:>6.0f} {sm[f'trusted_at_{a.frames}_pct']:>6.0f} "
                     f"{sm['err_median_mm']:>6.2f} {sm['err_p99_mm']:>6.2f} {sm['err_max_mm']:>6.2f} "

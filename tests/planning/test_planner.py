@@ -112,9 +112,12 @@ def test_plan_keeps_the_rules_and_the_camera_space(problem, quick_plan):
     assert rng[0] < 0 < rng[1]
     assert any(f"outcome lay {-rng[0]} points below to {rng[1]} above it" in n for n in plan.notes)
     # and the known limit of the trust on such layouts (docs/vision.md, "Longer streams")
-    from monotracker.planning.detector_defaults import PLANNED_LAYOUT_GATE_OFF_PCT as off
-    assert 0 < off[0] <= off[1] < 100
-    assert any(f"{off[0]}-{off[1]} % of the poses that would move the arm were 1-2 mm off" in n for n in plan.notes)
+    from monotracker.planning.detector_defaults import PLANNED_LAYOUT_GATE_OFF as gate
+    from monotracker.planning.detector_defaults import PLANNED_LAYOUT_TRACKER_OFF as trk
+
+    assert 0 <= trk[0] <= trk[1] and 0 <= gate[0] <= gate[1] <= trk[1]
+    assert any(f"trusted {trk[0]} of {trk[1]} frames 1-2 mm off at the target, and {gate[0]} of the {gate[1]} poses "
+               "that would move the arm" in n for n in plan.notes)
     assert plan.to_dict()["expected"]["with_detector_losses"]["trusted_fraction"] == round(lo.trusted, 4)
     assert plan.at_near.with_losses is None        # asked for only where it is shown
     # how many balls reach 85 % with those losses from this camera: that count's layout does (the

@@ -115,3 +115,22 @@ def test_a_shadowed_ball_cut_by_an_instrument_is_still_refused(cut):
     img, _ = tinted_ball(centre, radius, size, shadow_deg=180.0, cut_x=centre[0] + (1.0 - cut) * radius)
     fit = _fit(img, centre, radius)
     assert not fit.ok, fit
+
+
+@pytest.mark.parametrize("shadow_deg", [200.0, 30.0])
+def test_the_fit_says_where_it_left_shadow_rays_out(shadow_deg):
+    """The shading check (issue 28) needs to know a contact shadow lies beside a ball and on which
+    side: the fit reports how many rays it left out as a shadow's and their mean direction, which
+    points towards the shadow drawn here (its direction known from the drawing); the same ball
+    without a shadow reports none."""
+    radius, size = 10.0, 60
+    centre = np.array([30.3, 29.6])
+    img, towards_shadow = tinted_ball(centre, radius, size, shadow_deg=shadow_deg)
+    fit = _fit(img, centre, radius)
+    assert fit.ok, fit.reason
+    assert fit.shadow_rays >= 3, fit.shadow_rays
+    d = np.asarray(fit.shadow_dir)
+    assert d @ towards_shadow > 0.7 * np.linalg.norm(d) > 0.35, (d, towards_shadow)
+    bare = _draw_ball(centre, radius, size, shadow_deg, 0.0, 2.5, 2, 0.1, 0.9, 0.0, 0.6)[0]
+    none = _fit(bare, centre, radius)
+    assert none.ok and none.shadow_rays == 0 and none.shadow_dir == (0.0, 0.0), (none.shadow_rays, none.shadow_dir)

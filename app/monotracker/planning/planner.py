@@ -35,7 +35,7 @@ from monotracker.vision.pose_tracker import TrackerConfig
 
 from .camera_poses import CameraPose, camera_pose, candidate_poses, cone_directions
 from .candidates import Candidates, sample_candidates
-from .detector_defaults import OUTLOOK_OBSERVED_RANGE_POINTS, PLANNED_LAYOUT_GATE_OFF_PCT
+from .detector_defaults import OUTLOOK_OBSERVED_RANGE_POINTS, PLANNED_LAYOUT_GATE_OFF, PLANNED_LAYOUT_TRACKER_OFF
 from .prediction import Prediction, outlook_with_losses, predict
 from .problem import PlanningProblem
 from .search import PoseData, best_layout, objective, spread_seed, swap_map
@@ -344,8 +344,10 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
                      f"{100 * outlook.trusted:.0f} %; more balls or a nearer camera raise both. An estimate: on "
                      f"rendered test scenes the outcome lay {-OUTLOOK_OBSERVED_RANGE_POINTS[0]} points below to "
                      f"{OUTLOOK_OBSERVED_RANGE_POINTS[1]} above it. A known limit: on rendered frames of such "
-                     f"planned layouts {PLANNED_LAYOUT_GATE_OFF_PCT[0]}-{PLANNED_LAYOUT_GATE_OFF_PCT[1]} % of the "
-                     "poses that would move the arm were 1-2 mm off at the target (none over 2 mm)")
+                     f"planned layouts the pose tracker trusted {PLANNED_LAYOUT_TRACKER_OFF[0]} of "
+                     f"{PLANNED_LAYOUT_TRACKER_OFF[1]} frames 1-2 mm off at the target, and "
+                     f"{PLANNED_LAYOUT_GATE_OFF[0]} of the {PLANNED_LAYOUT_GATE_OFF[1]} poses that would move the arm "
+                     "(none over 2 mm)")
     from_existing = cands.existing[S]
     return LayoutPlan(problem, balls, normals, from_existing, pose, expected, at_near, at_far, ex_here, ex_best,
                       ex_cam, moves, cands, emap, needed, tuple(notes))

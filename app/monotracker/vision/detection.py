@@ -443,9 +443,14 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                 rejected.append(c)
                 continue
             c.centre_px = fit.centre_px
+            # the second reading of the centre and where a contact shadow lies (the pose
+            # tracker's shading check, :mod:`.shading_check`)
+            shaded, moved = shaded_centre(refine_image, fit.centre_px, c.features["blob_centre_px"], fit.axes_px[1])
+            c.features.update(shading_shift_vec_px=(float(shaded[0] - fit.centre_px[0]),
+                                                    float(shaded[1] - fit.centre_px[1])),
+                              edge_shadow_rays=fit.shadow_rays, edge_shadow_dir=fit.shadow_dir)
             if rules.shading_shift:
-                c.centre_px, moved = shaded_centre(refine_image, fit.centre_px, c.features["blob_centre_px"],
-                                                   fit.axes_px[1])
+                c.centre_px = shaded
                 c.features["shading_shift_px"] = moved
         if c.score >= rules.min_score:
             accepted.append(c)

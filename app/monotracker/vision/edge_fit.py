@@ -145,6 +145,12 @@ class EdgeFit:
     #: rough 1-sigma of the centre (px): edge RMS / sqrt(kept rays / 2); neighbouring rays err
     #: together under JPEG and hair, so treat it as a lower bound
     centre_sigma_px: float = float("nan")
+    #: rays left out of the fit as a contact shadow's (:data:`SHADOW_NF`; 0: none), and their
+    #: mean direction from the fitted centre (image axes, the mean of unit vectors: its length
+    #: 0-1 says how one-sided they are): where a shadow lies beside the ball
+    #: (:mod:`.shading_check` reads both)
+    shadow_rays: int = 0
+    shadow_dir: tuple = (0.0, 0.0)
 
 
 def _median(x: np.ndarray) -> float:
@@ -767,12 +773,14 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None 
         shaped = {i: got for i, got in zip(ids, pts_all) if got is not None and shapes is not None
                   and shapes[i] is not None and got[1].sum() >= MIN_RAY_SHARE * len(got[0])}
         batch = _shaped_fits(shaped, shapes, blur_px)
+        shadow_n = {}
         if SHADOW_NF > 0 and batch:
             lit = {i: (shaped[i][0], use) for i, use in _without_shadow_rays(image_bgr, shaped, batch, blur_px).items()}
             for i, got in _shaped_fits(lit, shapes, blur_px).items():
                 if got[0] is not None:        # else the fit with all rays stands
                     pts_all[ids.index(i)] = lit[i]
                     batch[i] = got
+                    shadow_n[i] = _shadow_rays(shaped[i][0], shaped[i][1] & ~lit[i][1], got[0][0][0])
         again = {}
         for i, got in zip(ids, pts_all):
             if got is None:
@@ -816,7 +824,7 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None 
                 continue
             major_deg = float(ang) if d1 >= d2 else float(ang) + 90.0
             res[i] = EdgeFit(True, "", np.array([cx, cy]), (max(d1, d2) / 2, min(d1, d2) / 2), major_deg, rms,
-                             float(keep.mean()), rms / np.sqrt(max(keep.sum(), 2) / 2.0))
+                             float(keep.mean()), rms / np.sqrt(max(keep.sum(), 2) / 2.0), *shadow_n.get(i, (0, (0.0, 0.0))))
             moved = np.hypot(cx - current[i][0][0], cy - current[i][0][1])
             if it == 0 and moved > RECENTRE_PX:
                 again[i] = ell   # re-centre the rays once (an oblique ray still finds the edge)
@@ -853,6 +861,17 @@ SHADOW_FAR_PX = 3.0
 #: the residuals do not show. Not the default, decided after the held-out numbers (docs/vision.md,
 #: "Shadow-side rays inside the outline"); ``camera_pbr --detectors shadow-inside`` measures it.
 SHADOW_IN_PX = float("inf")
+
+
+def _shadow_rays(pts: np.ndarray, left_out: np.ndarray, centre_px) -> tuple:
+    """(how many rays were left out as a contact shadow's, their mean unit direction from
+    ``centre_px`` (2-tuple)): ``pts`` (n, 2) the rays' edge points px, ``left_out`` (n,) bool."""
+    u = pts[left_out] - np.asarray(centre_px, float)
+    if not len(u):
+        return 0, (0.0, 0.0)
+    u = u / np.maximum(np.hypot(u[:, 0], u[:, 1]), 1e-9)[:, None]
+    m = u.mean(axis=0)
+    return int(len(u)), (float(m[0]), float(m[1]))
 
 
 def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px: float) -> dict:

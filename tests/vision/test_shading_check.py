@@ -1,0 +1,167 @@
+"""The shading check (issue 28, :mod:`monotracker.vision.shading_check`).
+
+A frame whose balls sit beside contact shadows has two readings of each ball's centre: the edge
+fit's, and that moved by the ball's shading shift. Where the pose the second readings give lies
+far from the frame's pose at the target, the frame is not trusted. The truth here is computed by
+this file, not by the tracker's linearisation: the second readings' pose is refitted by the
+registration (``refine_pose``) to the moved centres, and its distance at the 80 mm-deep target
+measured; the scene's balls are projected with ``sim.scenes``' OpenCV projection.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from monotracker.registration.pnp import refine_pose
+from monotracker.registration.report import layout_units
+from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised, make_scene
+from monotracker.vision import shading_check
+from monotracker.vision.camera_model import CameraModel
+from monotracker.vision.detection import Detection, ImageFiducial
+from monotracker.vision.frames import Frame
+from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
+
+BLANK = np.zeros((720, 1280, 3), np.uint8)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    s = make_scene(np.random.default_rng(11), noise_px=0.0, ellipse_bias=True, distance_mm=(450.0, 500.0))
+    Xc = s.fiducials_ct @ s.T_cam_ct[:3, :3].T + s.T_cam_ct[:3, 3]
+    px = _to_pixels(ellipse_centre_normalised(Xc, s.radius_mm), s.K, s.dist)
+    minor = s.K[0, 0] * s.radius_mm / np.sqrt(Xc[:, 2] ** 2 - s.radius_mm**2)
+    return s, s.targets_ct[8], px, minor                     # the target 80 mm deep
+
+
+def _target_of(s, px, target) -> np.ndarray:
+    """The target (camera frame, mm) under the pose refitted to image centres ``px``."""
+    xn = cv2.undistortPoints(px.reshape(-1, 1, 2), s.K, s.dist).reshape(-1, 2)
+    T = refine_pose(s.T_cam_ct, s.fiducials_ct, xn, np.array([s.K[0, 0], s.K[1, 1]]), s.radius_mm).T
+    return T[:3, :3] @ target + T[:3, 3]
+
+
+def _gradient_shifts(s, px, target, move_mm) -> np.ndarray:
+    """Per-ball shifts (k, 2) px that change linearly across the layout (``layout_units``), the
+    field that moves the refitted target most, scaled so that the second readings' pose lies
+    ``move_mm`` from the first at the target (refitted, bisected on the scale)."""
+    u = layout_units(px)
+    t0 = _target_of(s, px, target)
+    basis = [u @ np.eye(2)[[a]].T @ np.eye(2)[[b]] for a in range(2) for b in range(2)]
+    D = np.array([(_target_of(s, px + 0.01 * B, target) - t0) / 0.01 for B in basis]).T
+    g = np.linalg.eigh(D.T @ D)[1][:, -1]
+    field = sum(gi * B for gi, B in zip(g, basis))
+    lo, hi = 0.0, 1.0
+    while np.linalg.norm(_target_of(s, px + hi * field, target) - t0) < move_mm:
+        hi *= 2.0
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.linalg.norm(_target_of(s, px + mid * field, target) - t0) < move_mm else (lo, mid)
+    return 0.5 * (lo + hi) * field
+
+
+class _ShadedBalls:
+    """Hands over the balls at their true centres (plus 0.03 px noise) as a sharp frame's edge
+    fit would (edge spread 0.08 px), each with a shading shift and a contact shadow report."""
+
+    def __init__(self, px, minor, shifts, shadow_rays, shadow_side):
+        self.px, self.minor, self.shifts = px, minor, shifts
+        self.rays = np.broadcast_to(np.asarray(shadow_rays), (len(px),))
+        self.side = shadow_side                  # -1: the shadow opposite the shift (unlit side)
+        self.rng = np.random.default_rng(5)
+
+    def detect(self, image, hint=None) -> Detection:
+        fids = []
+        for p, b, v, n in zip(self.px, self.minor, self.shifts, self.rays):
+            unit = np.asarray(v, float) / max(float(np.linalg.norm(v)), 1e-12)
+            feats = {"edge_rms_px": 0.08, "shading_shift_vec_px": (float(v[0]), float(v[1])),
+                     "edge_shadow_rays": int(n), "edge_shadow_dir": tuple(0.8 * self.side * unit) if n else (0.0, 0.0)}
+            fids.append(ImageFiducial(np.array(p, float) + self.rng.normal(scale=0.03, size=2), (float(b), float(b)),
+                                      0.0, 1.0, float(np.pi * b * b), features=feats))
+        return Detection(fids, [], 0.0, "shaded-double")
+
+
+def _stream(s, target, det, config=None, frames=6):
+    camera = CameraModel(s.K, s.dist, (1280, 720))
+    trk = PoseTracker(s.fiducials_ct, camera, detector=det, radius_mm=s.radius_mm, target_ct=target,
+                      config=config or TrackerConfig())
+    return [trk.process(Frame(BLANK, k / 30.0, k)) for k in range(frames)]
+
+
+def test_a_pose_the_second_readings_move_is_not_trusted(scene):
+    """The second readings' pose lies 0.7 mm from the frame's at the target (refitted here): with
+    the factor 2 the predicted error is at least 1.4 mm x 0.9 (the tracker's linearisation) and no
+    frame is trusted; without the check the same frames are trusted (the balls themselves are
+    sharp and right)."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.7)
+    off = _stream(s, target, _ShadedBalls(px, minor, shifts, 6, -1), TrackerConfig(shading_check_factor=0.0))
+    assert all(e.ok for e in off[2:]), [e.reason for e in off]
+    now = _stream(s, target, _ShadedBalls(px, minor, shifts, 6, -1))
+    assert not any(e.ok for e in now), [e.predicted_tre_mm for e in now]
+    assert all(e.code == "tre_limit" for e in now[2:]), [e.reason for e in now]
+    assert all(e.predicted_tre_mm >= 0.9 * 2 * 0.7 for e in now[2:]), [e.predicted_tre_mm for e in now]
+
+
+@pytest.mark.parametrize("rays, side", [(2, 1), (1, -1)])
+def test_two_rays_anywhere_or_one_on_the_unlit_side_is_a_shadow(scene, rays, side):
+    """A ball counts as shadowed with 2 or more rays left out wherever they lie, or 1 on its
+    unlit side: the same 0.7 mm disagreement is then not trusted."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.7)
+    now = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, side))
+    assert not any(e.ok for e in now), [e.predicted_tre_mm for e in now]
+
+
+def test_a_small_disagreement_changes_nothing(scene):
+    """Second readings whose pose lies 0.05 mm away: twice that is below what the frame's own
+    cover predicts, and the prediction is the one without the check, to rounding."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.05)
+    now = _stream(s, target, _ShadedBalls(px, minor, shifts, 6, -1))
+    off = _stream(s, target, _ShadedBalls(px, minor, shifts, 6, -1), TrackerConfig(shading_check_factor=0.0))
+    assert all(e.ok for e in now[2:]), [e.reason for e in now]
+    np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-9)
+
+
+@pytest.mark.parametrize("case", ["no shadow", "one ray on the lit side", "too few shadowed"])
+def test_without_contact_shadows_the_check_does_not_apply(scene, case):
+    """The shading shift is also seen where nothing pushes the edge (a shaded ball with no contact
+    shadow: our simulator's): there the same disagreement costs nothing. No shadow rays; a single
+    ray left out on the lit side (the shift's own direction: what blur or a drape's edge gives
+    now and then); or shadows beside fewer than half the balls: trusted as without the check."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.7)
+    k = len(px)
+    rays, side = {"no shadow": (0, -1), "one ray on the lit side": (1, 1),
+                  "too few shadowed": ((np.arange(k) < (k - 1) // 2) * 6, -1)}[case]
+    now = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, side))
+    off = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, side), TrackerConfig(shading_check_factor=0.0))
+    assert all(e.ok for e in now[2:]), [e.reason for e in now]
+    np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-9)
+
+
+def test_the_raised_covariance_predicts_factor_times_the_move_at_the_target(scene):
+    """:func:`shading_check.raised_covariance` against finite differences of this file's own
+    pose arithmetic: the target's move under a pose change d and the RMS a covariance predicts
+    there; a small covariance is raised to exactly factor x the move, a large one kept."""
+    s, target, _px, _minor = scene
+    T = s.T_cam_ct
+
+    def moved_target(d):          # the pose parameters' convention: R -> exp(d_rot) R, t -> t + d_t
+        R = cv2.Rodrigues(np.asarray(d[:3], float))[0]
+        return R @ T[:3, :3] @ target + T[:3, 3] + d[3:]
+
+    t0 = moved_target(np.zeros(6))
+    G = np.array([(moved_target(e * 1e-7) - t0) / 1e-7 for e in np.eye(6)]).T     # (3, 6) mm per unit
+
+    def rms(cov):
+        return float(np.sqrt(np.trace(G @ cov @ G.T)))
+
+    d = np.array([2e-4, -1e-4, 3e-4, 0.1, -0.2, 0.05])
+    move = float(np.linalg.norm(G @ d))
+    small = np.diag([1e-9] * 3 + [1e-4] * 3)
+    raised = shading_check.raised_covariance(small, d, T, target, 2.0)
+    assert rms(raised) == pytest.approx(2.0 * move, rel=1e-5)
+    large = np.diag([1e-5] * 3 + [1.0] * 3)
+    assert rms(large) > 2.0 * move
+    np.testing.assert_array_equal(shading_check.raised_covariance(large, d, T, target, 2.0), large)
