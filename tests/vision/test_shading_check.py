@@ -8,6 +8,8 @@ registration (``refine_pose``) to the moved centres, and its distance at the 80 
 measured; the scene's balls are projected with ``sim.scenes``' OpenCV projection.
 """
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -99,6 +101,9 @@ def test_a_pose_the_second_readings_move_is_not_trusted(scene):
     now = _stream(s, target, _ShadedBalls(px, minor, shifts, 6, -1))
     assert not any(e.ok for e in now), [e.predicted_tre_mm for e in now]
     assert all(e.code == "tre_limit" for e in now[2:]), [e.reason for e in now]
+    # the reason says what the check saw: the move at the target, within 10 % of the refitted one
+    said = [re.search(r"the shading-corrected centres move the target ([0-9.]+) mm", e.reason) for e in now[2:]]
+    assert all(m and abs(float(m.group(1)) - 0.7) <= 0.07 for m in said), [e.reason for e in now]
     assert all(e.predicted_tre_mm >= 0.9 * 2 * 0.7 for e in now[2:]), [e.predicted_tre_mm for e in now]
 
 

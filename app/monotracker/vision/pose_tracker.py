@@ -582,10 +582,12 @@ class PoseTracker:
                         tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
                         tre_hi = tre * upper / sigma if sigma > 0 else tre
                     else:
-                        cov_est, cov_hi, edge_px = covs
+                        cov_est, cov_hi, edge_px, check_mm = covs
                         tre = float(predicted_tre(reg.T_cam_ct, cov_est, self.target_ct))
                         tre_hi = float(predicted_tre(reg.T_cam_ct, cov_hi, self.target_ct))
                         shading = f", edge spread {edge_px:.2f} px"
+                        if check_mm is not None:
+                            shading += f", the shading-corrected centres move the target {check_mm:.2f} mm"
                     if ok and not (tre_hi <= cfg.max_predicted_tre_mm):
                         ok, code = False, "tre_limit"
                         bound = (f"; up to {tre_hi:.2f} mm at {100 * cfg.noise_bound_confidence:.0f} % with {ne.dof} dof"
@@ -668,7 +670,8 @@ class PoseTracker:
         """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with
         the balls' shading error covered (``TrackerConfig.edge_bias_per_rms``,
         ``edge_common_per_rms``): (with the noise estimate ``sigma_px``, with its upper bound
-        ``upper_px``, the median edge RMS px). Per matched ball the centre error per coordinate
+        ``upper_px``, the median edge RMS px, the shading check's target move mm or None where it
+        does not apply). Per matched ball the centre error per coordinate
         is max(noise, ``edge_bias_per_rms`` x its edge RMS) (a weighted least-squares fit's
         covariance ``H^-1 J^T V J H^-1``), plus a shift common to all balls of
         ``edge_common_per_rms`` x their median edge RMS; where the shading check applies
@@ -716,9 +719,11 @@ class PoseTracker:
         if cfg.edge_gradient_per_rms > 0:
             pts = np.array([det.fiducials[i].centre_px for i, _ in reg.pairs], float)
             common = common + layout_gradient_covariance(J, pts, cfg.edge_gradient_per_rms * float(np.median(rms)), A)
-        disagree = None
+        disagree, check_mm = None, None
         if cfg.shading_check_factor > 0 and self.target_ct is not None:
             disagree = shading_check.pose_disagreement(A, feats, cfg.shading_check_share)
+            if disagree is not None:
+                check_mm = shading_check.target_move_mm(disagree, T, self.target_ct)
 
         def cov(noise_px: float) -> np.ndarray:
             c6 = (A * np.maximum(noise_px**2, shade)) @ A.T + common
@@ -726,7 +731,7 @@ class PoseTracker:
                 return c6
             return shading_check.raised_covariance(c6, disagree, T, self.target_ct, cfg.shading_check_factor)
 
-        return cov(sigma_px), cov(upper_px), float(np.median(rms))
+        return cov(sigma_px), cov(upper_px), float(np.median(rms)), check_mm
 
     def _size_excess(self, T_cam_ct: np.ndarray, fiducials: list, feats: list):
         """Per matched ball (``fiducials`` their indices, ``feats`` their detections' features),

@@ -82,6 +82,14 @@ def pose_disagreement(A: np.ndarray, features: list, min_share: float) -> np.nda
     return np.asarray(A, float) @ np.asarray(shifts, float).reshape(-1)
 
 
+def target_move_mm(d6: np.ndarray, T_cam_ct: np.ndarray, target_ct: np.ndarray) -> float:
+    """How far (mm) the pose change ``d6`` (:func:`pose_disagreement`) moves ``target_ct`` (3,,
+    CT mm), to first order."""
+    from monotracker.registration.report import target_covariance
+
+    return float(np.sqrt(max(np.trace(target_covariance(T_cam_ct, np.outer(d6, d6), target_ct)), 0.0)))
+
+
 def raised_covariance(cov6: np.ndarray, d6: np.ndarray, T_cam_ct: np.ndarray, target_ct: np.ndarray,
                       factor: float) -> np.ndarray:
     """``cov6`` (6, 6 pose covariance) raised along ``d6`` (:func:`pose_disagreement`) so that the
