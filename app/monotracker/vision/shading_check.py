@@ -99,7 +99,7 @@ def raised_covariance(cov6: np.ndarray, d6: np.ndarray, T_cam_ct: np.ndarray, ta
     from monotracker.registration.report import target_covariance
 
     dd = np.outer(d6, d6)
-    move2 = float(np.trace(target_covariance(T_cam_ct, dd, target_ct)))
+    move2 = target_move_mm(d6, T_cam_ct, target_ct) ** 2
     if not move2 > 0:
         return cov6
     have2 = float(np.trace(target_covariance(T_cam_ct, cov6, target_ct)))
