@@ -36,9 +36,9 @@ outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid basel
 ``ClassicalDetector.narrow_second_pass``), ``narrow-lenient`` (``edge`` whose second look asks a
 blob score of 0.35, not the first pass's 0.5: ``ClassicalDetector.narrow_min_score``, opt-in),
 ``shading`` (``edge`` with each shaded ball's centre moved towards its lit side and its colour
-blob's centre, :mod:`monotracker.vision.shading_shift`; opt-in), ``shadow-inside`` (``edge``
-whose contact-shadow test also leaves out shadowed rays inside the
-ball's outline: ``edge_fit.SHADOW_IN_PX`` 0.6, :class:`WithShadowRaysInside`; opt-in), ``idealS``
+blob's centre, :mod:`monotracker.vision.shading_shift`; opt-in), ``outside-only`` (``edge``
+whose contact-shadow test leaves out only shadowed rays outside the ball's outline, not those
+inside it: ``edge_fit.SHADOW_IN_PX`` inf, :class:`WithShadowDepth`; the default before 2026-12-01), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
@@ -115,8 +115,8 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
     if name == "shading":
         rules.shading_shift = True
         return ClassicalDetector(rules)
-    if name == "shadow-inside":
-        return WithShadowRaysInside(ClassicalDetector(rules), 0.6)
+    if name == "outside-only":
+        return WithShadowDepth(ClassicalDetector(rules), float("inf"))
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":
@@ -127,15 +127,15 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, shading, shadow-inside, first, narrow-lenient, refined, chroma, learned, "
+    raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, first, narrow-lenient, refined, chroma, learned, "
                      "idealS)")
 
 
-class WithShadowRaysInside:
-    """``shadow-inside``: the default detector with the edge fit's contact-shadow test on rays
-    INSIDE the fitted outline too (``edge_fit.SHADOW_IN_PX`` set to ``depth_px`` during its
-    ``detect``; opt-in, not kept as the default: docs/vision.md). Other attributes are the wrapped
-    detector's (the tracker sets the camera's outlines on its ``rules``)."""
+class WithShadowDepth:
+    """A detector whose edge fit leaves out shadowed rays inside the fitted outline only beyond
+    ``depth_px`` (``edge_fit.SHADOW_IN_PX`` set during its ``detect``; ``outside-only``: inf, the
+    rule before 2026-12-01: docs/vision.md). Other attributes are the wrapped detector's (the
+    tracker sets the camera's outlines on its ``rules``)."""
 
     def __init__(self, det, depth_px: float):
         self.det, self.depth_px = det, float(depth_px)
@@ -552,7 +552,7 @@ def main(argv=None) -> int:
     ap.add_argument("--renderer", choices=RENDERERS, default="mitsuba",
                     help="whose frames: mitsuba (default) or blender (<root>/blender/<split>)")
     ap.add_argument("--scenes", type=int, default=0, help="at most this many scenes per kind (0 = all)")
-    ap.add_argument("--detectors", default="edge,chroma,learned")
+    ap.add_argument("--detectors", default="edge,outside-only,chroma,learned")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--refiner", type=Path, default=None,
                     help="the centre refiner's ONNX network for the 'refined' detector (default: the shipped one)")

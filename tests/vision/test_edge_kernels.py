@@ -170,7 +170,8 @@ def test_shadow_rays_equal_the_reference(inside_px, monkeypatch):
     same rays of the same balls as the per-ball NumPy loop with cv2.remap (edge_fit.COMPILED
     False): on balls with a contact shadow drawn by test_edge_fit_shadow (the shadow rays found),
     and on random edge points over a random image, some balls' windows leaving it; with only rays
-    outside the outline tested (the default) and with rays inside too (SHADOW_IN_PX, opt-in)."""
+    outside the outline tested (the rule before 2026-12-01) and with rays inside too (SHADOW_IN_PX,
+    the default)."""
     from test_edge_fit_shadow import shadowed_ball
 
     monkeypatch.setattr(edge_fit, "SHADOW_IN_PX", inside_px)

@@ -39,9 +39,12 @@ def _trusted(scene, config) -> list:
 
 def test_planner_placed_frames_are_trusted_and_never_over_2mm(planned):
     """The issue's hard limit (no trusted pose over 2 mm) with either trust model; and the
-    default does trust poses on these close frames (the camera stands 300-450 mm away)."""
+    default does trust poses on these close frames (the camera stands 300-450 mm away): 2 of the
+    clutter scene's 8 (0.74, 0.72 mm) since the edge fit also leaves shadowed rays inside the
+    outline out (``edge_fit.SHADOW_IN_PX``, 2026-12-01; 3 before, 0.70-0.96 mm; without the
+    shading check it would now also trust one 1.02 mm off)."""
     default = [e for s in planned for e in _trusted(s, TrackerConfig())]
-    assert len(default) >= 3, default
+    assert len(default) >= 2, default
     for config in (TrackerConfig(), TrackerConfig(centre_bias="detector")):
         errs = [e for s in planned for e in _trusted(s, config)]
         assert all(e <= 2.0 for e in errs), errs
