@@ -12,6 +12,7 @@ ball's would be: 0.4 px. The truth (the target's error) is computed here, not by
 
 import numpy as np
 import pytest
+from layout_fields import worst_layout_field
 
 from monotracker.registration.report import tre_mm
 from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised, make_scene
@@ -142,28 +143,22 @@ def test_without_an_edge_spread_the_prediction_is_the_residuals_one(scene):
 
 
 def _worst_affine_field(s, target, rms_px):
-    """The image field G u_i (``layout_units``) that moves the refitted target most, scaled to
-    ``rms_px`` RMS per coordinate (finite differences of this file's own projection and the
-    registration's refit)."""
+    """The image field G u_i that moves the refitted target most
+    (:func:`layout_fields.worst_layout_field`, with this file's own projection and the
+    registration's refit), scaled to ``rms_px`` RMS per coordinate."""
     import cv2
 
     from monotracker.registration.pnp import refine_pose
-    from monotracker.registration.report import layout_units
 
     px, _ = _pixels(s, s.T_cam_ct)
-    u = layout_units(px)
     fxy = np.array([s.K[0, 0], s.K[1, 1]])
-    t0 = s.T_cam_ct[:3, :3] @ target + s.T_cam_ct[:3, 3]
 
     def target_of(field):
         xn = cv2.undistortPoints((px + field).reshape(-1, 1, 2), s.K, s.dist).reshape(-1, 2)
         T = refine_pose(s.T_cam_ct, s.fiducials_ct, xn, fxy, s.radius_mm).T
         return T[:3, :3] @ target + T[:3, 3]
 
-    basis = [u @ np.eye(2)[[a]].T @ np.eye(2)[[b]] for a in range(2) for b in range(2)]   # G = e_b e_a^T
-    D = np.array([(target_of(0.01 * B) - t0) / 0.01 for B in basis]).T                   # (3, 4) mm per px
-    g = np.linalg.eigh(D.T @ D)[1][:, -1]
-    field = sum(gi * B for gi, B in zip(g, basis))
+    field = worst_layout_field(px, target_of)
     return px, field * rms_px / np.sqrt(np.mean(field**2))
 
 

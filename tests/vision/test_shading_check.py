@@ -13,9 +13,9 @@ import re
 import cv2
 import numpy as np
 import pytest
+from layout_fields import worst_layout_field
 
 from monotracker.registration.pnp import refine_pose
-from monotracker.registration.report import layout_units
 from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised, make_scene
 from monotracker.vision import shading_check
 from monotracker.vision.camera_model import CameraModel
@@ -43,15 +43,11 @@ def _target_of(s, px, target) -> np.ndarray:
 
 
 def _gradient_shifts(s, px, target, move_mm) -> np.ndarray:
-    """Per-ball shifts (k, 2) px that change linearly across the layout (``layout_units``), the
-    field that moves the refitted target most, scaled so that the second readings' pose lies
-    ``move_mm`` from the first at the target (refitted, bisected on the scale)."""
-    u = layout_units(px)
+    """Per-ball shifts (k, 2) px that change linearly across the layout, the field that moves the
+    refitted target most (:func:`layout_fields.worst_layout_field`), scaled so that the second
+    readings' pose lies ``move_mm`` from the first at the target (refitted, bisected on the scale)."""
     t0 = _target_of(s, px, target)
-    basis = [u @ np.eye(2)[[a]].T @ np.eye(2)[[b]] for a in range(2) for b in range(2)]
-    D = np.array([(_target_of(s, px + 0.01 * B, target) - t0) / 0.01 for B in basis]).T
-    g = np.linalg.eigh(D.T @ D)[1][:, -1]
-    field = sum(gi * B for gi, B in zip(g, basis))
+    field = worst_layout_field(px, lambda shifts: _target_of(s, px + shifts, target))
     lo, hi = 0.0, 1.0
     while np.linalg.norm(_target_of(s, px + hi * field, target) - t0) < move_mm:
         hi *= 2.0
