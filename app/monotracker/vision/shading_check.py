@@ -62,8 +62,8 @@ def shadowed(features: dict) -> bool:
 
 
 def shadowed_share(features: list) -> float:
-    """Share (0-1) of the balls (their detection features) with a contact shadow on their unlit
-    side (:func:`shadowed`); 0 for none."""
+    """Share (0-1) of the balls (their detection features) with a contact shadow beside them
+    (:func:`shadowed`: 2+ left-out rays anywhere, or 1 on the unlit side); 0 for none."""
     return float(np.mean([shadowed(f) for f in features])) if features else 0.0
 
 
