@@ -48,12 +48,16 @@ before issue 28 and still the default; ``size``: the same with each ball's size 
 too, opt-in; ``calibrated``: still frames pooled, the centre bias
 covered; ``p95``: the default with "trusted" read as "within 1 mm at 95 %"
 (``max_not_right_probability`` 0.05), opt-in; ``no-check``: the default without the shading
-check (:mod:`monotracker.vision.shading_check`), the default before 2026-12-01; same frames,
-same detections; ``before`` covers each ball's edge spread since the
+check (:mod:`monotracker.vision.shading_check`), the default before 2026-12-01; ``no-memory``:
+the default without the balls of the last frames of a still head (:mod:`monotracker.vision.ball_memory`,
+``remember_frames`` 0), the default before 2026-12-01's second change; same frames,
+same detections (the detections the first model's stream made: a model replayed on them reads
+somewhat differently from the same model streamed live, its trust steering the detector's
+search windows); ``before`` covers each ball's edge spread since the
 per-frame model does, ``TrackerConfig.edge_bias_per_rms``; ``arm``: the ``before`` poses through
 the session's own gate, what may move the arm: a pose agreeing with the last one the gate
 trusted, or after a refusal spell 3 consecutive agreeing estimates, :func:`session_gate`;
-``arm-no-check``: the ``no-check`` poses through it):
+``arm-no-check`` / ``arm-no-memory``: the ``no-check`` / ``no-memory`` poses through it):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
   detections that are a ball; partial: accepted balls that were partly hidden;
 * centre err: mean / p95 px between the detected centre, carried to the sphere centre with the
@@ -209,10 +213,11 @@ def trust_models() -> dict:
     measured centre bias covered (``centre_bias="detector"``); ``p95``: the default with its
     promise read as "within 1 mm at 95 %" (``max_not_right_probability`` 0.05: the predicted
     error's distribution, not only its RMS, under 1 mm); ``no-check``: the default without the
-    shading check (``shading_check_factor`` 0: the default before 2026-12-01)."""
+    shading check (``shading_check_factor`` 0: the default before 2026-12-01); ``no-memory``: the
+    default without the remembered balls of a still head (``remember_frames`` 0)."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
-            "no-check": TrackerConfig(shading_check_factor=0.0)}
+            "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -279,8 +284,9 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
 #: the row of what may move the arm: the default trust model's poses through the session's gate
 ARM = "arm"
 #: trust model -> its row through the session's gate: the default's, and the default's without
-#: the shading check (the baseline of issue 28's last change, measured in the same run)
-GATED = {"before": ARM, "no-check": "arm-no-check"}
+#: the shading check and without the remembered balls (the baselines of issue 28's last changes,
+#: measured in the same run)
+GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory"}
 
 
 def session_gate():

@@ -148,6 +148,9 @@ class PoseEstimate:
     excluded: list = field(default_factory=list)
     #: frames of a still head pooled into ``T_cam_ct`` (1 = this frame alone; 0 when not ok)
     pooled_frames: int = 0
+    #: fiducials whose centre in this pose came from an earlier frame of the still head
+    #: (:mod:`.ball_memory`; their ``status`` says whether this frame found them: it did not)
+    remembered: list = field(default_factory=list)
 
     @property
     def latency_s(self) -> float:
@@ -301,6 +304,19 @@ class TrackerConfig:
     #: shading check"
     shading_check_factor: float = 2.0
     shading_check_share: float = 0.5
+    #: balls the detector found in the last frames of a still head and misses in this one are
+    #: given back to it for at most this many frames (:mod:`.ball_memory`: a ball's acceptance
+    #: flickers from frame to frame on shaded balls; the head's stillness is tested against the
+    #: frame each remembered ball comes from). 0 = off (each frame's own balls only, the default
+    #: before). The per-frame trust model only: the pooled one (``centre_bias`` set) pools its
+    #: frames itself. Rendered TUNING sets (30-frame still streams, 120 scene x condition rows):
+    #: see docs/vision.md "Balls of the last frames of a still head"
+    remember_frames: int = 7
+
+
+def _fiducials_used(n: int, remembered: int) -> str:
+    """'7 fiducials' or '7 fiducials, 2 of them from the last frames' (a refusal's reason)."""
+    return f"{n} fiducials" + (f", {remembered} of them from the last frames" if remembered else "")
 
 
 def tail_problem(cov3: np.ndarray, cfg: TrackerConfig) -> str:
@@ -396,6 +412,11 @@ class PoseTracker:
         from .still_pool import StillPool
 
         self.pool = StillPool(max_frames=c.pool_frames, alpha=c.pool_alpha)
+        from .ball_memory import StillBallMemory
+
+        #: the balls of the last frames of a still head (:mod:`.ball_memory`)
+        self.memory = StillBallMemory(max_age_frames=c.remember_frames if c.centre_bias is None else 0,
+                                      min_agreeing=c.min_fiducials)
         #: the centre bias the trust model covers (None: the trust model before issue 28)
         self.centre_bias = centre_bias_of(self.detector) if c.centre_bias == "detector" else c.centre_bias
         from monotracker.registration import pnp_kernels
@@ -491,6 +512,8 @@ class PoseTracker:
         if hint is None or hint.search_all:
             self._last_full_index = frame.index
         det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
+        det = self.memory.fill(det, frame.index, frame.t_capture)
+        remembered_det = np.array(["remembered_frames" in f.features for f in det.fiducials], bool)
         pts = det.centres
         known_sigma = self.noise.peek(0.0, 0)
         t0 = time.perf_counter()
@@ -517,6 +540,7 @@ class PoseTracker:
                 watch.update(frame.image, pts)
             t_motion += time.perf_counter() - t_m0
         if watch is not None and watch.moved:
+            self.memory.reset()
             return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason, truth=frame.truth)
         t_gates0 = time.perf_counter()
         t_reg = t_gates0 - t0
@@ -530,6 +554,7 @@ class PoseTracker:
         img_pts = np.full((n, 2), np.nan)
         res = np.full(n, np.nan)
         seen = np.zeros(n, bool)
+        remembered = np.zeros(n, bool)      # matched to a ball of an earlier frame (ball_memory)
         ok, reason, code = reg.ok, reg.reason, ("" if reg.ok else "pose_lost")
         sigma = float("nan")
         sigma_src = ""
@@ -541,6 +566,7 @@ class PoseTracker:
                 img_pts[j] = pts[i]
                 res[j] = reg.residuals_px[k] if k < len(reg.residuals_px) else np.nan
                 seen[j] = True
+                remembered[j] = remembered_det[i]
             matched = [j for _, j in reg.pairs]
             minor = [min(det.fiducials[i].axes_px) for i, _ in reg.pairs]
             if len(reg.pairs) < cfg.min_fiducials:
@@ -594,7 +620,7 @@ class PoseTracker:
                                  if tre_hi > tre + 0.005 else "")
                         reason = (f"predicted error at the target {tre:.2f} mm{bound}: over the "
                                   f"{cfg.max_predicted_tre_mm:g} mm limit (image noise {sigma:.2f} px{shading}, "
-                                  f"{len(reg.pairs)} fiducials)")
+                                  f"{_fiducials_used(len(reg.pairs), int(remembered.sum()))})")
                     elif ok and reg.pose_covariance is not None and reg.sigma_px > 0:
                         if covs is None:
                             cov3 = target_covariance(reg.T_cam_ct, reg.pose_covariance, self.target_ct)
@@ -605,7 +631,8 @@ class PoseTracker:
                         if why:
                             ok, code = False, "tre_limit"
                             reason = (f"predicted error at the target {tre:.2f} mm, but {why} (image noise "
-                                      f"{sigma:.2f} px{shading}, {len(reg.pairs)} fiducials)")
+                                      f"{sigma:.2f} px{shading}, "
+                                      f"{_fiducials_used(len(reg.pairs), int(remembered.sum()))})")
             else:
                 self.pool.reset()
         else:
@@ -614,21 +641,22 @@ class PoseTracker:
                 reason = f"{len(pts)} fiducials detected (need {cfg.min_fiducials}): {reason}"
                 code = "occlusion"
             # best-effort status from the last valid pose
-            if self._last_T is not None and len(pts):
+            own = pts[~remembered_det]      # what this frame found (not the remembered balls)
+            if self._last_T is not None and len(own):
                 proj = self.camera.project(apply_transform(self._last_T, self.fiducials_ct))
-                d = np.linalg.norm(proj[:, None] - pts[None], axis=2)
+                d = np.linalg.norm(proj[:, None] - own[None], axis=2)
                 for j in range(n):
                     if j in self.excluded:
                         continue
                     i = int(np.argmin(d[j]))
                     if d[j, i] <= cfg.status_gate_px:
                         seen[j] = True
-                        img_pts[j] = pts[i]
+                        img_pts[j] = own[i]
         status = []
         for j in range(n):
             if j in self.excluded:
                 status.append(MOVED)
-            elif seen[j]:
+            elif seen[j] and not remembered[j]:     # found in this frame (a remembered ball is not)
                 status.append(SEEN)
             elif self._prev_seen[j]:
                 status.append(NEWLY_LOST)
@@ -642,7 +670,7 @@ class PoseTracker:
                           f"(occluded?) in frame {frame.index}")
         if not ok and (self._last_ok or self._last_ok is None or code != self._last_code):
             alerts.append(f"no valid pose: {reason}")
-        self._prev_seen = seen
+        self._prev_seen = seen & ~remembered
         self._ever_seen |= seen
         self._last_ok = ok
         self._last_code = code if not ok else ""
@@ -660,11 +688,11 @@ class PoseTracker:
             t_published=time.monotonic(), T_cam_ct=T, status=status, image_points_px=img_pts, residuals_px=res,
             fre_mm=float(reg.fre_mm) if ok else float("nan"),
             reprojection_rms_px=float(reg.reprojection_rms_px) if reg.ok else float("nan"),
-            predicted_tre_mm=tre, n_detected=len(pts), n_matched=int(seen.sum()) if reg.ok else 0,
+            predicted_tre_mm=tre, n_detected=int((~remembered_det).sum()), n_matched=int(seen.sum()) if reg.ok else 0,
             alerts=alerts, used_prior=bool(reg.used_prior), detect_s=det.time_s, register_s=t_reg,
             truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
             moved=new_moved, excluded=sorted(self.excluded), stages_s=stages,
-            pooled_frames=n_pooled if ok else 0)
+            pooled_frames=n_pooled if ok else 0, remembered=[int(j) for j in np.flatnonzero(remembered)])
 
     def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float):
         """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with
