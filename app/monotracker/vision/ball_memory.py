@@ -68,7 +68,8 @@ class StillBallMemory:
         self.max_shift_px = float(max_shift_px)
         self.max_common_px = float(max_common_px)
         self.min_agreeing = max(1, int(min_agreeing))
-        #: (frame index, t_capture s, the balls the detector accepted in that frame), oldest first
+        #: (frame index, t_capture s, the balls the detector accepted in that frame, their centres
+        #: (k, 2) px, half their minor semi-axes (k,) px), oldest first
         self._frames: deque = deque(maxlen=max(1, self.max_age_frames))
         self._last_index: int | None = None
 
@@ -88,44 +89,44 @@ class StillBallMemory:
             self.reset()
         self._last_index = int(frame_index)
         own = [f for f in det.fiducials if "remembered_frames" not in f.features]
-        added = self._remembered(own, int(frame_index), float(t_capture))
-        self._frames.append((int(frame_index), float(t_capture), own))
+        centres = np.array([f.centre_px for f in own], float).reshape(-1, 2)
+        near = 0.5 * np.array([min(f.axes_px) for f in own], float)
+        added = self._remembered(centres, int(frame_index), float(t_capture))
+        self._frames.append((int(frame_index), float(t_capture), own, centres, near))
         if not added:
             return det
         return dataclasses.replace(det, fiducials=list(det.fiducials) + added)
 
-    def _remembered(self, own: list, index: int, t: float) -> list:
-        if not self._frames or len(own) < self.min_agreeing:
+    def _remembered(self, cur: np.ndarray, index: int, t: float) -> list:
+        """The remembered balls for a frame whose own balls lie at ``cur`` ((n, 2) px)."""
+        if not self._frames or len(cur) < self.min_agreeing:
             return []
-        cur = np.array([f.centre_px for f in own], float).reshape(-1, 2)
-        have = [c for c in cur]
+        have = cur
         added = []
-        for past_index, past_t, past in reversed(self._frames):
+        for past_index, past_t, past, pc, near in reversed(self._frames):
             age = index - past_index
             if age > self.max_age_frames or t - past_t > self.max_age_s:
                 break
-            still = self._still_since(cur, past)
+            still = self._still_since(cur, pc, near)
             if still is None:
                 continue            # too few balls in common to tell: nothing from that frame
             if not still:
                 break
-            for f in past:
-                near = 0.5 * min(f.axes_px)
-                if any(np.hypot(*(np.asarray(f.centre_px, float) - c)) < near for c in have):
-                    continue
+            new = np.linalg.norm(pc[:, None] - have[None], axis=2).min(axis=1) >= near
+            for k in np.flatnonzero(new):
+                f = past[k]
                 added.append(ImageFiducial(np.array(f.centre_px, float), f.axes_px, f.angle_deg, f.score,
                                            f.area_px, "", {**f.features, "remembered_frames": age}))
-                have.append(np.asarray(f.centre_px, float))
+            have = np.concatenate([have, pc[new]])
         return added
 
-    def _still_since(self, cur: np.ndarray, past: list) -> bool | None:
-        """Whether the balls of this frame (centres ``cur`` (n, 2) px) that lie on balls of
-        ``past`` moved at most ``max_shift_px`` each and ``max_common_px`` on average since
-        that frame; None when fewer than ``min_agreeing`` of them do (cannot tell)."""
-        if not past:
+    def _still_since(self, cur: np.ndarray, pc: np.ndarray, near: np.ndarray) -> bool | None:
+        """Whether the balls of this frame (centres ``cur`` (n, 2) px) that lie on balls of a
+        past frame (centres ``pc`` (m, 2) px, within ``near`` (m,) px of them) moved at most
+        ``max_shift_px`` each and ``max_common_px`` on average since that frame; None when
+        fewer than ``min_agreeing`` of them do (cannot tell)."""
+        if not len(pc):
             return None
-        pc = np.array([f.centre_px for f in past], float).reshape(-1, 2)
-        near = 0.5 * np.array([min(f.axes_px) for f in past], float)
         d = np.linalg.norm(cur[:, None] - pc[None], axis=2)
         j = d.argmin(axis=1)
         rows = np.arange(len(cur))
