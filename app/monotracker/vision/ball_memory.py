@@ -5,9 +5,11 @@ Why: on physically rendered frames a whole ball's acceptance flickers from frame
 still head: its edge fit, cut test and blob score sit near their limits and each frame's sensor
 noise tips them one way or the other. On the Mitsuba tuning scenes (8 frames of a still head,
 the default chain) a frame holds 60 / 31 / 35 / 28 of the whole balls that the 8 frames hold 75
-/ 39 / 58 / 34 of (clean / OR / degraded / clutter, 10 scenes each); scenes with at least 4
-balls in a frame 8 / 3 / 5 / 2, over the 8 frames together 10 / 6 / 8 / 5. A ball's place does
-not change while the head is still, so a frame may use where the last frames found it.
+/ 39 / 58 / 34 of (clean / OR / degraded / clutter, 10 scenes each); scenes whose frames hold
+4 or more balls on average 8 / 3 / 5 / 2, with 4 or more over the 8 frames together 10 / 6 / 8 /
+5. A ball's place does not change while the head is still, so a frame may use where the last
+frames found it. docs/vision.md "Balls of the last frames of a still head" has the trust
+figures (tuning and held-out).
 
 What a remembered ball is: a ball the detector accepted in one of the last
 :attr:`StillBallMemory.max_age_frames` frames (and at most :attr:`~StillBallMemory.max_age_s`
