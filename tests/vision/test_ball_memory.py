@@ -174,3 +174,21 @@ def test_remembered_balls_make_the_predicted_error_smaller_and_the_pose_no_worse
     err = [tre_mm(e.T_cam_ct, s.T_cam_ct, target[None])[0] for e, _ in with_memory if e.ok]
     assert len(err) >= len([e for e, _ in without if e.ok])
     assert max(err) <= 1.0, err
+
+
+def test_a_tracker_reset_forgets_the_remembered_balls():
+    """A new registration (``PoseTracker.reset``) starts with no memory: the next frame's missed
+    balls are not given back (the stream before it may have been another head position)."""
+    rng = np.random.default_rng(5)
+    s = make_scene(rng, noise_px=0.0, ellipse_bias=True, distance_mm=(450.0, 500.0))
+    det = PointDetector()
+    cam = CameraModel(s.K, s.dist if s.dist is not None else np.zeros(5), (1280, 720))
+    tr = PoseTracker(s.fiducials_ct, cam, detector=det, radius_mm=s.radius_mm, target_ct=s.targets_ct[8])
+    px, minor = _observe(s, rng, 0.02)
+    det.set(px, minor)
+    tr.process(Frame(BLANK, 0.0, 0))
+    det.set(px[2:], minor[2:])
+    assert sorted(tr.process(Frame(BLANK, 1 / 30, 1)).remembered) == [0, 1]
+    tr.reset()
+    e = tr.process(Frame(BLANK, 2 / 30, 2))
+    assert e.remembered == [] and e.n_matched <= len(px) - 2
