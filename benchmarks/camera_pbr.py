@@ -625,7 +625,8 @@ def main(argv=None) -> int:
         f"target 80 mm deep; trust models: {', '.join(trust_models())}, and through the session's gate: "
         f"{', '.join(f'{v} ({k})' for k, v in GATED.items())}")
     dw = max([9] + [len(d) for d in dets])
-    hdr = (f"{'condition':<9} {'detector':<{dw}} {'trust':<12} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
+    tw = max([12] + [len(t) for t in [*trust_models(), *GATED.values()]])
+    hdr = (f"{'condition':<9} {'detector':<{dw}} {'trust':<{tw}} {'scenes':>6} {'recall':>6} {'prec':>5} {'partial':>7} "
            f"{'err px':>6} {'p95 px':>6} {'tr@1 %':>6} {'tr@' + str(a.frames) + ' %':>6} {'med mm':>6} "
            f"{'p99 mm':>6} {'max mm':>6} {'>2mm':>4} {'1-2mm':>9} {'pred/act':>8} {'pose %':>6} {'<=1mm %':>7}")
     say(hdr)
@@ -653,7 +654,7 @@ def main(argv=None) -> int:
             for tm in [*trust_models(), *GATED.values()]:
                 sm = summarise([r[tm] for r in runs], a.frames)
                 result["conditions"][cond][dn][tm] = sm
-                say(f"{cond:<9} {dn:<{dw}} {tm:<12} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
+                say(f"{cond:<9} {dn:<{dw}} {tm:<{tw}} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
                     f"{ds['partial_accepted']:>7} {ds['centre_err_mean_px']:>6.3f} {ds['centre_err_p95_px']:>6.2f} "
                     f"{sm['trusted_at_1_pct']:>6.0f} {sm[f'trusted_at_{a.frames}_pct']:>6.0f} "
                     f"{sm['err_median_mm']:>6.2f} {sm['err_p99_mm']:>6.2f} {sm['err_max_mm']:>6.2f} "
