@@ -38,7 +38,7 @@ blob score of 0.35, not the first pass's 0.5: ``ClassicalDetector.narrow_min_sco
 ``shading`` (``edge`` with each shaded ball's centre moved towards its lit side and its colour
 blob's centre, :mod:`monotracker.vision.shading_shift`; opt-in), ``outside-only`` (``edge``
 whose contact-shadow test leaves out only shadowed rays outside the ball's outline, not those
-inside it: ``edge_fit.SHADOW_IN_PX`` inf, :class:`WithShadowDepth`; the default before 2026-12-01), ``idealS``
+inside it: ``BlobRules.shadow_in_px`` inf; the default before 2026-12-01), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
@@ -120,7 +120,8 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         rules.shading_shift = True
         return ClassicalDetector(rules)
     if name == "outside-only":
-        return WithShadowDepth(ClassicalDetector(rules), float("inf"))
+        rules.shadow_in_px = float("inf")
+        return ClassicalDetector(rules)
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":
@@ -133,29 +134,6 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         return LearnedDetector(rules=rules)
     raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, first, narrow-lenient, refined, chroma, learned, "
                      "idealS)")
-
-
-class WithShadowDepth:
-    """A detector whose edge fit leaves out shadowed rays inside the fitted outline only beyond
-    ``depth_px`` (``edge_fit.SHADOW_IN_PX`` set during its ``detect``; ``outside-only``: inf, the
-    rule before 2026-12-01: docs/vision.md). Other attributes are the wrapped detector's (the
-    tracker sets the camera's outlines on its ``rules``)."""
-
-    def __init__(self, det, depth_px: float):
-        self.det, self.depth_px = det, float(depth_px)
-
-    def __getattr__(self, name):
-        return getattr(self.det, name)
-
-    def detect(self, image, hint=None):
-        from monotracker.vision import edge_fit
-
-        kept = edge_fit.SHADOW_IN_PX
-        edge_fit.SHADOW_IN_PX = self.depth_px
-        try:
-            return self.det.detect(image) if hint is None else self.det.detect(image, hint)
-        finally:
-            edge_fit.SHADOW_IN_PX = kept
 
 
 class IdealDetector:

@@ -165,7 +165,7 @@ def test_luma_at_matches_remap():
 
 
 @pytest.mark.parametrize("inside_px", [float("inf"), 0.6])
-def test_shadow_rays_equal_the_reference(inside_px, monkeypatch):
+def test_shadow_rays_equal_the_reference(inside_px):
     """edge_kernels.shadow_rays (the contact-shadow test of all balls in one call) leaves out the
     same rays of the same balls as the per-ball NumPy loop with cv2.remap (edge_fit.COMPILED
     False): on balls with a contact shadow drawn by test_edge_fit_shadow (the shadow rays found),
@@ -173,8 +173,6 @@ def test_shadow_rays_equal_the_reference(inside_px, monkeypatch):
     outside the outline tested (the rule before 2026-12-01) and with rays inside too (SHADOW_IN_PX,
     the default)."""
     from test_edge_fit_shadow import shadowed_ball
-
-    monkeypatch.setattr(edge_fit, "SHADOW_IN_PX", inside_px)
 
     rng = np.random.default_rng(7)
     changed = 0
@@ -187,7 +185,8 @@ def test_shadow_rays_equal_the_reference(inside_px, monkeypatch):
                 ((c[0] - 0.3, c[1] + 0.5), (2 * radius + 0.2, 2 * radius - 0.4), 10.0)]
         balls = {b: got for b, got in enumerate(edge_fit._edge_points(img, ells, 1.5)) if got is not None}
         fits = edge_fit._shaped_fits(balls, [(1.0, 0.0)] * len(ells), 1.5)
-        got, ref = _both(lambda img=img, balls=balls, fits=fits: edge_fit._without_shadow_rays(img, balls, fits, 1.5))
+        got, ref = _both(lambda img=img, balls=balls, fits=fits: edge_fit._without_shadow_rays(img, balls, fits, 1.5,
+                                                                                                 inside_px))
         assert got.keys() == ref.keys()
         for i in got:
             assert np.array_equal(got[i], ref[i])
@@ -205,7 +204,7 @@ def test_shadow_rays_equal_the_reference(inside_px, monkeypatch):
         balls[i] = (c + rad[:, None] * np.column_stack([np.cos(phi), np.sin(phi)]), rng.random(n) > 0.1)
         ell = ((float(c[0]), float(c[1])), (2 * r / ratio, 2 * r), float(major))
         fits[i] = (None if i % 9 == 0 else (ell, np.ones(n, bool), 0.1), False)
-    got, ref = _both(lambda: edge_fit._without_shadow_rays(img, balls, fits, 1.8))
+    got, ref = _both(lambda: edge_fit._without_shadow_rays(img, balls, fits, 1.8, inside_px))
     assert got.keys() == ref.keys() and 5 <= len(got) < 40
     for i in got:
         assert np.array_equal(got[i], ref[i])

@@ -1,4 +1,5 @@
-"""The edge fit's shadow-side rays inside the outline (``edge_fit.SHADOW_IN_PX``, issue 28 item 2) on the committed physically rendered crops (Mitsuba and Blender tuning splits,
+"""The edge fit's shadow-side rays inside the outline (``edge_fit.SHADOW_IN_PX``, a detector's
+``BlobRules.shadow_in_px``; issue 28 item 2) on the committed physically rendered crops (Mitsuba and Blender tuning splits,
 tests/data/pbr*, no renderer needed): on a ball's unlit side the limb merges with its contact
 shadow and that arc's edge lies inside the true outline, which makes whole balls fail the cut
 test. Judged against each scene's own truth (true ellipse centres, visible fraction per ball),
@@ -20,10 +21,11 @@ from monotracker.vision.detection import BlobRules
 SETS = ("pbr", "pbr_blender", "pbr_planned")
 
 
-def _found(scene, image) -> dict:
-    """{ball index: centre error px} of the balls the detector accepts (matched to the truth)."""
+def _found(scene, image, shadow_in_px=None) -> dict:
+    """{ball index: centre error px} of the balls the detector accepts (matched to the truth);
+    ``shadow_in_px`` the detector's ``BlobRules.shadow_in_px`` (None: the default)."""
     tr, cam = scene.truth, scene.camera_model()
-    rules = BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0]))
+    rules = BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0]), shadow_in_px=shadow_in_px)
     rules.camera = cam
     out = {}
     for f in ClassicalDetector(rules).detect(image).fiducials:
@@ -36,22 +38,16 @@ def _found(scene, image) -> dict:
 
 @pytest.fixture(scope="module")
 def both():
-    """Per scene x condition: (truth, found with the rule, found with only outside rays)."""
+    """Per scene x condition: (truth, found with the rule (the default), found with only outside
+    rays (``BlobRules.shadow_in_px`` inf, the detector's own setting: no module state changed))."""
     rows = []
-    mp = pytest.MonkeyPatch()
-    try:
-        for name in SETS:
-            for scene in list_scenes(committed_root().parent / name / "tuning"):
-                for cond, c in CONDITIONS.items():
-                    if scene.spec.kind != c["kind"]:
-                        continue
-                    img = camera_frames(scene, cond, 1)[0]
-                    mp.setattr(edge_fit, "SHADOW_IN_PX", 0.6)
-                    with_rule = _found(scene, img)
-                    mp.setattr(edge_fit, "SHADOW_IN_PX", float("inf"))
-                    rows.append((scene.truth, with_rule, _found(scene, img)))
-    finally:
-        mp.undo()
+    for name in SETS:
+        for scene in list_scenes(committed_root().parent / name / "tuning"):
+            for cond, c in CONDITIONS.items():
+                if scene.spec.kind != c["kind"]:
+                    continue
+                img = camera_frames(scene, cond, 1)[0]
+                rows.append((scene.truth, _found(scene, img), _found(scene, img, float("inf"))))
     return rows
 
 

@@ -186,6 +186,10 @@ class BlobRules:
     #: move an edge-fitted shaded ball's centre back towards the sphere's
     #: (:mod:`.shading_shift`: the push of an unlit limb read with its contact shadow)
     shading_shift: bool = False
+    #: the edge fit leaves out a shadowed ray inside the fitted outline beyond this depth (px;
+    #: None: :data:`.edge_fit.SHADOW_IN_PX`, the default; inf: only rays outside it, the rule
+    #: before 2026-12-01, ``benchmarks/camera_pbr.py``'s ``outside-only``)
+    shadow_in_px: float | None = None
 
     @property
     def radius_range_px(self) -> tuple[float, float]:
@@ -424,7 +428,8 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
             edge_blur_px = (measure_edge_blur(refine_image, ells) if edge_fit.MEASURE_BLUR else None) \
                 or edge_fit.BLUR_PROBE_PX
         clock.lap("blur")
-        fits = fit_ball_edges(refine_image, _started_centres(start_px, ells), edge_blur_px, shapes, frame=frame)
+        fits = fit_ball_edges(refine_image, _started_centres(start_px, ells), edge_blur_px, shapes, frame=frame,
+                              shadow_in_px=rules.shadow_in_px)
         edge_fits = dict(zip(good, fits))
         clock.lap("edge_fit")
     if info is not None:

@@ -733,7 +733,7 @@ def _robust_ellipse(pts, usable, shape=None, min_share: float = MIN_RAY_SHARE):
 
 
 def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None = None,
-                   shapes: list | None = None, frame: dict | None = None) -> list:
+                   shapes: list | None = None, frame: dict | None = None, shadow_in_px: float | None = None) -> list:
     """Fit the edges of several balls (see the module docstring): ``ellipses`` the coarse
     OpenCV ellipses ((cx, cy), (d1, d2), angle_deg) in px (full axes, as cv2.fitEllipse gives
     them); ``blur_px`` the edge blur (px); None = measured from these balls' edges
@@ -746,7 +746,11 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None 
     measured: ``chroma_band_limited`` (bool; measured and stored when absent, see
     :func:`chroma_is_band_limited`) and, out, ``blur_px_measured`` (the edge blur, px, measured
     from this fit's own rays, :func:`blur_from_widths`; None when too few): a stream of frames
-    passes it on, and the next frame's fit needs no blur probe of its own."""
+    passes it on, and the next frame's fit needs no blur probe of its own.
+
+    ``shadow_in_px``: how far inside the fitted outline (px) a shadowed ray must lie to be left
+    out as a contact shadow's (None: :data:`SHADOW_IN_PX`; inf: only rays outside it, the rule
+    before 2026-12-01; :class:`~.detection.BlobRules` carries the detector's choice)."""
     if shapes is not None and len(shapes) != len(ellipses):
         raise ValueError(f"fit_ball_edges: {len(shapes)} shapes for {len(ellipses)} ellipses")
     if blur_px is None:
@@ -775,7 +779,9 @@ def fit_ball_edges(image_bgr: np.ndarray, ellipses: list, blur_px: float | None 
         batch = _shaped_fits(shaped, shapes, blur_px)
         shadow_n = {}
         if SHADOW_NF > 0 and batch:
-            lit = {i: (shaped[i][0], use) for i, use in _without_shadow_rays(image_bgr, shaped, batch, blur_px).items()}
+            depth = SHADOW_IN_PX if shadow_in_px is None else float(shadow_in_px)
+            lit = {i: (shaped[i][0], use)
+                   for i, use in _without_shadow_rays(image_bgr, shaped, batch, blur_px, depth).items()}
             for i, got in _shaped_fits(lit, shapes, blur_px).items():
                 if got[0] is not None:        # else the fit with all rays stands
                     pts_all[ids.index(i)] = lit[i]
@@ -885,10 +891,12 @@ def _shadow_rays(pts: np.ndarray, left_out: np.ndarray, centre_px) -> tuple:
     return int(len(u)), (float(m[0]), float(m[1]))
 
 
-def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px: float) -> dict:
+def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px: float,
+                         shadow_in_px: float) -> dict:
     """The balls of known shape (``balls`` {index: (edge points (n, 2) px, usable)}, ``fits`` as
-    :func:`_shaped_fits` gives them) with contact-shadow rays (see :data:`SHADOW_NF`): {index:
-    usable without them}, only where some were found and enough rays remain."""
+    :func:`_shaped_fits` gives them) with contact-shadow rays (see :data:`SHADOW_NF`; rays inside
+    the outline beyond ``shadow_in_px`` px too): {index: usable without them}, only where some
+    were found and enough rays remain."""
     h, w = image_bgr.shape[:2]
     img = image_bgr if image_bgr.flags.c_contiguous else np.ascontiguousarray(image_bgr)
     r_near = blur_px / (BLUR_PER_WIDTH * DISC_WIDTH_PER_RADIUS) + NEAR_BG_MARGIN_PX
@@ -902,7 +910,7 @@ def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px
         use_out, changed = edge_kernels.shadow_rays(
             img, LINEAR_LUT, _LUMA_WEIGHTS, P, valid, use, np.ones(len(ids), bool), ell[0], ell[1], ell[2],
             ell[3], ell[4], float(r_near), float(SHADOW_FAR_PX), float(SHADOW_OUT_PX), float(SHADOW_NF),
-            float(MIN_RAY_SHARE), float(SHADOW_IN_PX))
+            float(MIN_RAY_SHARE), float(shadow_in_px))
         return {i: use_out[b, :len(balls[i][0])].copy() for b, i in enumerate(ids) if changed[b]}
     out = {}
     for i, (fit, _cut) in fits.items():
@@ -914,7 +922,7 @@ def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px
         d = pts - c
         ud = d / np.maximum(np.sqrt((d * d).sum(1)), 1e-9)[:, None]
         res = _ellipse_residuals(pts, ell)
-        cand = usable & ((res > SHADOW_OUT_PX) | (res < -SHADOW_IN_PX))
+        cand = usable & ((res > SHADOW_OUT_PX) | (res < -shadow_in_px))
         if not cand.any():
             continue
         # the fitted outline along each ray, then the background's luma just beyond it and further out
