@@ -657,11 +657,12 @@ class PoseTracker:
                     if d[j, i] <= cfg.status_gate_px:
                         seen[j] = True
                         img_pts[j] = own[i]
+        found_now = seen & ~remembered      # found in this frame (a remembered ball is not)
         status = []
         for j in range(n):
             if j in self.excluded:
                 status.append(MOVED)
-            elif seen[j] and not remembered[j]:     # found in this frame (a remembered ball is not)
+            elif found_now[j]:
                 status.append(SEEN)
             elif self._prev_seen[j]:
                 status.append(NEWLY_LOST)
@@ -675,7 +676,7 @@ class PoseTracker:
                           f"(occluded?) in frame {frame.index}")
         if not ok and (self._last_ok or self._last_ok is None or code != self._last_code):
             alerts.append(f"no valid pose: {reason}")
-        self._prev_seen = seen & ~remembered
+        self._prev_seen = found_now
         self._ever_seen |= seen
         self._last_ok = ok
         self._last_code = code if not ok else ""
