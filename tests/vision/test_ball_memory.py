@@ -116,6 +116,41 @@ def test_one_ball_moved_more_than_the_limit_stops_the_memory():
     assert _remembered(mem.fill(_det(now[1:]), 1, 1 / 30)) == {}
 
 
+
+def test_notes_of_the_still_frames_are_read_newest_first_and_not_past_a_move():
+    """What a frame writes down (:meth:`StillBallMemory.note`) is read by the next frames of the
+    still head (newest first), within the memory's age; not past a frame the balls moved from,
+    not by a frame with too few balls of its own, not after a reset, not with the memory off."""
+    mem = StillBallMemory(max_age_frames=3)
+    for k, seen in enumerate([[], [0.0], [0.1, 0.0]]):
+        mem.fill(_det(BALLS), k, k / 30)
+        assert mem.still_notes("share") == pytest.approx(seen)
+        mem.note("share", 0.1 * k)
+    mem.fill(_det(BALLS), 3, 3 / 30)
+    assert mem.still_notes("share") == pytest.approx([0.2, 0.1, 0.0])
+    assert mem.still_notes("other") == []
+    mem.note("share", 0.3)
+    mem.fill(_det(BALLS), 4, 4 / 30)                          # frame 0 is now older than 3 frames
+    assert mem.still_notes("share") == pytest.approx([0.3, 0.2, 0.1])
+    mem.note("share", 0.4)
+    moved = BALLS + [1.0, 0.0]                                # the head moved: nothing from before
+    mem.fill(_det(moved), 5, 5 / 30)
+    assert mem.still_notes("share") == []
+    mem.note("share", 0.5)
+    mem.fill(_det(moved[:3]), 6, 6 / 30)                      # 3 balls of its own: cannot tell
+    assert mem.still_notes("share") == []
+    mem.fill(_det(moved), 7, 7 / 30)
+    assert mem.still_notes("share") == pytest.approx([0.5])   # frame 6 wrote nothing
+    mem.reset()
+    mem.fill(_det(moved), 8, 8 / 30)
+    assert mem.still_notes("share") == []
+    off = StillBallMemory(max_age_frames=0)
+    off.fill(_det(BALLS), 0, 0.0)
+    off.note("share", 1.0)
+    off.fill(_det(BALLS), 1, 1 / 30)
+    assert off.still_notes("share") == []
+
+
 # --- the pose tracker with a memory, on point-level scenes of known truth ---------------------
 
 def _observe(s, rng, noise_px):

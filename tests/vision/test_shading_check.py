@@ -166,3 +166,58 @@ def test_the_raised_covariance_predicts_factor_times_the_move_at_the_target(scen
     large = np.diag([1e-5] * 3 + [1.0] * 3)
     assert rms(large) > 2.0 * move
     np.testing.assert_array_equal(shading_check.raised_covariance(large, d, T, target, 2.0), large)
+
+
+class _FlickeringShadows(_ShadedBalls):
+    """:class:`_ShadedBalls` whose contact shadows the edge fit reports in some frames and not in
+    others (``shadowed[k]``: frame k reports 6 rays beside every ball, else beside fewer than half
+    of them), the head moving ``drift_px`` per frame across the image (0: still)."""
+
+    def __init__(self, px, minor, shifts, shadowed, drift_px=0.0):
+        super().__init__(px, minor, shifts, 6, -1)
+        self.shadowed, self.drift, self.k = list(shadowed), float(drift_px), 0
+        k = len(px)
+        self.few = (np.arange(k) < (k - 1) // 2) * 6
+
+    def detect(self, image, hint=None) -> Detection:
+        self.rays = np.full(len(self.px), 6) if self.shadowed[self.k] else self.few
+        base = self.px
+        self.px = base + self.drift * self.k * np.array([1.0, 0.0])
+        try:
+            return super().detect(image, hint)
+        finally:
+            self.px = base
+            self.k += 1
+
+
+def test_a_still_heads_contact_shadows_count_in_the_frames_whose_edge_fits_miss_them(scene):
+    """A contact shadow does not leave a still head between two frames; the edge fit's shadow
+    test does now and then. Frames 0-1 show shadows beside every ball, frames 2-12 beside fewer
+    than half: the check goes on applying while a frame of the last 7 (the ball memory's age)
+    showed them (frames 2-8: not trusted), then no longer (frames 9-12: trusted). Without the
+    ball memory (``remember_frames`` 0) frames 2-12 are judged alone, and trusted: what the
+    rendered 12-ball plans' trusted frames 1-2 mm off were."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.7)
+    shadowed = [True, True] + [False] * 11
+    now = _stream(s, target, _FlickeringShadows(px, minor, shifts, shadowed), frames=13)
+    assert not any(e.ok for e in now[:9]), [e.predicted_tre_mm for e in now]
+    assert all(e.ok for e in now[9:]), [e.reason for e in now]
+    assert all(re.search(r"the shading-corrected centres move the target", e.reason) for e in now[2:9]), \
+        [e.reason for e in now]
+    alone = _stream(s, target, _FlickeringShadows(px, minor, shifts, shadowed), TrackerConfig(remember_frames=0),
+                    frames=13)
+    assert not any(e.ok for e in alone[:2])
+    assert all(e.ok for e in alone[2:]), [e.reason for e in alone]
+
+
+def test_a_moving_heads_frames_are_judged_on_their_own_shadows(scene):
+    """The same frames from a head moving 1 px a frame across the image: no past frame passes
+    the memory's stillness test, so a frame without shadows beside half its balls is judged on
+    its own, as before (trusted from frame 2 on)."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.7)
+    now = _stream(s, target, _FlickeringShadows(px, minor, shifts, [True, True] + [False] * 6, drift_px=1.0),
+                  frames=8)
+    assert not any(e.ok for e in now[:2])
+    assert all(e.ok for e in now[2:]), [e.reason for e in now]

@@ -71,20 +71,38 @@ class StillBallMemory:
         self.max_common_px = float(max_common_px)
         self.min_agreeing = max(1, int(min_agreeing))
         #: (frame index, t_capture s, the balls the detector accepted in that frame, their centres
-        #: (k, 2) px, half their minor semi-axes (k,) px), oldest first
+        #: (k, 2) px, half their minor semi-axes (k,) px, its notes), oldest first
         self._frames: deque = deque(maxlen=max(1, self.max_age_frames))
         self._last_index: int | None = None
+        #: the notes of the past frames this frame was found still against (newest first)
+        self._still_notes: list = []
+
+    def note(self, key: str, value) -> None:
+        """Write down something the tracker measured in the frame last given to :meth:`fill`
+        (e.g. the share of its balls with a contact shadow beside them), for the next frames of
+        the still head to read with :meth:`still_notes`."""
+        if self._frames:
+            self._frames[-1][5][key] = value
+
+    def still_notes(self, key: str) -> list:
+        """The values of ``key`` that :meth:`note` wrote in past frames of which the frame last
+        given to :meth:`fill` was found still (the balls they share not moved: the test that
+        gives balls back, within the memory's age), newest first; empty with the memory off, after
+        a reset, or for a frame with fewer than ``min_agreeing`` balls of its own."""
+        return [n[key] for n in self._still_notes if key in n]
 
     def reset(self) -> None:
         """Forget every frame (a camera fault, the camera moved, a new registration)."""
         self._frames.clear()
         self._last_index = None
+        self._still_notes = []
 
     def fill(self, det: Detection, frame_index: int, t_capture: float) -> Detection:
         """``det`` with the remembered balls it lacks appended (their ``features`` carry
         ``remembered_frames``), and this frame's own balls remembered. A detection the
         detector refused, or a frame index not after the last one, clears the memory first;
         with ``max_age_frames`` 0 ``det`` comes back as it is."""
+        self._still_notes = []
         if self.max_age_frames <= 0:
             return det
         if det.refusal or (self._last_index is not None and frame_index <= self._last_index):
@@ -94,7 +112,7 @@ class StillBallMemory:
         centres = np.array([f.centre_px for f in own], float).reshape(-1, 2)
         near = 0.5 * np.array([min(f.axes_px) for f in own], float)
         added = self._remembered(centres, int(frame_index), float(t_capture))
-        self._frames.append((int(frame_index), float(t_capture), own, centres, near))
+        self._frames.append((int(frame_index), float(t_capture), own, centres, near, {}))
         if not added:
             return det
         return dataclasses.replace(det, fiducials=list(det.fiducials) + added)
@@ -105,7 +123,7 @@ class StillBallMemory:
             return []
         have = cur
         added = []
-        for past_index, past_t, past, pc, near in reversed(self._frames):
+        for past_index, past_t, past, pc, near, notes in reversed(self._frames):
             age = index - past_index
             if age > self.max_age_frames or t - past_t > self.max_age_s:
                 break
@@ -114,6 +132,7 @@ class StillBallMemory:
                 continue            # too few balls in common to tell: nothing from that frame
             if not still:
                 break
+            self._still_notes.append(notes)
             new = np.linalg.norm(pc[:, None] - have[None], axis=2).min(axis=1) >= near
             for k in np.flatnonzero(new):
                 f = past[k]

@@ -66,6 +66,10 @@ SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "
 #: camera state -> alert code of the invalid estimate it causes
 #: ("late": a live camera's read() waits longer than a frame should take, the source alive;
 #: "stalled": it waited much longer, the camera stopped delivering; "frozen": identical frames)
+#: the note each frame leaves in the ball memory: the share of its matched balls with a contact
+#: shadow beside them (:func:`.shading_check.shadowed_share`), read by the next frames of a still
+#: head (:meth:`.ball_memory.StillBallMemory.still_notes`)
+SHADOWED_NOTE = "shadowed_share"
 CAMERA_CODES = {"frozen": "camera_freeze", "late": "camera_late", "stalled": "camera_stalled",
                 "disconnected": "camera_disconnected", "ended": "camera_ended", "unreadable": "frame_unreadable"}
 
@@ -755,7 +759,10 @@ class PoseTracker:
             common = common + layout_gradient_covariance(J, pts, cfg.edge_gradient_per_rms * float(np.median(rms)), A)
         disagree, check_mm = None, None
         if cfg.shading_check_factor > 0 and self.target_ct is not None:
-            disagree = shading_check.pose_disagreement(A, feats, cfg.shading_check_share)
+            # a still head's contact shadows stay: the shares of its last frames count too
+            disagree = shading_check.pose_disagreement(A, feats, cfg.shading_check_share,
+                                                       tuple(self.memory.still_notes(SHADOWED_NOTE)))
+            self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))
             if disagree is not None:
                 check_mm = shading_check.target_move_mm(disagree, T, self.target_ct)
 

@@ -67,17 +67,23 @@ def shadowed_share(features: list) -> float:
     return float(np.mean([shadowed(f) for f in features])) if features else 0.0
 
 
-def pose_disagreement(A: np.ndarray, features: list, min_share: float) -> np.ndarray | None:
+def pose_disagreement(A: np.ndarray, features: list, min_share: float,
+                      still_shares: tuple = ()) -> np.ndarray | None:
     """The pose change (6,: rotation vector rad, translation mm) that moving each matched ball's
     centre by its shading shift (``features[i]["shading_shift_vec_px"]``, px) gives through the
     fit's linearisation ``A`` ((6, 2k): image errors px, rows x0, y0, x1, y1, ... -> pose), or
     None where the check does not apply: a ball without a shift (a detector without an edge fit,
     a centre the learned refiner moved: ``edge_centre_px`` set) or fewer than ``min_share`` of the
-    balls shadowed (:func:`shadowed_share`)."""
+    balls shadowed (:func:`shadowed_share`) in this frame and in each of ``still_shares``: the
+    shares of the last frames of a still head (:meth:`.ball_memory.StillBallMemory.still_notes`).
+    A contact shadow does not leave a still head between two frames; the edge fit's shadow test
+    does, now and then (sensor noise tips it as it tips a ball's acceptance), and a frame whose
+    share dipped under ``min_share`` alone went out unchecked: on the rendered 12-ball plans
+    those were the trusted frames 1-2 mm off (docs/vision.md, "The shading check")."""
     shifts = [f.get("shading_shift_vec_px") for f in features]
     if not features or any(s is None for s in shifts) or any("edge_centre_px" in f for f in features):
         return None
-    if shadowed_share(features) < min_share:
+    if max([shadowed_share(features), *still_shares]) < min_share:
         return None
     return np.asarray(A, float) @ np.asarray(shifts, float).reshape(-1)
 
