@@ -316,10 +316,11 @@ class TrackerConfig:
     #: frames itself. Rendered TUNING sets (30-frame still streams, 120 scene x condition rows),
     #: 0 -> 7: trusted 239 -> 365 (1-2 mm off 3 -> 4), through the session's gate 151 -> 279 (0 ->
     #: 0), scenes trusted within 1 mm at frame 8 7 -> 10. HELD-OUT (scored once, after): through
-    #: the gate 164 -> 195 (1-2 mm 0 -> 0), but this tracker's own verdict 1-2 mm off 2 -> 9 of
-    #: 234 (3.8 %, all on 12-ball layouts, whose layout gradient the per-ball covers average down
-    #: against): a caller that uses ``ok`` without the session's gate should know it.
-    #: docs/vision.md "Balls of the last frames of a still head"
+    #: the gate 164 -> 195 (1-2 mm 0 -> 0), this tracker's own verdict 1-2 mm off 2 -> 9 of 234
+    #: (all on 12-ball layouts: single frames whose shading check did not apply); with the
+    #: shading check carried over the still head's frames (:data:`SHADOWED_NOTE`) 1 of 226
+    #: (0.4 %, a first frame). docs/vision.md "Balls of the last frames of a still head", "The
+    #: shading check over a still head's frames"
     remember_frames: int = 7
 
 
