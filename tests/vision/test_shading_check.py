@@ -194,9 +194,10 @@ def test_a_still_heads_contact_shadows_count_in_the_frames_whose_edge_fits_miss_
     """A contact shadow does not leave a still head between two frames; the edge fit's shadow
     test does now and then. Frames 0-1 show shadows beside every ball, frames 2-12 beside fewer
     than half: the check goes on applying while a frame of the last 7 (the ball memory's age)
-    showed them (frames 2-8: not trusted), then no longer (frames 9-12: trusted). Without the
-    ball memory (``remember_frames`` 0) frames 2-12 are judged alone, and trusted: what the
-    rendered 12-ball plans' trusted frames 1-2 mm off were."""
+    showed them (frames 2-8: not trusted), then no longer (frames 9-12: trusted). Each frame on
+    its own shadows (``shading_check_still_frames`` False, the default before) or without the
+    ball memory (``remember_frames`` 0), frames 2-12 are trusted: what the rendered 12-ball
+    plans' trusted frames 1-2 mm off were."""
     s, target, px, minor = scene
     shifts = _gradient_shifts(s, px, target, 0.7)
     shadowed = [True, True] + [False] * 11
@@ -205,10 +206,10 @@ def test_a_still_heads_contact_shadows_count_in_the_frames_whose_edge_fits_miss_
     assert all(e.ok for e in now[9:]), [e.reason for e in now]
     assert all(re.search(r"the shading-corrected centres move the target", e.reason) for e in now[2:9]), \
         [e.reason for e in now]
-    alone = _stream(s, target, _FlickeringShadows(px, minor, shifts, shadowed), TrackerConfig(remember_frames=0),
-                    frames=13)
-    assert not any(e.ok for e in alone[:2])
-    assert all(e.ok for e in alone[2:]), [e.reason for e in alone]
+    for config in (TrackerConfig(shading_check_still_frames=False), TrackerConfig(remember_frames=0)):
+        alone = _stream(s, target, _FlickeringShadows(px, minor, shifts, shadowed), config, frames=13)
+        assert not any(e.ok for e in alone[:2])
+        assert all(e.ok for e in alone[2:]), [e.reason for e in alone]
 
 
 def test_a_moving_heads_frames_are_judged_on_their_own_shadows(scene):

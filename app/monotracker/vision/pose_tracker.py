@@ -308,6 +308,13 @@ class TrackerConfig:
     #: shading check"
     shading_check_factor: float = 2.0
     shading_check_share: float = 0.5
+    #: the shading check also applies where at least ``shading_check_share`` of the balls showed
+    #: a contact shadow in one of the last frames of a still head (the ball memory's frames,
+    #: :data:`SHADOWED_NOTE`): the edge fit's shadow test flickers from frame to frame, and the
+    #: frames it missed went out unchecked (rendered held-out sets, this tracker's own trusted
+    #: frames 1-2 mm off 9 of 234 -> 1 of 226). False: each frame's own shadows only (the default
+    #: before 2026-12-01's twenty-first session; ``camera_pbr.py``'s ``check-alone`` row)
+    shading_check_still_frames: bool = True
     #: balls the detector found in the last frames of a still head and misses in this one are
     #: given back to it for at most this many frames (:mod:`.ball_memory`: a ball's acceptance
     #: flickers from frame to frame on shaded balls; the head's stillness is tested against the
@@ -761,8 +768,8 @@ class PoseTracker:
         disagree, check_mm = None, None
         if cfg.shading_check_factor > 0 and self.target_ct is not None:
             # a still head's contact shadows stay: the shares of its last frames count too
-            disagree = shading_check.pose_disagreement(A, feats, cfg.shading_check_share,
-                                                       tuple(self.memory.still_notes(SHADOWED_NOTE)))
+            still = tuple(self.memory.still_notes(SHADOWED_NOTE)) if cfg.shading_check_still_frames else ()
+            disagree = shading_check.pose_disagreement(A, feats, cfg.shading_check_share, still)
             self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))
             if disagree is not None:
                 check_mm = shading_check.target_move_mm(disagree, T, self.target_ct)
