@@ -63,13 +63,13 @@ from .sphere_outline import SphereEllipseCache
 
 SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "unknown", "moved"
 
-#: camera state -> alert code of the invalid estimate it causes
-#: ("late": a live camera's read() waits longer than a frame should take, the source alive;
-#: "stalled": it waited much longer, the camera stopped delivering; "frozen": identical frames)
 #: the note each frame leaves in the ball memory: the share of its matched balls with a contact
 #: shadow beside them (:func:`.shading_check.shadowed_share`), read by the next frames of a still
 #: head (:meth:`.ball_memory.StillBallMemory.still_notes`)
 SHADOWED_NOTE = "shadowed_share"
+#: camera state -> alert code of the invalid estimate it causes
+#: ("late": a live camera's read() waits longer than a frame should take, the source alive;
+#: "stalled": it waited much longer, the camera stopped delivering; "frozen": identical frames)
 CAMERA_CODES = {"frozen": "camera_freeze", "late": "camera_late", "stalled": "camera_stalled",
                 "disconnected": "camera_disconnected", "ended": "camera_ended", "unreadable": "frame_unreadable"}
 
