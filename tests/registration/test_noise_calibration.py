@@ -86,3 +86,31 @@ def test_exceed_probability_counts_the_same_draws_as_all_of_them():
         brute = float(np.mean(((report._STD_NORMAL_3D * np.sqrt(np.clip(w, 0, None))) ** 2).sum(1) > 1.5**2))
         assert report.exceed_probability(C, 1.5) == brute
     assert report.exceed_probability(np.zeros((3, 3)), 1.0) == 0.0
+
+
+def test_the_priors_upper_bound_is_the_prior_unless_the_residuals_say_more():
+    """Where the prior stands in (too few dof yet), the gate's upper bound is the larger of the
+    prior and the residuals' own upper bound for their dof, not the prior widened as if it had
+    been measured from those dof. The bound is checked against the chi-square quantile computed
+    here with scipy (a peer library), not the module's own."""
+    from scipy.stats import chi2
+
+    est = OnlineNoise(window=30, min_dof=10, prior_px=0.3)
+    quiet = est.peek(4 * 0.1**2, 4)                      # 5 balls, residual RMS 0.1 px
+    assert quiet.source == "prior" and quiet.sigma_px == 0.3
+    factor = np.sqrt(4 / chi2.ppf(0.05, 4))              # x2.37: what the bound used to widen 0.3 by
+    assert quiet.upper(0.95) == pytest.approx(0.3)       # 0.1 x 2.37 = 0.24 < the prior
+    assert 0.3 * factor > 0.7
+    loud = est.peek(4 * 0.25**2, 4)                      # residual RMS 0.25 px: upper 0.59 > prior
+    assert loud.source == "prior" and loud.sigma_px == 0.3
+    assert loud.upper(0.95) == pytest.approx(0.25 * factor, rel=1e-6)
+    above = est.peek(4 * 0.4**2, 4)                      # residuals above the prior: sigma is theirs
+    assert above.sigma_px == pytest.approx(0.4) and above.upper(0.95) == pytest.approx(0.4 * factor, rel=1e-6)
+    nothing = est.peek(0.0, 0)                           # no residual dof at all: the prior
+    assert nothing.upper(0.95) == pytest.approx(0.3)
+    # with enough pooled dof the bound is the pooled sigma's, as before
+    for _ in range(3):
+        est.update(12 * 0.1**2, 12)
+    pooled = est.peek(12 * 0.1**2, 12)
+    assert pooled.source == "pooled"
+    assert pooled.upper(0.95) == pytest.approx(0.1 * np.sqrt(48 / chi2.ppf(0.05, 48)), rel=1e-6)

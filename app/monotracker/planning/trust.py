@@ -151,5 +151,10 @@ def _noise_bounds(rss: np.ndarray, dof: int, cfg: TrackerConfig) -> np.ndarray:
     est_dof = np.where(rose, dof, tot_dof)
     factor = {int(d): np.sqrt(int(d) / chi2_ppf(1.0 - cfg.noise_bound_confidence, int(d)))
               for d in np.unique(est_dof)}
-    upper = sigma * np.array([factor[int(d)] for d in est_dof], float)
+    f = np.array([factor[int(d)] for d in est_dof], float)
+    upper = sigma * f
+    # where the prior stands in: the larger of the prior and the residuals' own bound
+    # (NoiseEstimate.upper)
+    data = np.where(np.isfinite(pooled_px), pooled_px * f, 0.0)
+    upper = np.where(prior, np.maximum(pool.prior_px, data), upper)
     return np.where(np.isfinite(upper), upper, sigma)

@@ -18,6 +18,12 @@ Rules (choices written down here):
   ~20 % spread). ``upper_px`` is its one-sided 95 % upper confidence bound,
   ``sigma sqrt(dof / chi2_0.05(dof))`` (x1.51 at 12 dof, x1.07 at 360); the pose stream gates
   on the TRE predicted with it, and reports the calibrated one (``sigma_px``).
+* **The prior is not a measurement**: where the prior stands in (source "prior"), the upper
+  bound is the larger of the prior and the residuals' own upper bound for their dof, not the
+  prior widened as if it had been measured from those few dof (x2.37 at 4 dof, x1.85 at 6: a
+  first frame of 5 balls was gated at 0.71 px where the prior says 0.3 and its residuals 0.1).
+  The prior is itself the pessimistic value the data cannot yet rule out; residuals that say
+  more still raise the bound (docs/vision.md, "The first frame's noise bound").
 * Frames whose fiducials were found inconsistent (a moved ball) enter only after that ball was
   excluded (the caller feeds the residuals of the final fit).
 
@@ -44,6 +50,8 @@ class NoiseEstimate:
     pooled_px: float
     dof: int
     source: str
+    #: the prior (px) where it stands in (source "prior"), else nan
+    prior_px: float = float("nan")
 
     @property
     def upper_px(self) -> float:
@@ -52,7 +60,13 @@ class NoiseEstimate:
 
     def upper(self, confidence: float = 0.95) -> float:
         """One-sided upper confidence bound of the noise (px) at ``confidence`` (0.5 ~ the
-        estimate itself), given ``dof``: ``sigma sqrt(dof / chi2_(1 - confidence)(dof))``."""
+        estimate itself), given ``dof``: ``sigma sqrt(dof / chi2_(1 - confidence)(dof))``; where
+        the prior stands in, the larger of the prior and that bound of the residuals' own
+        (pooled) estimate (module docstring)."""
+        if self.source == "prior" and np.isfinite(self.prior_px):
+            data = (self.pooled_px * np.sqrt(self.dof / chi2_ppf(1.0 - confidence, self.dof))
+                    if self.dof > 0 and np.isfinite(self.pooled_px) else 0.0)
+            return float(max(self.prior_px, data))
         if self.dof <= 0 or not np.isfinite(self.sigma_px):
             return float("nan")
         return float(self.sigma_px * np.sqrt(self.dof / chi2_ppf(1.0 - confidence, self.dof)))
@@ -89,7 +103,7 @@ class OnlineNoise:
         pooled_px = float(np.sqrt(pooled_var)) if np.isfinite(pooled_var) else float("nan")
         if tot_dof < self.min_dof:
             cand = [v for v in (pooled_px, self.prior_px) if np.isfinite(v)]
-            return NoiseEstimate(max(cand), frame_px, pooled_px, tot_dof, "prior")
+            return NoiseEstimate(max(cand), frame_px, pooled_px, tot_dof, "prior", self.prior_px)
         if dof > 0 and p_dof > 0:
             old_var = p_rss / p_dof
             crit = f_ppf(1.0 - self.alpha, dof, p_dof)
