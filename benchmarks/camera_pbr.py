@@ -52,15 +52,17 @@ check (:mod:`monotracker.vision.shading_check`), the default before 2026-12-01; 
 the default without the balls of the last frames of a still head (:mod:`monotracker.vision.ball_memory`,
 ``remember_frames`` 0), the default before 2026-12-01's second change; ``check-alone``: the
 default with each frame's shading check on its own shadows only (``shading_check_still_frames``
-False, the default before 2026-12-01's third change); same frames,
+False, the default before 2026-12-01's third change); ``prior-widened``: the default with the
+first frames' noise prior widened as if measured from their few dof (``noise_prior_is_bound``
+False, the default before 2026-12-01's fourth change); same frames,
 same detections (the detections the first model's stream made: a model replayed on them reads
 somewhat differently from the same model streamed live, its trust steering the detector's
 search windows); ``before`` covers each ball's edge spread since the
 per-frame model does, ``TrackerConfig.edge_bias_per_rms``; ``arm``: the ``before`` poses through
 the session's own gate, what may move the arm: a pose agreeing with the last one the gate
 trusted, or after a refusal spell 3 consecutive agreeing estimates, :func:`session_gate`;
-``arm-no-check`` / ``arm-no-memory`` / ``arm-check-alone``: the ``no-check`` / ``no-memory`` /
-``check-alone`` poses through it):
+``arm-no-check`` / ``arm-no-memory`` / ``arm-check-alone`` / ``arm-prior-widened``: those
+models' poses through it):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
   detections that are a ball; partial: accepted balls that were partly hidden;
 * centre err: mean / p95 px between the detected centre, carried to the sphere centre with the
@@ -197,11 +199,13 @@ def trust_models() -> dict:
     shading check (``shading_check_factor`` 0: the default before 2026-12-01); ``no-memory``: the
     default without the remembered balls of a still head (``remember_frames`` 0); ``check-alone``:
     the default with the shading check judging each frame on its own shadows only
-    (``shading_check_still_frames`` False)."""
+    (``shading_check_still_frames`` False); ``prior-widened``: the default with the first frames'
+    noise prior widened as if measured from their few dof (``noise_prior_is_bound`` False)."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
-            "check-alone": TrackerConfig(shading_check_still_frames=False)}
+            "check-alone": TrackerConfig(shading_check_still_frames=False),
+            "prior-widened": TrackerConfig(noise_prior_is_bound=False)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -270,7 +274,8 @@ ARM = "arm"
 #: trust model -> its row through the session's gate: the default's, and the default's without
 #: the shading check and without the remembered balls (the baselines of issue 28's last changes,
 #: measured in the same run)
-GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone"}
+GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
+         "prior-widened": "arm-prior-widened"}
 
 
 def session_gate():

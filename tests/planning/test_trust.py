@@ -16,7 +16,8 @@ from monotracker.vision.pose_tracker import TrackerConfig
 
 
 def _bounds_frame_by_frame(rss, dof, cfg):
-    pool = OnlineNoise(window=cfg.noise_window, min_dof=cfg.noise_min_dof, prior_px=cfg.noise_prior_px)
+    pool = OnlineNoise(window=cfg.noise_window, min_dof=cfg.noise_min_dof, prior_px=cfg.noise_prior_px,
+                       prior_is_bound=cfg.noise_prior_is_bound)
     out = []
     for r in rss:
         est = pool.update(float(r), dof)
@@ -43,10 +44,11 @@ def _trusted_fraction_frame_by_frame(cov3, n_balls, noise_px, frames, cfg, seed,
 CONFIGS = [TrackerConfig(),
            dataclasses.replace(TrackerConfig(), noise_window=5, noise_min_dof=40, noise_prior_px=0.05),
            dataclasses.replace(TrackerConfig(), noise_window=1, noise_min_dof=0, noise_bound_confidence=0.5),
-           dataclasses.replace(TrackerConfig(), noise_window=0, noise_prior_px=2.0)]
+           dataclasses.replace(TrackerConfig(), noise_window=0, noise_prior_px=2.0),
+           dataclasses.replace(TrackerConfig(), noise_window=5, noise_min_dof=40, noise_prior_is_bound=False)]
 
 
-@pytest.mark.parametrize("cfg", CONFIGS, ids=["default", "short-window", "one-frame", "no-pool"])
+@pytest.mark.parametrize("cfg", CONFIGS, ids=["default", "short-window", "one-frame", "no-pool", "prior-widened"])
 @pytest.mark.parametrize("n_balls", [4, 5, 9])
 def test_noise_bounds_match_the_online_noise_frame_by_frame(cfg, n_balls):
     rng = np.random.default_rng(n_balls)

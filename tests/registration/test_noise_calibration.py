@@ -108,6 +108,8 @@ def test_the_priors_upper_bound_is_the_prior_unless_the_residuals_say_more():
     assert above.sigma_px == pytest.approx(0.4) and above.upper(0.95) == pytest.approx(0.4 * factor, rel=1e-6)
     nothing = est.peek(0.0, 0)                           # no residual dof at all: the prior
     assert nothing.upper(0.95) == pytest.approx(0.3)
+    widened = OnlineNoise(window=30, min_dof=10, prior_px=0.3, prior_is_bound=False).peek(4 * 0.1**2, 4)
+    assert widened.upper(0.95) == pytest.approx(0.3 * factor, rel=1e-6)     # the rule before, kept for comparison
     # with enough pooled dof the bound is the pooled sigma's, as before
     for _ in range(3):
         est.update(12 * 0.1**2, 12)

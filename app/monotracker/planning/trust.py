@@ -128,7 +128,8 @@ def _noise_bounds(rss: np.ndarray, dof: int, cfg: TrackerConfig) -> np.ndarray:
     builtin ``sum`` over the same values in the same order as :meth:`OnlineNoise.peek`, and the
     quantiles are asked once per distinct dof (~200 x faster than the loop: a planned layout asks
     for this ~30 times, 6000 frames each)."""
-    pool = OnlineNoise(window=cfg.noise_window, min_dof=cfg.noise_min_dof, prior_px=cfg.noise_prior_px)
+    pool = OnlineNoise(window=cfg.noise_window, min_dof=cfg.noise_min_dof, prior_px=cfg.noise_prior_px,
+                       prior_is_bound=cfg.noise_prior_is_bound)
     r = np.asarray(rss, float)
     n = r.size
     values = r.tolist()
@@ -156,5 +157,6 @@ def _noise_bounds(rss: np.ndarray, dof: int, cfg: TrackerConfig) -> np.ndarray:
     # where the prior stands in: the larger of the prior and the residuals' own bound
     # (NoiseEstimate.upper)
     data = np.where(np.isfinite(pooled_px), pooled_px * f, 0.0)
-    upper = np.where(prior, np.maximum(pool.prior_px, data), upper)
+    if pool.prior_is_bound:
+        upper = np.where(prior, np.maximum(pool.prior_px, data), upper)
     return np.where(np.isfinite(upper), upper, sigma)

@@ -75,11 +75,16 @@ class NoiseEstimate:
 class OnlineNoise:
     """Pooled residual variance over the last ``window`` accepted frames (see module docstring)."""
 
-    def __init__(self, window: int = 30, min_dof: int = 10, prior_px: float = 0.3, alpha: float = 0.01):
+    def __init__(self, window: int = 30, min_dof: int = 10, prior_px: float = 0.3, alpha: float = 0.01,
+                 prior_is_bound: bool = True):
         self.window = int(window)
         self.min_dof = int(min_dof)
         self.prior_px = float(prior_px)
         self.alpha = float(alpha)
+        #: where the prior stands in, its upper bound is the prior itself (or the residuals' own,
+        #: if larger); False: the prior widened as if measured from the frame's dof (the rule
+        #: before 2026-12-01's twenty-first session, for comparison)
+        self.prior_is_bound = bool(prior_is_bound)
         self._frames: deque = deque(maxlen=self.window)
 
     def reset(self) -> None:
@@ -103,7 +108,8 @@ class OnlineNoise:
         pooled_px = float(np.sqrt(pooled_var)) if np.isfinite(pooled_var) else float("nan")
         if tot_dof < self.min_dof:
             cand = [v for v in (pooled_px, self.prior_px) if np.isfinite(v)]
-            return NoiseEstimate(max(cand), frame_px, pooled_px, tot_dof, "prior", self.prior_px)
+            return NoiseEstimate(max(cand), frame_px, pooled_px, tot_dof, "prior",
+                                 self.prior_px if self.prior_is_bound else float("nan"))
         if dof > 0 and p_dof > 0:
             old_var = p_rss / p_dof
             crit = f_ppf(1.0 - self.alpha, dof, p_dof)

@@ -198,6 +198,14 @@ class TrackerConfig:
     noise_window: int = 30
     noise_min_dof: int = 10
     noise_prior_px: float = 0.3
+    #: where the prior stands in (fewer than ``noise_min_dof`` residual dof: the first frames of
+    #: 4-7 balls) the gate's noise bound is the prior, or the residuals' own upper bound where that
+    #: is larger (:meth:`~monotracker.registration.noise.NoiseEstimate.upper`). False: the prior
+    #: widened as if measured from those dof (x2.37 at 4 dof; the rule before 2026-12-01's
+    #: twenty-first session; held-out rendered sets, scenes trusted within 1 mm at frame 1 10 vs 23
+    #: of 158, docs/vision.md "The first frame's noise bound"; ``camera_pbr.py``'s
+    #: ``prior-widened`` row)
+    noise_prior_is_bound: bool = True
     #: the TRE gates use this one-sided upper confidence bound of the noise estimate (a sigma
     #: from few dof may be low by chance); benchmarks/pose_trust.py table 5 measures the choice
     noise_bound_confidence: float = 0.95
@@ -424,7 +432,8 @@ class PoseTracker:
         #: fiducial index -> estimated shift (mm) of the balls excluded as moved (persistent)
         self.excluded: dict[int, float] = {}
         c = self.config
-        self.noise = OnlineNoise(window=c.noise_window, min_dof=c.noise_min_dof, prior_px=c.noise_prior_px)
+        self.noise = OnlineNoise(window=c.noise_window, min_dof=c.noise_min_dof, prior_px=c.noise_prior_px,
+                                 prior_is_bound=c.noise_prior_is_bound)
         from .centre_bias import centre_bias_of
         from .still_pool import StillPool
 
