@@ -154,9 +154,9 @@ def _noise_bounds(rss: np.ndarray, dof: int, cfg: TrackerConfig) -> np.ndarray:
               for d in np.unique(est_dof)}
     f = np.array([factor[int(d)] for d in est_dof], float)
     upper = sigma * f
-    # where the prior stands in: the larger of the prior and the residuals' own bound
-    # (NoiseEstimate.upper)
-    data = np.where(np.isfinite(pooled_px), pooled_px * f, 0.0)
     if pool.prior_is_bound:
+        # where the prior stands in: the larger of the prior and the residuals' own bound
+        # (NoiseEstimate.upper)
+        data = np.where(np.isfinite(pooled_px), pooled_px * f, 0.0)
         upper = np.where(prior, np.maximum(pool.prior_px, data), upper)
     return np.where(np.isfinite(upper), upper, sigma)

@@ -63,13 +63,13 @@ class NoiseEstimate:
         estimate itself), given ``dof``: ``sigma sqrt(dof / chi2_(1 - confidence)(dof))``; where
         the prior stands in, the larger of the prior and that bound of the residuals' own
         (pooled) estimate (module docstring)."""
+        widen = float(np.sqrt(self.dof / chi2_ppf(1.0 - confidence, self.dof))) if self.dof > 0 else float("nan")
         if self.source == "prior" and np.isfinite(self.prior_px):
-            data = (self.pooled_px * np.sqrt(self.dof / chi2_ppf(1.0 - confidence, self.dof))
-                    if self.dof > 0 and np.isfinite(self.pooled_px) else 0.0)
+            data = self.pooled_px * widen if self.dof > 0 and np.isfinite(self.pooled_px) else 0.0
             return float(max(self.prior_px, data))
         if self.dof <= 0 or not np.isfinite(self.sigma_px):
             return float("nan")
-        return float(self.sigma_px * np.sqrt(self.dof / chi2_ppf(1.0 - confidence, self.dof)))
+        return float(self.sigma_px * widen)
 
 
 class OnlineNoise:
