@@ -38,7 +38,10 @@ blob score of 0.35, not the first pass's 0.5: ``ClassicalDetector.narrow_min_sco
 ``shading`` (``edge`` with each shaded ball's centre moved towards its lit side and its colour
 blob's centre, :mod:`monotracker.vision.shading_shift`; opt-in), ``outside-only`` (``edge``
 whose contact-shadow test leaves out only shadowed rays outside the ball's outline, not those
-inside it: ``BlobRules.shadow_in_px`` inf; the default before 2026-12-01), ``idealS``
+inside it: ``BlobRules.shadow_in_px`` inf; the default before 2026-12-01), ``long-shadow``
+(``edge`` whose shadow test reads the far background half the ball's radius beyond the near
+one, at least 3 px: ``BlobRules.shadow_far_per_radius`` 0.5; opt-in, docs/vision.md "Long
+contact shadows"), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
@@ -127,6 +130,9 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
     if name == "outside-only":
         rules.shadow_in_px = float("inf")
         return ClassicalDetector(rules)
+    if name == "long-shadow":
+        rules.shadow_far_per_radius = 0.5
+        return ClassicalDetector(rules)
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":
@@ -137,7 +143,7 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, first, narrow-lenient, refined, chroma, learned, "
+    raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, long-shadow, first, narrow-lenient, refined, chroma, learned, "
                      "idealS)")
 
 

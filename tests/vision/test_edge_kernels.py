@@ -164,14 +164,15 @@ def test_luma_at_matches_remap():
     assert np.abs(got - ref).max() < 1e-6
 
 
-@pytest.mark.parametrize("inside_px", [float("inf"), 0.6])
-def test_shadow_rays_equal_the_reference(inside_px):
+@pytest.mark.parametrize("inside_px, far_per_radius", [(float("inf"), 0.0), (0.6, 0.0), (0.6, 0.6)])
+def test_shadow_rays_equal_the_reference(inside_px, far_per_radius):
     """edge_kernels.shadow_rays (the contact-shadow test of all balls in one call) leaves out the
     same rays of the same balls as the per-ball NumPy loop with cv2.remap (edge_fit.COMPILED
     False): on balls with a contact shadow drawn by test_edge_fit_shadow (the shadow rays found),
     and on random edge points over a random image, some balls' windows leaving it; with only rays
     outside the outline tested (the rule before 2026-12-01) and with rays inside too (SHADOW_IN_PX,
-    the default)."""
+    the default); the far background 3 px beyond the near one, or in proportion to each ball's
+    radius (SHADOW_FAR_PER_RADIUS)."""
     from test_edge_fit_shadow import shadowed_ball
 
     rng = np.random.default_rng(7)
@@ -186,7 +187,7 @@ def test_shadow_rays_equal_the_reference(inside_px):
         balls = {b: got for b, got in enumerate(edge_fit._edge_points(img, ells, 1.5)) if got is not None}
         fits = edge_fit._shaped_fits(balls, [(1.0, 0.0)] * len(ells), 1.5)
         got, ref = _both(lambda img=img, balls=balls, fits=fits: edge_fit._without_shadow_rays(img, balls, fits, 1.5,
-                                                                                                 inside_px))
+                                                                                                 inside_px, far_per_radius))
         assert got.keys() == ref.keys()
         for i in got:
             assert np.array_equal(got[i], ref[i])
@@ -204,7 +205,7 @@ def test_shadow_rays_equal_the_reference(inside_px):
         balls[i] = (c + rad[:, None] * np.column_stack([np.cos(phi), np.sin(phi)]), rng.random(n) > 0.1)
         ell = ((float(c[0]), float(c[1])), (2 * r / ratio, 2 * r), float(major))
         fits[i] = (None if i % 9 == 0 else (ell, np.ones(n, bool), 0.1), False)
-    got, ref = _both(lambda: edge_fit._without_shadow_rays(img, balls, fits, 1.8, inside_px))
+    got, ref = _both(lambda: edge_fit._without_shadow_rays(img, balls, fits, 1.8, inside_px, far_per_radius))
     assert got.keys() == ref.keys() and 5 <= len(got) < 40
     for i in got:
         assert np.array_equal(got[i], ref[i])

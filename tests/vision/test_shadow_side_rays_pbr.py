@@ -21,11 +21,13 @@ from monotracker.vision.detection import BlobRules
 SETS = ("pbr", "pbr_blender", "pbr_planned")
 
 
-def _found(scene, image, shadow_in_px=None) -> dict:
+def _found(scene, image, shadow_in_px=None, shadow_far_per_radius=None) -> dict:
     """{ball index: centre error px} of the balls the detector accepts (matched to the truth);
-    ``shadow_in_px`` the detector's ``BlobRules.shadow_in_px`` (None: the default)."""
+    ``shadow_in_px``, ``shadow_far_per_radius`` the detector's ``BlobRules`` settings (None: the
+    defaults)."""
     tr, cam = scene.truth, scene.camera_model()
-    rules = BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0]), shadow_in_px=shadow_in_px)
+    rules = BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0]), shadow_in_px=shadow_in_px,
+                      shadow_far_per_radius=shadow_far_per_radius)
     rules.camera = cam
     out = {}
     for f in ClassicalDetector(rules).detect(image).fiducials:

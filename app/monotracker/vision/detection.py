@@ -190,6 +190,11 @@ class BlobRules:
     #: None: :data:`.edge_fit.SHADOW_IN_PX`, the default; inf: only rays outside it, the rule
     #: before 2026-12-01, ``benchmarks/camera_pbr.py``'s ``outside-only``)
     shadow_in_px: float | None = None
+    #: ... and judges a ray's background as a shadow's against the background this share of the
+    #: ball's radius further out (at least :data:`.edge_fit.SHADOW_FAR_PX`; None:
+    #: :data:`.edge_fit.SHADOW_FAR_PER_RADIUS`, the default 0: 3 px whatever the ball's size;
+    #: 0.5 is ``benchmarks/camera_pbr.py``'s opt-in ``long-shadow``)
+    shadow_far_per_radius: float | None = None
 
     @property
     def radius_range_px(self) -> tuple[float, float]:
@@ -429,7 +434,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                 or edge_fit.BLUR_PROBE_PX
         clock.lap("blur")
         fits = fit_ball_edges(refine_image, _started_centres(start_px, ells), edge_blur_px, shapes, frame=frame,
-                              shadow_in_px=rules.shadow_in_px)
+                              shadow_in_px=rules.shadow_in_px, shadow_far_per_radius=rules.shadow_far_per_radius)
         edge_fits = dict(zip(good, fits))
         clock.lap("edge_fit")
     if info is not None:

@@ -686,15 +686,16 @@ def luma_at(img, lut, cw0, x0, y0, x1, y1, xs, ys):
 
 
 @_compiled
-def shadow_rays(img, lut, cw0, P, valid, usable, okfit, cx, cy, d1, d2, ang_deg, r_near, far_px, out_px, nf,
-                min_share, in_px):
+def shadow_rays(img, lut, cw0, P, valid, usable, okfit, cx, cy, d1, d2, ang_deg, r_near, far_px, far_per_radius,
+                out_px, nf, min_share, in_px):
     """The contact-shadow test of :func:`.edge_fit._without_shadow_rays` for m balls of known
     shape at once: edge points ``P`` (m, R, 2) px padded (``valid`` (m, R)), ``usable`` (m, R),
     each ball's fitted outline (``okfit`` (m,) bool: fitted at all; centre ``cx``, ``cy`` px, full
     axes ``d1``, ``d2`` px, major axis ``ang_deg``). A usable ray whose edge lies more than
     ``out_px`` outside the outline (or more than ``in_px`` inside it; inf = none) is a shadow's
     when the linear luma (``img`` uint8 BGR, ``lut``, ``cw0`` as :func:`luma_at`) ``r_near`` px
-    beyond the outline along the ray is below ``nf`` x the luma ``far_px`` further out. Returns (use (m, R): usable without the shadow rays,
+    beyond the outline along the ray is below ``nf`` x the luma max(``far_px``, ``far_per_radius`` x the
+    outline's minor semi-axis) px further out. Returns (use (m, R): usable without the shadow rays,
     changed (m,): True where some were found, the ball's window lay inside the image and at least
     ``min_share`` of its rays remain; only there does ``use`` differ from what the fit used)."""
     m, R, _ = P.shape
@@ -721,6 +722,7 @@ def shadow_rays(img, lut, cw0, P, valid, usable, okfit, cx, cy, d1, d2, ang_deg,
         if mc == 0:
             continue
         ea, eb = d1[b] / 2.0, d2[b] / 2.0
+        far_b = max(far_px, far_per_radius * min(ea, eb))
         th = math.radians(ang_deg[b])
         qx = np.empty(2 * mc)
         qy = np.empty(2 * mc)
@@ -735,8 +737,8 @@ def shadow_rays(img, lut, cw0, P, valid, usable, okfit, cx, cy, d1, d2, ang_deg,
             rr = 1.0 / math.sqrt((math.cos(t) / ea) ** 2 + (math.sin(t) / eb) ** 2)
             qx[q] = cx[b] + (rr + r_near) * ux
             qy[q] = cy[b] + (rr + r_near) * uy
-            qx[mc + q] = cx[b] + (rr + r_near + far_px) * ux
-            qy[mc + q] = cy[b] + (rr + r_near + far_px) * uy
+            qx[mc + q] = cx[b] + (rr + r_near + far_b) * ux
+            qy[mc + q] = cy[b] + (rr + r_near + far_b) * uy
             q += 1
         x0 = int(math.floor(qx.min())) - 1
         y0 = int(math.floor(qy.min())) - 1
@@ -921,8 +923,8 @@ def warm_up() -> None:
     luma_at(img, lut32, lut32[:3].copy(), 2, 2, 30, 30, np.full(4, 10.5, np.float32), np.full(4, 9.25, np.float32))
     okb = np.ones(1, np.bool_)
     shadow_rays(img, lut32, lut32[:3].copy(), P + 32.0, np.ones((1, 32), np.bool_), okb.repeat(32).reshape(1, 32), okb,
-                32.0 * np.ones(1), 32.0 * np.ones(1), 19.0 * np.ones(1), 19.0 * np.ones(1), np.zeros(1), 1.5, 3.0, 0.3,
-                0.9, 0.6, 0.6)
+                32.0 * np.ones(1), 32.0 * np.ones(1), 19.0 * np.ones(1), 19.0 * np.ones(1), np.zeros(1), 1.5, 3.0, 0.0,
+                0.3, 0.9, 0.6, 0.6)
     lut = np.linspace(0, 1, 256).astype(np.float32)
     # as edge_fit passes them: the balls' ellipses as contiguous rows of a (5, m) array, max_rays
     # given (a frame with 2+ balls once compiled these again, ~5 CPU s after an install, because
@@ -934,4 +936,4 @@ def warm_up() -> None:
                     fine_lut())
     Pm = np.repeat(P, 2, axis=0) + 32.0
     shadow_rays(img, lut32, lut32[:3].copy(), Pm, np.ones((2, 32), np.bool_), np.ones((2, 32), np.bool_),
-                np.ones(2, np.bool_), ell[0], ell[1], ell[2], ell[3], ell[4], 1.5, 3.0, 0.3, 0.9, 0.6, 0.6)
+                np.ones(2, np.bool_), ell[0], ell[1], ell[2], ell[3], ell[4], 1.5, 3.0, 0.0, 0.3, 0.9, 0.6, 0.6)
