@@ -915,17 +915,15 @@ def _shadow_rays(pts: np.ndarray, left_out: np.ndarray, centre_px) -> tuple:
 
 
 def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px: float,
-                         shadow_in_px: float, far_per_radius: float | None = None) -> dict:
+                         shadow_in_px: float, far_per_radius: float) -> dict:
     """The balls of known shape (``balls`` {index: (edge points (n, 2) px, usable)}, ``fits`` as
     :func:`_shaped_fits` gives them) with contact-shadow rays (see :data:`SHADOW_NF`; rays inside
     the outline beyond ``shadow_in_px`` px too; the far background max(:data:`SHADOW_FAR_PX`,
-    ``far_per_radius`` x the outline's minor semi-axis) px beyond the near one, None:
-    :data:`SHADOW_FAR_PER_RADIUS`): {index: usable without them}, only where some
-    were found and enough rays remain."""
+    ``far_per_radius`` x the outline's minor semi-axis) px beyond the near one): {index: usable
+    without them}, only where some were found and enough rays remain."""
     h, w = image_bgr.shape[:2]
     img = image_bgr if image_bgr.flags.c_contiguous else np.ascontiguousarray(image_bgr)
     r_near = blur_px / (BLUR_PER_WIDTH * DISC_WIDTH_PER_RADIUS) + NEAR_BG_MARGIN_PX
-    far_per_radius = SHADOW_FAR_PER_RADIUS if far_per_radius is None else float(far_per_radius)
     if COMPILED:       # all balls in one call (edge_kernels.shadow_rays), the loop below the reference
         ids = [i for i, (fit, _cut) in fits.items() if fit is not None]
         if not ids:
@@ -935,7 +933,7 @@ def _without_shadow_rays(image_bgr: np.ndarray, balls: dict, fits: dict, blur_px
                       fits[i][0][0][2]] for i in ids])
         use_out, changed = edge_kernels.shadow_rays(
             img, LINEAR_LUT, _LUMA_WEIGHTS, P, valid, use, np.ones(len(ids), bool), ell[0], ell[1], ell[2],
-            ell[3], ell[4], float(r_near), float(SHADOW_FAR_PX), far_per_radius, float(SHADOW_OUT_PX), float(SHADOW_NF),
+            ell[3], ell[4], float(r_near), float(SHADOW_FAR_PX), float(far_per_radius), float(SHADOW_OUT_PX), float(SHADOW_NF),
             float(MIN_RAY_SHARE), float(shadow_in_px))
         return {i: use_out[b, :len(balls[i][0])].copy() for b, i in enumerate(ids) if changed[b]}
     out = {}
