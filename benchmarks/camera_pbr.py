@@ -20,8 +20,11 @@ condition's camera chain, new sensor noise every frame (``sim.pbr.frameset.camer
   approves it (``scripts/render_planned.py``: the same scenes' draws, cameras drawn until the
   planner predicts the pose trusted; 300-450 mm in practice), same split rules;
 * ``--renderer blender``: the same scenes rendered by Blender's Cycles (a second renderer nobody
-  here wrote; skin with sub-surface scattering, a pinhole lens; ``<root>/blender/<split>``,
-  ``sim/pbr/blender_render.py``), same split rules.
+  here wrote; skin with sub-surface scattering, a pinhole lens; ``$MONOTRACKER_PBR/blender/<split>``,
+  ``sim/pbr/blender_render.py``), same split rules. ``--root`` names the folder that holds the
+  splits as it is, whatever the renderer (planner-placed Blender frames: ``--root
+  $MONOTRACKER_PBR/planned/blender --renderer blender``); frames of another renderer than
+  ``--renderer`` are refused, not scored under its name.
 Render a set first: ``python -m monotracker.sim.pbr render --split tuning|held_out [--renderer
 blender]`` (cached by scene hash; needs the ``render`` extra, or a Python with ``bpy``).
 
@@ -102,7 +105,7 @@ import numpy as np
 
 from monotracker.errors import InputError
 from monotracker.registration.report import layout_units, tre_mm
-from monotracker.sim.pbr.build import RENDERERS, default_folder
+from monotracker.sim.pbr.build import RENDERERS, default_folder, renderer_name
 from monotracker.sim.pbr.frameset import CONDITIONS, camera_frames, committed_root, list_scenes
 from monotracker.sim.pbr.truth import sphere_centre_px
 from monotracker.vision.frames import Frame
@@ -584,6 +587,13 @@ def main(argv=None) -> int:
     if not scenes:
         print(f"error: no rendered {split} set in {folder}: python -m monotracker.sim.pbr render --split {split} "
               f"--renderer {a.renderer} (needs pip install -e '.[render]', or a Python with bpy)", file=sys.stderr)
+        return 2
+    other = sorted({s.spec.renderer for s in scenes if renderer_name(s.spec.renderer) != a.renderer})
+    if other:       # a --root names the folder itself: Blender's frames are not found under it by --renderer
+        hint = (f" (Blender's frames of a root are in <root>/blender/{split}: --root {folder.parent / 'blender'})"
+                if a.renderer == "blender" else " (--renderer blender)")
+        print(f"error: --renderer {a.renderer}, but {folder} holds frames rendered by {', '.join(other)}{hint}",
+              file=sys.stderr)
         return 2
     dets = [d.strip() for d in a.detectors.split(",") if d.strip()]
     conds = [c.strip() for c in a.conditions.split(",") if c.strip()]

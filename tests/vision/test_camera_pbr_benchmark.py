@@ -86,3 +86,17 @@ def test_a_bad_detector_name_is_one_line_not_a_traceback(name, capsys):
     assert mod.main(["--quick", "--detectors", f"edge,{name}"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and name in err and "\n" not in err
+
+
+@pytest.mark.parametrize("renderer, folder", [("blender", "pbr"), ("mitsuba", "pbr_blender")])
+def test_frames_of_another_renderer_are_refused_not_scored(renderer, folder, capsys):
+    """``--root`` names the frames' folder itself: asked for Blender's frames where Mitsuba's lie
+    (or the reverse) the benchmark says so in one line instead of scoring the other renderer's
+    frames under this one's name (it did, 2026-12-01)."""
+    spec = importlib.util.spec_from_file_location("camera_pbr_bench_renderer", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    root = Path(__file__).resolve().parents[1] / "data" / folder
+    assert mod.main(["--quick", "--root", str(root), "--renderer", renderer, "--detectors", "edge"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --renderer " + renderer) and "rendered by" in err and "\n" not in err

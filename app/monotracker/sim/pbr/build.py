@@ -33,6 +33,12 @@ from .truth import scene_truth
 RENDERERS = ("mitsuba", "blender")
 
 
+def renderer_name(version: str) -> str:
+    """The :data:`RENDERERS` name of a frame's recorded ``SceneSpec.renderer`` version
+    (``pbr-N``: Mitsuba, ``blender-cycles-N``: Blender)."""
+    return "blender" if str(version).startswith("blender-") else "mitsuba"
+
+
 def _backend(renderer: str, spec: SceneSpec, blender_python: str | None):
     """(the spec the frame records, a function rendering it: () -> (linear, coverage, info))."""
     if renderer == "mitsuba":
