@@ -20,11 +20,11 @@ condition's camera chain, new sensor noise every frame (``sim.pbr.frameset.camer
   approves it (``scripts/render_planned.py``: the same scenes' draws, cameras drawn until the
   planner predicts the pose trusted; 300-450 mm in practice), same split rules;
 * ``--renderer blender``: the same scenes rendered by Blender's Cycles (a second renderer nobody
-  here wrote; skin with sub-surface scattering, a pinhole lens; ``$MONOTRACKER_PBR/blender/<split>``,
-  ``sim/pbr/blender_render.py``), same split rules. ``--root`` names the folder that holds the
-  splits as it is, whatever the renderer (planner-placed Blender frames: ``--root
-  $MONOTRACKER_PBR/planned/blender --renderer blender``); frames of another renderer than
-  ``--renderer`` are refused, not scored under its name.
+  here wrote; skin with sub-surface scattering, a pinhole lens; ``<root>/blender/<split>``,
+  ``sim/pbr/blender_render.py``, ``sim.pbr.build.default_folder``; planner-placed Blender frames:
+  ``--root $MONOTRACKER_PBR/planned --renderer blender``), same split rules. Frames of another
+  renderer than ``--renderer`` (a ``--quick`` root, a folder of mixed frames) are refused, not
+  scored under its name.
 Render a set first: ``python -m monotracker.sim.pbr render --split tuning|held_out [--renderer
 blender]`` (cached by scene hash; needs the ``render`` extra, or a Python with ``bpy``).
 
@@ -589,9 +589,8 @@ def main(argv=None) -> int:
               f"--renderer {a.renderer} (needs pip install -e '.[render]', or a Python with bpy)", file=sys.stderr)
         return 2
     other = sorted({s.spec.renderer for s in scenes if renderer_name(s.spec.renderer) != a.renderer})
-    if other:       # a --root names the folder itself: Blender's frames are not found under it by --renderer
-        hint = (f" (Blender's frames of a root are in <root>/blender/{split}: --root {folder.parent / 'blender'})"
-                if a.renderer == "blender" else " (--renderer blender)")
+    if other:       # a --quick root names the split's folder itself, whatever the renderer
+        hint = " (--renderer blender)" if a.renderer == "mitsuba" else " (--renderer mitsuba)"
         print(f"error: --renderer {a.renderer}, but {folder} holds frames rendered by {', '.join(other)}{hint}",
               file=sys.stderr)
         return 2

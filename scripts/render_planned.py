@@ -10,8 +10,8 @@ least ``planning.planner.MIN_TRUSTED`` of frames with the worst single ball hidd
 afterwards, as a team's would be, and may hide more than one ball. Scene indices start at
 :data:`INDEX0` so that a planned scene never shares a seed with a scene of the plain sets; the
 folder is ``<root>/<split>`` (default root ``$MONOTRACKER_PBR/planned``; Blender's
-``<root>/blender/<split>``), scored with ``benchmarks/camera_pbr.py --root <root> [--held-out]``
-(Blender: ``--root <root>/blender --renderer blender``). The held-out split is only ever scored.
+``<root>/blender/<split>``, ``sim.pbr.build.default_folder``), scored with
+``benchmarks/camera_pbr.py --root <root> [--held-out] [--renderer blender]``. The held-out split is only ever scored.
 
 Usage: PYTHONPATH=app python scripts/render_planned.py --split tuning|held_out --counts clean=10,OR=10,clutter=10
        [--root DIR] [--scene KIND:I] (one scene, for one CPU slot at a time)
@@ -99,7 +99,7 @@ def planned_layout(phantom, n_balls: int) -> tuple:
 
 
 def main(argv=None) -> int:
-    from monotracker.sim.pbr.build import render_scene
+    from monotracker.sim.pbr.build import RENDERERS, default_folder, render_scene
     from monotracker.sim.pbr.frameset import default_root
     from monotracker.sim.pbr.spec import KINDS, make_spec
     from monotracker.sim.phantom import default_phantom
@@ -109,7 +109,7 @@ def main(argv=None) -> int:
     ap.add_argument("--counts", default="clean=10,OR=10,clutter=10")
     ap.add_argument("--scene", default=None, help="KIND:I: render that one scene only (no manifest)")
     ap.add_argument("--root", type=Path, default=None)
-    ap.add_argument("--renderer", choices=("mitsuba", "blender"), default="mitsuba",
+    ap.add_argument("--renderer", choices=RENDERERS, default="mitsuba",
                     help="blender: Cycles in a Python with bpy (--blender-python), into <root>/blender/<split>")
     ap.add_argument("--blender-python", default=None)
     ap.add_argument("--plan-balls", type=int, default=None,
@@ -119,7 +119,7 @@ def main(argv=None) -> int:
     root = a.root or default_root() / "planned"
     if a.plan_balls is not None:
         root = root / f"plan{a.plan_balls}"
-    folder = root / a.split if a.renderer == "mitsuba" else root / "blender" / a.split
+    folder = default_folder(a.split, a.renderer, root)
     folder.mkdir(parents=True, exist_ok=True)
     ph = default_phantom()
     accept, fixed = None, {}

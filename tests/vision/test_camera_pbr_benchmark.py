@@ -90,9 +90,9 @@ def test_a_bad_detector_name_is_one_line_not_a_traceback(name, capsys):
 
 @pytest.mark.parametrize("renderer, folder", [("blender", "pbr"), ("mitsuba", "pbr_blender")])
 def test_frames_of_another_renderer_are_refused_not_scored(renderer, folder, capsys):
-    """``--root`` names the frames' folder itself: asked for Blender's frames where Mitsuba's lie
-    (or the reverse) the benchmark says so in one line instead of scoring the other renderer's
-    frames under this one's name (it did, 2026-12-01)."""
+    """A ``--quick`` root names the split's folder itself: asked for Blender's frames where
+    Mitsuba's lie (or the reverse) the benchmark says so in one line instead of scoring the other
+    renderer's frames under this one's name (with any root it did, 2026-12-01)."""
     spec = importlib.util.spec_from_file_location("camera_pbr_bench_renderer", BENCH)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -100,3 +100,13 @@ def test_frames_of_another_renderer_are_refused_not_scored(renderer, folder, cap
     assert mod.main(["--quick", "--root", str(root), "--renderer", renderer, "--detectors", "edge"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: --renderer " + renderer) and "rendered by" in err and "\n" not in err
+
+
+def test_one_folder_rule_for_every_renderer(tmp_path):
+    """``default_folder`` is the one rule (rendering and scoring alike): ``<root>/<split>`` for
+    Mitsuba, ``<root>/blender/<split>`` for Blender, with or without a given root."""
+    from monotracker.sim.pbr.build import default_folder
+
+    assert default_folder("held_out", "mitsuba", tmp_path) == tmp_path / "held_out"
+    assert default_folder("held_out", "blender", tmp_path) == tmp_path / "blender" / "held_out"
+    assert default_folder("tuning", "blender").parts[-2:] == ("blender", "tuning")

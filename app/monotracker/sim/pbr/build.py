@@ -54,11 +54,13 @@ def _backend(renderer: str, spec: SceneSpec, blender_python: str | None):
 
 
 def default_folder(split: str, renderer: str = "mitsuba", root: Path | None = None) -> Path:
-    """Where a split's frames live: ``<root>/<split>`` for Mitsuba and for any renderer when
-    ``root`` is given; else ``$MONOTRACKER_PBR/<split>`` (Mitsuba) or
-    ``$MONOTRACKER_PBR/blender/<split>`` (Blender)."""
+    """Where a split's frames live: ``<root>/<split>`` (Mitsuba) or ``<root>/blender/<split>``
+    (Blender), ``root`` by default ``$MONOTRACKER_PBR``: the one rule for every tool that renders
+    or scores a set (until 2026-12-01 a given ``root`` held Blender's frames directly while
+    ``scripts/render_planned.py`` put them under ``<root>/blender``, and the benchmark scored
+    Mitsuba's frames as Blender's)."""
     base = root or default_root()
-    return base / split if renderer == "mitsuba" or root is not None else base / renderer / split
+    return base / split if renderer == "mitsuba" else base / renderer / split
 
 
 def render_scene(spec: SceneSpec, folder: Path, log=print, renderer: str = "mitsuba",
@@ -151,7 +153,8 @@ def main(argv=None) -> int:
     r.add_argument("--scene", action="append", default=[], metavar="KIND:INDEX",
                    help="render only this scene (repeatable): lets a wrapper take one CPU slot per scene")
     r.add_argument("--renderer", choices=RENDERERS, default="mitsuba",
-                   help="mitsuba (default; <root>/<split>) or blender (Cycles, pinhole; <root>/blender/<split>)")
+                   help="mitsuba (default; <root>/<split>) or blender (Cycles, pinhole; <root>/blender/<split>); "
+                        "<root> is $MONOTRACKER_PBR unless --root")
     r.add_argument("--blender-python", default=None, help="the Python with the bpy wheel (blender only)")
     c = sub.add_parser("crops", help="cut the committed tuning crops")
     c.add_argument("--split", choices=SPLITS, default="tuning")
