@@ -590,9 +590,8 @@ def main(argv=None) -> int:
         return 2
     other = sorted({s.spec.renderer for s in scenes if renderer_name(s.spec.renderer) != a.renderer})
     if other:       # a --quick root names the split's folder itself, whatever the renderer
-        hint = " (--renderer blender)" if a.renderer == "mitsuba" else " (--renderer mitsuba)"
-        print(f"error: --renderer {a.renderer}, but {folder} holds frames rendered by {', '.join(other)}{hint}",
-              file=sys.stderr)
+        print(f"error: --renderer {a.renderer}, but {folder} holds frames rendered by {', '.join(other)} "
+              f"(--renderer {renderer_name(other[0])})", file=sys.stderr)
         return 2
     dets = [d.strip() for d in a.detectors.split(",") if d.strip()]
     conds = [c.strip() for c in a.conditions.split(",") if c.strip()]
