@@ -110,3 +110,16 @@ def test_one_folder_rule_for_every_renderer(tmp_path):
     assert default_folder("held_out", "mitsuba", tmp_path) == tmp_path / "held_out"
     assert default_folder("held_out", "blender", tmp_path) == tmp_path / "blender" / "held_out"
     assert default_folder("tuning", "blender").parts[-2:] == ("blender", "tuning")
+
+
+def test_the_wider_few_ball_cover_is_measured_beside_the_default(result):
+    """``few6x2`` (the candidate: each ball's bias cover doubled up to 6 balls) is scored on the
+    same detections as the default and through the same gate: a wider cover refuses what the
+    default refuses (it trusts no more frames), and its gated row obeys the gate as ``arm`` does."""
+    for cond, dets in result["conditions"].items():
+        for name, d in dets.items():
+            cand, gated, before = d["few6x2"], d["arm-few6x2"], d["before"]
+            assert cand["scenes"] == before["scenes"], (cond, name)
+            assert cand["trusted_frames"] <= before["trusted_frames"], (cond, name)
+            assert gated["trusted_at_1_pct"] == 0.0, (cond, name)
+            assert gated["trusted_frames"] <= min(cand["trusted_frames"], cand["scenes"]), (cond, name)
