@@ -289,9 +289,9 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
 
 #: the row of what may move the arm: the default trust model's poses through the session's gate
 ARM = "arm"
-#: trust model -> its row through the session's gate: the default's, and the default's without
-#: the shading check and without the remembered balls (the baselines of issue 28's last changes,
-#: measured in the same run), and the candidate ``few6x2``'s (what it would let move the arm)
+#: trust model -> its row through the session's gate: the default's, the baselines of issue 28's
+#: last changes measured in the same run (no-check, no-memory, check-alone, prior-widened), and
+#: the candidate ``few6x2``'s (what it would let move the arm)
 GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2"}
 
