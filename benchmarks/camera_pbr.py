@@ -61,8 +61,10 @@ default with each frame's shading check on its own shadows only (``shading_check
 False, the default before 2026-12-01's third change); ``prior-widened``: the default with the
 first frames' noise prior widened as if measured from their few dof (``noise_prior_is_bound``
 False, the default before 2026-12-01's fourth change); ``few6x2``: the default with a doubled cover
-of each ball's bias up to 6 balls (``few_balls`` 6, ``few_balls_cover`` 2.0; a candidate, not the
-default); same frames,
+of each ball's bias up to 6 balls (``few_balls`` 6, ``few_balls_cover`` 2.0) on every frame (the
+default applies it to frames whose balls read as glossy only); ``matte``: the default with every
+frame read as matte (``glossy_highlight_ratio`` 0, the default before 2026-12-01's twenty-fifth
+session, :mod:`monotracker.vision.ball_gloss`); same frames,
 same detections (the detections the first model's stream made: a model replayed on them reads
 somewhat differently from the same model streamed live, its trust steering the detector's
 search windows); ``before`` covers each ball's edge spread since the
@@ -70,7 +72,7 @@ per-frame model does, ``TrackerConfig.edge_bias_per_rms``; ``arm``: the ``before
 the session's own gate, what may move the arm: a pose agreeing with the last one the gate
 trusted, or after a refusal spell 3 consecutive agreeing estimates, :func:`session_gate`;
 ``arm-no-check`` / ``arm-no-memory`` / ``arm-check-alone`` / ``arm-prior-widened`` /
-``arm-few6x2``: those
+``arm-few6x2`` / ``arm-matte``: those
 models' poses through it):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
   detections that are a ball; partial: accepted balls that were partly hidden;
@@ -214,16 +216,19 @@ def trust_models() -> dict:
     (``shading_check_still_frames`` False); ``prior-widened``: the default with the first frames'
     noise prior widened as if measured from their few dof (``noise_prior_is_bound`` False);
     ``few6x2``: the default with the few-ball cover at 6 balls and doubled (``few_balls`` 6,
-    ``few_balls_cover`` 2.0; not the default: on the tuning sets it removes nearly all trusted
+    ``few_balls_cover`` 2.0) on every frame (on the tuning sets it removes nearly all trusted
     poses 1-2 mm off on Blender's planner-placed frames and costs about 4 in 10 of the scenes
     trusted within 1 mm at frame 8 on Mitsuba's, docs/vision.md "Blender's planner-placed tuning
-    frames")."""
+    frames"; the default applies it only to frames whose balls read as glossy); ``matte``: the
+    default with every frame read as matte (``glossy_highlight_ratio`` 0: the default before
+    2026-12-01's twenty-fifth session, docs/vision.md "Glossy balls read from the frame")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
             "check-alone": TrackerConfig(shading_check_still_frames=False),
             "prior-widened": TrackerConfig(noise_prior_is_bound=False),
-            "few6x2": TrackerConfig(few_balls=6, few_balls_cover=2.0)}
+            "few6x2": TrackerConfig(few_balls=6, few_balls_cover=2.0),
+            "matte": TrackerConfig(glossy_highlight_ratio=0.0)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -290,10 +295,10 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
 #: the row of what may move the arm: the default trust model's poses through the session's gate
 ARM = "arm"
 #: trust model -> its row through the session's gate: the default's, the baselines of issue 28's
-#: last changes measured in the same run (no-check, no-memory, check-alone, prior-widened), and
-#: the candidate ``few6x2``'s (what it would let move the arm)
+#: last changes measured in the same run (no-check, no-memory, check-alone, prior-widened, matte),
+#: and ``few6x2``'s (the glossy frames' cover on every frame: what it would let move the arm)
 GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
-         "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2"}
+         "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte"}
 
 
 def session_gate():

@@ -122,3 +122,16 @@ def test_the_wider_few_ball_cover_is_measured_beside_the_default(bench, result):
             cand, before = d["few6x2"], d["before"]
             assert cand["scenes"] == before["scenes"], (cond, name)
             assert cand["trusted_frames"] <= before["trusted_frames"], (cond, name)
+
+
+def test_the_default_before_the_gloss_reading_is_measured_beside_it(bench, result):
+    """``matte`` (every frame read as matte: the default before the frame's gloss reading,
+    :mod:`monotracker.vision.ball_gloss`) is scored on the same detections as the default, which
+    only widens the cover of frames read as glossy: the default trusts no more frames than it,
+    and no fewer than ``few6x2`` (that cover on every frame)."""
+    assert bench.GATED["matte"] == "arm-matte"
+    for cond, dets in result["conditions"].items():
+        for name, d in dets.items():
+            matte, default, wide = d["matte"], d["before"], d["few6x2"]
+            assert matte["scenes"] == default["scenes"], (cond, name)
+            assert wide["trusted_frames"] <= default["trusted_frames"] <= matte["trusted_frames"], (cond, name)

@@ -86,18 +86,20 @@ def test_blender_frames_balls_are_where_the_scene_says_and_no_trusted_pose_over_
         assert np.all(errs <= 2.0), np.sort(errs)[-5:]
 
 
-@pytest.mark.xfail(strict=True, reason="known (2026-11-30): on the Blender OR crop b0c7930b the default per-frame "
-                   "model trusts frames 4 and 7 at 1.06-1.07 mm off, predicted 0.37-0.43 mm without the size-excess "
-                   "cover (with the few-ball cover, since the fifth session: frames 4 and 5, 5 balls, 1.06-1.07 mm, "
-                   "predicted 0.52-0.67 mm): every accepted ball is whole, but they are 0.2-0.44 px off in different directions at "
-                   "an edge RMS of 0.09-0.13 px; their outlines are 0.1-0.36 px smaller than the spheres' at the "
-                   "pose. The opt-in size-excess cover at the factor its data calibrate (1.0) still trusts them; 1.5-2.0 "
-                   "would not (and would refuse JPEG frames of our simulator it need not). Remove this mark when "
-                   "the trust model or the detector covers it.")
 def test_blender_frames_no_trusted_pose_over_1mm(blender_scenes):
-    for config in (TrackerConfig(), TrackerConfig(centre_bias="detector")):
-        errs = _trusted_errors(blender_scenes, config)
-        assert np.all(errs <= 1.0), np.sort(errs)[-5:]
+    """Known until 2026-12-01 (an xfail since 2026-11-30): on the Blender OR crop b0c7930b the
+    default trusted frames 1.02-1.07 mm off at a predicted 0.52-0.67 mm, 5 whole balls 0.2-0.44
+    px off at an edge RMS of 0.09-0.13 px. Its balls are glossy and sit beside contact shadows:
+    read so from the frame (:mod:`monotracker.vision.ball_gloss`), their few-ball cover is the
+    wider one and the default trusts none of them, but still trusts poses on these crops. Read
+    as matte (``glossy_highlight_ratio`` 0, the default before) the same frames are trusted over
+    1 mm again: what the reading buys, on frames nobody here rendered."""
+    default = _trusted_errors(blender_scenes, TrackerConfig())
+    assert len(default) >= 3 and np.all(default <= 1.0), np.sort(default)
+    calibrated = _trusted_errors(blender_scenes, TrackerConfig(centre_bias="detector"))
+    assert np.all(calibrated <= 1.0), np.sort(calibrated)[-5:]
+    matte = _trusted_errors(blender_scenes, TrackerConfig(glossy_highlight_ratio=0.0))
+    assert np.any(matte > 1.0), np.sort(matte)[-5:]
 
 
 @pytest.mark.parametrize("renderer", ["mitsuba", "blender"])

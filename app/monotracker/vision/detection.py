@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 
 from . import edge_fit, edge_kernels
+from .ball_gloss import highlight_ratio
 from .edge_fit import fit_ball_edges, measure_edge_blur
 from .shading_shift import shaded_centre
 from .sphere_outline import expected_shapes
@@ -458,7 +459,8 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
             shaded, moved = shaded_centre(refine_image, fit.centre_px, c.features["blob_centre_px"], fit.axes_px[1])
             c.features.update(shading_shift_vec_px=(float(shaded[0] - fit.centre_px[0]),
                                                     float(shaded[1] - fit.centre_px[1])),
-                              edge_shadow_rays=fit.shadow_rays, edge_shadow_dir=fit.shadow_dir)
+                              edge_shadow_rays=fit.shadow_rays, edge_shadow_dir=fit.shadow_dir,
+                              highlight_ratio=highlight_ratio(refine_image, fit.centre_px, fit.axes_px[1]))
             if rules.shading_shift:
                 c.centre_px = shaded
                 c.features["shading_shift_px"] = moved

@@ -55,7 +55,7 @@ import numpy as np
 from monotracker.geometry import apply_transform
 from monotracker.registration.quantiles import chi2_ppf as chi2_quantile
 
-from . import shading_check
+from . import ball_gloss, shading_check
 from .camera_model import CameraModel
 from .centre_refiner import REFINED_BIAS_PER_RMS, REFINED_COMMON_PER_RMS
 from .frames import Frame, grayscale_problem
@@ -67,6 +67,8 @@ SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "
 #: shadow beside them (:func:`.shading_check.shadowed_share`), read by the next frames of a still
 #: head (:meth:`.ball_memory.StillBallMemory.still_notes`)
 SHADOWED_NOTE = "shadowed_share"
+#: the note of each frame's highlight reading (:func:`.ball_gloss.frame_highlight`), read the same way
+HIGHLIGHT_NOTE = "highlight_ratio"
 #: camera state -> alert code of the invalid estimate it causes
 #: ("late": a live camera's read() waits longer than a frame should take, the source alive;
 #: "stalled": it waited much longer, the camera stopped delivering; "frozen": identical frames)
@@ -300,6 +302,27 @@ class TrackerConfig:
     #: applies it too (:func:`monotracker.planning.trust.shading_cover`)
     few_balls: int = 5
     few_balls_cover: float = 1.5
+    #: frames whose balls read as GLOSSY (a lamp's mirror image in their cores: the median of the
+    #: matched balls' ``features["highlight_ratio"]``, or one of a still head's last frames' such
+    #: readings, at least this; :mod:`.ball_gloss`) take ``glossy_few_balls`` and
+    #: ``glossy_few_balls_cover`` in place of the two above: a smooth coat beside a contact shadow
+    #: pushed whole balls' edge centres 0.3-0.8 px towards it on Blender's planner-placed frames,
+    #: and the default cover trusted poses 1-1.75 mm off there. 0 = off (every frame as matte,
+    #: the default before 2026-12-01's twenty-fifth session; ``camera_pbr.py``'s ``matte`` row).
+    #: Chosen on the rendered TUNING sets (30-frame still streams, each threshold replayed on the
+    #: default's detections; trusted frames / 1-2 mm off, through the session's gate, and its
+    #: scenes within 1 mm at frame 8): Blender planner-placed (36 rows) off 221 / 33, 6; 1.6
+    #: 173 / 5, 5; 1.8 191 / 5, 6; 2.0 195 / 8, 6 (the scene's finish read from its spec, an
+    #: oracle: 191 / 5, 6); Mitsuba's four tuning sets (156 rows) off 615 / 3, 22; 1.6 525 / 0,
+    #: 20; 1.8 541 / 0, 20; 2.0 556 / 0, 20; ``few6x2`` on every frame 106 / 3, 4 and 378 / 0, 13.
+    #: docs/vision.md "Glossy balls read from the frame"
+    glossy_highlight_ratio: float = 1.8
+    #: the glossy frames' cover only where the frame's balls (or a still head's last frames')
+    #: show contact shadows as the shading check counts them (``shading_check_share``): the push
+    #: is a glossy limb beside a shadow; a glossy ball on its own is read right
+    glossy_needs_shadow: bool = True
+    glossy_few_balls: int = 6
+    glossy_few_balls_cover: float = 2.0
     #: the shading check (:mod:`.shading_check`; the per-frame model): where at least
     #: ``shading_check_share`` of the matched balls show a contact shadow beside them, the pose
     #: the balls' second centre readings (edge centre + shading shift) give must lie within max
@@ -634,12 +657,14 @@ class PoseTracker:
                         tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
                         tre_hi = tre * upper / sigma if sigma > 0 else tre
                     else:
-                        cov_est, cov_hi, edge_px, check_mm = covs
+                        cov_est, cov_hi, edge_px, check_mm, glossy_cover = covs
                         tre = float(predicted_tre(reg.T_cam_ct, cov_est, self.target_ct))
                         tre_hi = float(predicted_tre(reg.T_cam_ct, cov_hi, self.target_ct))
                         shading = f", edge spread {edge_px:.2f} px"
                         if check_mm is not None:
                             shading += f", the shading-corrected centres move the target {check_mm:.2f} mm"
+                        if glossy_cover:
+                            shading += ", glossy balls beside contact shadows: each ball's cover widened"
                     if ok and not (tre_hi <= cfg.max_predicted_tre_mm):
                         ok, code = False, "tre_limit"
                         bound = (f"; up to {tre_hi:.2f} mm at {100 * cfg.noise_bound_confidence:.0f} % with {ne.dof} dof"
@@ -726,8 +751,10 @@ class PoseTracker:
         the balls' shading error covered (``TrackerConfig.edge_bias_per_rms``,
         ``edge_common_per_rms``): (with the noise estimate ``sigma_px``, with its upper bound
         ``upper_px``, the median edge RMS px, the shading check's target move mm or None where it
-        does not apply). Per matched ball the centre error per coordinate
-        is max(noise, ``edge_bias_per_rms`` x its edge RMS) (a weighted least-squares fit's
+        does not apply, whether the glossy frames' wider few-ball cover applied). Per matched
+        ball the centre error per coordinate is max(noise, ``edge_bias_per_rms`` x its edge RMS;
+        with few balls x ``few_balls_cover``, or the glossy frames' pair, :mod:`.ball_gloss`) (a
+        weighted least-squares fit's
         covariance ``H^-1 J^T V J H^-1``), plus a shift common to all balls of
         ``edge_common_per_rms`` x their median edge RMS; where the shading check applies
         (``shading_check_factor``, :mod:`.shading_check`) raised along the pose change the balls'
@@ -755,8 +782,16 @@ class PoseTracker:
                                            float(self.radius_mm or 0.0), np.empty(0), r, J)
         A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
         per_ball = np.where(refined, cfg.refined_bias_per_rms, cfg.edge_bias_per_rms)
-        if k <= cfg.few_balls:
-            per_ball = per_ball * cfg.few_balls_cover
+        glossy = ball_gloss.reads_glossy(feats, cfg.glossy_highlight_ratio,
+                                         tuple(self.memory.still_notes(HIGHLIGHT_NOTE)))
+        self.memory.note(HIGHLIGHT_NOTE, ball_gloss.frame_highlight(feats))
+        if glossy and cfg.glossy_needs_shadow:
+            shares = [shading_check.shadowed_share(feats), *self.memory.still_notes(SHADOWED_NOTE)]
+            glossy = max(shares) >= cfg.shading_check_share
+        few, few_cover = ((cfg.glossy_few_balls, cfg.glossy_few_balls_cover) if glossy
+                          else (cfg.few_balls, cfg.few_balls_cover))
+        if k <= few:
+            per_ball = per_ball * few_cover
         common_factor = max(cfg.refined_common_per_rms if refined.any() else 0.0,
                             cfg.edge_common_per_rms if not refined.all() else 0.0)
         cover = per_ball * rms
@@ -789,7 +824,7 @@ class PoseTracker:
                 return c6
             return shading_check.raised_covariance(c6, disagree, T, self.target_ct, cfg.shading_check_factor)
 
-        return cov(sigma_px), cov(upper_px), float(np.median(rms)), check_mm
+        return cov(sigma_px), cov(upper_px), float(np.median(rms)), check_mm, bool(glossy and k <= few)
 
     def _size_excess(self, T_cam_ct: np.ndarray, fiducials: list, feats: list):
         """Per matched ball (``fiducials`` their indices, ``feats`` their detections' features),
