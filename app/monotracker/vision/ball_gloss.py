@@ -41,11 +41,10 @@ def highlight_ratio(image: np.ndarray, centre_px, radius_px: float) -> float:
     h, w = image.shape[:2]
     if not r > 0 or x0 < 0 or y0 < 0 or x1 > w or y1 > h:
         return float("nan")
-    crop = image[y0:y1, x0:x1].astype(np.float32)
-    if crop.ndim == 3:
-        crop = crop.mean(axis=2)
-    yy, xx = np.mgrid[y0:y1, x0:x1]
-    core = crop[(xx - cx) ** 2 + (yy - cy) ** 2 <= r * r]
+    crop = image[y0:y1, x0:x1]
+    crop = crop.mean(axis=2) if crop.ndim == 3 else crop.astype(np.float64)
+    dx, dy = np.arange(x0, x1) - cx, np.arange(y0, y1) - cy
+    core = crop[dy[:, None] ** 2 + dx[None, :] ** 2 <= r * r]
     if core.size < 5:
         return float("nan")
     med = float(np.median(core))
