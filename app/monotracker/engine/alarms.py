@@ -160,7 +160,8 @@ CATALOGUE: dict[str, AlarmKind] = {
     "camera_moved": AlarmKind("alarm", 5, linger_s=0.0, **_HOLD),  # the camera moved after the hand-eye
     "frame_unreadable": AlarmKind("warning", 6, **_HOLD),
     "tre_limit": AlarmKind("warning", 3, remedy="uncover more balls or bring the camera nearer (the Plan step's layout "
-                           "says what this camera needs); the estimate tightens over the next frames", **_HOLD),  # predicted error at the target over the limit
+                           "says what this camera needs; with glossy balls beside their shadows, 7 or more in view); "
+                           "the estimate tightens over the next frames", **_HOLD),  # predicted error at the target over the limit
     "weak_geometry": AlarmKind("warning", 3, remedy="the balls found lie nearly on a line or a plane: uncover the "
                                "others", **_HOLD),
     "pose_implausible": AlarmKind("warning", 3, **_HOLD),
