@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from monotracker.vision.ball_gloss import frame_highlight, highlight_ratio, reads_glossy
+from monotracker.vision.ball_gloss import frame_highlight, highlight_ratio, reads_glossy, wider_cover
 
 #: the tracker's reading threshold the tests hold the cue to (TrackerConfig.glossy_highlight_ratio's
 #: measured split: planner-placed rendered frames glossy >= 1.77, matte <= 1.93 with one of 48 over 1.8)
@@ -80,3 +80,19 @@ def test_a_frame_reads_glossy_from_its_balls_median_or_a_still_heads_last_frames
     assert not reads_glossy(matte, 1.8)                          # one bright stray does not make it glossy
     assert reads_glossy(matte, 1.8, still=(1.5, 2.0))            # a still head's last frame did
     assert not reads_glossy([{}], 1.8) and np.isnan(frame_highlight([{}]))
+
+
+def test_the_wider_cover_needs_glossy_balls_beside_contact_shadows():
+    """The one verdict (:func:`wider_cover`): glossy AND shadowed as the shading check counts a
+    contact shadow (2+ left-out edge rays), in this frame or a still head's last frames."""
+    shadow = {"edge_shadow_rays": 3, "shading_shift_vec_px": (0.2, 0.0)}
+    glossy_shadowed = [{"highlight_ratio": 2.3, **shadow} for _ in range(4)]
+    glossy_alone = [{"highlight_ratio": 2.3, "edge_shadow_rays": 0} for _ in range(4)]
+    matte_shadowed = [{"highlight_ratio": 1.3, **shadow} for _ in range(4)]
+    assert wider_cover(glossy_shadowed, 1.8, 0.5)
+    assert not wider_cover(glossy_alone, 1.8, 0.5)
+    assert wider_cover(glossy_alone, 1.8, None)                           # the shadow condition off
+    assert wider_cover(glossy_alone, 1.8, 0.5, still_shadow_shares=(0.2, 0.75))
+    assert not wider_cover(matte_shadowed, 1.8, 0.5)
+    assert wider_cover(matte_shadowed, 1.8, 0.5, still_highlights=(2.0,))
+    assert not wider_cover(glossy_shadowed, 0.0, 0.5)                     # the reading off

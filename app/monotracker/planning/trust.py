@@ -40,7 +40,9 @@ def shading_cover(noise_px: float, edge_rms_px: float | None,
     default edge-fitted detector shows; 0: a detector without an edge fit, no cover), per
     coordinate: ``TrackerConfig.edge_bias_per_rms`` and ``edge_common_per_rms`` times it, the
     per-ball part times ``few_balls_cover`` when ``n_balls`` (the balls seen; None: many) is at
-    most ``few_balls``, as the tracker does."""
+    most ``few_balls``, as the tracker does for balls it reads as matte (the plan does not know
+    the kit's finish: for glossy balls beside their shadows the tracker widens the cover further,
+    ``TrackerConfig.glossy_few_balls``, and the plan's predicted trust is optimistic there)."""
     cfg = config or TrackerConfig()
     e = float(noise_px) if edge_rms_px is None else float(edge_rms_px)
     if not (e > 0):

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .shading_check import shadowed_share
+
 #: the core searched for the highlight, x the ball's image radius (the limb's own shading and
 #: the edge's blur stay out)
 CORE = 0.75
@@ -67,3 +69,20 @@ def reads_glossy(features: list, threshold: float, still: tuple = ()) -> bool:
         return False
     readings = [frame_highlight(features), *still]
     return any(np.isfinite(v) and v >= threshold for v in readings)
+
+
+def wider_cover(features: list, threshold: float, min_shadow_share: float | None,
+                still_highlights: tuple = (), still_shadow_shares: tuple = ()) -> bool:
+    """The one verdict on a frame's few-ball cover: whether it takes the glossy frames' wider
+    one (``TrackerConfig.glossy_few_balls``, ``glossy_few_balls_cover``). Its balls (their
+    detection features) must read as glossy (:func:`reads_glossy`, with ``still_highlights``)
+    and, unless ``min_shadow_share`` is None, show contact shadows as the shading check counts
+    them: :func:`.shading_check.shadowed_share` at least ``min_shadow_share`` in this frame or in
+    one of ``still_shadow_shares`` (a still head's last frames). The push the cover answers is a
+    glossy limb beside a shadow; a glossy ball on its own (our simulator's specular balls) is
+    read right."""
+    if not reads_glossy(features, threshold, still_highlights):
+        return False
+    if min_shadow_share is None:
+        return True
+    return max([shadowed_share(features), *still_shadow_shares]) >= min_shadow_share

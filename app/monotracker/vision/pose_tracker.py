@@ -782,12 +782,11 @@ class PoseTracker:
                                            float(self.radius_mm or 0.0), np.empty(0), r, J)
         A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
         per_ball = np.where(refined, cfg.refined_bias_per_rms, cfg.edge_bias_per_rms)
-        glossy = ball_gloss.reads_glossy(feats, cfg.glossy_highlight_ratio,
-                                         tuple(self.memory.still_notes(HIGHLIGHT_NOTE)))
+        glossy = ball_gloss.wider_cover(feats, cfg.glossy_highlight_ratio,
+                                        cfg.shading_check_share if cfg.glossy_needs_shadow else None,
+                                        tuple(self.memory.still_notes(HIGHLIGHT_NOTE)),
+                                        tuple(self.memory.still_notes(SHADOWED_NOTE)))
         self.memory.note(HIGHLIGHT_NOTE, ball_gloss.frame_highlight(feats))
-        if glossy and cfg.glossy_needs_shadow:
-            shares = [shading_check.shadowed_share(feats), *self.memory.still_notes(SHADOWED_NOTE)]
-            glossy = max(shares) >= cfg.shading_check_share
         few, few_cover = ((cfg.glossy_few_balls, cfg.glossy_few_balls_cover) if glossy
                           else (cfg.few_balls, cfg.few_balls_cover))
         if k <= few:
