@@ -49,6 +49,20 @@ def test_the_tre_confidence_setting_reaches_the_frame_rules_and_bad_values_are_r
             SessionConfig(tre_confidence=bad).validate()
 
 
+def test_the_ball_finish_setting_reaches_the_frame_rules_and_bad_values_are_refused():
+    """``ball_finish`` (what the team says of the kit's balls) reaches vision's per-frame rules
+    (``TrackerConfig.ball_finish``: the glossy frames' wider cover); each frame's reading by
+    default; a value outside vision's vocabulary is refused in one line."""
+    assert SessionConfig().frame_rules().ball_finish == "read"
+    for finish in ("read", "matte", "glossy"):
+        cfg = SessionConfig(ball_finish=finish)
+        cfg.validate()
+        assert cfg.frame_rules().ball_finish == finish
+    for bad in ("shiny", "", None, 1):
+        with pytest.raises(InputError, match="ball finish must be one of read, matte, glossy"):
+            SessionConfig(ball_finish=bad).validate()
+
+
 def test_point_twin_refuses_what_the_image_rigs_would(tmp_path, make_session):
     """Noisy points (0.5 px): poses whose predicted error at the target is under the 1 mm limit
     but whose error may exceed 2 mm too often are refused by the rig (vision's tail rule), as an

@@ -285,3 +285,20 @@ def test_prediction_counts_only_the_balls_seen(problem):
     alone = predict(P, T, PH.fiducial_centres_lps)
     assert with_far.visibility.why[-1] == "on the far side"
     assert with_far.all_seen.rms_mm == pytest.approx(alone.all_seen.rms_mm, rel=1e-9)
+
+
+def test_the_planner_predicts_with_the_glossy_cover_when_the_team_says_glossy():
+    """``TrackerConfig.ball_finish`` "glossy": the tracker widens the cover of glossy balls beside
+    their shadows to 6 balls and x ``glossy_few_balls_cover``; the planner, which cannot read the
+    frame, predicts with that pair only when the team says so (each frame's reading, the default,
+    predicts as for matte balls)."""
+    from monotracker.planning.trust import shading_cover
+
+    read, glossy = TrackerConfig(), TrackerConfig(ball_finish="glossy")
+    assert glossy.glossy_few_balls == 6 > read.few_balls
+    e = 0.2
+    for n, want_read, want_glossy in ((5, read.few_balls_cover, glossy.glossy_few_balls_cover),
+                                      (6, 1.0, glossy.glossy_few_balls_cover), (7, 1.0, 1.0)):
+        assert shading_cover(e, e, read, n_balls=n)[0] == pytest.approx(e * want_read)
+        assert shading_cover(e, e, glossy, n_balls=n)[0] == pytest.approx(e * want_glossy)
+        assert shading_cover(e, e, glossy, n_balls=n)[1] == shading_cover(e, e, read, n_balls=n)[1]

@@ -96,3 +96,18 @@ def test_the_wider_cover_needs_glossy_balls_beside_contact_shadows():
     assert not wider_cover(matte_shadowed, 1.8, 0.5)
     assert wider_cover(matte_shadowed, 1.8, 0.5, still_highlights=(2.0,))
     assert not wider_cover(glossy_shadowed, 0.0, 0.5)                     # the reading off
+
+
+def test_the_finish_the_team_states_overrides_the_reading():
+    """``matte``: never the wider cover; ``glossy``: the cover without the reading (a far
+    camera's highlights are too small to read), still only beside contact shadows."""
+    shadow = {"edge_shadow_rays": 3, "shading_shift_vec_px": (0.2, 0.0)}
+    unread_shadowed = [{"highlight_ratio": 1.2, **shadow} for _ in range(4)]
+    glossy_shadowed = [{"highlight_ratio": 2.3, **shadow} for _ in range(4)]
+    unread_alone = [{"highlight_ratio": 1.2, "edge_shadow_rays": 0} for _ in range(4)]
+    assert not wider_cover(unread_shadowed, 1.8, 0.5, finish="read")
+    assert wider_cover(unread_shadowed, 1.8, 0.5, finish="glossy")
+    assert not wider_cover(unread_alone, 1.8, 0.5, finish="glossy")
+    assert not wider_cover(glossy_shadowed, 1.8, 0.5, finish="matte")
+    with pytest.raises(ValueError, match="ball finish must be one of"):
+        wider_cover(glossy_shadowed, 1.8, 0.5, finish="shiny")

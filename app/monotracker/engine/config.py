@@ -49,7 +49,11 @@ class SessionConfig:
     probability by its own predicted distribution, not only its RMS (vision's
     ``max_not_right_probability``: with the RMS limit alone ~7 % of trusted poses exceed it
     even with ideal centres; 0.95 costs about half of the trusted scenes on the rendered frames,
-    docs/vision.md). ``camera_adapt``: "" or the user's explicit statement that a real camera
+    docs/vision.md). ``ball_finish`` ("read"): what the team says of the kit's balls, "read" (each
+    frame's highlight decides), "matte" or "glossy" (vision's ``TrackerConfig.ball_finish``:
+    glossy balls beside their contact shadows get a wider error cover with 6 or fewer in view;
+    "glossy" also for a far camera whose highlights are too small to read, and the layout planner
+    then predicts with that cover). ``camera_adapt``: "" or the user's explicit statement that a real camera
     runs the calibrated sensor binned or cropped (``"bin:2"``, ``"scale:0.5"``,
     ``"crop:X,Y,W,H"``); without it a frame whose size differs from the calibration is refused.
     ``max_validation_tre_mm`` (1.5): arming is refused while any validation fiducial (a fiducial
@@ -129,6 +133,7 @@ class SessionConfig:
     predict_target: bool = True
     max_predicted_tre_mm: float = 1.0
     tre_confidence: float = 0.0
+    ball_finish: str = "read"
     camera_adapt: str = ""
     control_process: bool = True
     max_validation_tre_mm: float = 1.5
@@ -146,8 +151,9 @@ class SessionConfig:
     def frame_rules(self):
         """The per-frame trust rules (vision's :class:`~monotracker.vision.pose_tracker.TrackerConfig`)
         every camera rig's pose tracker applies: this session's ``min_fiducials``,
-        ``max_predicted_tre_mm`` (mm) and ``tre_confidence`` (the chance of exceeding that limit
-        at most ``1 - tre_confidence``; 0 = no such rule), vision's defaults for the rest. A new
+        ``max_predicted_tre_mm`` (mm), ``tre_confidence`` (the chance of exceeding that limit
+        at most ``1 - tre_confidence``; 0 = no such rule) and ``ball_finish``, vision's defaults
+        for the rest. A new
         object on each call (a rig's tracker may keep state on it). The loop's gate
         (``engine/loop/gate.py``) judges what the rigs deliver with the same limits: one verdict
         from one configuration."""
@@ -156,7 +162,7 @@ class SessionConfig:
         c = float(self.tre_confidence)
         return TrackerConfig(min_fiducials=int(self.min_fiducials), max_predicted_tre_mm=float(self.max_predicted_tre_mm),
                              right_mm=float(self.max_predicted_tre_mm),
-                             max_not_right_probability=1.0 - c if c > 0 else 1.0)
+                             max_not_right_probability=1.0 - c if c > 0 else 1.0, ball_finish=str(self.ball_finish))
 
     def validate(self) -> None:
         """Raise :class:`InputError` with one line for a bad setting."""
@@ -191,6 +197,10 @@ class SessionConfig:
         c = self.tre_confidence
         if isinstance(c, bool) or not isinstance(c, (int, float)) or not (c == 0 or 0.5 <= float(c) <= 0.999):
             raise InputError(f"tre_confidence must be 0 (off) or a probability from 0.5 to 0.999 (e.g. 0.95), not {c!r}")
+        from monotracker.vision.ball_gloss import FINISHES
+
+        if self.ball_finish not in FINISHES:
+            raise InputError(f"ball finish must be one of {', '.join(FINISHES)}, not {self.ball_finish!r}")
         if self.camera_adapt:
             kind = str(self.camera_adapt).partition(":")[0]
             if kind not in ("bin", "scale", "crop"):

@@ -40,16 +40,20 @@ def shading_cover(noise_px: float, edge_rms_px: float | None,
     default edge-fitted detector shows; 0: a detector without an edge fit, no cover), per
     coordinate: ``TrackerConfig.edge_bias_per_rms`` and ``edge_common_per_rms`` times it, the
     per-ball part times ``few_balls_cover`` when ``n_balls`` (the balls seen; None: many) is at
-    most ``few_balls``, as the tracker does for balls it reads as matte (the plan does not know
-    the kit's finish: for glossy balls beside their shadows the tracker widens the cover further,
-    ``TrackerConfig.glossy_few_balls``, and the plan's predicted trust is optimistic there)."""
+    most ``few_balls``, as the tracker does for balls it reads as matte; with the kit's balls said
+    to be glossy (``TrackerConfig.ball_finish`` ``glossy``) the glossy frames' pair
+    (``glossy_few_balls``, ``glossy_few_balls_cover``). With the finish read from each frame (the
+    default) the plan cannot know it and predicts as for matte balls: optimistic for glossy balls
+    beside their shadows."""
     cfg = config or TrackerConfig()
     e = float(noise_px) if edge_rms_px is None else float(edge_rms_px)
     if not (e > 0):
         return 0.0, 0.0
     per_ball = max(cfg.edge_bias_per_rms, 0.0) * e
-    if n_balls is not None and n_balls <= cfg.few_balls:
-        per_ball *= max(cfg.few_balls_cover, 0.0)
+    few, few_cover = ((cfg.glossy_few_balls, cfg.glossy_few_balls_cover) if cfg.ball_finish == "glossy"
+                      else (cfg.few_balls, cfg.few_balls_cover))
+    if n_balls is not None and n_balls <= few:
+        per_ball *= max(few_cover, 0.0)
     return per_ball, max(cfg.edge_common_per_rms, 0.0) * e
 
 

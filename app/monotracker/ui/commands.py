@@ -58,6 +58,10 @@ def register(subparsers) -> None:
                    help="trust a pose only when its error at the target stays within the 1 mm limit with "
                         "probability P by its predicted distribution (e.g. 0.95; default 0: the limit on the "
                         "predicted RMS error, and at most 0.1 %% over 2 mm)")
+    p.add_argument("--ball-finish", default="read", metavar="FINISH",
+                   help="the kit's balls: read (default: each frame's highlight decides), matte, or glossy "
+                        "(glossy balls beside their contact shadows get a wider error cover with 6 or fewer in "
+                        "view; say glossy for a far camera, and the layout planner predicts with it)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
     p.add_argument("--home", type=home_folder, default=None, help="session folder, locked while the server runs (default $MONOTRACKER_HOME, else your ~/.monotracker)")
     p.add_argument("--record", type=home_folder, default=None, metavar="DIR",
@@ -174,7 +178,8 @@ def _serve(args) -> int:
     if args.igtl_allow_remote and args.igtl_port is None:
         raise InputError("--igtl-allow-remote needs --igtl-port PORT")
     cfg = SessionConfig(home=args.home, camera=args.camera, robot=args.robot, arm_pin=pin,
-                        trajectory=args.trajectory, clock="real", tre_confidence=args.tre_confidence)
+                        trajectory=args.trajectory, clock="real", tre_confidence=args.tre_confidence,
+                        ball_finish=args.ball_finish)
     cfg.validate()
     signals = StopSignals()  # from here on a stop signal is a flag the main thread acts on
     if args.calibration is not None:  # a bad file is refused now, not when the camera starts

@@ -28,6 +28,12 @@ import numpy as np
 
 from .shading_check import shadowed_share
 
+#: what the operator may say of the kit's balls (``TrackerConfig.ball_finish``): ``read`` (the
+#: default: each frame's highlight reading decides), ``matte`` (never the glossy frames' cover),
+#: ``glossy`` (the glossy frames' cover wherever the balls show contact shadows, read or not:
+#: for far cameras whose highlights are too small to read)
+FINISHES = ("read", "matte", "glossy")
+
 #: the core searched for the highlight, x the ball's image radius (the limb's own shading and
 #: the edge's blur stay out)
 CORE = 0.75
@@ -72,7 +78,7 @@ def reads_glossy(features: list, threshold: float, still: tuple = ()) -> bool:
 
 
 def wider_cover(features: list, threshold: float, min_shadow_share: float | None,
-                still_highlights: tuple = (), still_shadow_shares: tuple = ()) -> bool:
+                still_highlights: tuple = (), still_shadow_shares: tuple = (), finish: str = "read") -> bool:
     """The one verdict on a frame's few-ball cover: whether it takes the glossy frames' wider
     one (``TrackerConfig.glossy_few_balls``, ``glossy_few_balls_cover``). Its balls (their
     detection features) must read as glossy (:func:`reads_glossy`, with ``still_highlights``)
@@ -80,8 +86,13 @@ def wider_cover(features: list, threshold: float, min_shadow_share: float | None
     them: :func:`.shading_check.shadowed_share` at least ``min_shadow_share`` in this frame or in
     one of ``still_shadow_shares`` (a still head's last frames). The push the cover answers is a
     glossy limb beside a shadow; a glossy ball on its own (our simulator's specular balls) is
-    read right."""
-    if not reads_glossy(features, threshold, still_highlights):
+    read right. ``finish`` (:data:`FINISHES`): ``matte`` never, ``glossy`` without the reading
+    (the shadow condition still applies), ``read`` as above; ``ValueError`` for another."""
+    if finish not in FINISHES:
+        raise ValueError(f"ball finish must be one of {', '.join(FINISHES)}, not {finish!r}")
+    if finish == "matte":
+        return False
+    if finish == "read" and not reads_glossy(features, threshold, still_highlights):
         return False
     if min_shadow_share is None:
         return True

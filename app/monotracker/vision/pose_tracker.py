@@ -321,6 +321,12 @@ class TrackerConfig:
     #: show contact shadows as the shading check counts them (``shading_check_share``): the push
     #: is a glossy limb beside a shadow; a glossy ball on its own is read right
     glossy_needs_shadow: bool = True
+    #: what the operator says of the kit's balls (:data:`.ball_gloss.FINISHES`): ``read`` (each
+    #: frame's reading, the default), ``matte`` (never the glossy frames' cover), ``glossy`` (that
+    #: cover wherever the balls show contact shadows, read or not: a far camera's highlights are
+    #: too small to read, docs/vision.md "Glossy balls read from the frame"); the layout planner
+    #: predicts with the glossy cover only for ``glossy``
+    ball_finish: str = "read"
     glossy_few_balls: int = 6
     glossy_few_balls_cover: float = 2.0
     #: the shading check (:mod:`.shading_check`; the per-frame model): where at least
@@ -785,7 +791,7 @@ class PoseTracker:
         glossy = ball_gloss.wider_cover(feats, cfg.glossy_highlight_ratio,
                                         cfg.shading_check_share if cfg.glossy_needs_shadow else None,
                                         tuple(self.memory.still_notes(HIGHLIGHT_NOTE)),
-                                        tuple(self.memory.still_notes(SHADOWED_NOTE)))
+                                        tuple(self.memory.still_notes(SHADOWED_NOTE)), cfg.ball_finish)
         self.memory.note(HIGHLIGHT_NOTE, ball_gloss.frame_highlight(feats))
         few, few_cover = ((cfg.glossy_few_balls, cfg.glossy_few_balls_cover) if glossy
                           else (cfg.few_balls, cfg.few_balls_cover))
