@@ -59,7 +59,8 @@ def register(subparsers) -> None:
                         "probability P by its predicted distribution (e.g. 0.95; default 0: the limit on the "
                         "predicted RMS error, and at most 0.1 %% over 2 mm)")
     p.add_argument("--ball-finish", default="read", metavar="FINISH",
-                   help="the kit's balls: read (default: each frame's highlight decides), matte, or glossy "
+                   help="the kit's balls: read (default: each frame's highlight decides), matte (only for a kit "
+                        "known to be matte), or glossy "
                         "(glossy balls beside their contact shadows get a wider error cover with 6 or fewer in "
                         "view; say glossy for a far camera, and the layout planner predicts with it)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
