@@ -20,6 +20,7 @@ from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detection import BlobRules
 from monotracker.vision.frames import Frame
 from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
+from recording_detector import RecordingDetector
 
 N_FRAMES, SECONDS, SEED = 12, 10.0, 3
 
@@ -34,22 +35,11 @@ def degraded():
     return cam, times, [cam.render(t) for t in times]
 
 
-class _Kept:
-    """The product's detector, keeping its last detection (the tracker gives it its hint)."""
-
-    def __init__(self, det):
-        self.det, self.rules, self.last = det, det.rules, None
-
-    def detect(self, image, hint=None):
-        self.last = self.det.detect(image) if hint is None else self.det.detect(image, hint)
-        return self.last
-
-
 def _stream(degraded, config):
     """Per frame: (trusted?, error at the target mm, the frame's highlight reading)."""
     cam, times, frames = degraded
     ph = cam.phantom
-    det = _Kept(ClassicalDetector(BlobRules(radius_mm=ph.fiducial_radius_mm, focal_px=float(cam.K[0, 0]),
+    det = RecordingDetector(ClassicalDetector(BlobRules(radius_mm=ph.fiducial_radius_mm, focal_px=float(cam.K[0, 0]),
                                             camera=cam.camera)))
     trk = PoseTracker(cam.fiducials_ct, cam.camera, detector=det, radius_mm=ph.fiducial_radius_mm,
                       target_ct=ph.sample_target_lps, config=config)
@@ -57,7 +47,7 @@ def _stream(degraded, config):
     for i, (img, tr) in enumerate(frames):
         e = trk.process(Frame(img, float(times[i]), i, tr))
         err = float(tre_mm(e.T_cam_ct, tr.T_cam_ct, ph.sample_target_lps)[0]) if e.ok else np.nan
-        out.append((bool(e.ok), err, frame_highlight([f.features for f in det.last.fiducials])))
+        out.append((bool(e.ok), err, frame_highlight([f.features for f in det.log[-1].fiducials])))
     return out
 
 

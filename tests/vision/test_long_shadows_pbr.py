@@ -20,20 +20,9 @@ from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detection import BlobRules
 from monotracker.vision.frames import Frame
 from monotracker.vision.pose_tracker import PoseTracker
+from recording_detector import RecordingDetector
 
 FRAMES = 8
-
-
-class _Recording:
-    """The tracker's detector, every Detection kept."""
-
-    def __init__(self, det):
-        self.det, self.rules, self.log = det, det.rules, []
-
-    def detect(self, image, hint=None):
-        d = self.det.detect(image) if hint is None else self.det.detect(image, hint)
-        self.log.append(d)
-        return d
 
 
 def _accepted(scene, far_per_radius) -> list:
@@ -41,7 +30,7 @@ def _accepted(scene, far_per_radius) -> list:
     tracker's detector accepted; ``far_per_radius`` its ``BlobRules.shadow_far_per_radius``."""
     tr, cam = scene.truth, scene.camera_model()
     rules = BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0]), shadow_far_per_radius=far_per_radius)
-    det = _Recording(ClassicalDetector(rules))
+    det = RecordingDetector(ClassicalDetector(rules))
     trk = PoseTracker(tr.fiducials_ct, cam, detector=det, radius_mm=tr.radius_mm, target_ct=tr.target_ct)
     for k, img in enumerate(camera_frames(scene, "clean", FRAMES)):
         trk.process(Frame(img, k / 30.0, k, None))

@@ -30,7 +30,7 @@ import numpy as np
 
 from monotracker.registration.noise import OnlineNoise
 from monotracker.registration.quantiles import chi2_ppf, f_ppf
-from monotracker.vision.pose_tracker import TrackerConfig, tail_problem
+from monotracker.vision.pose_tracker import TrackerConfig, few_ball_factor, tail_problem
 
 
 def shading_cover(noise_px: float, edge_rms_px: float | None,
@@ -50,10 +50,8 @@ def shading_cover(noise_px: float, edge_rms_px: float | None,
     if not (e > 0):
         return 0.0, 0.0
     per_ball = max(cfg.edge_bias_per_rms, 0.0) * e
-    few, few_cover = ((cfg.glossy_few_balls, cfg.glossy_few_balls_cover) if cfg.ball_finish == "glossy"
-                      else (cfg.few_balls, cfg.few_balls_cover))
-    if n_balls is not None and n_balls <= few:
-        per_ball *= max(few_cover, 0.0)
+    if n_balls is not None:
+        per_ball *= max(few_ball_factor(cfg, n_balls, cfg.ball_finish == "glossy"), 0.0)
     return per_ball, max(cfg.edge_common_per_rms, 0.0) * e
 
 

@@ -373,6 +373,16 @@ def _fiducials_used(n: int, remembered: int) -> str:
     return f"{n} fiducials" + (f", {remembered} of them from the last frames" if remembered else "")
 
 
+def few_ball_factor(cfg: TrackerConfig, n_balls: int, glossy: bool) -> float:
+    """The factor on each ball's shading cover in a fit of ``n_balls`` balls: ``few_balls_cover``
+    with at most ``few_balls``, or for balls taken as glossy (:func:`.ball_gloss.wider_cover`)
+    ``glossy_few_balls_cover`` with at most ``glossy_few_balls``; 1.0 with more. The tracker and
+    the layout planner (:func:`monotracker.planning.trust.shading_cover`) both apply it."""
+    few, cover = ((cfg.glossy_few_balls, cfg.glossy_few_balls_cover) if glossy
+                  else (cfg.few_balls, cfg.few_balls_cover))
+    return float(cover) if n_balls <= few else 1.0
+
+
 def tail_problem(cov3: np.ndarray, cfg: TrackerConfig) -> str:
     """'' when an error at the target with covariance ``cov3`` (mm^2) passes the tail gates of
     ``cfg`` (more than ``wrong_mm`` at most ``max_wrong_probability``; where set, < 1, more than
@@ -793,10 +803,7 @@ class PoseTracker:
                                         tuple(self.memory.still_notes(HIGHLIGHT_NOTE)),
                                         tuple(self.memory.still_notes(SHADOWED_NOTE)), cfg.ball_finish)
         self.memory.note(HIGHLIGHT_NOTE, ball_gloss.frame_highlight(feats))
-        few, few_cover = ((cfg.glossy_few_balls, cfg.glossy_few_balls_cover) if glossy
-                          else (cfg.few_balls, cfg.few_balls_cover))
-        if k <= few:
-            per_ball = per_ball * few_cover
+        per_ball = per_ball * few_ball_factor(cfg, k, glossy)
         common_factor = max(cfg.refined_common_per_rms if refined.any() else 0.0,
                             cfg.edge_common_per_rms if not refined.all() else 0.0)
         cover = per_ball * rms
@@ -829,7 +836,7 @@ class PoseTracker:
                 return c6
             return shading_check.raised_covariance(c6, disagree, T, self.target_ct, cfg.shading_check_factor)
 
-        return cov(sigma_px), cov(upper_px), float(np.median(rms)), check_mm, bool(glossy and k <= few)
+        return cov(sigma_px), cov(upper_px), float(np.median(rms)), check_mm, bool(glossy and k <= cfg.glossy_few_balls)
 
     def _size_excess(self, T_cam_ct: np.ndarray, fiducials: list, feats: list):
         """Per matched ball (``fiducials`` their indices, ``feats`` their detections' features),
