@@ -200,3 +200,31 @@ def test_kit_fields_show_the_plans_kit(tmp_path, monkeypatch):
         assert view.gui.h["Ball radius (mm)"].value == 2.5 and view.gui.h["Ball density (HU)"].value == "1700"
     finally:
         s.shutdown()
+
+
+def test_ball_finish_choice_reaches_the_plan_and_shows_what_the_plan_says(step):
+    """The "Ball finish" dropdown: every finish vision knows has one choice; a choice is kept in
+    the plan (``Session.set_ball_finish``); a refused one is shown back as the plan's; a change
+    made elsewhere (another tab) is shown at the next render."""
+    from monotracker.vision.ball_gloss import FINISHES
+
+    assert {v for v in step_ct.FINISH_CHOICES.values() if v is not None} == set(FINISHES)
+    ui, view, s = step
+    h = view.gui.h["Ball finish"]
+    assert step_ct.FINISH_CHOICES[h.value] is None                 # a new plan: the launch setting
+    h.value = "glossy"
+    h.cb(None)
+    assert view.said[-1][0] and s.plan_copy().ball_finish == "glossy", view.said[-1]
+    n = len(view.said)
+    h.cb(None)                                                       # the same again: nothing to do
+    assert len(view.said) == n and len(s.audit_entries(code="ball_finish_set")) == 1
+    s._plan._robot_state = lambda: "armed"                           # the arm engaged: refused
+    h.value = "matte"
+    h.cb(None)
+    assert not view.said[-1][0] and "disarm" in view.said[-1][1]
+    assert h.value == "glossy" and s.plan_copy().ball_finish == "glossy"
+    s._plan._robot_state = lambda: "disarmed"
+    assert s.set_ball_finish("matte").ok                             # another tab
+    ui.slices = type("NoSlices", (), {"render": lambda *a: None})()
+    ui.render(s.snapshot())
+    assert h.value == "matte"

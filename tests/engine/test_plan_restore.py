@@ -242,4 +242,5 @@ def test_any_single_corruption_restores_only_valid_state(saved):
             assert pc.check_camera(plan.K, plan.dist, plan.image_size) is None
             assert pc.check_path(plan.entry_lps_mm, plan.target_lps_mm, plan.fiducials, None) is None
             assert isinstance(plan.fiducials_locked, bool) and isinstance(plan.revision, int)
+            assert plan.ball_finish is None or pc.check_ball_finish(plan.ball_finish) is None
     assert n > 500

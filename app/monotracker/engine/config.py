@@ -148,12 +148,13 @@ class SessionConfig:
     compute_charge_s: float | None = None
     extra: dict = field(default_factory=dict)
 
-    def frame_rules(self):
+    def frame_rules(self, plan_finish: str | None = None):
         """The per-frame trust rules (vision's :class:`~monotracker.vision.pose_tracker.TrackerConfig`)
         every camera rig's pose tracker applies: this session's ``min_fiducials``,
         ``max_predicted_tre_mm`` (mm), ``tre_confidence`` (the chance of exceeding that limit
-        at most ``1 - tre_confidence``; 0 = no such rule) and ``ball_finish``, vision's defaults
-        for the rest. A new
+        at most ``1 - tre_confidence``; 0 = no such rule) and the balls' finish: the plan's
+        (``plan_finish``, ``Plan.ball_finish``, set for the patient's kit) or, when the plan
+        states none (None), ``ball_finish``; vision's defaults for the rest. A new
         object on each call (a rig's tracker may keep state on it). The loop's gate
         (``engine/loop/gate.py``) judges what the rigs deliver with the same limits: one verdict
         from one configuration."""
@@ -162,7 +163,8 @@ class SessionConfig:
         c = float(self.tre_confidence)
         return TrackerConfig(min_fiducials=int(self.min_fiducials), max_predicted_tre_mm=float(self.max_predicted_tre_mm),
                              right_mm=float(self.max_predicted_tre_mm),
-                             max_not_right_probability=1.0 - c if c > 0 else 1.0, ball_finish=str(self.ball_finish))
+                             max_not_right_probability=1.0 - c if c > 0 else 1.0,
+                             ball_finish=str(self.ball_finish if plan_finish is None else plan_finish))
 
     def validate(self) -> None:
         """Raise :class:`InputError` with one line for a bad setting."""
@@ -197,10 +199,11 @@ class SessionConfig:
         c = self.tre_confidence
         if isinstance(c, bool) or not isinstance(c, (int, float)) or not (c == 0 or 0.5 <= float(c) <= 0.999):
             raise InputError(f"tre_confidence must be 0 (off) or a probability from 0.5 to 0.999 (e.g. 0.95), not {c!r}")
-        from monotracker.vision.ball_gloss import FINISHES
+        from monotracker.engine.plan.checks import check_ball_finish
 
-        if self.ball_finish not in FINISHES:
-            raise InputError(f"ball finish must be one of {', '.join(FINISHES)}, not {self.ball_finish!r}")
+        why = check_ball_finish(self.ball_finish)
+        if why:
+            raise InputError(why)
         if self.camera_adapt:
             kind = str(self.camera_adapt).partition(":")[0]
             if kind not in ("bin", "scale", "crop"):

@@ -181,7 +181,8 @@ class LayoutJob:
                         existing=np.array([f.centre_lps_mm for f in fids], float).reshape(-1, 3),
                         existing_ids=tuple(int(f.id) for f in fids), radius_mm=radius,
                         camera=planning_camera(plan, self._camera_rig()),
-                        noise_px=noise, n_balls=n, quick=bool(quick), rules=cfg)
+                        noise_px=noise, n_balls=n, quick=bool(quick),
+                        rules=self.config.frame_rules(plan.ball_finish))   # the trust the balls will get
             token = self._token = JobToken()
             self._job = Job("plan_layout", 0.0, f"planning {n} balls and the camera")
             th = threading.Thread(target=self._run, args=(args, basis, token), name="monotracker-layout", daemon=True)
@@ -224,13 +225,14 @@ class LayoutJob:
 
     @staticmethod
     def _basis_of(plan, loaded) -> tuple:
-        """What a layout depends on: the CT, the target and entry, the registration fiducials."""
+        """What a layout depends on: the CT, the target and entry, the registration fiducials, the
+        balls' finish the plan states (the trust it predicts)."""
         def pt(p):
             return None if p is None else tuple(np.round(np.asarray(p, float), 3))
 
         return (None if loaded is None else loaded.summary.path, id(None if loaded is None else loaded.head_mesh),
                 pt(plan.target_lps_mm), pt(plan.entry_lps_mm),
-                tuple((f.id, pt(f.centre_lps_mm)) for f in plan.registration_fiducials()))
+                tuple((f.id, pt(f.centre_lps_mm)) for f in plan.registration_fiducials()), plan.ball_finish)
 
     # ------------------------------------------------------------------ the job's thread
     def _progress(self, token: JobToken):

@@ -21,6 +21,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.load_ct(path)                     # async job: load + detect fiducials + head surface; progress in snap.job
     s.load_sample_ct()
     s.set_fiducial_kit(radius_mm, density_hu=None)   # kept in the plan; with a CT: detection again (CT job)
+    s.set_ball_finish("matte" | "glossy" | "read" | None)   # the kit's balls' finish, kept in the plan
+                                        #   (None: the launch setting); trust rules, so refused while armed
     s.cancel_ct_job()                   # stop the CT job; previous CT and plan stay (also: config.ct_job_timeout_s)
     s.set_fiducial_status(fid_id, "confirmed" | "rejected" | "detected")
     s.add_fiducial(p_lps_mm, radius_mm=None, manual=False)   # operator-added fiducial (LPS mm); status "added";
@@ -409,6 +411,15 @@ class Session:
         """Back to editing the fiducials (refused while armed or tracking)."""
         return self._plan.unlock_fiducials()
 
+    def set_ball_finish(self, finish: str | None) -> CommandResult:
+        """The kit's balls' finish for this patient, kept in the plan ("matte", "glossy", "read"
+        or None: the launch setting); a running camera applies it when next started (see
+        ``PlanEditor.set_ball_finish``)."""
+        r = self._plan.set_ball_finish(finish)
+        if r.ok and self._loop.camera.rig is not None:
+            return CommandResult.done(f"{r.message}; the running camera applies it when started again")
+        return r
+
     def set_entry(self, p_lps_mm) -> CommandResult:
         """The needle's entry point, (3,) CT LPS mm (see ``PlanEditor.set_entry``)."""
         return self._plan.set_entry(p_lps_mm)
@@ -621,4 +632,5 @@ class Session:
             audit_path=str(self._audit.path), control=self.control_summary(),
             alarms=self._alarms.active(dict(self.integrity_alarms())),
             recording=self._recording.summary(), layout=layout, plan_ct_path=plan.ct_path,
+            ball_finish=plan.ball_finish, ball_finish_default=str(self.config.ball_finish),
         )

@@ -370,6 +370,11 @@ class Snapshot:
     #: the CT file or folder the plan was made on (None: no CT in the plan); with ``ct`` None
     #: after a restart, the CT the restored plan needs (``Session.load_ct`` on it restores it)
     plan_ct_path: str | None = None
+    #: the balls' finish the plan states ("read", "matte", "glossy") or None (the launch
+    #: setting, ``ball_finish_default``); a camera applies it when it starts
+    ball_finish: str | None = None
+    #: the session's launch setting of the balls' finish (``SessionConfig.ball_finish``)
+    ball_finish_default: str = "read"
 
     @property
     def latest_alert(self) -> Event | None:

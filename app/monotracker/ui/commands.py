@@ -62,7 +62,8 @@ def register(subparsers) -> None:
                    help="the kit's balls: read (default: each frame's highlight decides), matte (only for a kit "
                         "known to be matte), or glossy "
                         "(glossy balls beside their contact shadows get a wider error cover with 6 or fewer in "
-                        "view; say glossy for a far camera, and the layout planner predicts with it)")
+                        "view; say glossy for a far camera, and the layout planner predicts with it); a plan's own "
+                        "finish (the CT step's 'Ball finish') wins")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
     p.add_argument("--home", type=home_folder, default=None, help="session folder, locked while the server runs (default $MONOTRACKER_HOME, else your ~/.monotracker)")
     p.add_argument("--record", type=home_folder, default=None, metavar="DIR",

@@ -13,6 +13,13 @@ from monotracker.ui.slice_panel import SlicePanel
 
 FID_RGB = {"confirmed": (60, 200, 60), "added": (60, 200, 60), "detected": (240, 200, 0), "rejected": (220, 40, 40)}
 CLICK_MODES_CT = ("nothing", "add fiducial")
+#: the CT step's "Ball finish" choices -> what the plan states (None: the launch setting)
+FINISH_CHOICES = {"as launched": None, "read from each frame": "read", "matte": "matte", "glossy": "glossy"}
+
+
+def finish_label(finish: str | None) -> str:
+    """The "Ball finish" choice showing the plan's ``finish`` (None: the launch setting)."""
+    return next(k for k, v in FINISH_CHOICES.items() if v == finish)
 
 
 class CtStep:
@@ -42,6 +49,12 @@ class CtStep:
                                           hint="nominal radius of the kit's balls")
             self.h_kit_hu = gui.add_text("Ball density (HU)", "", hint="blank = unknown; e.g. 1500-2000 ceramic, 3071 steel")
             b_kit = gui.add_button("Apply fiducial kit (detect again)")
+            self.h_finish = gui.add_dropdown(
+                "Ball finish", tuple(FINISH_CHOICES), initial_value=finish_label(session.snapshot().ball_finish),
+                hint="glossy balls beside their contact shadows need more balls in view before a pose is "
+                     "trusted; 'read from each frame' judges the highlight; 'as launched' is the server's "
+                     "--ball-finish. Kept in the plan; a running camera applies it when started again")
+            self._finish_seen = session.snapshot().ball_finish
             kit = session.plan_copy().fiducial_kit  # the plan's kit, when it has one
             if kit is not None and kit.radius_mm is not None:
                 self.h_kit_r.value = float(kit.radius_mm)
@@ -108,6 +121,17 @@ class CtStep:
             r = view.run("Fiducial kit", session.set_fiducial_kit, *kit)
             if r is not None and r.ok and "detecting" in r.message:
                 view.watch_job()
+
+        @self.h_finish.on_update
+        @view.safe("Ball finish")
+        def _(_event) -> None:
+            finish = FINISH_CHOICES.get(self.h_finish.value)
+            now = session.snapshot().ball_finish
+            if finish == now:
+                return  # the plan already says so (also: the dropdown set from the plan)
+            r = view.run("Ball finish", session.set_ball_finish, finish)
+            if r is None or not r.ok:
+                self.h_finish.value = finish_label(now)  # show what the plan still says
 
         @self.b_reload.on_click
         @view.safe("Reload CT")
@@ -215,6 +239,9 @@ class CtStep:
                 self.h_job.content = "No CT loaded."
         self.h_fid_table.content = fiducial_table(snap)
         self.h_rejected.content = rejected_table(snap)
+        if snap.ball_finish != self._finish_seen:  # changed elsewhere (another tab, a restored plan)
+            self._finish_seen = snap.ball_finish
+            self.h_finish.value = finish_label(snap.ball_finish)
         with self.view.lock:
             fid_id = self.view.selected_fid
         fid = next((f for f in snap.fiducials if f.id == fid_id), None)

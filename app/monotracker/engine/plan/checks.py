@@ -197,6 +197,16 @@ def check_fiducial_kit(radius_mm, density_hu=None) -> str | None:
     return None
 
 
+def check_ball_finish(finish) -> str | None:
+    """The kit's balls' finish: one of vision's words for it
+    (:data:`monotracker.vision.ball_gloss.FINISHES`: read, matte, glossy)."""
+    from monotracker.vision.ball_gloss import FINISHES
+
+    if not isinstance(finish, str) or finish not in FINISHES:
+        return f"ball finish must be one of {', '.join(FINISHES)}, not {finish!r}"
+    return None
+
+
 def check_fiducial_set(fiducials) -> str | None:
     """Unique ids; no two usable balls overlapping."""
     ids = [f.id for f in fiducials]

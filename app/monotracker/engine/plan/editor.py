@@ -383,6 +383,29 @@ class PlanEditor:
         return CommandResult.done(f"fiducial {fid_id}: {role}")
 
     @command
+    def set_ball_finish(self, finish: str | None) -> CommandResult:
+        """State the finish of this patient's kit's balls in the plan: "matte", "glossy", "read"
+        (each frame's highlight decides) or None (the session's launch setting,
+        ``SessionConfig.ball_finish``). A glossy kit beside its contact shadows needs more balls in
+        view before a pose is trusted (vision's ``TrackerConfig.ball_finish``); a camera applies
+        the plan's finish when it starts. Refused: a bad word, the robot armed or tracking (the
+        finish changes which poses are trusted), or the plan cannot be saved."""
+        if finish is not None:
+            why = plan_checks.check_ball_finish(finish)
+            if why:
+                raise Refused(why)
+        state = self._robot_state()
+        if state not in ("disarmed", "estopped"):
+            raise Refused(f"the robot is {state}: disarm it before changing the balls' finish "
+                          "(it changes which poses are trusted)")
+        with self.edit("ball finish") as plan:
+            old, plan.ball_finish = plan.ball_finish, finish
+        said = "the session's setting" if finish is None else finish
+        self._bus.event("ball_finish_set", f"balls' finish: {said} (was "
+                        f"{'the session setting' if old is None else old})", {"finish": finish, "previous": old})
+        return CommandResult.done(f"balls' finish: {said}")
+
+    @command
     def unlock_fiducials(self) -> CommandResult:
         """Back to editing the fiducials (refused while armed or tracking, or when the plan cannot be saved)."""
         if self._robot_state() not in ("disarmed", "estopped"):

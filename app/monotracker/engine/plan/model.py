@@ -71,6 +71,11 @@ class Plan:
     T_base_cam: np.ndarray | None = None
     #: The balls used (``monotracker.ct.FiducialKit``: radius mm, density HU) or None (estimated).
     fiducial_kit: "object | None" = None
+    #: What the team says of the kit's balls' finish for this patient: "read" (each frame's
+    #: highlight decides), "matte" or "glossy" (vision's ``TrackerConfig.ball_finish``,
+    #: :data:`monotracker.vision.ball_gloss.FINISHES`), or None: the session's launch setting
+    #: (``SessionConfig.ball_finish``, ``serve --ball-finish``).
+    ball_finish: str | None = None
     revision: int = 0
     #: hashes recorded with the plan: ``ct_sha256``, ``calibration_sha256`` (None: not known)
     integrity: dict = field(default_factory=dict)
@@ -138,6 +143,7 @@ class Plan:
             },
             "T_base_cam_mm": arr(self.T_base_cam),
             "fiducial_kit": None if self.fiducial_kit is None else self.fiducial_kit.to_dict(),
+            "ball_finish": self.ball_finish,
             "integrity": {k: v for k, v in sorted(self.integrity.items()) if k != "plan_sha256"},
         })
 

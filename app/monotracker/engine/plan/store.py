@@ -176,6 +176,15 @@ def restore_plan(d, min_usable: int = 4):
         except (TypeError, ValueError) as exc:
             rej.append(Rejection("fiducial_kit", str(exc)))
 
+    # ------------------------------------------------------------ the balls' finish (vision's vocabulary)
+    finish = d.get("ball_finish")
+    if finish is not None:
+        why = pc.check_ball_finish(finish)
+        if why:
+            rej.append(Rejection("ball_finish", why))
+        else:
+            plan.ball_finish = str(finish)
+
     # ------------------------------------------------------------ integrity record (checked by the session)
     integ = d.get("integrity")
     if integ is not None:

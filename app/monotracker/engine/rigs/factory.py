@@ -59,7 +59,7 @@ def build_camera_rig(source: str, calibration_path, plan, cfg, session) -> Camer
     kind, arg = parse_source(source)
     if kind.real_clock and cfg.clock != "real":
         raise MonoTrackerError("real cameras need a real-clock session (clock='real')")
-    rig = kind.build(arg, calibration_path, plan, cfg, session, cfg.frame_rules())
+    rig = kind.build(arg, calibration_path, plan, cfg, session, cfg.frame_rules(getattr(plan, "ball_finish", None)))
     if kind.simulated:
         rig.clock = session.clock
         rig.nice = int(getattr(cfg, "pose_nice", 0))  # >= 0 (SessionConfig.validate): never above the web server
