@@ -44,7 +44,9 @@ whose contact-shadow test leaves out only shadowed rays outside the ball's outli
 inside it: ``BlobRules.shadow_in_px`` inf; the default before 2026-12-01), ``long-shadow``
 (``edge`` whose shadow test reads the far background half the ball's radius beyond the near
 one, at least 3 px: ``BlobRules.shadow_far_per_radius`` 0.5; opt-in, docs/vision.md "Long
-contact shadows"), ``idealS``
+contact shadows"), ``trim`` (``edge`` that scores a colour blob refused for its shape again
+with its thin parts cut off: ``BlobRules.trim_tails``; opt-in, docs/vision.md "Ragged colour
+blobs scored again trimmed"), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
@@ -141,6 +143,9 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
     if name == "long-shadow":
         rules.shadow_far_per_radius = 0.5
         return ClassicalDetector(rules)
+    if name == "trim":
+        rules.trim_tails = True
+        return ClassicalDetector(rules)
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":
@@ -151,7 +156,7 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, long-shadow, first, narrow-lenient, refined, chroma, learned, "
+    raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, long-shadow, trim, first, narrow-lenient, refined, chroma, learned, "
                      "idealS)")
 
 

@@ -12,14 +12,15 @@ ray's background the line through its two outer eighths; ``edge``: today's defau
 background, see ``edge_fit.NEAR_BACKGROUND``; ``edge-r5``: that fit with the unmixing's residual
 tolerance 0.12 whatever the blur, before ``edge_fit.SHARP_UNMIX_RESIDUAL``; ``edge+ref``: ``edge``
 with the learned centre refiner, opt-in, issue 28; ``edge+shade``: ``edge`` with the opt-in shading
-shift, ``vision/shading_shift.py``), mean and p95 centre error (px) of the balls found
+shift, ``vision/shading_shift.py``; ``trim``: ``edge`` with the opt-in second score of a blob
+refused for its shape, its thin parts cut off, ``BlobRules.trim_tails``), mean and p95 centre error (px) of the balls found
 within 3 px, recall, the mean error on the balls all edge fits accept (``common``), and the
 edge blur the fit measured. Then the edge fit with the blur-per-width factor at other values
 (see ``edge_fit.BLUR_PER_WIDTH``), over both backgrounds. Then balls cut by a straight occluder
 (15-35 % of the radius hidden: a glove, an instrument, gauze, skin, drapes) and whole balls, each
 pasted into a 1280 x 720 frame at a random place with the outline a sphere has there
 (``independent_render.render_in_frame``): ``edge-free`` the detector without the camera (a free
-ellipse per ball, the fit before ``vision/sphere_outline.py``) vs ``edge`` with it (and ``edge+ref``, ``edge+shade``), same frames:
+ellipse per ball, the fit before ``vision/sphere_outline.py``) vs ``edge`` with it (and ``edge+ref``, ``edge+shade``, ``trim``), same frames:
 balls accepted, accepted more than 0.5 px off, worst and mean error.
 
 Usage: PYTHONPATH=app python benchmarks/independent_optics.py [--quick] [--n N]
@@ -118,7 +119,8 @@ def main(argv=None):
             ("edge-line", EdgeSettings(ClassicalDetector(), **EDGE_LINE)),
             ("edge-r5", EdgeSettings(ClassicalDetector(), **EDGE_R5)),
             ("edge", ClassicalDetector()), ("edge+ref", ClassicalDetector(refiner=CentreRefiner())),
-            ("edge+shade", ClassicalDetector(BlobRules(shading_shift=True)))]
+            ("edge+shade", ClassicalDetector(BlobRules(shading_shift=True))),
+            ("trim", ClassicalDetector(BlobRules(trim_tails=True)))]
     print(f"{'condition':<26} {'background':<10} {'detector':<9} {'err mean':>8} {'err p95':>7} {'recall':>6} "
           f"{'common':>6} {'cpu ms':>6} {'blur px':>7}")
     for ci, (cname, im) in enumerate(CONDITIONS.items()):
@@ -155,7 +157,8 @@ def cut_table(n: int, seed: int) -> None:
     dets = (("edge-free", ClassicalDetector(rules)),
             ("edge", ClassicalDetector(replace(rules, camera=cam))),
             ("edge+ref", ClassicalDetector(replace(rules, camera=cam), refiner=CentreRefiner())),
-            ("edge+shade", ClassicalDetector(replace(rules, camera=cam, shading_shift=True))))
+            ("edge+shade", ClassicalDetector(replace(rules, camera=cam, shading_shift=True))),
+            ("trim", ClassicalDetector(replace(rules, camera=cam, trim_tails=True))))
     print(f"\nCut balls (15-35 % of the radius hidden) and whole balls in 1280 x 720 frames, {n} per cell")
     print(f"{'condition':<26} {'balls':<6} {'detector':<9} {'accepted':>8} {'> 0.5 px':>8} {'worst px':>8} "
           f"{'mean px':>7}")
