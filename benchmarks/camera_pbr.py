@@ -117,6 +117,7 @@ from monotracker.sim.pbr.frameset import CONDITIONS, camera_frames, committed_ro
 from monotracker.sim.pbr.truth import sphere_centre_px
 from monotracker.vision.frames import Frame
 from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
+from monotracker.vision.recording import RecordingDetector
 
 FPS = 30.0
 #: the centre refiner's network for the ``refined`` detector (``--refiner``; None = the shipped one)
@@ -179,20 +180,6 @@ class IdealDetector:
                               1.0, float(np.pi * r * r), features={"edge_rms_px": self.edge_rms_px})
                 for p, r in zip(tr.ellipse_centres_px[tr.whole], tr.radius_px[tr.whole])]
         return Detection(fids, [], 0.0, "ideal")
-
-
-class Recording:
-    """Wraps a detector: keeps every Detection (the tracker calls ``detect``); ``rules`` shared
-    so that the tracker gives the detector the camera's outlines as in the product."""
-
-    def __init__(self, det):
-        self.det, self.log = det, []
-        self.rules = getattr(det, "rules", None)
-
-    def detect(self, image, hint=None):
-        d = self.det.detect(image) if hint is None else self.det.detect(image, hint)
-        self.log.append(d)
-        return d
 
 
 class Replay:
@@ -270,9 +257,9 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
     tr = scene.truth
     frames = frames if frames is not None else camera_frames(scene, condition, n_frames)
     if det_name.startswith("ideal"):
-        rec = Recording(IdealDetector(tr, float(det_name[len("ideal"):] or 0.1)))
+        rec = RecordingDetector(IdealDetector(tr, float(det_name[len("ideal"):] or 0.1)))
     else:
-        rec = Recording(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
+        rec = RecordingDetector(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
     res = {}
     for m, (name, cfg) in enumerate(trust_models().items()):
         det = rec if m == 0 else Replay(list(rec.log), rec.det)

@@ -109,24 +109,16 @@ def product_detections(sc, cond: str, n_frames: int):
     from monotracker.vision.detection import BlobRules
     from monotracker.vision.frames import Frame
     from monotracker.vision.pose_tracker import PoseTracker
+    from monotracker.vision.recording import RecordingDetector
 
     cam, tr = sc.camera_model(), sc.truth
     det = ClassicalDetector(BlobRules(radius_mm=tr.radius_mm, focal_px=float(cam.K[0, 0])))
-    log = []
-
-    class Recording:
-        rules = det.rules
-
-        def detect(self, image, hint=None):
-            d = det.detect(image) if hint is None else det.detect(image, hint)
-            log.append(d)
-            return d
-
+    rec = RecordingDetector(det)
     frames = camera_frames(sc, cond, n_frames)
-    trk = PoseTracker(tr.fiducials_ct, cam, detector=Recording(), radius_mm=tr.radius_mm, target_ct=tr.target_ct)
+    trk = PoseTracker(tr.fiducials_ct, cam, detector=rec, radius_mm=tr.radius_mm, target_ct=tr.target_ct)
     for k, img in enumerate(frames):
         trk.process(Frame(img, k / 30.0, k, None))
-    return frames, log
+    return frames, rec.log
 
 
 def build(width: int):

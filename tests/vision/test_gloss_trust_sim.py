@@ -20,7 +20,7 @@ from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detection import BlobRules
 from monotracker.vision.frames import Frame
 from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
-from recording_detector import RecordingDetector
+from monotracker.vision.recording import RecordingDetector
 
 N_FRAMES, SECONDS, SEED = 12, 10.0, 3
 
