@@ -71,8 +71,10 @@ def test_refused_while_the_arm_is_engaged(home):
         assert not r.ok and "disarm" in r.message, r.message
         assert s.plan_copy().ball_finish == "matte"
         assert s.disarm().ok
+        assert s.snapshot().pose is not None
         r = s.set_ball_finish("glossy")
-        assert r.ok and "started again" in r.message, r.message     # the running camera keeps its rules
+        assert r.ok and "camera restarted" in r.message, r.message   # the pose judged by the old rules goes
+        assert s.audit_entries(code="camera_stopped") and s._loop.camera.rig.running and s.snapshot().pose is None
     finally:
         s.shutdown()
     assert json.loads((home / "plan.json").read_text())["ball_finish"] == "glossy"
@@ -85,9 +87,11 @@ def test_the_camera_applies_the_plans_finish_when_it_starts(home):
         assert s.set_ball_finish("glossy").ok
         assert s.start_camera().ok
         assert s._loop.camera.rig.tracker.config.ball_finish == "glossy"
+        assert s.set_ball_finish("matte").ok                   # the running camera restarts with it
+        assert s._loop.camera.rig.running and s._loop.camera.rig.tracker.config.ball_finish == "matte"
         assert s.stop_camera().ok
-        assert s.set_ball_finish("matte").ok
+        assert s.set_ball_finish(None).ok                      # the launch setting
         assert s.start_camera().ok
-        assert s._loop.camera.rig.tracker.config.ball_finish == "matte"
+        assert s._loop.camera.rig.tracker.config.ball_finish == "read"
     finally:
         s.shutdown()

@@ -22,7 +22,8 @@ on engine threads. Commands never raise for operator mistakes (the message says 
     s.load_sample_ct()
     s.set_fiducial_kit(radius_mm, density_hu=None)   # kept in the plan; with a CT: detection again (CT job)
     s.set_ball_finish("matte" | "glossy" | "read" | None)   # the kit's balls' finish, kept in the plan
-                                        #   (None: the launch setting); trust rules, so refused while armed
+                                        #   (None: the launch setting); trust rules, so refused while armed;
+                                        #   a running camera restarts with it
     s.cancel_ct_job()                   # stop the CT job; previous CT and plan stay (also: config.ct_job_timeout_s)
     s.set_fiducial_status(fid_id, "confirmed" | "rejected" | "detected")
     s.add_fiducial(p_lps_mm, radius_mm=None, manual=False)   # operator-added fiducial (LPS mm); status "added";
@@ -413,11 +414,13 @@ class Session:
 
     def set_ball_finish(self, finish: str | None) -> CommandResult:
         """The kit's balls' finish for this patient, kept in the plan ("matte", "glossy", "read"
-        or None: the launch setting); a running camera applies it when next started (see
+        or None: the launch setting); a running camera is restarted with it (see
         ``PlanEditor.set_ball_finish``)."""
+        rig = self._loop.camera.rig
+        running = rig is not None and rig.running
         r = self._plan.set_ball_finish(finish)
-        if r.ok and self._loop.camera.rig is not None:
-            return CommandResult.done(f"{r.message}; the running camera applies it when started again")
+        if r.ok and running:
+            return CommandResult.done(f"{r.message}; the camera restarted with it")
         return r
 
     def set_entry(self, p_lps_mm) -> CommandResult:

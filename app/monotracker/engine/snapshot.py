@@ -371,7 +371,7 @@ class Snapshot:
     #: after a restart, the CT the restored plan needs (``Session.load_ct`` on it restores it)
     plan_ct_path: str | None = None
     #: the balls' finish the plan states ("read", "matte", "glossy") or None (the launch
-    #: setting, ``ball_finish_default``); a camera applies it when it starts
+    #: setting, ``ball_finish_default``); the camera applies it (a running one restarts with it)
     ball_finish: str | None = None
     #: the session's launch setting of the balls' finish (``SessionConfig.ball_finish``)
     ball_finish_default: str = "read"

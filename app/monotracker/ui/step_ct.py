@@ -49,12 +49,12 @@ class CtStep:
                                           hint="nominal radius of the kit's balls")
             self.h_kit_hu = gui.add_text("Ball density (HU)", "", hint="blank = unknown; e.g. 1500-2000 ceramic, 3071 steel")
             b_kit = gui.add_button("Apply fiducial kit (detect again)")
+            self._finish_seen = session.snapshot().ball_finish  # what the dropdown last showed of the plan
             self.h_finish = gui.add_dropdown(
-                "Ball finish", tuple(FINISH_CHOICES), initial_value=finish_label(session.snapshot().ball_finish),
+                "Ball finish", tuple(FINISH_CHOICES), initial_value=finish_label(self._finish_seen),
                 hint="glossy balls beside their contact shadows need more balls in view before a pose is "
                      "trusted; 'read from each frame' judges the highlight; 'as launched' is the server's "
-                     "--ball-finish. Kept in the plan; a running camera applies it when started again")
-            self._finish_seen = session.snapshot().ball_finish
+                     "--ball-finish. Kept in the plan; a running camera restarts with it")
             kit = session.plan_copy().fiducial_kit  # the plan's kit, when it has one
             if kit is not None and kit.radius_mm is not None:
                 self.h_kit_r.value = float(kit.radius_mm)

@@ -388,7 +388,8 @@ class PlanEditor:
         (each frame's highlight decides) or None (the session's launch setting,
         ``SessionConfig.ball_finish``). A glossy kit beside its contact shadows needs more balls in
         view before a pose is trusted (vision's ``TrackerConfig.ball_finish``); a camera applies
-        the plan's finish when it starts. Refused: a bad word, the robot armed or tracking (the
+        the plan's finish when it starts, so a running one is restarted with it (its pose goes:
+        it was judged by the old rules). Refused: a bad word, the robot armed or tracking (the
         finish changes which poses are trusted), or the plan cannot be saved."""
         if finish is not None:
             why = plan_checks.check_ball_finish(finish)
@@ -403,6 +404,8 @@ class PlanEditor:
         said = "the session's setting" if finish is None else finish
         self._bus.event("ball_finish_set", f"balls' finish: {said} (was "
                         f"{'the session setting' if old is None else old})", {"finish": finish, "previous": old})
+        if old != finish:
+            self._plan_changed(f"balls' finish changed to {said}", True)
         return CommandResult.done(f"balls' finish: {said}")
 
     @command
