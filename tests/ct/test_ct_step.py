@@ -211,7 +211,7 @@ def test_ball_finish_choice_reaches_the_plan_and_shows_what_the_plan_says(step):
     assert {v for v in step_ct.FINISH_CHOICES.values() if v is not None} == set(FINISHES)
     ui, view, s = step
     h = view.gui.h["Ball finish"]
-    assert step_ct.FINISH_CHOICES[h.value] is None                 # a new plan: the launch setting
+    assert h.value == "as launched (read)" and h.value in h.options  # a new plan: the launch setting, named
     h.value = "glossy"
     h.cb(None)
     assert view.said[-1][0] and s.plan_copy().ball_finish == "glossy", view.said[-1]

@@ -17,9 +17,15 @@ CLICK_MODES_CT = ("nothing", "add fiducial")
 FINISH_CHOICES = {"as launched": None, "read from each frame": "read", "matte": "matte", "glossy": "glossy"}
 
 
-def finish_label(finish: str | None) -> str:
-    """The "Ball finish" choice showing the plan's ``finish`` (None: the launch setting)."""
-    return next(k for k, v in FINISH_CHOICES.items() if v == finish)
+def finish_choices(launched: str) -> dict:
+    """:data:`FINISH_CHOICES` with the launch setting named in its choice ("as launched
+    (read)"): the dropdown says what the plan leaves to the server."""
+    return {(f"as launched ({launched})" if v is None else k): v for k, v in FINISH_CHOICES.items()}
+
+
+def finish_label(finish: str | None, choices: dict = FINISH_CHOICES) -> str:
+    """The choice of ``choices`` showing the plan's ``finish`` (None: the launch setting)."""
+    return next(k for k, v in choices.items() if v == finish)
 
 
 class CtStep:
@@ -49,9 +55,11 @@ class CtStep:
                                           hint="nominal radius of the kit's balls")
             self.h_kit_hu = gui.add_text("Ball density (HU)", "", hint="blank = unknown; e.g. 1500-2000 ceramic, 3071 steel")
             b_kit = gui.add_button("Apply fiducial kit (detect again)")
-            self._finish_seen = session.snapshot().ball_finish  # what the dropdown last showed of the plan
+            snap0 = session.snapshot()
+            self._finish_seen = snap0.ball_finish  # what the dropdown last showed of the plan
+            self.finish_choices = finish_choices(snap0.ball_finish_default)
             self.h_finish = gui.add_dropdown(
-                "Ball finish", tuple(FINISH_CHOICES), initial_value=finish_label(self._finish_seen),
+                "Ball finish", tuple(self.finish_choices), initial_value=finish_label(self._finish_seen, self.finish_choices),
                 hint="glossy balls beside their contact shadows need more balls in view before a pose is "
                      "trusted; 'read from each frame' judges the highlight; 'as launched' is the server's "
                      "--ball-finish. Kept in the plan; a running camera restarts with it")
@@ -125,13 +133,13 @@ class CtStep:
         @self.h_finish.on_update
         @view.safe("Ball finish")
         def _(_event) -> None:
-            finish = FINISH_CHOICES.get(self.h_finish.value)
+            finish = self.finish_choices.get(self.h_finish.value)
             now = session.snapshot().ball_finish
             if finish == now:
                 return  # the plan already says so (also: the dropdown set from the plan)
             r = view.run("Ball finish", session.set_ball_finish, finish)
             if r is None or not r.ok:
-                self.h_finish.value = finish_label(now)  # show what the plan still says
+                self.h_finish.value = finish_label(now, self.finish_choices)  # show what the plan still says
 
         @self.b_reload.on_click
         @view.safe("Reload CT")
@@ -241,7 +249,7 @@ class CtStep:
         self.h_rejected.content = rejected_table(snap)
         if snap.ball_finish != self._finish_seen:  # changed elsewhere (another tab, a restored plan)
             self._finish_seen = snap.ball_finish
-            self.h_finish.value = finish_label(snap.ball_finish)
+            self.h_finish.value = finish_label(snap.ball_finish, self.finish_choices)
         with self.view.lock:
             fid_id = self.view.selected_fid
         fid = next((f for f in snap.fiducials if f.id == fid_id), None)
