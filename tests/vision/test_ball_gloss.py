@@ -9,7 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from monotracker.vision.ball_gloss import frame_highlight, highlight_ratio, reads_glossy, wider_cover
+from monotracker.vision.ball_gloss import FINISHES, frame_highlight, highlight_ratio, reads_glossy, wider_cover
+from monotracker.vision.pose_tracker import TrackerConfig
 
 #: the tracker's reading threshold the tests hold the cue to (TrackerConfig.glossy_highlight_ratio's
 #: measured split: planner-placed rendered frames glossy >= 1.77, matte <= 1.93 with one of 48 over 1.8)
@@ -111,3 +112,12 @@ def test_the_finish_the_team_states_overrides_the_reading():
     assert not wider_cover(glossy_shadowed, 1.8, 0.5, finish="matte")
     with pytest.raises(ValueError, match="ball finish must be one of"):
         wider_cover(glossy_shadowed, 1.8, 0.5, finish="shiny")
+
+
+def test_the_tracker_config_refuses_an_unknown_finish_when_built():
+    """A finish word vision does not know stops at TrackerConfig's construction with the words it
+    knows, not at the first frame that asks for the few-ball cover (each known word builds)."""
+    for word in FINISHES:
+        assert TrackerConfig(ball_finish=word).ball_finish == word
+    with pytest.raises(ValueError, match=r"ball_finish must be one of read, matte, glossy, not 'shiny'"):
+        TrackerConfig(ball_finish="shiny")

@@ -367,6 +367,13 @@ class TrackerConfig:
     #: shading check over a still head's frames"
     remember_frames: int = 7
 
+    def __post_init__(self):
+        """A finish word vision does not know is refused here, at construction (one line), not at
+        the first frame that asks for the few-ball cover."""
+        if self.ball_finish not in ball_gloss.FINISHES:
+            raise ValueError(f"TrackerConfig: ball_finish must be one of {', '.join(ball_gloss.FINISHES)}, "
+                             f"not {self.ball_finish!r}")
+
 
 def _fiducials_used(n: int, remembered: int) -> str:
     """'7 fiducials' or '7 fiducials, 2 of them from the last frames' (a refusal's reason)."""
