@@ -276,6 +276,70 @@ def test_visibility_reasons_follow_the_geometry():
     assert visibility(P, T_off, C[:1], N[:1]).why[0] == "out of the image"
 
 
+def _ring_truth(eye, C, rho, drape=None, n=3600):
+    """Share of a dense ring (``n`` points, ``rho`` mm from ball centre ``C`` across its line of
+    sight from ``eye``) whose lines of sight first meet the analytic 80 mm sphere at the origin
+    (on the drape's exposed side when given): line-sphere algebra, no mesh, any ring phase."""
+    v = (C - eye) / np.linalg.norm(C - eye)
+    a = np.cross(v, [0.3, 0.5, 0.8])
+    a /= np.linalg.norm(a)
+    b = np.cross(v, a)
+    th = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    P = C + rho * (np.cos(th)[:, None] * a + np.sin(th)[:, None] * b)
+    d = (P - eye) / np.linalg.norm(P - eye, axis=1, keepdims=True)
+    bq = d @ eye                                   # |eye + t d|^2 = 80^2
+    disc = bq**2 - (eye @ eye - 80.0**2)
+    hit = disc >= 0
+    t = -bq - np.sqrt(np.maximum(disc, 0.0))
+    X = eye + t[:, None] * d
+    if drape is not None:
+        hit &= ~drape.covers(X)
+    return float(hit.mean())
+
+
+def test_skin_around_a_ball_is_the_share_of_its_ring_backed_by_exposed_skin():
+    """A ball on the head's outline in the camera's view (or beside the drape) has a background
+    that is not skin on part of its edge, where the detector loses balls: ``skin_around`` is the
+    share of its ring (2 radii across the line of sight) whose lines of sight meet exposed skin,
+    against a dense analytic line-sphere count (16 rays: within one ray's share), and the planner
+    places no new ball where it is short of ``PLACE_MIN_SKIN_AROUND``."""
+    from monotracker.planning.candidates import Candidates
+    from monotracker.planning.planner import placeable
+    from monotracker.planning.visibility import PLACE_MIN_SKIN_AROUND, SURROUND_RAYS, skin_around
+
+    head = _sphere_scene()
+    eye = np.array([0.0, 0.0, 500.0])
+    T = look_at(eye, np.zeros(3), up=np.array([0.0, -1.0, 0.0]))
+    P = _problem_on(head)
+    rho = 2.0 * P.radius_mm
+    thetas = [0.0, 30.0, 55.0, 65.0, 70.0, 72.0, 75.0]
+    balls = [_ball(t, 40.0) for t in thetas]
+    C = np.array([b[0] for b in balls])
+    N = np.array([b[1] for b in balls])
+    got = skin_around(P, eye, C)
+    want = np.array([_ring_truth(eye, c, rho) for c in C])
+    assert np.all(np.abs(got - want) <= 1.0 / SURROUND_RAYS + 0.02), (got, want)
+    assert got[0] == 1.0 and got[1] == 1.0            # facing the camera: skin all round
+    assert want[-1] < 0.9 and want[-3] > 0.3          # the outline cuts the ring of the far balls
+    # beside the drape: a plane 6 mm beside a ball facing the camera covers part of its ring
+    drape = DrapeLine(np.array([0.0, 6.0, 0.0]), np.array([0.0, -1.0, 0.0]))
+    Pd = _problem_on(head, drape=drape)
+    c0 = _ball(0.0)[0][None]
+    assert abs(skin_around(Pd, eye, c0)[0] - _ring_truth(eye, c0[0], rho, drape)) <= 1.0 / SURROUND_RAYS + 0.02
+    assert skin_around(Pd, eye, c0)[0] < 0.9
+    # visibility carries it for the seen balls (NaN for the others); placeable follows the rule
+    vis = visibility(P, T, C, N)
+    seen = vis.seen
+    assert np.allclose(vis.skin_around[seen], got[seen])
+    cands = Candidates(centres=C, skin=C - 4.0 * N, normals=N, existing=np.full(len(C), -1),
+                       why_not=tuple("" for _ in C))
+    place = placeable(vis, cands)
+    expect = seen & (vis.view_angle_deg <= 60.0) & (np.nan_to_num(vis.skin_around) >= PLACE_MIN_SKIN_AROUND)
+    assert np.array_equal(place, expect)
+    assert place[0] and place[1]
+    assert not place[-1]
+
+
 def test_prediction_counts_only_the_balls_seen(problem):
     """Balls on the far side add nothing: the prediction equals that of the seen balls alone."""
     P = replace(problem, space=replace(problem.space, keep_out=()), drape=None)

@@ -49,10 +49,23 @@ def test_report_ends_with_a_json_object(report):
     got = np.array(d["ct_fiducials_lps_mm"])
     assert np.linalg.norm(got[:, None] - PH.fiducial_centres_lps[None], axis=2).min(axis=1).max() < 0.5
     assert d["existing_from_planned_camera"]["all_seen"] is not None
+    # the CT's balls the planned camera sees with little skin around them are named in a note,
+    # the same ones the JSON's per-ball shares put under the planner's rule (none of the new ones)
+    from monotracker.planning.visibility import PLACE_MIN_SKIN_AROUND
+
+    around = d["existing_from_planned_camera"]["skin_around"]
+    short = [f"#{k}" for k, a in around.items() if a < PLACE_MIN_SKIN_AROUND]
+    named = [ln.split(":")[1].split("fiducial")[1].lstrip("s ").split(", ") for ln in lines
+             if ln.startswith("note: CT fiducial")]
+    assert named == ([short] if short else []), (named, short)
+    new = [str(i) for i, src in enumerate(d["balls_from_existing"]) if src < 0] if "balls_from_existing" in d else []
+    assert all(d["expected"]["skin_around"][k] >= PLACE_MIN_SKIN_AROUND for k in new)
     # the text names the same positions and the same camera
     assert "suggested balls (centre, LPS mm):" in out and "T_ct_cam" in out
-    first = d["balls_lps_mm"][0]
-    assert f"{first[0]:8.2f} {first[1]:8.2f} {first[2]:8.2f}" in out
+    # (the JSON's three decimals and the text's two round independently: compare the numbers)
+    first = np.array(d["balls_lps_mm"][0])
+    line = next(ln for ln in lines if ln.strip().startswith("1:"))
+    assert np.allclose([float(x) for x in line.split(":")[1].split()[:3]], first, atol=0.006), (line, first)
 
 
 @pytest.mark.parametrize("args, expected", [

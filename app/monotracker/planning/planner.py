@@ -39,7 +39,7 @@ from .detector_defaults import OUTLOOK_OBSERVED_RANGE_POINTS, PLANNED_LAYOUT_GAT
 from .prediction import Prediction, outlook_with_losses, predict
 from .problem import PlanningProblem
 from .search import PoseData, best_layout, objective, spread_seed, swap_map
-from .visibility import PLACE_MAX_VIEW_ANGLE_DEG, visibility
+from .visibility import PLACE_MAX_VIEW_ANGLE_DEG, PLACE_MIN_SKIN_AROUND, visibility
 
 #: the trusted share a plan should reach (the issue's 95 %)
 MIN_TRUSTED = 0.95
@@ -131,10 +131,15 @@ class _Progress:
 
 def placeable(vis, cands: Candidates, idx=None) -> np.ndarray:
     """(m,) bool: a NEW ball may go at candidates ``idx`` (all when None) whose visibility is
-    ``vis``: seen, allowed by the rules, and seen within ``PLACE_MAX_VIEW_ANGLE_DEG`` of its skin
-    normal (a ball the camera grazes is measured with a bias; see :mod:`.visibility`)."""
+    ``vis``: seen, allowed by the rules, seen within ``PLACE_MAX_VIEW_ANGLE_DEG`` of its skin
+    normal (a ball the camera grazes is measured with a bias) and with skin around it in the
+    camera's view (``PLACE_MIN_SKIN_AROUND``: not on the head's outline, not beside the drape,
+    where the detector loses balls; see :mod:`.visibility`)."""
     allowed = cands.allowed if idx is None else cands.allowed[np.asarray(idx, int)]
-    return vis.seen & allowed & (vis.view_angle_deg <= PLACE_MAX_VIEW_ANGLE_DEG)
+    around = vis.skin_around if vis.skin_around is not None else np.ones(len(vis.seen))
+    with np.errstate(invalid="ignore"):
+        on_skin = np.nan_to_num(around, nan=0.0) >= PLACE_MIN_SKIN_AROUND
+    return vis.seen & allowed & (vis.view_angle_deg <= PLACE_MAX_VIEW_ANGLE_DEG) & on_skin
 
 
 def pose_data(problem: PlanningProblem, cands: Candidates, pose: CameraPose) -> PoseData:
@@ -348,9 +353,30 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
                      f"{PLANNED_LAYOUT_TRACKER_OFF[1]} frames 1-2 mm off at the target, and "
                      f"{PLANNED_LAYOUT_GATE_OFF[0]} of the {PLANNED_LAYOUT_GATE_OFF[1]} poses that would move the arm "
                      "(none over 2 mm)")
+    edge_note = _outline_note(ex_here, cands.existing[np.flatnonzero(cands.existing >= 0)] if n_ex else None)
+    if edge_note:
+        notes.append(edge_note)
     from_existing = cands.existing[S]
     return LayoutPlan(problem, balls, normals, from_existing, pose, expected, at_near, at_far, ex_here, ex_best,
                       ex_cam, moves, cands, emap, needed, tuple(notes))
+
+
+def _outline_note(pred: Prediction | None, fiducial_ids) -> str:
+    """A note naming the CT fiducials (``fiducial_ids``: each predicted ball's CT index) that the
+    camera of ``pred`` sees with too little skin around them (``PLACE_MIN_SKIN_AROUND``: on the
+    head's outline in its view or beside the drape); '' when none."""
+    if pred is None or pred.visibility.skin_around is None:
+        return ""
+    around = pred.visibility.skin_around
+    with np.errstate(invalid="ignore"):
+        short = np.flatnonzero(pred.visibility.seen & (np.nan_to_num(around, nan=1.0) < PLACE_MIN_SKIN_AROUND))
+    if not len(short):
+        return ""
+    names = ", ".join(f"#{int(fiducial_ids[i])}" for i in short)
+    return (f"CT fiducial{'s' if len(short) > 1 else ''} {names}: on the head's outline or beside the drape in the "
+            "planned camera's view (little skin around in the image); the detector often loses such balls (on "
+            "rendered frames found in about a third of frames, against three in four with skin all round), so the "
+            "planner puts no new ball where this is so")
 
 
 def _balls_needed(problem, cands, pd, n, keep_idx, cfg, min_trusted) -> int | None:

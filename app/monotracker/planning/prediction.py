@@ -141,6 +141,9 @@ class Prediction:
             "noise_px": self.noise_px,
             "balls_seen": self.visibility.count,
             "hidden": {str(i): w for i, w in enumerate(self.visibility.why) if w},
+            # per seen ball, the share of its surroundings in the image that is exposed skin
+            "skin_around": {str(i): round(float(a), 3) for i, a in enumerate(self.visibility.skin_around)
+                            if self.visibility.seen[i]} if self.visibility.skin_around is not None else None,
             "all_seen": None if self.all_seen is None else self.all_seen.to_dict(),
             "worst_hidden_ball": self.worst_ball,
             "worst_hidden": None if self.worst_hidden is None else self.worst_hidden.to_dict(),

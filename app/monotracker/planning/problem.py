@@ -71,6 +71,20 @@ class HeadSurface:
         """From anything with ``vertices`` and ``faces`` (a trimesh, the engine's HeadMesh)."""
         return cls(np.asarray(mesh.vertices), np.asarray(mesh.faces))
 
+    def first_hits(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """(n, 3) the first point (mm) where each ray (origin, direction) meets the skin; NaN
+        where it misses the head."""
+        o = np.asarray(origins, float).reshape(-1, 3)
+        out = np.full((len(o), 3), np.nan)
+        if len(o) == 0:
+            return out
+        d = np.asarray(directions, float).reshape(-1, 3)
+        d = d / np.maximum(np.linalg.norm(d, axis=1), 1e-9)[:, None]
+        locs, idx, _tri = self.mesh.ray.intersects_location(o, d, multiple_hits=False)
+        if len(idx):
+            out[np.asarray(idx, int)] = np.asarray(locs, float)
+        return out
+
     def blocked(self, origins: np.ndarray, towards: np.ndarray) -> np.ndarray:
         """(n,) bool: the ray from each origin (mm, just outside the skin: a ball's front
         surface) towards its point (the camera) meets the skin. The camera stands outside the
