@@ -137,8 +137,7 @@ def placeable(vis, cands: Candidates, idx=None) -> np.ndarray:
     where the detector loses balls; see :mod:`.visibility`)."""
     allowed = cands.allowed if idx is None else cands.allowed[np.asarray(idx, int)]
     around = vis.skin_around if vis.skin_around is not None else np.ones(len(vis.seen))
-    with np.errstate(invalid="ignore"):
-        on_skin = np.nan_to_num(around, nan=0.0) >= PLACE_MIN_SKIN_AROUND
+    on_skin = np.nan_to_num(around, nan=0.0) >= PLACE_MIN_SKIN_AROUND
     return vis.seen & allowed & (vis.view_angle_deg <= PLACE_MAX_VIEW_ANGLE_DEG) & on_skin
 
 
@@ -367,9 +366,8 @@ def _outline_note(pred: Prediction | None, fiducial_ids) -> str:
     head's outline in its view or beside the drape); '' when none."""
     if pred is None or pred.visibility.skin_around is None:
         return ""
-    around = pred.visibility.skin_around
-    with np.errstate(invalid="ignore"):
-        short = np.flatnonzero(pred.visibility.seen & (np.nan_to_num(around, nan=1.0) < PLACE_MIN_SKIN_AROUND))
+    around = np.nan_to_num(pred.visibility.skin_around, nan=1.0)
+    short = np.flatnonzero(pred.visibility.seen & (around < PLACE_MIN_SKIN_AROUND))
     if not len(short):
         return ""
     names = ", ".join(f"#{int(fiducial_ids[i])}" for i in short)

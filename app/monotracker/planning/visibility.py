@@ -142,12 +142,7 @@ def skin_around(problem, eye: np.ndarray, centres: np.ndarray) -> np.ndarray:
         return np.zeros(0)
     eye = np.asarray(eye, float).reshape(3)
     v = C - eye
-    v = v / np.maximum(np.linalg.norm(v, axis=1), 1e-9)[:, None]
-    a = np.cross(v, np.array([0.0, 0.0, 1.0]))
-    bad = np.linalg.norm(a, axis=1) < 1e-6
-    a[bad] = np.cross(v[bad], np.array([1.0, 0.0, 0.0]))
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b = np.cross(v, a)
+    a, b = _across(v / np.maximum(np.linalg.norm(v, axis=1), 1e-9)[:, None])
     th = np.linspace(0.0, 2.0 * np.pi, SURROUND_RAYS, endpoint=False)
     rho = SURROUND_RING_RADII * float(problem.radius_mm)
     ring = C[None] + rho * (np.cos(th)[:, None, None] * a[None] + np.sin(th)[:, None, None] * b[None])   # (k, m, 3)
@@ -159,15 +154,21 @@ def skin_around(problem, eye: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return skin.reshape(SURROUND_RAYS, m).mean(axis=0)
 
 
-def _head_blocks(head, C: np.ndarray, v: np.ndarray, eye: np.ndarray, R: float) -> np.ndarray:
-    """(m,) bool: a ray from the front of each ball (its centre's and four outline points')
-    towards the camera meets the skin."""
-    m = len(C)
+def _across(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two (m, 3) unit vectors across each unit direction ``v`` (m, 3), orthogonal to it and to
+    each other (a ring around a ball, across its line of sight)."""
     a = np.cross(v, np.array([0.0, 0.0, 1.0]))
     bad = np.linalg.norm(a, axis=1) < 1e-6
     a[bad] = np.cross(v[bad], np.array([1.0, 0.0, 0.0]))
     a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b = np.cross(v, a)
+    return a, np.cross(v, a)
+
+
+def _head_blocks(head, C: np.ndarray, v: np.ndarray, eye: np.ndarray, R: float) -> np.ndarray:
+    """(m,) bool: a ray from the front of each ball (its centre's and four outline points')
+    towards the camera meets the skin."""
+    m = len(C)
+    a, b = _across(v)
     rim = 0.8 * R
     lift = np.sqrt(R * R - rim * rim) + RAY_START_MM
     starts = [C + (R + RAY_START_MM) * v]
