@@ -49,7 +49,7 @@ SURROUND_RAYS = 16
 #: "Skin around a ball") balls with skin all round were found in 73 %, the others in about a
 #: third (those on the outline 23 %), and 45-60 deg from the normal, 76 % against 48 %. The
 #: planner's own layouts had put 8 of 12 and 6 of 9 balls there; with this rule its layouts were
-#: trusted within 1 mm at frame 8 in 50-70 % of held-out scenes instead of 5-15 %.
+#: trusted within 1 mm at frame 8 in 55-62 % of held-out scenes instead of 15-22 %.
 PLACE_MIN_SKIN_AROUND = 0.9
 #: a ball's image must stay this far inside the frame (px)
 IMAGE_MARGIN_PX = 4.0
