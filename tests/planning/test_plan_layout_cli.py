@@ -4,6 +4,7 @@ suggestion, the camera pose and the predictions; bad input gets one line, never 
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -54,10 +55,11 @@ def test_report_ends_with_a_json_object(report):
     from monotracker.planning.visibility import PLACE_MIN_SKIN_AROUND
 
     around = d["existing_from_planned_camera"]["skin_around"]
-    short = [f"#{k}" for k, a in around.items() if a < PLACE_MIN_SKIN_AROUND]
-    named = [ln.split(":")[1].split("fiducial")[1].lstrip("s ").split(", ") for ln in lines
-             if ln.startswith("note: CT fiducial")]
-    assert named == ([short] if short else []), (named, short)
+    short = sorted(int(k) for k, a in around.items() if a < PLACE_MIN_SKIN_AROUND)   # all 9: index == CT id
+    assert d["ct_fiducials_short_of_skin"] == short
+    notes = [ln for ln in lines if ln.startswith("note: CT fiducial")]
+    assert len(notes) == (1 if short else 0), notes
+    assert sorted(int(m) for n in notes for m in re.findall(r"#(\d+)", n)) == short, (notes, short)
     new = [str(i) for i, src in enumerate(d["balls_from_existing"]) if src < 0] if "balls_from_existing" in d else []
     assert all(d["expected"]["skin_around"][k] >= PLACE_MIN_SKIN_AROUND for k in new)
     # the text names the same positions and the same camera

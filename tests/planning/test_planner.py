@@ -4,6 +4,7 @@ the camera space, and a layout called better measuring better through the real p
 from __future__ import annotations
 
 import itertools
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -47,12 +48,12 @@ def test_no_new_ball_without_skin_around_and_the_plan_names_the_ct_balls_short_o
     direct = skin_around(problem, eye, problem.existing[ids][ex.seen])
     assert np.allclose(ex.skin_around[ex.seen], direct)
     short = sorted(int(i) for i, a in zip(ids[ex.seen], direct) if a < PLACE_MIN_SKIN_AROUND)
+    assert sorted(plan.outline_fiducials) == short
+    assert plan.to_dict()["ct_fiducials_short_of_skin"] == list(plan.outline_fiducials)
     notes = [n for n in plan.notes if n.startswith("CT fiducial")]
-    if short:
-        assert len(notes) == 1 and notes[0].split(":")[0].split("fiducial")[1].lstrip("s ").split(", ") == \
-            [f"#{i}" for i in short], (notes, short)
-    else:
-        assert not notes, notes
+    assert len(notes) == (1 if short else 0), notes
+    named = {int(m) for n in notes for m in re.findall(r"#(\d+)", n)}
+    assert named == set(short), (notes, short)
     assert set(plan.expected.to_dict()["skin_around"]) == {str(i) for i in np.flatnonzero(v.seen)}
 
 

@@ -39,7 +39,7 @@ from .detector_defaults import OUTLOOK_OBSERVED_RANGE_POINTS, PLANNED_LAYOUT_GAT
 from .prediction import Prediction, outlook_with_losses, predict
 from .problem import PlanningProblem
 from .search import PoseData, best_layout, objective, spread_seed, swap_map
-from .visibility import PLACE_MAX_VIEW_ANGLE_DEG, PLACE_MIN_SKIN_AROUND, visibility
+from .visibility import PLACE_MAX_VIEW_ANGLE_DEG, visibility
 
 #: the trusted share a plan should reach (the issue's 95 %)
 MIN_TRUSTED = 0.95
@@ -71,7 +71,8 @@ class LayoutPlan:
     ``balls_for_losses`` the smallest count whose layout from this camera reaches
     ``MIN_TRUSTED_WITH_LOSSES`` with the detector's losses (full plans whose outlook is under
     it; None otherwise or when not even ``MAX_BALLS`` would: the notes say which);
-    ``notes`` one-line remarks."""
+    ``notes`` one-line remarks; ``outline_fiducials`` the CT fiducial indices the planned camera
+    sees with too little skin around them (``Visibility.short_of_skin``; a note names them)."""
 
     problem: PlanningProblem
     balls: np.ndarray
@@ -90,6 +91,7 @@ class LayoutPlan:
     balls_needed: int | None
     notes: tuple = field(default_factory=tuple)
     balls_for_losses: int | None = None
+    outline_fiducials: tuple = ()
 
     @property
     def T_ct_cam(self) -> np.ndarray:
@@ -117,6 +119,7 @@ class LayoutPlan:
                       for a, b, d in self.moves],
             "balls_needed": self.balls_needed, "balls_for_losses": self.balls_for_losses,
             "notes": list(self.notes),
+            "ct_fiducials_short_of_skin": list(self.outline_fiducials),
         }
 
 
@@ -136,9 +139,7 @@ def placeable(vis, cands: Candidates, idx=None) -> np.ndarray:
     camera's view (``PLACE_MIN_SKIN_AROUND``: not on the head's outline, not beside the drape,
     where the detector loses balls; see :mod:`.visibility`)."""
     allowed = cands.allowed if idx is None else cands.allowed[np.asarray(idx, int)]
-    around = vis.skin_around if vis.skin_around is not None else np.ones(len(vis.seen))
-    on_skin = np.nan_to_num(around, nan=0.0) >= PLACE_MIN_SKIN_AROUND
-    return vis.seen & allowed & (vis.view_angle_deg <= PLACE_MAX_VIEW_ANGLE_DEG) & on_skin
+    return vis.seen & allowed & (vis.view_angle_deg <= PLACE_MAX_VIEW_ANGLE_DEG) & ~vis.short_of_skin
 
 
 def pose_data(problem: PlanningProblem, cands: Candidates, pose: CameraPose) -> PoseData:
@@ -352,26 +353,22 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
                      f"{PLANNED_LAYOUT_TRACKER_OFF[1]} frames 1-2 mm off at the target, and "
                      f"{PLANNED_LAYOUT_GATE_OFF[0]} of the {PLANNED_LAYOUT_GATE_OFF[1]} poses that would move the arm "
                      "(none over 2 mm)")
-    edge_note = _outline_note(ex_here, cands.existing[np.flatnonzero(cands.existing >= 0)] if n_ex else None)
-    if edge_note:
-        notes.append(edge_note)
+    outline_ids = ()
+    if ex_here is not None:
+        ct_ids = cands.existing[np.flatnonzero(cands.existing >= 0)]
+        outline_ids = tuple(int(ct_ids[i]) for i in np.flatnonzero(ex_here.visibility.short_of_skin))
+    if outline_ids:
+        notes.append(_outline_note(outline_ids))
     from_existing = cands.existing[S]
     return LayoutPlan(problem, balls, normals, from_existing, pose, expected, at_near, at_far, ex_here, ex_best,
-                      ex_cam, moves, cands, emap, needed, tuple(notes))
+                      ex_cam, moves, cands, emap, needed, tuple(notes), outline_fiducials=outline_ids)
 
 
-def _outline_note(pred: Prediction | None, fiducial_ids) -> str:
-    """A note naming the CT fiducials (``fiducial_ids``: each predicted ball's CT index) that the
-    camera of ``pred`` sees with too little skin around them (``PLACE_MIN_SKIN_AROUND``: on the
-    head's outline in its view or beside the drape); '' when none."""
-    if pred is None or pred.visibility.skin_around is None:
-        return ""
-    around = np.nan_to_num(pred.visibility.skin_around, nan=1.0)
-    short = np.flatnonzero(pred.visibility.seen & (around < PLACE_MIN_SKIN_AROUND))
-    if not len(short):
-        return ""
-    names = ", ".join(f"#{int(fiducial_ids[i])}" for i in short)
-    return (f"CT fiducial{'s' if len(short) > 1 else ''} {names}: on the head's outline or beside the drape in the "
+def _outline_note(ct_ids: tuple) -> str:
+    """The note naming the CT fiducials ``ct_ids`` (CT indices, at least one) that the planned
+    camera sees with too little skin around them (``Visibility.short_of_skin``)."""
+    names = ", ".join(f"#{i}" for i in ct_ids)
+    return (f"CT fiducial{'s' if len(ct_ids) > 1 else ''} {names}: on the head's outline or beside the drape in the "
             "planned camera's view (little skin around in the image); the detector often loses such balls (on "
             "rendered frames found in about a third of frames, against three in four with skin all round), so the "
             "planner puts no new ball where this is so")

@@ -77,6 +77,16 @@ class Visibility:
     def count(self) -> int:
         return int(np.sum(self.seen))
 
+    @property
+    def short_of_skin(self) -> np.ndarray:
+        """(n,) bool: seen balls with less than :data:`PLACE_MIN_SKIN_AROUND` of their ring on
+        exposed skin (on the head's outline in this view, or beside the drape), where the
+        detector loses balls: the planner places no new ball there and names the CT's own
+        fiducials that are. All False when ``skin_around`` was not computed."""
+        if self.skin_around is None:
+            return np.zeros(len(self.seen), bool)
+        return self.seen & (np.nan_to_num(self.skin_around, nan=1.0) < PLACE_MIN_SKIN_AROUND)
+
 
 def image_radius_px(X_cam: np.ndarray, radius_mm: float, focal_px: float) -> np.ndarray:
     """(n,) approximate image radius (px) of balls whose centres are ``X_cam`` (n, 3) mm."""
