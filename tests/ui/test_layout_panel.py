@@ -80,6 +80,12 @@ def test_plan_step_text_shows_what_to_expect():
     assert "each ball found at 60 % (the detector's losses)</td><td colspan='2'>a pose in 83 % of setups</td>" \
         "<td>41 %</td>" in html
     assert "with the detector's losses" not in layout_html(lay)
+    # balls short of skin around them: the outlook says how many and at what share
+    short = dataclasses.replace(lossy, current=dataclasses.replace(
+        lay.current, found_probability=0.6, found_short=0.27, short_of_skin=2, trusted_with_losses=0.18,
+        pose_with_losses=0.5))
+    assert ("each ball found at 60 % (2 on the head&#x27;s outline or beside the drape at 27 %) (the detector's "
+            "losses)</td><td colspan='2'>a pose in 50 % of setups</td><td>18 %</td>") in layout_html(short)
     failed = layout_html(LayoutSummary(job=Job("plan_layout", 1.0, "layout not planned", "set the target first", True)))
     assert "layout not planned:</b> set the target first" in failed
 

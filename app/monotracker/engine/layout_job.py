@@ -97,7 +97,9 @@ def expectation(pred) -> LayoutExpectation | None:
                              _error(pred.worst_hidden), None if pred.worst_ball is None else int(pred.worst_ball),
                              pred.reason or pred.margin_reason,
                              None if lo is None else float(lo.found_probability),
-                             None if lo is None else float(lo.trusted), None if lo is None else float(lo.pose))
+                             None if lo is None else float(lo.trusted), None if lo is None else float(lo.pose),
+                             None if lo is None or lo.found_short is None else float(lo.found_short),
+                             0 if lo is None else int(lo.short_of_skin))
 
 
 class LayoutJob:

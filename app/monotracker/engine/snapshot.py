@@ -280,7 +280,8 @@ class LayoutExpectation:
     camera sees) and ``worst_hidden`` (the one ball whose loss hurts most hidden too; its index
     ``worst_ball`` in that layout) as :class:`LayoutError`, None when they give no pose
     (``reason`` says why, one line); ``balls_seen`` of ``balls``; with the detector finding
-    each seen ball with probability ``found_probability``: ``trusted_with_losses`` the expected
+    each seen ball with probability ``found_probability`` (``found_short`` for the
+    ``short_of_skin`` seen balls with little skin around them): ``trusted_with_losses`` the expected
     share of trusted frames and ``pose_with_losses`` the chance of a pose at all (0..1; None
     when not predicted)."""
 
@@ -293,6 +294,17 @@ class LayoutExpectation:
     found_probability: float | None = None
     trusted_with_losses: float | None = None
     pose_with_losses: float | None = None
+    found_short: float | None = None
+    short_of_skin: int = 0
+
+    @property
+    def found_text(self) -> str:
+        """How the outlook counted the balls found, in words ('' when not predicted)."""
+        if self.found_probability is None:
+            return ""
+        from monotracker.planning.ball_losses import found_phrase
+
+        return found_phrase(self.found_probability, self.found_short, self.short_of_skin)
 
 
 @dataclass(frozen=True)

@@ -343,8 +343,8 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
             notes.append(f"{needed} balls reach {100 * min_trusted:.0f} % trusted frames with one hidden")
     outlook = expected.with_losses
     if outlook is not None:
-        notes.append(f"with the detector's losses on realistic frames (gloves, instruments, shading; each seen ball "
-                     f"counted as found at {100 * outlook.found_probability:.0f} %, calibrated on rendered frames) "
+        notes.append(f"with the detector's losses on realistic frames (gloves, instruments, shading; "
+                     f"{outlook.phrase}, calibrated on rendered frames) "
                      f"expect a pose in {100 * outlook.pose:.0f} % of setups like this and trusted frames in "
                      f"{100 * outlook.trusted:.0f} %; more balls or a nearer camera raise both. An estimate: on "
                      f"rendered test scenes the outcome lay {-OUTLOOK_OBSERVED_RANGE_POINTS[0]} points below to "

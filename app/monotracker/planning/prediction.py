@@ -16,7 +16,7 @@ Each error is reported as the RMS 3D error (what the tracker gates on), and the 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -27,6 +27,7 @@ from monotracker.vision.pose_checks import weak_geometry
 from monotracker.vision.pose_tracker import TrackerConfig
 
 from .ball_losses import LossOutlook, loss_outlook
+from .detector_defaults import SHORT_OF_SKIN_FOUND_RATIO
 from .trust import gate_noise_px, shading_cover, trusted_fraction
 from .visibility import Visibility, visibility
 
@@ -101,13 +102,22 @@ def predict_error(problem, T_ct_cam: np.ndarray, centres: np.ndarray, seen: np.n
 
 def outlook_with_losses(problem, T_ct_cam: np.ndarray, centres: np.ndarray, seen: np.ndarray,
                         found_probability: float | None = None, noise_px: float | None = None,
-                        config: TrackerConfig | None = None, **kw) -> LossOutlook:
+                        config: TrackerConfig | None = None, short_of_skin: np.ndarray | None = None,
+                        short_ratio: float = SHORT_OF_SKIN_FOUND_RATIO, **kw) -> LossOutlook:
     """:func:`~.ball_losses.loss_outlook` of the balls ``centres[seen]`` (LPS mm) from
     ``T_ct_cam``, each pattern of found balls predicted by :func:`predict_error`;
-    ``found_probability`` None: the problem's. ``kw``: ``per_count``, ``min_weight``, ``seed``."""
+    ``found_probability`` None: the problem's, the chance of a ball with skin all round it;
+    ``short_of_skin`` (n,) bool: balls with too little skin around them in the camera's view
+    (``Visibility.short_of_skin``), found with ``short_ratio`` times that chance (None: every
+    ball alike). ``kw``: ``per_count``, ``min_weight``, ``seed``."""
     C = np.asarray(centres, float).reshape(-1, 3)
     q = problem.found_probability if found_probability is None else float(found_probability)
-    return loss_outlook(lambda keep: predict_error(problem, T_ct_cam, C, keep, noise_px, config), seen, q, **kw)
+    seen = np.asarray(seen, bool)
+    short = np.zeros(len(C), bool) if short_of_skin is None else np.asarray(short_of_skin, bool) & seen
+    q_each = np.where(short, q * float(short_ratio), q)
+    out = loss_outlook(lambda keep: predict_error(problem, T_ct_cam, C, keep, noise_px, config), seen, q_each, **kw)
+    return replace(out, found_probability=q, found_short=None if short_of_skin is None else q * float(short_ratio),
+                   short_of_skin=int(short.sum()))
 
 
 @dataclass(frozen=True)
@@ -168,7 +178,8 @@ def predict(problem, T_ct_cam: np.ndarray, centres: np.ndarray, normals: np.ndar
     eye = np.asarray(T_ct_cam, float)[:3, 3]
     dist = float(np.linalg.norm(C[vis.seen].mean(axis=0) - eye)) if vis.count else float("nan")
     allp = predict_error(problem, T_ct_cam, C, vis.seen, sigma, config, full=full)
-    outlook = outlook_with_losses(problem, T_ct_cam, C, vis.seen, noise_px=sigma, config=config) if losses else None
+    outlook = (outlook_with_losses(problem, T_ct_cam, C, vis.seen, noise_px=sigma, config=config,
+                                   short_of_skin=vis.short_of_skin) if losses else None)
     if allp is None:
         why = pose_problem(C, vis.seen, config)
         return Prediction(np.asarray(T_ct_cam, float), C, vis, None, None, None, sigma, dist,

@@ -69,7 +69,7 @@ def _rows(label: str, x) -> str:
            f"<tr><td>&nbsp;&nbsp;worst ball hidden"
            + ("" if x.worst_ball is None else f" (#{x.worst_ball + 1})") + f"</td>{_err_cells(x.worst_hidden)}</tr>")
     if x.trusted_with_losses is not None:
-        out += (f"<tr><td>&nbsp;&nbsp;each ball found at {100 * x.found_probability:.0f} % (the detector's losses)"
+        out += (f"<tr><td>&nbsp;&nbsp;{st._esc(x.found_text)} (the detector's losses)"
                 f"</td><td colspan='2'>a pose in {100 * x.pose_with_losses:.0f} % of setups</td>"
                 f"<td>{100 * x.trusted_with_losses:.0f} %</td></tr>")
     if x.all_seen is None or x.worst_hidden is None:
@@ -110,7 +110,7 @@ def layout_html(lay) -> str:
         if sug is not None and sug.trusted_with_losses is not None:
             colour = "#1f8f3a" if sug.trusted_with_losses >= lay.min_trusted else "#b7791f"
             verdict += (f"; <b style='color:{colour}'>{100 * sug.trusted_with_losses:.0f} % with the detector's "
-                        f"losses</b> (each ball found at {100 * sug.found_probability:.0f} %)")
+                        f"losses</b> ({st._esc(sug.found_text)})")
         parts.append(f"<div class='mt-row'>Suggested layout: {head}; {verdict}</div>")
         parts.append("<table class='mt' id='mt-layout-table'><tr><th>predicted error at the target</th><th>mean "
                      "mm</th><th>95 % mm</th><th>trusted</th></tr>" + _rows("suggestion, planned camera", sug)
