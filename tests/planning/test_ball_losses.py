@@ -88,9 +88,10 @@ def test_balls_short_of_skin_are_found_less_and_the_outlook_is_still_the_every_p
     want_t, want_p = _by_every_pattern(problem, T, C, seen, np.where(short, q * ratio, q))
     kw = dict(per_count=64, min_weight=0.0) if n_seen is not None else {}
     got = loss_outlook(problem, T, C, seen, q, short_of_skin=short, short_ratio=ratio, **kw)
-    # sampled (12 subsets per count): over 20 seeds the trusted share's spread is 0.006 and the
-    # pose's 0.03 (a pose is all or nothing per subset), both centred on the exact figures
-    tol_t, tol_p = (1e-9, 1e-9) if n_seen is not None else (0.02, 0.06)
+    # sampled (12 draws per count): over 20 seeds the trusted share's spread is 0.013 and the
+    # pose's 0.03 (a pose is all or nothing per subset), both centred on the exact figures (0.165 /
+    # 0.707 against 0.166 / 0.706): three spreads
+    tol_t, tol_p = (1e-9, 1e-9) if n_seen is not None else (0.04, 0.09)
     assert got.trusted == pytest.approx(want_t, abs=tol_t) and got.pose == pytest.approx(want_p, abs=tol_p)
     assert got.found_probability == q and got.found_short == pytest.approx(q * ratio) and got.short_of_skin == 3
     assert got.expected_found == pytest.approx(q * (seen.sum() - 3) + q * ratio * 3)
@@ -99,6 +100,10 @@ def test_balls_short_of_skin_are_found_less_and_the_outlook_is_still_the_every_p
     assert got.trusted < alike.trusted and got.pose < alike.pose      # fewer found, fewer trusted
     if n_seen is None:
         assert got == loss_outlook(problem, T, C, seen, q, short_of_skin=short, short_ratio=ratio)   # seeded
+        # centred on the exact figures: the mean over 8 seeds (its spread ~0.005 / ~0.011)
+        many = [loss_outlook(problem, T, C, seen, q, short_of_skin=short, short_ratio=ratio, seed=k) for k in range(8)]
+        assert np.mean([o.trusted for o in many]) == pytest.approx(want_t, abs=0.012)
+        assert np.mean([o.pose for o in many]) == pytest.approx(want_p, abs=0.03)
 
 
 def test_the_prediction_counts_the_balls_its_visibility_puts_short_of_skin(setup):

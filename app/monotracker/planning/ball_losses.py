@@ -84,8 +84,8 @@ def loss_outlook(error_of, seen: np.ndarray, found_probability, *, per_count: in
 
     The count of lost balls follows the Poisson-binomial law of the seen balls' shares; within a
     count, every subset when there are at most ``per_count``, each weighted by its probability
-    given the count, else ``per_count`` distinct subsets drawn from that conditional law and
-    weighted the same way among themselves (equal weights when the shares are equal)."""
+    given the count, else ``per_count`` subsets drawn from that conditional law and counted alike
+    (:func:`_pick_subsets`; each distinct subset predicted once)."""
     seen = np.asarray(seen, bool)
     q_all = np.broadcast_to(np.asarray(found_probability, float), seen.shape)
     if not np.all((q_all >= 0.0) & (q_all <= 1.0)):
@@ -99,20 +99,24 @@ def loss_outlook(error_of, seen: np.ndarray, found_probability, *, per_count: in
     evaluated = 0
     for lost in range(m + 1):
         w = float(tail[0, lost])
-        if w < min_weight:
+        if w <= 0.0 or w < min_weight:
             continue
-        if math.comb(m, lost) <= per_count:
-            subsets = [np.array(s, int) for s in itertools.combinations(range(m), lost)]
-        else:
-            subsets = [np.array(s, int) for s in sorted(_pick_subsets(lose, tail, lost, per_count, rng))]
-        weights = np.array([_subset_probability(lose, s) for s in subsets])
-        weights = weights / weights.sum() if weights.sum() > 0 else np.full(len(subsets), 1.0 / len(subsets))
+        if math.comb(m, lost) <= per_count:       # every subset, weighted by its chance given the count
+            subsets = list(itertools.combinations(range(m), lost))
+            weights = np.array([_subset_probability(lose, s) for s in subsets])
+            weights = weights / weights.sum()
+        else:                                     # drawn from the law given the count: equal weights
+            subsets = _pick_subsets(lose, tail, lost, per_count, rng)
+            weights = np.full(len(subsets), 1.0 / len(subsets))
         t = p = 0.0
+        known: dict = {}
         for s, ws in zip(subsets, weights):
-            keep = seen.copy()
-            keep[idx[s]] = False
-            e = error_of(keep)
-            evaluated += 1
+            if s not in known:
+                keep = seen.copy()
+                keep[idx[np.array(s, int)]] = False
+                known[s] = error_of(keep)
+                evaluated += 1
+            e = known[s]
             if e is not None:
                 p += ws
                 t += ws * float(e.trusted)
@@ -123,23 +127,18 @@ def loss_outlook(error_of, seen: np.ndarray, found_probability, *, per_count: in
                        float(trusted), float(pose), float(q_seen.sum()), evaluated)
 
 
-def _pick_subsets(lose: np.ndarray, tail: np.ndarray, count: int, per_count: int, rng) -> set:
-    """Up to ``per_count`` distinct subsets of ``count`` lost balls drawn from the law given the
-    count (uniform when the shares are equal: drawn as before per-ball shares, so the figures of a
-    uniform share stay as they were); fewer when that many have a chance at all."""
+def _pick_subsets(lose: np.ndarray, tail: np.ndarray, count: int, per_count: int, rng) -> list:
+    """``per_count`` subsets (sorted index tuples) of ``count`` lost balls drawn from the law given
+    the count, to be counted alike. Equal shares: distinct subsets drawn uniformly (as before per-ball
+    shares, so the figures of one share for all stay as they were); unequal shares:
+    :func:`_draw_subset` ``per_count`` times, repeats kept (a likelier subset is drawn more often)."""
     m = len(lose)
-    uniform = m == 0 or float(np.ptp(lose)) == 0.0
+    if m and float(np.ptp(lose)) > 0.0:
+        return [_draw_subset(lose, tail, count, rng) for _ in range(per_count)]
     picked: set = set()
-    for _ in range(50 * per_count):
-        if len(picked) >= per_count:
-            break
-        if uniform:
-            s = tuple(sorted(rng.choice(m, size=count, replace=False).tolist()))
-        else:
-            s = _draw_subset(lose, tail, count, rng)
-        if len(s) == count:
-            picked.add(s)
-    return picked
+    while len(picked) < per_count:
+        picked.add(tuple(sorted(rng.choice(m, size=count, replace=False).tolist())))
+    return sorted(picked)
 
 
 def _tail_counts(lose: np.ndarray) -> np.ndarray:
@@ -160,9 +159,12 @@ def _draw_subset(lose: np.ndarray, tail: np.ndarray, count: int, rng) -> tuple:
     that the rest then lose the remaining count, over the chance of that count from here."""
     out, k = [], count
     for i in range(len(lose)):
-        if k == 0 or tail[i, k] <= 0.0:
+        if k == 0:
             break
-        p = lose[i] * tail[i + 1, k - 1] / tail[i, k]
+        if len(lose) - i == k:            # every ball left must be lost (also guards rounding)
+            out.extend(range(i, len(lose)))
+            break
+        p = lose[i] * tail[i + 1, k - 1] / tail[i, k] if tail[i, k] > 0.0 else 0.0
         if rng.random() < p:
             out.append(i)
             k -= 1
