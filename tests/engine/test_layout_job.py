@@ -9,6 +9,7 @@ timing)."""
 
 from __future__ import annotations
 
+import re
 import threading
 from types import SimpleNamespace
 
@@ -68,6 +69,9 @@ def test_the_layout_is_in_the_snapshot_and_keeps_to_the_head(planned):
     for b, fid in zip(B, lay.from_fiducial):
         if fid >= 0:
             assert np.linalg.norm(b - fids[fid]) < 1e-6
+    # the notes name the plan's fiducials by their ids (the CT's balls on the head's outline)
+    named = {int(m) for n in lay.notes if n.startswith("CT fiducial") for m in re.findall(r"#(\d+)", n)}
+    assert named <= set(fids), (named, set(fids))
     # the planned camera sees every suggested ball inside its image, in front of it
     T = np.asarray(lay.T_ct_cam)
     assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
@@ -183,6 +187,14 @@ def replan(replanned):
     yield replanned
     ctl = replanned[3]
     ctl.update(on_read=None, step=0.0)
+
+
+def test_the_notes_name_the_plans_fiducials_by_their_ids(replanned):
+    """The plan's fiducials are numbered 10-18 here: the note on the balls the planned camera sees
+    on the head's outline names those ids, never the planner's indices 0-8."""
+    _, _, before, _ = replanned
+    named = {int(m) for n in before.notes if n.startswith("CT fiducial") for m in re.findall(r"#(\d+)", n)}
+    assert named and named <= set(range(10, 19)), before.notes
 
 
 def test_cancel_keeps_the_previous_layout(replan):

@@ -57,6 +57,35 @@ def test_no_new_ball_without_skin_around_and_the_plan_names_the_ct_balls_short_o
     assert set(plan.expected.to_dict()["skin_around"]) == {str(i) for i in np.flatnonzero(v.seen)}
 
 
+def test_the_plan_names_the_ct_fiducials_by_the_ids_it_is_given(problem):
+    """The app numbers its fiducials by their plan ids, not by their order: the plan's note and
+    ``outline_fiducials`` use the ids it is given (each ball found by its position). The head's
+    balls plus 16 more on the skin 40-64 deg from its view direction, some of which the planned
+    camera sees short of skin."""
+    v = PH.view_direction_lps
+    u = np.cross(v, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    w = np.cross(v, u)
+    ax = np.asarray(PH.skin_semi_axes_mm, float)
+    more = []
+    for ang in np.radians([40, 48, 56, 64]):
+        for e in (u, -u, w, -w):
+            d = np.cos(ang) * v + np.sin(ang) * e
+            more.append(PH.centre_lps + d / np.sqrt(np.sum((d / ax) ** 2)))
+    pr = replace(problem, existing=np.vstack([PH.fiducial_centres_lps, more]))
+    ids = tuple(100 + 3 * i for i in range(len(pr.existing)))
+    named = plan_layout(pr, 7, n_directions=8, refine=False, fiducial_ids=ids)
+    ex = named.existing_here               # the CT's balls from the planned camera, by position
+    which = [int(np.argmin(np.linalg.norm(pr.existing - c, axis=1))) for c in ex.centres]
+    want = tuple(ids[which[i]] for i in np.flatnonzero(ex.visibility.short_of_skin))
+    assert want, ex.visibility.skin_around
+    assert named.outline_fiducials == want
+    note = next(n for n in named.notes if n.startswith("CT fiducial"))
+    assert {int(m) for m in re.findall(r"#(\d+)", note)} == set(named.outline_fiducials)
+    with pytest.raises(ValueError, match="fiducial ids"):
+        plan_layout(pr, 7, n_directions=8, refine=False, fiducial_ids=ids[:-1])
+
+
 def test_exchange_search_finds_the_exhaustive_optimum(problem):
     """On a pool of 13 usable positions, the search's 6-ball layout is the best of all 1716."""
     cands = sample_candidates(problem, spacing_mm=20.0)

@@ -302,7 +302,7 @@ class LayoutJob:
         problem = build_problem(head, a["target"], entry=a["entry"], existing=a["existing"],
                                 radius_mm=a["radius_mm"], camera=a["camera"], noise_px=a["noise_px"])
         quick = a["quick"]
-        plan = plan_layout(problem, a["n_balls"], progress=report, config=a["rules"],
+        plan = plan_layout(problem, a["n_balls"], progress=report, config=a["rules"], fiducial_ids=a["existing_ids"],
                            n_directions=QUICK_DIRECTIONS if quick else FULL_DIRECTIONS, refine=not quick)
         token.check()
         ids = a["existing_ids"]

@@ -71,8 +71,9 @@ class LayoutPlan:
     ``balls_for_losses`` the smallest count whose layout from this camera reaches
     ``MIN_TRUSTED_WITH_LOSSES`` with the detector's losses (full plans whose outlook is under
     it; None otherwise or when not even ``MAX_BALLS`` would: the notes say which);
-    ``notes`` one-line remarks; ``outline_fiducials`` the CT fiducial indices the planned camera
-    sees with too little skin around them (``Visibility.short_of_skin``; a note names them)."""
+    ``notes`` one-line remarks; ``outline_fiducials`` the CT fiducials (their indices, or the
+    ``fiducial_ids`` :func:`plan_layout` was given) the planned camera sees with too little skin
+    around them (``Visibility.short_of_skin``; a note names them)."""
 
     problem: PlanningProblem
     balls: np.ndarray
@@ -155,7 +156,8 @@ def pose_data(problem: PlanningProblem, cands: Candidates, pose: CameraPose) -> 
 
 def plan_layout(problem: PlanningProblem, n_balls: int = 9, keep: tuple = (), progress=None,
                 n_directions: int = 24, refine: bool = True, min_trusted: float = MIN_TRUSTED,
-                config: TrackerConfig | None = None, candidates: Candidates | None = None) -> LayoutPlan:
+                config: TrackerConfig | None = None, candidates: Candidates | None = None,
+                fiducial_ids: tuple | None = None) -> LayoutPlan:
     """Plan ``n_balls`` balls and the camera for ``problem`` (see the module docstring).
 
     Args:
@@ -168,6 +170,8 @@ def plan_layout(problem: PlanningProblem, n_balls: int = 9, keep: tuple = (), pr
         min_trusted: the trusted share the plan should reach (for ``balls_needed``).
         config: the pose stream's gates (defaults: ``TrackerConfig()``).
         candidates: precomputed :func:`~.candidates.sample_candidates` (None: computed here).
+        fiducial_ids: the names of the CT's fiducials (``problem.existing``, in order) in the
+            plan's notes and ``outline_fiducials`` (None: their indices), e.g. the app's plan ids.
 
     Returns:
         :class:`LayoutPlan`.
@@ -184,6 +188,8 @@ def plan_layout(problem: PlanningProblem, n_balls: int = 9, keep: tuple = (), pr
     if not (cfg.min_fiducials <= n <= MAX_BALLS):
         raise ValueError(f"ball count must be {cfg.min_fiducials}-{MAX_BALLS}, got {n_balls}")
     keep = tuple(int(i) for i in keep)
+    if fiducial_ids is not None and len(fiducial_ids) != len(problem.existing):
+        raise ValueError(f"{len(fiducial_ids)} fiducial ids for {len(problem.existing)} CT fiducials")
     if any(i < 0 or i >= len(problem.existing) for i in keep) or len(set(keep)) != len(keep):
         raise ValueError(f"keep must name distinct CT fiducials 0-{len(problem.existing) - 1}")
     if len(keep) > n:
@@ -221,7 +227,8 @@ def plan_layout(problem: PlanningProblem, n_balls: int = 9, keep: tuple = (), pr
         prog(0.78, "refining the camera placement")
         pose, pd, S, val = _refine_camera(problem, cands, pose, S, val, n, min_sep, keep_idx, cfg)
     prog(0.88, "what to expect")
-    plan = _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_trusted, n)
+    plan = _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_trusted, n,
+                         None if fiducial_ids is None else tuple(int(i) for i in fiducial_ids))
     outlook = plan.expected.with_losses
     if refine and outlook is not None and outlook.trusted < MIN_TRUSTED_WITH_LOSSES:
         prog(0.94, "how many balls with the detector's losses")
@@ -295,7 +302,10 @@ def pose_data_subset(problem, cands, pose, idx) -> PoseData:
     return PoseData(T_cam_ct, info, seen, usable, problem.target)
 
 
-def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_trusted, n) -> LayoutPlan:
+def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_trusted, n,
+                  names: tuple | None = None) -> LayoutPlan:
+    """The plan of layout ``S`` from ``pose`` with what to expect (``names``: the CT fiducials'
+    names in its notes, None: their indices)."""
     balls, normals = cands.centres[S], cands.normals[S]
     expected = predict(problem, pose.T_ct_cam, balls, normals, config=cfg, losses=True)
     lo, hi = problem.space.distance_mm
@@ -355,8 +365,9 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
                      "(none over 2 mm)")
     outline_ids = ()
     if ex_here is not None:
-        ct_ids = cands.existing[np.flatnonzero(cands.existing >= 0)]
-        outline_ids = tuple(int(ct_ids[i]) for i in np.flatnonzero(ex_here.visibility.short_of_skin))
+        ct_idx = cands.existing[np.flatnonzero(cands.existing >= 0)]
+        names = range(len(problem.existing)) if names is None else names
+        outline_ids = tuple(int(names[ct_idx[i]]) for i in np.flatnonzero(ex_here.visibility.short_of_skin))
     if outline_ids:
         notes.append(_outline_note(outline_ids))
     from_existing = cands.existing[S]
