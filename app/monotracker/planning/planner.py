@@ -248,7 +248,10 @@ def _balls_for_losses(problem, cands, pd, n, keep_idx, cfg, target) -> int | Non
     plans only (1-3 s per count)."""
     def reaches(T_ct_cam, S) -> bool:
         seen = np.ones(len(S), bool)       # the search places balls only where this camera sees them
-        o = outlook_with_losses(problem, T_ct_cam, cands.centres[S], seen, config=cfg, per_count=LOSS_SEARCH_SUBSETS)
+        # (new balls only with skin all round; a kept CT ball may be short of it)
+        short = visibility(problem, T_ct_cam, cands.centres[S], cands.normals[S]).short_of_skin
+        o = outlook_with_losses(problem, T_ct_cam, cands.centres[S], seen, config=cfg, short_of_skin=short,
+                                per_count=LOSS_SEARCH_SUBSETS)
         return o.trusted >= target
 
     return _smallest_count(problem, cands, pd, n, keep_idx, cfg, reaches)
@@ -376,13 +379,13 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
 
 
 def _outline_note(ct_ids: tuple) -> str:
-    """The note naming the CT fiducials ``ct_ids`` (CT indices, at least one) that the planned
+    """The note naming the CT fiducials ``ct_ids`` (their names, at least one) that the planned
     camera sees with too little skin around them (``Visibility.short_of_skin``)."""
     names = ", ".join(f"#{i}" for i in ct_ids)
     return (f"CT fiducial{'s' if len(ct_ids) > 1 else ''} {names}: on the head's outline or beside the drape in the "
             "planned camera's view (little skin around in the image); the detector often loses such balls (on "
-            "rendered frames found in about a third of frames, against three in four with skin all round), so the "
-            "planner puts no new ball where this is so")
+            "rendered frames found about a quarter as often as balls with skin all round), so the planner puts no "
+            "new ball where this is so and counts them as found less often")
 
 
 def _balls_needed(problem, cands, pd, n, keep_idx, cfg, min_trusted) -> int | None:
