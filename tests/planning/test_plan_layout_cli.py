@@ -60,6 +60,12 @@ def test_report_ends_with_a_json_object(report):
     notes = [ln for ln in lines if ln.startswith("note: CT fiducial")]
     assert len(notes) == (1 if short else 0), notes
     assert sorted(int(m) for n in notes for m in re.findall(r"#(\d+)", n)) == short, (notes, short)
+    # ... and the outlook counts them as found less often, the JSON and the text alike
+    lo = d["existing_from_planned_camera"]["with_detector_losses"]
+    assert lo["balls_short_of_skin"] == len(short)
+    if short:
+        assert lo["found_probability_short_of_skin"] < lo["found_probability"]
+        assert f"({len(short)} on the head's outline or beside the drape at" in out
     new = [str(i) for i, src in enumerate(d["balls_from_existing"]) if src < 0] if "balls_from_existing" in d else []
     assert all(d["expected"]["skin_around"][k] >= PLACE_MIN_SKIN_AROUND for k in new)
     # the text names the same positions and the same camera

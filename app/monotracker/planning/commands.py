@@ -128,8 +128,9 @@ def _row(label: str, p) -> list[str]:
         out.append(f"  {'  ... one ball hidden':<36} {p.margin_reason}")
     lo = p.with_losses
     if lo is not None:
-        label = f"  ... {lo.phrase}"
-        out.append(f"  {label:<36} {'':17} {100 * lo.trusted:3.0f} %  (a pose in {100 * lo.pose:.0f} % of setups)")
+        label = "  ... with the detector's losses"
+        out.append(f"  {label:<36} {'':17} {100 * lo.trusted:3.0f} %  (a pose in {100 * lo.pose:.0f} % of setups; "
+                   f"{lo.phrase})")
     return out
 
 
