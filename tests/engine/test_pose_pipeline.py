@@ -246,3 +246,60 @@ def test_camera_process_that_cannot_be_spawned_says_why(monkeypatch):
     with pytest.raises(MonoTrackerError, match="failed to start .*OSError"):
         proc.start(ready_timeout_s=5.0)
     assert not proc.alive() and proc.next_frame(0.0) is None
+
+
+_OWN_SHARE_HELPER = r"""
+import json, os, sys, time
+sys.path.insert(0, sys.argv[1])
+with open("/proc/self/autogroup", "w") as f:
+    f.write("7")                                 # a lowered session, as the suite's parallel part runs
+from monotracker.engine.rigs.sim_camera_process import SimCameraProcess
+from monotracker.sim.or_layout import default_layout
+layout = default_layout()
+kw = dict(trajectory=layout.motion("breathing", seed=1), fps=30.0, seed=0, T_cam_world=layout.T_cam_ct0, optics=None)
+proc = SimCameraProcess(kw, (1280, 720), 30.0, 0.03)
+proc.start(ready_timeout_s=120.0)
+with open(f"/proc/{proc.pid}/autogroup") as f:
+    group = f.read().split()
+with open("/proc/self/autogroup") as f:
+    mine = f.read().split()
+print(json.dumps({"pid": proc.pid, "sid": os.getsid(proc.pid), "my_sid": os.getsid(0), "group": group,
+                  "my_group": mine, "priority": proc.priority}), flush=True)
+time.sleep(600)                                   # killed by the test (SIGKILL: no clean-up here)
+"""
+
+
+@pytest.mark.skipif(not (Path("/proc/sys/kernel/sched_autogroup_enabled").exists()
+                         and Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1"),
+                    reason="the kernel has no autogroup scheduler here")
+def test_camera_process_gets_a_session_of_its_own_at_its_parents_weight_and_dies_with_it():
+    """The simulated camera (camera hardware's stand-in) runs in a session of its own, so that
+    the kernel's autogroups give it its own CPU share instead of the engine's (``pipeline_
+    priority.own_cpu_share``), at the niceness of the session it left (a camera started from a
+    lowered session stays lowered); signals to the engine's process group no longer reach it, so
+    it must still end when the engine dies without a word (SIGKILL)."""
+    import json
+    import signal
+    import subprocess
+    import sys
+
+    helper = subprocess.Popen([sys.executable, "-c", _OWN_SHARE_HELPER, str(ROOT / "app")], stdout=subprocess.PIPE,
+                              text=True, start_new_session=True)
+    try:
+        line = helper.stdout.readline()
+        assert line, "the helper printed nothing"
+        r = json.loads(line)
+    finally:
+        os.killpg(helper.pid, signal.SIGKILL)
+        helper.wait()
+    assert r["sid"] == r["pid"] and r["sid"] != r["my_sid"]        # a session (and process group) of its own
+    assert r["group"][0] != r["my_group"][0]                       # so an autogroup of its own
+    assert r["group"][-1] == "7" and r["my_group"][-1] == "7"      # at the weight of the one it left
+    assert "own session (autogroup nice 7)" in r["priority"]
+    t0 = time.monotonic()
+    while Path(f"/proc/{r['pid']}").exists():                      # the engine died: the camera ends too
+        stat = Path(f"/proc/{r['pid']}/stat").read_text() if Path(f"/proc/{r['pid']}/stat").exists() else ""
+        if stat.split(") ")[-1][:1] == "Z":
+            break                                                  # exited (a zombie until init reaps it)
+        assert time.monotonic() - t0 < T_STATE, "the camera process outlived its engine"
+        time.sleep(0.05)
