@@ -101,11 +101,15 @@ def main() -> None:
         t0, c0 = time.monotonic(), proc_cpu.snapshot()
         trusted = 0
         samples = 0
+        reasons: dict = {}
         while time.monotonic() - t0 < a.seconds:
             time.sleep(0.1)
             samples += 1
             snap = s.snapshot()
             trusted += bool(snap.pose is not None and snap.pose.trusted)
+            if snap.pose is not None and not snap.pose.trusted:
+                why = (snap.pose.reason or snap.pose.code or "?").split(":")[0]
+                reasons[why] = reasons.get(why, 0) + 1
         wall = time.monotonic() - t0
         c1 = proc_cpu.snapshot()
         by_class, by_thread = proc_cpu.cpu_use(c0, c1, wall)
@@ -134,6 +138,9 @@ def main() -> None:
               f"{np.percentile(age, 95):.0f} ms ({100 * np.mean(age > 150):.0f} % over 150 ms); gap p50/p95/max "
               f"{np.percentile(gaps, 50):.0f}/{np.percentile(gaps, 95):.0f}/{gaps.max():.0f} ms; "
               f"snap.pose.trusted {100 * trusted / max(samples, 1):.0f} % of 0.1 s samples")
+        if reasons:
+            print("  not trusted: " + ", ".join(f"{k} {100 * v / max(samples, 1):.0f} %"
+                                               for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])))
         for k in ("render_s", "arrived_s", "estimate_s", "estimate_cpu_s", "detect_s", "register_s"):
             v = 1000 * np.array([r[2].get(k, np.nan) for r in rows], float)
             if np.isfinite(v).any():

@@ -16,6 +16,18 @@ from browser_helpers import (APP_OPTIONS, T_STATE, _click, _command, _input, _ms
 
 pytestmark = pytest.mark.timeout(900)
 
+#: the simulated camera's rate in this test (Hz; the engine's default is 30). In the OR the
+#: camera is hardware and the page is shown on another device; here the camera's renders
+#: (~15 ms of CPU a frame), the pose pipeline (~16 ms a frame) and the software-rendered browser
+#: (0.6-0.8 of a core) share 2 cores, and at 30 fps they need more than the machine has beside
+#: the suite's parallel part (scripts/test.sh): the pipeline drops frames, 10-20 % of the poses
+#: arrive over the 150 ms limit and the arm rightly holds short of the entry (CI of 2026-12-02:
+#: holding 42 mm away after 120 s, 17.9 % over). At 20 fps, beside two busy loops in a nice-19
+#: session (as the parallel part runs), 2 of 2 runs reached the entry in 31-40 s (30 fps: 1 of
+#: 4). The engine's limits are unchanged: a frame gap over 100 ms (two frames at 20 fps) and a
+#: pose over 150 ms old still hold the arm.
+E2E_CAMERA_FPS = 20.0
+
 
 @pytest.fixture
 def served(tmp_path, monkeypatch, port):
@@ -31,10 +43,11 @@ def served(tmp_path, monkeypatch, port):
     # (MONOTRACKER_TEST_HOGS=4, tests/conftest.py) with a software-rendered browser taking its
     # share, the camera runs late and no trusted pose comes (issue 33, open). The pose ages as the
     # engine sees them arrive are printed at each step.
-    s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="breathing", robot="sim", arm_pin="2468"))
+    s = Session(SessionConfig(home=tmp_path, camera="sim", trajectory="breathing", robot="sim", arm_pin="2468",
+                              camera_fps=E2E_CAMERA_FPS))
     ages = _record_pose_ages(s)
     s.start()
-    app = MonoTrackerApp(s, "127.0.0.1", port, **APP_OPTIONS)  # the camera and pipeline at 30 fps
+    app = MonoTrackerApp(s, "127.0.0.1", port, **APP_OPTIONS)  # the camera and pipeline at E2E_CAMERA_FPS
     app.start()
     yield s, app, ages
     app.stop()
