@@ -19,10 +19,7 @@ engine loop, the pose pipeline, the
 overlay and render threads
 simulated camera renderer              its own process      normal (SCHED_OTHER, nice
                                        (``sim_camera_       ``max(inherited, 0)``): it stands in for
-                                       process.py``), in    camera hardware, which costs the app no CPU
-                                       a session of its     (:func:`own_cpu_share`: the kernel's
-                                       own                  autogroups give it its own share, at the
-                                                            weight of the session it left)
+                                       process.py``)        camera hardware, which costs the app no CPU
 =====================================  ===================  ==========================================
 
 Real-time scheduling is for the control process only: it is small, its cycle is bounded (it
@@ -116,39 +113,6 @@ def normal_priority(nice: int = 0) -> str:
         current = None
     head = "normal priority" + (f" (nice {current})" if current is not None else "")
     return head + ("; " + "; ".join(notes) if notes else "")
-
-def own_cpu_share() -> str:
-    """Put the calling process in a session of its own, so that where the kernel shares the CPU
-    between sessions first (autogroups, ``/proc/sys/kernel/sched_autogroup_enabled`` = 1, the
-    default of Debian's and Ubuntu's kernels) it gets a session's share instead of competing
-    thread by thread with the engine process that started it. For the simulated camera: it
-    stands in for camera hardware, which costs the app no CPU; in the engine's session its
-    renders (~15 ms of CPU a frame, 0.45 of a core at 30 fps) took the pose pipeline's and the
-    web server's share (on 2 cores beside a browser: the camera delivered 15 of 30 fps and the
-    poses came in late). The new session's autogroup gets the niceness of the one it leaves
-    (never a higher weight: a camera started from a lowered session stays lowered). The process
-    group changes too: signals sent to the parent's group no longer reach it, so the caller must
-    end it another way (the camera process ends when its parent dies or closes its pipe).
-    Returns one line saying what was done (never raises)."""
-    if not sys.platform.startswith("linux") or not hasattr(os, "setsid"):
-        return f"session kept (not changed on {sys.platform})"
-    before = None
-    try:
-        with open("/proc/self/autogroup") as f:          # "/autogroup-141 nice 0"
-            before = int(f.read().split()[-1])
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        os.setsid()
-    except OSError as exc:
-        return f"session kept ({exc.strerror or exc})"
-    if before:
-        try:
-            with open("/proc/self/autogroup", "w") as f:
-                f.write(str(before))
-        except OSError as exc:
-            return f"own session, its autogroup's niceness {before} not kept ({exc.strerror or exc})"
-    return "own session" + (f" (autogroup nice {before})" if before else "")
 
 
 def set_gil_switch_interval(interval_s: float = GIL_SWITCH_INTERVAL_S) -> float:

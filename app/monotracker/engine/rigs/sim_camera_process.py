@@ -17,10 +17,7 @@ camera rate on the shared monotonic clock (``time.monotonic`` is system-wide on 
 * the reader (:meth:`SimCameraProcess.next_frame`) always takes the newest frame and drops older
   ones, like a camera driver's ring buffer;
 * the child runs at normal priority or below (``nice`` >= 0; never real-time: the priority
-  policy, ``engine/pipeline_priority.py``) in a session of its own (``own_cpu_share``: a CPU
-  share of its own where the kernel has autogroups, as hardware costs the app nothing), and ends
-  when its parent closes the pipe or dies (signals sent to the parent's process group no longer
-  reach it).
+  policy, ``engine/pipeline_priority.py``), and ends when its parent closes the pipe or dies.
 
 Faults that the engine injects (freeze, occlusion) are applied by the rig to the frame it reads,
 as before; the child renders the scene only, with the camera moved in the room when a
@@ -67,11 +64,10 @@ def _child(wake_fd_holder, shm_name: str, shape: tuple, cam_kwargs: dict, fps: f
     import pickle
     from multiprocessing import shared_memory
 
-    from monotracker.engine.pipeline_priority import normal_priority, own_cpu_share
+    from monotracker.engine.pipeline_priority import normal_priority
     from monotracker.sim.camera_sim import SimulatedCamera
 
     priority = normal_priority(nice)  # hardware's stand-in: never above the web server or the STOP path
-    priority += "; " + own_cpu_share()  # ... and never taking the engine's share of the CPU
     parent = os.getppid()
     shm = shared_memory.SharedMemory(name=shm_name)
     # (the spawn-ed child shares its parent's resource tracker: the parent's unlink unregisters it)
