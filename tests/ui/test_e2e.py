@@ -232,12 +232,12 @@ def _tip_on_the_entry(s, ages: list) -> str:
     freshness and said so, with over TOO_SLOW_SHARE of the poses late on arrival; anything else
     (fresh poses and no reach, no hold for freshness recorded) fails. The rest of the workflow
     runs either way; the test then ends as an expected failure that names the measured lateness."""
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < T_STATE:
-        snap = s.snapshot()
-        if snap.robot.state == "tracking" and (snap.robot.tip_error_mm or 1e9) < 2.0:
-            return ""
-        time.sleep(0.05)
+    try:
+        _wait(lambda: s.snapshot().robot.state == "tracking" and (s.snapshot().robot.tip_error_mm or 1e9) < 2.0,
+              what="the tip on the entry while tracking")
+        return ""
+    except AssertionError:
+        pass        # not within T_STATE: say why below, or fail
     snap = s.snapshot()
     rows = list(ages)
     late = float(np.mean([a > s.config.max_pose_age_s for _, a in rows])) if rows else 0.0

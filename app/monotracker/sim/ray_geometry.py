@@ -39,15 +39,15 @@ class RayGeometry:
         if c_norm > reach:          # the camera outside that ball: the cone around the centre
             along = rays @ c_cam
             near = np.flatnonzero((along > 0) & (c_norm * c_norm - along * along <= reach * reach))
-            cov = np.zeros(len(rays))
-            shade = np.zeros(len(rays))
-            spec = None if self.optics is None or self.optics.skin_specular <= 0 else np.zeros(len(rays))
-            if len(near):
-                c_n, s_n, p_n = self._skin_rays(rays[near], R, c_cam, px_scale)
-                cov[near], shade[near] = c_n, s_n
-                if spec is not None:
-                    spec[near] = p_n
-            return cov, shade, spec
+            cast = self._skin_rays(rays[near], R, c_cam, px_scale)
+            out = []
+            for part in cast:                       # coverage, shade, specular (None without it)
+                if part is not None:
+                    full = np.zeros(len(rays))
+                    full[near] = part
+                    part = full
+                out.append(part)
+            return tuple(out)
         return self._skin_rays(rays, R, c_cam, px_scale)
 
     def _skin_rays(self, rays: np.ndarray, R: np.ndarray, c_cam: np.ndarray, scale: float):
