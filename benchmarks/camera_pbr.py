@@ -46,7 +46,11 @@ inside it: ``BlobRules.shadow_in_px`` inf; the default before 2026-12-01), ``lon
 one, at least 3 px: ``BlobRules.shadow_far_per_radius`` 0.5; opt-in, docs/vision.md "Long
 contact shadows"), ``trim`` (``edge`` that scores a colour blob refused for its shape again
 with its thin parts cut off: ``BlobRules.trim_tails``; opt-in, docs/vision.md "Ragged colour
-blobs scored again trimmed"), ``idealS``
+blobs scored again trimmed"), ``smoothS`` (``edge`` with a third look, in frames blurred
+over 1.6 px, at the blobs it refused, the colour mask thresholded on the frame smoothed by S x the
+blur: ``ClassicalDetector.mask_smooth_per_blur``; ``smooth`` = 0.6; opt-in, docs/vision.md
+"Strongly blurred frames"; ``--blurred-side-floor`` sets the edge fit's ball-side floor there for
+the whole run), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
 ceiling the scenes and the gates allow, :class:`IdealDetector`). Each runs through the product's own chain: vision's
 ``PoseTracker`` (the detector with the camera's outlines, the registration, the trust gates).
@@ -147,6 +151,10 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
     if name == "trim":
         rules.trim_tails = True
         return ClassicalDetector(rules)
+    if name.startswith("smooth"):
+        # smoothS: the colour mask of a blurred frame smooths it by S x the measured blur
+        # (ClassicalDetector.mask_smooth_per_blur; "smooth" = 0.6)
+        return ClassicalDetector(rules, mask_smooth_per_blur=float(name[6:] or 0.6))
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":
@@ -157,7 +165,7 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, long-shadow, trim, first, narrow-lenient, refined, chroma, learned, "
+    raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, long-shadow, trim, smoothS, first, narrow-lenient, refined, chroma, learned, "
                      "idealS)")
 
 
@@ -570,9 +578,16 @@ def main(argv=None) -> int:
                     help="also the layout planner's prediction per scene against the outcome (first detector)")
     ap.add_argument("--fit-bias", action="store_true",
                     help="measure the detectors' centre bias on the tuning set (px per coordinate)")
+    ap.add_argument("--blurred-side-floor", type=float, default=None,
+                    help="the edge fit's ball-side floor in strongly blurred frames for every detector of the run "
+                         "(edge_fit.BLURRED_BALL_SIDE_FLOOR; opt-in 0.16, docs/vision.md 'Strongly blurred frames')")
     a = ap.parse_args(argv)
     global REFINER_MODEL
     REFINER_MODEL = a.refiner
+    if a.blurred_side_floor is not None:
+        from monotracker.vision import edge_fit
+
+        edge_fit.BLURRED_BALL_SIDE_FLOOR = float(a.blurred_side_floor)
     if a.fit_bias and a.held_out:
         print("error: the centre bias is fitted on the tuning set only, never on the held-out set", file=sys.stderr)
         return 2

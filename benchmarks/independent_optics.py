@@ -13,14 +13,15 @@ background, see ``edge_fit.NEAR_BACKGROUND``; ``edge-r5``: that fit with the unm
 tolerance 0.12 whatever the blur, before ``edge_fit.SHARP_UNMIX_RESIDUAL``; ``edge+ref``: ``edge``
 with the learned centre refiner, opt-in, issue 28; ``edge+shade``: ``edge`` with the opt-in shading
 shift, ``vision/shading_shift.py``; ``trim``: ``edge`` with the opt-in second score of a blob
-refused for its shape, its thin parts cut off, ``BlobRules.trim_tails``), mean and p95 centre error (px) of the balls found
+refused for its shape, its thin parts cut off, ``BlobRules.trim_tails``; ``smooth``: ``edge``
+with the opt-in third look in blurred frames, ``ClassicalDetector.mask_smooth_per_blur`` 1.0), mean and p95 centre error (px) of the balls found
 within 3 px, recall, the mean error on the balls all edge fits accept (``common``), and the
 edge blur the fit measured. Then the edge fit with the blur-per-width factor at other values
 (see ``edge_fit.BLUR_PER_WIDTH``), over both backgrounds. Then balls cut by a straight occluder
 (15-35 % of the radius hidden: a glove, an instrument, gauze, skin, drapes) and whole balls, each
 pasted into a 1280 x 720 frame at a random place with the outline a sphere has there
 (``independent_render.render_in_frame``): ``edge-free`` the detector without the camera (a free
-ellipse per ball, the fit before ``vision/sphere_outline.py``) vs ``edge`` with it (and ``edge+ref``, ``edge+shade``, ``trim``), same frames:
+ellipse per ball, the fit before ``vision/sphere_outline.py``) vs ``edge`` with it (and ``edge+ref``, ``edge+shade``, ``trim``, ``smooth``), same frames:
 balls accepted, accepted more than 0.5 px off, worst and mean error.
 
 Usage: PYTHONPATH=app python benchmarks/independent_optics.py [--quick] [--n N]
@@ -158,7 +159,8 @@ def cut_table(n: int, seed: int) -> None:
             ("edge", ClassicalDetector(replace(rules, camera=cam))),
             ("edge+ref", ClassicalDetector(replace(rules, camera=cam), refiner=CentreRefiner())),
             ("edge+shade", ClassicalDetector(replace(rules, camera=cam, shading_shift=True))),
-            ("trim", ClassicalDetector(replace(rules, camera=cam, trim_tails=True))))
+            ("trim", ClassicalDetector(replace(rules, camera=cam, trim_tails=True))),
+            ("smooth", ClassicalDetector(replace(rules, camera=cam), mask_smooth_per_blur=1.0)))
     print(f"\nCut balls (15-35 % of the radius hidden) and whole balls in 1280 x 720 frames, {n} per cell")
     print(f"{'condition':<26} {'balls':<6} {'detector':<9} {'accepted':>8} {'> 0.5 px':>8} {'worst px':>8} "
           f"{'mean px':>7}")

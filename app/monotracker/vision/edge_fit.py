@@ -120,6 +120,28 @@ def unmix_residual_limit(blur_px: float) -> float:
     w = float(np.clip((hi - float(blur_px)) / (hi - lo), 0.0, 1.0))
     return MAX_UNMIX_RESIDUAL + w * (SHARP_UNMIX_RESIDUAL - MAX_UNMIX_RESIDUAL)
 
+#: the ball side of a ray's edge window (its first samples, 1.5 px + the blur inside the edge)
+#: must read as ball: the mean background share there under 1 - this floor - 2 x the noise of
+#: the background share measured on the ball's clean background (at most
+#: :data:`BALL_SIDE_CAP`), in a sharp frame ...
+BALL_SIDE_FLOOR = 0.08
+#: ... and in a strongly blurred one (measured edge blur >= ``BALL_SIDE_BLUR_PX[1]``; linear
+#: from ``BALL_SIDE_BLUR_PX[0]``). The limb of a dim ball at 2 px of blur reads 10-15 % background
+#: colour (the skin's light on it) and fails 0.08 on 18 % of its rays (6 % in sharp frames);
+#: 0.16 there is opt-in with ``ClassicalDetector.mask_smooth_per_blur`` (docs/vision.md,
+#: "Strongly blurred frames": more whole balls, no more trusted scenes on the held-out set)
+BLURRED_BALL_SIDE_FLOOR = 0.08
+BALL_SIDE_BLUR_PX = (1.8, 2.2)
+BALL_SIDE_CAP = 0.25
+
+
+def ball_side_floor(blur_px: float) -> float:
+    """The floor of the ball-side test (:data:`BALL_SIDE_FLOOR`) for an edge blur of ``blur_px``
+    (px, as :func:`measure_edge_blur` gives it)."""
+    lo, hi = BALL_SIDE_BLUR_PX
+    w = float(np.clip((float(blur_px) - lo) / (hi - lo), 0.0, 1.0))
+    return BALL_SIDE_FLOOR + w * (BLURRED_BALL_SIDE_FLOOR - BALL_SIDE_FLOOR)
+
 #: a usable ray needs at least this share of the rays (else the fit is refused)
 MIN_RAY_SHARE = 0.6
 
@@ -393,8 +415,10 @@ def measure_edge_blur(image_bgr: np.ndarray, ellipses: list) -> float | None:
     balls = [e for e in ellipses if min(e[1]) >= 3.0]
     if balls:
         # the blur is not known yet: the sharp frame's tolerance, or a sharp frame's fringes
-        # leave too few rays to measure it (and the fit falls back to the blurred one's)
-        _edge_points(image_bgr, balls, BLUR_PROBE_PX, widths, max_resid=SHARP_UNMIX_RESIDUAL)
+        # leave too few rays to measure it (and the fit falls back to the blurred one's); the
+        # ball-side test likewise asks what it asks in a sharp frame
+        _edge_points(image_bgr, balls, BLUR_PROBE_PX, widths, max_resid=SHARP_UNMIX_RESIDUAL,
+                     side_floor=BALL_SIDE_FLOOR)
     return blur_from_widths(widths)
 
 
@@ -428,17 +452,18 @@ def _rows(e: np.ndarray) -> np.ndarray:
 
 
 def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resid: float | None = None,
-                 chroma_limited: bool | None = None, frame: dict | None = None):
+                 chroma_limited: bool | None = None, frame: dict | None = None, side_floor: float | None = None):
     """Edge points of several balls at once. ``balls``: list of coarse OpenCV ellipses
     ((cx, cy), (d1, d2), angle_deg). Returns per ball (points (n, 2) px, usable (n,) bool), or None
     for a ball too close to the image border. With ``widths`` (a list), the 25-75 % rise
     widths (px) of the coverage along the usable rays are appended to it (one array).
     ``max_resid``: the unmixing residual a usable ray may reach (None: for ``blur_px``, see
-    :func:`unmix_residual_limit`). ``chroma_limited``: whether the frame's colour is band-limited
+    :func:`unmix_residual_limit`); ``side_floor`` the ball-side test's floor (None: for
+    ``blur_px``, :func:`ball_side_floor`). ``chroma_limited``: whether the frame's colour is band-limited
     (:func:`chroma_is_band_limited`), None = measured on these balls' neighbourhoods (the
     decision is then stored in ``frame["chroma_band_limited"]`` when ``frame`` is a dict)."""
     if COMPILED:
-        return _edge_points_compiled(image_bgr, balls, blur_px, widths, max_resid, chroma_limited, frame)
+        return _edge_points_compiled(image_bgr, balls, blur_px, widths, max_resid, chroma_limited, frame, side_floor)
     measure_chroma = chroma_limited is None
     k = SAMPLES
     profs, sprofs, geo, out = [], [], [], [None] * len(balls)
@@ -522,7 +547,8 @@ def _edge_points(image_bgr, balls, blur_px, widths: list | None = None, max_resi
     # a highlight spilling into the edge window shows as gamma > 0 on the ball side)
     g_noise = np.std(gamma[:, k - 2 * half:], axis=1)
     noise_ball = np.repeat([_median(g_noise[a:a + c]) for a, c in zip(starts, counts)], counts)
-    usable &= ball_side > 1.0 - np.clip(0.08 + 2.0 * noise_ball, 0.08, 0.25)
+    floor = ball_side_floor(blur_px) if side_floor is None else side_floor
+    usable &= ball_side > 1.0 - np.clip(floor + 2.0 * noise_ball, floor, BALL_SIDE_CAP)
     # a third colour in the edge window (the head's outline meeting the drape right at the
     # ball, an instrument's edge) is outside the span of ball and background: the unmixing's
     # residual, relative to the pixel, says so
@@ -557,7 +583,7 @@ def _points_out(out: list, geo: list, counts: list, edge_rel: np.ndarray, usable
 _FINE_LUT = edge_kernels.fine_lut(2.2)
 
 
-def _edge_points_compiled(image_bgr, balls, blur_px, widths, max_resid, chroma_limited, frame):
+def _edge_points_compiled(image_bgr, balls, blur_px, widths, max_resid, chroma_limited, frame, side_floor=None):
     """:func:`_edge_points` (same arguments, same result) with the rays laid out, sampled, chroma
     smoothed and unmixed in compiled kernels (:mod:`.edge_kernels`: ``ray_geometry``,
     ``sample_rays``, ``ray_edges``); the NumPy body of :func:`_edge_points` is the reference."""
@@ -588,7 +614,9 @@ def _edge_points_compiled(image_bgr, balls, blur_px, widths, max_resid, chroma_l
     starts = np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(np.int64)
     edge_rel, usable, wid = edge_kernels.ray_edges(
         prof, prof_e, starts, cnt.astype(np.int64), step, float(blur_px),
-        float(unmix_residual_limit(blur_px) if max_resid is None else max_resid), bool(NEAR_BACKGROUND),
+        float(unmix_residual_limit(blur_px) if max_resid is None else max_resid),
+        float(ball_side_floor(blur_px) if side_floor is None else side_floor),
+        float(BALL_SIDE_CAP), bool(NEAR_BACKGROUND),
         float(INTEGRATION_SHARE), float(CROSSING_AGREE_PX), float(NEAR_BG_MARGIN_PX), float(NEAR_BG_WINDOW_PX),
         float(1.0 / (BLUR_PER_WIDTH * DISC_WIDTH_PER_RADIUS)))
     if widths is not None:

@@ -156,12 +156,14 @@ def _median(x):
 
 
 @_compiled
-def ray_edges(prof, prof_e, starts, counts, step, blur_px, max_resid, near_background, integration_share,
+def ray_edges(prof, prof_e, starts, counts, step, blur_px, max_resid, ball_side_floor, ball_side_cap, near_background,
+              integration_share,
               crossing_agree_px, near_bg_margin_px, near_bg_window_px, psf_radius_per_blur):
     """Per ray of ``prof`` (N, k, 3) (and ``prof_e``: the same rays with colour smoothed along
     them, or ``prof`` itself): (edge position from the ray's start, px (N,); usable (N,) bool;
     25-75 % rise width px (N,), NaN where not usable), as :func:`.edge_fit._edge_points`
-    computes them for blur ``blur_px`` px and the unmixing residual limit ``max_resid``."""
+    computes them for blur ``blur_px`` px, the unmixing residual limit ``max_resid`` and the
+    ball-side test's floor and cap (``edge_fit.ball_side_floor``, ``BALL_SIDE_CAP``)."""
     N, k, _ = prof.shape
     edge_k = max(k // 10, 3)
     half = k // 8
@@ -268,7 +270,7 @@ def ray_edges(prof, prof_e, starts, counts, step, blur_px, max_resid, near_backg
     for b in range(len(starts)):
         s, c = starts[b], counts[b]
         nb = _median(g_noise[s:s + c])
-        lim = 1.0 - min(max(0.08 + 2.0 * nb, 0.08), 0.25)
+        lim = 1.0 - min(max(ball_side_floor + 2.0 * nb, ball_side_floor), ball_side_cap)
         for n in range(s, s + c):
             if usable[n] and not ball_side[n] > lim:
                 usable[n] = False
@@ -909,8 +911,9 @@ def warm_up() -> None:
     k = 48
     prof = np.random.default_rng(0).random((4, k, 3)).astype(np.float32)
     starts, counts = np.array([0], np.int64), np.array([4], np.int64)
-    ray_edges(prof, prof, starts, counts, np.full(4, 0.3), 1.5, 0.12, True, 0.75, 1.0, 0.5, 2.0, 1.45)
-    ray_edges(prof, prof.copy(), starts, counts, np.full(4, 0.3), 1.5, 0.12, False, 0.75, 1.0, 0.5, 2.0, 1.45)
+    ray_edges(prof, prof, starts, counts, np.full(4, 0.3), 1.5, 0.12, 0.08, 0.25, True, 0.75, 1.0, 0.5, 2.0, 1.45)
+    ray_edges(prof, prof.copy(), starts, counts, np.full(4, 0.3), 1.5, 0.12, 0.08, 0.25, False, 0.75, 1.0, 0.5, 2.0,
+              1.45)
     phi = np.linspace(0, 2 * np.pi, 32, endpoint=False)
     P = np.stack([10 * np.cos(phi), 10 * np.sin(phi)], -1)[None]
     shaped_fits(P, np.ones((1, 32), np.bool_), np.ones((1, 32), np.bool_), np.ones(1), np.zeros(1), 0.6, 1.5,
