@@ -48,7 +48,7 @@ contact shadows"), ``trim`` (``edge`` that scores a colour blob refused for its 
 with its thin parts cut off: ``BlobRules.trim_tails``; opt-in, docs/vision.md "Ragged colour
 blobs scored again trimmed"), ``smoothS`` (``edge`` with a third look, in frames blurred
 over 1.6 px, at the blobs it refused, the colour mask thresholded on the frame smoothed by S x the
-blur: ``ClassicalDetector.mask_smooth_per_blur``; ``smooth`` = 0.6; opt-in, docs/vision.md
+blur: ``ClassicalDetector.mask_smooth_per_blur``; ``smooth`` = 1.0, the value measured; opt-in, docs/vision.md
 "Strongly blurred frames"; ``--blurred-side-floor`` sets the edge fit's ball-side floor there for
 the whole run), ``idealS``
 (not a detector: every whole ball at its true centre, edge RMS S px, e.g. ``ideal0.1``: the
@@ -153,8 +153,8 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         return ClassicalDetector(rules)
     if name.startswith("smooth"):
         # smoothS: the colour mask of a blurred frame smooths it by S x the measured blur
-        # (ClassicalDetector.mask_smooth_per_blur; "smooth" = 0.6)
-        return ClassicalDetector(rules, mask_smooth_per_blur=float(name[6:] or 0.6))
+        # (ClassicalDetector.mask_smooth_per_blur; "smooth" = 1.0, as independent_optics.py's)
+        return ClassicalDetector(rules, mask_smooth_per_blur=float(name[6:] or 1.0))
     if name == "chroma":
         return ClassicalDetector(rules, centre_method="chroma")
     if name == "refined":

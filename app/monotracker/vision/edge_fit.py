@@ -113,11 +113,16 @@ SHARP_UNMIX_RESIDUAL = 0.18
 SHARP_BLUR_PX = (1.2, 1.6)
 
 
+def _ramp(blur_px: float, from_px: float, to_px: float) -> float:
+    """How far (0-1) an edge blur of ``blur_px`` px lies from ``from_px`` towards ``to_px`` (px,
+    either order): 0 at or beyond ``from_px``, 1 at or beyond ``to_px``, linear in between."""
+    return float(np.clip((float(blur_px) - from_px) / (to_px - from_px), 0.0, 1.0))
+
+
 def unmix_residual_limit(blur_px: float) -> float:
     """The unmixing residual a usable ray may reach (relative), for an edge blur of ``blur_px``
     (px, as :func:`measure_edge_blur` gives it): see :data:`SHARP_UNMIX_RESIDUAL`."""
-    lo, hi = SHARP_BLUR_PX
-    w = float(np.clip((hi - float(blur_px)) / (hi - lo), 0.0, 1.0))
+    w = _ramp(blur_px, SHARP_BLUR_PX[1], SHARP_BLUR_PX[0])     # 1 in a sharp frame
     return MAX_UNMIX_RESIDUAL + w * (SHARP_UNMIX_RESIDUAL - MAX_UNMIX_RESIDUAL)
 
 #: the ball side of a ray's edge window (its first samples, 1.5 px + the blur inside the edge)
@@ -138,8 +143,7 @@ BALL_SIDE_CAP = 0.25
 def ball_side_floor(blur_px: float) -> float:
     """The floor of the ball-side test (:data:`BALL_SIDE_FLOOR`) for an edge blur of ``blur_px``
     (px, as :func:`measure_edge_blur` gives it)."""
-    lo, hi = BALL_SIDE_BLUR_PX
-    w = float(np.clip((float(blur_px) - lo) / (hi - lo), 0.0, 1.0))
+    w = _ramp(blur_px, *BALL_SIDE_BLUR_PX)                        # 1 in a strongly blurred frame
     return BALL_SIDE_FLOOR + w * (BLURRED_BALL_SIDE_FLOOR - BALL_SIDE_FLOOR)
 
 #: a usable ray needs at least this share of the rays (else the fit is refused)

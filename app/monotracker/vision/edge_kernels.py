@@ -157,8 +157,7 @@ def _median(x):
 
 @_compiled
 def ray_edges(prof, prof_e, starts, counts, step, blur_px, max_resid, ball_side_floor, ball_side_cap, near_background,
-              integration_share,
-              crossing_agree_px, near_bg_margin_px, near_bg_window_px, psf_radius_per_blur):
+              integration_share, crossing_agree_px, near_bg_margin_px, near_bg_window_px, psf_radius_per_blur):
     """Per ray of ``prof`` (N, k, 3) (and ``prof_e``: the same rays with colour smoothed along
     them, or ``prof`` itself): (edge position from the ray's start, px (N,); usable (N,) bool;
     25-75 % rise width px (N,), NaN where not usable), as :func:`.edge_fit._edge_points`
