@@ -284,3 +284,20 @@ def test_grayscale_frames_raise_their_own_alarm(make_session, tmp_path):
     assert "grayscale" in msg and "colour camera" in msg
     assert "occlusion" not in codes()
     assert s.stop_camera().ok
+
+
+def test_a_grayscale_folder_ends_on_an_alarm_that_still_says_why(make_session, tmp_path):
+    """Once a folder of grayscale frames is read, ``camera_ended`` takes ``frame_grayscale``'s
+    place on the board: its message keeps the reason no frame was trusted (before: "camera
+    stream ended", nothing about the frames)."""
+    import cv2
+
+    from monotracker.sim.camera_sim import SimulatedCamera
+
+    cam = SimulatedCamera(seed=1)
+    frames = {f"f{i:03d}.png": cv2.cvtColor(cam.render(0.1 * i)[0], cv2.COLOR_BGR2GRAY) for i in range(3)}
+    s, codes = _folder_camera(make_session, tmp_path / "frames", frames)
+    assert _wait_for_code(codes, "camera_ended")
+    msg = {a.code: a.message for a in s.snapshot().alarms}["camera_ended"]
+    assert "after 3 frames, none with a trusted pose" in msg and "grayscale" in msg, msg
+    assert s.stop_camera().ok

@@ -188,3 +188,65 @@ def test_residual_gate_invalidates_the_pose():
     assert e.status == [SEEN] * 9          # the balls were matched; the fit is just not trusted
     assert any("no valid pose" in a for a in e.alerts)
 
+
+
+class _ListSource:
+    """A finite, non-live source of the given BGR images (as a video file or a folder is)."""
+
+    live = False
+
+    def __init__(self, images):
+        self._images = list(images)
+        self._i = 0
+
+    def read(self):
+        from monotracker.vision.frames import Frame
+
+        if self._i >= len(self._images):
+            return None
+        self._i += 1
+        return Frame(self._images[self._i - 1], self._i / 30.0, self._i - 1)
+
+    def close(self):
+        pass
+
+
+def _ended(images):
+    cam = SimulatedCamera(realtime=False, seed=1)
+    got = _collect(PoseStream(_ListSource(images), tracker=_tracker(cam)), lambda e: e.camera == "ended")
+    assert got[-1].code == "camera_ended" and not got[-1].ok
+    return got
+
+
+def test_a_grayscale_video_ends_saying_why_no_frame_was_trusted():
+    """A video whose every frame was refused ends on "camera ended": the end says how many frames
+    it gave and why the last was refused (before: "camera stream ended" alone, the grayscale
+    reason gone with the condition the end replaces)."""
+    import cv2
+
+    cam = SimulatedCamera(realtime=False, seed=1)
+    grey = [cv2.cvtColor(cv2.cvtColor(cam.render(0.1 * i)[0], cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+            for i in range(3)]
+    got = _ended(grey)
+    assert [e.code for e in got[:-1]] == ["frame_grayscale"] * 3
+    end = got[-1].reason
+    assert end.startswith("camera stream ended after 3 frames, none with a trusted pose")
+    assert got[0].reason.rstrip(".") in end and "grayscale" in end
+
+
+def test_a_video_that_tracked_ends_plainly_or_names_its_last_refusal():
+    """Colour frames of the simulated head, each trusted: the end names the frame count only; the
+    same video with a grayscale last frame names that frame's refusal; an empty one says so."""
+    import cv2
+
+    cam = SimulatedCamera(realtime=False, seed=1)
+    colour = [cam.render(0.05 * i)[0] for i in range(4)]
+    got = _ended(colour)
+    assert all(e.ok for e in got[:-1]), [e.reason for e in got[:-1]]
+    assert got[-1].reason == "camera stream ended after 4 frames"
+    last_grey = cv2.cvtColor(cv2.cvtColor(colour[-1], cv2.COLOR_BGR2GRAY), cv2.COLOR_GRAY2BGR)
+    got = _ended(colour[:3] + [last_grey])
+    assert got[-2].code == "frame_grayscale"
+    assert got[-1].reason.startswith("camera stream ended after 4 frames; the last had no trusted pose (")
+    assert "grayscale" in got[-1].reason
+    assert _ended([])[-1].reason == "camera stream ended before its first frame"

@@ -81,6 +81,9 @@ class PoseStream:
         self._read_since: float | None = None   # monotonic time the pending read() began
         self._last_index = -1
         self.estimates = 0
+        self._run_frames = 0               # frames the tracker judged (stream thread only)
+        self._run_trusted = 0              # of those, with a trusted pose
+        self._last_refused: PoseEstimate | None = None   # the tracker's last refusal, None once trusted
         self.camera_state = "ok"
 
     # ------------------------------------------------------------------ API
@@ -162,6 +165,22 @@ class PoseStream:
             est = self.tracker.camera_fault(self._last_index, time.monotonic(), camera, reason)
         self._publish(est)
 
+    def _ended_reason(self) -> str:
+        """The operator's line when a video or a folder ends: how many frames it gave and, where
+        its last frame had no trusted pose, why (a grayscale video would otherwise end on
+        "camera stream ended" alone, the reason its frames were refused gone with the condition
+        the end replaces)."""
+        n, last = self._run_frames, self._last_refused
+        if n == 0:
+            return "camera stream ended before its first frame"
+        said = f"camera stream ended after {n} frame{'s' if n != 1 else ''}"
+        if last is None:
+            return said
+        why = (last.reason or last.code or "no trusted pose").rstrip(".")
+        if self._run_trusted == 0:
+            return f"{said}, none with a trusted pose (the last: {why})"
+        return f"{said}; the last had no trusted pose ({why})"
+
     def _run(self) -> None:
         while not self._stop.is_set():
             self._read_since = time.monotonic()
@@ -185,7 +204,7 @@ class PoseStream:
             finally:
                 self._read_since = None
             if frame is None:
-                self._fault_estimate("ended", "camera stream ended")
+                self._fault_estimate("ended", self._ended_reason())
                 return
             self._last_index = frame.index
             frozen = self.watchdog.feed(frame)
@@ -202,6 +221,9 @@ class PoseStream:
                 est = PoseEstimate(False, f"internal error: {type(exc).__name__}: {exc}", frame.index,
                                    frame.t_capture, time.monotonic(), alerts=[f"internal error: {exc}"],
                                    code="pose_lost")
+            self._run_frames += 1
+            self._run_trusted += bool(est.ok)
+            self._last_refused = None if est.ok else est
             self._publish(est)
             after = getattr(self.tracker, "after_publish", None)
             if after is not None:
