@@ -107,7 +107,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--split", choices=("tuning", "held_out"), required=True)
     ap.add_argument("--counts", default="clean=10,OR=10,clutter=10")
-    ap.add_argument("--scene", default=None, help="KIND:I: render that one scene only (no manifest)")
+    ap.add_argument("--scene", action="append", default=None,
+                    help="KIND:I: render that scene only (repeatable; no manifest): the plan is made once for all")
     ap.add_argument("--root", type=Path, default=None)
     ap.add_argument("--renderer", choices=RENDERERS, default="mitsuba",
                     help="blender: Cycles in a Python with bpy (--blender-python), into <root>/blender/<split>")
@@ -133,8 +134,11 @@ def main(argv=None) -> int:
               f"worst hidden trusted {plan.expected.worst_hidden.trusted if plan.expected.worst_hidden else 0:.2f}, "
               f"with losses {wl.trusted if wl else float('nan'):.2f}, balls for losses {plan.balls_for_losses}")
     if a.scene:
-        kind, i = a.scene.split(":")
-        wanted = [(kind, int(i))]
+        try:
+            wanted = [(kind, int(i)) for kind, i in (sc.split(":") for sc in a.scene)]
+        except ValueError:
+            print(f"error: --scene takes KIND:I (e.g. OR:3), not {' '.join(a.scene)}", file=sys.stderr)
+            return 2
     else:
         counts = {k: int(n) for k, n in (kv.split("=") for kv in a.counts.split(",") if kv)}
         wanted = [(k, i) for k in KINDS for i in range(counts.get(k, 0))]

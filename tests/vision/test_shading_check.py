@@ -222,3 +222,90 @@ def test_a_moving_heads_frames_are_judged_on_their_own_shadows(scene):
                   frames=8)
     assert not any(e.ok for e in now[:2])
     assert all(e.ok for e in now[2:]), [e.reason for e in now]
+
+
+def _outline_minor_px(s) -> np.ndarray:
+    """Each ball's outline minor semi-axis in the distorted image (px): the sphere's tangent cone
+    from the camera, 720 rays projected by OpenCV with the scene's distortion, the ellipse
+    OpenCV fits to them."""
+    Xc = s.fiducials_ct @ s.T_cam_ct[:3, :3].T + s.T_cam_ct[:3, 3]
+    th = np.linspace(0.0, 2 * np.pi, 720, endpoint=False)
+    out = []
+    for c in Xc:
+        u = c / np.linalg.norm(c)
+        a = np.arcsin(s.radius_mm / np.linalg.norm(c))
+        e1 = np.cross(u, [0.0, 0.0, 1.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        rays = np.cos(a) * u + np.sin(a) * (np.cos(th)[:, None] * e1 + np.sin(th)[:, None] * e2)
+        p = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), s.K, s.dist)[0].reshape(-1, 2)
+        out.append(0.5 * min(cv2.fitEllipse(p.astype(np.float32))[1]))
+    return np.array(out)
+
+
+class _SizedShadedBalls(_ShadedBalls):
+    """:class:`_ShadedBalls` whose edge fits also report their outline's minor semi-axis: the
+    sphere's own in the distorted image (:func:`_outline_minor_px` of ``s``) plus ``excess`` px
+    per ball."""
+
+    def __init__(self, s, px, minor, shifts, excess, shadow_rays=6, shadow_side=-1):
+        super().__init__(px, minor, shifts, shadow_rays, shadow_side)
+        self.outline = _outline_minor_px(s) + np.broadcast_to(np.asarray(excess, float), (len(px),))
+
+    def detect(self, image, hint=None) -> Detection:
+        d = super().detect(image, hint)
+        for f, b in zip(d.fiducials, self.outline):
+            f.features["edge_minor_px"] = float(b)
+        return d
+
+
+def _field_as_direction_and_size(field):
+    """The shading shifts (each 0.25 px long, pointing along ``field``) and outline excesses
+    (``field``'s lengths) whose excess readings are ``field`` itself."""
+    length = np.linalg.norm(field, axis=1)
+    return 0.25 * field / length[:, None], length
+
+
+def test_the_second_readings_follow_the_outlines_size_excess():
+    """:func:`shading_check.second_readings` by hand: towards the lit side (the shift's direction)
+    by the excess, never against it (a negative excess reads as none), at most the cap; the shift
+    itself without an excess; no direction, no move."""
+    feats = [{"shading_shift_vec_px": (0.3, 0.4)}, {"shading_shift_vec_px": (-0.2, 0.0)},
+             {"shading_shift_vec_px": (0.0, 0.1)}, {"shading_shift_vec_px": (0.0, 0.0)}]
+    got = shading_check.second_readings(feats, np.array([0.5, -0.3, 2.5, 0.4]))
+    np.testing.assert_allclose(got, [[0.3, 0.4], [0.0, 0.0], [0.0, shading_check.EXCESS_CAP_PX], [0.0, 0.0]],
+                               atol=1e-12)
+    np.testing.assert_array_equal(shading_check.second_readings(feats), [[0.3, 0.4], [-0.2, 0.0], [0.0, 0.1],
+                                                                         [0.0, 0.0]])
+
+
+def test_outlines_pushed_out_by_the_shading_are_not_trusted(scene):
+    """Shading shifts of 0.25 px, each ball's outline too large by the length of a layout field
+    whose second readings move the refitted target 0.7 mm: not trusted, and the reason says a move
+    within 10 % of 0.7 mm (the excess read, not the shift's 0.25 px)."""
+    s, target, px, minor = scene
+    shifts, excess = _field_as_direction_and_size(_gradient_shifts(s, px, target, 0.7))
+    now = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess))
+    assert not any(e.ok for e in now), [e.predicted_tre_mm for e in now]
+    said = [re.search(r"the shading-corrected centres move the target ([0-9.]+) mm", e.reason) for e in now[2:]]
+    assert all(m and abs(float(m.group(1)) - 0.7) <= 0.07 for m in said), [e.reason for e in now]
+
+
+@pytest.mark.parametrize("excess", [0.0, -0.3])
+def test_outlines_of_the_spheres_size_are_trusted_whatever_the_shading_model_says(scene, excess):
+    """The shading model's shifts give the 0.7 mm field, but every outline is the sphere's own size
+    (or smaller): no push, the frames are trusted as without the check; read from the shift
+    (``shading_check_reading="shift"``, the reading before) the same frames are refused."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.7)
+    now = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess))
+    off = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess), TrackerConfig(shading_check_factor=0.0))
+    assert all(e.ok for e in now[2:]), [e.reason for e in now]
+    np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-6)
+    before = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess), TrackerConfig(shading_check_reading="shift"))
+    assert not any(e.ok for e in before), [e.predicted_tre_mm for e in before]
+
+
+def test_an_unknown_reading_is_refused_at_construction():
+    with pytest.raises(ValueError, match="shading_check_reading must be one of excess, shift"):
+        TrackerConfig(shading_check_reading="size")

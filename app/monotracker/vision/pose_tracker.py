@@ -69,6 +69,8 @@ SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "
 SHADOWED_NOTE = "shadowed_share"
 #: the note of each frame's highlight reading (:func:`.ball_gloss.frame_highlight`), read the same way
 HIGHLIGHT_NOTE = "highlight_ratio"
+#: the shading check's second readings (``TrackerConfig.shading_check_reading``)
+SHADING_READINGS = ("excess", "shift")
 #: camera state -> alert code of the invalid estimate it causes
 #: ("late": a live camera's read() waits longer than a frame should take, the source alive;
 #: "stalled": it waited much longer, the camera stopped delivering; "frozen": identical frames)
@@ -331,7 +333,7 @@ class TrackerConfig:
     glossy_few_balls_cover: float = 2.0
     #: the shading check (:mod:`.shading_check`; the per-frame model): where at least
     #: ``shading_check_share`` of the matched balls show a contact shadow beside them, the pose
-    #: the balls' second centre readings (edge centre + shading shift) give must lie within max
+    #: the balls' second centre readings (``shading_check_reading``) give must lie within max
     #: TRE / ``shading_check_factor`` of the frame's at the target (the predicted error there is
     #: raised to at least this factor x that distance). 0 = off. Chosen on the rendered TUNING
     #: sets, each rule streamed live (the tracker's trust steers its detector's search, so a rule
@@ -345,6 +347,16 @@ class TrackerConfig:
     #: shading check"
     shading_check_factor: float = 2.0
     shading_check_share: float = 0.5
+    #: the shading check's second reading of each ball (:func:`.shading_check.second_readings`):
+    #: ``"excess"``, its edge centre moved towards its lit side by its fitted outline's size
+    #: excess over the sphere at the frame's pose (px, clipped to 0-1; a ball without a fitted
+    #: size falls back to the shift); ``"shift"``, moved by the shading shift model alone (the
+    #: reading before 2026-12-02's thirty-second session; ``camera_pbr.py``'s ``shift-reading``
+    #: row). The model's shift is 0.12-0.39 px on every rendered scene; the excess tells the scenes
+    #: whose outlines are pushed (the mean centre error along the shift -0.44 to -0.48 px where the
+    #: mean excess is +0.33 to +0.60 px) from those whose are not (-0.1 to +0.1 px where -0.15 to
+    #: +0.2). docs/vision.md "The shading check read from the outline's size"
+    shading_check_reading: str = "excess"
     #: the shading check also applies where at least ``shading_check_share`` of the balls showed
     #: a contact shadow in one of the last frames of a still head (the ball memory's frames,
     #: :data:`SHADOWED_NOTE`): the edge fit's shadow test flickers from frame to frame, and the
@@ -373,6 +385,9 @@ class TrackerConfig:
         if self.ball_finish not in ball_gloss.FINISHES:
             raise ValueError(f"TrackerConfig: ball_finish must be one of {', '.join(ball_gloss.FINISHES)}, "
                              f"not {self.ball_finish!r}")
+        if self.shading_check_reading not in SHADING_READINGS:
+            raise ValueError(f"TrackerConfig: shading_check_reading must be one of {', '.join(SHADING_READINGS)}, "
+                             f"not {self.shading_check_reading!r}")
 
 
 def _fiducials_used(n: int, remembered: int) -> str:
@@ -815,14 +830,13 @@ class PoseTracker:
                             cfg.edge_common_per_rms if not refined.all() else 0.0)
         cover = per_ball * rms
         spread = rms
-        if cfg.edge_size_per_excess > 0:
-            excess = self._size_excess(T, fids, feats)
-            if excess is not None:
-                # a centre the refiner moved has its own measured factors (the excess is the
-                # edge fit's, whose bias the refiner corrects)
-                size_cover = np.where(refined, 0.0, cfg.edge_size_per_excess * np.abs(excess))
-                cover = np.maximum(cover, size_cover)
-                spread = np.maximum(rms, size_cover)
+        excess = self._size_excess(T, fids, feats) if cfg.edge_size_per_excess > 0 else None
+        if excess is not None:
+            # a centre the refiner moved has its own measured factors (the excess is the
+            # edge fit's, whose bias the refiner corrects)
+            size_cover = np.where(refined, 0.0, cfg.edge_size_per_excess * np.abs(excess))
+            cover = np.maximum(cover, size_cover)
+            spread = np.maximum(rms, size_cover)
         shade = np.repeat(cover ** 2, 2)
         common = common_shift_covariance(J, common_factor * float(np.median(spread)), A)  # shared by all balls
         if cfg.edge_gradient_per_rms > 0:
@@ -832,7 +846,11 @@ class PoseTracker:
         if cfg.shading_check_factor > 0 and self.target_ct is not None:
             # a still head's contact shadows stay: the shares of its last frames count too
             still = tuple(self.memory.still_notes(SHADOWED_NOTE)) if cfg.shading_check_still_frames else ()
-            disagree = shading_check.pose_disagreement(A, feats, cfg.shading_check_share, still)
+            read = None
+            if cfg.shading_check_reading == "excess" and shading_check.applies(feats, cfg.shading_check_share, still):
+                # the outlines' excess over the spheres at this pose (px; only where the check applies)
+                read = excess if excess is not None else self._size_excess(T, fids, feats)
+            disagree = shading_check.pose_disagreement(A, feats, cfg.shading_check_share, still, read)
             self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))
             if disagree is not None:
                 check_mm = shading_check.target_move_mm(disagree, T, self.target_ct)

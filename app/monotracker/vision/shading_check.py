@@ -9,10 +9,13 @@ at an 80 mm-deep target: on the physically rendered tuning sets (30-frame still 
 detector) 39 of 641 trusted frames, 31 of the 479 that the session's gate passed to the arm, 33
 and 27 of them on the 12-ball plan.
 
-The check: every ball the edge fit found has a second reading of its centre, the edge centre moved
-by its shading shift (:func:`.shading_shift.shaded_centre`: the colour blob's contour and the lit
-side, the linear model fitted on the rendered balls; stored by the detector as
-``features["shading_shift_vec_px"]``). Through the fit's linearisation the second readings give a
+The check: every ball the edge fit found has a second reading of its centre: the edge centre
+moved towards the ball's lit side (the direction of its shading shift,
+:func:`.shading_shift.shaded_centre`: the colour blob's contour and the lit side; stored by the
+detector as ``features["shading_shift_vec_px"]``) by its fitted outline's size excess over the
+sphere at the frame's pose (:func:`second_readings`; ``TrackerConfig.shading_check_reading``
+"excess", the default since 2026-12-02), or by the shading shift's own length ("shift", the
+linear model fitted on the rendered balls: the reading before). Through the fit's linearisation the second readings give a
 pose that differs from the frame's by ``d`` (6,; rotation vector rad, translation mm); the frame's
 pose covariance is raised along ``d`` until its RMS error at the target is at least ``factor`` x
 the target's move under ``d`` (:func:`raised_covariance`). With the TRE limit of 1 mm and factor 2
@@ -67,25 +70,64 @@ def shadowed_share(features: list) -> float:
     return float(np.mean([shadowed(f) for f in features])) if features else 0.0
 
 
+#: the most (px) a ball's second reading moves from its edge centre when read from its outline's
+#: size excess (:func:`second_readings`): an unlit limb and its contact shadow read as one edge
+#: push a rendered ball's outline out by well under this (tuning sets: the scenes' mean excess
+#: -0.15 to +0.6 px at 5-12 px radii)
+EXCESS_CAP_PX = 1.0
+
+
+def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_PX) -> np.ndarray:
+    """(k, 2) px: where each matched ball's second centre reading lies from its edge centre.
+
+    ``excess_px`` ((k,) px or None): each ball's fitted outline minor semi-axis minus the sphere's
+    at the frame's pose (the tracker's size excess). With it, the reading lies towards the ball's
+    lit side (the direction of its shading shift, ``features[i]["shading_shift_vec_px"]``) by the
+    excess, clipped to [0, ``cap_px``]: an outline that the unlit limb and the contact shadow
+    beside it, read as one dark edge, push out on the unlit side by 2e is e px too large and its
+    centre e px towards that side; an outline of the sphere's own size shows no such push, whatever
+    the shading model says. Without it (a ball with no fitted size): the shading shift itself
+    (:mod:`.shading_shift`'s linear model, the only reading before 2026-12-02). Measured on the
+    rendered 12-ball plan's tuning frames (995 matched balls): the scenes' mean centre error along
+    the shift direction is -0.44 to -0.48 px where their mean excess is +0.33 to +0.60 px, and -0.1
+    to +0.1 px where it is -0.15 to +0.2, while the shift's own length is 0.12-0.39 px in both."""
+    shifts = np.asarray([f["shading_shift_vec_px"] for f in features], float).reshape(-1, 2)
+    if excess_px is None:
+        return shifts
+    length = np.linalg.norm(shifts, axis=1)
+    unit = shifts / np.maximum(length, 1e-12)[:, None]
+    move = np.clip(np.asarray(excess_px, float).reshape(-1), 0.0, cap_px)
+    return unit * np.where(length > 0, move, 0.0)[:, None]
+
+
 def pose_disagreement(A: np.ndarray, features: list, min_share: float,
-                      still_shares: tuple = ()) -> np.ndarray | None:
+                      still_shares: tuple = (), excess_px=None) -> np.ndarray | None:
     """The pose change (6,: rotation vector rad, translation mm) that moving each matched ball's
-    centre by its shading shift (``features[i]["shading_shift_vec_px"]``, px) gives through the
-    fit's linearisation ``A`` ((6, 2k): image errors px, rows x0, y0, x1, y1, ... -> pose), or
-    None where the check does not apply: a ball without a shift (a detector without an edge fit,
-    a centre the learned refiner moved: ``edge_centre_px`` set) or fewer than ``min_share`` of the
-    balls shadowed (:func:`shadowed_share`) in this frame and in each of ``still_shares``: the
-    shares of the last frames of a still head (:meth:`.ball_memory.StillBallMemory.still_notes`).
-    A contact shadow does not leave a still head between two frames; the edge fit's shadow test
-    does, now and then (sensor noise tips it as it tips a ball's acceptance), and a frame whose
-    share dipped under ``min_share`` alone went out unchecked: on the rendered 12-ball plans
-    those were the trusted frames 1-2 mm off (docs/vision.md, "The shading check")."""
+    centre to its second reading (:func:`second_readings`: by its outline's size excess
+    ``excess_px`` towards its lit side, or by its shading shift where ``excess_px`` is None) gives
+    through the fit's linearisation ``A`` ((6, 2k): image errors px, rows x0, y0, x1, y1, ... ->
+    pose), or None where the check does not apply: a ball without a shift (a detector without an
+    edge fit, a centre the learned refiner moved: ``edge_centre_px`` set) or fewer than
+    ``min_share`` of the balls shadowed (:func:`shadowed_share`) in this frame and in each of
+    ``still_shares``: the shares of the last frames of a still head
+    (:meth:`.ball_memory.StillBallMemory.still_notes`). A contact shadow does not leave a still
+    head between two frames; the edge fit's shadow test does, now and then (sensor noise tips it
+    as it tips a ball's acceptance), and a frame whose share dipped under ``min_share`` alone went
+    out unchecked: on the rendered 12-ball plans those were the trusted frames 1-2 mm off
+    (docs/vision.md, "The shading check")."""
+    if not applies(features, min_share, still_shares):
+        return None
+    return np.asarray(A, float) @ second_readings(features, excess_px).reshape(-1)
+
+
+def applies(features: list, min_share: float, still_shares: tuple = ()) -> bool:
+    """Whether the check applies to a frame's matched balls (their detection features): every
+    ball has a shading shift and no centre the learned refiner moved, and at least ``min_share``
+    of them are shadowed in this frame or in one of ``still_shares`` (:func:`pose_disagreement`)."""
     shifts = [f.get("shading_shift_vec_px") for f in features]
     if not features or any(s is None for s in shifts) or any("edge_centre_px" in f for f in features):
-        return None
-    if max([shadowed_share(features), *still_shares]) < min_share:
-        return None
-    return np.asarray(A, float) @ np.asarray(shifts, float).reshape(-1)
+        return False
+    return max([shadowed_share(features), *still_shares]) >= min_share
 
 
 def target_move_mm(d6: np.ndarray, T_cam_ct: np.ndarray, target_ct: np.ndarray) -> float:
