@@ -222,9 +222,9 @@ def trust_models() -> dict:
     frames"; the default applies it only to frames whose balls read as glossy); ``matte``: the
     default with every frame read as matte (``glossy_highlight_ratio`` 0: the default before
     2026-12-01's twenty-fifth session, docs/vision.md "Glossy balls read from the frame");
-    ``shift-reading``: the default with the shading check's second readings from the shading
-    shift model alone (``shading_check_reading`` "shift": the default before 2026-12-02's
-    thirty-second session, docs/vision.md "The shading check read from the outline's size")."""
+    ``excess-reading``: the default with the shading check's second readings from each ball's
+    outline size excess (``shading_check_reading`` "excess": opt-in, docs/vision.md "The shading
+    check read from the outline's size")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
@@ -232,7 +232,7 @@ def trust_models() -> dict:
             "prior-widened": TrackerConfig(noise_prior_is_bound=False),
             "few6x2": TrackerConfig(few_balls=6, few_balls_cover=2.0),
             "matte": TrackerConfig(glossy_highlight_ratio=0.0),
-            "shift-reading": TrackerConfig(shading_check_reading="shift")}
+            "excess-reading": TrackerConfig(shading_check_reading="excess")}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -299,11 +299,11 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
 #: the row of what may move the arm: the default trust model's poses through the session's gate
 ARM = "arm"
 #: trust model -> its row through the session's gate: the default's, the baselines of issue 28's
-#: last changes measured in the same run (no-check, no-memory, check-alone, prior-widened, matte, shift-reading),
-#: and ``few6x2``'s (the glossy frames' cover on every frame: what it would let move the arm)
+#: last changes measured in the same run (no-check, no-memory, check-alone, prior-widened, matte),
+#: and ``few6x2``'s and ``excess-reading``'s (opt-in trust models: what they would let move the arm)
 GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte",
-         "shift-reading": "arm-shift-reading"}
+         "excess-reading": "arm-excess-reading"}
 
 
 def session_gate():

@@ -279,13 +279,18 @@ def test_the_second_readings_follow_the_outlines_size_excess():
                                                                          [0.0, 0.0]])
 
 
+#: the opt-in reading of the second centres from the outlines' size excess
+EXCESS = TrackerConfig(shading_check_reading="excess")
+
+
 def test_outlines_pushed_out_by_the_shading_are_not_trusted(scene):
-    """Shading shifts of 0.25 px, each ball's outline too large by the length of a layout field
-    whose second readings move the refitted target 0.7 mm: not trusted, and the reason says a move
-    within 10 % of 0.7 mm (the excess read, not the shift's 0.25 px)."""
+    """Read from the outlines (``shading_check_reading="excess"``): shading shifts of 0.25 px, each
+    ball's outline too large by the length of a layout field whose second readings move the
+    refitted target 0.7 mm: not trusted, and the reason says a move within 10 % of 0.7 mm (the
+    excess read, not the shift's 0.25 px)."""
     s, target, px, minor = scene
     shifts, excess = _field_as_direction_and_size(_gradient_shifts(s, px, target, 0.7))
-    now = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess))
+    now = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess), EXCESS)
     assert not any(e.ok for e in now), [e.predicted_tre_mm for e in now]
     said = [re.search(r"the shading-corrected centres move the target ([0-9.]+) mm", e.reason) for e in now[2:]]
     assert all(m and abs(float(m.group(1)) - 0.7) <= 0.07 for m in said), [e.reason for e in now]
@@ -293,17 +298,17 @@ def test_outlines_pushed_out_by_the_shading_are_not_trusted(scene):
 
 @pytest.mark.parametrize("excess", [0.0, -0.3])
 def test_outlines_of_the_spheres_size_are_trusted_whatever_the_shading_model_says(scene, excess):
-    """The shading model's shifts give the 0.7 mm field, but every outline is the sphere's own size
-    (or smaller): no push, the frames are trusted as without the check; read from the shift
-    (``shading_check_reading="shift"``, the reading before) the same frames are refused."""
+    """Read from the outlines: the shading model's shifts give the 0.7 mm field, but every outline
+    is the sphere's own size (or smaller): no push, the frames are trusted as without the check;
+    read from the shift (the default) the same frames are refused."""
     s, target, px, minor = scene
     shifts = _gradient_shifts(s, px, target, 0.7)
-    now = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess))
+    now = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess), EXCESS)
     off = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess), TrackerConfig(shading_check_factor=0.0))
     assert all(e.ok for e in now[2:]), [e.reason for e in now]
     np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-6)
-    before = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess), TrackerConfig(shading_check_reading="shift"))
-    assert not any(e.ok for e in before), [e.predicted_tre_mm for e in before]
+    default = _stream(s, target, _SizedShadedBalls(s, px, minor, shifts, excess))
+    assert not any(e.ok for e in default), [e.predicted_tre_mm for e in default]
 
 
 def test_an_unknown_reading_is_refused_at_construction():

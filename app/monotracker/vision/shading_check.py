@@ -14,8 +14,8 @@ moved towards the ball's lit side (the direction of its shading shift,
 :func:`.shading_shift.shaded_centre`: the colour blob's contour and the lit side; stored by the
 detector as ``features["shading_shift_vec_px"]``) by its fitted outline's size excess over the
 sphere at the frame's pose (:func:`second_readings`; ``TrackerConfig.shading_check_reading``
-"excess", the default since 2026-12-02), or by the shading shift's own length ("shift", the
-linear model fitted on the rendered balls: the reading before). Through the fit's linearisation the second readings give a
+"excess", opt-in since 2026-12-02), or by the shading shift's own length ("shift", the default:
+the linear model fitted on the rendered balls). Through the fit's linearisation the second readings give a
 pose that differs from the frame's by ``d`` (6,; rotation vector rad, translation mm); the frame's
 pose covariance is raised along ``d`` until its RMS error at the target is at least ``factor`` x
 the target's move under ``d`` (:func:`raised_covariance`). With the TRE limit of 1 mm and factor 2
@@ -87,7 +87,7 @@ def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_P
     beside it, read as one dark edge, push out on the unlit side by 2e is e px too large and its
     centre e px towards that side; an outline of the sphere's own size shows no such push, whatever
     the shading model says. Without it (a ball with no fitted size): the shading shift itself
-    (:mod:`.shading_shift`'s linear model, the only reading before 2026-12-02). Measured on the
+    (:mod:`.shading_shift`'s linear model, the default reading). Measured on the
     rendered 12-ball plan's tuning frames (995 matched balls): the scenes' mean centre error along
     the shift direction is -0.44 to -0.48 px where their mean excess is +0.33 to +0.60 px, and -0.1
     to +0.1 px where it is -0.15 to +0.2, while the shift's own length is 0.12-0.39 px in both."""
