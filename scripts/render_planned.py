@@ -117,6 +117,13 @@ def main(argv=None) -> int:
                     help="N: every scene uses the layout planner's full plan for N balls (its layout AND its "
                          "camera), into <root>/plan<N>/<split>; lamps, skin, occluders drawn per scene")
     a = ap.parse_args(argv)
+    scenes = [sc.split(":") for sc in a.scene or []]
+    bad = [sc for sc, parts in zip(a.scene or [], scenes)
+           if len(parts) != 2 or parts[0] not in KINDS or not parts[1].isdigit()]
+    if bad:       # said before the plan is made (a minute), not after
+        print(f"error: --scene takes KIND:I with KIND one of {', '.join(KINDS)} (e.g. OR:3), not {' '.join(bad)}",
+              file=sys.stderr)
+        return 2
     root = a.root or default_root() / "planned"
     if a.plan_balls is not None:
         root = root / f"plan{a.plan_balls}"
@@ -134,11 +141,7 @@ def main(argv=None) -> int:
               f"worst hidden trusted {plan.expected.worst_hidden.trusted if plan.expected.worst_hidden else 0:.2f}, "
               f"with losses {wl.trusted if wl else float('nan'):.2f}, balls for losses {plan.balls_for_losses}")
     if a.scene:
-        try:
-            wanted = [(kind, int(i)) for kind, i in (sc.split(":") for sc in a.scene)]
-        except ValueError:
-            print(f"error: --scene takes KIND:I (e.g. OR:3), not {' '.join(a.scene)}", file=sys.stderr)
-            return 2
+        wanted = [(kind, int(i)) for kind, i in scenes]
     else:
         counts = {k: int(n) for k, n in (kv.split("=") for kv in a.counts.split(",") if kv)}
         wanted = [(k, i) for k in KINDS for i in range(counts.get(k, 0))]

@@ -10,6 +10,7 @@ the camera conditions are deterministic.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -165,3 +166,23 @@ def test_a_given_layout_and_camera_are_rendered_as_given():
         assert np.allclose(s.target_ct, X.mean(axis=0) - 80.0 * v)
     assert a.lamps != b.lamps
     assert scene_hash(make_spec("tuning", "OR", 4)) == scene_hash(plain)
+
+
+@pytest.mark.parametrize("scene", ["foo", "dirty:3", "OR:x"])
+def test_render_planned_refuses_a_bad_scene_name_before_it_plans(scene, capsys, tmp_path):
+    """``scripts/render_planned.py --scene`` (repeatable) says which name is wrong, with the kinds
+    it takes, and stops before the plan is made (a minute of the planner's work) or a frame is
+    rendered: exit 2, one line, nothing written."""
+    import importlib.util
+
+    from monotracker.sim.pbr.spec import KINDS
+
+    path = Path(__file__).resolve().parents[2] / "scripts" / "render_planned.py"
+    spec = importlib.util.spec_from_file_location("render_planned", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rc = mod.main(["--split", "tuning", "--plan-balls", "12", "--root", str(tmp_path),
+                   "--scene", "clean:1", "--scene", scene])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and err[0].endswith(f"not {scene}") and all(k in err[0] for k in KINDS)
+    assert not any(tmp_path.iterdir())
