@@ -552,6 +552,39 @@ def planner_table(rows: dict, n_frames: int, say) -> dict:
     return out
 
 
+def per_scene(cs, runs, cond: str, det: str, n_frames: int) -> list:
+    """One row per scene of ``run_scene``'s results ``runs`` (scenes ``cs``): its hash, whole
+    balls, the fitted pose's error at frame N (mm, the ceiling), and per frame for the default
+    trust model and through the session's gate: T (trusted) or the refusal code's first letter;
+    with the codes counted and the trusted poses' worst error at the target (mm)."""
+    rows = []
+    for s, r in zip(cs, runs):
+        row = {"condition": cond, "detector": det, "scene": s.hash, "whole": int(s.truth.whole.sum()),
+               "fitted_mm_at_n": r["_fitted"][n_frames - 1]}
+        for tm in ("before", ARM):
+            frames = r[tm]
+            row[tm] = "".join("T" if ok else (str(code) or "?")[0] for ok, _e, _p, code in frames)
+            codes = {}
+            for ok, _e, _p, code in frames:
+                if not ok:
+                    codes[str(code)] = codes.get(str(code), 0) + 1
+            row[f"{tm}_codes"] = codes
+            errs = [e for ok, e, _p, _c in frames if ok]
+            row[f"{tm}_max_mm"] = max(errs) if errs else None
+        rows.append(row)
+    return rows
+
+
+def _per_scene_line(row: dict) -> str:
+    def one(tm):
+        worst = row[f"{tm}_max_mm"]
+        codes = ", ".join(f"{c} {n}" for c, n in sorted(row[f"{tm}_codes"].items()))
+        return f"{tm} {row[tm]}" + (f" (max {worst:.2f} mm)" if worst is not None else "") + (f" [{codes}]" if codes else "")
+    fitted = row["fitted_mm_at_n"]
+    return (f"  {row['condition']:<9} {row['detector']:<9} {row['scene'][:8]} whole {row['whole']:>2} "
+            f"fitted {'-' if not np.isfinite(fitted) else f'{fitted:.2f}':>4} mm  {one('before')}  {one(ARM)}")
+
+
 def _finite(obj):
     """NaN / inf -> None, so the JSON line is valid JSON."""
     if isinstance(obj, dict):
@@ -579,6 +612,9 @@ def main(argv=None) -> int:
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--refiner", type=Path, default=None,
                     help="the centre refiner's ONNX network for the 'refined' detector (default: the shipped one)")
+    ap.add_argument("--per-scene", action="store_true",
+                    help="also each scene's frames, the default trust and through the session's gate: T trusted, "
+                         "else the first letter of the refusal's code (t tre_limit, o occlusion, a acquiring, ...)")
     ap.add_argument("--planner", action="store_true",
                     help="also the layout planner's prediction per scene against the outcome (first detector)")
     ap.add_argument("--fit-bias", action="store_true",
@@ -690,6 +726,11 @@ def main(argv=None) -> int:
                     f"{sm['over_2mm']:>4} {sm['between_1_2mm']:>3} ({sm['between_1_2mm_pct']:>3.0f}%) "
                     f"{sm['pred_over_act']:>8.2f} {ds[f'pose_at_{a.frames}_pct']:>6.0f} "
                     f"{ds[f'within_1mm_at_{a.frames}_pct']:>7.0f}")
+            if a.per_scene:
+                rows = per_scene(cs, runs, cond, dn, a.frames)
+                result.setdefault("per_scene", []).extend(rows)
+                for row in rows:
+                    say(_per_scene_line(row))
     if a.planner:
         result["planner"] = planner_table(planner_rows, a.frames, say)
     result["seconds"] = round(time.perf_counter() - t0, 1)

@@ -27,7 +27,7 @@ def result(bench):
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         rc = bench.main(["--quick", "--json", "--frames", "3", "--detectors", "edge,ideal0.1", "--conditions", "clean,OR",
-                       "--planner"])
+                       "--planner", "--per-scene"])
     assert rc == 0
     return json.loads(out.getvalue().strip().splitlines()[-1])
 
@@ -82,6 +82,26 @@ def test_the_arm_row_is_the_default_through_the_sessions_gate(bench, result):
     assert fully > 0 and clean["before"]["trusted_frames"] == 3 * fully
     assert clean["arm"]["trusted_at_3_pct"] == clean["before"]["trusted_at_3_pct"]
     assert clean["arm"]["trusted_frames"] == fully
+
+
+def test_the_per_scene_rows_add_up_to_the_table(bench, result):
+    """``--per-scene``: one row per scene, condition and detector whose frames (T trusted, else the
+    refusal code's first letter) add up to the table's trusted frames and trusted-at-N share, for
+    the default and through the gate; the gate never trusts a frame the default refused, and its
+    codes count exactly the frames it refused."""
+    rows = result["per_scene"]
+    for cond, dets in result["conditions"].items():
+        for name, d in dets.items():
+            mine = [r for r in rows if r["condition"] == cond and r["detector"] == name]
+            assert len(mine) == d["before"]["scenes"] > 0, (cond, name)
+            for tm in ("before", bench.ARM):
+                assert sum(r[tm].count("T") for r in mine) == d[tm]["trusted_frames"], (cond, name, tm)
+                at_n = 100.0 * sum(r[tm][-1] == "T" for r in mine) / len(mine)
+                assert d[tm]["trusted_at_3_pct"] <= at_n + 1e-9, (cond, name, tm)   # the table's also within 1 mm
+                for r in mine:
+                    assert len(r[tm]) == 3 and sum(r[f"{tm}_codes"].values()) == 3 - r[tm].count("T")
+            for r in mine:
+                assert all(b == "T" or a != "T" for a, b in zip(r[bench.ARM], r["before"])), r
 
 
 @pytest.mark.parametrize("name", ["nope", "idealx"])
