@@ -110,6 +110,7 @@ import argparse
 import json
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -564,11 +565,7 @@ def per_scene(cs, runs, cond: str, det: str, n_frames: int) -> list:
         for tm in ("before", ARM):
             frames = r[tm]
             row[tm] = "".join("T" if ok else (str(code) or "?")[0] for ok, _e, _p, code in frames)
-            codes = {}
-            for ok, _e, _p, code in frames:
-                if not ok:
-                    codes[str(code)] = codes.get(str(code), 0) + 1
-            row[f"{tm}_codes"] = codes
+            row[f"{tm}_codes"] = dict(Counter(str(code) for ok, _e, _p, code in frames if not ok))
             errs = [e for ok, e, _p, _c in frames if ok]
             row[f"{tm}_max_mm"] = max(errs) if errs else None
         rows.append(row)

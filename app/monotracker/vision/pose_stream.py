@@ -83,7 +83,7 @@ class PoseStream:
         self.estimates = 0
         self._run_frames = 0               # frames the tracker judged (stream thread only)
         self._run_trusted = 0              # of those, with a trusted pose
-        self._last_refused: PoseEstimate | None = None   # the tracker's last refusal, None once trusted
+        self._last_refusal = ""            # why the tracker's last frame had no trusted pose ("" when it had)
         self.camera_state = "ok"
 
     # ------------------------------------------------------------------ API
@@ -170,13 +170,12 @@ class PoseStream:
         its last frame had no trusted pose, why (a grayscale video would otherwise end on
         "camera stream ended" alone, the reason its frames were refused gone with the condition
         the end replaces)."""
-        n, last = self._run_frames, self._last_refused
+        n, why = self._run_frames, self._last_refusal
         if n == 0:
             return "camera stream ended before its first frame"
         said = f"camera stream ended after {n} frame{'s' if n != 1 else ''}"
-        if last is None:
+        if not why:
             return said
-        why = (last.reason or last.code or "no trusted pose").rstrip(".")
         if self._run_trusted == 0:
             return f"{said}, none with a trusted pose (the last: {why})"
         return f"{said}; the last had no trusted pose ({why})"
@@ -223,7 +222,7 @@ class PoseStream:
                                    code="pose_lost")
             self._run_frames += 1
             self._run_trusted += bool(est.ok)
-            self._last_refused = None if est.ok else est
+            self._last_refusal = "" if est.ok else (est.reason or est.code or "no trusted pose").rstrip(".")
             self._publish(est)
             after = getattr(self.tracker, "after_publish", None)
             if after is not None:

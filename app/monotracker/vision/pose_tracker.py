@@ -849,14 +849,14 @@ class PoseTracker:
         if cfg.shading_check_factor > 0 and self.target_ct is not None:
             # a still head's contact shadows stay: the shares of its last frames count too
             still = tuple(self.memory.still_notes(SHADOWED_NOTE)) if cfg.shading_check_still_frames else ()
-            read = None
-            if cfg.shading_check_reading == "excess" and shading_check.applies(feats, cfg.shading_check_share, still):
-                # the outlines' excess over the spheres at this pose (px; only where the check applies)
-                read = excess if excess is not None else self._size_excess(T, fids, feats)
-            disagree = shading_check.pose_disagreement(A, feats, cfg.shading_check_share, still, read)
-            self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))
-            if disagree is not None:
+            if shading_check.applies(feats, cfg.shading_check_share, still):
+                read = None
+                if cfg.shading_check_reading == "excess":
+                    # the outlines' excess over the spheres at this pose (px; only where the check applies)
+                    read = excess if excess is not None else self._size_excess(T, fids, feats)
+                disagree = shading_check.pose_disagreement(A, feats, read)
                 check_mm = shading_check.target_move_mm(disagree, T, self.target_ct)
+            self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))
 
         def cov(noise_px: float) -> np.ndarray:
             c6 = (A * np.maximum(noise_px**2, shade)) @ A.T + common

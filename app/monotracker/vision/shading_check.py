@@ -100,34 +100,29 @@ def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_P
     return unit * np.where(length > 0, move, 0.0)[:, None]
 
 
-def pose_disagreement(A: np.ndarray, features: list, min_share: float,
-                      still_shares: tuple = (), excess_px=None) -> np.ndarray | None:
-    """The pose change (6,: rotation vector rad, translation mm) that moving each matched ball's
-    centre to its second reading (:func:`second_readings`: by its outline's size excess
-    ``excess_px`` towards its lit side, or by its shading shift where ``excess_px`` is None) gives
-    through the fit's linearisation ``A`` ((6, 2k): image errors px, rows x0, y0, x1, y1, ... ->
-    pose), or None where the check does not apply: a ball without a shift (a detector without an
-    edge fit, a centre the learned refiner moved: ``edge_centre_px`` set) or fewer than
-    ``min_share`` of the balls shadowed (:func:`shadowed_share`) in this frame and in each of
-    ``still_shares``: the shares of the last frames of a still head
-    (:meth:`.ball_memory.StillBallMemory.still_notes`). A contact shadow does not leave a still
-    head between two frames; the edge fit's shadow test does, now and then (sensor noise tips it
-    as it tips a ball's acceptance), and a frame whose share dipped under ``min_share`` alone went
-    out unchecked: on the rendered 12-ball plans those were the trusted frames 1-2 mm off
-    (docs/vision.md, "The shading check")."""
-    if not applies(features, min_share, still_shares):
-        return None
-    return np.asarray(A, float) @ second_readings(features, excess_px).reshape(-1)
-
-
 def applies(features: list, min_share: float, still_shares: tuple = ()) -> bool:
-    """Whether the check applies to a frame's matched balls (their detection features): every
-    ball has a shading shift and no centre the learned refiner moved, and at least ``min_share``
-    of them are shadowed in this frame or in one of ``still_shares`` (:func:`pose_disagreement`)."""
+    """Whether the check applies to a frame's matched balls (their detection features): not where a
+    ball has no shift (a detector without an edge fit, a centre the learned refiner moved:
+    ``edge_centre_px`` set), nor where fewer than ``min_share`` of the balls are shadowed
+    (:func:`shadowed_share`) in this frame and in each of ``still_shares``: the shares of the last
+    frames of a still head (:meth:`.ball_memory.StillBallMemory.still_notes`). A contact shadow
+    does not leave a still head between two frames; the edge fit's shadow test does, now and then
+    (sensor noise tips it as it tips a ball's acceptance), and a frame whose share dipped under
+    ``min_share`` alone went out unchecked: on the rendered 12-ball plans those were the trusted
+    frames 1-2 mm off (docs/vision.md, "The shading check")."""
     shifts = [f.get("shading_shift_vec_px") for f in features]
     if not features or any(s is None for s in shifts) or any("edge_centre_px" in f for f in features):
         return False
     return max([shadowed_share(features), *still_shares]) >= min_share
+
+
+def pose_disagreement(A: np.ndarray, features: list, excess_px=None) -> np.ndarray:
+    """The pose change (6,: rotation vector rad, translation mm) that moving each matched ball's
+    centre to its second reading (:func:`second_readings`: by its outline's size excess
+    ``excess_px`` towards its lit side, or by its shading shift where ``excess_px`` is None) gives
+    through the fit's linearisation ``A`` ((6, 2k): image errors px, rows x0, y0, x1, y1, ... ->
+    pose), for a frame the check :func:`applies` to."""
+    return np.asarray(A, float) @ second_readings(features, excess_px).reshape(-1)
 
 
 def target_move_mm(d6: np.ndarray, T_cam_ct: np.ndarray, target_ct: np.ndarray) -> float:
