@@ -225,7 +225,10 @@ def trust_models() -> dict:
     2026-12-01's twenty-fifth session, docs/vision.md "Glossy balls read from the frame");
     ``excess-reading``: the default with the shading check's second readings from each ball's
     outline size excess (``shading_check_reading`` "excess": opt-in, docs/vision.md "The shading
-    check read from the outline's size")."""
+    check read from the outline's size"); ``averaged``: the default with the detector reading
+    the mean of the still view's last 8 frames (``average_still_frames`` 8: opt-in, its own
+    detector run, not the default's detections replayed; docs/vision.md "A still view's frames
+    averaged")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
@@ -233,7 +236,8 @@ def trust_models() -> dict:
             "prior-widened": TrackerConfig(noise_prior_is_bound=False),
             "few6x2": TrackerConfig(few_balls=6, few_balls_cover=2.0),
             "matte": TrackerConfig(glossy_highlight_ratio=0.0),
-            "excess-reading": TrackerConfig(shading_check_reading="excess")}
+            "excess-reading": TrackerConfig(shading_check_reading="excess"),
+            "averaged": TrackerConfig(average_still_frames=8)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -273,9 +277,15 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
         rec = RecordingDetector(IdealDetector(tr, float(det_name[len("ideal"):] or 0.1)))
     else:
         rec = RecordingDetector(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
-    res = {}
+    res, own = {}, {}
     for m, (name, cfg) in enumerate(trust_models().items()):
-        det = rec if m == 0 else Replay(list(rec.log), rec.det)
+        if m == 0:
+            det = rec
+        elif cfg.average_still_frames > 1 and not det_name.startswith("ideal"):
+            # it reads other images: a detector of its own, whose detections are scored too
+            det = own[name] = RecordingDetector(make_detector(det_name, tr.radius_mm, float(cam.K[0, 0])))
+        else:
+            det = Replay(list(rec.log), rec.det)
         trk = PoseTracker(tr.fiducials_ct, cam, detector=det, radius_mm=tr.radius_mm, target_ct=tr.target_ct,
                           config=cfg)
         rows, fitted = [], []
@@ -284,16 +294,20 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
             e = trk.process(Frame(img, k / FPS, k, None))
             err = float(tre_mm(e.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]) if e.ok else float("nan")
             rows.append((bool(e.ok), err, float(e.predicted_tre_mm), e.code))
-            if m == 0:
+            if m == 0 or name in own:
                 fitted.append(fitted_pose_error(e, scene))
             if name in GATED:
                 arm.append(_through_the_gate(gate, e, err))
         res[name] = rows
         if m == 0:
             res["_fitted"] = fitted
+        elif name in own:
+            res["_fitted_" + name] = fitted
         if name in GATED:
             res[GATED[name]] = arm
     res["_det"] = detection_stats(rec.log, tr, cam)
+    for name, r in own.items():
+        res["_det_" + name] = detection_stats(r.log, tr, cam)
     return res
 
 
@@ -304,7 +318,7 @@ ARM = "arm"
 #: and ``few6x2``'s and ``excess-reading``'s (opt-in trust models: what they would let move the arm)
 GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte",
-         "excess-reading": "arm-excess-reading"}
+         "excess-reading": "arm-excess-reading", "averaged": "arm-averaged"}
 
 
 def session_gate():
@@ -713,9 +727,16 @@ def main(argv=None) -> int:
                 planner_rows[cond] = [(planner_outlook(s), bool(r[first][a.frames - 1][0] and r[first][a.frames - 1][1] <= 1.0))
                                       for s, r in zip(cs, runs)]
             result["conditions"][cond][dn] = {"detection": ds}
+            own = {}        # trust models with a detector of their own: their detection figures
+            for tm in trust_models():
+                if "_det_" + tm in runs[0]:
+                    own[tm] = own[GATED.get(tm, tm)] = det_summary([r["_det_" + tm] for r in runs])
+                    own[tm].update(ceiling([r["_fitted_" + tm] for r in runs], a.frames))
+                    result["conditions"][cond][dn]["detection_" + tm] = own[tm]
             for tm in [*trust_models(), *GATED.values()]:
                 sm = summarise([r[tm] for r in runs], a.frames)
                 result["conditions"][cond][dn][tm] = sm
+                ds = own.get(tm, result["conditions"][cond][dn]["detection"])
                 say(f"{cond:<9} {dn:<{dw}} {tm:<{tw}} {sm['scenes']:>6} {ds['recall']:>6.2f} {ds['precision']:>5.2f} "
                     f"{ds['partial_accepted']:>7} {ds['centre_err_mean_px']:>6.3f} {ds['centre_err_p95_px']:>6.2f} "
                     f"{sm['trusted_at_1_pct']:>6.0f} {sm[f'trusted_at_{a.frames}_pct']:>6.0f} "

@@ -12,6 +12,8 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    ``edge+colour`` = the same with the ball colour learned from one click on the first frame,
    ``edge+shade`` = ``edge`` with the opt-in shading shift (``vision/shading_shift.py``, issue 28),
    ``edge+ref`` = ``edge`` with the learned centre refiner (opt-in, issue 28; when its network is there),
+   ``edge+avg`` = ``edge`` through a tracker whose detector reads the mean of a still view's frames
+   (``TrackerConfig.average_still_frames`` 8, opt-in: the moving head must start it again),
    ``learned`` = the ONNX segmenter (opt-in). Columns: centre error vs the exact ellipse centre
    (what a detector must report; the registration corrects ellipse -> sphere centre), recall
    of fully visible balls, partly hidden balls accepted, and per frame through the pose
@@ -58,7 +60,7 @@ from monotracker.vision.detect_classical import ClassicalDetector
 from monotracker.vision.detect_learned import LearnedDetector
 from monotracker.vision.detection import Detection, ImageFiducial
 from monotracker.vision.frames import Frame
-from monotracker.vision.pose_stream import NEWLY_LOST, PoseTracker
+from monotracker.vision.pose_stream import NEWLY_LOST, PoseTracker, TrackerConfig
 
 
 #: the ``edge+ref`` row's network (``MONOTRACKER_CENTRE_REFINER`` or the shipped one)
@@ -148,6 +150,10 @@ def condition_camera(name: str, seconds: float, seed: int) -> SimulatedCamera:
     return cam
 
 
+#: table A's rows whose pose tracker is not the default's
+ROW_CONFIGS = {"edge+avg": TrackerConfig(average_still_frames=8)}
+
+
 def _match_centres(centres, tr, tol=3.0):
     """(errors of accepted fully visible balls, n found, n partly hidden accepted)."""
     truth = tr.ellipse_centres_px
@@ -191,7 +197,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)),
                 ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge-r6", ClassicalDetector(rules)),
                 ("edge", ClassicalDetector(with_camera)),
-                ("edge+shade", ClassicalDetector(replace(with_camera, shading_shift=True)))]
+                ("edge+shade", ClassicalDetector(replace(with_camera, shading_shift=True))),
+                ("edge+avg", ClassicalDetector(with_camera))]
         dets.append(("edge+colour", ClassicalDetector(with_camera, colour=colour) if colour is not None else None))
         if REFINER_MODEL.is_file():     # the learned centre refiner (opt-in; issue 28)
             dets.append(("edge+ref", ClassicalDetector(with_camera, refiner=CentreRefiner(REFINER_MODEL))))
@@ -203,7 +210,7 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 continue
             rec = Recording(det, name)
             trk = PoseTracker(cam.fiducials_ct, cam.camera, detector=rec, radius_mm=ph.fiducial_radius_mm,
-                              target_ct=ph.sample_target_lps)
+                              target_ct=ph.sample_target_lps, config=ROW_CONFIGS.get(name))
             errs, found, vis, partial, right, refused, wrong, ratio, wall = [], 0, 0, 0, 0, 0, 0, [], []
             pred, act = [], []
             frame_cpu = []

@@ -112,7 +112,8 @@ class PoseEstimate:
         detect_s, register_s: stage times, s (``register_s``: registration and screening).
         stages_s: wall time (s) per stage of this frame: ``hint`` (the balls' predicted
             ellipses for the detector), ``detect``, ``register`` (the first
-            registration), ``screen`` (the moved-fiducial screening after it), ``gates`` (the
+            registration), ``average`` (the mean of a still view's frames, 0 without it:
+            :mod:`.still_frames`), ``screen`` (the moved-fiducial screening after it), ``gates`` (the
             checks after the registration, to the estimate), ``motion`` (the camera-motion
             watch's share of this frame, 0 without one); and ``detect.<stage>`` for the
             detector's own stages (:attr:`~.detection.Detection.stages_s`).
@@ -159,6 +160,9 @@ class PoseEstimate:
     #: fiducials whose centre in this pose came from an earlier frame of the still head
     #: (:mod:`.ball_memory`; their ``status`` says whether this frame found them: it did not)
     remembered: list = field(default_factory=list)
+    #: frames of a still view whose mean the detector read (:mod:`.still_frames`,
+    #: ``TrackerConfig.average_still_frames``; 1 = this frame alone)
+    averaged_frames: int = 1
 
     @property
     def latency_s(self) -> float:
@@ -381,6 +385,12 @@ class TrackerConfig:
     #: (0.4 %, a first frame). docs/vision.md "Balls of the last frames of a still head", "The
     #: shading check over a still head's frames"
     remember_frames: int = 7
+    #: the detector reads the mean of a still view's last frames instead of the frame
+    #: (:class:`~.still_frames.StillFrames`: at most this many frames; the mean starts again at
+    #: any shift of a ball over 0.05 px or any change in the view); 0 or 1 = each frame as it is
+    #: (the default). For dim, noisy cameras, whose whole balls the noise alone refuses
+    #: (docs/vision.md "A still view's frames averaged")
+    average_still_frames: int = 0
 
     def __post_init__(self):
         """A finish word vision does not know is refused here, at construction (one line), not at
@@ -388,9 +398,30 @@ class TrackerConfig:
         if self.ball_finish not in ball_gloss.FINISHES:
             raise ValueError(f"TrackerConfig: ball_finish must be one of {', '.join(ball_gloss.FINISHES)}, "
                              f"not {self.ball_finish!r}")
+        if not (isinstance(self.average_still_frames, int) and self.average_still_frames >= 0):
+            raise ValueError("TrackerConfig: average_still_frames must be a whole number of frames >= 0, "
+                             f"not {self.average_still_frames!r}")
         if self.shading_check_reading not in SHADING_READINGS:
             raise ValueError(f"TrackerConfig: shading_check_reading must be one of {', '.join(SHADING_READINGS)}, "
                              f"not {self.shading_check_reading!r}")
+
+
+def _ball_windows(det, rules) -> np.ndarray:
+    """The balls of detection ``det`` whose windows :class:`~.still_frames.StillFrames` tests:
+    (m, 3) centre x, y and radius (px; the minor semi-axis), the accepted ones first, then the
+    refused candidates of a ball's size (within -25 / +35 % of the accepted balls' median minor
+    semi-axis; without accepted balls, ``rules.radius_range_px``)."""
+    acc = [(float(f.centre_px[0]), float(f.centre_px[1]), float(min(f.axes_px))) for f in det.fiducials]
+    if acc:
+        med = float(np.median([r for _, _, r in acc]))
+        lo, hi = 0.75 * med, 1.35 * med
+    elif hasattr(rules, "radius_range_px"):
+        lo, hi = 0.8 * float(rules.radius_range_px[0]), 1.2 * float(rules.radius_range_px[1])
+    else:
+        lo, hi = 0.0, np.inf
+    rej = [(float(f.centre_px[0]), float(f.centre_px[1]), float(min(f.axes_px))) for f in det.rejected
+           if lo <= float(min(f.axes_px)) <= hi]
+    return np.array(acc + rej, float).reshape(-1, 3)
 
 
 def _fiducials_used(n: int, remembered: int) -> str:
@@ -509,6 +540,12 @@ class PoseTracker:
                                       min_agreeing=c.min_fiducials)
         #: the centre bias the trust model covers (None: the trust model before issue 28)
         self.centre_bias = centre_bias_of(self.detector) if c.centre_bias == "detector" else c.centre_bias
+        from .still_frames import StillFrames
+
+        #: the mean of a still view's frames the detector reads (None: each frame as it is)
+        self.still_frames = StillFrames(c.average_still_frames) if c.average_still_frames > 1 else None
+        #: the last detection's balls, accepted or refused: (m, 3) centre and radius px
+        self._ball_windows = np.zeros((0, 3))
         from monotracker.registration import pnp_kernels
 
         pnp_kernels.warm_up()   # compile or load the pose refinement now, not in the first frame's budget
@@ -601,7 +638,12 @@ class PoseTracker:
         t_hint = time.perf_counter() - t_start
         if hint is None or hint.search_all:
             self._last_full_index = frame.index
-        det = self.detector.detect(frame.image, hint) if self._takes_hint else self.detector.detect(frame.image)
+        t_avg0 = time.perf_counter()
+        image = frame.image if self.still_frames is None else self.still_frames.add(frame.image, self._ball_windows)
+        t_average = time.perf_counter() - t_avg0
+        det = self.detector.detect(image, hint) if self._takes_hint else self.detector.detect(image)
+        if self.still_frames is not None:
+            self._ball_windows = _ball_windows(det, getattr(self.detector, "rules", None))
         det = self.memory.fill(det, frame.index, frame.t_capture)
         remembered_det = np.array(["remembered_frames" in f.features for f in det.fiducials], bool)
         pts = det.centres
@@ -631,6 +673,8 @@ class PoseTracker:
             t_motion += time.perf_counter() - t_m0
         if watch is not None and watch.moved:
             self.memory.reset()
+            if self.still_frames is not None:
+                self.still_frames.reset()
             return self._invalid(frame.index, frame.t_capture, "camera_moved", watch.last.reason, truth=frame.truth)
         t_gates0 = time.perf_counter()
         t_reg = t_gates0 - t0
@@ -769,7 +813,7 @@ class PoseTracker:
         self._last_code = code if not ok else ""
 
         T = T_pose if ok else None
-        stages = {"hint": t_hint, "detect": det.time_s, "register": scr.register_s, "screen": scr.screen_s,
+        stages = {"hint": t_hint, "average": t_average, "detect": det.time_s, "register": scr.register_s, "screen": scr.screen_s,
                   "gates": time.perf_counter() - t_gates0, "motion": t_motion}
         stages.update({f"detect.{k}": v for k, v in getattr(det, "stages_s", {}).items()})
         if ok:
@@ -785,7 +829,8 @@ class PoseTracker:
             alerts=alerts, used_prior=bool(reg.used_prior), detect_s=det.time_s, register_s=t_reg,
             truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
             moved=new_moved, excluded=sorted(self.excluded), stages_s=stages,
-            pooled_frames=n_pooled if ok else 0, remembered=[int(j) for j in np.flatnonzero(remembered)])
+            pooled_frames=n_pooled if ok else 0, remembered=[int(j) for j in np.flatnonzero(remembered)],
+            averaged_frames=1 if self.still_frames is None else self.still_frames.n)
 
     def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float):
         """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with
@@ -1014,6 +1059,8 @@ class PoseTracker:
                                 image_points_px=np.full((n, 2), np.nan), residuals_px=np.full(n, np.nan),
                                 alerts=[reason], camera=camera, code=CAMERA_CODES["late"],
                                 excluded=sorted(self.excluded))
+        if self.still_frames is not None:
+            self.still_frames.reset()     # what comes after a camera fault is not the same view
         est = self._invalid(frame_index, t_capture, CAMERA_CODES.get(camera, "camera_freeze"), reason, camera)
         est.alerts = [reason]
         return est
