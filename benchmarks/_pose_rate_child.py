@@ -16,7 +16,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-STAGES = ("read", "hint", "detect", "register", "screen", "gates", "motion", "other", "publish", "after")
+STAGES = ("read", "hint", "average", "detect", "register", "screen", "gates", "motion", "other", "publish", "after")
 
 
 def _pct(a):
@@ -71,7 +71,7 @@ def stage_case(radius_px: float, hd: bool, n: int) -> dict:
         if i == 0:
             continue     # a cold start in every pipeline
         s = dict(est.stages_s)
-        known = sum(s.get(k, 0.0) for k in ("hint", "detect", "register", "screen", "gates"))
+        known = sum(s.get(k, 0.0) for k in ("hint", "average", "detect", "register", "screen", "gates"))
         s.update({"read": t1 - t0, "publish": t3 - t2, "after": t4 - t3, "other": max(0.0, (t2 - t1) - known - s.get("motion", 0.0)),
                   "total": (t2 - t1) + (t3 - t2) + (t1 - t0), "detect_register": known})
         rows.append(s)

@@ -177,6 +177,8 @@ class IdealDetector:
     distance, how many balls are whole, their layout) and the gates allow a perfect detector whose
     centres are known to S px; compare with ``pose %`` / ``<=1mm %`` of the real detectors."""
 
+    reads_image = False     # the truth's centres: the tracker averages no frames for it
+
     def __init__(self, truth, edge_rms_px: float = 0.1, seed: int = 0):
         self.truth, self.edge_rms_px = truth, float(edge_rms_px)
         self.rng = np.random.default_rng(seed)

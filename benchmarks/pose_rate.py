@@ -4,7 +4,9 @@ with 4 CPU hogs beside it (a neighbour's load: the 4 loops in a session of their
 ``_hogs.py``).
 
 Per stage (median / p99 ms, wall time, one frame at a time on one thread): ``read`` (the frame
-handed over: a copy of the image), ``hint`` (the balls' predicted ellipses), ``detect``,
+handed over: a copy of the image), ``hint`` (the balls' predicted ellipses), ``average`` (the
+mean of a still view's frames the detector reads, ``vision/still_frames.py``; 0 in a tree
+without it), ``detect``,
 ``register``, ``screen`` (the moved-fiducial test), ``gates`` (the checks after the
 registration), ``motion`` (the camera-motion watch, where the tree's tracker times it apart),
 ``other`` (the rest of the tracker's frame: size and grayscale checks, and the camera-motion watch
@@ -13,7 +15,7 @@ sample), ``after`` (work after the pose is given out, not in the pose's time: a 
 camera-motion check in a tree whose rigs defer it, ``PoseTracker.after_publish``; a tree without
 it checks inline, in ``motion``); on photo-like frames of our simulator (9 balls, breathing head) at 1280x720 with balls
 of 8, 13 and 20 px (radius) and at 1920x1080 with 20 px balls. Rendering is not timed. ``detect_register`` =
-hint + detect + register + screen + gates (issue 29's budget: <= 10 ms median, <= 16 ms p99 at
+hint + average + detect + register + screen + gates (issue 29's budget: <= 10 ms median, <= 16 ms p99 at
 720p, <= 20 ms at 1080p).
 
 Closed loop: the headless demo (``monotracker demo --headless``: simulated clock, the twin camera
@@ -117,8 +119,8 @@ def main(argv=None):
             results[(name, hogs)] = run_child(app, home, a, hogs)
             print(f"    ({time.time() - t0:.0f} s, load {os.getloadavg()[0]:.2f})", flush=True)
     print("\nPer stage, ms median/p99 (wall, one thread), photo-like frames, breathing head:")
-    stages = ("read", "hint", "detect", "register", "screen", "gates", "motion", "other", "publish", "after",
-              "detect_register")
+    stages = ("read", "hint", "average", "detect", "register", "screen", "gates", "motion", "other", "publish",
+              "after", "detect_register")
     print(f"{'case':<14} {'tree':<13} {'hogs':>4} " + " ".join(f"{s[:9]:>11}" for s in stages)
           + f" {'trusted':>7} {'err px':>6}")
     for (name, hogs), r in results.items():

@@ -233,3 +233,18 @@ def test_a_breathing_head_starts_the_mean_again_and_its_poses_stay_right(traject
         assert counts[8] == 1 and longest == 40            # one start: the first frame
     else:
         assert counts[8] >= 10, counts                      # the breathing head keeps starting it again
+
+
+def test_a_detector_that_reads_no_image_gets_no_mean():
+    """Given points (the engine's simulated-points rig, replays) cost no frame averaging."""
+    from monotracker.vision.camera_model import CameraModel
+    from monotracker.vision.point_detector import PointDetector
+    from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
+    from monotracker.vision.recording import RecordingDetector
+
+    cam = CameraModel(np.array([[600.0, 0, W / 2], [0, 600.0, H / 2], [0, 0, 1]]), np.zeros(5), (W, H))
+    fids = np.array([[x, y, 0.0] for x, y, _ in BALLS[:5]]) * 0.1
+    for det in (PointDetector(), RecordingDetector(PointDetector())):
+        trk = PoseTracker(fids, cam, detector=det, config=TrackerConfig(average_still_frames=8))
+        assert trk.still_frames is None
+    assert PoseTracker(fids, cam, detector=_Recorder(), config=TrackerConfig(average_still_frames=8)).still_frames

@@ -17,6 +17,8 @@ class PointDetector:
     """``set(points_px (m, 2), minor_axes_px (m,))`` before each ``detect``."""
 
     name = "points"
+    #: it reads no image: the pose tracker gives it no mean of a still view's frames
+    reads_image = False
 
     def __init__(self):
         self.points = np.zeros((0, 2))

@@ -545,8 +545,10 @@ class PoseTracker:
         self.centre_bias = centre_bias_of(self.detector) if c.centre_bias == "detector" else c.centre_bias
         from .still_frames import StillFrames
 
-        #: the mean of a still view's frames the detector reads (None: each frame as it is)
-        self.still_frames = StillFrames(c.average_still_frames) if c.average_still_frames > 1 else None
+        #: the mean of a still view's frames the detector reads (None: each frame as it is, or a
+        #: detector that reads no image: ``reads_image`` False, e.g. given points)
+        self.still_frames = StillFrames(c.average_still_frames) \
+            if c.average_still_frames > 1 and getattr(self.detector, "reads_image", True) else None
         #: the last detection's balls, accepted or refused: (m, 3) centre and radius px
         self._ball_windows = np.zeros((0, 3))
         from monotracker.registration import pnp_kernels

@@ -13,6 +13,7 @@ class RecordingDetector:
     def __init__(self, det):
         self.det, self.log = det, []
         self.rules = getattr(det, "rules", None)
+        self.reads_image = getattr(det, "reads_image", True)
 
     def detect(self, image, hint=None):
         d = self.det.detect(image) if hint is None else self.det.detect(image, hint)

@@ -134,18 +134,10 @@ class StillFrames:
         docstring)."""
         diff = grey - self._grey
         H, W = grey.shape
-        small = (max(W // SUBSAMPLE, 1), max(H // SUBSAMPLE, 1))
-        sub = cv2.resize(diff, small, interpolation=cv2.INTER_AREA)     # block means: a demosaic's
-        level = cv2.resize(self._grey, small, interpolation=cv2.INTER_AREA)   # single-pixel flips average out
+        sub = diff[::SUBSAMPLE, ::SUBSAMPLE]
         med = float(np.median(sub[::2, ::2]))
-        big = np.abs(sub - med) > self.change_sigmas * self._noise_model(level, sub - med)(level)
-        noise_of = self._noise_model(self._grey[::SUBSAMPLE, ::SUBSAMPLE], diff[::SUBSAMPLE, ::SUBSAMPLE] - med)
-        t = TILE_PX // SUBSAMPLE
-        h, w = (big.shape[0] // t) * t, (big.shape[1] // t) * t
-        if h and w:
-            share = big[:h, :w].reshape(h // t, t, w // t, t).mean(axis=(1, 3))
-            if float(share.max()) > self.changed_share:
-                return f"{100 * float(share.max()):.0f} % of a tile changed"
+        noise_of = self._noise_model(self._grey[::SUBSAMPLE, ::SUBSAMPLE], sub - med)
+        # the balls first: a moving head fails here, at its first window
         shifts, infos, where = [], [], []
         for cx, cy, r in balls_px[:MAX_WINDOWS]:
             if not (np.isfinite(cx) and np.isfinite(cy) and np.isfinite(r)):
@@ -171,6 +163,17 @@ class StillFrames:
             chi2, moved_px = _common_motion(np.array(where), np.array(shifts), np.array(infos))
             if chi2 > (MOTION_CHI2_4 if len(shifts) >= 3 else MOTION_CHI2_2):
                 return f"the balls moved together (up to {moved_px:.2f} px)"
+        # then the whole view, in 4 x 4 px block means (a demosaic's single-pixel flips average out)
+        small = (max(W // SUBSAMPLE, 1), max(H // SUBSAMPLE, 1))
+        blocks_diff = cv2.resize(diff, small, interpolation=cv2.INTER_AREA) - med
+        level = cv2.resize(self._grey, small, interpolation=cv2.INTER_AREA)
+        big = np.abs(blocks_diff) > self.change_sigmas * self._noise_model(level, blocks_diff)(level)
+        t = TILE_PX // SUBSAMPLE
+        h, w = (big.shape[0] // t) * t, (big.shape[1] // t) * t
+        if h and w:
+            share = big[:h, :w].reshape(h // t, t, w // t, t).mean(axis=(1, 3))
+            if float(share.max()) > self.changed_share:
+                return f"{100 * float(share.max()):.0f} % of a tile changed"
         return ""
 
     @staticmethod
