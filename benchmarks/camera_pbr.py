@@ -227,10 +227,10 @@ def trust_models() -> dict:
     2026-12-01's twenty-fifth session, docs/vision.md "Glossy balls read from the frame");
     ``excess-reading``: the default with the shading check's second readings from each ball's
     outline size excess (``shading_check_reading`` "excess": opt-in, docs/vision.md "The shading
-    check read from the outline's size"); ``single-frame``: the default with the detector
-    reading each frame as it is, not the mean of a still view's last frames
-    (``average_still_frames`` 0: the default before 2026-12-03; its own detector run, not the
-    default's detections replayed; docs/vision.md "A still view's frames averaged")."""
+    check read from the outline's size"); ``averaged``: the default with the detector reading
+    the mean of the still view's last 8 frames (``average_still_frames`` 8: opt-in, its own
+    detector run, not the default's detections replayed; docs/vision.md "A still view's frames
+    averaged")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
@@ -239,7 +239,7 @@ def trust_models() -> dict:
             "few6x2": TrackerConfig(few_balls=6, few_balls_cover=2.0),
             "matte": TrackerConfig(glossy_highlight_ratio=0.0),
             "excess-reading": TrackerConfig(shading_check_reading="excess"),
-            "single-frame": TrackerConfig(average_still_frames=0)}
+            "averaged": TrackerConfig(average_still_frames=8)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -326,7 +326,7 @@ ARM = "arm"
 #: and ``few6x2``'s and ``excess-reading``'s (opt-in trust models: what they would let move the arm)
 GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte",
-         "excess-reading": "arm-excess-reading", "single-frame": "arm-single-frame"}
+         "excess-reading": "arm-excess-reading", "averaged": "arm-averaged"}
 
 
 def session_gate():

@@ -12,9 +12,8 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    ``edge+colour`` = the same with the ball colour learned from one click on the first frame,
    ``edge+shade`` = ``edge`` with the opt-in shading shift (``vision/shading_shift.py``, issue 28),
    ``edge+ref`` = ``edge`` with the learned centre refiner (opt-in, issue 28; when its network is there),
-   ``edge-1f`` = ``edge`` through a tracker whose detector reads each frame as it is (the default
-   before 2026-12-03; ``edge``'s tracker gives it the mean of a still view's frames,
-   ``TrackerConfig.average_still_frames``, which the moving head must start again),
+   ``edge+avg`` = ``edge`` through a tracker whose detector reads the mean of a still view's frames
+   (``TrackerConfig.average_still_frames`` 8, opt-in: the moving head must start it again),
    ``learned`` = the ONNX segmenter (opt-in). Columns: centre error vs the exact ellipse centre
    (what a detector must report; the registration corrects ellipse -> sphere centre), recall
    of fully visible balls, partly hidden balls accepted, and per frame through the pose
@@ -152,7 +151,7 @@ def condition_camera(name: str, seconds: float, seed: int) -> SimulatedCamera:
 
 
 #: table A's rows whose pose tracker is not the default's
-ROW_CONFIGS = {"edge-1f": TrackerConfig(average_still_frames=0)}
+ROW_CONFIGS = {"edge+avg": TrackerConfig(average_still_frames=8)}
 
 
 def _match_centres(centres, tr, tol=3.0):
@@ -199,7 +198,7 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge-r6", ClassicalDetector(rules)),
                 ("edge", ClassicalDetector(with_camera)),
                 ("edge+shade", ClassicalDetector(replace(with_camera, shading_shift=True))),
-                ("edge-1f", ClassicalDetector(with_camera))]
+                ("edge+avg", ClassicalDetector(with_camera))]
         dets.append(("edge+colour", ClassicalDetector(with_camera, colour=colour) if colour is not None else None))
         if REFINER_MODEL.is_file():     # the learned centre refiner (opt-in; issue 28)
             dets.append(("edge+ref", ClassicalDetector(with_camera, refiner=CentreRefiner(REFINER_MODEL))))

@@ -162,16 +162,16 @@ def test_the_default_before_the_gloss_reading_is_measured_beside_it(bench, resul
             assert wide["trusted_frames"] <= default["trusted_frames"] <= matte["trusted_frames"], (cond, name)
 
 
-def test_single_frames_are_scored_with_their_own_detections(bench, result):
-    """``single-frame`` (the detector reads each frame as it is, not the mean of the still
-    view's frames that the default's tracker gives it: ``TrackerConfig.average_still_frames``)
-    runs a detector of its own: the edge detector's row has its own detection figures and
-    ceiling; the ideal detector, which reads no image, replays the default's detections."""
-    assert bench.GATED["single-frame"] == "arm-single-frame"
-    assert bench.averages(next(iter(bench.trust_models().values())))
+def test_the_still_views_mean_is_scored_with_its_own_detections(bench, result):
+    """``averaged`` (the detector reads the mean of the still view's frames,
+    ``TrackerConfig.average_still_frames``, opt-in) runs a detector of its own: the edge
+    detector's row has its own detection figures and ceiling; the ideal detector, which reads no
+    image, replays the default's detections."""
+    assert bench.GATED["averaged"] == "arm-averaged"
+    assert not bench.averages(next(iter(bench.trust_models().values())))
     for cond, dets in result["conditions"].items():
         edge, ideal = dets["edge"], dets["ideal0.1"]
-        assert "detection_single-frame" in edge and "detection_single-frame" not in ideal, cond
-        assert set(edge["detection_single-frame"]) == set(edge["detection"]), cond
-        assert 0.0 <= edge["detection_single-frame"]["recall"] <= 1.0, cond
-        assert ideal["single-frame"]["trusted_frames"] == ideal["before"]["trusted_frames"], cond
+        assert "detection_averaged" in edge and "detection_averaged" not in ideal, cond
+        assert set(edge["detection_averaged"]) == set(edge["detection"]), cond
+        assert 0.0 <= edge["detection_averaged"]["recall"] <= 1.0, cond
+        assert ideal["averaged"]["trusted_frames"] == ideal["before"]["trusted_frames"], cond

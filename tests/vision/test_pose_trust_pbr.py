@@ -91,19 +91,14 @@ def test_blender_frames_no_trusted_pose_over_1mm(blender_scenes):
     default trusted frames 1.02-1.07 mm off at a predicted 0.52-0.67 mm, 5 whole balls 0.2-0.44
     px off at an edge RMS of 0.09-0.13 px. Its balls are glossy and sit beside contact shadows:
     read so from the frame (:mod:`monotracker.vision.ball_gloss`), their few-ball cover is the
-    wider one and the default trusts none of them, but still trusts poses on these crops (2 of
-    64 frames since the detector reads a still view's mean, 6 reading single frames: the
-    degraded scene's poses sit at the 0.1 % tail limit, which single frames' noise passes by
-    chance every other frame). Read as matte (``glossy_highlight_ratio`` 0, the default before)
-    single frames are trusted over 1 mm again: what the reading buys, on frames nobody here
-    rendered (with the still view's mean, matte frames are trusted up to 0.93 mm)."""
+    wider one and the default trusts none of them, but still trusts poses on these crops. Read
+    as matte (``glossy_highlight_ratio`` 0, the default before) the same frames are trusted over
+    1 mm again: what the reading buys, on frames nobody here rendered."""
     default = _trusted_errors(blender_scenes, TrackerConfig())
-    assert len(default) >= 2 and np.all(default <= 1.0), np.sort(default)
-    single = _trusted_errors(blender_scenes, TrackerConfig(average_still_frames=0))
-    assert len(single) >= 3 and np.all(single <= 1.0), np.sort(single)
+    assert len(default) >= 3 and np.all(default <= 1.0), np.sort(default)
     calibrated = _trusted_errors(blender_scenes, TrackerConfig(centre_bias="detector"))
     assert np.all(calibrated <= 1.0), np.sort(calibrated)[-5:]
-    matte = _trusted_errors(blender_scenes, TrackerConfig(glossy_highlight_ratio=0.0, average_still_frames=0))
+    matte = _trusted_errors(blender_scenes, TrackerConfig(glossy_highlight_ratio=0.0))
     assert np.any(matte > 1.0), np.sort(matte)[-5:]
 
 

@@ -35,11 +35,8 @@ def _trusted(scene, config) -> list:
     return out
 
 
-#: the default trust without the shading check (the default until 2026-12-01), the detector
-#: reading single frames (the default until 2026-12-03): what the check was built to catch. With
-#: the mean of the still view's frames the unchecked tracker's poses here are 0.85-0.87 mm off
-#: through the gate (the centres' noise, not only their shading, made the wrong frames)
-NO_CHECK = TrackerConfig(shading_check_factor=0.0, average_still_frames=0)
+#: the default trust without the shading check (the default until 2026-12-01)
+NO_CHECK = TrackerConfig(shading_check_factor=0.0)
 
 
 def test_the_planners_layout_never_has_a_trusted_pose_over_2mm(scene):

@@ -17,13 +17,6 @@ from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
 CONDITION = {"clean": "degraded", "clutter": "clutter"}
 
 
-def single_frame(**kw) -> TrackerConfig:
-    """The tracker's config with the detector reading each frame as it is (the default before
-    2026-12-03, when it began to read the mean of a still view's frames): what the cases below
-    were found and measured on."""
-    return TrackerConfig(average_still_frames=0, **kw)
-
-
 @pytest.fixture(scope="module")
 def planned():
     scenes = list_scenes(committed_root().parent / "pbr_planned" / "tuning")
@@ -56,14 +49,13 @@ def test_planner_placed_frames_are_trusted_and_never_over_2mm(planned):
     had 4-5 balls of their own now have 6. The clutter scene's balls are glossy beside contact
     shadows: with the finish read (:mod:`monotracker.vision.ball_gloss`) the wider few-ball
     cover refuses all of them (predicted 0.90-1.13 mm for poses 0.71-1.05 mm off: the matte
-    reading predicted 0.55-0.75 mm, under the error); the degraded scene is trusted by neither.
-    (These figures read single frames, as the detector did before 2026-12-03: :func:`single_frame`.)"""
-    matte_alone = [e for s in planned for e in _trusted(s, single_frame(glossy_highlight_ratio=0.0, remember_frames=0))]
-    matte = [e for s in planned for e in _trusted(s, single_frame(glossy_highlight_ratio=0.0))]
+    reading predicted 0.55-0.75 mm, under the error); the degraded scene is trusted by neither."""
+    matte_alone = [e for s in planned for e in _trusted(s, TrackerConfig(glossy_highlight_ratio=0.0, remember_frames=0))]
+    matte = [e for s in planned for e in _trusted(s, TrackerConfig(glossy_highlight_ratio=0.0))]
     assert len(matte_alone) >= 2, matte_alone
     assert len(matte) >= len(matte_alone) + 2, (matte, matte_alone)
     for config in (TrackerConfig(), TrackerConfig(remember_frames=0), TrackerConfig(centre_bias="detector"),
-                   TrackerConfig(glossy_highlight_ratio=0.0), single_frame(), single_frame(glossy_highlight_ratio=0.0)):
+                   TrackerConfig(glossy_highlight_ratio=0.0)):
         errs = [e for s in planned for e in _trusted(s, config)]
         assert all(e <= 2.0 for e in errs), errs
 
@@ -74,7 +66,7 @@ def test_planner_placed_frames_no_trusted_pose_over_1mm_each_frame_alone(planned
     balls whose errors the pose absorbed (a whole ball 0.6-1.4 px off at an edge RMS of
     0.14-0.32 px): the few-ball cover (``TrackerConfig.few_balls_cover``) refuses them. Each
     frame's own balls only (``remember_frames`` 0) and the pooled model."""
-    for config in (TrackerConfig(remember_frames=0), TrackerConfig(centre_bias="detector"), single_frame(remember_frames=0)):
+    for config in (TrackerConfig(remember_frames=0), TrackerConfig(centre_bias="detector")):
         errs = [e for s in planned for e in _trusted(s, config)]
         assert all(e <= 1.0 for e in errs), errs
 
@@ -84,10 +76,8 @@ def test_planner_placed_frames_no_trusted_pose_over_1mm(planned):
     scene's frame 3 (since the twenty-first session frame 7) was trusted 1.05-1.06 mm off at a
     predicted 0.56-0.62 mm; its balls err 0.4-0.8 px in x on one side of the layout (contact
     shadows on +x), which no per-ball cover of the matte reading sees. Its balls are glossy:
-    read so, the default refuses it; read as matte it is trusted again (what the reading buys,
-    shown on single frames; with the still view's mean the matte reading trusts 0.71-0.82 mm)."""
-    for config in (TrackerConfig(), single_frame()):
-        errs = [e for s in planned for e in _trusted(s, config)]
-        assert all(e <= 1.0 for e in errs), errs
-    matte = [e for s in planned for e in _trusted(s, single_frame(glossy_highlight_ratio=0.0))]
+    read so, the default refuses it; read as matte it is trusted again (what the reading buys)."""
+    errs = [e for s in planned for e in _trusted(s, TrackerConfig())]
+    assert all(e <= 1.0 for e in errs), errs
+    matte = [e for s in planned for e in _trusted(s, TrackerConfig(glossy_highlight_ratio=0.0))]
     assert any(e > 1.0 for e in matte), matte

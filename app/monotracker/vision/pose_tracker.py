@@ -388,12 +388,14 @@ class TrackerConfig:
     #: the detector reads the mean of a still view's last frames instead of the frame
     #: (:class:`~.still_frames.StillFrames`: at most this many frames; the mean starts again at
     #: any shift of the balls a still view would not give, ~0.05 px together, or any change in the
-    #: view); 0 or 1 = each frame as it is (the rule before 2026-12-03). For dim, noisy cameras,
-    #: whose whole balls the noise alone refuses. Rendered held-out scenes scored once against a
-    #: rule written before (planner's 12- and 9-ball plans, 40 scenes x 4 conditions, 30-frame
-    #: still streams): through the session's gate 628 -> 732 trusted frames, 1-2 mm off 1 -> 1,
-    #: none over 2 mm; degraded frames 117 -> 193. docs/vision.md "A still view's frames averaged"
-    average_still_frames: int = 8
+    #: view); 0 or 1 = each frame as it is (the default). For dim, noisy cameras, whose whole balls
+    #: the noise alone refuses. Rendered held-out scenes scored once against a rule written before
+    #: (planner's 12- and 9-ball plans, 40 scenes x 4 conditions, 30-frame still streams): through
+    #: the session's gate 628 -> 732 trusted frames, 1-2 mm off 1 -> 1, none over 2 mm; degraded
+    #: frames 117 -> 193. NOT the default for its cost: 2.5-3.8 ms a 720p frame (5.9 at 1080p),
+    #: which takes detection + registration over issue 29's 10 ms median at 720p with 20 px balls
+    #: (benchmarks/pose_rate.py). docs/vision.md "A still view's frames averaged"
+    average_still_frames: int = 0
 
     def __post_init__(self):
         """A finish word vision does not know is refused here, at construction (one line), not at

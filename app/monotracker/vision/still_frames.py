@@ -45,6 +45,8 @@ MAX_FRAMES = 8
 SHIFT_FALSE_ALARM = 1e-5
 #: ball windows tested at most (the detection's accepted balls first)
 MAX_WINDOWS = 40
+#: OpenCV's grey from BGR (cv2.COLOR_BGR2GRAY)
+GREY_BGR = np.array([0.114, 0.587, 0.299], np.float32)
 #: a ball window's fit residual (mean square, in units of the difference noise's variance) over
 #: this: something changed there (still frames: 0.9-2.6 on the rendered tuning sets, JPEG's
 #: ringing at the balls' edges above 1)
@@ -59,7 +61,8 @@ SUBSAMPLE = 4
 WINDOW_MARGIN_PX = 4.0
 #: the difference noise is at least this (DN: 8-bit quantisation) ...
 MIN_NOISE_DN = 0.5
-#: ... and measured in this many bins of grey level, each of at least this many pixels
+#: ... and measured in this many bins of grey level, each of at least this many pixels (of every
+#: second subsampled pixel)
 NOISE_BINS = 16
 NOISE_BIN_MIN = 50
 #: ... from a histogram of |difference| in steps of this (DN) up to NOISE_STEPS steps
@@ -99,8 +102,9 @@ class StillFrames:
 
     def reset(self) -> None:
         """Forget the mean (the next frame starts it)."""
-        self._mean: np.ndarray | None = None
-        self._grey: np.ndarray | None = None
+        self._mean: np.ndarray | None = None     # (H, W, 3) float32 BGR
+        self._sub: np.ndarray | None = None      # the mean's grey at every SUBSAMPLE-th pixel
+        self._blocks: np.ndarray | None = None   # the mean's grey in SUBSAMPLE x SUBSAMPLE block means
         self.n = 0
         self.last_reason = "first frame"
 
@@ -109,72 +113,70 @@ class StillFrames:
         with it; the image to detect on (uint8, ``image`` itself when the mean holds one frame).
         ``balls_px``: (m, 3) float, the balls' centres and radii (px) that the last detection
         found, accepted or refused (the windows whose shift is tested; may be empty)."""
-        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        sub = grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32)
         if self._mean is None or self._mean.shape != image.shape:
-            return self._start(image, grey, "first frame" if self._mean is None else "frame size changed")
-        why = self.moved(grey, np.asarray(balls_px, float).reshape(-1, 3))
+            return self._start(image, grey, sub, "first frame" if self._mean is None else "frame size changed")
+        why, blocks = self._moved(grey, sub, np.asarray(balls_px, float).reshape(-1, 3))
         if why:
-            return self._start(image, grey, why)
+            return self._start(image, grey, sub, why, blocks)
         self.n += 1
         alpha = 1.0 / min(self.n, self.max_frames)
         cv2.accumulateWeighted(image, self._mean, alpha)
-        cv2.accumulateWeighted(grey, self._grey, alpha)
+        cv2.accumulateWeighted(sub, self._sub, alpha)
+        cv2.accumulateWeighted(blocks, self._blocks, alpha)
         self.last_reason = ""
         return cv2.convertScaleAbs(self._mean)
 
-    def _start(self, image: np.ndarray, grey: np.ndarray, why: str) -> np.ndarray:
-        self._mean = image.astype(np.float32)
-        self._grey = grey
+    def _start(self, image: np.ndarray, grey: np.ndarray, sub: np.ndarray, why: str, blocks=None) -> np.ndarray:
+        if self._mean is None or self._mean.shape != image.shape:
+            self._mean = np.empty(image.shape, np.float32)
+        np.copyto(self._mean, image, casting="unsafe")
+        self._sub = sub
+        self._blocks = _block_means(grey) if blocks is None else blocks
         self.n = 1
         self.last_reason = why
         return image
 
-    def moved(self, grey: np.ndarray, balls_px: np.ndarray) -> str:
-        """Why ``grey`` (float32 DN) does not join the mean ("" = it does; see the module
-        docstring)."""
-        diff = grey - self._grey
-        H, W = grey.shape
-        sub = diff[::SUBSAMPLE, ::SUBSAMPLE]
-        med = float(np.median(sub[::2, ::2]))
-        noise_of = self._noise_model(self._grey[::SUBSAMPLE, ::SUBSAMPLE], sub - med)
+    def moved(self, image: np.ndarray, balls_px: np.ndarray) -> str:
+        """Why ``image`` (BGR uint8) would not join the mean ("" = it would; see the module
+        docstring). The mean is not changed."""
+        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        return self._moved(grey, grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32),
+                           np.asarray(balls_px, float).reshape(-1, 3))[0]
+
+    def _moved(self, grey: np.ndarray, sub: np.ndarray, balls_px: np.ndarray) -> tuple[str, np.ndarray | None]:
+        """(why the frame of ``grey`` (uint8) does not join the mean, "" if it does; its block
+        means when they were computed, else None)."""
+        sub_diff = sub - self._sub
+        med = float(np.median(sub_diff[::2, ::2]))
+        noise_of = self._noise_model(self._sub, sub_diff - med)
         # the balls first: a moving head fails here, at its first window
         shifts, infos, where = [], [], []
-        for cx, cy, r in balls_px[:MAX_WINDOWS]:
-            if not (np.isfinite(cx) and np.isfinite(cy) and np.isfinite(r)):
-                continue
-            g = r + WINDOW_MARGIN_PX
-            x0, x1 = max(int(cx - g), 1), min(int(np.ceil(cx + g)) + 1, W - 1)
-            y0, y1 = max(int(cy - g), 1), min(int(np.ceil(cy + g)) + 1, H - 1)
-            if x1 - x0 < 2 * BLOCK_PX or y1 - y0 < 2 * BLOCK_PX:
-                continue
-            fit = _window_shift(self._grey[y0 - 1:y1 + 1, x0 - 1:x1 + 1], diff[y0:y1, x0:x1] - med, noise_of)
-            if fit is None:
-                continue
-            shift, cov, resid_ratio, blocks = fit
+        for (cx, cy), shift, cov, resid_ratio, nblocks in _window_fits(self._mean, grey, balls_px, med, noise_of):
             if resid_ratio > self.residual_ratio:
-                return f"a ball's window changed at ({cx:.0f}, {cy:.0f}) px"
+                return f"a ball's window changed at ({cx:.0f}, {cy:.0f}) px", None
             info = np.linalg.inv(cov)
-            if float(shift @ info @ shift) > _shift_limit2(blocks, self.shift_false_alarm):
-                return f"a ball moved {float(np.hypot(*shift)):.2f} px at ({cx:.0f}, {cy:.0f}) px"
+            if float(shift @ info @ shift) > _shift_limit2(nblocks, self.shift_false_alarm):
+                return f"a ball moved {float(np.hypot(*shift)):.2f} px at ({cx:.0f}, {cy:.0f}) px", None
             shifts.append(shift)
             infos.append(info)
             where.append((cx, cy))
         if shifts:
             chi2, moved_px = _common_motion(np.array(where), np.array(shifts), np.array(infos))
             if chi2 > (MOTION_CHI2_4 if len(shifts) >= 3 else MOTION_CHI2_2):
-                return f"the balls moved together (up to {moved_px:.2f} px)"
-        # then the whole view, in 4 x 4 px block means (a demosaic's single-pixel flips average out)
-        small = (max(W // SUBSAMPLE, 1), max(H // SUBSAMPLE, 1))
-        blocks_diff = cv2.resize(diff, small, interpolation=cv2.INTER_AREA) - med
-        level = cv2.resize(self._grey, small, interpolation=cv2.INTER_AREA)
-        big = np.abs(blocks_diff) > self.change_sigmas * self._noise_model(level, blocks_diff)(level)
+                return f"the balls moved together (up to {moved_px:.2f} px)", None
+        # then the whole view, in block means (a demosaic's single-pixel flips average out)
+        blocks = _block_means(grey)
+        blocks_diff = blocks - self._blocks - med
+        big = np.abs(blocks_diff) > self.change_sigmas * self._noise_model(self._blocks, blocks_diff)(self._blocks)
         t = TILE_PX // SUBSAMPLE
         h, w = (big.shape[0] // t) * t, (big.shape[1] // t) * t
         if h and w:
             share = big[:h, :w].reshape(h // t, t, w // t, t).mean(axis=(1, 3))
             if float(share.max()) > self.changed_share:
-                return f"{100 * float(share.max()):.0f} % of a tile changed"
-        return ""
+                return f"{100 * float(share.max()):.0f} % of a tile changed", blocks
+        return "", blocks
 
     @staticmethod
     def _noise_model(level: np.ndarray, diff: np.ndarray):
@@ -184,6 +186,7 @@ class StillFrames:
         median would read the 8-bit steps of a quiet sensor's difference as no noise at all),
         as a Gaussian's sigma; a function of a level array (float32 DN, at least
         :data:`MIN_NOISE_DN`)."""
+        level, diff = level[::2, ::2], diff[::2, ::2]     # a quarter of them measures it well enough
         lv = np.clip((level.ravel() * (NOISE_BINS / 256.0)).astype(np.int32), 0, NOISE_BINS - 1)
         ad = np.minimum((np.abs(diff.ravel()) * (1.0 / NOISE_STEP_DN)).astype(np.int32), NOISE_STEPS - 1)
         hist = np.bincount(lv * NOISE_STEPS + ad, minlength=NOISE_BINS * NOISE_STEPS).reshape(NOISE_BINS, NOISE_STEPS)
@@ -198,39 +201,65 @@ class StillFrames:
             sig.append(max(rms / TRIMMED_RMS_PER_SIGMA, MIN_NOISE_DN))
         if not centres:
             return lambda lv: np.full(np.shape(lv), MIN_NOISE_DN, np.float32)
-        c, s_ = np.array(centres), np.array(sig)
-        return lambda lv: np.interp(lv, c, s_).astype(np.float32)
+        lut = np.interp(np.arange(257, dtype=np.float64), centres, sig).astype(np.float32)   # per grey level
+        return lambda lv: lut[np.clip(np.asarray(lv) + 0.5, 0, 256).astype(np.int32)]
 
 
-def _window_shift(mean_pad: np.ndarray, diff: np.ndarray, noise_of):
-    """One Lucas-Kanade step in a ball's window: ``diff`` (h, w; the new frame minus the mean,
-    DN) = the mean's gradient x shift + offset, each pixel weighted by 1 / its noise
-    (``noise_of``). ``mean_pad``: the mean's grey over the window and a 1 px border. (shift (2,)
-    px, its covariance (2, 2) px^2 summed over :data:`BLOCK_PX` blocks of the residuals'
-    scores (noise correlated over a few px), the residual's mean square per noise variance, the
-    number of blocks), or None where the window has no gradient."""
-    m = mean_pad
-    gx = 0.5 * (m[1:-1, 2:] - m[1:-1, :-2])
-    gy = 0.5 * (m[2:, 1:-1] - m[:-2, 1:-1])
-    wt = 1.0 / noise_of(m[1:-1, 1:-1]).astype(np.float64)
-    A = np.stack([gx * wt, gy * wt, wt], axis=-1)
-    d = diff * wt
-    Af, df = A.reshape(-1, 3), d.ravel()
-    N = Af.T @ Af
-    if not np.linalg.cond(N) < 1e8:
-        return None
+def _window_fits(mean: np.ndarray, grey: np.ndarray, balls_px: np.ndarray, offset: float, noise_of) -> list:
+    """One Lucas-Kanade step in a window round each ball (all windows of one size: the largest
+    ball's radius + :data:`WINDOW_MARGIN_PX` each side, moved inside the frame where a ball is
+    near its edge), all at once: the new frame's ``grey`` (uint8) minus the ``mean``'s grey
+    (BGR float32) minus ``offset`` (DN) = the mean's gradient x shift + offset, each pixel
+    weighted by 1 / its noise (``noise_of``). Per window with gradient, in the balls' order:
+    ((x, y) its ball's centre px, shift (2,) px, its covariance (2, 2) px^2 summed over
+    :data:`BLOCK_PX` blocks of the residuals' scores (the noise is correlated over a few px), the
+    residual's mean square per noise variance, the number of blocks)."""
+    H, W = grey.shape
+    balls = balls_px[np.all(np.isfinite(balls_px), axis=1)][:MAX_WINDOWS]
+    if not len(balls):
+        return []
+    g = int(np.ceil(float(balls[:, 2].max()) + WINDOW_MARGIN_PX))
+    side = max(2 * g + 1, 2 * BLOCK_PX)
+    if side + 2 > min(H, W):
+        return []
+    x0 = np.clip(np.round(balls[:, 0]).astype(int) - g, 1, W - 1 - side)
+    y0 = np.clip(np.round(balls[:, 1]).astype(int) - g, 1, H - 1 - side)
+    m = np.stack([mean[y - 1:y + side + 1, x - 1:x + side + 1] for x, y in zip(x0, y0)]) @ GREY_BGR
+    new = np.stack([grey[y:y + side, x:x + side] for x, y in zip(x0, y0)])
+    n = len(balls)
+    wt = 1.0 / noise_of(m[:, 1:-1, 1:-1])
+    A = np.empty((n, side, side, 3), np.float64)
+    A[..., 0] = 0.5 * (m[:, 1:-1, 2:] - m[:, 1:-1, :-2]) * wt
+    A[..., 1] = 0.5 * (m[:, 2:, 1:-1] - m[:, :-2, 1:-1]) * wt
+    A[..., 2] = wt
+    Af = A.reshape(n, -1, 3)
+    df = ((new - m[:, 1:-1, 1:-1] - offset) * wt).reshape(n, -1)
+    N = np.einsum("nki,nkj->nij", Af, Af)
+    det = np.linalg.det(N)
+    good = np.isfinite(det) & (det > 1e-12 * np.einsum("nii->n", N) ** 3)
+    if not good.any():
+        return []
+    Af, df, N = Af[good], df[good], N[good]
     Ninv = np.linalg.inv(N)
-    p = Ninv @ (Af.T @ df)
-    res = (df - Af @ p).reshape(d.shape)
-    ratio = float(np.mean(res * res)) * df.size / max(df.size - 3, 1)
-    sc = A * res[..., None]
-    h, w = (sc.shape[0] // BLOCK_PX) * BLOCK_PX, (sc.shape[1] // BLOCK_PX) * BLOCK_PX
-    S = sc[:h, :w].reshape(h // BLOCK_PX, BLOCK_PX, w // BLOCK_PX, BLOCK_PX, 3).sum(axis=(1, 3)).reshape(-1, 3)
-    k = len(S)
-    cov = (Ninv @ (S.T @ S) @ Ninv)[:2, :2] * (k / (k - 1.0))
-    if not (np.all(np.isfinite(cov)) and np.linalg.det(cov) > 0):
-        return None
-    return p[:2], cov, ratio, k
+    p = np.einsum("nij,nj->ni", Ninv, np.einsum("nki,nk->ni", Af, df))
+    res = df - np.einsum("nki,ni->nk", Af, p)
+    ratio = np.einsum("nk,nk->n", res, res) / max(side * side - 3, 1)
+    sc = (Af * res[..., None]).reshape(-1, side, side, 3)
+    k = side // BLOCK_PX
+    S = sc[:, :k * BLOCK_PX, :k * BLOCK_PX].reshape(-1, k, BLOCK_PX, k, BLOCK_PX, 3).sum(axis=(2, 4)).reshape(-1, k * k, 3)
+    cov = (Ninv @ np.einsum("nbi,nbj->nij", S, S) @ Ninv)[:, :2, :2] * (k * k / (k * k - 1.0))
+    out = []
+    for (cx, cy, _), shift, c, r in zip(balls[good], p[:, :2], cov, ratio):
+        if np.all(np.isfinite(c)) and np.linalg.det(c) > 0:
+            out.append(((float(cx), float(cy)), shift, c, float(r), k * k))
+    return out
+
+
+def _block_means(grey: np.ndarray) -> np.ndarray:
+    """``grey`` (uint8) in :data:`SUBSAMPLE` x :data:`SUBSAMPLE` block means (float32)."""
+    H, W = grey.shape
+    return cv2.resize(grey.astype(np.float32), (max(W // SUBSAMPLE, 1), max(H // SUBSAMPLE, 1)),
+                      interpolation=cv2.INTER_AREA)
 
 
 @lru_cache(maxsize=256)
