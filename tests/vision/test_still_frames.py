@@ -248,3 +248,16 @@ def test_a_detector_that_reads_no_image_gets_no_mean():
         trk = PoseTracker(fids, cam, detector=det, config=TrackerConfig(average_still_frames=8))
         assert trk.still_frames is None
     assert PoseTracker(fids, cam, detector=_Recorder(), config=TrackerConfig(average_still_frames=8)).still_frames
+
+
+def test_the_windows_tested_are_the_found_balls_and_the_refused_ones_of_a_balls_size():
+    from monotracker.vision.still_frames import ball_windows
+
+    acc = [ImageFiducial(np.array([100.0, 100.0]), (11.0, 10.0), 0.0, 1.0, 350.0),
+           ImageFiducial(np.array([200.0, 100.0]), (10.5, 10.0), 0.0, 1.0, 330.0)]
+    rej = [ImageFiducial(np.array([300.0, 100.0]), (12.0, 9.0), 0.0, 0.3, 340.0, "score 0.30"),    # a ball's size
+           ImageFiducial(np.array([400.0, 100.0]), (4.0, 3.0), 0.0, 0.3, 40.0, "score 0.30"),     # a fragment
+           ImageFiducial(np.array([500.0, 100.0]), (60.0, 40.0), 0.0, 0.0, 7000.0, "too large")]  # a drape
+    w = ball_windows(Detection(acc, rej, 0.0, "t"), None)
+    assert w.tolist() == [[100.0, 100.0, 10.0], [200.0, 100.0, 10.0], [300.0, 100.0, 9.0]]
+    assert ball_windows(Detection([], [], 0.0, "t"), None).shape == (0, 3)

@@ -60,6 +60,7 @@ from .camera_model import CameraModel
 from .centre_refiner import REFINED_BIAS_PER_RMS, REFINED_COMMON_PER_RMS
 from .frames import Frame, grayscale_problem
 from .sphere_outline import SphereEllipseCache
+from .still_frames import StillFrames, ball_windows
 
 SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "unknown", "moved"
 
@@ -411,24 +412,6 @@ class TrackerConfig:
                              f"not {self.shading_check_reading!r}")
 
 
-def _ball_windows(det, rules) -> np.ndarray:
-    """The balls of detection ``det`` whose windows :class:`~.still_frames.StillFrames` tests:
-    (m, 3) centre x, y and radius (px; the minor semi-axis), the accepted ones first, then the
-    refused candidates of a ball's size (within -25 / +35 % of the accepted balls' median minor
-    semi-axis; without accepted balls, ``rules.radius_range_px``)."""
-    acc = [(float(f.centre_px[0]), float(f.centre_px[1]), float(min(f.axes_px))) for f in det.fiducials]
-    if acc:
-        med = float(np.median([r for _, _, r in acc]))
-        lo, hi = 0.75 * med, 1.35 * med
-    elif hasattr(rules, "radius_range_px"):
-        lo, hi = 0.8 * float(rules.radius_range_px[0]), 1.2 * float(rules.radius_range_px[1])
-    else:
-        lo, hi = 0.0, np.inf
-    rej = [(float(f.centre_px[0]), float(f.centre_px[1]), float(min(f.axes_px))) for f in det.rejected
-           if lo <= float(min(f.axes_px)) <= hi]
-    return np.array(acc + rej, float).reshape(-1, 3)
-
-
 def _fiducials_used(n: int, remembered: int) -> str:
     """'7 fiducials' or '7 fiducials, 2 of them from the last frames' (a refusal's reason)."""
     return f"{n} fiducials" + (f", {remembered} of them from the last frames" if remembered else "")
@@ -545,8 +528,6 @@ class PoseTracker:
                                       min_agreeing=c.min_fiducials)
         #: the centre bias the trust model covers (None: the trust model before issue 28)
         self.centre_bias = centre_bias_of(self.detector) if c.centre_bias == "detector" else c.centre_bias
-        from .still_frames import StillFrames
-
         #: the mean of a still view's frames the detector reads (None: each frame as it is, or a
         #: detector that reads no image: ``reads_image`` False, e.g. given points)
         self.still_frames = StillFrames(c.average_still_frames) \
@@ -650,7 +631,7 @@ class PoseTracker:
         t_average = time.perf_counter() - t_avg0
         det = self.detector.detect(image, hint) if self._takes_hint else self.detector.detect(image)
         if self.still_frames is not None:
-            self._ball_windows = _ball_windows(det, getattr(self.detector, "rules", None))
+            self._ball_windows = ball_windows(det, getattr(self.detector, "rules", None))
         det = self.memory.fill(det, frame.index, frame.t_capture)
         remembered_det = np.array(["remembered_frames" in f.features for f in det.fiducials], bool)
         pts = det.centres

@@ -293,3 +293,22 @@ def _common_motion(where: np.ndarray, shifts: np.ndarray, infos: np.ndarray) -> 
         return 0.0, 0.0
     moved = np.einsum("mki,i->mk", J, theta)
     return float(theta @ F @ theta), float(np.hypot(moved[:, 0], moved[:, 1]).max())
+
+
+def ball_windows(det, rules) -> np.ndarray:
+    """The balls of detection ``det`` (:class:`~.detection.Detection`) whose windows
+    :meth:`StillFrames.add` tests in the next frame:
+    (m, 3) centre x, y and radius (px; the minor semi-axis), the accepted ones first, then the
+    refused candidates of a ball's size (within -25 / +35 % of the accepted balls' median minor
+    semi-axis; without accepted balls, ``rules.radius_range_px``)."""
+    acc = [(float(f.centre_px[0]), float(f.centre_px[1]), float(min(f.axes_px))) for f in det.fiducials]
+    if acc:
+        med = float(np.median([r for _, _, r in acc]))
+        lo, hi = 0.75 * med, 1.35 * med
+    elif hasattr(rules, "radius_range_px"):
+        lo, hi = 0.8 * float(rules.radius_range_px[0]), 1.2 * float(rules.radius_range_px[1])
+    else:
+        lo, hi = 0.0, np.inf
+    rej = [(float(f.centre_px[0]), float(f.centre_px[1]), float(min(f.axes_px))) for f in det.rejected
+           if lo <= float(min(f.axes_px)) <= hi]
+    return np.array(acc + rej, float).reshape(-1, 3)
