@@ -114,6 +114,14 @@ class ClassicalDetector:
         band = self.band() if band is None else band
         return cv2.morphologyEx(band.mask(image), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
 
+    def reads(self, hint: DetectionHint | None, shape) -> list | None:
+        """What :meth:`detect` reads of a frame of ``shape`` (h, w[, 3]) with ``hint``: the
+        search windows (x0, y0, x1, y1) px while the balls are tracked, None for the whole
+        frame (no hint, or one that asks for the whole frame)."""
+        if hint is not None and len(hint) > 0 and not hint.search_all:
+            return search_windows(hint, shape)
+        return None
+
     def detect(self, image: np.ndarray, hint: DetectionHint | None = None) -> Detection:
         """Balls in ``image`` (BGR uint8, the camera's full frame). ``hint``: the balls'
         predicted ellipses (:class:`~.detection.DetectionHint`): only windows around them are

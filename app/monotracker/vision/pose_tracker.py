@@ -627,7 +627,11 @@ class PoseTracker:
         if hint is None or hint.search_all:
             self._last_full_index = frame.index
         t_avg0 = time.perf_counter()
-        image = frame.image if self.still_frames is None else self.still_frames.add(frame.image, self._ball_windows)
+        image = frame.image
+        if self.still_frames is not None:
+            reads = getattr(self.detector, "reads", None)      # the detector's search windows, or the whole frame
+            region = reads(hint, frame.image.shape) if reads is not None and self._takes_hint else None
+            image = self.still_frames.add(frame.image, self._ball_windows, region)
         t_average = time.perf_counter() - t_avg0
         det = self.detector.detect(image, hint) if self._takes_hint else self.detector.detect(image)
         if self.still_frames is not None:

@@ -14,6 +14,8 @@ class RecordingDetector:
         self.det, self.log = det, []
         self.rules = getattr(det, "rules", None)
         self.reads_image = getattr(det, "reads_image", True)
+        if hasattr(det, "reads"):
+            self.reads = det.reads      # what it reads of a frame (the still-view mean keeps only that)
 
     def detect(self, image, hint=None):
         d = self.det.detect(image) if hint is None else self.det.detect(image, hint)

@@ -57,6 +57,8 @@ CHANGE_SIGMAS = 5.0
 CHANGED_SHARE = 0.02
 TILE_PX = 64
 SUBSAMPLE = 4
+#: search windows narrower than this (px) are not kept in the mean
+TILE_MIN_PX = 8
 #: ball windows: the ball's radius plus this margin (px; the edge and its blur)
 WINDOW_MARGIN_PX = 4.0
 #: the difference noise is at least this (DN: 8-bit quantisation) ...
@@ -105,21 +107,34 @@ class StillFrames:
         self._mean: np.ndarray | None = None     # (H, W, 3) float32 BGR
         self._sub: np.ndarray | None = None      # the mean's grey at every SUBSAMPLE-th pixel
         self._blocks: np.ndarray | None = None   # the mean's grey in SUBSAMPLE x SUBSAMPLE block means
+        self._partial = False                    # kept in the detector's boxes only since the last whole read
         self.n = 0
         self.last_reason = "first frame"
 
-    def add(self, image: np.ndarray, balls_px: np.ndarray) -> np.ndarray:
+    def add(self, image: np.ndarray, balls_px: np.ndarray, region: list | None = None) -> np.ndarray:
         """Join ``image`` (BGR uint8) to the mean if the view is still, else start the mean
         with it; the image to detect on (uint8, ``image`` itself when the mean holds one frame).
         ``balls_px``: (m, 3) float, the balls' centres and radii (px) that the last detection
-        found, accepted or refused (the windows whose shift is tested; may be empty)."""
+        found, accepted or refused (the windows whose shift is tested; may be empty).
+        ``region``: None (the detector reads the whole frame) or the boxes (x0, y0, x1, y1) px
+        that it reads (its search windows while the balls are tracked): the mean is then kept,
+        tested and given only there, at a fraction of the cost (the returned image is the frame
+        elsewhere), and the whole view is judged again at the next whole-frame read."""
         grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        sub = grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32)
         if self._mean is None or self._mean.shape != image.shape:
-            return self._start(image, grey, sub, "first frame" if self._mean is None else "frame size changed")
-        why, blocks = self._moved(grey, sub, np.asarray(balls_px, float).reshape(-1, 3))
+            return self._start(image, grey, "first frame" if self._mean is None else "frame size changed")
+        balls = np.asarray(balls_px, float).reshape(-1, 3)
+        if region is not None:
+            return self._add_in(image, grey, balls, [tuple(int(v) for v in b) for b in region])
+        if self._partial:      # kept in boxes only since: its grey summaries follow it again
+            mean_grey = self._mean @ GREY_BGR
+            self._sub = mean_grey[::SUBSAMPLE, ::SUBSAMPLE].copy()
+            self._blocks = cv2.resize(mean_grey, self._blocks.shape[::-1], interpolation=cv2.INTER_AREA)
+            self._partial = False
+        sub = grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32)
+        why, blocks = self._moved(grey, sub, balls)
         if why:
-            return self._start(image, grey, sub, why, blocks)
+            return self._start(image, grey, why, sub, blocks)
         self.n += 1
         alpha = 1.0 / min(self.n, self.max_frames)
         cv2.accumulateWeighted(image, self._mean, alpha)
@@ -128,12 +143,50 @@ class StillFrames:
         self.last_reason = ""
         return cv2.convertScaleAbs(self._mean)
 
-    def _start(self, image: np.ndarray, grey: np.ndarray, sub: np.ndarray, why: str, blocks=None) -> np.ndarray:
+    def _add_in(self, image: np.ndarray, grey: np.ndarray, balls: np.ndarray, boxes: list) -> np.ndarray:
+        """:meth:`add` for a detector that reads only ``boxes``: the same tests of the balls'
+        windows, the tile test in each box, the mean kept there."""
+        H, W = grey.shape
+        boxes = [(max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)) for x0, y0, x1, y1 in boxes]
+        boxes = [b for b in boxes if b[2] - b[0] >= TILE_MIN_PX and b[3] - b[1] >= TILE_MIN_PX]
+        if not boxes:
+            return image
+        means = [self._mean[y0:y1, x0:x1] for x0, y0, x1, y1 in boxes]
+        mean_greys = [m @ GREY_BGR for m in means]
+        diffs = [grey[y0:y1, x0:x1] - g for (x0, y0, x1, y1), g in zip(boxes, mean_greys)]
+        level = np.concatenate([g[::SUBSAMPLE, ::SUBSAMPLE].ravel() for g in mean_greys])
+        dsub = np.concatenate([d[::SUBSAMPLE, ::SUBSAMPLE].ravel() for d in diffs])
+        med = float(np.median(dsub))
+        why = self._balls_moved(grey, balls, med, self._noise_model(level, dsub - med))
+        if not why:
+            blocks = [_block_means(d, grey=False) - med for d in diffs]
+            levels = [_block_means(g, grey=False) for g in mean_greys]
+            block_noise = self._noise_model(np.concatenate([v.ravel() for v in levels]),
+                                            np.concatenate([b.ravel() for b in blocks]))
+            for (x0, y0, _, _), b, lv in zip(boxes, blocks, levels):
+                share = float(np.mean(np.abs(b) > self.change_sigmas * block_noise(lv)))
+                if share > self.changed_share:
+                    why = f"{100 * share:.0f} % of the search window at ({x0}, {y0}) px changed"
+                    break
+        if why:
+            return self._start(image, grey, why)
+        self.n += 1
+        self._partial = True
+        alpha = np.float32(1.0 / min(self.n, self.max_frames))
+        out = image.copy()
+        for (x0, y0, x1, y1), m in zip(boxes, means):
+            m += alpha * (image[y0:y1, x0:x1] - m)
+            out[y0:y1, x0:x1] = np.clip(m + 0.5, 0, 255).astype(np.uint8)
+        self.last_reason = ""
+        return out
+
+    def _start(self, image: np.ndarray, grey: np.ndarray, why: str, sub=None, blocks=None) -> np.ndarray:
         if self._mean is None or self._mean.shape != image.shape:
             self._mean = np.empty(image.shape, np.float32)
         np.copyto(self._mean, image, casting="unsafe")
-        self._sub = sub
+        self._sub = grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32) if sub is None else sub
         self._blocks = _block_means(grey) if blocks is None else blocks
+        self._partial = False
         self.n = 1
         self.last_reason = why
         return image
@@ -142,6 +195,8 @@ class StillFrames:
         """Why ``image`` (BGR uint8) would not join the mean ("" = it would; see the module
         docstring). The mean is not changed."""
         grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        if self._partial:
+            raise RuntimeError("the mean is kept in search windows only: judge the whole view with add()")
         return self._moved(grey, grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32),
                            np.asarray(balls_px, float).reshape(-1, 3))[0]
 
@@ -150,22 +205,9 @@ class StillFrames:
         means when they were computed, else None)."""
         sub_diff = sub - self._sub
         med = float(np.median(sub_diff[::2, ::2]))
-        noise_of = self._noise_model(self._sub, sub_diff - med)
-        # the balls first: a moving head fails here, at its first window
-        shifts, infos, where = [], [], []
-        for (cx, cy), shift, cov, resid_ratio, nblocks in _window_fits(self._mean, grey, balls_px, med, noise_of):
-            if resid_ratio > self.residual_ratio:
-                return f"a ball's window changed at ({cx:.0f}, {cy:.0f}) px", None
-            info = np.linalg.inv(cov)
-            if float(shift @ info @ shift) > _shift_limit2(nblocks, self.shift_false_alarm):
-                return f"a ball moved {float(np.hypot(*shift)):.2f} px at ({cx:.0f}, {cy:.0f}) px", None
-            shifts.append(shift)
-            infos.append(info)
-            where.append((cx, cy))
-        if shifts:
-            chi2, moved_px = _common_motion(np.array(where), np.array(shifts), np.array(infos))
-            if chi2 > (MOTION_CHI2_4 if len(shifts) >= 3 else MOTION_CHI2_2):
-                return f"the balls moved together (up to {moved_px:.2f} px)", None
+        why = self._balls_moved(grey, balls_px, med, self._noise_model(self._sub, sub_diff - med))
+        if why:
+            return why, None
         # then the whole view, in block means (a demosaic's single-pixel flips average out)
         blocks = _block_means(grey)
         blocks_diff = blocks - self._blocks - med
@@ -178,6 +220,24 @@ class StillFrames:
                 return f"{100 * float(share.max()):.0f} % of a tile changed", blocks
         return "", blocks
 
+    def _balls_moved(self, grey: np.ndarray, balls_px: np.ndarray, med: float, noise_of) -> str:
+        """The tests of the balls' windows (see the module docstring): why they fail, or ""."""
+        shifts, infos, where = [], [], []
+        for (cx, cy), shift, cov, resid_ratio, nblocks in _window_fits(self._mean, grey, balls_px, med, noise_of):
+            if resid_ratio > self.residual_ratio:
+                return f"a ball's window changed at ({cx:.0f}, {cy:.0f}) px"
+            info = np.linalg.inv(cov)
+            if float(shift @ info @ shift) > _shift_limit2(nblocks, self.shift_false_alarm):
+                return f"a ball moved {float(np.hypot(*shift)):.2f} px at ({cx:.0f}, {cy:.0f}) px"
+            shifts.append(shift)
+            infos.append(info)
+            where.append((cx, cy))
+        if shifts:
+            chi2, moved_px = _common_motion(np.array(where), np.array(shifts), np.array(infos))
+            if chi2 > (MOTION_CHI2_4 if len(shifts) >= 3 else MOTION_CHI2_2):
+                return f"the balls moved together (up to {moved_px:.2f} px)"
+        return ""
+
     @staticmethod
     def _noise_model(level: np.ndarray, diff: np.ndarray):
         """sigma(grey level) of the difference ``diff`` (DN) between a frame and the mean, from
@@ -186,7 +246,8 @@ class StillFrames:
         median would read the 8-bit steps of a quiet sensor's difference as no noise at all),
         as a Gaussian's sigma; a function of a level array (float32 DN, at least
         :data:`MIN_NOISE_DN`)."""
-        level, diff = level[::2, ::2], diff[::2, ::2]     # a quarter of them measures it well enough
+        # a quarter of them measures it well enough
+        level, diff = (level[::2, ::2], diff[::2, ::2]) if level.ndim == 2 else (level[::4], diff[::4])
         lv = np.clip((level.ravel() * (NOISE_BINS / 256.0)).astype(np.int32), 0, NOISE_BINS - 1)
         ad = np.minimum((np.abs(diff.ravel()) * (1.0 / NOISE_STEP_DN)).astype(np.int32), NOISE_STEPS - 1)
         hist = np.bincount(lv * NOISE_STEPS + ad, minlength=NOISE_BINS * NOISE_STEPS).reshape(NOISE_BINS, NOISE_STEPS)
@@ -255,10 +316,11 @@ def _window_fits(mean: np.ndarray, grey: np.ndarray, balls_px: np.ndarray, offse
     return out
 
 
-def _block_means(grey: np.ndarray) -> np.ndarray:
-    """``grey`` (uint8) in :data:`SUBSAMPLE` x :data:`SUBSAMPLE` block means (float32)."""
-    H, W = grey.shape
-    return cv2.resize(grey.astype(np.float32), (max(W // SUBSAMPLE, 1), max(H // SUBSAMPLE, 1)),
+def _block_means(img: np.ndarray, grey: bool = True) -> np.ndarray:
+    """``img`` in :data:`SUBSAMPLE` x :data:`SUBSAMPLE` block means (float32): a uint8 grey frame
+    (``grey``), or any float32 array."""
+    H, W = img.shape[:2]
+    return cv2.resize(img.astype(np.float32) if grey else img, (max(W // SUBSAMPLE, 1), max(H // SUBSAMPLE, 1)),
                       interpolation=cv2.INTER_AREA)
 
 
