@@ -261,3 +261,69 @@ def test_the_windows_tested_are_the_found_balls_and_the_refused_ones_of_a_balls_
     w = ball_windows(Detection(acc, rej, 0.0, "t"), None)
     assert w.tolist() == [[100.0, 100.0, 10.0], [200.0, 100.0, 10.0], [300.0, 100.0, 9.0]]
     assert ball_windows(Detection([], [], 0.0, "t"), None).shape == (0, 3)
+
+
+#: search windows round balls 1, 4 and 7 (x0, y0, x1, y1 px), as a tracked detector reads them
+BOXES = [(290, 50, 350, 110), (300, 150, 360, 210), (280, 250, 340, 310)]
+
+
+def test_in_the_detectors_windows_the_mean_is_kept_there_only():
+    lin = _scene(BALLS)
+    truth = _truth_bgr(lin)
+    sf = StillFrames(max_frames=8)
+    sf.add(_camera(lin, 0), BALLS)                      # a whole-frame read starts it
+    for k in range(1, 8):
+        frame = _camera(lin, k)
+        out = sf.add(frame, BALLS[[1, 4, 7]], region=BOXES)
+        assert sf.n == k + 1 and sf.last_reason == "", sf.last_reason
+    inside = np.zeros((H, W), bool)
+    for x0, y0, x1, y1 in BOXES:
+        inside[y0:y1, x0:x1] = True
+    assert np.array_equal(out[~inside], frame[~inside])          # the frame itself outside
+    err_in = float(np.std(out[inside].astype(np.float32) - truth[inside]))
+    err_frame = float(np.std(frame[inside].astype(np.float32) - truth[inside]))
+    assert err_in < 0.45 * err_frame, (err_in, err_frame)          # the mean of 8 inside
+
+
+def test_a_change_outside_the_windows_is_judged_at_the_next_whole_frame_read():
+    sf = StillFrames(max_frames=8)
+    sf.add(_camera(_scene(BALLS), 0), BALLS)
+    changed = _scene(BALLS, patch=(400, 220, 460, 250))              # outside every box
+    for k in range(1, 4):
+        sf.add(_camera(changed, k), BALLS[[1, 4, 7]], region=BOXES)
+    assert sf.n == 4                                                  # the detector did not read it
+    sf.add(_camera(changed, 9), BALLS)                                # a whole-frame read
+    assert sf.n == 1 and "tile changed" in sf.last_reason, sf.last_reason
+
+
+def test_a_change_inside_a_window_away_from_the_balls_starts_the_mean_again():
+    sf = StillFrames(max_frames=8)
+    sf.add(_camera(_scene(BALLS), 0), BALLS)
+    sf.add(_camera(_scene(BALLS), 1), BALLS[[1, 4, 7]], region=BOXES)
+    sf.add(_camera(_scene(BALLS, patch=(292, 52, 305, 75)), 2), BALLS[[1, 4, 7]], region=BOXES)
+    assert sf.n == 1 and sf.last_reason, sf.last_reason
+
+
+def test_the_tracker_keeps_the_mean_where_its_detector_reads():
+    """A detector that says what it reads (``reads(hint, shape)``, as the classical detector's
+    search windows while tracked) gets the mean there and the frame elsewhere."""
+    from monotracker.vision.camera_model import CameraModel
+    from monotracker.vision.pose_tracker import PoseTracker, TrackerConfig
+
+    class Windowed(_Recorder):
+        def reads(self, hint, shape):
+            return BOXES
+
+    cam = CameraModel(np.array([[600.0, 0, W / 2], [0, 600.0, H / 2], [0, 0, 1]]), np.zeros(5), (W, H))
+    fids = np.array([[x, y, 0.0] for x, y, _ in BALLS[:5]]) * 0.1
+    frames = [_camera(_scene(BALLS), k) for k in range(4)]
+    rec = Windowed()
+    trk = PoseTracker(fids, cam, detector=rec, config=TrackerConfig(average_still_frames=8))
+    for k, f in enumerate(frames):
+        trk.process(Frame(f, k / 30, k, None))
+    inside = np.zeros((H, W), bool)
+    for x0, y0, x1, y1 in BOXES:
+        inside[y0:y1, x0:x1] = True
+    assert trk.still_frames.n == 4
+    assert np.array_equal(rec.images[-1][~inside], frames[-1][~inside])
+    assert not np.array_equal(rec.images[-1][inside], frames[-1][inside])
