@@ -169,7 +169,7 @@ class StillFrames:
                     why = f"{100 * share:.0f} % of the search window at ({x0}, {y0}) px changed"
                     break
         if why:
-            return self._start(image, grey, why)
+            return self._start(image, grey, why, boxes=boxes)
         self.n += 1
         self._partial = True
         alpha = np.float32(1.0 / min(self.n, self.max_frames))
@@ -180,7 +180,16 @@ class StillFrames:
         self.last_reason = ""
         return out
 
-    def _start(self, image: np.ndarray, grey: np.ndarray, why: str, sub=None, blocks=None) -> np.ndarray:
+    def _start(self, image: np.ndarray, grey: np.ndarray, why: str, sub=None, blocks=None, boxes=None) -> np.ndarray:
+        if boxes is not None and self._mean is not None and self._mean.shape == image.shape:
+            # the detector reads these boxes only: the mean starts there (the rest is judged at
+            # the next whole-frame read, against what the mean held there)
+            for x0, y0, x1, y1 in boxes:
+                self._mean[y0:y1, x0:x1] = image[y0:y1, x0:x1]
+            self._partial = True
+            self.n = 1
+            self.last_reason = why
+            return image
         if self._mean is None or self._mean.shape != image.shape:
             self._mean = np.empty(image.shape, np.float32)
         np.copyto(self._mean, image, casting="unsafe")
