@@ -200,15 +200,6 @@ class StillFrames:
         self.last_reason = why
         return image
 
-    def moved(self, image: np.ndarray, balls_px: np.ndarray) -> str:
-        """Why ``image`` (BGR uint8) would not join the mean ("" = it would; see the module
-        docstring). The mean is not changed."""
-        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        if self._partial:
-            raise RuntimeError("the mean is kept in search windows only: judge the whole view with add()")
-        return self._moved(grey, grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32),
-                           np.asarray(balls_px, float).reshape(-1, 3))[0]
-
     def _moved(self, grey: np.ndarray, sub: np.ndarray, balls_px: np.ndarray) -> tuple[str, np.ndarray | None]:
         """(why the frame of ``grey`` (uint8) does not join the mean, "" if it does; its block
         means when they were computed, else None)."""
