@@ -28,8 +28,10 @@ def _pct(a):
             "p99": round(float(np.percentile(a, 99)), 3)}
 
 
-def stage_case(radius_px: float, hd: bool, n: int) -> dict:
-    """Per stage (ms) of the app's pose tracker on ``n`` photo-like frames of a breathing head."""
+def stage_case(radius_px: float, hd: bool, n: int, head: str = "breathing", average: int = 0) -> dict:
+    """Per stage (ms) of the app's pose tracker on ``n`` photo-like frames of a ``head``
+    ("breathing" or "still"); ``average``: the tracker's ``average_still_frames`` (0: this
+    tree's default config)."""
     from detect_budget import _rules, make_frames
 
     from monotracker.engine.config import SessionConfig
@@ -38,7 +40,7 @@ def stage_case(radius_px: float, hd: bool, n: int) -> dict:
     from monotracker.vision.frames import Frame
     from monotracker.vision.pose_tracker import PoseTracker
 
-    cam, frames = make_frames(radius_px, "breathing", n, hd)
+    cam, frames = make_frames(radius_px, head, n, hd)
     every = int(getattr(SessionConfig(), "camera_motion_every", 0))   # as this tree's app builds it
     watch = None
     if every > 0:
@@ -48,8 +50,13 @@ def stage_case(radius_px: float, hd: bool, n: int) -> dict:
         if hasattr(cm, "DeferredMotionWatch"):   # as the app's rigs build it: a due check after the pose
             watch = cm.DeferredMotionWatch(watch)
     ph = cam.phantom
+    extra = {}
+    if average:
+        from monotracker.vision.pose_tracker import TrackerConfig
+
+        extra["config"] = TrackerConfig(average_still_frames=average)
     trk = PoseTracker(cam.fiducials_ct, cam.camera, detector=ClassicalDetector(_rules(radius_px, cam)),
-                      radius_mm=ph.fiducial_radius_mm, target_ct=ph.sample_target_lps, camera_motion=watch)
+                      radius_mm=ph.fiducial_radius_mm, target_ct=ph.sample_target_lps, camera_motion=watch, **extra)
     ids = list(range(len(cam.fiducials_ct)))
     rows, ok, errs = [], 0, []
     for i, (img, tr) in enumerate(frames):
@@ -81,7 +88,7 @@ def stage_case(radius_px: float, hd: bool, n: int) -> dict:
     return out
 
 
-def demo(trajectory: str, seconds: float, home: Path) -> dict:
+def demo(trajectory: str, seconds: float, home: Path, average: int = 0) -> dict:
     """The headless demo (simulated clock) with a listener for pose age and tracking after lock."""
     from monotracker.demo.run import DemoOptions, run_demo
 
@@ -104,7 +111,9 @@ def demo(trajectory: str, seconds: float, home: Path) -> dict:
             ticks.append((t, st.state if st is not None else "disarmed", age))
         s.add_tick_listener(tick)
 
-    r = run_demo(DemoOptions(seconds=seconds, trajectory=trajectory, home=home), on_tracking=on_tracking)
+    over = {"average_still_frames": average} if average else {}
+    r = run_demo(DemoOptions(seconds=seconds, trajectory=trajectory, home=home, config_overrides=over),
+                 on_tracking=on_tracking)
     ages = [a for _, _, a in ticks if a is not None]
     dr = [sum(s.get(k, 0.0) for k in ("hint", "detect", "register", "screen", "gates")) for s in stages if "detect" in s]
     codes = sorted({a["code"] for a in r["alerts"]} - {"fiducial_unverified"})
@@ -130,17 +139,19 @@ def main():
     ap.add_argument("--seconds", type=float, default=6.0)
     ap.add_argument("--cases", default="720:13,720:20,1080:20")
     ap.add_argument("--home", required=True)
+    ap.add_argument("--head", default="breathing", choices=("breathing", "still"))
+    ap.add_argument("--average", type=int, default=0)
     a = ap.parse_args()
     out = {"stages": {}, "demo": {}}
     for case in a.cases.split(","):
         res, r = case.split(":")
         hd = res == "1080"
         r_px = float(r) / (1.5 if hd else 1.0)      # make_frames' radius is at 720p
-        out["stages"][f"{res}p {r}px"] = stage_case(r_px, hd, a.frames)
+        out["stages"][f"{res}p {r}px"] = stage_case(r_px, hd, a.frames, a.head, a.average)
     for traj in ("still", "breathing"):
         home = Path(tempfile.mkdtemp(prefix="mt_pose_rate_demo_"))
         shutil.copy(Path(a.home) / "plan.json", home / "plan.json")
-        out["demo"][traj] = demo(traj, a.seconds, home)
+        out["demo"][traj] = demo(traj, a.seconds, home, a.average)
     print(json.dumps(out))
 
 

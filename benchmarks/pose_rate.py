@@ -32,9 +32,13 @@ exported with ``git archive`` into a temporary folder; each runs ``_pose_rate_ch
 own process with its own ``app`` on PYTHONPATH.
 
 Usage: ``/work/bin/cpu --quiet .venv/bin/python benchmarks/pose_rate.py [--quick] [--json]
-[--baseline COMMIT]``; the last line is JSON with ``detect_register_ms_median`` (720p, worst
-ball size), ``fps``, ``tracking_fraction`` (breathing demo, quiet) for this checkout, and every
-figure of both trees.
+[--baseline COMMIT] [--head still] [--average N]``; the last line is JSON with
+``detect_register_ms_median`` (720p, worst ball size), ``fps``, ``tracking_fraction``
+(breathing demo, quiet) for this checkout (and ``..._average`` for ``--average``), and every
+figure of every tree. ``--average N`` adds this checkout with the opt-in still-view mean of N
+frames (``TrackerConfig.average_still_frames``, ``SessionConfig.average_still_frames``): the
+row "ours avg=N"; ``--head still`` streams a still head in the stage cases (the mean is then
+kept and tested every frame, its dearest case; a breathing head restarts it at most frames).
 """
 
 from __future__ import annotations
@@ -71,12 +75,14 @@ def export_tree(commit: str) -> Path | None:
     return dest
 
 
-def run_child(app: Path, home: Path, args, hogs: int) -> dict | None:
+def run_child(app: Path, home: Path, args, hogs: int, average: int = 0) -> dict | None:
     from _hogs import hogs as hog_procs
 
     env = dict(os.environ, PYTHONPATH=str(app))
     cmd = [sys.executable, str(HERE / "_pose_rate_child.py"), "--home", str(home), "--frames", str(args.frames),
-           "--seconds", str(args.seconds), "--cases", args.cases]
+           "--seconds", str(args.seconds), "--cases", args.cases, "--head", args.head]
+    if average:
+        cmd += ["--average", str(average)]
     with hog_procs(hogs):
         p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=str(REPO))
     if p.returncode != 0:
@@ -101,24 +107,31 @@ def main(argv=None):
     ap.add_argument("--json", action="store_true", help="(the last line is JSON either way)")
     ap.add_argument("--baseline", default=BASELINE, help=f"baseline commit (default {BASELINE})")
     ap.add_argument("--no-hogs", action="store_true", help="quiet runs only")
+    ap.add_argument("--head", default="breathing", choices=("breathing", "still"),
+                    help="the stage cases' head (default breathing; still: what the still-view mean costs most)")
+    ap.add_argument("--average", type=int, default=0, metavar="N",
+                    help="also this checkout with the opt-in still-view mean of N frames "
+                         "(TrackerConfig.average_still_frames; the row 'ours avg=N')")
     a = ap.parse_args(argv)
     a.frames, a.seconds = (60, 4.0) if a.quick else (150, 6.0)
     a.cases = "720:8,720:13,720:20,1080:20"
     print(f"pose rate: {a.frames} frames per stage case, {a.seconds:g} s demos; {os.cpu_count()} CPUs, "
           f"load {os.getloadavg()[0]:.2f} at the start (run it under `cpu --quiet`)")
     home = planned_home("mt_pose_rate_plan_")
-    trees = [("ours", REPO / "app")]
+    trees = [("ours", REPO / "app", 0)]
+    if a.average:
+        trees.append((f"ours avg={a.average}", REPO / "app", a.average))
     base = export_tree(a.baseline)
     if base is not None:
-        trees.insert(0, (f"base {a.baseline}", base / "app"))
+        trees.insert(0, (f"base {a.baseline}", base / "app", 0))
     results = {}
     for hogs in ((0,) if a.no_hogs else (0, 4)):
-        for name, app in trees:
+        for name, app, average in trees:
             t0 = time.time()
             print(f"  {name}, {hogs} hogs ...", flush=True)
-            results[(name, hogs)] = run_child(app, home, a, hogs)
+            results[(name, hogs)] = run_child(app, home, a, hogs, average)
             print(f"    ({time.time() - t0:.0f} s, load {os.getloadavg()[0]:.2f})", flush=True)
-    print("\nPer stage, ms median/p99 (wall, one thread), photo-like frames, breathing head:")
+    print(f"\nPer stage, ms median/p99 (wall, one thread), photo-like frames, {a.head} head:")
     stages = ("read", "hint", "average", "detect", "register", "screen", "gates", "motion", "other", "publish",
               "after", "detect_register")
     print(f"{'case':<14} {'tree':<13} {'hogs':>4} " + " ".join(f"{s[:9]:>11}" for s in stages)
@@ -151,6 +164,10 @@ def main(argv=None):
     out = {"detect_register_ms_median": max(dr) if dr else None, "fps": br.get("fps"),
            "tracking_fraction": br.get("tracking_fraction"), "baseline": a.baseline,
            "runs": {f"{n} hogs={h}": r for (n, h), r in results.items()}}
+    if a.average:
+        avg = results.get((f"ours avg={a.average}", 0)) or {}
+        dr = [st["detect_register"]["p50"] for c, st in avg.get("stages", {}).items() if c.startswith("720p")]
+        out["detect_register_ms_median_average"] = max(dr) if dr else None
     print(json.dumps(out))
 
 

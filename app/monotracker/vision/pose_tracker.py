@@ -393,10 +393,13 @@ class TrackerConfig:
     #: the noise alone refuses. Rendered held-out scenes scored once against a rule written before
     #: (planner's 12- and 9-ball plans, 40 scenes x 4 conditions, 30-frame still streams): through
     #: the session's gate 628 -> 732 trusted frames, 1-2 mm off 1 -> 1, none over 2 mm; degraded
-    #: frames 117 -> 193. NOT the default for its cost: 2.3-3.4 ms a 720p frame (4.6 at 1080p)
-    #: with the mean kept in the detector's search windows while tracked, which takes detection +
-    #: registration over issue 29's 10 ms median at 720p (benchmarks/pose_rate.py). docs/vision.md
-    #: "A still view's frames averaged"
+    #: frames 117 -> 193. A second fresh held-out set (fresh34, thirty-fourth session): 588 ->
+    #: 621 gate frames (+5.6 %, its rule asked +10 %), none 1-2 mm or over 2 mm with it; OR
+    #: scenes lose frames (the mean has one draw of the noise, single frames many). Cost, kept in
+    #: the detector's search windows while tracked: +0.7-1.2 ms a 720p frame for a breathing head,
+    #: +1.4-2.2 ms for a still one (8-20 px balls, paired in one process; benchmarks/pose_rate.py
+    #: --average 8). Opt-in: SessionConfig.average_still_frames, ``serve --average-still-frames``.
+    #: docs/vision.md "A still view's frames averaged"
     average_still_frames: int = 0
 
     def __post_init__(self):

@@ -17,11 +17,14 @@ compared with the mean before it joins it (grey levels, DN):
   from this frame;
 * **something changed in a ball's window** (a finger or an instrument coming in, a lamp on the
   ball): the fit's mean squared residual over ``residual_ratio`` x the difference noise's;
-* **something changed anywhere**: in any 64 px tile, more than ``changed_share`` of the
-  (4x subsampled) pixels differ from the mean by over ``change_sigmas`` x the difference noise.
+* **something changed anywhere**: in any 64 px tile (or, while the detector reads only its
+  search windows, in any of them), more than ``changed_share`` of the 4 x 4 px block means
+  differ from the mean's by over ``change_sigmas`` x their difference noise.
 
 The difference noise is measured in each frame: the robust spread of the difference in bins of
-the mean's grey level (shot noise grows with the light), the shift fits weighted by it.
+the mean's grey level (shot noise grows with the light): in the balls' windows for the shift
+fits (each pixel weighted by it), in the block means for the change test; each after removing
+the median difference (a lamp's or the exposure's small common change).
 
 A moving head therefore gets single frames, as without the mean; a head drifting slower than the
 tests see (under ~0.05 px for the balls together since the mean started) gets a mean that lags
@@ -47,6 +50,7 @@ SHIFT_FALSE_ALARM = 1e-5
 MAX_WINDOWS = 40
 #: OpenCV's grey from BGR (cv2.COLOR_BGR2GRAY)
 GREY_BGR = np.array([0.114, 0.587, 0.299], np.float32)
+GREY_ROW = GREY_BGR.reshape(1, 3)   # the same for cv2.transform
 #: a ball window's fit residual (mean square, in units of the difference noise's variance) over
 #: this: something changed there (still frames: 0.9-2.6 on the rendered tuning sets, JPEG's
 #: ringing at the balls' edges above 1)
@@ -105,7 +109,6 @@ class StillFrames:
     def reset(self) -> None:
         """Forget the mean (the next frame starts it)."""
         self._mean: np.ndarray | None = None     # (H, W, 3) float32 BGR
-        self._sub: np.ndarray | None = None      # the mean's grey at every SUBSAMPLE-th pixel
         self._blocks: np.ndarray | None = None   # the mean's grey in SUBSAMPLE x SUBSAMPLE block means
         self._partial = False                    # kept in the detector's boxes only since the last whole read
         self.n = 0
@@ -120,67 +123,68 @@ class StillFrames:
         that it reads (its search windows while the balls are tracked): the mean is then kept,
         tested and given only there, at a fraction of the cost (the returned image is the frame
         elsewhere), and the whole view is judged again at the next whole-frame read."""
-        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         if self._mean is None or self._mean.shape != image.shape:
-            return self._start(image, grey, "first frame" if self._mean is None else "frame size changed")
+            return self._start(image, cv2.cvtColor(image, cv2.COLOR_BGR2GRAY),
+                               "first frame" if self._mean is None else "frame size changed")
         balls = np.asarray(balls_px, float).reshape(-1, 3)
         if region is not None:
-            return self._add_in(image, grey, balls, [tuple(int(v) for v in b) for b in region])
-        if self._partial:      # kept in boxes only since: its grey summaries follow it again
-            mean_grey = self._mean @ GREY_BGR
-            self._sub = mean_grey[::SUBSAMPLE, ::SUBSAMPLE].copy()
-            self._blocks = cv2.resize(mean_grey, self._blocks.shape[::-1], interpolation=cv2.INTER_AREA)
+            return self._add_in(image, balls, [tuple(int(v) for v in b) for b in region])
+        grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        if self._partial:      # kept in boxes only since: its grey block means follow it again
+            self._blocks = cv2.resize(cv2.transform(self._mean, GREY_ROW), self._blocks.shape[::-1],
+                                      interpolation=cv2.INTER_AREA)
             self._partial = False
-        sub = grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32)
-        why, blocks = self._moved(grey, sub, balls)
+        why, blocks = self._moved(image, grey, balls)
         if why:
-            return self._start(image, grey, why, sub, blocks)
+            return self._start(image, grey, why, blocks)
         self.n += 1
         alpha = 1.0 / min(self.n, self.max_frames)
         cv2.accumulateWeighted(image, self._mean, alpha)
-        cv2.accumulateWeighted(sub, self._sub, alpha)
         cv2.accumulateWeighted(blocks, self._blocks, alpha)
         self.last_reason = ""
         return cv2.convertScaleAbs(self._mean)
 
-    def _add_in(self, image: np.ndarray, grey: np.ndarray, balls: np.ndarray, boxes: list) -> np.ndarray:
+    def _add_in(self, image: np.ndarray, balls: np.ndarray, boxes: list) -> np.ndarray:
         """:meth:`add` for a detector that reads only ``boxes``: the same tests of the balls'
-        windows, the tile test in each box, the mean kept there."""
-        H, W = grey.shape
+        windows, the tile test in each box, the mean kept there (the frame's grey is only
+        computed there)."""
+        H, W = image.shape[:2]
         boxes = [(max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)) for x0, y0, x1, y1 in boxes]
         boxes = [b for b in boxes if b[2] - b[0] >= TILE_MIN_PX and b[3] - b[1] >= TILE_MIN_PX]
         if not boxes:
             return image
         means = [self._mean[y0:y1, x0:x1] for x0, y0, x1, y1 in boxes]
-        mean_greys = [m @ GREY_BGR for m in means]
-        diffs = [grey[y0:y1, x0:x1] - g for (x0, y0, x1, y1), g in zip(boxes, mean_greys)]
-        level = np.concatenate([g[::SUBSAMPLE, ::SUBSAMPLE].ravel() for g in mean_greys])
-        dsub = np.concatenate([d[::SUBSAMPLE, ::SUBSAMPLE].ravel() for d in diffs])
-        med = float(np.median(dsub))
-        why = self._balls_moved(grey, balls, med, self._noise_model(level, dsub - med))
-        if not why:
-            blocks = [_block_means(d, grey=False) - med for d in diffs]
-            levels = [_block_means(g, grey=False) for g in mean_greys]
-            block_noise = self._noise_model(np.concatenate([v.ravel() for v in levels]),
-                                            np.concatenate([b.ravel() for b in blocks]))
-            for (x0, y0, _, _), b, lv in zip(boxes, blocks, levels):
-                share = float(np.mean(np.abs(b) > self.change_sigmas * block_noise(lv)))
-                if share > self.changed_share:
-                    why = f"{100 * share:.0f} % of the search window at ({x0}, {y0}) px changed"
-                    break
+        why = self._balls_moved(image, balls)
+        if not why:      # then each box, in block means (the frame's grey only computed there)
+            levels, blocks = [], []
+            for (x0, y0, x1, y1), m in zip(boxes, means):
+                size = (max((x1 - x0) // SUBSAMPLE, 1), max((y1 - y0) // SUBSAMPLE, 1))
+                levels.append(cv2.transform(cv2.resize(m, size, interpolation=cv2.INTER_AREA), GREY_ROW).ravel())
+                d = cv2.subtract(image[y0:y1, x0:x1], m, dtype=cv2.CV_32F)
+                blocks.append(cv2.transform(cv2.resize(d, size, interpolation=cv2.INTER_AREA), GREY_ROW).ravel())
+            flat_blocks = np.concatenate(blocks)
+            flat_blocks -= np.float32(_median(flat_blocks))
+            flat_levels = np.concatenate(levels)
+            big = np.abs(flat_blocks) > self.change_sigmas * self._noise_model(flat_levels, flat_blocks)(flat_levels)
+            sizes = np.array([b.size for b in blocks])
+            shares = np.add.reduceat(big, np.cumsum(sizes) - sizes) / sizes      # per box
+            worst = int(np.argmax(shares))
+            if float(shares[worst]) > self.changed_share:
+                why = (f"{100 * float(shares[worst]):.0f} % of the search window at "
+                       f"({boxes[worst][0]}, {boxes[worst][1]}) px changed")
         if why:
-            return self._start(image, grey, why, boxes=boxes)
+            return self._start(image, None, why, boxes=boxes)
         self.n += 1
         self._partial = True
-        alpha = np.float32(1.0 / min(self.n, self.max_frames))
+        alpha = 1.0 / min(self.n, self.max_frames)
         out = image.copy()
         for (x0, y0, x1, y1), m in zip(boxes, means):
-            m += alpha * (image[y0:y1, x0:x1] - m)
-            out[y0:y1, x0:x1] = np.clip(m + 0.5, 0, 255).astype(np.uint8)
+            cv2.accumulateWeighted(image[y0:y1, x0:x1], m, alpha)
+            out[y0:y1, x0:x1] = cv2.convertScaleAbs(m)
         self.last_reason = ""
         return out
 
-    def _start(self, image: np.ndarray, grey: np.ndarray, why: str, sub=None, blocks=None, boxes=None) -> np.ndarray:
+    def _start(self, image: np.ndarray, grey: np.ndarray | None, why: str, blocks=None, boxes=None) -> np.ndarray:
         if boxes is not None and self._mean is not None and self._mean.shape == image.shape:
             # the detector reads these boxes only: the mean starts there (the rest is judged at
             # the next whole-frame read, against what the mean held there)
@@ -193,24 +197,22 @@ class StillFrames:
         if self._mean is None or self._mean.shape != image.shape:
             self._mean = np.empty(image.shape, np.float32)
         np.copyto(self._mean, image, casting="unsafe")
-        self._sub = grey[::SUBSAMPLE, ::SUBSAMPLE].astype(np.float32) if sub is None else sub
         self._blocks = _block_means(grey) if blocks is None else blocks
         self._partial = False
         self.n = 1
         self.last_reason = why
         return image
 
-    def _moved(self, grey: np.ndarray, sub: np.ndarray, balls_px: np.ndarray) -> tuple[str, np.ndarray | None]:
-        """(why the frame of ``grey`` (uint8) does not join the mean, "" if it does; its block
-        means when they were computed, else None)."""
-        sub_diff = sub - self._sub
-        med = float(np.median(sub_diff[::2, ::2]))
-        why = self._balls_moved(grey, balls_px, med, self._noise_model(self._sub, sub_diff - med))
+    def _moved(self, image: np.ndarray, grey: np.ndarray, balls_px: np.ndarray) -> tuple[str, np.ndarray | None]:
+        """(why ``image`` (BGR uint8; ``grey`` its grey) does not join the mean, "" if it does;
+        its block means when they were computed, else None)."""
+        why = self._balls_moved(image, balls_px)
         if why:
             return why, None
         # then the whole view, in block means (a demosaic's single-pixel flips average out)
         blocks = _block_means(grey)
-        blocks_diff = blocks - self._blocks - med
+        blocks_diff = blocks - self._blocks
+        blocks_diff -= np.float32(_median(blocks_diff[::2, ::2].ravel()))
         big = np.abs(blocks_diff) > self.change_sigmas * self._noise_model(self._blocks, blocks_diff)(self._blocks)
         t = TILE_PX // SUBSAMPLE
         h, w = (big.shape[0] // t) * t, (big.shape[1] // t) * t
@@ -220,100 +222,115 @@ class StillFrames:
                 return f"{100 * float(share.max()):.0f} % of a tile changed", blocks
         return "", blocks
 
-    def _balls_moved(self, grey: np.ndarray, balls_px: np.ndarray, med: float, noise_of) -> str:
-        """The tests of the balls' windows (see the module docstring): why they fail, or ""."""
-        shifts, infos, where = [], [], []
-        for (cx, cy), shift, cov, resid_ratio, nblocks in _window_fits(self._mean, grey, balls_px, med, noise_of):
-            if resid_ratio > self.residual_ratio:
+    def _balls_moved(self, image: np.ndarray, balls_px: np.ndarray) -> str:
+        """The tests of the balls' windows in ``image`` (BGR uint8; see the module docstring):
+        why they fail (the first ball in the windows' order that fails), or ""."""
+        fits = _window_fits(self._mean, image, balls_px, self._noise_model)
+        if fits is None:
+            return ""
+        where, shifts, covs, ratios, nblocks = fits
+        infos = np.linalg.inv(covs)
+        t2 = np.einsum("ni,nij,nj->n", shifts, infos, shifts)
+        changed = ratios > self.residual_ratio
+        moved = t2 > _shift_limit2(nblocks, self.shift_false_alarm)
+        if changed.any() or moved.any():
+            i = int(np.argmax(changed | moved))
+            cx, cy = where[i]
+            if changed[i]:
                 return f"a ball's window changed at ({cx:.0f}, {cy:.0f}) px"
-            info = np.linalg.inv(cov)
-            if float(shift @ info @ shift) > _shift_limit2(nblocks, self.shift_false_alarm):
-                return f"a ball moved {float(np.hypot(*shift)):.2f} px at ({cx:.0f}, {cy:.0f}) px"
-            shifts.append(shift)
-            infos.append(info)
-            where.append((cx, cy))
-        if shifts:
-            chi2, moved_px = _common_motion(np.array(where), np.array(shifts), np.array(infos))
-            if chi2 > (MOTION_CHI2_4 if len(shifts) >= 3 else MOTION_CHI2_2):
-                return f"the balls moved together (up to {moved_px:.2f} px)"
+            return f"a ball moved {float(np.hypot(*shifts[i])):.2f} px at ({cx:.0f}, {cy:.0f}) px"
+        chi2, moved_px = _common_motion(where, shifts, infos)
+        if chi2 > (MOTION_CHI2_4 if len(shifts) >= 3 else MOTION_CHI2_2):
+            return f"the balls moved together (up to {moved_px:.2f} px)"
         return ""
 
     @staticmethod
-    def _noise_model(level: np.ndarray, diff: np.ndarray):
+    def _noise_model(level: np.ndarray, diff: np.ndarray, step: bool = True):
         """sigma(grey level) of the difference ``diff`` (DN) between a frame and the mean, from
         its spread in bins of the mean's grey ``level`` (a sensor's noise grows with the light:
         shot noise): the RMS of the bin's central 98 % (a few changed pixels do not count; a
         median would read the 8-bit steps of a quiet sensor's difference as no noise at all),
         as a Gaussian's sigma; a function of a level array (float32 DN, at least
-        :data:`MIN_NOISE_DN`)."""
-        # a quarter of them measures it well enough
-        level, diff = (level[::2, ::2], diff[::2, ::2]) if level.ndim == 2 else (level[::4], diff[::4])
+        :data:`MIN_NOISE_DN`). ``step``: from a quarter of the values only."""
+        # a quarter of a frame's or a box's blocks measures it well enough
+        level, diff = (level[::2, ::2], diff[::2, ::2]) if level.ndim == 2 else (level[::4], diff[::4]) \
+            if step else (level, diff)
         lv = np.clip((level.ravel() * (NOISE_BINS / 256.0)).astype(np.int32), 0, NOISE_BINS - 1)
         ad = np.minimum((np.abs(diff.ravel()) * (1.0 / NOISE_STEP_DN)).astype(np.int32), NOISE_STEPS - 1)
         hist = np.bincount(lv * NOISE_STEPS + ad, minlength=NOISE_BINS * NOISE_STEPS).reshape(NOISE_BINS, NOISE_STEPS)
         mid2 = ((np.arange(NOISE_STEPS) + 0.5) * NOISE_STEP_DN) ** 2
-        centres, sig = [], []
-        for b in np.flatnonzero(hist.sum(axis=1) >= NOISE_BIN_MIN):
-            h = hist[b]
-            keep = np.cumsum(h) <= TRIM_QUANTILE * h.sum()     # the central 98 % of |diff|
-            keep[0] = True
-            rms = float(np.sqrt((h[keep] * mid2[keep]).sum() / max(h[keep].sum(), 1)))
-            centres.append((b + 0.5) * 256.0 / NOISE_BINS)
-            sig.append(max(rms / TRIMMED_RMS_PER_SIGMA, MIN_NOISE_DN))
-        if not centres:
+        bins = np.flatnonzero(hist.sum(axis=1) >= NOISE_BIN_MIN)
+        if not len(bins):
             return lambda lv: np.full(np.shape(lv), MIN_NOISE_DN, np.float32)
+        h = hist[bins]
+        keep = np.cumsum(h, axis=1) <= TRIM_QUANTILE * h.sum(axis=1, keepdims=True)   # the central 98 % of |diff|
+        keep[:, 0] = True
+        hk = h * keep
+        rms = np.sqrt((hk * mid2).sum(axis=1) / np.maximum(hk.sum(axis=1), 1))
+        centres = (bins + 0.5) * 256.0 / NOISE_BINS
+        sig = np.maximum(rms / TRIMMED_RMS_PER_SIGMA, MIN_NOISE_DN)
         lut = np.interp(np.arange(257, dtype=np.float64), centres, sig).astype(np.float32)   # per grey level
         return lambda lv: lut[np.clip(np.asarray(lv) + 0.5, 0, 256).astype(np.int32)]
 
 
-def _window_fits(mean: np.ndarray, grey: np.ndarray, balls_px: np.ndarray, offset: float, noise_of) -> list:
+def _window_fits(mean: np.ndarray, image: np.ndarray, balls_px: np.ndarray, noise_model):
     """One Lucas-Kanade step in a window round each ball (all windows of one size: the largest
     ball's radius + :data:`WINDOW_MARGIN_PX` each side, moved inside the frame where a ball is
-    near its edge), all at once: the new frame's ``grey`` (uint8) minus the ``mean``'s grey
-    (BGR float32) minus ``offset`` (DN) = the mean's gradient x shift + offset, each pixel
-    weighted by 1 / its noise (``noise_of``). Per window with gradient, in the balls' order:
-    ((x, y) its ball's centre px, shift (2,) px, its covariance (2, 2) px^2 summed over
-    :data:`BLOCK_PX` blocks of the residuals' scores (the noise is correlated over a few px), the
-    residual's mean square per noise variance, the number of blocks)."""
-    H, W = grey.shape
+    near its edge), all at once: the grey of the new frame ``image`` (BGR uint8) minus the
+    ``mean``'s grey (BGR float32) minus their median difference (DN) = the mean's gradient x
+    shift + offset, each pixel weighted by 1 / its noise (``noise_model(level, diff, step)``
+    fitted to the windows' differences: :meth:`StillFrames._noise_model`). None without a
+    window with gradient,
+    else for those windows, in the balls' order: (their balls' centres (m, 2) px, shifts (m, 2)
+    px, the shifts' covariances (m, 2, 2) px^2 summed over :data:`BLOCK_PX` blocks of the
+    residuals' scores (the noise is correlated over a few px), the residuals' mean squares per
+    noise variance (m,), the number of blocks per window)."""
+    H, W = image.shape[:2]
     balls = balls_px[np.all(np.isfinite(balls_px), axis=1)][:MAX_WINDOWS]
     if not len(balls):
-        return []
+        return None
     g = int(np.ceil(float(balls[:, 2].max()) + WINDOW_MARGIN_PX))
     side = max(2 * g + 1, 2 * BLOCK_PX)
     if side + 2 > min(H, W):
-        return []
+        return None
+    n = len(balls)
     x0 = np.clip(np.round(balls[:, 0]).astype(int) - g, 1, W - 1 - side)
     y0 = np.clip(np.round(balls[:, 1]).astype(int) - g, 1, H - 1 - side)
-    m = np.stack([mean[y - 1:y + side + 1, x - 1:x + side + 1] for x, y in zip(x0, y0)]) @ GREY_BGR
-    new = np.stack([grey[y:y + side, x:x + side] for x, y in zip(x0, y0)])
-    n = len(balls)
-    wt = 1.0 / noise_of(m[:, 1:-1, 1:-1])
-    A = np.empty((n, side, side, 3), np.float64)
-    A[..., 0] = 0.5 * (m[:, 1:-1, 2:] - m[:, 1:-1, :-2]) * wt
-    A[..., 1] = 0.5 * (m[:, 2:, 1:-1] - m[:, :-2, 1:-1]) * wt
-    A[..., 2] = wt
-    Af = A.reshape(n, -1, 3)
-    df = ((new - m[:, 1:-1, 1:-1] - offset) * wt).reshape(n, -1)
-    N = np.einsum("nki,nkj->nij", Af, Af)
+    m = cv2.transform(np.concatenate([mean[y - 1:y + side + 1, x - 1:x + side + 1] for x, y in zip(x0, y0)]),
+                      GREY_ROW).reshape(n, side + 2, side + 2)
+    new = cv2.cvtColor(np.concatenate([image[y:y + side, x:x + side] for x, y in zip(x0, y0)]),
+                       cv2.COLOR_BGR2GRAY).reshape(n, side, side)
+    mc = m[:, 1:-1, 1:-1]
+    diff = new - mc
+    diff -= np.float32(_median(diff[:, ::2, ::2].ravel()))
+    wt = 1.0 / noise_model(mc[:, ::2, ::2].ravel(), diff[:, ::2, ::2].ravel(), False)(mc)     # a quarter measures it
+    # float32 rows (x gradient, y gradient, 1) x weight, their products summed by BLAS (matmul)
+    A = np.empty((n, 3, side, side), np.float32)
+    np.multiply(m[:, 1:-1, 2:] - m[:, 1:-1, :-2], 0.5 * wt, out=A[:, 0])
+    np.multiply(m[:, 2:, 1:-1] - m[:, :-2, 1:-1], 0.5 * wt, out=A[:, 1])
+    A[:, 2] = wt
+    Af = A.reshape(n, 3, -1)
+    df = (diff * wt).reshape(n, -1, 1)
+    N = np.matmul(Af, Af.transpose(0, 2, 1)).astype(np.float64)
     det = np.linalg.det(N)
     good = np.isfinite(det) & (det > 1e-12 * np.einsum("nii->n", N) ** 3)
     if not good.any():
-        return []
+        return None
     Af, df, N = Af[good], df[good], N[good]
     Ninv = np.linalg.inv(N)
-    p = np.einsum("nij,nj->ni", Ninv, np.einsum("nki,nk->ni", Af, df))
-    res = df - np.einsum("nki,ni->nk", Af, p)
-    ratio = np.einsum("nk,nk->n", res, res) / max(side * side - 3, 1)
-    sc = (Af * res[..., None]).reshape(-1, side, side, 3)
-    k = side // BLOCK_PX
-    S = sc[:, :k * BLOCK_PX, :k * BLOCK_PX].reshape(-1, k, BLOCK_PX, k, BLOCK_PX, 3).sum(axis=(2, 4)).reshape(-1, k * k, 3)
-    cov = (Ninv @ np.einsum("nbi,nbj->nij", S, S) @ Ninv)[:, :2, :2] * (k * k / (k * k - 1.0))
-    out = []
-    for (cx, cy, _), shift, c, r in zip(balls[good], p[:, :2], cov, ratio):
-        if np.all(np.isfinite(c)) and np.linalg.det(c) > 0:
-            out.append(((float(cx), float(cy)), shift, c, float(r), k * k))
-    return out
+    p = np.einsum("nij,nj->ni", Ninv, np.matmul(Af, df)[..., 0].astype(np.float64))
+    res = df[..., 0] - np.matmul(p.astype(np.float32)[:, None, :], Af)[:, 0]
+    ratio = np.einsum("nk,nk->n", res, res).astype(np.float64) / max(side * side - 3, 1)
+    # the scores summed over BLOCK_PX x BLOCK_PX blocks: (k, side) @ scores @ (side, k)
+    B = _block_summer(side)
+    k = B.shape[0]
+    sc = (Af * res[:, None, :]).reshape(-1, 3, side, side)
+    S = (B @ sc @ B.T).reshape(-1, 3, k * k)
+    cov = (Ninv @ np.matmul(S, S.transpose(0, 2, 1)).astype(np.float64) @ Ninv)[:, :2, :2] * (k * k / (k * k - 1.0))
+    ok = np.all(np.isfinite(cov), axis=(1, 2)) & (cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0] > 0)
+    if not ok.any():
+        return None
+    return balls[good][ok, :2], p[ok, :2], cov[ok], ratio[ok], k * k
 
 
 def _block_means(img: np.ndarray, grey: bool = True) -> np.ndarray:
@@ -322,6 +339,25 @@ def _block_means(img: np.ndarray, grey: bool = True) -> np.ndarray:
     H, W = img.shape[:2]
     return cv2.resize(img.astype(np.float32) if grey else img, (max(W // SUBSAMPLE, 1), max(H // SUBSAMPLE, 1)),
                       interpolation=cv2.INTER_AREA)
+
+
+def _median(a: np.ndarray) -> float:
+    """The median of a 1D array (np.median without its overhead; the upper middle value of an
+    even count)."""
+    k = a.size // 2
+    return float(np.partition(a, k)[k]) if a.size else 0.0
+
+
+@lru_cache(maxsize=64)
+def _block_summer(side: int) -> np.ndarray:
+    """(side // BLOCK_PX, side) float32: 1 where a pixel of a row (or column) of ``side`` px is in
+    a block (the last ``side % BLOCK_PX`` px in none)."""
+    k = side // BLOCK_PX
+    B = np.zeros((k, side), np.float32)
+    for i in range(k):
+        B[i, i * BLOCK_PX:(i + 1) * BLOCK_PX] = 1.0
+    B.setflags(write=False)
+    return B
 
 
 @lru_cache(maxsize=256)
