@@ -82,3 +82,21 @@ def test_point_twin_refuses_what_the_image_rigs_would(tmp_path, make_session):
     samples = [rig.estimate(rig.capture(k / 30.0)) for k in range(40)]
     assert sum(smp.ok for smp in samples[10:]) == 30, [(smp.ok, smp.code) for smp in samples]
     assert max(smp.truth_tre_mm for smp in samples[10:]) < 0.5
+
+
+def test_the_still_view_mean_is_opt_in_reaches_the_image_rigs_tracker_and_bad_values_are_refused(make_session):
+    """``average_still_frames`` (the detector reads the mean of a still view's frames, vision's
+    ``TrackerConfig.average_still_frames``): off by default, the number of frames reaches the
+    image rig's tracker, and a value that is not a whole number from 0 to 30 is refused."""
+    assert SessionConfig().frame_rules().average_still_frames == 0
+    assert SessionConfig(average_still_frames=8).frame_rules().average_still_frames == 8
+    for bad in (-1, 31, 2.5, True, "8"):
+        with pytest.raises(InputError, match="average_still_frames"):
+            SessionConfig(average_still_frames=bad).validate()
+    s = make_session(clock="sim", camera="sim", average_still_frames=6, sim_camera_process=False)
+    plan_sample(s)
+    assert s.start_camera().ok
+    s.advance(0.2)
+    tracker = s._loop.camera.rig.tracker
+    assert tracker.still_frames is not None and tracker.still_frames.max_frames == 6
+    assert tracker.still_frames.n >= 1          # it reads frames

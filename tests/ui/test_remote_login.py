@@ -129,7 +129,8 @@ def test_cli_one_line_errors(tmp_path, port):
              (["--allow-remote", "--password-file", str(tmp_path / "missing")], "file not found"),
              (["--password-file", str(tmp_path / "short.txt")], "--password-file is for --allow-remote"),
              (["--tre-confidence", "0.3"], "tre_confidence must be 0 (off) or a probability from 0.5"),
-             (["--ball-finish", "shiny"], "ball finish must be one of read, matte, glossy")]
+             (["--ball-finish", "shiny"], "ball finish must be one of read, matte, glossy"),
+             (["--average-still-frames", "99"], "average_still_frames must be a whole number of frames from 0")]
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()

@@ -145,6 +145,11 @@ class SessionConfig:
     pose_rt_priority: int = 0
     sim_camera_process: bool = True
     camera_motion_every: int = 6
+    #: the detector reads the mean of up to this many frames of a still view (vision's
+    #: ``TrackerConfig.average_still_frames``; 0 = off, the default; opt-in: on dim, noisy
+    #: frames it finds more whole balls, and costs 1-2.5 ms a frame at 720p, benchmarks/pose_rate.py
+    #: --average; docs/vision.md "A still view's frames averaged")
+    average_still_frames: int = 0
     compute_charge_s: float | None = None
     extra: dict = field(default_factory=dict)
 
@@ -164,7 +169,8 @@ class SessionConfig:
         return TrackerConfig(min_fiducials=int(self.min_fiducials), max_predicted_tre_mm=float(self.max_predicted_tre_mm),
                              right_mm=float(self.max_predicted_tre_mm),
                              max_not_right_probability=1.0 - c if c > 0 else 1.0,
-                             ball_finish=str(self.ball_finish if plan_finish is None else plan_finish))
+                             ball_finish=str(self.ball_finish if plan_finish is None else plan_finish),
+                             average_still_frames=int(self.average_still_frames))
 
     def validate(self) -> None:
         """Raise :class:`InputError` with one line for a bad setting."""
@@ -194,6 +200,9 @@ class SessionConfig:
             raise InputError(f"controller must be APF-V, APF-A-I or APF-A-II, not {self.controller!r}")
         if not (isinstance(self.camera_motion_every, int) and self.camera_motion_every >= 0):
             raise InputError(f"camera_motion_every must be a whole number of frames >= 0, not {self.camera_motion_every!r}")
+        n = self.average_still_frames
+        if isinstance(n, bool) or not isinstance(n, int) or not (0 <= n <= 30):
+            raise InputError(f"average_still_frames must be a whole number of frames from 0 (off) to 30, not {n!r}")
         if not (self.max_predicted_tre_mm > 0):
             raise InputError("max_predicted_tre_mm must be a positive number of mm")
         c = self.tre_confidence

@@ -64,6 +64,10 @@ def register(subparsers) -> None:
                         "(glossy balls beside their contact shadows get a wider error cover with 6 or fewer in "
                         "view; say glossy for a far camera, and the layout planner predicts with it); a plan's own "
                         "finish (the CT step's 'Ball finish') wins")
+    p.add_argument("--average-still-frames", type=int, default=0, metavar="N",
+                   help="a dim, noisy camera: the detector reads the mean of up to N frames while the view "
+                        "is still (e.g. 8; restarted at any motion or change; default 0 = off; costs 1-2.5 ms "
+                        "a frame)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
     p.add_argument("--home", type=home_folder, default=None, help="session folder, locked while the server runs (default $MONOTRACKER_HOME, else your ~/.monotracker)")
     p.add_argument("--record", type=home_folder, default=None, metavar="DIR",
@@ -181,7 +185,7 @@ def _serve(args) -> int:
         raise InputError("--igtl-allow-remote needs --igtl-port PORT")
     cfg = SessionConfig(home=args.home, camera=args.camera, robot=args.robot, arm_pin=pin,
                         trajectory=args.trajectory, clock="real", tre_confidence=args.tre_confidence,
-                        ball_finish=args.ball_finish)
+                        ball_finish=args.ball_finish, average_still_frames=args.average_still_frames)
     cfg.validate()
     signals = StopSignals()  # from here on a stop signal is a flag the main thread acts on
     if args.calibration is not None:  # a bad file is refused now, not when the camera starts
