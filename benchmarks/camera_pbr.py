@@ -228,8 +228,8 @@ def trust_models() -> dict:
     ``excess-reading``: the default with the shading check's second readings from each ball's
     outline size excess (``shading_check_reading`` "excess": opt-in, docs/vision.md "The shading
     check read from the outline's size"); ``averaged``: the default with the detector reading
-    the mean of the still view's last 8 frames (``average_still_frames`` 8: opt-in, its own
-    detector run, not the default's detections replayed; docs/vision.md "A still view's frames
+    the mean of the still view's last 8 frames (``average_still_frames`` 8: opt-in; given only
+    while the camera's noise is at least ``average_min_noise_dn``, 1.8 DN; its own detector run, not the default's detections replayed; docs/vision.md "A still view's frames
     averaged")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),

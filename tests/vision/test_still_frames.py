@@ -177,7 +177,7 @@ def test_the_tracker_gives_its_detector_the_mean_only_when_asked():
     frames = [_camera(_scene(BALLS), k) for k in range(4)]
     for avg, averaged in ((0, False), (8, True)):
         rec = _Recorder()
-        trk = PoseTracker(fids, cam, detector=rec, config=TrackerConfig(average_still_frames=avg))
+        trk = PoseTracker(fids, cam, detector=rec, config=TrackerConfig(average_still_frames=avg, average_min_noise_dn=0.0))
         for k, f in enumerate(frames):
             trk.process(Frame(f, k / 30, k, None))
         assert (trk.still_frames is not None) == averaged
@@ -198,6 +198,35 @@ def test_the_tracker_gives_its_detector_the_mean_only_when_asked():
             assert all(a is b for a, b in zip(rec.images, frames))
     with pytest.raises(ValueError, match="average_still_frames"):
         TrackerConfig(average_still_frames=-1)
+
+
+def _window_mask(balls: np.ndarray, margin: float = 4.0) -> np.ndarray:
+    yy, xx = np.mgrid[0:H, 0:W]
+    mask = np.zeros((H, W), bool)
+    for cx, cy, r in balls:
+        mask |= (np.abs(xx - cx) <= r + margin) & (np.abs(yy - cy) <= r + margin)
+    return mask
+
+
+@pytest.mark.parametrize("full_well, noisy", [(20000.0, False), (300.0, True)])
+def test_the_mean_is_given_only_while_the_camera_is_noisy(full_well, noisy):
+    """``min_noise_dn``: a quiet camera's frames are read alone (the mean is still kept and
+    tested), a noisy one's mean is given; the noise it measures in the balls' windows is the
+    frames' own (two frames' grey difference / sqrt 2 there)."""
+    lin = _scene(BALLS)
+    frames = [_camera(lin, k, full_well=full_well) for k in range(6)]
+    sf = StillFrames(max_frames=8, min_noise_dn=1.8)
+    for f in frames:
+        out = sf.add(f, BALLS)
+    assert sf.n == 6 and sf.giving is noisy and (out is frames[-1]) is (not noisy)
+    g0, g1 = (cv2.cvtColor(f, cv2.COLOR_BGR2GRAY).astype(np.float32) for f in frames[:2])
+    own = float(np.std((g1 - g0)[_window_mask(BALLS)])) / np.sqrt(2)
+    assert bool(own >= 1.8) is noisy                  # the two cameras lie either side of the limit
+    assert 0.7 < sf.noise_dn / own < 1.4, (sf.noise_dn, own)
+    sf.add(np.roll(frames[0], 2, axis=1), BALLS)      # moved: read alone, whatever the noise
+    assert sf.n == 1 and not sf.giving
+    with pytest.raises(ValueError, match="min_noise_dn"):
+        StillFrames(min_noise_dn=-1.0)
 
 
 @pytest.mark.parametrize("trajectory", ["still", "breathing"])

@@ -148,7 +148,8 @@ class SessionConfig:
     #: the detector reads the mean of up to this many frames of a still view (vision's
     #: ``TrackerConfig.average_still_frames``; 0 = off, the default; opt-in: on dim, noisy
     #: frames it finds more whole balls, and costs 1-2.5 ms a frame at 720p, benchmarks/pose_rate.py
-    #: --average; docs/vision.md "A still view's frames averaged")
+    #: --average; given only while the camera's noise is at least vision's
+    #: ``average_min_noise_dn``, 1.8 grey levels; docs/vision.md "A still view's frames averaged")
     average_still_frames: int = 0
     compute_charge_s: float | None = None
     extra: dict = field(default_factory=dict)

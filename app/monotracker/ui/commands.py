@@ -66,8 +66,8 @@ def register(subparsers) -> None:
                         "finish (the CT step's 'Ball finish') wins")
     p.add_argument("--average-still-frames", type=int, default=0, metavar="N",
                    help="a dim, noisy camera: the detector reads the mean of up to N frames while the view "
-                        "is still (e.g. 8; restarted at any motion or change; default 0 = off; costs 1-2.5 ms "
-                        "a frame)")
+                        "is still and the camera's noise is at least 1.8 grey levels (e.g. 8; restarted at any "
+                        "motion or change; default 0 = off; costs 1-2.5 ms a frame)")
     p.add_argument("--trajectory", choices=TRAJECTORIES, default="breathing", help="simulated head motion (sim camera only)")
     p.add_argument("--home", type=home_folder, default=None, help="session folder, locked while the server runs (default $MONOTRACKER_HOME, else your ~/.monotracker)")
     p.add_argument("--record", type=home_folder, default=None, metavar="DIR",

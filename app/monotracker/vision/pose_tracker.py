@@ -401,6 +401,13 @@ class TrackerConfig:
     #: --average 8). Opt-in: SessionConfig.average_still_frames, ``serve --average-still-frames``.
     #: docs/vision.md "A still view's frames averaged"
     average_still_frames: int = 0
+    #: ... and gives the mean to the detector only while the camera's noise per frame is at least
+    #: this (grey levels of 8 bits, measured in the balls' windows of the still frames,
+    #: :attr:`.still_frames.StillFrames.noise_dn`; 0 = always): a quiet camera's frames are read
+    #: alone. 1.8 from the rendered TUNING frames (per still stream: clean 0.82-1.05, OR
+    #: 1.24-1.60, clutter 1.25-1.59, degraded 2.06-3.57 DN); on a held-out set (fresh35) the
+    #: clean, OR and clutter frames were then read exactly as without the mean.
+    average_min_noise_dn: float = 1.8
 
     def __post_init__(self):
         """A finish word vision does not know is refused here, at construction (one line), not at
@@ -408,6 +415,9 @@ class TrackerConfig:
         if self.ball_finish not in ball_gloss.FINISHES:
             raise ValueError(f"TrackerConfig: ball_finish must be one of {', '.join(ball_gloss.FINISHES)}, "
                              f"not {self.ball_finish!r}")
+        if not (float(self.average_min_noise_dn) >= 0.0):
+            raise ValueError("TrackerConfig: average_min_noise_dn must be a number of grey levels >= 0, "
+                             f"not {self.average_min_noise_dn!r}")
         if not (isinstance(self.average_still_frames, int) and self.average_still_frames >= 0):
             raise ValueError("TrackerConfig: average_still_frames must be a whole number of frames >= 0, "
                              f"not {self.average_still_frames!r}")
@@ -534,7 +544,7 @@ class PoseTracker:
         self.centre_bias = centre_bias_of(self.detector) if c.centre_bias == "detector" else c.centre_bias
         #: the mean of a still view's frames the detector reads (None: each frame as it is, or a
         #: detector that reads no image: ``reads_image`` False, e.g. given points)
-        self.still_frames = StillFrames(c.average_still_frames) \
+        self.still_frames = StillFrames(c.average_still_frames, min_noise_dn=c.average_min_noise_dn) \
             if c.average_still_frames > 1 and getattr(self.detector, "reads_image", True) else None
         #: the last detection's balls, accepted or refused: (m, 3) centre and radius px
         self._ball_windows = np.zeros((0, 3))
@@ -826,7 +836,7 @@ class PoseTracker:
             truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
             moved=new_moved, excluded=sorted(self.excluded), stages_s=stages,
             pooled_frames=n_pooled if ok else 0, remembered=[int(j) for j in np.flatnonzero(remembered)],
-            averaged_frames=1 if self.still_frames is None else self.still_frames.n)
+            averaged_frames=self.still_frames.n if self.still_frames is not None and self.still_frames.giving else 1)
 
     def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float):
         """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with

@@ -92,13 +92,22 @@ class StillFrames:
     """The running mean of the frames since the view last moved (BGR, float32) and the test
     that decides whether a new frame joins it. :meth:`add` returns the image to detect on (the
     mean, uint8) and :attr:`n` the frames in it; :attr:`last_reason` why the last frame started
-    the mean again ("" when it joined)."""
+    the mean again ("" when it joined).
+
+    ``min_noise_dn``: the mean is given to the detector only while the camera's noise per frame
+    (:attr:`noise_dn`: grey levels, 8-bit DN, measured in the balls' windows from a joining
+    frame's difference to the mean) is at least this; below it the frame itself is given (the
+    mean is still kept and tested, so it is there as soon as the noise rises). 0: always.
+    :attr:`giving`: whether the last :meth:`add` gave the mean."""
 
     def __init__(self, max_frames: int = MAX_FRAMES, shift_false_alarm: float = SHIFT_FALSE_ALARM,
                  residual_ratio: float = RESIDUAL_RATIO, change_sigmas: float = CHANGE_SIGMAS,
-                 changed_share: float = CHANGED_SHARE):
+                 changed_share: float = CHANGED_SHARE, min_noise_dn: float = 0.0):
         if int(max_frames) < 1:
             raise ValueError(f"max_frames must be at least 1, got {max_frames!r}")
+        if not (float(min_noise_dn) >= 0.0):
+            raise ValueError(f"min_noise_dn must be a number of grey levels >= 0, got {min_noise_dn!r}")
+        self.min_noise_dn = float(min_noise_dn)
         self.max_frames = int(max_frames)
         self.shift_false_alarm = float(shift_false_alarm)
         self.residual_ratio = float(residual_ratio)
@@ -111,6 +120,9 @@ class StillFrames:
         self._mean: np.ndarray | None = None     # (H, W, 3) float32 BGR
         self._blocks: np.ndarray | None = None   # the mean's grey in SUBSAMPLE x SUBSAMPLE block means
         self._partial = False                    # kept in the detector's boxes only since the last whole read
+        self._diff_noise: float | None = None    # the last window fits' median difference noise (DN)
+        self.noise_dn: float | None = None       # the camera's noise per frame (DN), last measured
+        self.giving = False
         self.n = 0
         self.last_reason = "first frame"
 
@@ -137,12 +149,12 @@ class StillFrames:
         why, blocks = self._moved(image, grey, balls)
         if why:
             return self._start(image, grey, why, blocks)
-        self.n += 1
+        self._joined()
         alpha = 1.0 / min(self.n, self.max_frames)
         cv2.accumulateWeighted(image, self._mean, alpha)
         cv2.accumulateWeighted(blocks, self._blocks, alpha)
         self.last_reason = ""
-        return cv2.convertScaleAbs(self._mean)
+        return cv2.convertScaleAbs(self._mean) if self.giving else image
 
     def _add_in(self, image: np.ndarray, balls: np.ndarray, boxes: list) -> np.ndarray:
         """:meth:`add` for a detector that reads only ``boxes``: the same tests of the balls'
@@ -152,6 +164,7 @@ class StillFrames:
         boxes = [(max(x0, 0), max(y0, 0), min(x1, W), min(y1, H)) for x0, y0, x1, y1 in boxes]
         boxes = [b for b in boxes if b[2] - b[0] >= TILE_MIN_PX and b[3] - b[1] >= TILE_MIN_PX]
         if not boxes:
+            self.giving = False
             return image
         means = [self._mean[y0:y1, x0:x1] for x0, y0, x1, y1 in boxes]
         why = self._balls_moved(image, balls)
@@ -174,15 +187,25 @@ class StillFrames:
                        f"({boxes[worst][0]}, {boxes[worst][1]}) px changed")
         if why:
             return self._start(image, None, why, boxes=boxes)
-        self.n += 1
+        self._joined()
         self._partial = True
         alpha = 1.0 / min(self.n, self.max_frames)
-        out = image.copy()
+        out = image.copy() if self.giving else image
         for (x0, y0, x1, y1), m in zip(boxes, means):
             cv2.accumulateWeighted(image[y0:y1, x0:x1], m, alpha)
-            out[y0:y1, x0:x1] = cv2.convertScaleAbs(m)
+            if self.giving:
+                out[y0:y1, x0:x1] = cv2.convertScaleAbs(m)
         self.last_reason = ""
         return out
+
+    def _joined(self) -> None:
+        """A frame joins the mean: count it, update :attr:`noise_dn` from its difference to the
+        mean of the ``m`` frames before it (variance sigma^2 (1 + 1/m)), decide :attr:`giving`."""
+        m = min(self.n, self.max_frames)
+        self.n += 1
+        if self._diff_noise is not None:
+            self.noise_dn = float(self._diff_noise) / float(np.sqrt(1.0 + 1.0 / m))
+        self.giving = self.min_noise_dn <= 0.0 or (self.noise_dn is not None and self.noise_dn >= self.min_noise_dn)
 
     def _start(self, image: np.ndarray, grey: np.ndarray | None, why: str, blocks=None, boxes=None) -> np.ndarray:
         if boxes is not None and self._mean is not None and self._mean.shape == image.shape:
@@ -192,6 +215,7 @@ class StillFrames:
                 self._mean[y0:y1, x0:x1] = image[y0:y1, x0:x1]
             self._partial = True
             self.n = 1
+            self.giving = False
             self.last_reason = why
             return image
         if self._mean is None or self._mean.shape != image.shape:
@@ -200,6 +224,7 @@ class StillFrames:
         self._blocks = _block_means(grey) if blocks is None else blocks
         self._partial = False
         self.n = 1
+        self.giving = False
         self.last_reason = why
         return image
 
@@ -227,8 +252,9 @@ class StillFrames:
         why they fail (the first ball in the windows' order that fails), or ""."""
         fits = _window_fits(self._mean, image, balls_px, self._noise_model)
         if fits is None:
+            self._diff_noise = None
             return ""
-        where, shifts, covs, ratios, nblocks = fits
+        where, shifts, covs, ratios, nblocks, self._diff_noise = fits
         infos = np.linalg.inv(covs)
         t2 = np.einsum("ni,nij,nj->n", shifts, infos, shifts)
         changed = ratios > self.residual_ratio
@@ -284,7 +310,8 @@ def _window_fits(mean: np.ndarray, image: np.ndarray, balls_px: np.ndarray, nois
     else for those windows, in the balls' order: (their balls' centres (m, 2) px, shifts (m, 2)
     px, the shifts' covariances (m, 2, 2) px^2 summed over :data:`BLOCK_PX` blocks of the
     residuals' scores (the noise is correlated over a few px), the residuals' mean squares per
-    noise variance (m,), the number of blocks per window)."""
+    noise variance (m,), the number of blocks per window, the median noise of the windows'
+    difference (DN))."""
     H, W = image.shape[:2]
     balls = balls_px[np.all(np.isfinite(balls_px), axis=1)][:MAX_WINDOWS]
     if not len(balls):
@@ -303,7 +330,9 @@ def _window_fits(mean: np.ndarray, image: np.ndarray, balls_px: np.ndarray, nois
     mc = m[:, 1:-1, 1:-1]
     diff = new - mc
     diff -= np.float32(_median(diff[:, ::2, ::2].ravel()))
-    wt = 1.0 / noise_model(mc[:, ::2, ::2].ravel(), diff[:, ::2, ::2].ravel(), False)(mc)     # a quarter measures it
+    sig = noise_model(mc[:, ::2, ::2].ravel(), diff[:, ::2, ::2].ravel(), False)(mc)     # a quarter measures it
+    noise = _median(sig[:, ::2, ::2].ravel())
+    wt = 1.0 / sig
     # float32 rows (x gradient, y gradient, 1) x weight, their products summed by BLAS (matmul)
     A = np.empty((n, 3, side, side), np.float32)
     np.multiply(m[:, 1:-1, 2:] - m[:, 1:-1, :-2], 0.5 * wt, out=A[:, 0])
@@ -330,7 +359,7 @@ def _window_fits(mean: np.ndarray, image: np.ndarray, balls_px: np.ndarray, nois
     ok = np.all(np.isfinite(cov), axis=(1, 2)) & (cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0] > 0)
     if not ok.any():
         return None
-    return balls[good][ok, :2], p[ok, :2], cov[ok], ratio[ok], k * k
+    return balls[good][ok, :2], p[ok, :2], cov[ok], ratio[ok], k * k, noise
 
 
 def _block_means(img: np.ndarray, grey: bool = True) -> np.ndarray:
