@@ -93,10 +93,17 @@ def test_the_still_view_mean_is_opt_in_reaches_the_image_rigs_tracker_and_bad_va
     for bad in (-1, 31, 2.5, True, "8"):
         with pytest.raises(InputError, match="average_still_frames"):
             SessionConfig(average_still_frames=bad).validate()
-    s = make_session(clock="sim", camera="sim", average_still_frames=6, sim_camera_process=False)
+    s = make_session(clock="sim", camera="sim", average_still_frames=6, sim_camera_process=False, trajectory="still")
     plan_sample(s)
     assert s.start_camera().ok
     s.advance(0.2)
     tracker = s._loop.camera.rig.tracker
     assert tracker.still_frames is not None and tracker.still_frames.max_frames == 6
     assert tracker.still_frames.n >= 1          # it reads frames
+    # the twin's camera is quieter than the mean's noise limit: its frames are read alone ...
+    assert s.snapshot().pose.averaged_frames == 1
+    # ... and with the limit off, the still head's poses come from the mean, and the snapshot
+    # (what the screen shows, ui/status.averaged_note) says of how many frames
+    tracker.still_frames.min_noise_dn = 0.0
+    s.advance(0.5)
+    assert s.snapshot().pose.averaged_frames == 6

@@ -83,6 +83,26 @@ def test_register_banner_table_and_status_line_blank_an_untrusted_pose():
     assert "camera stopped" in pose_banner(stopped, wall) and "0.21 mm" not in pose_line(stopped)
 
 
+def test_a_pose_read_from_a_still_views_mean_says_so_on_the_screen():
+    """The opt-in still-view mean (``serve --average-still-frames``): a valid pose whose detector
+    read the mean of 6 still frames says so in the register banner and the status line; one read
+    from its frame alone, or not valid, says nothing of it."""
+    from monotracker.ui.status import pose_line
+    from monotracker.ui.step_register import pose_banner
+
+    wall = lambda t: 1_700_000_000.0 + t
+    snap = _snap()
+    assert "mean of" not in pose_line(snap) and "mean of" not in pose_banner(snap, wall)
+    snap.pose.averaged_frames = 6
+    assert "read from the mean of 6 still frames" in pose_line(snap)
+    assert "read from the mean of 6 still frames" in pose_banner(snap, wall)
+    snap.pose.averaged_frames = 1
+    assert "mean of" not in pose_line(snap)
+    bad = _snap(trusted=False, reason="occlusion: 2 fiducials seen")
+    bad.pose.averaged_frames = 6
+    assert "mean of" not in pose_line(bad)
+
+
 # ---------------------------------------------------------------- the overlay's labels
 def _sample_scene(crowd: float = 1.0):
     """The sample phantom seen by the simulated camera at rest: its 9 fiducials (and the sample

@@ -169,6 +169,9 @@ class PoseSummary:
     #: capture time (session clock, s) of the newest trusted estimate, None since the pose was
     #: last cleared: what "stale since" means for every figure derived from the pose
     trusted_t: float | None = None
+    #: frames of a still view whose mean the detector read for this pose (1 = the frame alone;
+    #: the opt-in still-view mean, ``SessionConfig.average_still_frames``)
+    averaged_frames: int = 1
 
 
 @dataclass(frozen=True)

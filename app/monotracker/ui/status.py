@@ -110,6 +110,13 @@ def camera_line(snap) -> str:
     return f"Camera <b>{_esc(cam.source)}</b>: stopped"
 
 
+def averaged_note(pose) -> str:
+    """", read from the mean of N still frames" when the detector read the opt-in still-view
+    mean for ``pose`` (N > 1), else "": the team sees that the figures come from several frames."""
+    n = int(getattr(pose, "averaged_frames", 1) or 1)
+    return f", read from the mean of {n} still frames" if n > 1 else ""
+
+
 def pose_line(snap) -> str:
     """The pose in one line: VALID with FRE and predicted TRE (each with its age), or why not
     (no figure shown: :mod:`monotracker.ui.freshness`)."""
@@ -121,7 +128,7 @@ def pose_line(snap) -> str:
     f = pose_figures(snap)
     if f["fre"].live:
         return (f"Pose: <b style='color:#1f8f3a'>VALID</b>, FRE {figure_html(f['fre'])}, "
-                f"predicted TRE {figure_html(f['tre'])}, {p.n_visible} fiducials")
+                f"predicted TRE {figure_html(f['tre'])}, {p.n_visible} fiducials{averaged_note(p)}")
     return f"Pose: <b style='color:#c81e1e'>NOT VALID</b>: {_esc(pose_why(snap))}"
 
 

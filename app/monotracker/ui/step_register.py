@@ -145,7 +145,7 @@ def pose_banner(snap, wall_of=None) -> str:
     if f["fre"].live:
         return (f"<div class='mt-banner-ok mt-wrap' id='mt-pose-banner'>POSE VALID: FRE {figure_html(f['fre'])}, "
                 f"predicted TRE at target {figure_html(f['tre'])}, "
-                f"{pose.n_visible} fiducials, latency {figure_html(f['reglat'])}</div>")
+                f"{pose.n_visible} fiducials, latency {figure_html(f['reglat'])}{st.averaged_note(pose)}</div>")
     when = f["fre"]
     return (f"<div class='mt-banner-bad mt-wrap' id='mt-pose-banner'>POSE NOT VALID: {st._esc(pose_why(snap))}"
             f"<br>FRE {figure_html(when, wall_of)}</div>")

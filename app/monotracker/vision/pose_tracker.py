@@ -162,7 +162,8 @@ class PoseEstimate:
     #: (:mod:`.ball_memory`; their ``status`` says whether this frame found them: it did not)
     remembered: list = field(default_factory=list)
     #: frames of a still view whose mean the detector read (:mod:`.still_frames`,
-    #: ``TrackerConfig.average_still_frames``; 1 = this frame alone)
+    #: ``TrackerConfig.average_still_frames``, at most that many: beyond it the mean weighs the
+    #: newest frame 1 / that; 1 = this frame alone)
     averaged_frames: int = 1
 
     @property
@@ -836,7 +837,8 @@ class PoseTracker:
             truth=frame.truth, code="" if ok else code, sigma_px=sigma, sigma_source=sigma_src,
             moved=new_moved, excluded=sorted(self.excluded), stages_s=stages,
             pooled_frames=n_pooled if ok else 0, remembered=[int(j) for j in np.flatnonzero(remembered)],
-            averaged_frames=self.still_frames.n if self.still_frames is not None and self.still_frames.giving else 1)
+            averaged_frames=min(self.still_frames.n, self.still_frames.max_frames)
+            if self.still_frames is not None and self.still_frames.giving else 1)
 
     def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float):
         """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with

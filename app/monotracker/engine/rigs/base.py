@@ -57,6 +57,9 @@ class PoseSample:
     moved: dict = field(default_factory=dict)
     frame: object = None
     validation: object = None  # registration.validation.ValidationResult, or None (no validation fiducials / no pose)
+    #: frames of a still view whose mean the detector read for this estimate (1 = this frame
+    #: alone; vision's ``PoseEstimate.averaged_frames``, the opt-in still-view mean)
+    averaged_frames: int = 1
     #: where this estimate's time went, wall seconds unless ``*_cpu_s`` (thread CPU time), for
     #: diagnosis and ``benchmarks/pose_latency.py``; empty when the rig does not measure. The
     #: simulated rigs give ``late_s`` (frame started after its camera tick), ``render_s`` /
@@ -241,4 +244,5 @@ def estimate_to_sample(est, fiducial_ids: list[int]) -> PoseSample:
         T_cam_ct=None if est.T_cam_ct is None else np.array(est.T_cam_ct, float), n_matched=int(est.n_matched),
         fiducial_status=status, residuals_px=res, fre_mm=_nan_to_none(est.fre_mm),
         predicted_tre_mm=_nan_to_none(est.predicted_tre_mm), raw=est, code=getattr(est, "code", ""),
-        moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)})
+        moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)},
+        averaged_frames=int(getattr(est, "averaged_frames", 1)))
