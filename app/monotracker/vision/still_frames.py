@@ -120,7 +120,6 @@ class StillFrames:
         self._mean: np.ndarray | None = None     # (H, W, 3) float32 BGR
         self._blocks: np.ndarray | None = None   # the mean's grey in SUBSAMPLE x SUBSAMPLE block means
         self._partial = False                    # kept in the detector's boxes only since the last whole read
-        self._diff_noise: float | None = None    # the last window fits' median difference noise (DN)
         self.noise_dn: float | None = None       # the camera's noise per frame (DN), last measured
         self.giving = False
         self.n = 0
@@ -146,10 +145,10 @@ class StillFrames:
             self._blocks = cv2.resize(cv2.transform(self._mean, GREY_ROW), self._blocks.shape[::-1],
                                       interpolation=cv2.INTER_AREA)
             self._partial = False
-        why, blocks = self._moved(image, grey, balls)
+        why, blocks, noise = self._moved(image, grey, balls)
         if why:
             return self._start(image, grey, why, blocks)
-        self._joined()
+        self._joined(noise)
         alpha = 1.0 / min(self.n, self.max_frames)
         cv2.accumulateWeighted(image, self._mean, alpha)
         cv2.accumulateWeighted(blocks, self._blocks, alpha)
@@ -167,7 +166,7 @@ class StillFrames:
             self.giving = False
             return image
         means = [self._mean[y0:y1, x0:x1] for x0, y0, x1, y1 in boxes]
-        why = self._balls_moved(image, balls)
+        why, noise = self._balls_moved(image, balls)
         if not why:      # then each box, in block means (the frame's grey only computed there)
             levels, blocks = [], []
             for (x0, y0, x1, y1), m in zip(boxes, means):
@@ -187,7 +186,7 @@ class StillFrames:
                        f"({boxes[worst][0]}, {boxes[worst][1]}) px changed")
         if why:
             return self._start(image, None, why, boxes=boxes)
-        self._joined()
+        self._joined(noise)
         self._partial = True
         alpha = 1.0 / min(self.n, self.max_frames)
         out = image.copy() if self.giving else image
@@ -198,13 +197,14 @@ class StillFrames:
         self.last_reason = ""
         return out
 
-    def _joined(self) -> None:
-        """A frame joins the mean: count it, update :attr:`noise_dn` from its difference to the
-        mean of the ``m`` frames before it (variance sigma^2 (1 + 1/m)), decide :attr:`giving`."""
+    def _joined(self, diff_noise: float | None) -> None:
+        """A frame joins the mean: count it, update :attr:`noise_dn` from ``diff_noise`` (DN, the
+        median noise of its difference to the mean of the ``m`` frames before it in the balls'
+        windows, variance sigma^2 (1 + 1/m); None without windows), decide :attr:`giving`."""
         m = min(self.n, self.max_frames)
         self.n += 1
-        if self._diff_noise is not None:
-            self.noise_dn = float(self._diff_noise) / float(np.sqrt(1.0 + 1.0 / m))
+        if diff_noise is not None:
+            self.noise_dn = float(diff_noise) / float(np.sqrt(1.0 + 1.0 / m))
         self.giving = self.min_noise_dn <= 0.0 or (self.noise_dn is not None and self.noise_dn >= self.min_noise_dn)
 
     def _start(self, image: np.ndarray, grey: np.ndarray | None, why: str, blocks=None, boxes=None) -> np.ndarray:
@@ -228,12 +228,13 @@ class StillFrames:
         self.last_reason = why
         return image
 
-    def _moved(self, image: np.ndarray, grey: np.ndarray, balls_px: np.ndarray) -> tuple[str, np.ndarray | None]:
+    def _moved(self, image: np.ndarray, grey: np.ndarray, balls_px: np.ndarray) -> tuple:
         """(why ``image`` (BGR uint8; ``grey`` its grey) does not join the mean, "" if it does;
-        its block means when they were computed, else None)."""
-        why = self._balls_moved(image, balls_px)
+        its block means when they were computed, else None; the balls' windows' difference noise
+        (DN) or None)."""
+        why, noise = self._balls_moved(image, balls_px)
         if why:
-            return why, None
+            return why, None, noise
         # then the whole view, in block means (a demosaic's single-pixel flips average out)
         blocks = _block_means(grey)
         blocks_diff = blocks - self._blocks
@@ -244,17 +245,17 @@ class StillFrames:
         if h and w:
             share = big[:h, :w].reshape(h // t, t, w // t, t).mean(axis=(1, 3))
             if float(share.max()) > self.changed_share:
-                return f"{100 * float(share.max()):.0f} % of a tile changed", blocks
-        return "", blocks
+                return f"{100 * float(share.max()):.0f} % of a tile changed", blocks, noise
+        return "", blocks, noise
 
-    def _balls_moved(self, image: np.ndarray, balls_px: np.ndarray) -> str:
+    def _balls_moved(self, image: np.ndarray, balls_px: np.ndarray) -> tuple[str, float | None]:
         """The tests of the balls' windows in ``image`` (BGR uint8; see the module docstring):
-        why they fail (the first ball in the windows' order that fails), or ""."""
+        (why they fail (the first ball in the windows' order that fails) or "", the windows'
+        median difference noise (DN), None without windows)."""
         fits = _window_fits(self._mean, image, balls_px, self._noise_model)
         if fits is None:
-            self._diff_noise = None
-            return ""
-        where, shifts, covs, ratios, nblocks, self._diff_noise = fits
+            return "", None
+        where, shifts, covs, ratios, nblocks, noise = fits
         infos = np.linalg.inv(covs)
         t2 = np.einsum("ni,nij,nj->n", shifts, infos, shifts)
         changed = ratios > self.residual_ratio
@@ -263,12 +264,12 @@ class StillFrames:
             i = int(np.argmax(changed | moved))
             cx, cy = where[i]
             if changed[i]:
-                return f"a ball's window changed at ({cx:.0f}, {cy:.0f}) px"
-            return f"a ball moved {float(np.hypot(*shifts[i])):.2f} px at ({cx:.0f}, {cy:.0f}) px"
+                return f"a ball's window changed at ({cx:.0f}, {cy:.0f}) px", noise
+            return f"a ball moved {float(np.hypot(*shifts[i])):.2f} px at ({cx:.0f}, {cy:.0f}) px", noise
         chi2, moved_px = _common_motion(where, shifts, infos)
         if chi2 > (MOTION_CHI2_4 if len(shifts) >= 3 else MOTION_CHI2_2):
-            return f"the balls moved together (up to {moved_px:.2f} px)"
-        return ""
+            return f"the balls moved together (up to {moved_px:.2f} px)", noise
+        return "", noise
 
     @staticmethod
     def _noise_model(level: np.ndarray, diff: np.ndarray, step: bool = True):
@@ -278,9 +279,8 @@ class StillFrames:
         median would read the 8-bit steps of a quiet sensor's difference as no noise at all),
         as a Gaussian's sigma; a function of a level array (float32 DN, at least
         :data:`MIN_NOISE_DN`). ``step``: from a quarter of the values only."""
-        # a quarter of a frame's or a box's blocks measures it well enough
-        level, diff = (level[::2, ::2], diff[::2, ::2]) if level.ndim == 2 else (level[::4], diff[::4]) \
-            if step else (level, diff)
+        if step:      # a quarter of a frame's or a box's blocks measures it well enough
+            level, diff = (level[::2, ::2], diff[::2, ::2]) if level.ndim == 2 else (level[::4], diff[::4])
         lv = np.clip((level.ravel() * (NOISE_BINS / 256.0)).astype(np.int32), 0, NOISE_BINS - 1)
         ad = np.minimum((np.abs(diff.ravel()) * (1.0 / NOISE_STEP_DN)).astype(np.int32), NOISE_STEPS - 1)
         hist = np.bincount(lv * NOISE_STEPS + ad, minlength=NOISE_BINS * NOISE_STEPS).reshape(NOISE_BINS, NOISE_STEPS)
