@@ -70,7 +70,9 @@ False, the default before 2026-12-01's fourth change); ``few6x2``: the default w
 of each ball's bias up to 6 balls (``few_balls`` 6, ``few_balls_cover`` 2.0) on every frame (the
 default applies it to frames whose balls read as glossy only); ``matte``: the default with every
 frame read as matte (``glossy_highlight_ratio`` 0, the default before 2026-12-01's twenty-fifth
-session, :mod:`monotracker.vision.ball_gloss`); same frames,
+session, :mod:`monotracker.vision.ball_gloss`); ``no-disagreement``: the default without the
+cover of a ball the others disagree with (``disagreement_quantile`` 0, the default before
+2026-12-03's thirty-fifth session, :mod:`monotracker.registration.disagreement`); same frames,
 same detections (the detections the first model's stream made: a model replayed on them reads
 somewhat differently from the same model streamed live, its trust steering the detector's
 search windows); ``before`` covers each ball's edge spread since the
@@ -78,7 +80,7 @@ per-frame model does, ``TrackerConfig.edge_bias_per_rms``; ``arm``: the ``before
 the session's own gate, what may move the arm: a pose agreeing with the last one the gate
 trusted, or after a refusal spell 3 consecutive agreeing estimates, :func:`session_gate`;
 ``arm-no-check`` / ``arm-no-memory`` / ``arm-check-alone`` / ``arm-prior-widened`` /
-``arm-few6x2`` / ``arm-matte``: those
+``arm-few6x2`` / ``arm-matte`` / ``arm-no-disagreement``: those
 models' poses through it):
 * recall: whole balls (>= 98 % of the silhouette seen, ray-cast) found; precision: accepted
   detections that are a ball; partial: accepted balls that were partly hidden;
@@ -230,7 +232,9 @@ def trust_models() -> dict:
     check read from the outline's size"); ``averaged``: the default with the detector reading
     the mean of the still view's last 8 frames (``average_still_frames`` 8: opt-in; given only
     while the camera's noise is at least ``average_min_noise_dn``, 1.8 DN; its own detector run, not the default's detections replayed; docs/vision.md "A still view's frames
-    averaged")."""
+    averaged"); ``no-disagreement``: the default without the cover of a ball the others
+    disagree with (``disagreement_quantile`` 0: the default before 2026-12-03's thirty-fifth
+    session, docs/vision.md "A ball the others disagree with")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
@@ -239,7 +243,8 @@ def trust_models() -> dict:
             "few6x2": TrackerConfig(few_balls=6, few_balls_cover=2.0),
             "matte": TrackerConfig(glossy_highlight_ratio=0.0),
             "excess-reading": TrackerConfig(shading_check_reading="excess"),
-            "averaged": TrackerConfig(average_still_frames=8)}
+            "averaged": TrackerConfig(average_still_frames=8),
+            "no-disagreement": TrackerConfig(disagreement_quantile=0.0)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -326,7 +331,8 @@ ARM = "arm"
 #: and ``few6x2``'s and ``excess-reading``'s (opt-in trust models: what they would let move the arm)
 GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte",
-         "excess-reading": "arm-excess-reading", "averaged": "arm-averaged"}
+         "excess-reading": "arm-excess-reading", "averaged": "arm-averaged",
+         "no-disagreement": "arm-no-disagreement"}
 
 
 def session_gate():
