@@ -12,6 +12,11 @@ from pathlib import Path
 
 import pytest
 
+# BROWSER_FPS (the most animation frames a second a test page draws) lives in browser_helpers:
+# a test module imports it from there, never ``from conftest import``, which takes whichever
+# folder's conftest pytest loaded last when several test folders run in one call
+from browser_helpers import BROWSER_FPS
+
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
                  "--disable-sync", "--no-first-run"]
 ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts" / "ui"
@@ -99,17 +104,6 @@ def port() -> int:
     return free_port()
 
 
-#: the most animation frames a second a test page draws (issue 35). Without a GPU, chromium draws
-#: the 3D view in software (SwiftShader): viser's client draws on demand, but every scene update
-#: (the head moving with the breathing trajectory, the arm) opens a 250 ms window of 60 Hz frames,
-#: so with the app's 8 Hz render thread the browser drew continuously and took most of a core
-#: from the app under test on a 2-core machine (the end-to-end test's pose pipeline starved
-#: beside it). The tests check the page's widgets, the session and where a click lands, not the
-#: frame rate: each page's ``requestAnimationFrame`` is capped at this rate (an init script in its
-#: own page world; Playwright's actionability checks run in their own world, unaffected), so the
-#: scene still follows the session, up to 1/BROWSER_FPS s later. GUI-only updates (panels, result
-#: lines, the state block) do not wait for a frame in viser's client (messageQueue.ts).
-BROWSER_FPS = 5
 
 #: the init script that caps ``requestAnimationFrame`` at :data:`BROWSER_FPS`: a callback asked
 #: for runs at the animation frame after the next 1/BROWSER_FPS s boundary (all callbacks asked

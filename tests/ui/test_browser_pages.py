@@ -6,7 +6,7 @@ scripts take away, so a script that stopped working fails here, not as a slower 
 from __future__ import annotations
 
 import pytest
-from conftest import BROWSER_FPS
+from browser_helpers import BROWSER_FPS
 
 pytestmark = pytest.mark.timeout(300)
 
