@@ -200,13 +200,13 @@ def test_the_calibrated_model_never_trusts_a_pose_without_a_predicted_error():
     assert all(e.ok and np.isfinite(e.predicted_tre_mm) for e in ests), [e.reason for e in ests]
 
 
-def _one_ball_off(bias_px, frames=15, seeds=6, **cfg):
+def _one_ball_off(bias_px, frames=15, seeds=6, balls=None, from_frame=0, **cfg):
     """A still head at 400-450 mm, every ball's centre with 0.15 px of noise (its edge spread,
     reported as such) except ball 2, ``bias_px`` off in a fixed direction (partly hidden, an
-    instrument's reflection): (trusted, trusted > 1 mm off at the 80 mm target, refusals'
-    reasons)."""
+    instrument's reflection) from frame ``from_frame`` on; ``balls``: only the first so many
+    found. (trusted, trusted > 1 mm off at the 80 mm target, refusals' reasons, the estimates)."""
     trusted = over = 0
-    reasons = []
+    reasons, ests = [], []
     for seed in range(seeds):
         rng = np.random.default_rng(300 + seed)
         s = make_scene(rng, noise_px=0.0, ellipse_bias=True, distance_mm=(400.0, 450.0))
@@ -215,26 +215,47 @@ def _one_ball_off(bias_px, frames=15, seeds=6, **cfg):
         a = rng.uniform(0.0, 2.0 * np.pi)
         for k in range(frames):
             px, minor = _observe(s, s.fiducials_ct, rng, 0.15)
-            px[2] += bias_px * np.array([np.cos(a), np.sin(a)])
-            det.set(px, minor, edge_rms_px=0.15)
+            px[2] += bias_px * np.array([np.cos(a), np.sin(a)]) * (k >= from_frame)
+            det.set(px[:balls], minor[:balls], edge_rms_px=0.15)
             e = tr.process(Frame(BLANK, k / 30.0, k))
+            ests.append(e)
             if e.ok:
                 trusted += 1
                 over += bool(tre_mm(e.T_cam_ct, s.T_cam_ct, target[None])[0] > 1.0)
             else:
                 reasons.append(e.reason)
-    return trusted, over, reasons
+    return trusted, over, reasons, ests
 
 
-def test_a_ball_two_pixels_off_is_covered_by_its_disagreement_with_the_others():
+def test_a_ball_two_pixels_off_is_set_aside_and_the_others_trusted():
     """One ball 2 px off among balls right to 0.15 px: its edge spread says 0.15 px and it is
-    under the moved-fiducial test's 1 mm, so without the leave-one-out cover the stream trusts
-    poses over 1 mm off at the target; with it (the others put that ball 2 px from where it
-    was found: the default) no trusted pose is over 1 mm off, and the refusals name the ball."""
-    ok0, over0, _ = _one_ball_off(2.0, disagreement_quantile=0.0)
+    under the moved-fiducial test's 1 mm, so without the leave-one-out test the stream trusts
+    poses over 1 mm off at the target. With it (the default) the others put that ball ~2 px from
+    where it was found: it is set aside for the frame, the pose from the others is trusted and
+    right, the ball stays "seen", and the alert names it once, not every frame."""
+    ok0, over0, *_ = _one_ball_off(2.0, disagreement_quantile=0.0)
     assert ok0 >= 60 and over0 >= 5, (ok0, over0)
-    ok1, over1, reasons = _one_ball_off(2.0)                       # the default
-    assert over1 == 0, (ok1, over1)
-    assert reasons and all("fiducial 2 lies" in r for r in reasons if "predicted error" in r), reasons[:3]
+    ok1, over1, _reasons, ests = _one_ball_off(2.0)
+    assert over1 == 0 and ok1 >= 0.9 * ok0, (ok1, over1, ok0)
+    assert all([j for j, _ in e.set_aside] == [2] and 1.5 < e.set_aside[0][1] < 2.6 for e in ests), ests[0].set_aside
+    assert all(e.status[2] == SEEN and np.isnan(e.residuals_px[2]) for e in ests if e.ok)
+    alerts = [a for e in ests for a in e.alerts if "set aside" in a]
+    assert len(alerts) == 6 and all(a.startswith("fiducial 2 set aside") for a in alerts), alerts   # once a stream
     # where the balls are all right to their spread it changes nothing
     assert _one_ball_off(0.0)[:2] == _one_ball_off(0.0, disagreement_quantile=0.0)[:2]
+
+
+def test_a_ball_going_off_mid_stream_among_six_is_set_aside():
+    """Six balls found, one goes 2 px off at frame 10 (an instrument arrives): the noise pooled
+    from the first frames is low, so without the leave-one-out test the stream trusts many poses
+    over 1 mm off; with it that ball is set aside from frame 10 on (5 remain: fewer poses are
+    trusted, with the few-ball cover) and none trusted is over 1 mm off."""
+    ok0, over0, *_ = _one_ball_off(2.0, frames=25, balls=6, from_frame=10, disagreement_quantile=0.0)
+    assert over0 >= 20, (ok0, over0)
+    ok1, over1, _reasons, ests = _one_ball_off(2.0, frames=25, balls=6, from_frame=10)
+    assert over1 == 0 and ok1 >= 30, (ok1, over1)
+    after = [e for k, e in enumerate(ests) if k % 25 >= 10 and e.n_detected]
+    # (in one scene the ball's offset lies mostly along what the other five leave loose: there it
+    # is not set aside, and those frames are refused by their predicted error)
+    assert sum(bool(e.set_aside) for e in after) >= 0.7 * len(after)
+    assert not any(e.set_aside for k, e in enumerate(ests) if k % 25 < 10)

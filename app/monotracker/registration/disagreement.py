@@ -14,9 +14,11 @@ ball i's leave-one-out prediction error is ``e_i = (I - H_ii)^-1 r_i`` (``r_i`` 
 px; exact for the linearised fit), and ``d_i^2 = e_i^T (I - H_ii) e_i / s_i^2`` is chi-square
 with 2 dof when its centre error has variance ``s_i^2`` per coordinate and the others are right.
 A ball whose ``d_i^2`` is over the ``quantile`` of that law disagrees by more than its cover
-allows: its cover becomes its disagreement ``|e_i|`` per coordinate, so the predicted error at
-the target carries what that ball can do to the pose. It moves no pose and excludes no ball (a
-moved fiducial is :mod:`.consistency`'s business: it needs a shift of >= 1 mm in the CT).
+allows: the pose tracker sets it aside for the frame (the pose from the others, when at least
+:data:`MIN_BALLS` remain), or else raises its cover to its disagreement ``|e_i|`` per
+coordinate, so the predicted error at the target carries what that ball can do to the pose.
+Nothing here is permanent (a moved fiducial is :mod:`.consistency`'s business: it needs a shift
+of >= 1 mm in the CT, and stays excluded).
 
 Units: px; the rows of ``r`` and ``J`` are (u, v) per ball in ball order.
 """

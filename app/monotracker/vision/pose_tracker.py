@@ -27,9 +27,11 @@ Validity rules (the downstream controller holds whenever ``ok`` is False):
   ``max_wrong_probability`` (0.1 %): an RMS limit alone leaves a tail. Each matched ball's
   centre error counts as at least its edge fit's residual RMS, plus a shift common to all balls
   (``edge_bias_per_rms``, ``edge_common_per_rms``): shading moves the centres in a way a slightly
-  wrong pose explains, which the residuals cannot show (issue 28). A ball the others put more than its cover allows from where it was found (a linearised
-  leave-one-out, :mod:`monotracker.registration.disagreement`, ``disagreement_quantile``) is
-  covered by that disagreement, and a refusal names it;
+  wrong pose explains, which the residuals cannot show (issue 28). A ball the others put
+  more than its cover allows from where it was found (a linearised leave-one-out,
+  :mod:`monotracker.registration.disagreement`, ``disagreement_quantile``) is set aside for the
+  frame (``set_aside``; at least 5 balls remain) or else covered by that disagreement, and
+  named;
 * a fiducial whose position disagrees with the others by a shift of >= 1 mm (leave-one-out,
   :mod:`monotracker.registration.consistency`) is excluded with a ``fiducial_moved`` alert
   naming it and the estimated shift (mm), and stays excluded until :meth:`PoseTracker.reset`.
@@ -167,6 +169,10 @@ class PoseEstimate:
     #: ``TrackerConfig.average_still_frames``, at most that many: beyond it the mean weighs the
     #: newest frame 1 / that; 1 = this frame alone)
     averaged_frames: int = 1
+    #: balls found in this frame but left out of its pose because the others put them beyond
+    #: their cover (``TrackerConfig.disagreement_quantile``): [(fiducial index, px from where the
+    #: others put it)]; their ``status`` is "seen"
+    set_aside: list = field(default_factory=list)
 
     @property
     def latency_s(self) -> float:
@@ -412,19 +418,21 @@ class TrackerConfig:
     #: clean, OR and clutter frames were then read exactly as without the mean.
     average_min_noise_dn: float = 1.8
     #: (the per-frame model) a matched ball whose leave-one-out disagreement with the others
-    #: (where the others put it, px) is beyond this quantile of its cover's chi-square law (2 dof)
-    #: is covered by that disagreement, and a refusal names it
-    #: (:mod:`monotracker.registration.disagreement`; 5 or more balls). A ball 1.2-2.5 px off
-    #: among right ones (partly hidden, an instrument's reflection) is under the moved-fiducial
-    #: test's 1 mm and its edge spread does not show it: on synthetic streams at 400-450 mm
-    #: (tests/vision/test_pose_trust.py) the stream without it trusts poses over 1 mm off at the
-    #: target (2 px: 29 of 90 frames; 1.2 px: 3), with it none. Chosen on the rendered TUNING sets
-    #: (0.999: every figure unchanged; 0.99 took 8 of 198 gate frames on the partly hidden
-    #: balls' set) and scored once on a fresh held-out set against a rule written before
-    #: (fresh36: through the gate 705 -> 704 trusted frames, 1-2 mm 1 -> 1). Cost +0.06-0.10 ms a
-    #: frame (paired, 9-12 balls). 0 = off (the default before 2026-12-03's thirty-fifth
-    #: session; ``camera_pbr.py``'s ``no-disagreement`` row). docs/vision.md "A ball the others
-    #: disagree with"
+    #: (where the others put it, px) is beyond this quantile of its cover's chi-square law (2 dof;
+    #: :mod:`monotracker.registration.disagreement`) is SET ASIDE for the frame: the pose comes
+    #: from the others (``PoseEstimate.set_aside``, an alert naming it once; its status stays
+    #: "seen") when at least 5 remain; else it stays in the fit, covered by that disagreement,
+    #: and a refusal names it. A ball 1.2-2.5 px off among right ones (partly hidden, an
+    #: instrument's reflection) is under the moved-fiducial test's 1 mm and its edge spread does
+    #: not show it: on synthetic streams at 400-450 mm (tests/vision/test_pose_trust.py, 9 balls,
+    #: 6 x 15 frames) the stream without it trusts poses over 1 mm off at the target (2 px: 29 of
+    #: 90 frames; 1.2 px: 3), with it none and all 90 trusted; 6 balls with one going 2 px off
+    #: mid-stream 62 of 117 -> 0 of 51. Chosen on the rendered TUNING sets (0.99 took 8 of 198
+    #: gate frames on the partly hidden balls' set; 0.999: gate 553 -> 551) and scored on a fresh
+    #: held-out set against rules written before (fresh36: gate 705 / 1 / 0 trusted / 1-2 mm /
+    #: over 2 mm, unchanged). Cost +0.06-0.10 ms a frame (paired, 9-12 balls). 0 = off (the
+    #: default before 2026-12-03's thirty-fifth session; ``camera_pbr.py``'s ``no-disagreement``
+    #: row). docs/vision.md "A ball the others disagree with"
     disagreement_quantile: float = 0.999
 
     def __post_init__(self):
@@ -544,6 +552,9 @@ class PoseTracker:
         self._last_T_index = -10
         self._last_ok = None
         self._last_code = ""
+        self._last_aside: list = []      # fiducials set aside in the last frame (alerted once)
+        self._rows = None                # (registration, detection, its rows): _fit_rows' last
+        self._covers = None              # (registration, its covers): _centre_covers' last
         #: fiducial index -> estimated shift (mm) of the balls excluded as moved (persistent)
         self.excluded: dict[int, float] = {}
         c = self.config
@@ -679,6 +690,7 @@ class PoseTracker:
                                 sigma_dof=known_sigma.dof,
                                 min_shift_mm=cfg.moved_min_shift_mm,
                                 max_exclusions=2 if cfg.check_moved else 0)
+        scr, aside, recheck = self._without_disagreeing(scr, det, pts)
         reg = scr.registration
         if watch is not None:
             t_m0 = time.perf_counter()
@@ -725,6 +737,10 @@ class PoseTracker:
                 res[j] = reg.residuals_px[k] if k < len(reg.residuals_px) else np.nan
                 seen[j] = True
                 remembered[j] = remembered_det[i]
+            for i, j, _px in aside:               # found, set aside for this frame: seen, no residual
+                img_pts[j] = pts[i]
+                seen[j] = True
+                remembered[j] = remembered_det[i]
             matched = [j for _, j in reg.pairs]
             minor = [min(det.fiducials[i].axes_px) for i, _ in reg.pairs]
             if len(reg.pairs) < cfg.min_fiducials:
@@ -760,7 +776,7 @@ class PoseTracker:
                     # gate on an upper bound of the noise (95 %): a sigma from few dof may be low by chance
                     upper = ne.upper(cfg.noise_bound_confidence)
                     upper = upper if np.isfinite(upper) else sigma
-                    covs = self._frame_covariances(reg, det, sigma, upper)
+                    covs = self._frame_covariances(reg, det, sigma, upper, recheck)
                     shading = ""
                     if covs is None:
                         tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
@@ -828,6 +844,10 @@ class PoseTracker:
                 status.append(OCCLUDED)
             else:
                 status.append(UNKNOWN)
+        if aside and [j for _, j, _ in aside] != self._last_aside:
+            alerts.append("; ".join(f"fiducial {j} set aside in frame {frame.index}: found {px:.1f} px from where "
+                                    "the others put it (partly hidden or off?)" for _, j, px in aside))
+        self._last_aside = [j for _, j, _ in aside]
         lost = [j for j, s in enumerate(status) if s == NEWLY_LOST]
         if lost:
             alerts.append(f"fiducial{'s' if len(lost) > 1 else ''} {', '.join(map(str, lost))} lost "
@@ -858,9 +878,64 @@ class PoseTracker:
             moved=new_moved, excluded=sorted(self.excluded), stages_s=stages,
             pooled_frames=n_pooled if ok else 0, remembered=[int(j) for j in np.flatnonzero(remembered)],
             averaged_frames=min(self.still_frames.n, self.still_frames.max_frames)
-            if self.still_frames is not None and self.still_frames.giving else 1)
+            if self.still_frames is not None and self.still_frames.giving else 1,
+            set_aside=[(int(j), round(float(px), 2)) for _, j, px in aside])
 
-    def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float):
+    def _without_disagreeing(self, scr, det, pts: np.ndarray):
+        """(the screened registration to judge, [(detection index, fiducial, px)] of the balls
+        set aside for this frame, whether the trust model must still test the fit's balls: the
+        test did not run, or named balls it could not set aside). A ball the others put beyond its cover
+        (``disagreement_quantile``: :func:`_disagreeing`) is left out of this frame's fit when at
+        least :data:`~monotracker.registration.disagreement.MIN_BALLS` balls remain and the fit
+        without it succeeds: the pose comes from the balls that agree (the re-fit starts from
+        this frame's pose); otherwise ``scr`` as it is (the trust model then covers the ball by
+        its disagreement, :meth:`_frame_covariances`). Not in a frame that found a fiducial
+        moved (that frame's fit already left it out)."""
+        import dataclasses
+
+        from monotracker.registration.consistency import register_screened
+        from monotracker.registration.disagreement import MIN_BALLS
+
+        cfg = self.config
+        reg = scr.registration
+        if scr.moved or not reg.ok or not (cfg.disagreement_quantile > 0):
+            return scr, [], True
+        ne = self.noise.peek(scr.noise_rss_px2, scr.noise_dof) if scr.noise_dof > 0 else self.noise.peek(0.0, 0)
+        found = self._disagreeing(reg, det, ne.sigma_px)
+        if found is None or not found:
+            return scr, [], found is None
+        take = found[:len(reg.pairs) - MIN_BALLS]
+        again = register_screened(self.fiducials_ct, pts, self.camera.K, self.camera.dist, radius_mm=self.radius_mm,
+                                  method=cfg.method, prior=reg.T_cam_ct,
+                                  excluded=tuple(self.excluded) + tuple(j for j, _ in take), max_exclusions=0)
+        kept = again.registration
+        if not take or not kept.ok or len(kept.pairs) < len(reg.pairs) - len(take):
+            return scr, [], True
+        det_of = {j: i for i, j in reg.pairs}
+        again = dataclasses.replace(again, register_s=scr.register_s + again.register_s,
+                                    screen_s=scr.screen_s + again.screen_s)
+        return again, [(det_of[j], j, px) for j, px in take], len(take) < len(found)
+
+    def _disagreeing(self, reg, det, sigma_px: float) -> list | None:
+        """[(fiducial, px)] of the matched balls whose leave-one-out disagreement with the others
+        is beyond ``disagreement_quantile`` of their covers (:meth:`_centre_covers`, noise
+        ``sigma_px``), the worst first; None where the test does not run here (a detector
+        without an edge spread, at most
+        :data:`~monotracker.registration.disagreement.MIN_BALLS` balls: none could be set aside)."""
+        from monotracker.registration.disagreement import MIN_BALLS, disagreement_cover
+
+        feats = [det.fiducials[i].features for i, _ in reg.pairs]
+        rms = np.array([float(f.get("edge_rms_px", np.nan)) for f in feats])
+        refined = np.array(["edge_centre_px" in f for f in feats], bool)
+        if len(rms) <= MIN_BALLS or not np.all(np.isfinite(rms)) or not (sigma_px > 0):
+            return None
+        fids, r, J = self._fit_rows(reg, det)
+        cover = self._centre_covers(reg, feats, rms, refined)[0]
+        _floor, found = disagreement_cover(r, J, np.maximum(sigma_px**2, np.repeat(cover**2, 2)),
+                                           self.config.disagreement_quantile)
+        return [(fids[i], px) for i, px in found]
+
+    def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float, disagreement: bool = True):
         """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with
         the balls' shading error covered (``TrackerConfig.edge_bias_per_rms``,
         ``edge_common_per_rms``): (with the noise estimate ``sigma_px``, with its upper bound
@@ -870,7 +945,8 @@ class PoseTracker:
         ball the centre error per coordinate is max(noise, ``edge_bias_per_rms`` x its edge RMS;
         with few balls x ``few_balls_cover``, or the glossy frames' pair, :mod:`.ball_gloss`;
         where the others' leave-one-out disagreement with it is beyond that,
-        ``disagreement_quantile``, that disagreement) (a weighted least-squares fit's
+        ``disagreement_quantile``, that disagreement; not tested again where ``disagreement`` is
+        False: :meth:`_without_disagreeing` tested this fit) (a weighted least-squares fit's
         covariance ``H^-1 J^T V J H^-1``), plus a shift common to all balls of
         ``edge_common_per_rms`` x their median edge RMS; where the shading check applies
         (``shading_check_factor``, :mod:`.shading_check`) raised along the pose change the balls'
@@ -884,45 +960,25 @@ class PoseTracker:
         refined = np.array(["edge_centre_px" in f for f in feats], bool)
         if not len(rms) or not np.all(np.isfinite(rms)) or not (sigma_px > 0 and np.isfinite(upper_px)):
             return None
-        from monotracker.registration import pnp_kernels
         from monotracker.registration.disagreement import disagreement_cover
-        from monotracker.registration.projection import undistort_to_normalised
         from monotracker.registration.report import common_shift_covariance, layout_gradient_covariance
 
-        K = self.camera.K
         T = reg.T_cam_ct
-        fids = [j for _, j in reg.pairs]
-        X = np.ascontiguousarray(self.fiducials_ct[fids], dtype=float)
-        k = len(X)
-        obs = undistort_to_normalised(np.array([det.fiducials[i].centre_px for i, _ in reg.pairs], float).reshape(-1, 2),
-                                      K, self.camera.dist)
-        r, J = np.empty(2 * k), np.empty((2 * k, 6))   # r: residuals px, J: px per pose parameter at the pose
-        pnp_kernels.residuals_and_jacobian(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), X,
-                                           np.ascontiguousarray(obs, dtype=float), float(K[0, 0]), float(K[1, 1]),
-                                           float(self.radius_mm or 0.0), np.empty(0), r, J)
+        fids, r, J = self._fit_rows(reg, det)
+        k = len(fids)
         A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
-        per_ball = np.where(refined, cfg.refined_bias_per_rms, cfg.edge_bias_per_rms)
-        glossy = ball_gloss.wider_cover(feats, cfg.glossy_highlight_ratio,
-                                        cfg.shading_check_share if cfg.glossy_needs_shadow else None,
-                                        tuple(self.memory.still_notes(HIGHLIGHT_NOTE)),
-                                        tuple(self.memory.still_notes(SHADOWED_NOTE)), cfg.ball_finish)
+        cover, spread, excess, glossy = self._centre_covers(reg, feats, rms, refined)
         self.memory.note(HIGHLIGHT_NOTE, ball_gloss.frame_highlight(feats))
-        per_ball = per_ball * few_ball_factor(cfg, k, glossy)
         common_factor = max(cfg.refined_common_per_rms if refined.any() else 0.0,
                             cfg.edge_common_per_rms if not refined.all() else 0.0)
-        cover = per_ball * rms
-        spread = rms
-        excess = self._size_excess(T, fids, feats) if cfg.edge_size_per_excess > 0 else None
-        if excess is not None:
-            # a centre the refiner moved has its own measured factors (the excess is the
-            # edge fit's, whose bias the refiner corrects)
-            size_cover = np.where(refined, 0.0, cfg.edge_size_per_excess * np.abs(excess))
-            cover = np.maximum(cover, size_cover)
-            spread = np.maximum(rms, size_cover)
         shade = np.repeat(cover ** 2, 2)
-        # a ball the others disagree with beyond its cover is covered by that disagreement
-        floor, found = disagreement_cover(r, J, np.maximum(sigma_px**2, shade), cfg.disagreement_quantile)
-        shade = np.maximum(shade, floor)
+        if disagreement:
+            # a ball the others disagree with beyond its cover (and not set aside) is covered by
+            # that disagreement
+            floor, found = disagreement_cover(r, J, np.maximum(sigma_px**2, shade), cfg.disagreement_quantile)
+            shade = np.maximum(shade, floor)
+        else:
+            found = []
         common = common_shift_covariance(J, common_factor * float(np.median(spread)), A)  # shared by all balls
         if cfg.edge_gradient_per_rms > 0:
             pts = np.array([det.fiducials[i].centre_px for i, _ in reg.pairs], float)
@@ -948,6 +1004,57 @@ class PoseTracker:
 
         return (cov(sigma_px), cov(upper_px), float(np.median(rms)), check_mm, bool(glossy and k <= cfg.glossy_few_balls),
                 [(fids[i], px) for i, px in found])
+
+    def _fit_rows(self, reg, det) -> tuple[list, np.ndarray, np.ndarray]:
+        """(matched fiducial indices, residuals r (2k,) px, Jacobian J (2k, 6) px per (rad, mm))
+        of the fit ``reg`` at its pose, from the matched detections' centres (rows u, v per
+        ball, in ``reg.pairs`` order)."""
+        from monotracker.registration import pnp_kernels
+        from monotracker.registration.projection import undistort_to_normalised
+
+        cached = self._rows
+        if cached is not None and cached[0] is reg and cached[1] is det:
+            return cached[2]                 # this frame's fit, read once by both of its tests
+        K, T = self.camera.K, reg.T_cam_ct
+        fids = [j for _, j in reg.pairs]
+        X = np.ascontiguousarray(self.fiducials_ct[fids], dtype=float)
+        k = len(X)
+        obs = undistort_to_normalised(np.array([det.fiducials[i].centre_px for i, _ in reg.pairs], float).reshape(-1, 2),
+                                      K, self.camera.dist)
+        r, J = np.empty(2 * k), np.empty((2 * k, 6))
+        pnp_kernels.residuals_and_jacobian(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), X,
+                                           np.ascontiguousarray(obs, dtype=float), float(K[0, 0]), float(K[1, 1]),
+                                           float(self.radius_mm or 0.0), np.empty(0), r, J)
+        self._rows = (reg, det, (fids, r, J))
+        return fids, r, J
+
+    def _centre_covers(self, reg, feats: list, rms: np.ndarray, refined: np.ndarray):
+        """Each matched ball's centre cover per coordinate (px; its edge RMS x its factor, with few
+        balls or glossy frames widened, :func:`few_ball_factor`; or its size excess where that
+        is covered), the spread behind the common shift (px), the size excess (px) or None,
+        and whether the frame's balls read as glossy. Reads the ball memory's notes, writes none."""
+        cached = self._covers
+        if cached is not None and cached[0] is reg:
+            return cached[1]                 # this frame's fit, read once by both of its tests
+        cfg = self.config
+        fids = [j for _, j in reg.pairs]
+        per_ball = np.where(refined, cfg.refined_bias_per_rms, cfg.edge_bias_per_rms)
+        glossy = ball_gloss.wider_cover(feats, cfg.glossy_highlight_ratio,
+                                        cfg.shading_check_share if cfg.glossy_needs_shadow else None,
+                                        tuple(self.memory.still_notes(HIGHLIGHT_NOTE)),
+                                        tuple(self.memory.still_notes(SHADOWED_NOTE)), cfg.ball_finish)
+        per_ball = per_ball * few_ball_factor(cfg, len(fids), glossy)
+        cover = per_ball * rms
+        spread = rms
+        excess = self._size_excess(reg.T_cam_ct, fids, feats) if cfg.edge_size_per_excess > 0 else None
+        if excess is not None:
+            # a centre the refiner moved has its own measured factors (the excess is the
+            # edge fit's, whose bias the refiner corrects)
+            size_cover = np.where(refined, 0.0, cfg.edge_size_per_excess * np.abs(excess))
+            cover = np.maximum(cover, size_cover)
+            spread = np.maximum(rms, size_cover)
+        self._covers = (reg, (cover, spread, excess, glossy))
+        return cover, spread, excess, glossy
 
     def _size_excess(self, T_cam_ct: np.ndarray, fiducials: list, feats: list):
         """Per matched ball (``fiducials`` their indices, ``feats`` their detections' features),
