@@ -27,8 +27,9 @@ class FakeFrame:
 
 
 class TruthCameraRig(CameraRig):
-    def __init__(self, motion="still", noise_mm=0.1, visible=lambda t: 9, seed=0):
+    def __init__(self, motion="still", noise_mm=0.1, visible=lambda t: 9, seed=0, set_aside=lambda t: {}):
         super().__init__()
+        self.set_aside = set_aside      # t -> {fiducial id: px} the estimator left out of the pose
         self.layout = default_layout()
         self.motion = self.layout.motion(motion)
         self.noise_mm = noise_mm
@@ -73,7 +74,7 @@ class TruthCameraRig(CameraRig):
                                 self.rng.uniform(10, 30) * self.rng.choice([-1, 1], size=3))
         T = dT @ frame.T_cam_ct
         return PoseSample(frame.t_capture, frame.index, True, "ok", T, n, fre_mm=0.3, predicted_tre_mm=0.5,
-                          truth_T_cam_ct=frame.T_cam_ct)
+                          truth_T_cam_ct=frame.T_cam_ct, set_aside=dict(self.set_aside(frame.t_capture)))
 
 
 class FollowerRobotRig(RobotRig):

@@ -6,7 +6,7 @@ import pytest
 
 from monotracker.engine.alarms import CATALOGUE, AlarmBoard
 
-from .conftest import plan_sample
+from .conftest import alerts_of, plan_sample
 from .doubles import FollowerRobotRig, TruthCameraRig
 
 
@@ -65,8 +65,8 @@ def test_technical_conditions_are_reported_once_per_quiet_time():
 
 
 # ---------------------------------------------------------------- in the session
-def _tracking(make_session, visible):
-    cam = TruthCameraRig("still", visible=visible)
+def _tracking(make_session, visible, **rig):
+    cam = TruthCameraRig("still", visible=visible, **rig)
     rob = FollowerRobotRig()
     s = make_session(clock="sim", camera_factory=lambda *a: cam, robot_factory=lambda *a: rob)
     plan_sample(s)
@@ -96,6 +96,20 @@ def test_occlusion_stays_on_top_while_newer_alerts_arrive(make_session):
     assert snap.robot.state == "tracking"
     assert "occlusion" not in [a.code for a in snap.alarms]
     assert [a.code for a in snap.alerts].count("occlusion") == 1
+
+
+def test_a_fiducial_set_aside_is_said_once_per_episode_and_does_not_hold_the_arm(make_session):
+    """The estimator left fiducial 3 out of its pose (the others put it 2.1 px away) from 1.0 to
+    2.0 s and from 3.0 to 3.5 s: one info alert naming it per episode, none while it stays aside,
+    and the arm keeps tracking (the pose from the others is trusted)."""
+    s, _ = _tracking(make_session, lambda t: 9,
+                     set_aside=lambda t: {3: 2.1} if 1.0 <= t < 2.0 or 3.0 <= t < 3.5 else {})
+    s.advance(3.7)
+    said = alerts_of(s, "fiducials_set_aside")
+    assert len(said) == 2, [a.message for a in said]
+    assert all(a.level == "info" and "fiducial 3 set aside: found 2.1 px" in a.message for a in said)
+    assert 1.0 <= said[0].t_session < 1.2 and 3.0 <= said[1].t_session < 3.2, [a.t_session for a in said]
+    assert s.snapshot().robot.state == "tracking"
 
 
 def test_estop_and_arm_lost_outrank_everything_until_they_clear(make_session):

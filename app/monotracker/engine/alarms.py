@@ -45,7 +45,10 @@ driver); ``camera_late`` [warning] frames still arrive, new ones, but none for `
 0.1 s freshness rule makes it); ``camera_stalled`` [alarm] no new frame at all for
 ``stall_after_s`` (a camera that stopped delivering or was unplugged); ``resumed`` [info]
 the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``fiducials_back``
-[info] fiducials left / re-entered the camera's view (with how many remain); ``camera_stopped``
+[info] fiducials left / re-entered the camera's view (with how many remain);
+``fiducials_set_aside`` [info] a fiducial found but left out of the pose because the other balls
+put it more than a pixel or two away (partly hidden, a reflection; the pose comes from the
+others: vision's ``disagreement_quantile``); ``camera_stopped``
 [warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
 ``robot_disconnected`` [alarm] /
 ``robot_connected`` [info]; real cameras: ``camera_ended`` [warning] the video/folder ended,

@@ -100,6 +100,7 @@ class TrackingLoop:
         self._hold_began = -np.inf  # when the current hold's cause was set
         self._latest_arrival = -np.inf  # when the newest estimate reached the loop
         self._seen_ids: set | None = None  # fiducial ids seen in the previous estimate
+        self._aside_ids: set = set()       # fiducial ids set aside in the previous estimate
         self._alerted: set[str] = set()
         self._target_T: np.ndarray | None = None
         self._target_stamp: float | None = None
@@ -211,7 +212,16 @@ class TrackingLoop:
 
     # ================================================================== the loop proper
     def _fiducial_changes(self, sample: rigs.PoseSample) -> None:
-        """Info alerts when fiducials vanish from / come back into the camera's view."""
+        """Info alerts when fiducials vanish from / come back into the camera's view, and when
+        one is newly set aside (found, but left out of the pose: the others disagree with it)."""
+        aside = dict(getattr(sample, "set_aside", None) or {})
+        new, self._aside_ids = sorted(set(aside) - self._aside_ids), set(aside)
+        if new:
+            n = len(sample.fiducial_status) - len(self._aside_ids)
+            self.alarms.alert("info", "fiducials_set_aside", "; ".join(
+                f"fiducial {fid} set aside: found {aside[fid]:.1f} px from where the others put it (partly hidden "
+                "or off?)" for fid in new) + f"; the pose comes from the others (up to {n})",
+                {"set_aside": {fid: aside[fid] for fid in new}})
         if not sample.fiducial_status:
             return
         seen = {fid for fid, st in sample.fiducial_status.items() if st == "seen"}
@@ -398,6 +408,7 @@ class TrackingLoop:
             self._latest = self._last_trusted = None
             self._fresh_since = None
             self._seen_ids = None
+            self._aside_ids = set()
             self.gate.reset()
         if hold and self.robot.state() in ("tracking", "holding"):
             self.hold("pose_lost", f"pose cleared: {why}")

@@ -60,6 +60,10 @@ class PoseSample:
     #: frames of a still view whose mean the detector read for this estimate (1 = this frame
     #: alone; vision's ``PoseEstimate.averaged_frames``, the opt-in still-view mean)
     averaged_frames: int = 1
+    #: fiducials found but left out of this estimate's pose because the other balls put them
+    #: beyond their cover: plan fiducial id -> px from where the others put it (vision's
+    #: ``PoseEstimate.set_aside``: partly hidden or off for this frame, not moved)
+    set_aside: dict = field(default_factory=dict)
     #: where this estimate's time went, wall seconds unless ``*_cpu_s`` (thread CPU time), for
     #: diagnosis and ``benchmarks/pose_latency.py``; empty when the rig does not measure. The
     #: simulated rigs give ``late_s`` (frame started after its camera tick), ``render_s`` /
@@ -245,4 +249,5 @@ def estimate_to_sample(est, fiducial_ids: list[int]) -> PoseSample:
         fiducial_status=status, residuals_px=res, fre_mm=_nan_to_none(est.fre_mm),
         predicted_tre_mm=_nan_to_none(est.predicted_tre_mm), raw=est, code=getattr(est, "code", ""),
         moved={fiducial_ids[j]: float(mm) for j, mm in getattr(est, "moved", []) if j < len(fiducial_ids)},
-        averaged_frames=int(getattr(est, "averaged_frames", 1)))
+        averaged_frames=int(getattr(est, "averaged_frames", 1)),
+        set_aside={fiducial_ids[j]: float(px) for j, px in getattr(est, "set_aside", []) if j < len(fiducial_ids)})
