@@ -180,7 +180,36 @@ def test_ball_states_differ_in_shape_and_colour():
     assert ball_state("seen", True) == "seen" and ball_state("seen", False) == "predicted"
     assert ball_state("unknown", False) == "predicted" and ball_state("occluded", False) == "lost"
     assert ball_state("newly_lost", True) == "lost" and ball_state("moved", True) == "moved"
-    assert len({v[0] for v in BALL_STYLE.values()}) == 4 and len({v[1] for v in BALL_STYLE.values()}) == 4
+    assert ball_state("seen", True, set_aside=True) == "aside" and ball_state("seen", False, True) == "predicted"
+    n = len(BALL_STYLE)
+    assert n == 5 and len({v[0] for v in BALL_STYLE.values()}) == n and len({v[1] for v in BALL_STYLE.values()}) == n
+
+
+def test_a_ball_set_aside_is_drawn_where_found_and_labelled_with_its_disagreement():
+    """The estimate left ball 4 out of its pose (found 2.1 px from where the others put it): its
+    label says so, and a yellow triangle is drawn at its detection (the cyan ring, where the
+    others put it, beside it); the other seen balls keep their residual labels; the banner
+    counts it apart from the balls the pose used."""
+    from monotracker.ui.overlay import BALL_STYLE, draw_overlay
+
+    (w, h), est, snap = _sample_scene()
+    est.image_points_px[4] = est.image_points_px[4] + [6.0, 0.0]   # found off its reprojection
+    snap.pose.set_aside = {4: 2.1}
+    img = np.zeros((h, w, 3), np.uint8)
+    boxes: list = []
+    texts = []
+    import monotracker.ui.overlay as ov
+    real = ov._text
+    ov._text = lambda image, text, *a, **k: (texts.append(text), real(image, text, *a, **k))[1]
+    try:
+        out = draw_overlay(img, est, snap, label_boxes=boxes)
+    finally:
+        ov._text = real
+    assert "4 set aside 2.1 px" in texts and "0 0.01 px" in texts, texts
+    assert "fiducials 5/9 (1 more set aside)" in " ".join(texts), texts[:2]   # 6 seen, one of them aside
+    x, y = np.round(est.image_points_px[4]).astype(int)
+    patch = out[y - 20:y + 20, x - 20:x + 20].reshape(-1, 3)
+    assert (np.abs(patch.astype(int) - BALL_STYLE["aside"][0]).sum(axis=1) < 40).sum() > 20
 
 
 def test_camera_stopped_view_dims_the_last_frame_and_says_so():

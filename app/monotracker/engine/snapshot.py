@@ -172,6 +172,9 @@ class PoseSummary:
     #: frames of a still view whose mean the detector read for this pose (1 = the frame alone;
     #: the opt-in still-view mean, ``SessionConfig.average_still_frames``)
     averaged_frames: int = 1
+    #: fiducials found but left out of this pose because the other balls put them more than a
+    #: pixel or two away (partly hidden, a reflection): id -> px from where the others put it
+    set_aside: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,9 @@ pose estimate says):
   detection) in a cyan ring (the CT fiducial reprojected with the estimated ``T_cam_ct``,
   ``cv2.projectPoints`` with the calibration ``K``, ``dist``); predicted (only the reprojection
   is known) = hollow cyan diamond; lost (``occluded`` / ``newly_lost``) = red ring with a cross;
-  excluded as moved = orange square;
+  excluded as moved = orange square; set aside for this frame (found, but the other balls put it
+  more than a pixel or two away: partly hidden, a reflection; ``set_aside``) = yellow triangle
+  at the detection, the cyan ring where the others put it;
 * one label per ball (its number and residual px, or its state), placed by
   :func:`place_labels` so that no two labels, no label and ball, no label and banner overlap; a
   label that finds no room beside its ball goes to a legend column with a leader line;
@@ -61,27 +63,33 @@ def _ipt(p) -> tuple[int, int]:
 
 
 ORANGE = (0, 140, 255)
+YELLOW = (0, 230, 255)
 GREY = (160, 160, 160)
 
 #: how each ball's state is drawn: (colour, shape, word). Shapes differ as well as colours (a
 #: colour-blind reader, a washed-out screen): seen = filled dot in a ring, predicted = hollow
-#: diamond, lost = ring with a cross, moved (excluded) = square.
+#: diamond, lost = ring with a cross, moved (excluded) = square, set aside for this frame =
+#: triangle (in the ring where the other balls put it).
 BALL_STYLE = {
     "seen": (GREEN, "dot", "seen"),
     "predicted": (CYAN, "diamond", "predicted"),
     "lost": (RED, "cross", "lost"),
     "moved": (ORANGE, "square", "moved: excluded"),
+    "aside": (YELLOW, "triangle", "set aside"),
 }
 
 
-def ball_state(status: str, detected: bool) -> str:
-    """A fiducial's estimate status and whether the frame has its detection -> "seen" |
+def ball_state(status: str, detected: bool, set_aside: bool = False) -> str:
+    """A fiducial's estimate status, whether the frame has its detection and whether the
+    estimate set it aside -> "seen" | "aside" (found, left out of this frame's pose) |
     "predicted" (only its reprojection is known) | "lost" (occluded, newly lost) | "moved"."""
     if status == "moved":
         return "moved"
     if status in ("occluded", "newly_lost"):
         return "lost"
-    return "seen" if status == "seen" and detected else "predicted"
+    if status == "seen" and detected:
+        return "aside" if set_aside else "seen"
+    return "predicted"
 
 
 FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -204,6 +212,10 @@ def _draw_ball(img, p, state: str, ring: int, thick: int) -> None:
     elif shape == "diamond":
         pts = np.array([[c[0], c[1] - ring], [c[0] + ring, c[1]], [c[0], c[1] + ring], [c[0] - ring, c[1]]], np.int32)
         cv2.polylines(img, [pts], True, colour, thick, cv2.LINE_AA)
+    elif shape == "triangle":
+        h = ring * 0.87
+        pts = np.array([[c[0], c[1] - ring], [c[0] + h, c[1] + ring / 2], [c[0] - h, c[1] + ring / 2]], np.int32)
+        cv2.polylines(img, [pts], True, colour, thick + 1, cv2.LINE_AA)
     elif shape == "cross":
         cv2.circle(img, c, ring, colour, thick + 1, cv2.LINE_AA)
         r = int(ring * 0.7)
@@ -288,6 +300,11 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False, p
                 cv2.drawMarker(img, _ipt(e), CYAN, cv2.MARKER_CROSS, int(24 * scale), max(1, int(2 * scale)))
                 cv2.drawMarker(img, _ipt(t), MAGENTA, cv2.MARKER_TILTED_CROSS, int(20 * scale), max(1, int(2 * scale)))
 
+    # balls the estimate left out of its pose: fiducial id -> px from where the others put it
+    aside = dict(getattr(pose, "set_aside", None) or {}) if pose is not None else {}
+    if estimate is not None and getattr(estimate, "set_aside", None) is not None:
+        aside = {ids[j]: px for j, px in estimate.set_aside if 0 <= j < len(ids)} \
+            if not isinstance(estimate.set_aside, dict) else dict(estimate.set_aside)
     # the banner first: its height is reserved, labels never go under it
     trusted = pose is not None and pose.trusted
     valid = trusted and T is not None
@@ -295,7 +312,10 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False, p
         n_seen = sum(1 for s in status_by_id.values() if s == "seen")
         fre = f"{pose.fre_mm:.2f} mm" if pose.fre_mm is not None else "-"
         tre = f"{pose.predicted_tre_mm:.2f} mm" if pose.predicted_tre_mm is not None else "-"
-        msg = f"POSE OK   FRE {fre}   predicted TRE {tre}   fiducials {n_seen}/{len(ids)}"
+        n_aside = sum(1 for i in aside if status_by_id.get(i) == "seen")
+        msg = f"POSE OK   FRE {fre}   predicted TRE {tre}   fiducials {n_seen - n_aside}/{len(ids)}"
+        if n_aside:
+            msg += f" ({n_aside} more set aside)"
     elif pose is None:
         msg = "NO POSE YET: waiting for the first registration"
     else:
@@ -322,16 +342,18 @@ def draw_overlay(image: np.ndarray, estimate, snap, *, in_place: bool = False, p
         p_img = img_pts[j] if j < len(img_pts) else None
         p_proj = proj.get(fid)
         # no image points at all (the engine's PoseSample): a seen ball is drawn at its reprojection
-        state = ball_state(stt, _finite(p_img) or (len(img_pts) == 0 and _finite(p_proj)))
-        at = p_img if state == "seen" and _finite(p_img) else p_proj
+        state = ball_state(stt, _finite(p_img) or (len(img_pts) == 0 and _finite(p_proj)), fid in aside)
+        at = p_img if state in ("seen", "aside") and _finite(p_img) else p_proj
         if not _finite(at):
             continue
-        if state == "seen" and _finite(p_proj):
+        if state in ("seen", "aside") and _finite(p_proj):
             cv2.circle(img, _ipt(p_proj), ring, CYAN, thick, cv2.LINE_AA)
         _draw_ball(img, at, state, ring, thick)
         r = residuals[j] if j < len(residuals) else np.nan
         if state == "seen":
             label = f"{fid} {r:.2f} px" if np.isfinite(r) else str(fid)
+        elif state == "aside":
+            label = f"{fid} set aside {aside[fid]:.1f} px"
         else:
             label = f"{fid} {BALL_STYLE[state][2]}"
         anchors.append((float(at[0]), float(at[1])))

@@ -36,7 +36,7 @@ def pose_summary(loop) -> PoseSummary | None:
         validation_ok=None if smp.validation is None else bool(smp.validation.ok),
         validation_reason="" if smp.validation is None else smp.validation.reason,
         trusted_t=None if loop.last_trusted is None else loop.last_trusted.t_capture,
-        averaged_frames=smp.averaged_frames,
+        averaged_frames=smp.averaged_frames, set_aside=dict(smp.set_aside),
     )
 
 
