@@ -200,10 +200,10 @@ def test_the_calibrated_model_never_trusts_a_pose_without_a_predicted_error():
     assert all(e.ok and np.isfinite(e.predicted_tre_mm) for e in ests), [e.reason for e in ests]
 
 
-def _one_ball_off(bias_px, frames=15, seeds=6, balls=None, from_frame=0, **cfg):
+def _one_ball_off(bias_px, frames=15, seeds=6, balls=None, from_frame=0, off=(2,), **cfg):
     """A still head at 400-450 mm, every ball's centre with 0.15 px of noise (its edge spread,
-    reported as such) except ball 2, ``bias_px`` off in a fixed direction (partly hidden, an
-    instrument's reflection) from frame ``from_frame`` on; ``balls``: only the first so many
+    reported as such) except the balls ``off`` (ball 2), each ``bias_px`` off in a fixed direction
+    of its own (partly hidden, an instrument's reflection) from frame ``from_frame`` on; ``balls``: only the first so many
     found. (trusted, trusted > 1 mm off at the 80 mm target, refusals' reasons, the estimates)."""
     trusted = over = 0
     reasons, ests = [], []
@@ -212,10 +212,11 @@ def _one_ball_off(bias_px, frames=15, seeds=6, balls=None, from_frame=0, **cfg):
         s = make_scene(rng, noise_px=0.0, ellipse_bias=True, distance_mm=(400.0, 450.0))
         target = s.targets_ct[8]
         tr, det = _tracker(s, target, **cfg)
-        a = rng.uniform(0.0, 2.0 * np.pi)
+        dirs = {j: rng.uniform(0.0, 2.0 * np.pi) for j in off}
         for k in range(frames):
             px, minor = _observe(s, s.fiducials_ct, rng, 0.15)
-            px[2] += bias_px * np.array([np.cos(a), np.sin(a)]) * (k >= from_frame)
+            for j, a in dirs.items():
+                px[j] += bias_px * np.array([np.cos(a), np.sin(a)]) * (k >= from_frame)
             det.set(px[:balls], minor[:balls], edge_rms_px=0.15)
             e = tr.process(Frame(BLANK, k / 30.0, k))
             ests.append(e)
@@ -259,3 +260,12 @@ def test_a_ball_going_off_mid_stream_among_six_is_set_aside():
     # is not set aside, and those frames are refused by their predicted error)
     assert sum(bool(e.set_aside) for e in after) >= 0.7 * len(after)
     assert not any(e.set_aside for k, e in enumerate(ests) if k % 25 < 10)
+
+
+def test_two_balls_off_set_one_aside_and_the_other_is_still_judged():
+    """Two balls 2.5 px off from frame 5 on: setting the worst aside leaves the other one in the
+    fit, so the fit without it is tested again (before that was done, 2 of 3 trusted poses here
+    were over 1 mm off): no trusted pose over 1 mm off."""
+    ok, over, _reasons, ests = _one_ball_off(2.5, frames=20, seeds=8, from_frame=5, off=(2, 5))
+    assert over == 0, (ok, over)
+    assert sum(bool(e.set_aside) for e in ests) >= 10

@@ -884,7 +884,8 @@ class PoseTracker:
     def _without_disagreeing(self, scr, det, pts: np.ndarray):
         """(the screened registration to judge, [(detection index, fiducial, px)] of the balls
         set aside for this frame, whether the trust model must still test the fit's balls: the
-        test did not run, or named balls it could not set aside). A ball the others put beyond its cover
+        test did not run, named balls it could not set aside, or set some aside: a second ball
+        off, masked by the first, is judged in the fit without it). A ball the others put beyond its cover
         (``disagreement_quantile``: :func:`_disagreeing`) is left out of this frame's fit when at
         least :data:`~monotracker.registration.disagreement.MIN_BALLS` balls remain and the fit
         without it succeeds: the pose comes from the balls that agree (the re-fit starts from
@@ -914,7 +915,7 @@ class PoseTracker:
         det_of = {j: i for i, j in reg.pairs}
         again = dataclasses.replace(again, register_s=scr.register_s + again.register_s,
                                     screen_s=scr.screen_s + again.screen_s)
-        return again, [(det_of[j], j, px) for j, px in take], len(take) < len(found)
+        return again, [(det_of[j], j, px) for j, px in take], True     # the new fit is tested again
 
     def _disagreeing(self, reg, det, sigma_px: float) -> list | None:
         """[(fiducial, px)] of the matched balls whose leave-one-out disagreement with the others
