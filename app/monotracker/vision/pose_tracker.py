@@ -457,6 +457,15 @@ def _fiducials_used(n: int, remembered: int) -> str:
     return f"{n} fiducials" + (f", {remembered} of them from the last frames" if remembered else "")
 
 
+def _ball_features(reg, det) -> tuple[list, np.ndarray, np.ndarray]:
+    """The matched balls' detection features (``reg.pairs`` order), their edge fits' RMS (px; NaN
+    for a detector without an edge fit) and whether the learned refiner moved each centre."""
+    feats = [det.fiducials[i].features for i, _ in reg.pairs]
+    rms = np.array([float(f.get("edge_rms_px", np.nan)) for f in feats])
+    refined = np.array(["edge_centre_px" in f for f in feats], bool)
+    return feats, rms, refined
+
+
 def few_ball_factor(cfg: TrackerConfig, n_balls: int, glossy: bool) -> float:
     """The factor on each ball's shading cover in a fit of ``n_balls`` balls: ``few_balls_cover``
     with at most ``few_balls``, or for balls taken as glossy (:func:`.ball_gloss.wider_cover`)
@@ -553,7 +562,7 @@ class PoseTracker:
         self._last_ok = None
         self._last_code = ""
         self._last_aside: list = []      # fiducials set aside in the last frame (alerted once)
-        self._rows = None                # (registration, detection, its rows): _fit_rows' last
+        self._rows = None                # (registration, its rows): _fit_rows' last
         self._covers = None              # (registration, its covers): _centre_covers' last
         #: fiducial index -> estimated shift (mm) of the balls excluded as moved (persistent)
         self.excluded: dict[int, float] = {}
@@ -910,7 +919,7 @@ class PoseTracker:
                                   method=cfg.method, prior=reg.T_cam_ct,
                                   excluded=tuple(self.excluded) + tuple(j for j, _ in take), max_exclusions=0)
         kept = again.registration
-        if not take or not kept.ok or len(kept.pairs) < len(reg.pairs) - len(take):
+        if not kept.ok or len(kept.pairs) < len(reg.pairs) - len(take):
             return scr, [], True
         det_of = {j: i for i, j in reg.pairs}
         again = dataclasses.replace(again, register_s=scr.register_s + again.register_s,
@@ -925,9 +934,7 @@ class PoseTracker:
         :data:`~monotracker.registration.disagreement.MIN_BALLS` balls: none could be set aside)."""
         from monotracker.registration.disagreement import MIN_BALLS, disagreement_cover
 
-        feats = [det.fiducials[i].features for i, _ in reg.pairs]
-        rms = np.array([float(f.get("edge_rms_px", np.nan)) for f in feats])
-        refined = np.array(["edge_centre_px" in f for f in feats], bool)
+        feats, rms, refined = _ball_features(reg, det)
         if len(rms) <= MIN_BALLS or not np.all(np.isfinite(rms)) or not (sigma_px > 0):
             return None
         fids, r, J = self._fit_rows(reg, det)
@@ -956,9 +963,7 @@ class PoseTracker:
         cfg = self.config
         if cfg.edge_bias_per_rms <= 0 and cfg.edge_common_per_rms <= 0:
             return None
-        feats = [det.fiducials[i].features for i, _ in reg.pairs]
-        rms = np.array([float(f.get("edge_rms_px", np.nan)) for f in feats])
-        refined = np.array(["edge_centre_px" in f for f in feats], bool)
+        feats, rms, refined = _ball_features(reg, det)
         if not len(rms) or not np.all(np.isfinite(rms)) or not (sigma_px > 0 and np.isfinite(upper_px)):
             return None
         from monotracker.registration.disagreement import disagreement_cover
@@ -1014,8 +1019,8 @@ class PoseTracker:
         from monotracker.registration.projection import undistort_to_normalised
 
         cached = self._rows
-        if cached is not None and cached[0] is reg and cached[1] is det:
-            return cached[2]                 # this frame's fit, read once by both of its tests
+        if cached is not None and cached[0] is reg:
+            return cached[1]                 # this frame's fit, read once by both of its tests
         K, T = self.camera.K, reg.T_cam_ct
         fids = [j for _, j in reg.pairs]
         X = np.ascontiguousarray(self.fiducials_ct[fids], dtype=float)
@@ -1026,7 +1031,7 @@ class PoseTracker:
         pnp_kernels.residuals_and_jacobian(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), X,
                                            np.ascontiguousarray(obs, dtype=float), float(K[0, 0]), float(K[1, 1]),
                                            float(self.radius_mm or 0.0), np.empty(0), r, J)
-        self._rows = (reg, det, (fids, r, J))
+        self._rows = (reg, (fids, r, J))
         return fids, r, J
 
     def _centre_covers(self, reg, feats: list, rms: np.ndarray, refined: np.ndarray):

@@ -217,10 +217,11 @@ class TrackingLoop:
         aside = dict(getattr(sample, "set_aside", None) or {})
         new, self._aside_ids = sorted(set(aside) - self._aside_ids), set(aside)
         if new:
-            n = len(sample.fiducial_status) - len(self._aside_ids)
+            used = [fid for fid, st in sample.fiducial_status.items() if st == "seen" and fid not in aside]
             self.alarms.alert("info", "fiducials_set_aside", "; ".join(
                 f"fiducial {fid} set aside: found {aside[fid]:.1f} px from where the others put it (partly hidden "
-                "or off?)" for fid in new) + f"; the pose comes from the others (up to {n})",
+                "or off?)" for fid in new) + "; the pose comes from the others"
+                + (f" ({len(used)} found)" if used else ""),
                 {"set_aside": {fid: aside[fid] for fid in new}})
         if not sample.fiducial_status:
             return
