@@ -155,7 +155,7 @@ class SessionConfig:
     extra: dict = field(default_factory=dict)
 
     def frame_rules(self, plan_finish: str | None = None):
-        """The per-frame trust rules (vision's :class:`~monotracker.vision.pose_tracker.TrackerConfig`)
+        """The per-frame trust rules (vision's :class:`~monotracker.vision.tracker_config.TrackerConfig`)
         every camera rig's pose tracker applies: this session's ``min_fiducials``,
         ``max_predicted_tre_mm`` (mm), ``tre_confidence`` (the chance of exceeding that limit
         at most ``1 - tre_confidence``; 0 = no such rule) and the balls' finish: the plan's
@@ -164,7 +164,7 @@ class SessionConfig:
         object on each call (a rig's tracker may keep state on it). The loop's gate
         (``engine/loop/gate.py``) judges what the rigs deliver with the same limits: one verdict
         from one configuration."""
-        from monotracker.vision.pose_tracker import TrackerConfig
+        from monotracker.vision.tracker_config import TrackerConfig
 
         c = float(self.tre_confidence)
         return TrackerConfig(min_fiducials=int(self.min_fiducials), max_predicted_tre_mm=float(self.max_predicted_tre_mm),

@@ -31,7 +31,7 @@ import numpy as np
 
 from monotracker.geometry import invert_transform
 from monotracker.registration.report import fiducial_information
-from monotracker.vision.pose_tracker import TrackerConfig
+from monotracker.vision.tracker_config import TrackerConfig
 
 from .camera_poses import CameraPose, camera_pose, candidate_poses, cone_directions
 from .candidates import Candidates, sample_candidates

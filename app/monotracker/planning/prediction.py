@@ -24,7 +24,7 @@ from monotracker.geometry import invert_transform
 from monotracker.registration.report import (common_shift_covariance, error_norm_stats, fiducial_jacobian,
                                              pose_covariance, target_covariance)
 from monotracker.vision.pose_checks import weak_geometry
-from monotracker.vision.pose_tracker import TrackerConfig
+from monotracker.vision.tracker_config import TrackerConfig
 
 from .ball_losses import LossOutlook, loss_outlook
 from .detector_defaults import SHORT_OF_SKIN_FOUND_RATIO

@@ -2,7 +2,7 @@
 
 The pose stream (:class:`~monotracker.vision.pose_tracker.PoseTracker`) trusts a frame when the
 error at the target predicted with an upper bound of its online noise estimate passes its gates
-(:class:`~monotracker.vision.pose_tracker.TrackerConfig`): the RMS under
+(:class:`~monotracker.vision.tracker_config.TrackerConfig`): the RMS under
 ``max_predicted_tre_mm``, the probability of more than ``wrong_mm`` under
 ``max_wrong_probability`` and, where set, of more than ``right_mm`` under
 ``max_not_right_probability``. All scale with the noise, so for a layout and camera pose there is
@@ -30,7 +30,7 @@ import numpy as np
 
 from monotracker.registration.noise import OnlineNoise
 from monotracker.registration.quantiles import chi2_ppf, f_ppf
-from monotracker.vision.pose_tracker import TrackerConfig, few_ball_factor, tail_problem
+from monotracker.vision.tracker_config import TrackerConfig, few_ball_factor, tail_problem
 
 
 def shading_cover(noise_px: float, edge_rms_px: float | None,
@@ -57,7 +57,7 @@ def shading_cover(noise_px: float, edge_rms_px: float | None,
 
 def _tails_pass(cov3: np.ndarray, cfg: TrackerConfig) -> bool:
     """The tracker's tail gates on a target covariance (mm^2): its own
-    :func:`~monotracker.vision.pose_tracker.tail_problem`."""
+    :func:`~monotracker.vision.tracker_config.tail_problem`."""
     return not tail_problem(cov3, cfg)
 
 

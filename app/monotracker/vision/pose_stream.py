@@ -33,8 +33,10 @@ import numpy as np
 from monotracker.errors import MonoTrackerError
 
 from .frames import CameraDisconnected, FrameSource, FrameUnreadable, FrameWatchdog
-from .pose_tracker import (CAMERA_CODES, MOVED, NEWLY_LOST, OCCLUDED, SEEN,  # noqa: F401 - public names
-                           UNKNOWN, PoseEstimate, PoseTracker, TrackerConfig)
+from .pose_estimate import (CAMERA_CODES, MOVED, NEWLY_LOST, OCCLUDED, SEEN,  # noqa: F401 - public names
+                            UNKNOWN, PoseEstimate)
+from .pose_tracker import PoseTracker
+from .tracker_config import TrackerConfig  # noqa: F401 - a public name of the pose stream
 
 log = logging.getLogger(__name__)
 

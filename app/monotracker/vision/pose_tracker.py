@@ -52,446 +52,20 @@ fiducial was found displaced relative to the others and is excluded.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from monotracker.geometry import apply_transform
-from monotracker.registration.quantiles import chi2_ppf as chi2_quantile
 
-from . import ball_gloss, shading_check
 from .camera_model import CameraModel
-from .centre_refiner import REFINED_BIAS_PER_RMS, REFINED_COMMON_PER_RMS
+from .frame_trust import HIGHLIGHT_NOTE, SHADOWED_NOTE, FrameTrust  # noqa: F401 - the notes' public names
 from .frames import Frame, grayscale_problem
+from .pooled_trust import PooledTrust
+from .pose_estimate import (
+    CAMERA_CODES, MOVED, NEWLY_LOST, OCCLUDED, SEEN, UNKNOWN, PoseEstimate)
 from .sphere_outline import SphereEllipseCache
 from .still_frames import StillFrames, ball_windows
-
-SEEN, NEWLY_LOST, OCCLUDED, UNKNOWN, MOVED = "seen", "newly_lost", "occluded", "unknown", "moved"
-
-#: the note each frame leaves in the ball memory: the share of its matched balls with a contact
-#: shadow beside them (:func:`.shading_check.shadowed_share`), read by the next frames of a still
-#: head (:meth:`.ball_memory.StillBallMemory.still_notes`)
-SHADOWED_NOTE = "shadowed_share"
-#: the note of each frame's highlight reading (:func:`.ball_gloss.frame_highlight`), read the same way
-HIGHLIGHT_NOTE = "highlight_ratio"
-#: the shading check's second readings (``TrackerConfig.shading_check_reading``)
-SHADING_READINGS = ("excess", "shift")
-#: camera state -> alert code of the invalid estimate it causes
-#: ("late": a live camera's read() waits longer than a frame should take, the source alive;
-#: "stalled": it waited much longer, the camera stopped delivering; "frozen": identical frames)
-CAMERA_CODES = {"frozen": "camera_freeze", "late": "camera_late", "stalled": "camera_stalled",
-                "disconnected": "camera_disconnected", "ended": "camera_ended", "unreadable": "frame_unreadable"}
-
-
-@dataclass
-class PoseEstimate:
-    """One published result. Times are ``time.monotonic()`` seconds; ``latency_s`` is
-    publication time minus capture time. ``T_cam_ct`` (4x4, mm) is None when ``ok`` is False.
-    ``status`` has one entry per CT fiducial (see module docstring); ``image_points_px`` holds
-    the matched detection per CT fiducial (NaN where none) and ``residuals_px`` its
-    reprojection error (NaN where none). ``predicted_tre_mm`` is at the planned target (NaN if
-    no target was given or no pose). ``alerts`` are one-line operator messages for this frame.
-    ``camera`` is "ok", "frozen", "late", "stalled", "disconnected" or "ended". ``detect_s`` /
-    ``register_s`` are the stage times (s); ``truth`` is the simulator's ground truth of the
-    frame (None for real cameras), carried for overlays and benchmarks.
-
-    Attributes:
-        ok: True when the pose passed every gate of the module docstring; when False the
-            controller holds and ``code`` / ``reason`` say why.
-        reason: one line for the operator ("" when ok).
-        frame_index: index of the frame in its source.
-        t_capture, t_published: ``time.monotonic()`` s of capture and of publication.
-        T_cam_ct: (4, 4) float64, CT LPS mm -> OpenCV camera mm; None when not ok.
-        status: n strings, one per CT fiducial: "seen", "newly_lost", "occluded", "unknown",
-            "moved".
-        image_points_px: (n, 2) float, px: the matched detection per CT fiducial, NaN where none.
-        residuals_px: (n,) float, px: reprojection error per CT fiducial, NaN where none.
-        fre_mm: monocular FRE of the fit, mm (NaN without a pose).
-        reprojection_rms_px: RMS reprojection error of the fit, px (NaN without a pose).
-        predicted_tre_mm: predicted RMS error at the planned target, mm (NaN without a target
-            or a pose).
-        n_detected, n_matched: balls detected in the image; of those, matched to fiducials.
-        alerts: one-line operator messages raised in this frame.
-        camera: "ok", "frozen", "late", "stalled", "disconnected" or "ended".
-        used_prior: the registration's prior fast path produced the pose.
-        detect_s, register_s: stage times, s (``register_s``: registration and screening).
-        stages_s: wall time (s) per stage of this frame: ``hint`` (the balls' predicted
-            ellipses for the detector), ``detect``, ``register`` (the first
-            registration), ``average`` (the mean of a still view's frames, 0 without it:
-            :mod:`.still_frames`), ``screen`` (the moved-fiducial screening after it), ``gates`` (the
-            checks after the registration, to the estimate), ``motion`` (the camera-motion
-            watch's share of this frame, 0 without one); and ``detect.<stage>`` for the
-            detector's own stages (:attr:`~.detection.Detection.stages_s`).
-        truth: the simulator's ground truth of the frame, or None (real cameras).
-        code: alert code when not ok ("frame_size", "camera_freeze", "occlusion", "pose_lost",
-            "pose_implausible", "weak_geometry", "tre_limit", ...); "" when ok.
-        sigma_px, sigma_source: image noise (px) behind ``predicted_tre_mm`` and its origin.
-        moved: [(fiducial index, shift mm)] found moved in this frame.
-        excluded: indices of every fiducial excluded so far (moved).
-    """
-
-    ok: bool
-    reason: str
-    frame_index: int
-    t_capture: float
-    t_published: float
-    T_cam_ct: np.ndarray | None = None
-    status: list = field(default_factory=list)
-    image_points_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
-    residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    fre_mm: float = float("nan")
-    reprojection_rms_px: float = float("nan")
-    predicted_tre_mm: float = float("nan")
-    n_detected: int = 0
-    n_matched: int = 0
-    alerts: list = field(default_factory=list)
-    camera: str = "ok"
-    used_prior: bool = False
-    detect_s: float = float("nan")
-    register_s: float = float("nan")
-    stages_s: dict = field(default_factory=dict)
-    truth: object = None
-    #: alert code when not ok (see the module docstring); "" when ok
-    code: str = ""
-    #: image noise (px) behind ``predicted_tre_mm`` and where it came from (OnlineNoise.source)
-    sigma_px: float = float("nan")
-    sigma_source: str = ""
-    #: fiducials found moved in this frame: [(fiducial index, shift mm)]
-    moved: list = field(default_factory=list)
-    #: all fiducials excluded so far (moved), by index
-    excluded: list = field(default_factory=list)
-    #: frames of a still head pooled into ``T_cam_ct`` (1 = this frame alone; 0 when not ok)
-    pooled_frames: int = 0
-    #: fiducials whose centre in this pose came from an earlier frame of the still head
-    #: (:mod:`.ball_memory`; their ``status`` says whether this frame found them: it did not)
-    remembered: list = field(default_factory=list)
-    #: frames of a still view whose mean the detector read (:mod:`.still_frames`,
-    #: ``TrackerConfig.average_still_frames``, at most that many: beyond it the mean weighs the
-    #: newest frame 1 / that; 1 = this frame alone)
-    averaged_frames: int = 1
-    #: balls found in this frame but left out of its pose because the others put them beyond
-    #: their cover (``TrackerConfig.disagreement_quantile``): [(fiducial index, px from where the
-    #: others put it)]; their ``status`` is "seen"
-    set_aside: list = field(default_factory=list)
-
-    @property
-    def latency_s(self) -> float:
-        return self.t_published - self.t_capture
-
-    @property
-    def newly_lost(self) -> list[int]:
-        return [i for i, s in enumerate(self.status) if s == NEWLY_LOST]
-
-
-@dataclass
-class TrackerConfig:
-    """Gates of the pose stream (px, mm). See the module docstring."""
-
-    min_fiducials: int = 4
-    max_rms_px: float = 1.5
-    max_residual_px: float = 3.0
-    status_gate_px: float = 6.0
-    #: the previous valid pose is the registration prior when it came from the previous frame
-    #: or is younger than this (s)
-    prior_max_age_s: float = 0.5
-    #: the camera-motion watch checks one frame in ``every_n_frames``; a frame it would skip
-    #: whose pose moved the fiducials' centroid more than this (mm) from the last trusted pose is
-    #: checked at once, before it can be trusted (a knocked camera: 1.5 deg at 450 mm is ~12 mm;
-    #: a breathing head moves < 1 mm a frame)
-    motion_jump_mm: float = 4.0
-    method: str = "robust"
-    #: refuse a pose whose predicted TRE at the planned target exceeds this (mm)
-    max_predicted_tre_mm: float = 1.0
-    #: ... or whose error at the target may exceed ``wrong_mm`` with more than this probability
-    #: (the RMS alone leaves a tail: 1 mm RMS along one direction exceeds 2 mm 4.6 % of the time)
-    wrong_mm: float = 2.0
-    max_wrong_probability: float = 1e-3
-    #: moved-fiducial test: smallest shift (mm) that counts as moved; off with check_moved=False
-    check_moved: bool = True
-    moved_min_shift_mm: float = 1.0
-    #: physical plausibility (mm; see pose_checks.PhysicalLimits)
-    min_distance_mm: float = 150.0
-    max_distance_mm: float = 1500.0
-    #: online noise estimate: frames pooled, dof needed before the prior is dropped, prior (px)
-    noise_window: int = 30
-    noise_min_dof: int = 10
-    noise_prior_px: float = 0.3
-    #: where the prior stands in (fewer than ``noise_min_dof`` residual dof: the first frames of
-    #: 4-7 balls) the gate's noise bound is the prior, or the residuals' own upper bound where that
-    #: is larger (:meth:`~monotracker.registration.noise.NoiseEstimate.upper`). False: the prior
-    #: widened as if measured from those dof (x2.37 at 4 dof; the rule before 2026-12-01's
-    #: twenty-first session; held-out rendered sets, scenes trusted within 1 mm at frame 1 10 vs 23
-    #: of 158, docs/vision.md "The first frame's noise bound"; ``camera_pbr.py``'s
-    #: ``prior-widened`` row)
-    noise_prior_is_bound: bool = True
-    #: the TRE gates use this one-sided upper confidence bound of the noise estimate (a sigma
-    #: from few dof may be low by chance); benchmarks/pose_trust.py table 5 measures the choice
-    noise_bound_confidence: float = 0.95
-    #: the detector gets a :class:`~.detection.DetectionHint` (the balls' predicted ellipses)
-    #: while the last trusted pose is at most this many frames old (and within
-    #: ``prior_max_age_s``); 0 = never (every frame a full-frame search)
-    hint_max_age_frames: int = 3
-    #: ... and every this many frames that hint asks for the whole frame all the same
-    #: (``search_all``: new balls, strays, a drape of the balls' colour); 0 = never
-    full_search_every: int = 30
-    #: centre errors that frames of a still head do not average out (shading, highlights,
-    #: texture: :class:`~monotracker.registration.noise.CentreBias`, measured on physically
-    #: rendered frames): with it the pose and its trust come from the frames of a still head
-    #: pooled (:mod:`.still_pool`) and the predicted TRE covers the bias. "detector" = the one
-    #: measured for the tracker's detector (:func:`.centre_bias.centre_bias_of`); None = each
-    #: frame alone, image noise from the residuals only (the trust model before issue 28; still
-    #: the default: the calibrated model is opt-in until the whole suite has run with it)
-    centre_bias: object = None
-    #: frames of a still head pooled at most (0.27 s at 30 fps); the motion test's false-alarm rate
-    pool_frames: int = 8
-    pool_alpha: float = 1e-3
-    #: ... and the probability that the error at the target exceeds ``right_mm`` must stay at or
-    #: below this (1.0 = no such test; both trust models). 0.05 reads "trusted" as "within 1 mm at
-    #: 95 %": the RMS limit alone trusts poses whose error, even with Gaussian centres and no
-    #: shading, exceeds 1 mm in ~7 % of trusted frames (tests/vision/test_pose_trust.py), the
-    #: 1-2 mm band issue 28 allows 1 % of. Off by default: on the rendered tuning sets it took
-    #: the two 1.2-1.4 mm trusted poses out and most of the trust with them (planned scenes,
-    #: trusted after 8 frames: 12/40/25/30 % -> 0/40/12/10 % clean/OR/degraded/clutter; the
-    #: plain scenes' 10 % clean and degraded -> 0); ``benchmarks/camera_pbr.py``'s ``p95`` row
-    right_mm: float = 1.0
-    max_not_right_probability: float = 1.0
-    #: the per-frame trust model (``centre_bias`` None) also covers the centre error that a ball's
-    #: shading leaves (issue 28): each matched ball's centre error per coordinate is taken as at
-    #: least ``edge_bias_per_rms`` x its edge fit's residual RMS (``edge_rms_px``, the spread of its
-    #: edge around the known-shape outline), and a shift common to all balls of
-    #: ``edge_common_per_rms`` x their median edge RMS is added (the residuals cannot show it).
-    #: Measured on the committed tuning crops of physically rendered frames (tests/data/pbr/tuning,
-    #: 99 whole balls, 2 frames per scene): per coordinate, the per-ball part of the centre error is
-    #: 1.02 x edge RMS (RMS; p90 1.7), the part common to a frame's balls 0.72 x (p90 1.39); the
-    #: detector's own ``centre_sigma_px`` (edge RMS / sqrt(rays / 2)) is 4x too small (median). 0 =
-    #: off (the residuals alone, the model before); detectors without an edge fit (``chroma``) have
-    #: no edge RMS and are gated as before
-    edge_bias_per_rms: float = 1.0
-    edge_common_per_rms: float = 1.0
-    #: the same two factors for a centre the learned refiner moved (``features["edge_centre_px"]``
-    #: set: :class:`~.centre_refiner.CentreRefiner`): its error per edge RMS, measured on the
-    #: rendered tuning set (see :mod:`.centre_refiner`); the largest factor of the frame's balls
-    #: sets the common shift
-    refined_bias_per_rms: float = REFINED_BIAS_PER_RMS
-    refined_common_per_rms: float = REFINED_COMMON_PER_RMS
-    #: a bias changing linearly across the layout, x the balls' median edge RMS (px per coordinate
-    #: per gradient entry; :func:`~monotracker.registration.report.layout_gradient_covariance`).
-    #: 0 = off (the default): measured on the rendered tuning sets at 0.35-0.87 x (Mitsuba) and
-    #: 0.48-1.30 x (Blender) for the edge detector, but the per-ball term already covers part of
-    #: it, and the per-frame model trusted no pose over 1 mm with the edge detector on any set
-    edge_gradient_per_rms: float = 0.0
-    #: a ball's fitted outline larger or smaller than the sphere's at the frame's pose (its minor
-    #: semi-axis, ``features["edge_minor_px"]``, minus the one the pose predicts: the size excess
-    #: x, px) also covers its centre's error per coordinate, as this factor x |x|: shading read as
-    #: ball on one side (a contact or cast shadow, a dark limb's halo) pushes that side's edge out
-    #: by about 2 d, which a fit with free size splits into a size excess d and a centre shift d
-    #: towards that side (d / sqrt(2) = 0.71 d per coordinate); the edge RMS hardly sees it (a
-    #: half-ring push leaves ~0.3 d of residual). Measured on the rendered tuning sets (Mitsuba 26
-    #: + Blender 20 scenes, 4 frames each, 791 accepted whole balls, x against the true size):
-    #: rank correlation of the centre error with |x| 0.47 (within a condition 0.11-0.74), with the
-    #: edge RMS 0.12; binned by |x|, the error per coordinate has median 0.13-0.16 px below
-    #: |x| = 0.2 px (the edge RMS term covers it) and 0.27 / 0.33 / 0.40 px at |x| = 0.35 / 0.45 /
-    #: 0.6 px (0.66-0.78 x |x|): the factor 1.0 covers the median ball there as
-    #: ``edge_bias_per_rms`` does elsewhere (e / edge RMS has p90 2.5-4.2 at |x| > 0.3 px, 1.5-1.7
-    #: below 0.1). The frame's common shift is covered from the balls' median cover (edge RMS or
-    #: size term, whichever larger): the share of that shift the covers miss on OR frames (RMS
-    #: over frames) drops from 1.95 / 1.65 to 0.83 / 0.58 x (Mitsuba / Blender). A uniform excess
-    #: that moves no centre (JPEG's halved chroma widens every outline by 0.1-0.2 px) is covered
-    #: too, and that is why it is OFF by default: on our simulator's frames (2-3 px blur, JPEG:
-    #: every outline 0.2-0.5 px wide, centres right) it refuses most degraded frames
-    #: (``camera_pipeline.py --quick``, ``edge``: right 91.7 -> 16.7 %), and at 1.0 it does not
-    #: catch the one wrong trusted pose known on rendered frames (the Blender crop of
-    #: tests/vision/test_pose_trust_pbr.py; 1.5-2.0 would). Size alone cannot tell a one-sided push
-    #: (centre moved) from a uniform one (centre right). Not for a centre the learned refiner
-    #: moved (its own factors below). 0 = off (the default); 1.0 = the factor measured above
-    edge_size_per_excess: float = 0.0
-    #: with at most ``few_balls`` matched balls each ball's cover (``edge_bias_per_rms`` x its edge
-    #: RMS, the refined factor likewise) is multiplied by ``few_balls_cover`` (1.0 = no change).
-    #: A ball's centre error per edge RMS is heavy-tailed (rendered tuning sets, 2615 accepted
-    #: whole balls: the larger coordinate's error over edge RMS has median 1.1, p90 2.8, p99 5.7),
-    #: and with 4-5 balls (2-4 residual dof, leverages near 1) one ball's error reaches the target
-    #: nearly whole and the residuals hardly show it: every trusted pose 1-2 mm off on the three
-    #: rendered tuning sets had 4 or 5 balls (2 of 42 such frames with the default detector, 4 of
-    #: 39 with the narrowed second pass; 0 of 37 / 76 with 6 or more). 1.5 is the smallest of 1.5 /
-    #: 2 / 3 that left none there on the build it was chosen with; the shipped default leaves one
-    #: Blender OR frame at 1.01-1.02 mm (5 balls; tuning sets, docs/vision.md). The planner
-    #: applies it too (:func:`monotracker.planning.trust.shading_cover`)
-    few_balls: int = 5
-    few_balls_cover: float = 1.5
-    #: frames whose balls read as GLOSSY (a lamp's mirror image in their cores: the median of the
-    #: matched balls' ``features["highlight_ratio"]``, or one of a still head's last frames' such
-    #: readings, at least this; :mod:`.ball_gloss`) take ``glossy_few_balls`` and
-    #: ``glossy_few_balls_cover`` in place of the two above: a smooth coat beside a contact shadow
-    #: pushed whole balls' edge centres 0.3-0.8 px towards it on Blender's planner-placed frames,
-    #: and the default cover trusted poses 1-1.75 mm off there. 0 = off (every frame as matte,
-    #: the default before 2026-12-01's twenty-fifth session; ``camera_pbr.py``'s ``matte`` row).
-    #: Chosen on the rendered TUNING sets (30-frame still streams, each threshold replayed on the
-    #: default's detections; trusted frames / 1-2 mm off, through the session's gate, and its
-    #: scenes within 1 mm at frame 8): Blender planner-placed (36 rows) off 221 / 33, 6; 1.6
-    #: 173 / 5, 5; 1.8 191 / 5, 6; 2.0 195 / 8, 6 (the scene's finish read from its spec, an
-    #: oracle: 191 / 5, 6); Mitsuba's four tuning sets (156 rows) off 615 / 3, 22; 1.6 525 / 0,
-    #: 20; 1.8 541 / 0, 20; 2.0 556 / 0, 20; ``few6x2`` on every frame 106 / 3, 4 and 378 / 0, 13.
-    #: docs/vision.md "Glossy balls read from the frame"
-    glossy_highlight_ratio: float = 1.8
-    #: the glossy frames' cover only where the frame's balls (or a still head's last frames')
-    #: show contact shadows as the shading check counts them (``shading_check_share``): the push
-    #: is a glossy limb beside a shadow; a glossy ball on its own is read right
-    glossy_needs_shadow: bool = True
-    #: what the operator says of the kit's balls (:data:`.ball_gloss.FINISHES`): ``read`` (each
-    #: frame's reading, the default), ``matte`` (never the glossy frames' cover), ``glossy`` (that
-    #: cover wherever the balls show contact shadows, read or not: a far camera's highlights are
-    #: too small to read, docs/vision.md "Glossy balls read from the frame"); the layout planner
-    #: predicts with the glossy cover only for ``glossy``
-    ball_finish: str = "read"
-    glossy_few_balls: int = 6
-    glossy_few_balls_cover: float = 2.0
-    #: the shading check (:mod:`.shading_check`; the per-frame model): where at least
-    #: ``shading_check_share`` of the matched balls show a contact shadow beside them, the pose
-    #: the balls' second centre readings (``shading_check_reading``) give must lie within max
-    #: TRE / ``shading_check_factor`` of the frame's at the target (the predicted error there is
-    #: raised to at least this factor x that distance). 0 = off. Chosen on the rendered TUNING
-    #: sets, each rule streamed live (the tracker's trust steers its detector's search, so a rule
-    #: replayed on another's detections reads differently): 30-frame still streams, 136 scene x
-    #: condition rows, trusted frames / 1-2 mm off, off -> on: tracker 641 / 39 -> 436 / 5, what
-    #: the session's gate passes to the arm 479 / 31 -> 266 / 1, scenes trusted within 1 mm at
-    #: frame 30 18 -> 15 (arm 17 -> 10); none over 2 mm either way. Factor 2.5 or share 0.4 removed
-    #: no more; counting only shadows on the unlit side left 13 / 4 (tracker / arm); counting any
-    #: left-out ray refused 1 and 2 of our simulator's 90 OR and clutter frames
-    #: (``camera_pipeline.py``); this rule leaves its figures as they were. docs/vision.md "The
-    #: shading check"
-    shading_check_factor: float = 2.0
-    shading_check_share: float = 0.5
-    #: the shading check's second reading of each ball (:func:`.shading_check.second_readings`):
-    #: ``"shift"`` (the default), its edge centre moved by the shading shift model; ``"excess"``
-    #: (opt-in; ``camera_pbr.py``'s ``excess-reading`` row), moved towards its lit side by its
-    #: fitted outline's size excess over the sphere at the frame's pose (px, clipped to 0-1; a ball
-    #: without a fitted size falls back to the shift). The model's shift is 0.12-0.39 px on every
-    #: rendered scene; the excess tells the scenes whose outlines are pushed (the mean centre error
-    #: along the shift -0.44 to -0.48 px where the mean excess is +0.33 to +0.60 px) from those whose
-    #: are not (-0.1 to +0.1 px where -0.15 to +0.2), and lets the gate pass 6.7 % more poses on
-    #: fresh held-out scenes, none 1-2 mm off; but on an older held-out set it trusted poses
-    #: 1.0-1.2 mm off (tracker 1 -> 11 of ~470 frames, gate 1 -> 6): a push that leaves the
-    #: outline's size unchanged is not covered. docs/vision.md "The shading check read from the
-    #: outline's size"
-    shading_check_reading: str = "shift"
-    #: the shading check also applies where at least ``shading_check_share`` of the balls showed
-    #: a contact shadow in one of the last frames of a still head (the ball memory's frames,
-    #: :data:`SHADOWED_NOTE`): the edge fit's shadow test flickers from frame to frame, and the
-    #: frames it missed went out unchecked (rendered held-out sets, this tracker's own trusted
-    #: frames 1-2 mm off 9 of 234 -> 1 of 226). False: each frame's own shadows only (the default
-    #: before 2026-12-01's twenty-first session; ``camera_pbr.py``'s ``check-alone`` row)
-    shading_check_still_frames: bool = True
-    #: balls the detector found in the last frames of a still head and misses in this one are
-    #: given back to it for at most this many frames (:mod:`.ball_memory`: a ball's acceptance
-    #: flickers from frame to frame on shaded balls; the head's stillness is tested against the
-    #: frame each remembered ball comes from). 0 = off (each frame's own balls only, the default
-    #: before). The per-frame trust model only: the pooled one (``centre_bias`` set) pools its
-    #: frames itself. Rendered TUNING sets (30-frame still streams, 120 scene x condition rows),
-    #: 0 -> 7: trusted 239 -> 365 (1-2 mm off 3 -> 4), through the session's gate 151 -> 279 (0 ->
-    #: 0), scenes trusted within 1 mm at frame 8 7 -> 10. HELD-OUT (scored once, after): through
-    #: the gate 164 -> 195 (1-2 mm 0 -> 0), this tracker's own verdict 1-2 mm off 2 -> 9 of 234
-    #: (all on 12-ball layouts: single frames whose shading check did not apply); with the
-    #: shading check carried over the still head's frames (:data:`SHADOWED_NOTE`) 1 of 226
-    #: (0.4 %, a first frame). docs/vision.md "Balls of the last frames of a still head", "The
-    #: shading check over a still head's frames"
-    remember_frames: int = 7
-    #: the detector reads the mean of a still view's last frames instead of the frame
-    #: (:class:`~.still_frames.StillFrames`: at most this many frames; the mean starts again at
-    #: any shift of the balls a still view would not give, ~0.05 px together, or any change in the
-    #: view); 0 or 1 = each frame as it is (the default). For dim, noisy cameras, whose whole balls
-    #: the noise alone refuses. Rendered held-out scenes scored once against a rule written before
-    #: (planner's 12- and 9-ball plans, 40 scenes x 4 conditions, 30-frame still streams): through
-    #: the session's gate 628 -> 732 trusted frames, 1-2 mm off 1 -> 1, none over 2 mm; degraded
-    #: frames 117 -> 193. A second fresh held-out set (fresh34, thirty-fourth session): 588 ->
-    #: 621 gate frames (+5.6 %, its rule asked +10 %), none 1-2 mm or over 2 mm with it; OR
-    #: scenes lose frames (the mean has one draw of the noise, single frames many). Cost, kept in
-    #: the detector's search windows while tracked: +0.7-1.2 ms a 720p frame for a breathing head,
-    #: +1.4-2.2 ms for a still one (8-20 px balls, paired in one process; benchmarks/pose_rate.py
-    #: --average 8). Opt-in: SessionConfig.average_still_frames, ``serve --average-still-frames``.
-    #: docs/vision.md "A still view's frames averaged"
-    average_still_frames: int = 0
-    #: ... and gives the mean to the detector only while the camera's noise per frame is at least
-    #: this (grey levels of 8 bits, measured in the balls' windows of the still frames,
-    #: :attr:`.still_frames.StillFrames.noise_dn`; 0 = always): a quiet camera's frames are read
-    #: alone. 1.8 from the rendered TUNING frames (per still stream: clean 0.82-1.05, OR
-    #: 1.24-1.60, clutter 1.25-1.59, degraded 2.06-3.57 DN); on a held-out set (fresh35) the
-    #: clean, OR and clutter frames were then read exactly as without the mean.
-    average_min_noise_dn: float = 1.8
-    #: (the per-frame model) a matched ball whose leave-one-out disagreement with the others
-    #: (where the others put it, px) is beyond this quantile of its cover's chi-square law (2 dof;
-    #: :mod:`monotracker.registration.disagreement`) is SET ASIDE for the frame: the pose comes
-    #: from the others (``PoseEstimate.set_aside``, an alert naming it once; its status stays
-    #: "seen") when at least 5 remain; else it stays in the fit, covered by that disagreement,
-    #: and a refusal names it. A ball 1.2-2.5 px off among right ones (partly hidden, an
-    #: instrument's reflection) is under the moved-fiducial test's 1 mm and its edge spread does
-    #: not show it: on synthetic streams at 400-450 mm (tests/vision/test_pose_trust.py, 9 balls,
-    #: 6 x 15 frames) the stream without it trusts poses over 1 mm off at the target (2 px: 29 of
-    #: 90 frames; 1.2 px: 3), with it none and all 90 trusted; 6 balls with one going 2 px off
-    #: mid-stream 62 of 117 -> 0 of 51. Chosen on the rendered TUNING sets (0.99 took 8 of 198
-    #: gate frames on the partly hidden balls' set; 0.999: gate 553 -> 551) and scored on a fresh
-    #: held-out set against rules written before (fresh36: gate 705 / 1 / 0 trusted / 1-2 mm /
-    #: over 2 mm, unchanged). Cost +0.06-0.10 ms a frame (paired, 9-12 balls). 0 = off (the
-    #: default before 2026-12-03's thirty-fifth session; ``camera_pbr.py``'s ``no-disagreement``
-    #: row). docs/vision.md "A ball the others disagree with"
-    disagreement_quantile: float = 0.999
-
-    def __post_init__(self):
-        """A finish word vision does not know is refused here, at construction (one line), not at
-        the first frame that asks for the few-ball cover."""
-        if self.ball_finish not in ball_gloss.FINISHES:
-            raise ValueError(f"TrackerConfig: ball_finish must be one of {', '.join(ball_gloss.FINISHES)}, "
-                             f"not {self.ball_finish!r}")
-        if not (float(self.average_min_noise_dn) >= 0.0):
-            raise ValueError("TrackerConfig: average_min_noise_dn must be a number of grey levels >= 0, "
-                             f"not {self.average_min_noise_dn!r}")
-        if not (isinstance(self.average_still_frames, int) and self.average_still_frames >= 0):
-            raise ValueError("TrackerConfig: average_still_frames must be a whole number of frames >= 0, "
-                             f"not {self.average_still_frames!r}")
-        if self.shading_check_reading not in SHADING_READINGS:
-            raise ValueError(f"TrackerConfig: shading_check_reading must be one of {', '.join(SHADING_READINGS)}, "
-                             f"not {self.shading_check_reading!r}")
-
-
-def _fiducials_used(n: int, remembered: int) -> str:
-    """'7 fiducials' or '7 fiducials, 2 of them from the last frames' (a refusal's reason)."""
-    return f"{n} fiducials" + (f", {remembered} of them from the last frames" if remembered else "")
-
-
-def _ball_features(reg, det) -> tuple[list, np.ndarray, np.ndarray]:
-    """The matched balls' detection features (``reg.pairs`` order), their edge fits' RMS (px; NaN
-    for a detector without an edge fit) and whether the learned refiner moved each centre."""
-    feats = [det.fiducials[i].features for i, _ in reg.pairs]
-    rms = np.array([float(f.get("edge_rms_px", np.nan)) for f in feats])
-    refined = np.array(["edge_centre_px" in f for f in feats], bool)
-    return feats, rms, refined
-
-
-def few_ball_factor(cfg: TrackerConfig, n_balls: int, glossy: bool) -> float:
-    """The factor on each ball's shading cover in a fit of ``n_balls`` balls: ``few_balls_cover``
-    with at most ``few_balls``, or for balls taken as glossy (:func:`.ball_gloss.wider_cover`)
-    ``glossy_few_balls_cover`` with at most ``glossy_few_balls``; 1.0 with more. The tracker and
-    the layout planner (:func:`monotracker.planning.trust.shading_cover`) both apply it."""
-    few, cover = ((cfg.glossy_few_balls, cfg.glossy_few_balls_cover) if glossy
-                  else (cfg.few_balls, cfg.few_balls_cover))
-    return float(cover) if n_balls <= few else 1.0
-
-
-def tail_problem(cov3: np.ndarray, cfg: TrackerConfig) -> str:
-    """'' when an error at the target with covariance ``cov3`` (mm^2) passes the tail gates of
-    ``cfg`` (more than ``wrong_mm`` at most ``max_wrong_probability``; where set, < 1, more than
-    ``right_mm`` at most ``max_not_right_probability``), else why not ("it may exceed 2 mm
-    (probability ...)"). Both trust models gate on it, and the layout planner predicts with it."""
-    from monotracker.registration.report import exceed_probability
-
-    p = exceed_probability(cov3, cfg.wrong_mm)
-    if p > cfg.max_wrong_probability:
-        return f"it may exceed {cfg.wrong_mm:g} mm (probability {100 * p:.2f} % > {100 * cfg.max_wrong_probability:g} %)"
-    if cfg.max_not_right_probability < 1.0:
-        p = exceed_probability(cov3, cfg.right_mm)
-        if p > cfg.max_not_right_probability:
-            return (f"it may exceed {cfg.right_mm:g} mm (probability {100 * p:.1f} % > "
-                    f"{100 * cfg.max_not_right_probability:g} %)")
-    return ""
+from .tracker_config import (  # noqa: F401 - public names of the pose stream's settings
+    SHADING_READINGS, TrackerConfig, few_ball_factor, tail_problem)
 
 
 class PoseTracker:
@@ -562,8 +136,6 @@ class PoseTracker:
         self._last_ok = None
         self._last_code = ""
         self._last_aside: list = []      # fiducials set aside in the last frame (alerted once)
-        self._rows = None                # (registration, its rows): _fit_rows' last
-        self._covers = None              # (registration, its covers): _centre_covers' last
         #: fiducial index -> estimated shift (mm) of the balls excluded as moved (persistent)
         self.excluded: dict[int, float] = {}
         c = self.config
@@ -580,6 +152,10 @@ class PoseTracker:
                                       min_agreeing=c.min_fiducials)
         #: the centre bias the trust model covers (None: the trust model before issue 28)
         self.centre_bias = centre_bias_of(self.detector) if c.centre_bias == "detector" else c.centre_bias
+        #: the trust model of one frame's fit (:mod:`.frame_trust`; the default) and of a still
+        #: head's pooled frames (:mod:`.pooled_trust`; with ``centre_bias`` set)
+        self.trust = FrameTrust(c, camera, self.fiducials_ct, self.radius_mm, self.memory, self._hint_ellipses)
+        self.pooled = PooledTrust(c, camera, self.fiducials_ct, self.radius_mm, self.centre_bias, self.pool)
         #: the mean of a still view's frames the detector reads (None: each frame as it is, or a
         #: detector that reads no image: ``reads_image`` False, e.g. given points)
         self.still_frames = StillFrames(c.average_still_frames, min_noise_dn=c.average_min_noise_dn) \
@@ -655,8 +231,6 @@ class PoseTracker:
         target over the gates of :class:`TrackerConfig` (``tre_limit``).
         """
         from monotracker.registration.consistency import register_screened
-        from monotracker.registration.report import predicted_tre, target_covariance
-
         from .pose_checks import PhysicalLimits, physical_problem, weak_geometry
 
         cfg = self.config
@@ -779,48 +353,11 @@ class PoseTracker:
                 sigma, sigma_src = ne.sigma_px, ne.source
                 if self.centre_bias is not None:
                     usable = code in ("", "weak_geometry")
-                    T_pose, tre, sigma, sigma_src, ok, code, reason, n_pooled = self._pooled_trust(
-                        frame.index, reg, pts, det, ne.sigma_px, new_moved, usable, ok, code, reason)
+                    T_pose, tre, sigma, sigma_src, ok, code, reason, n_pooled = self.pooled.judge(
+                        frame.index, reg, pts, det, ne.sigma_px, new_moved, usable, ok, code, reason, self.target_ct)
                 elif self.target_ct is not None:
-                    # gate on an upper bound of the noise (95 %): a sigma from few dof may be low by chance
-                    upper = ne.upper(cfg.noise_bound_confidence)
-                    upper = upper if np.isfinite(upper) else sigma
-                    covs = self._frame_covariances(reg, det, sigma, upper, recheck)
-                    shading = ""
-                    if covs is None:
-                        tre = float(reg.predicted_tre_mm(self.target_ct, sigma_px=sigma))
-                        tre_hi = tre * upper / sigma if sigma > 0 else tre
-                    else:
-                        cov_est, cov_hi, edge_px, check_mm, glossy_cover, disagreeing = covs
-                        tre = float(predicted_tre(reg.T_cam_ct, cov_est, self.target_ct))
-                        tre_hi = float(predicted_tre(reg.T_cam_ct, cov_hi, self.target_ct))
-                        shading = f", edge spread {edge_px:.2f} px"
-                        if check_mm is not None:
-                            shading += f", the shading-corrected centres move the target {check_mm:.2f} mm"
-                        if glossy_cover:
-                            shading += ", glossy balls beside contact shadows: each ball's cover widened"
-                        for j, px in disagreeing:
-                            shading += (f", fiducial {j} lies {px:.1f} px from where the others put it (partly "
-                                        "hidden or off?): its cover widened to that")
-                    if ok and not (tre_hi <= cfg.max_predicted_tre_mm):
-                        ok, code = False, "tre_limit"
-                        bound = (f"; up to {tre_hi:.2f} mm at {100 * cfg.noise_bound_confidence:.0f} % with {ne.dof} dof"
-                                 if tre_hi > tre + 0.005 else "")
-                        reason = (f"predicted error at the target {tre:.2f} mm{bound}: over the "
-                                  f"{cfg.max_predicted_tre_mm:g} mm limit (image noise {sigma:.2f} px{shading}, "
-                                  f"{_fiducials_used(len(reg.pairs), int(remembered.sum()))})")
-                    elif ok and reg.pose_covariance is not None and reg.sigma_px > 0:
-                        if covs is None:
-                            cov3 = target_covariance(reg.T_cam_ct, reg.pose_covariance, self.target_ct)
-                            cov3 = cov3 * (upper / reg.sigma_px) ** 2
-                        else:
-                            cov3 = target_covariance(reg.T_cam_ct, covs[1], self.target_ct)
-                        why = tail_problem(cov3, cfg)
-                        if why:
-                            ok, code = False, "tre_limit"
-                            reason = (f"predicted error at the target {tre:.2f} mm, but {why} (image noise "
-                                      f"{sigma:.2f} px{shading}, "
-                                      f"{_fiducials_used(len(reg.pairs), int(remembered.sum()))})")
+                    tre, ok, code, reason = self.trust.judge(reg, det, ne, self.target_ct, recheck, ok, code, reason,
+                                                             int(remembered.sum()))
             else:
                 self.pool.reset()
         else:
@@ -895,11 +432,11 @@ class PoseTracker:
         set aside for this frame, whether the trust model must still test the fit's balls: the
         test did not run, named balls it could not set aside, or set some aside: a second ball
         off, masked by the first, is judged in the fit without it). A ball the others put beyond its cover
-        (``disagreement_quantile``: :func:`_disagreeing`) is left out of this frame's fit when at
+        (``disagreement_quantile``: :meth:`.frame_trust.FrameTrust.disagreeing`) is left out of this frame's fit when at
         least :data:`~monotracker.registration.disagreement.MIN_BALLS` balls remain and the fit
         without it succeeds: the pose comes from the balls that agree (the re-fit starts from
         this frame's pose); otherwise ``scr`` as it is (the trust model then covers the ball by
-        its disagreement, :meth:`_frame_covariances`). Not in a frame that found a fiducial
+        its disagreement, :meth:`.frame_trust.FrameTrust.covariances`). Not in a frame that found a fiducial
         moved (that frame's fit already left it out)."""
         import dataclasses
 
@@ -911,7 +448,7 @@ class PoseTracker:
         if scr.moved or not reg.ok or not (cfg.disagreement_quantile > 0):
             return scr, [], True
         ne = self.noise.peek(scr.noise_rss_px2, scr.noise_dof) if scr.noise_dof > 0 else self.noise.peek(0.0, 0)
-        found = self._disagreeing(reg, det, ne.sigma_px)
+        found = self.trust.disagreeing(reg, det, ne.sigma_px)
         if found is None or not found:
             return scr, [], found is None
         take = found[:len(reg.pairs) - MIN_BALLS]
@@ -925,241 +462,6 @@ class PoseTracker:
         again = dataclasses.replace(again, register_s=scr.register_s + again.register_s,
                                     screen_s=scr.screen_s + again.screen_s)
         return again, [(det_of[j], j, px) for j, px in take], True     # the new fit is tested again
-
-    def _disagreeing(self, reg, det, sigma_px: float) -> list | None:
-        """[(fiducial, px)] of the matched balls whose leave-one-out disagreement with the others
-        is beyond ``disagreement_quantile`` of their covers (:meth:`_centre_covers`, noise
-        ``sigma_px``), the worst first; None where the test does not run here (a detector
-        without an edge spread, at most
-        :data:`~monotracker.registration.disagreement.MIN_BALLS` balls: none could be set aside)."""
-        from monotracker.registration.disagreement import MIN_BALLS, disagreement_cover
-
-        feats, rms, refined = _ball_features(reg, det)
-        if len(rms) <= MIN_BALLS or not np.all(np.isfinite(rms)) or not (sigma_px > 0):
-            return None
-        fids, r, J = self._fit_rows(reg, det)
-        cover = self._centre_covers(reg, feats, rms, refined)[0]
-        _floor, found = disagreement_cover(r, J, np.maximum(sigma_px**2, np.repeat(cover**2, 2)),
-                                           self.config.disagreement_quantile)
-        return [(fids[i], px) for i, px in found]
-
-    def _frame_covariances(self, reg, det, sigma_px: float, upper_px: float, disagreement: bool = True):
-        """The pose covariances (6, 6; rotation vector rad, translation mm) of one frame's fit with
-        the balls' shading error covered (``TrackerConfig.edge_bias_per_rms``,
-        ``edge_common_per_rms``): (with the noise estimate ``sigma_px``, with its upper bound
-        ``upper_px``, the median edge RMS px, the shading check's target move mm or None where it
-        does not apply, whether the glossy frames' wider few-ball cover applied, [(fiducial,
-        px)] of the balls covered by their disagreement with the others). Per matched
-        ball the centre error per coordinate is max(noise, ``edge_bias_per_rms`` x its edge RMS;
-        with few balls x ``few_balls_cover``, or the glossy frames' pair, :mod:`.ball_gloss`;
-        where the others' leave-one-out disagreement with it is beyond that,
-        ``disagreement_quantile``, that disagreement; not tested again where ``disagreement`` is
-        False: :meth:`_without_disagreeing` tested this fit) (a weighted least-squares fit's
-        covariance ``H^-1 J^T V J H^-1``), plus a shift common to all balls of
-        ``edge_common_per_rms`` x their median edge RMS; where the shading check applies
-        (``shading_check_factor``, :mod:`.shading_check`) raised along the pose change the balls'
-        second centre readings give. None when off or when a matched ball has no edge RMS (a
-        detector without an edge fit): the residuals' noise alone decides."""
-        cfg = self.config
-        if cfg.edge_bias_per_rms <= 0 and cfg.edge_common_per_rms <= 0:
-            return None
-        feats, rms, refined = _ball_features(reg, det)
-        if not len(rms) or not np.all(np.isfinite(rms)) or not (sigma_px > 0 and np.isfinite(upper_px)):
-            return None
-        from monotracker.registration.disagreement import disagreement_cover
-        from monotracker.registration.report import common_shift_covariance, layout_gradient_covariance
-
-        T = reg.T_cam_ct
-        fids, r, J = self._fit_rows(reg, det)
-        k = len(fids)
-        A = np.linalg.pinv(J.T @ J) @ J.T                      # (6, 2k): image errors -> pose error
-        cover, spread, excess, glossy = self._centre_covers(reg, feats, rms, refined)
-        self.memory.note(HIGHLIGHT_NOTE, ball_gloss.frame_highlight(feats))
-        common_factor = max(cfg.refined_common_per_rms if refined.any() else 0.0,
-                            cfg.edge_common_per_rms if not refined.all() else 0.0)
-        shade = np.repeat(cover ** 2, 2)
-        if disagreement:
-            # a ball the others disagree with beyond its cover (and not set aside) is covered by
-            # that disagreement
-            floor, found = disagreement_cover(r, J, np.maximum(sigma_px**2, shade), cfg.disagreement_quantile)
-            shade = np.maximum(shade, floor)
-        else:
-            found = []
-        common = common_shift_covariance(J, common_factor * float(np.median(spread)), A)  # shared by all balls
-        if cfg.edge_gradient_per_rms > 0:
-            pts = np.array([det.fiducials[i].centre_px for i, _ in reg.pairs], float)
-            common = common + layout_gradient_covariance(J, pts, cfg.edge_gradient_per_rms * float(np.median(rms)), A)
-        disagree, check_mm = None, None
-        if cfg.shading_check_factor > 0 and self.target_ct is not None:
-            # a still head's contact shadows stay: the shares of its last frames count too
-            still = tuple(self.memory.still_notes(SHADOWED_NOTE)) if cfg.shading_check_still_frames else ()
-            if shading_check.applies(feats, cfg.shading_check_share, still):
-                read = None
-                if cfg.shading_check_reading == "excess":
-                    # the outlines' excess over the spheres at this pose (px; only where the check applies)
-                    read = excess if excess is not None else self._size_excess(T, fids, feats)
-                disagree = shading_check.pose_disagreement(A, feats, read)
-                check_mm = shading_check.target_move_mm(disagree, T, self.target_ct)
-            self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))
-
-        def cov(noise_px: float) -> np.ndarray:
-            c6 = (A * np.maximum(noise_px**2, shade)) @ A.T + common
-            if disagree is None:
-                return c6
-            return shading_check.raised_covariance(c6, disagree, T, self.target_ct, cfg.shading_check_factor)
-
-        return (cov(sigma_px), cov(upper_px), float(np.median(rms)), check_mm, bool(glossy and k <= cfg.glossy_few_balls),
-                [(fids[i], px) for i, px in found])
-
-    def _fit_rows(self, reg, det) -> tuple[list, np.ndarray, np.ndarray]:
-        """(matched fiducial indices, residuals r (2k,) px, Jacobian J (2k, 6) px per (rad, mm))
-        of the fit ``reg`` at its pose, from the matched detections' centres (rows u, v per
-        ball, in ``reg.pairs`` order)."""
-        from monotracker.registration import pnp_kernels
-        from monotracker.registration.projection import undistort_to_normalised
-
-        cached = self._rows
-        if cached is not None and cached[0] is reg:
-            return cached[1]                 # this frame's fit, read once by both of its tests
-        K, T = self.camera.K, reg.T_cam_ct
-        fids = [j for _, j in reg.pairs]
-        X = np.ascontiguousarray(self.fiducials_ct[fids], dtype=float)
-        k = len(X)
-        obs = undistort_to_normalised(np.array([det.fiducials[i].centre_px for i, _ in reg.pairs], float).reshape(-1, 2),
-                                      K, self.camera.dist)
-        r, J = np.empty(2 * k), np.empty((2 * k, 6))
-        pnp_kernels.residuals_and_jacobian(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), X,
-                                           np.ascontiguousarray(obs, dtype=float), float(K[0, 0]), float(K[1, 1]),
-                                           float(self.radius_mm or 0.0), np.empty(0), r, J)
-        self._rows = (reg, (fids, r, J))
-        return fids, r, J
-
-    def _centre_covers(self, reg, feats: list, rms: np.ndarray, refined: np.ndarray):
-        """Each matched ball's centre cover per coordinate (px; its edge RMS x its factor, with few
-        balls or glossy frames widened, :func:`few_ball_factor`; or its size excess where that
-        is covered), the spread behind the common shift (px), the size excess (px) or None,
-        and whether the frame's balls read as glossy. Reads the ball memory's notes, writes none."""
-        cached = self._covers
-        if cached is not None and cached[0] is reg:
-            return cached[1]                 # this frame's fit, read once by both of its tests
-        cfg = self.config
-        fids = [j for _, j in reg.pairs]
-        per_ball = np.where(refined, cfg.refined_bias_per_rms, cfg.edge_bias_per_rms)
-        glossy = ball_gloss.wider_cover(feats, cfg.glossy_highlight_ratio,
-                                        cfg.shading_check_share if cfg.glossy_needs_shadow else None,
-                                        tuple(self.memory.still_notes(HIGHLIGHT_NOTE)),
-                                        tuple(self.memory.still_notes(SHADOWED_NOTE)), cfg.ball_finish)
-        per_ball = per_ball * few_ball_factor(cfg, len(fids), glossy)
-        cover = per_ball * rms
-        spread = rms
-        excess = self._size_excess(reg.T_cam_ct, fids, feats) if cfg.edge_size_per_excess > 0 else None
-        if excess is not None:
-            # a centre the refiner moved has its own measured factors (the excess is the
-            # edge fit's, whose bias the refiner corrects)
-            size_cover = np.where(refined, 0.0, cfg.edge_size_per_excess * np.abs(excess))
-            cover = np.maximum(cover, size_cover)
-            spread = np.maximum(rms, size_cover)
-        self._covers = (reg, (cover, spread, excess, glossy))
-        return cover, spread, excess, glossy
-
-    def _size_excess(self, T_cam_ct: np.ndarray, fiducials: list, feats: list):
-        """Per matched ball (``fiducials`` their indices, ``feats`` their detections' features),
-        its fitted outline's minor semi-axis (``features["edge_minor_px"]``) minus that of the
-        sphere of ``radius_mm`` at the pose ``T_cam_ct`` (px; > 0: the outline is too large);
-        None when a ball has no fitted size or its outline does not project. The outlines of all
-        fiducials come from the hint's cache (:class:`~.sphere_outline.SphereEllipseCache`: this
-        pose is near the hint's, so they are mostly reused, moved and scaled)."""
-        minor = np.array([float(f.get("edge_minor_px", np.nan)) for f in feats])
-        if not (self.radius_mm > 0) or not np.all(np.isfinite(minor)):
-            return None
-        C = self.fiducials_ct @ T_cam_ct[:3, :3].T + T_cam_ct[:3, 3]
-        _cen, axes, _ang, ok = self._hint_ellipses(self.camera, C, self.radius_mm)
-        if not np.all(ok[fiducials]):
-            return None
-        return minor - axes[fiducials, 1]
-
-    def _pooled_trust(self, frame_index: int, reg, pts: np.ndarray, det, frame_sigma_px: float, new_moved: list,
-                      usable: bool, ok: bool, code: str, reason: str):
-        """The pose of the still head's pooled frames and its trust (``TrackerConfig.centre_bias``):
-        returns (T_cam_ct, predicted TRE mm, sigma px, sigma source, ok, code, reason, frames pooled).
-
-        The frame's matched centres join the :class:`~.still_pool.StillPool` (a head that moved
-        restarts it); the pose is refitted to each fiducial's mean centre; the per-ball error of
-        those means comes from the refit's residuals with the bias prior
-        (:func:`~monotracker.registration.noise.pooled_sigma`), the frame-to-frame noise from the
-        pool's scatter; a shift common to all balls (which no residual shows) is added as the
-        prior says (:func:`~monotracker.registration.report.common_shift_covariance`), and so is
-        a bias that changes linearly across the layout
-        (:func:`~monotracker.registration.report.layout_gradient_covariance`). The gates
-        use the upper bound of the per-ball error (``noise_bound_confidence``): RMS at the target
-        <= ``max_predicted_tre_mm``, P(> ``wrong_mm``) <= ``max_wrong_probability``, P(>
-        ``right_mm``) <= ``max_not_right_probability``."""
-        from monotracker.registration.noise import pooled_sigma
-        from monotracker.registration.pnp import refine_pose
-        from monotracker.registration.projection import undistort_to_normalised
-        from monotracker.registration.report import (common_shift_covariance, layout_gradient_covariance, predicted_tre,
-                                                     target_covariance)
-
-        cfg, bias = self.config, self.centre_bias
-        K = self.camera.K
-        fxy = np.array([K[0, 0], K[1, 1]])
-        if new_moved or not usable:
-            self.pool.reset()        # a fiducial was just excluded, or the frame is unusable
-        if usable:
-            # the frame that found a fiducial moved starts the new pool: its fit (``reg``) has
-            # that fiducial left out already, so it is judged like any other frame (before, it
-            # was given out trusted with no predicted error at all: 1.19 mm off in
-            # tests/vision/test_pose_trust.py's 0.6 px stream)
-            idx = np.array([i for i, _ in reg.pairs], int)
-            fids = [j for _, j in reg.pairs]
-            xn = undistort_to_normalised(pts[idx], K, self.camera.dist)
-            self.pool.add(frame_index, fids, xn, fxy, frame_sigma_px)
-        st = self.pool.stats()
-        if st is None or len(st.fiducials) < cfg.min_fiducials:
-            if ok and self.target_ct is not None:
-                # never trusted without a predicted error at the target
-                ok, code = False, "tre_limit"
-                reason = f"no predicted error at the target: fewer than {cfg.min_fiducials} fiducials pooled"
-            return reg.T_cam_ct, float("nan"), frame_sigma_px, "frame", ok, code, reason, 1
-        X = self.fiducials_ct[st.fiducials]
-        fit = refine_pose(reg.T_cam_ct, X, st.means, fxy, self.radius_mm)
-        k = len(st.fiducials)
-        dof = 2 * k - 6
-        rss = float(np.sum(fit.residuals**2))
-        radius_px = float(np.median([min(f.axes_px) for f in det.fiducials])) if det.fiducials else 0.0
-        if st.noise_dof >= 4:
-            noise = st.noise_px * float(np.sqrt(st.noise_dof / chi2_quantile(1.0 - cfg.noise_bound_confidence,
-                                                                              st.noise_dof)))
-        else:
-            noise = bias.noise_prior_px
-        n_h = float(k / np.sum(1.0 / st.counts))
-        ps = pooled_sigma(rss, dof, noise, n_h, bias.ball_sigma(radius_px), bias.prior_dof,
-                          cfg.noise_bound_confidence)
-        H_inv = np.linalg.pinv(fit.J.T @ fit.J)
-        A = H_inv @ fit.J.T
-        common = common_shift_covariance(fit.J, bias.common_sigma(radius_px), A)
-        if bias.gradient_sigma(radius_px) > 0:
-            common = common + layout_gradient_covariance(fit.J, st.means * fxy, bias.gradient_sigma(radius_px), A)
-        cov_est = ps.sigma_px**2 * H_inv + common
-        cov_hi = ps.upper_px**2 * H_inv + common
-        src = f"{st.frames} frame{'s' if st.frames > 1 else ''}, {ps.source}"
-        if self.target_ct is None:
-            return fit.T, float("nan"), ps.sigma_px, src, ok, code, reason, st.frames
-        tre = float(predicted_tre(fit.T, cov_est, self.target_ct))
-        tre_hi = float(predicted_tre(fit.T, cov_hi, self.target_ct))
-        if ok:
-            cov3 = target_covariance(fit.T, cov_hi, self.target_ct)
-            why = ""
-            if not tre_hi <= cfg.max_predicted_tre_mm:
-                why = f"up to {tre_hi:.2f} mm at {100 * cfg.noise_bound_confidence:.0f} %: over the " \
-                      f"{cfg.max_predicted_tre_mm:g} mm limit"
-            else:
-                why = tail_problem(cov3, cfg)
-            if why:
-                ok, code = False, "tre_limit"
-                reason = (f"predicted error at the target {tre:.2f} mm, {why} (centre error {ps.sigma_px:.2f} px per "
-                          f"ball, {k} fiducials, {src})")
-        return fit.T, tre, ps.sigma_px, src, ok, code, reason, st.frames
 
     def hint(self, frame_index: int, t_capture: float):
         """The :class:`~.detection.DetectionHint` for frame ``frame_index`` (captured at

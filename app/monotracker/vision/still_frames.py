@@ -4,7 +4,7 @@ A dim, noisy camera (60 % light, a small sensor's full well, JPEG) loses whole b
 noise: the colour mask's boundary frays and the edge rays' unmixing fails ("boundary not
 elliptic", "too little contrast"). While nothing in the view moves, the mean of the last frames
 has the same balls with the noise of one frame divided by sqrt(n); the detector then reads the
-mean instead of the frame (:attr:`~.pose_tracker.TrackerConfig.average_still_frames`).
+mean instead of the frame (:attr:`~.tracker_config.TrackerConfig.average_still_frames`).
 
 The mean is only kept while the view is still at the precision a centre needs. Each new frame is
 compared with the mean before it joins it (grey levels, DN):
