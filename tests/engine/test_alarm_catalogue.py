@@ -93,7 +93,9 @@ def test_every_code_that_reaches_the_board_has_a_row():
 def test_every_refusal_of_the_estimator_and_the_verdict_has_a_row():
     from monotracker.vision.pose_tracker import CAMERA_CODES
 
-    tracker_src = (PKG / "vision" / "pose_tracker.py").read_text()
+    # the tracker's own refusals and its trust models' (frame_trust, pooled_trust)
+    tracker_src = "\n".join((PKG / "vision" / name).read_text()
+                            for name in ("pose_tracker.py", "frame_trust.py", "pooled_trust.py"))
     codes = estimator_codes(tracker_src) | set(CAMERA_CODES.values())
     assert {"occlusion", "pose_lost", "tre_limit", "frame_size"} <= codes, codes
     gate_src = "\n".join(src for p, src in _all_sources() if "GateVerdict(" in src)

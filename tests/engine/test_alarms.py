@@ -113,6 +113,43 @@ def test_a_fiducial_set_aside_is_said_once_per_episode_and_does_not_hold_the_arm
     assert s.snapshot().robot.state == "tracking"
 
 
+def test_a_ball_set_aside_in_most_frames_is_a_condition_until_it_rejoins(make_session):
+    """Fiducial 5 is left out of the pose in every estimate from 1.0 to 6.0 s: once the last 3 s
+    hold it in at least 60 % of the estimates (t ~ 2.8 s) the warning fiducial_set_aside_long names
+    it with the distance and what to check, reported once, the arm tracking all along; after the
+    ball rejoins at 6.0 the share falls under 60 % (t ~ 7.2) and the condition leaves the list
+    5 s later. Fiducial 2 set aside for 1 s (14-15 s) is no such condition."""
+    from monotracker.engine.alarms import SET_ASIDE_CLEAR_S, SET_ASIDE_SHARE, SET_ASIDE_WINDOW_S
+
+    assert (SET_ASIDE_WINDOW_S, SET_ASIDE_SHARE, SET_ASIDE_CLEAR_S) == (3.0, 0.6, 5.0)   # the times below
+    s, _ = _tracking(make_session, lambda t: 9,
+                     set_aside=lambda t: {5: 1.8} if 1.0 <= t < 6.0 else ({2: 1.4} if 14.0 <= t < 15.0 else {}))
+
+    def codes():
+        return [a.code for a in s.snapshot().alarms]
+
+    s.advance(2.3)                                      # t ~ 2.6: 1.6 s of 2.6 (not a full window yet)
+    assert "fiducial_set_aside_long" not in codes()
+    s.advance(0.7)                                      # t ~ 3.3: 2.3 s of the last 3
+    long = [a for a in s.snapshot().alarms if a.code == "fiducial_set_aside_long"]
+    assert len(long) == 1 and long[0].level == "warning", codes()
+    assert "fiducial 5 left out of the pose" in long[0].message and "1.8 px" in long[0].message
+    assert "firmly attached" in long[0].remedy
+    assert 2.7 <= long[0].since <= 3.1, long[0].since
+    assert s.snapshot().robot.state == "tracking"       # the pose from the others drives the arm
+    s.advance(3.5)                                      # t ~ 6.8: rejoined at 6.0, still most of the window
+    assert "fiducial_set_aside_long" in codes()
+    s.advance(4.0)                                      # t ~ 10.8: the share fell under 60 % at ~7.2 ...
+    assert "fiducial_set_aside_long" in codes()         # ... shown for the 5 s after
+    s.advance(2.0)                                      # t ~ 12.8
+    assert "fiducial_set_aside_long" not in codes()
+    s.advance(2.7)                                      # t ~ 15.5: fiducial 2 aside for 1 s of the last 3
+    assert "fiducial_set_aside_long" not in codes()
+    said = alerts_of(s, "fiducial_set_aside_long")
+    assert len(said) == 1 and said[0].level == "warning", [a.message for a in said]
+    assert s.snapshot().robot.state == "tracking"
+
+
 def test_estop_and_arm_lost_outrank_everything_until_they_clear(make_session):
     s, rob = _tracking(make_session, visible=lambda t: 9)
     s.advance(0.5)

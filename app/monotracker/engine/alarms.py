@@ -48,7 +48,9 @@ the pose is trusted again (tracking resumes by itself); ``fiducials_lost`` / ``f
 [info] fiducials left / re-entered the camera's view (with how many remain);
 ``fiducials_set_aside`` [info] a fiducial found but left out of the pose because the other balls
 put it more than a pixel or two away (partly hidden, a reflection; the pose comes from the
-others: vision's ``disagreement_quantile``); ``camera_stopped``
+others: vision's ``disagreement_quantile``); ``fiducial_set_aside_long`` [warning] a ball set aside
+in at least 60 % of the estimates of the last 3 s (``SET_ASIDE_WINDOW_S``, ``SET_ASIDE_SHARE``:
+check it; the arm does not hold for it; shown until that has not held for 5 s); ``camera_stopped``
 [warning]; ``engine_error`` [alarm] an internal error in the engine loop (arm held);
 ``robot_disconnected`` [alarm] /
 ``robot_connected`` [info]; real cameras: ``camera_ended`` [warning] the video/folder ended,
@@ -129,6 +131,15 @@ _HOLD = {"holds_arm": True}
 #: drapes take most of the balls lost on realistic frames)
 _R_FEW = ("uncover the balls (hands, instruments, drapes) so that at least 4 are in the camera's view; more balls or "
           "a nearer camera help")
+#: a ball set aside by the estimator (vision's ``disagreement_quantile``) is a condition while it
+#: was set aside in at least SET_ASIDE_SHARE of the estimates of the last SET_ASIDE_WINDOW_S (s;
+#: a single frame is only the info alert ``fiducials_set_aside``); shown until that has not held
+#: for SET_ASIDE_CLEAR_S (s)
+SET_ASIDE_WINDOW_S = 3.0
+SET_ASIDE_SHARE = 0.6
+SET_ASIDE_CLEAR_S = 5.0
+_R_ASIDE = ("check that the ball is firmly attached, clean and not partly covered (drape, glove, instrument); "
+            "if it moved on the skin, re-register")
 #: the dwell of the freshness conditions that flap on a busy machine (s): raised once they stood
 #: 0.5 s (a single late frame is no alarm, a busy spell is), ended once absent for 60 s (a spell
 #: that comes back within a minute is the same episode: at most one episode a minute)
@@ -169,6 +180,10 @@ CATALOGUE: dict[str, AlarmKind] = {
                                "others", **_HOLD),
     "pose_implausible": AlarmKind("warning", 3, **_HOLD),
     "fiducial_moved": AlarmKind("warning", 3, linger_s=0.0),
+    # the same ball left out of the pose in most frames of the last SET_ASIDE_WINDOW_S (the others
+    # put it a pixel or two away); over once that stopped for SET_ASIDE_CLEAR_S; the arm does not
+    # hold for it (the pose from the others is judged like any other)
+    "fiducial_set_aside_long": AlarmKind("warning", 6, clear_after_s=SET_ASIDE_CLEAR_S, remedy=_R_ASIDE),
     # freshness on a busy machine (issue 33): the arm holds at once, the board shows one episode
     # per busy spell (shown once it stood 0.5 s, flaps included; over after 60 s without)
     "camera_late": AlarmKind("warning", 7, technical=True, freshness=True, raise_after_s=_FLAP_RAISE_S,

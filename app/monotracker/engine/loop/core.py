@@ -46,7 +46,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from monotracker.engine import rigs
-from monotracker.engine.alarms import FRESHNESS_CODES, POSE_CODES, VERDICT_CODES, level_of
+from monotracker.engine.alarms import (CATALOGUE, FRESHNESS_CODES, POSE_CODES, SET_ASIDE_SHARE, SET_ASIDE_WINDOW_S,
+                                       VERDICT_CODES, level_of)
 from monotracker.engine.loop import summaries as _summaries
 from monotracker.engine.loop.camera import CameraControl
 from monotracker.engine.loop.clocks import RealThread, SimStepper
@@ -101,6 +102,10 @@ class TrackingLoop:
         self._latest_arrival = -np.inf  # when the newest estimate reached the loop
         self._seen_ids: set | None = None  # fiducial ids seen in the previous estimate
         self._aside_ids: set = set()       # fiducial ids set aside in the previous estimate
+        #: (session s, {fiducial id: px}) of the estimates of the last SET_ASIDE_WINDOW_S, and when
+        #: that record began (s): the condition fiducial_set_aside_long
+        self._aside_log: deque = deque()
+        self._aside_log_start = self.now()
         self._alerted: set[str] = set()
         self._target_T: np.ndarray | None = None
         self._target_stamp: float | None = None
@@ -223,6 +228,7 @@ class TrackingLoop:
                 "or off?)" for fid in new) + "; the pose comes from the others"
                 + (f" ({len(used)} found)" if used else ""),
                 {"set_aside": {fid: aside[fid] for fid in new}})
+        self._aside_spell(aside)
         if not sample.fiducial_status:
             return
         seen = {fid for fid, st in sample.fiducial_status.items() if st == "seen"}
@@ -241,6 +247,34 @@ class TrackingLoop:
             self.alarms.alert("info", "fiducials_back", f"fiducial{'s' if len(back) > 1 else ''} "
                          f"{', '.join(map(str, back))} back in view ({n} of {total} seen)",
                          {"back": back, "seen": sorted(seen)})
+
+    def _aside_spell(self, aside: dict) -> None:
+        """The condition ``fiducial_set_aside_long``: a ball set aside (``aside``: fiducial id ->
+        px from where the others put it, this estimate's) in at least ``SET_ASIDE_SHARE`` of the
+        estimates of the last ``SET_ASIDE_WINDOW_S`` (the window full); reported once per episode."""
+        now, code = self.now(), "fiducial_set_aside_long"
+        with self._lock:             # invalidate_pose (another thread) clears the record
+            log = self._aside_log
+            log.append((now, dict(aside)))
+            while log and log[0][0] < now - SET_ASIDE_WINDOW_S:
+                log.popleft()
+            full = self._aside_log_start <= now - SET_ASIDE_WINDOW_S
+            counts: dict = {}
+            for _t, ids in log:
+                for fid in ids:
+                    counts[fid] = counts.get(fid, 0) + 1
+            long = sorted(fid for fid, c in counts.items() if full and c >= SET_ASIDE_SHARE * len(log))
+            last = {fid: px for _t, ids in log for fid, px in ids.items()}   # the newest distance of each
+        board = self.alarms.board
+        if not long:
+            board.clear(code, now)
+            return
+        msg = (f"fiducial{'s' if len(long) > 1 else ''} {', '.join(map(str, long))} left out of the pose in most "
+               f"frames of the last {SET_ASIDE_WINDOW_S:g} s (found "
+               + ", ".join(f"{last[fid]:.1f}" for fid in long) + " px from where the others put "
+               f"{'them' if len(long) > 1 else 'it'}): {CATALOGUE[code].remedy}")
+        if board.set(code, msg, now):
+            self.alarms.alert("warning", code, msg, {"set_aside": {fid: last[fid] for fid in long}})
 
     def on_pose(self, sample: rigs.PoseSample, now: float) -> None:
         """A new estimate is available (engine thread / sim tick)."""
@@ -410,7 +444,10 @@ class TrackingLoop:
             self._fresh_since = None
             self._seen_ids = None
             self._aside_ids = set()
+            self._aside_log.clear()
+            self._aside_log_start = self.now()
             self.gate.reset()
+        self.alarms.board.clear("fiducial_set_aside_long", self.now())
         if hold and self.robot.state() in ("tracking", "holding"):
             self.hold("pose_lost", f"pose cleared: {why}")
         if had:
