@@ -58,9 +58,10 @@ from monotracker.geometry import apply_transform
 
 from .camera_model import CameraModel
 from .frame_trust import HIGHLIGHT_NOTE, SHADOWED_NOTE, FrameTrust  # noqa: F401 - the notes' public names
+from .fiducial_states import FiducialStates
 from .frames import Frame, grayscale_problem
 from .pooled_trust import PooledTrust
-from .pose_estimate import (
+from .pose_estimate import (  # noqa: F401 - the status words stay public names here
     CAMERA_CODES, MOVED, NEWLY_LOST, OCCLUDED, SEEN, UNKNOWN, PoseEstimate)
 from .sphere_outline import SphereEllipseCache
 from .still_frames import StillFrames, ball_windows
@@ -128,14 +129,13 @@ class PoseTracker:
         from monotracker.registration.noise import OnlineNoise
 
         n = len(self.fiducials_ct)
-        self._prev_seen = np.zeros(n, bool)
-        self._ever_seen = np.zeros(n, bool)
+        #: each fiducial's state over the frames (:mod:`.fiducial_states`)
+        self.states = FiducialStates(n)
         self._last_T = None
         self._last_T_time = -np.inf
         self._last_T_index = -10
         self._last_ok = None
         self._last_code = ""
-        self._last_aside: list = []      # fiducials set aside in the last frame (alerted once)
         #: fiducial index -> estimated shift (mm) of the balls excluded as moved (persistent)
         self.excluded: dict[int, float] = {}
         c = self.config
@@ -377,31 +377,10 @@ class PoseTracker:
                     if d[j, i] <= cfg.status_gate_px:
                         seen[j] = True
                         img_pts[j] = own[i]
-        found_now = seen & ~remembered      # found in this frame (a remembered ball is not)
-        status = []
-        for j in range(n):
-            if j in self.excluded:
-                status.append(MOVED)
-            elif found_now[j]:
-                status.append(SEEN)
-            elif self._prev_seen[j]:
-                status.append(NEWLY_LOST)
-            elif self._ever_seen[j]:
-                status.append(OCCLUDED)
-            else:
-                status.append(UNKNOWN)
-        if aside and [j for _, j, _ in aside] != self._last_aside:
-            alerts.append("; ".join(f"fiducial {j} set aside in frame {frame.index}: found {px:.1f} px from where "
-                                    "the others put it (partly hidden or off?)" for _, j, px in aside))
-        self._last_aside = [j for _, j, _ in aside]
-        lost = [j for j, s in enumerate(status) if s == NEWLY_LOST]
-        if lost:
-            alerts.append(f"fiducial{'s' if len(lost) > 1 else ''} {', '.join(map(str, lost))} lost "
-                          f"(occluded?) in frame {frame.index}")
+        status, changes = self.states.after_frame(seen, remembered, self.excluded, aside, frame.index)
+        alerts += changes
         if not ok and (self._last_ok or self._last_ok is None or code != self._last_code):
             alerts.append(f"no valid pose: {reason}")
-        self._prev_seen = found_now
-        self._ever_seen |= seen
         self._last_ok = ok
         self._last_code = code if not ok else ""
 
@@ -486,11 +465,9 @@ class PoseTracker:
         """An invalid estimate that saw nothing (camera fault, unusable frame); the alert is
         raised once per episode (per code); the next good frame starts from a full search."""
         n = len(self.fiducials_ct)
-        status = [MOVED if j in self.excluded else NEWLY_LOST if s else (OCCLUDED if e else UNKNOWN)
-                  for j, (s, e) in enumerate(zip(self._prev_seen, self._ever_seen))]
+        status = self.states.after_invalid(self.excluded)
         repeat = self._last_ok is False and self._last_code == code
         self.pool.reset()
-        self._prev_seen = np.zeros(n, bool)
         self._last_T_time = -np.inf
         self._last_T_index = -10
         self._last_ok = False
