@@ -102,6 +102,9 @@ class SessionConfig:
     latency); a number >= 0 = exactly that for every estimate, so that a test of the loop's logic
     (faults, holds, recordings) gives the same figures whatever else the machine runs. Refused
     with clock="real" (the real clock charges what the time really was).
+    ``freeze_heap`` (True): while a camera runs, Python's garbage collector walks only the objects
+    made since it started (``engine/loop/heap.py``: a full collection of the whole heap stops
+    every thread for 60-90 ms, a pose that late holds the arm); False leaves the collector alone.
     ``extra``: free-form settings for experiments; nothing in the engine reads it.
 
     Units: mm, s, Hz, deg as the names say. :meth:`validate` (called by ``Session``) raises
@@ -152,6 +155,7 @@ class SessionConfig:
     #: ``average_min_noise_dn``, 1.8 grey levels; docs/vision.md "A still view's frames averaged")
     average_still_frames: int = 0
     compute_charge_s: float | None = None
+    freeze_heap: bool = True
     extra: dict = field(default_factory=dict)
 
     def frame_rules(self, plan_finish: str | None = None):
@@ -227,6 +231,8 @@ class SessionConfig:
             if self.camera != "sim":
                 raise InputError(f"camera_optics applies to the rendered simulated camera (camera='sim') only, "
                                  f"not camera={self.camera!r}")
+        if not isinstance(self.freeze_heap, bool):
+            raise InputError(f"freeze_heap must be True or False, not {self.freeze_heap!r}")
         c = self.compute_charge_s
         if c is not None:
             if isinstance(c, bool) or not isinstance(c, (int, float)) or not (0.0 <= float(c) <= 10.0):

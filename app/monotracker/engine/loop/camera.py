@@ -13,6 +13,7 @@ import numpy as np
 
 from monotracker.engine import rigs
 from monotracker.engine.alarms import CAMERA_SETUP_CODES, POSE_CODES
+from monotracker.engine.loop.heap import HeapFreeze
 from monotracker.engine.snapshot import CommandResult
 from monotracker.errors import MonoTrackerError
 
@@ -44,6 +45,8 @@ class CameraControl:
         self.frames = 0
         self.frame_times: deque[float] = deque(maxlen=90)
         self.next_frame_t = 0.0  # sim clock: when the next frame is due (s)
+        #: the garbage collector's heap frozen while this loop's camera runs (:mod:`.heap`)
+        self.heap = HeapFreeze(self.cfg.freeze_heap)
 
     def now(self) -> float:
         return self.loop.now()
@@ -108,6 +111,7 @@ class CameraControl:
             return CommandResult(False, f"camera not started: {why}")
         if rig.default_T_base_cam is not None and plan.T_base_cam is None:
             self.plan.set_hand_eye(rig.default_T_base_cam)
+        self.heap.hold()   # no full garbage collection inside a frame while this camera runs
         if self.cfg.clock == "real":
             rig.start()
         rig.running = True
@@ -130,7 +134,10 @@ class CameraControl:
     def _stop_rig(self, rig) -> None:
         """Stop ``rig``; the conditions of its setup (:data:`~.alarms.CAMERA_SETUP_CODES`) go with it."""
         rig.running = False
-        rig.stop()
+        try:
+            rig.stop()
+        finally:
+            self.heap.release()
         self.loop.alarms.board.clear_all(CAMERA_SETUP_CODES, self.now())
 
     def plan_changed(self, why: str, restart_camera: bool) -> None:

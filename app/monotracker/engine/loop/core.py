@@ -578,4 +578,7 @@ class TrackingLoop:
         rig = self.camera.rig
         if rig is not None:
             rig.running = False
-            rig.stop()
+            try:
+                rig.stop()
+            finally:
+                self.camera.heap.release()
