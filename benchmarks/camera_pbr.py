@@ -303,6 +303,7 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
                           config=cfg)
         rows, fitted = [], []
         gate, arm = session_gate(), []
+        e = None
         for k, img in enumerate(frames):
             e = trk.process(Frame(img, k / FPS, k, None))
             err = float(tre_mm(e.T_cam_ct, tr.T_cam_ct, tr.target_ct)[0]) if e.ok else float("nan")
@@ -314,6 +315,7 @@ def run_scene(scene, condition: str, det_name: str, n_frames: int, frames=None) 
         res[name] = rows
         if m == 0:
             res["_fitted"] = fitted
+            res["_reason"] = e.reason if e is not None else ""     # the first trust model's, last frame
         elif name in own:
             res["_fitted_" + name] = fitted
         if name in GATED:
@@ -585,11 +587,12 @@ def per_scene(cs, runs, cond: str, det: str, n_frames: int) -> list:
     """One row per scene of ``run_scene``'s results ``runs`` (scenes ``cs``): its hash, whole
     balls, the fitted pose's error at frame N (mm, the ceiling), and per frame for the default
     trust model and through the session's gate: T (trusted) or the refusal code's first letter;
-    with the codes counted and the trusted poses' worst error at the target (mm)."""
+    with the codes counted, the trusted poses' worst error at the target (mm) and the default's
+    reason at frame N where it refused (what bound it: the RMS, a tail gate, too few balls)."""
     rows = []
     for s, r in zip(cs, runs):
         row = {"condition": cond, "detector": det, "scene": s.hash, "whole": int(s.truth.whole.sum()),
-               "fitted_mm_at_n": r["_fitted"][n_frames - 1]}
+               "fitted_mm_at_n": r["_fitted"][n_frames - 1], "reason_at_n": r.get("_reason", "")}
         for tm in ("before", ARM):
             frames = r[tm]
             row[tm] = "".join("T" if ok else (str(code) or "?")[0] for ok, _e, _p, code in frames)
@@ -607,7 +610,8 @@ def _per_scene_line(row: dict) -> str:
         return f"{tm} {row[tm]}" + (f" (max {worst:.2f} mm)" if worst is not None else "") + (f" [{codes}]" if codes else "")
     fitted = row["fitted_mm_at_n"]
     return (f"  {row['condition']:<9} {row['detector']:<9} {row['scene'][:8]} whole {row['whole']:>2} "
-            f"fitted {'-' if not np.isfinite(fitted) else f'{fitted:.2f}':>4} mm  {one('before')}  {one(ARM)}")
+            f"fitted {'-' if not np.isfinite(fitted) else f'{fitted:.2f}':>4} mm  {one('before')}  {one(ARM)}"
+            + (f"\n      frame {len(row['before'])}: {row['reason_at_n']}" if row.get("reason_at_n") else ""))
 
 
 def _finite(obj):
