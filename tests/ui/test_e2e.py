@@ -136,10 +136,10 @@ def test_whole_workflow_in_browser(served, browser, artifacts):
     print(f"[{time.monotonic() - t_start:5.1f} s] ---- step 3")
     # ---- step 3: register with the simulated camera
     _click(page, "Start camera")
-    _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted,
-          what=lambda: f"trusted pose (last: {s.snapshot().pose})")
-    page.wait_for_function("document.querySelector('#mt-pose-banner') && "
-                           "document.querySelector('#mt-pose-banner').innerText.includes('POSE VALID')")
+    too_slow = _registered(page, s, ages)
+    if too_slow:
+        page.close()
+        pytest.xfail(too_slow)     # no trusted pose for the steps after: the engine refused, as it must
     drawn(page)
     page.screenshot(path=str(artifacts / "3_register.png"))
 
@@ -239,16 +239,52 @@ def _tip_on_the_entry(s, ages: list) -> str:
     except AssertionError:
         pass        # not within T_STATE: say why below, or fail
     snap = s.snapshot()
-    rows = list(ages)
-    late = float(np.mean([a > s.config.max_pose_age_s for _, a in rows])) if rows else 0.0
     report = (f"the arm did not reach the entry in {T_STATE:.0f} s (last: {snap.robot.state}, "
               f"{snap.robot.tip_error_mm} mm; pose {snap.pose}; {_pose_age_report(s, ages)})")
-    assert late > TOO_SLOW_SHARE, f"{report}: yet the poses came in fresh"
     assert snap.robot.state in ("holding", "tracking"), report
+    late = _late_share_held(s, ages, report)
+    return (f"this machine is too slow for the pose pipeline beside a software-rendered browser: "
+            f"{100 * late:.0f} % of the poses arrived over the {1000 * s.config.max_pose_age_s:.0f} ms limit "
+            f"and the engine held the arm {snap.robot.tip_error_mm:.0f} mm short of the entry, as it must")
+
+
+def _registered(page, s, ages: list) -> str:
+    """Wait until the session trusts a pose and the page shows POSE VALID: "" when it does. Beside
+    CPU hogs the same machine can be too slow for that within T_STATE: poses arrive over the age
+    limit and the engine keeps them untrusted (or trusts them in spells too short for the page's
+    next push). Then this returns why, with the same proof as :func:`_tip_on_the_entry` (over
+    TOO_SLOW_SHARE of the poses late on arrival and the engine said so); anything else fails."""
+    from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+    try:
+        _wait(lambda: s.snapshot().pose is not None and s.snapshot().pose.trusted,
+              what=lambda: f"trusted pose (last: {s.snapshot().pose})")
+        page.wait_for_function("document.querySelector('#mt-pose-banner') && "
+                               "document.querySelector('#mt-pose-banner').innerText.includes('POSE VALID')",
+                               timeout=1000 * T_STATE)
+        return ""
+    except (AssertionError, PlaywrightTimeout):
+        pass        # not within T_STATE: say why below, or fail
+    snap = s.snapshot()
+    banner = page.locator("#mt-pose-banner").inner_text() if page.locator("#mt-pose-banner").count() else "(none)"
+    report = (f"no trusted pose shown in {T_STATE:.0f} s (pose {snap.pose}; the page: {banner!r}; "
+              f"{_pose_age_report(s, ages)})")
+    late = _late_share_held(s, ages, report)
+    return (f"this machine is too slow for the pose pipeline beside a software-rendered browser: "
+            f"{100 * late:.0f} % of the poses arrived over the {1000 * s.config.max_pose_age_s:.0f} ms limit "
+            "and the engine kept the registration untrusted, as it must")
+
+
+def _late_share_held(s, ages: list, report: str) -> float:
+    """The share of poses that arrived over the engine's age limit, once it is checked to be over
+    TOO_SLOW_SHARE and the engine recorded a hold for freshness (or its pose says stale / late);
+    else the test fails with ``report``."""
+    snap = s.snapshot()
+    rows = list(ages)
+    late = float(np.mean([a > s.config.max_pose_age_s for _, a in rows])) if rows else 0.0
+    assert late > TOO_SLOW_SHARE, f"{report}: yet the poses came in fresh"
     freshness = [a for a in s.audit_entries() if getattr(a, "code", "") in ("pose_stale", "pipeline_overloaded",
                                                                             "camera_late")]
     assert freshness or (snap.pose is not None and ("stale" in snap.pose.reason or "late" in snap.pose.reason)), \
         f"{report}: and no hold for freshness was recorded"
-    return (f"this machine is too slow for the pose pipeline beside a software-rendered browser: "
-            f"{100 * late:.0f} % of the poses arrived over the {1000 * s.config.max_pose_age_s:.0f} ms limit "
-            f"and the engine held the arm {snap.robot.tip_error_mm:.0f} mm short of the entry, as it must")
+    return late
