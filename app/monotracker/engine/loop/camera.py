@@ -111,10 +111,10 @@ class CameraControl:
             return CommandResult(False, f"camera not started: {why}")
         if rig.default_T_base_cam is not None and plan.T_base_cam is None:
             self.plan.set_hand_eye(rig.default_T_base_cam)
-        self.heap.hold()   # no full garbage collection inside a frame while this camera runs
         if self.cfg.clock == "real":
             rig.start()
         rig.running = True
+        self.heap.hold()   # no full garbage collection inside a frame while this camera runs (released by _stop_rig)
         self.loop.events.event("camera_started", f"camera {self.source} started",
                       {"source": self.source, "K": None if rig.K is None else np.asarray(rig.K).tolist()})
         return CommandResult(True, "camera started")
