@@ -22,7 +22,7 @@ CAMERA_CODES = {"frozen": "camera_freeze", "late": "camera_late", "stalled": "ca
 class PoseEstimate:
     """One published result. Times are ``time.monotonic()`` seconds; ``latency_s`` is
     publication time minus capture time. ``T_cam_ct`` (4x4, mm) is None when ``ok`` is False.
-    ``status`` has one entry per CT fiducial (see module docstring); ``image_points_px`` holds
+    ``status`` has one entry per CT fiducial (the words above; :mod:`.fiducial_states`); ``image_points_px`` holds
     the matched detection per CT fiducial (NaN where none) and ``residuals_px`` its
     reprojection error (NaN where none). ``predicted_tre_mm`` is at the planned target (NaN if
     no target was given or no pose). ``alerts`` are one-line operator messages for this frame.
@@ -31,7 +31,7 @@ class PoseEstimate:
     frame (None for real cameras), carried for overlays and benchmarks.
 
     Attributes:
-        ok: True when the pose passed every gate of the module docstring; when False the
+        ok: True when the pose passed every gate of :mod:`.pose_tracker`'s docstring; when False the
             controller holds and ``code`` / ``reason`` say why.
         reason: one line for the operator ("" when ok).
         frame_index: index of the frame in its source.
@@ -86,7 +86,7 @@ class PoseEstimate:
     register_s: float = float("nan")
     stages_s: dict = field(default_factory=dict)
     truth: object = None
-    #: alert code when not ok (see the module docstring); "" when ok
+    #: alert code when not ok (:mod:`.pose_tracker`'s docstring lists them); "" when ok
     code: str = ""
     #: image noise (px) behind ``predicted_tre_mm`` and where it came from (OnlineNoise.source)
     sigma_px: float = float("nan")

@@ -57,7 +57,7 @@ import numpy as np
 from monotracker.geometry import apply_transform
 
 from .camera_model import CameraModel
-from .frame_trust import HIGHLIGHT_NOTE, SHADOWED_NOTE, FrameTrust  # noqa: F401 - the notes' public names
+from .frame_trust import FrameTrust
 from .fiducial_states import FiducialStates
 from .frames import Frame, grayscale_problem
 from .pooled_trust import PooledTrust

@@ -210,7 +210,7 @@ class TrackerConfig:
     shading_check_reading: str = "shift"
     #: the shading check also applies where at least ``shading_check_share`` of the balls showed
     #: a contact shadow in one of the last frames of a still head (the ball memory's frames,
-    #: :data:`SHADOWED_NOTE`): the edge fit's shadow test flickers from frame to frame, and the
+    #: :data:`.frame_trust.SHADOWED_NOTE`): the edge fit's shadow test flickers from frame to frame, and the
     #: frames it missed went out unchecked (rendered held-out sets, this tracker's own trusted
     #: frames 1-2 mm off 9 of 234 -> 1 of 226). False: each frame's own shadows only (the default
     #: before 2026-12-01's twenty-first session; ``camera_pbr.py``'s ``check-alone`` row)
@@ -225,7 +225,7 @@ class TrackerConfig:
     #: 0), scenes trusted within 1 mm at frame 8 7 -> 10. HELD-OUT (scored once, after): through
     #: the gate 164 -> 195 (1-2 mm 0 -> 0), this tracker's own verdict 1-2 mm off 2 -> 9 of 234
     #: (all on 12-ball layouts: single frames whose shading check did not apply); with the
-    #: shading check carried over the still head's frames (:data:`SHADOWED_NOTE`) 1 of 226
+    #: shading check carried over the still head's frames (:data:`.frame_trust.SHADOWED_NOTE`) 1 of 226
     #: (0.4 %, a first frame). docs/vision.md "Balls of the last frames of a still head", "The
     #: shading check over a still head's frames"
     remember_frames: int = 7

@@ -131,6 +131,12 @@ class CameraControl:
         self.loop.invalidate_pose("camera stopped", hold=False)
         return CommandResult(True, "camera stopped")
 
+    def shutdown(self) -> None:
+        """The session ends: stop the rig, running or not (its setup conditions and its hold on
+        the frozen heap go with it)."""
+        if self.rig is not None:
+            self._stop_rig(self.rig)
+
     def _stop_rig(self, rig) -> None:
         """Stop ``rig``; the conditions of its setup (:data:`~.alarms.CAMERA_SETUP_CODES`) go with it."""
         rig.running = False

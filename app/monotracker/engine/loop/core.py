@@ -101,7 +101,6 @@ class TrackingLoop:
         self._hold_began = -np.inf  # when the current hold's cause was set
         self._latest_arrival = -np.inf  # when the newest estimate reached the loop
         self._seen_ids: set | None = None  # fiducial ids seen in the previous estimate
-        self._aside_ids: set = set()       # fiducial ids set aside in the previous estimate
         #: (session s, {fiducial id: px}) of the estimates of the last SET_ASIDE_WINDOW_S, and when
         #: that record began (s): the condition fiducial_set_aside_long
         self._aside_log: deque = deque()
@@ -220,7 +219,9 @@ class TrackingLoop:
         """Info alerts when fiducials vanish from / come back into the camera's view, and when
         one is newly set aside (found, but left out of the pose: the others disagree with it)."""
         aside = dict(getattr(sample, "set_aside", None) or {})
-        new, self._aside_ids = sorted(set(aside) - self._aside_ids), set(aside)
+        with self._lock:       # the previous estimate's, from the window's record
+            before = set(self._aside_log[-1][1]) if self._aside_log else set()
+        new = sorted(set(aside) - before)
         if new:
             used = [fid for fid, st in sample.fiducial_status.items() if st == "seen" and fid not in aside]
             self.alarms.alert("info", "fiducials_set_aside", "; ".join(
@@ -443,7 +444,6 @@ class TrackingLoop:
             self._latest = self._last_trusted = None
             self._fresh_since = None
             self._seen_ids = None
-            self._aside_ids = set()
             self._aside_log.clear()
             self._aside_log_start = self.now()
             self.gate.reset()
@@ -575,10 +575,4 @@ class TrackingLoop:
                 rob.disarm()
             finally:
                 rob.close()
-        rig = self.camera.rig
-        if rig is not None:
-            rig.running = False
-            try:
-                rig.stop()
-            finally:
-                self.camera.heap.release()
+        self.camera.shutdown()
