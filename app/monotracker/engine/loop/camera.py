@@ -111,10 +111,19 @@ class CameraControl:
             return CommandResult(False, f"camera not started: {why}")
         if rig.default_T_base_cam is not None and plan.T_base_cam is None:
             self.plan.set_hand_eye(rig.default_T_base_cam)
-        if self.cfg.clock == "real":
-            rig.start()
+        # no full garbage collection inside a frame while this camera runs (released by _stop_rig);
+        # its one collection comes before the rig's first frame
+        self.heap.hold()
+        # running before the rig's threads start: what they do on its first frames (the colour
+        # watch) counts; a 5-frame folder could be half read before the flag was set
         rig.running = True
-        self.heap.hold()   # no full garbage collection inside a frame while this camera runs (released by _stop_rig)
+        if self.cfg.clock == "real":
+            try:
+                rig.start()
+            except BaseException:
+                rig.running = False
+                self.heap.release()
+                raise
         self.loop.events.event("camera_started", f"camera {self.source} started",
                       {"source": self.source, "K": None if rig.K is None else np.asarray(rig.K).tolist()})
         return CommandResult(True, "camera started")
