@@ -17,6 +17,7 @@ Usage: PYTHONPATH=app python scripts/render_planned.py --split tuning|held_out -
        [--root DIR] [--scene KIND:I] (one scene, for one CPU slot at a time)
        [--plan-balls N] (the planner's layout AND camera for N balls in every scene, <root>/plan<N>)
        [--renderer blender --blender-python /work/bpyenv/bin/python]
+       [--optics hd|wide] (the same scenes through another camera, ``sim.pbr.spec.OPTICS``, into <root>/<optics>)
 """
 
 from __future__ import annotations
@@ -101,7 +102,7 @@ def planned_layout(phantom, n_balls: int) -> tuple:
 def main(argv=None) -> int:
     from monotracker.sim.pbr.build import RENDERERS, default_folder, render_scene
     from monotracker.sim.pbr.frameset import default_root
-    from monotracker.sim.pbr.spec import KINDS, make_spec
+    from monotracker.sim.pbr.spec import KINDS, OPTICS, make_spec, with_optics
     from monotracker.sim.phantom import default_phantom
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -116,6 +117,9 @@ def main(argv=None) -> int:
     ap.add_argument("--plan-balls", type=int, default=None,
                     help="N: every scene uses the layout planner's full plan for N balls (its layout AND its "
                          "camera), into <root>/plan<N>/<split>; lamps, skin, occluders drawn per scene")
+    ap.add_argument("--optics", choices=tuple(OPTICS), default="native",
+                    help="hd: 1920x1080, every px length x1.5; wide: f = 800 px on the same sensor (sim.pbr.spec.OPTICS): "
+                         "the same scenes and camera poses through optics the generator never uses, into <root>/<optics>")
     a = ap.parse_args(argv)
     scenes = [sc.split(":") for sc in a.scene or []]
     bad = [sc for sc, parts in zip(a.scene or [], scenes)
@@ -125,6 +129,8 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
     root = a.root or default_root() / "planned"
+    if a.optics != "native":
+        root = root / a.optics
     if a.plan_balls is not None:
         root = root / f"plan{a.plan_balls}"
     folder = default_folder(a.split, a.renderer, root)
@@ -152,7 +158,7 @@ def main(argv=None) -> int:
         except RuntimeError:      # no camera pose the planner approves for this layout: skipped
             print(f"{a.split}/{kind}/{INDEX0 + i}: the planner approves no camera pose for this layout; skipped")
             continue
-        path = render_scene(spec, folder, renderer=a.renderer, blender_python=a.blender_python)
+        path = render_scene(with_optics(spec, a.optics), folder, renderer=a.renderer, blender_python=a.blender_python)
         entries.append({"hash": path.stem, "kind": kind, "index": INDEX0 + i})
     if not a.scene:
         (folder / "manifest.json").write_text(json.dumps({"split": a.split, "renderer": a.renderer,

@@ -186,3 +186,43 @@ def test_render_planned_refuses_a_bad_scene_name_before_it_plans(scene, capsys, 
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and err[0].endswith(f"not {scene}") and all(k in err[0] for k in KINDS)
     assert not any(tmp_path.iterdir())
+
+
+def test_other_optics_see_the_same_scene_through_another_lens():
+    """``with_optics`` (``render_planned.py --optics``): ``hd`` is the same view on a 1920 x 1080
+    sensor, so every image length is 1.5x the generator's (ball centres about the image origin,
+    radii); ``wide`` keeps the sensor and the principal point and shortens the lens to 800 px, so
+    each ball's offset from the principal point in normalised (distorted) coordinates is the same
+    and its radius 800 / 1100 of the native's. Truth is computed independently of the spec's
+    variant: from the scene's own geometry through ``cv2.projectPoints``. The scene itself (balls,
+    lamps, camera pose) is unchanged, its hash is not, and ``native`` is the spec as drawn."""
+    from monotracker.sim.pbr.spec import OPTICS, with_optics
+    from monotracker.sim.pbr.truth import scene_truth
+
+    spec = make_spec("tuning", "clean", 3)
+    assert with_optics(spec, "native") is spec
+    with pytest.raises(ValueError, match="optics must be one of"):
+        with_optics(spec, "fisheye")
+    ones = np.ones(len(spec.fiducials))
+    base = scene_truth(spec, ones)
+    K0 = np.array(spec.K, float)
+    for name in ("hd", "wide"):
+        v = with_optics(spec, name)
+        assert v.fiducials_ct == spec.fiducials_ct and v.T_cam_ct == spec.T_cam_ct and v.lamps == spec.lamps
+        assert v.dist == spec.dist and scene_hash(v) != scene_hash(spec)
+        assert tuple(v.image_size) == OPTICS[name][0]
+        t = scene_truth(v, ones)
+        Xc = spec.fiducials @ spec.T[:3, :3].T + spec.T[:3, 3]
+        px, _ = cv2.projectPoints(Xc, np.zeros(3), np.zeros(3), np.array(v.K, float), np.array(v.dist, float))
+        px = px.reshape(-1, 2)
+        # the sphere's image ellipse is centred a little off the centre's projection (perspective)
+        assert np.max(np.linalg.norm(t.ellipse_centres_px - px, axis=1)) < 0.5
+        W, H = v.image_size
+        assert np.all((px > 0) & (px < [W, H]))
+        if name == "hd":
+            assert np.allclose(t.ellipse_centres_px, 1.5 * base.ellipse_centres_px, atol=1e-6)
+            assert np.allclose(t.radius_px, 1.5 * base.radius_px, rtol=1e-6)
+        else:
+            c = K0[:2, 2]
+            assert np.allclose((t.ellipse_centres_px - c) / 800.0, (base.ellipse_centres_px - c) / 1100.0, atol=1e-9)
+            assert np.allclose(t.radius_px, base.radius_px * 800.0 / 1100.0, rtol=1e-3)

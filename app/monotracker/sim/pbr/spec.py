@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -520,6 +520,36 @@ def make_spec(split: str, kind: str, index: int, phantom: HeadPhantom | None = N
         skin=_skin(fam["skin"], rng), lamps=lamps, ambient_rgb=ambient, drapes=drapes, towel=towel,
         drape_seed=int(rng.integers(1 << 30)), hair_colour=str(rng.choice(fam["hair"])), hair_strands=hair[0],
         hair_loose=hair[1], hair_seed=int(rng.integers(1 << 30)), **kw)
+
+
+#: camera optics other than the generator's own (1280 x 720, f = 1100 px), for a measurement of
+#: the camera path on lenses and sensors it was never tuned for (``with_optics``;
+#: ``scripts/render_planned.py --optics``): name -> (image size (w, h) px, the intrinsics' scale
+#: (fx, fy, cx, cy multiplied), a focal length (px) that replaces fx and fy, or None).
+#: ``hd``: the same view on a 1920 x 1080 sensor (every length in px x 1.5, balls 1.5x larger);
+#: ``wide``: a shorter lens on the same sensor (f = 800 px: balls 0.73x, the view wider, more of
+#: the lens' distortion used towards the corners). Chosen 2026-12-03 before any render.
+OPTICS = {
+    "native": None,
+    "hd": ((1920, 1080), 1.5, None),
+    "wide": ((1280, 720), 1.0, 800.0),
+}
+
+
+def with_optics(spec: SceneSpec, name: str) -> SceneSpec:
+    """``spec`` seen through camera optics ``name`` (:data:`OPTICS`): the same scene, the same
+    camera pose and distortion coefficients (in normalised coordinates), another sensor size or
+    focal length. ``native`` returns ``spec`` itself; any other name a scene with its own hash."""
+    if name not in OPTICS:
+        raise ValueError(f"optics must be one of {', '.join(OPTICS)}, got {name!r}")
+    if OPTICS[name] is None:
+        return spec
+    size, scale, focal = OPTICS[name]
+    K = np.array(spec.K, float)
+    K[:2, :] *= scale
+    if focal is not None:
+        K[0, 0] = K[1, 1] = focal
+    return replace(spec, K=tuple([float(v) for v in row] for row in K), image_size=tuple(int(s) for s in size))
 
 
 @dataclass
