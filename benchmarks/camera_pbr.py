@@ -234,7 +234,9 @@ def trust_models() -> dict:
     while the camera's noise is at least ``average_min_noise_dn``, 1.8 DN; its own detector run, not the default's detections replayed; docs/vision.md "A still view's frames
     averaged"); ``no-disagreement``: the default without the cover of a ball the others
     disagree with (``disagreement_quantile`` 0: the default before 2026-12-03's thirty-fifth
-    session, docs/vision.md "A ball the others disagree with")."""
+    session, docs/vision.md "A ball the others disagree with"); ``small-checked``: the default with
+    the shading check applied wherever the balls' median fitted radius is under 10 px, shadows seen
+    or not (``shading_check_small_radius_px`` 10: opt-in, docs/vision.md "Other lenses")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
@@ -244,7 +246,8 @@ def trust_models() -> dict:
             "matte": TrackerConfig(glossy_highlight_ratio=0.0),
             "excess-reading": TrackerConfig(shading_check_reading="excess"),
             "averaged": TrackerConfig(average_still_frames=8),
-            "no-disagreement": TrackerConfig(disagreement_quantile=0.0)}
+            "no-disagreement": TrackerConfig(disagreement_quantile=0.0),
+            "small-checked": TrackerConfig(shading_check_small_radius_px=10.0)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -334,7 +337,7 @@ ARM = "arm"
 GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte",
          "excess-reading": "arm-excess-reading", "averaged": "arm-averaged",
-         "no-disagreement": "arm-no-disagreement"}
+         "no-disagreement": "arm-no-disagreement", "small-checked": "arm-small-checked"}
 
 
 def session_gate():

@@ -14,6 +14,8 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    ``edge+ref`` = ``edge`` with the learned centre refiner (opt-in, issue 28; when its network is there),
    ``edge+avg`` = ``edge`` through a tracker whose detector reads the mean of a still view's frames
    (``TrackerConfig.average_still_frames`` 8, opt-in: the moving head must start it again),
+   ``edge+small`` = ``edge`` through a tracker whose shading check also applies to balls under
+   10 px radius without shadow evidence (``TrackerConfig.shading_check_small_radius_px``, opt-in),
    ``learned`` = the ONNX segmenter (opt-in). Columns: centre error vs the exact ellipse centre
    (what a detector must report; the registration corrects ellipse -> sphere centre), recall
    of fully visible balls, partly hidden balls accepted, and per frame through the pose
@@ -151,7 +153,8 @@ def condition_camera(name: str, seconds: float, seed: int) -> SimulatedCamera:
 
 
 #: table A's rows whose pose tracker is not the default's
-ROW_CONFIGS = {"edge+avg": TrackerConfig(average_still_frames=8)}
+ROW_CONFIGS = {"edge+avg": TrackerConfig(average_still_frames=8),
+               "edge+small": TrackerConfig(shading_check_small_radius_px=10.0)}
 
 
 def _match_centres(centres, tr, tol=3.0):
@@ -198,7 +201,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge-r6", ClassicalDetector(rules)),
                 ("edge", ClassicalDetector(with_camera)),
                 ("edge+shade", ClassicalDetector(replace(with_camera, shading_shift=True))),
-                ("edge+avg", ClassicalDetector(with_camera))]
+                ("edge+avg", ClassicalDetector(with_camera)),
+                ("edge+small", ClassicalDetector(with_camera))]
         dets.append(("edge+colour", ClassicalDetector(with_camera, colour=colour) if colour is not None else None))
         if REFINER_MODEL.is_file():     # the learned centre refiner (opt-in; issue 28)
             dets.append(("edge+ref", ClassicalDetector(with_camera, refiner=CentreRefiner(REFINER_MODEL))))

@@ -17,7 +17,8 @@ Usage: PYTHONPATH=app python scripts/render_planned.py --split tuning|held_out -
        [--root DIR] [--scene KIND:I] (one scene, for one CPU slot at a time)
        [--plan-balls N] (the planner's layout AND camera for N balls in every scene, <root>/plan<N>)
        [--renderer blender --blender-python /work/bpyenv/bin/python]
-       [--optics hd|wide] (the same scenes through another camera, ``sim.pbr.spec.OPTICS``, into <root>/<optics>)
+       [--optics hd|wide] (the same scenes through another camera, ``sim.pbr.spec.OPTICS``, into <root>/<optics>;
+       with --plan-balls the layout and camera are planned for that camera, as the product's planner is given it)
 """
 
 from __future__ import annotations
@@ -36,8 +37,9 @@ INDEX0 = 5000
 TOWEL_POLAR_DEG = 50.0
 
 
-def planner_accept(phantom):
-    """``accept(X, T_cam_ct)``: the planner's verdict for the balls ``X`` seen from ``T_cam_ct``."""
+def planner_accept(phantom, camera=None):
+    """``accept(X, T_cam_ct)``: the planner's verdict for the balls ``X`` seen from ``T_cam_ct``
+    through ``camera`` (None: the generator's default camera)."""
     from monotracker.geometry import invert_transform
     from monotracker.planning import HeadSurface, predict
     from monotracker.planning.defaults import build_problem
@@ -52,7 +54,7 @@ def planner_accept(phantom):
         v = phantom.view_direction_lps / np.linalg.norm(phantom.view_direction_lps)
         # the scene's own target: 80 mm below the balls' centroid (make_spec)
         problem = build_problem(head, X.mean(axis=0) - 80.0 * v, existing=X, radius_mm=phantom.fiducial_radius_mm,
-                                drape_offset_mm=None)
+                                drape_offset_mm=None, camera=camera)
         # the balls' skin normals: the phantom's ellipsoid (exact; the planner's estimate from a
         # mesh needs the CT mesh's outward winding)
         n = (X - phantom.centre_lps) / axes**2
@@ -67,11 +69,13 @@ def planner_accept(phantom):
     return accept
 
 
-def planned_layout(phantom, n_balls: int) -> tuple:
+def planned_layout(phantom, n_balls: int, camera=None) -> tuple:
     """The layout planner's full plan for ``n_balls`` balls on ``phantom``'s head (cameras about
     the phantom's view direction, a drape plane that keeps the balls off the scenes' towel, the
-    target 80 mm below the phantom's own balls' centroid): (ball centres (n, 3) CT mm, T_cam_ct,
-    the plan). What ``--plan-balls`` renders: a layout and a camera the planner chose."""
+    target 80 mm below the phantom's own balls' centroid), for ``camera`` (a CameraModel; None:
+    the generator's default camera, as the product's planner is given the session's): (ball
+    centres (n, 3) CT mm, T_cam_ct, the plan). What ``--plan-balls`` renders: a layout and a
+    camera the planner chose."""
     from monotracker.geometry import invert_transform
     from monotracker.planning import HeadSurface, plan_layout
     from monotracker.planning.defaults import build_problem
@@ -94,7 +98,7 @@ def planned_layout(phantom, n_balls: int) -> tuple:
     rim = phantom.centre_lps + d / np.sqrt(np.sum(d**2 / a**2, axis=1))[:, None]
     offset = float(np.max((rim - head.centre) @ v))
     problem = build_problem(head, target, radius_mm=phantom.fiducial_radius_mm, drape_offset_mm=offset,
-                            axis=v)     # cameras around the scenes' own view direction
+                            axis=v, camera=camera)     # cameras around the scenes' own view direction
     plan = plan_layout(problem, n_balls=int(n_balls))
     return plan.balls, invert_transform(plan.T_ct_cam), plan
 
@@ -102,7 +106,7 @@ def planned_layout(phantom, n_balls: int) -> tuple:
 def main(argv=None) -> int:
     from monotracker.sim.pbr.build import RENDERERS, default_folder, render_scene
     from monotracker.sim.pbr.frameset import default_root
-    from monotracker.sim.pbr.spec import KINDS, OPTICS, make_spec, with_optics
+    from monotracker.sim.pbr.spec import KINDS, OPTICS, make_spec, optics_camera, with_optics
     from monotracker.sim.phantom import default_phantom
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -138,9 +142,9 @@ def main(argv=None) -> int:
     ph = default_phantom()
     accept, fixed = None, {}
     if a.plan_balls is None:
-        accept = planner_accept(ph)
+        accept = planner_accept(ph, optics_camera(a.optics))
     else:
-        X, T, plan = planned_layout(ph, a.plan_balls)
+        X, T, plan = planned_layout(ph, a.plan_balls, optics_camera(a.optics))   # planned for the lens used
         fixed = {"layout": X, "T_cam_ct": T}
         wl = plan.expected.with_losses
         print(f"plan for {a.plan_balls} balls: camera {plan.expected.distance_mm:.0f} mm, "

@@ -196,11 +196,12 @@ def test_other_optics_see_the_same_scene_through_another_lens():
     and its radius 800 / 1100 of the native's. Truth is computed independently of the spec's
     variant: from the scene's own geometry through ``cv2.projectPoints``. The scene itself (balls,
     lamps, camera pose) is unchanged, its hash is not, and ``native`` is the spec as drawn."""
-    from monotracker.sim.pbr.spec import OPTICS, with_optics
+    from monotracker.sim.pbr.spec import OPTICS, optics_camera, with_optics
     from monotracker.sim.pbr.truth import scene_truth
 
     spec = make_spec("tuning", "clean", 3)
     assert with_optics(spec, "native") is spec
+    assert np.allclose(optics_camera("native").K, spec.K)
     with pytest.raises(ValueError, match="optics must be one of"):
         with_optics(spec, "fisheye")
     ones = np.ones(len(spec.fiducials))
@@ -211,6 +212,8 @@ def test_other_optics_see_the_same_scene_through_another_lens():
         assert v.fiducials_ct == spec.fiducials_ct and v.T_cam_ct == spec.T_cam_ct and v.lamps == spec.lamps
         assert v.dist == spec.dist and scene_hash(v) != scene_hash(spec)
         assert tuple(v.image_size) == OPTICS[name][0]
+        cam = optics_camera(name)      # what a layout for that lens is planned with: the same camera
+        assert np.allclose(cam.K, v.K) and np.allclose(cam.dist, v.dist) and tuple(cam.image_size) == tuple(v.image_size)
         t = scene_truth(v, ones)
         Xc = spec.fiducials @ spec.T[:3, :3].T + spec.T[:3, 3]
         px, _ = cv2.projectPoints(Xc, np.zeros(3), np.zeros(3), np.array(v.K, float), np.array(v.dist, float))

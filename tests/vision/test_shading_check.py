@@ -72,7 +72,8 @@ class _ShadedBalls:
         for p, b, v, n in zip(self.px, self.minor, self.shifts, self.rays):
             unit = np.asarray(v, float) / max(float(np.linalg.norm(v)), 1e-12)
             feats = {"edge_rms_px": 0.08, "shading_shift_vec_px": (float(v[0]), float(v[1])),
-                     "edge_shadow_rays": int(n), "edge_shadow_dir": tuple(0.8 * self.side * unit) if n else (0.0, 0.0)}
+                     "edge_shadow_rays": int(n), "edge_shadow_dir": tuple(0.8 * self.side * unit) if n else (0.0, 0.0),
+                     "edge_minor_px": float(b)}
             fids.append(ImageFiducial(np.array(p, float) + self.rng.normal(scale=0.03, size=2), (float(b), float(b)),
                                       0.0, 1.0, float(np.pi * b * b), features=feats))
         return Detection(fids, [], 0.0, "shaded-double")
@@ -139,6 +140,25 @@ def test_without_contact_shadows_the_check_does_not_apply(scene, case):
     off = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, side), TrackerConfig(shading_check_factor=0.0))
     assert all(e.ok for e in now[2:]), [e.reason for e in now]
     np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-9)
+
+
+@pytest.mark.parametrize("small_radius_px, checked", [(0.0, False), (None, True), (-1.0, False)])
+def test_small_balls_are_checked_without_shadow_evidence_where_asked(scene, small_radius_px, checked):
+    """``TrackerConfig.shading_check_small_radius_px`` (opt-in): balls whose median fitted radius
+    (``edge_minor_px``) is under it are checked though none shows a contact shadow (a small ball's
+    few rays rarely do): the 0.7 mm disagreement is then not trusted. Off (0, the default), or a
+    limit just under the balls' own radius (None: 0.2 px over it; -1: 0.2 px under), the frames are
+    judged as without the check."""
+    s, target, px, minor = scene
+    r = float(np.median(minor))
+    limit = {None: r + 0.2, -1.0: r - 0.2}.get(small_radius_px, small_radius_px)
+    shifts = _gradient_shifts(s, px, target, 0.7)
+    now = _stream(s, target, _ShadedBalls(px, minor, shifts, 0, -1), TrackerConfig(shading_check_small_radius_px=limit))
+    if checked:
+        assert not any(e.ok for e in now), [e.predicted_tre_mm for e in now]
+        assert all("the shading-corrected centres move the target" in e.reason for e in now[2:]), [e.reason for e in now]
+    else:
+        assert all(e.ok for e in now[2:]), [e.reason for e in now]
 
 
 def test_the_raised_covariance_predicts_factor_times_the_move_at_the_target(scene):

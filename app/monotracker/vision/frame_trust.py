@@ -197,7 +197,7 @@ class FrameTrust:
         if cfg.shading_check_factor > 0 and target_ct is not None:
             # a still head's contact shadows stay: the shares of its last frames count too
             still = tuple(self.memory.still_notes(SHADOWED_NOTE)) if cfg.shading_check_still_frames else ()
-            if shading_check.applies(feats, cfg.shading_check_share, still):
+            if shading_check.applies(feats, cfg.shading_check_share, still, cfg.shading_check_small_radius_px):
                 read = None
                 if cfg.shading_check_reading == "excess":
                     # the outlines' excess over the spheres at this pose (px; only where the check applies)

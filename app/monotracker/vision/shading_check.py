@@ -100,7 +100,7 @@ def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_P
     return unit * np.where(length > 0, move, 0.0)[:, None]
 
 
-def applies(features: list, min_share: float, still_shares: tuple = ()) -> bool:
+def applies(features: list, min_share: float, still_shares: tuple = (), small_radius_px: float = 0.0) -> bool:
     """Whether the check applies to a frame's matched balls (their detection features): not where a
     ball has no shift (a detector without an edge fit, a centre the learned refiner moved:
     ``edge_centre_px`` set), nor where fewer than ``min_share`` of the balls are shadowed
@@ -109,10 +109,17 @@ def applies(features: list, min_share: float, still_shares: tuple = ()) -> bool:
     does not leave a still head between two frames; the edge fit's shadow test does, now and then
     (sensor noise tips it as it tips a ball's acceptance), and a frame whose share dipped under
     ``min_share`` alone went out unchecked: on the rendered 12-ball plans those were the trusted
-    frames 1-2 mm off (docs/vision.md, "The shading check")."""
+    frames 1-2 mm off (docs/vision.md, "The shading check"). Where ``small_radius_px`` > 0 it
+    also applies when the balls' median fitted radius (``edge_minor_px``) is under it, shadows
+    seen or not: a small ball's few rays rarely show its shadow
+    (``TrackerConfig.shading_check_small_radius_px``)."""
     shifts = [f.get("shading_shift_vec_px") for f in features]
     if not features or any(s is None for s in shifts) or any("edge_centre_px" in f for f in features):
         return False
+    if small_radius_px > 0:
+        radii = [f["edge_minor_px"] for f in features if f.get("edge_minor_px") is not None]
+        if radii and float(np.median(radii)) < small_radius_px:
+            return True
     return max([shadowed_share(features), *still_shares]) >= min_share
 
 

@@ -215,6 +215,16 @@ class TrackerConfig:
     #: frames 1-2 mm off 9 of 234 -> 1 of 226). False: each frame's own shadows only (the default
     #: before 2026-12-01's twenty-first session; ``camera_pbr.py``'s ``check-alone`` row)
     shading_check_still_frames: bool = True
+    #: the shading check also applies, whatever the balls' shadow evidence, where the matched
+    #: balls' median fitted radius (``features["edge_minor_px"]``) is under this (px). 0 = off
+    #: (the default). Why: a small ball has fewer edge rays (one per ~1.6 px of outline) and its
+    #: contact shadow trips fewer of them: on the planner's 12-ball tuning layout through a
+    #: shorter lens (f 800 px, balls 8 px instead of 11; ``render_planned.py --optics wide``) the
+    #: shadow rays per ball fell 1.94 -> 0.81 (OR) and the check applied to 0.58 of the OR
+    #: frames instead of 0.97, and a held-out OR scene (spent) went out trusted 1.0-1.2 mm off at
+    #: a predicted 0.56 mm that its 11 px twin refused (the check's move 0.66 mm, docs/vision.md
+    #: "Other lenses")
+    shading_check_small_radius_px: float = 0.0
     #: balls the detector found in the last frames of a still head and misses in this one are
     #: given back to it for at most this many frames (:mod:`.ball_memory`: a ball's acceptance
     #: flickers from frame to frame on shaded balls; the head's stillness is tested against the

@@ -540,16 +540,39 @@ def with_optics(spec: SceneSpec, name: str) -> SceneSpec:
     """``spec`` seen through camera optics ``name`` (:data:`OPTICS`): the same scene, the same
     camera pose and distortion coefficients (in normalised coordinates), another sensor size or
     focal length. ``native`` returns ``spec`` itself; any other name a scene with its own hash."""
+    if _optics(name) is None:
+        return spec
+    K, size = _optics_intrinsics(np.array(spec.K, float), name)
+    return replace(spec, K=tuple([float(v) for v in row] for row in K), image_size=size)
+
+
+def optics_camera(name: str):
+    """The generator's camera (:func:`~monotracker.vision.camera_model.default_camera`) through
+    optics ``name`` (:data:`OPTICS`): what a layout planned for that camera must be given
+    (``render_planned.py --plan-balls N --optics NAME`` plans for it)."""
+    from monotracker.vision.camera_model import CameraModel, default_camera
+
+    cam = default_camera()
+    if _optics(name) is None:
+        return cam
+    K, size = _optics_intrinsics(np.array(cam.K, float), name)
+    return CameraModel(K, cam.dist, size)
+
+
+def _optics(name: str):
     if name not in OPTICS:
         raise ValueError(f"optics must be one of {', '.join(OPTICS)}, got {name!r}")
-    if OPTICS[name] is None:
-        return spec
+    return OPTICS[name]
+
+
+def _optics_intrinsics(K: np.ndarray, name: str) -> tuple[np.ndarray, tuple]:
+    """(K (3, 3) px, image size (w, h) px) of the native ``K`` through optics ``name``."""
     size, scale, focal = OPTICS[name]
-    K = np.array(spec.K, float)
+    K = K.copy()
     K[:2, :] *= scale
     if focal is not None:
         K[0, 0] = K[1, 1] = focal
-    return replace(spec, K=tuple([float(v) for v in row] for row in K), image_size=tuple(int(s) for s in size))
+    return K, tuple(int(s) for s in size)
 
 
 @dataclass
