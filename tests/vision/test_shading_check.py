@@ -142,16 +142,15 @@ def test_without_contact_shadows_the_check_does_not_apply(scene, case):
     np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-9)
 
 
-@pytest.mark.parametrize("small_radius_px, checked", [(0.0, False), (None, True), (-1.0, False)])
-def test_small_balls_are_checked_without_shadow_evidence_where_asked(scene, small_radius_px, checked):
+@pytest.mark.parametrize("over_radius_px, checked", [(None, False), (0.2, True), (-0.2, False)])
+def test_small_balls_are_checked_without_shadow_evidence_where_asked(scene, over_radius_px, checked):
     """``TrackerConfig.shading_check_small_radius_px`` (opt-in): balls whose median fitted radius
     (``edge_minor_px``) is under it are checked though none shows a contact shadow (a small ball's
-    few rays rarely do): the 0.7 mm disagreement is then not trusted. Off (0, the default), or a
-    limit just under the balls' own radius (None: 0.2 px over it; -1: 0.2 px under), the frames are
-    judged as without the check."""
+    few rays rarely do): the 0.7 mm disagreement is then not trusted. Off (0, the default: None
+    here), or a limit 0.2 px under the balls' own radius, the frames are judged as without the
+    check; 0.2 px over it, they are checked."""
     s, target, px, minor = scene
-    r = float(np.median(minor))
-    limit = {None: r + 0.2, -1.0: r - 0.2}.get(small_radius_px, small_radius_px)
+    limit = 0.0 if over_radius_px is None else float(np.median(minor)) + over_radius_px
     shifts = _gradient_shifts(s, px, target, 0.7)
     now = _stream(s, target, _ShadedBalls(px, minor, shifts, 0, -1), TrackerConfig(shading_check_small_radius_px=limit))
     if checked:
