@@ -236,7 +236,10 @@ def trust_models() -> dict:
     disagree with (``disagreement_quantile`` 0: the default before 2026-12-03's thirty-fifth
     session, docs/vision.md "A ball the others disagree with"); ``small-checked``: the default with
     the shading check applied wherever the balls' median fitted radius is under 10 px, shadows seen
-    or not (``shading_check_small_radius_px`` 10: opt-in, docs/vision.md "Other lenses")."""
+    or not (``shading_check_small_radius_px`` 10: opt-in, docs/vision.md "Other lenses");
+    ``push-floor``: the default with the shading check applied where no contact shadow is seen,
+    each shaded ball's push taken as at least 0.3 px (``shading_check_unseen_push_px`` 0.3:
+    opt-in, docs/vision.md "A push not seen")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
@@ -247,7 +250,8 @@ def trust_models() -> dict:
             "excess-reading": TrackerConfig(shading_check_reading="excess"),
             "averaged": TrackerConfig(average_still_frames=8),
             "no-disagreement": TrackerConfig(disagreement_quantile=0.0),
-            "small-checked": TrackerConfig(shading_check_small_radius_px=10.0)}
+            "small-checked": TrackerConfig(shading_check_small_radius_px=10.0),
+            "push-floor": TrackerConfig(shading_check_unseen_push_px=0.3)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -337,7 +341,8 @@ ARM = "arm"
 GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory", "check-alone": "arm-check-alone",
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte",
          "excess-reading": "arm-excess-reading", "averaged": "arm-averaged",
-         "no-disagreement": "arm-no-disagreement", "small-checked": "arm-small-checked"}
+         "no-disagreement": "arm-no-disagreement", "small-checked": "arm-small-checked",
+         "push-floor": "arm-push-floor"}
 
 
 def session_gate():

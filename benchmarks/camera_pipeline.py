@@ -16,6 +16,10 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    (``TrackerConfig.average_still_frames`` 8, opt-in: the moving head must start it again),
    ``edge+small`` = ``edge`` through a tracker whose shading check also applies to balls under
    10 px radius without shadow evidence (``TrackerConfig.shading_check_small_radius_px``, opt-in),
+   ``edge+push`` = ``edge`` through a tracker whose shading check also applies where no contact
+   shadow is seen, each shaded ball's push taken as at least 0.3 px
+   (``TrackerConfig.shading_check_unseen_push_px``, opt-in), ``edge+push25`` the same only where a
+   quarter of the balls show a contact shadow (``shading_check_push_min_share`` 0.25, opt-in),
    ``learned`` = the ONNX segmenter (opt-in). Columns: centre error vs the exact ellipse centre
    (what a detector must report; the registration corrects ellipse -> sphere centre), recall
    of fully visible balls, partly hidden balls accepted, and per frame through the pose
@@ -154,7 +158,9 @@ def condition_camera(name: str, seconds: float, seed: int) -> SimulatedCamera:
 
 #: table A's rows whose pose tracker is not the default's
 ROW_CONFIGS = {"edge+avg": TrackerConfig(average_still_frames=8),
-               "edge+small": TrackerConfig(shading_check_small_radius_px=10.0)}
+               "edge+small": TrackerConfig(shading_check_small_radius_px=10.0),
+               "edge+push": TrackerConfig(shading_check_unseen_push_px=0.3),
+               "edge+push25": TrackerConfig(shading_check_unseen_push_px=0.3, shading_check_push_min_share=0.25)}
 
 
 def _match_centres(centres, tr, tol=3.0):
@@ -202,7 +208,9 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 ("edge", ClassicalDetector(with_camera)),
                 ("edge+shade", ClassicalDetector(replace(with_camera, shading_shift=True))),
                 ("edge+avg", ClassicalDetector(with_camera)),
-                ("edge+small", ClassicalDetector(with_camera))]
+                ("edge+small", ClassicalDetector(with_camera)),
+                ("edge+push", ClassicalDetector(with_camera)),
+                ("edge+push25", ClassicalDetector(with_camera))]
         dets.append(("edge+colour", ClassicalDetector(with_camera, colour=colour) if colour is not None else None))
         if REFINER_MODEL.is_file():     # the learned centre refiner (opt-in; issue 28)
             dets.append(("edge+ref", ClassicalDetector(with_camera, refiner=CentreRefiner(REFINER_MODEL))))

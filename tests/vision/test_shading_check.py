@@ -46,15 +46,25 @@ def _gradient_shifts(s, px, target, move_mm) -> np.ndarray:
     """Per-ball shifts (k, 2) px that change linearly across the layout, the field that moves the
     refitted target most (:func:`layout_fields.worst_layout_field`), scaled so that the second
     readings' pose lies ``move_mm`` from the first at the target (refitted, bisected on the scale)."""
-    t0 = _target_of(s, px, target)
     field = worst_layout_field(px, lambda shifts: _target_of(s, px + shifts, target))
+    return _scale_for_move(s, px, target, field, move_mm) * field
+
+
+def _scale_for_move(s, px, target, field, move_mm) -> float:
+    """The scale of the per-ball shifts ``field`` (k, 2) px at which the pose refitted to
+    ``px`` + scale x ``field`` lies ``move_mm`` from the first at the target (bisected)."""
+    t0 = _target_of(s, px, target)
+
+    def move(scale):
+        return np.linalg.norm(_target_of(s, px + scale * field, target) - t0)
+
     lo, hi = 0.0, 1.0
-    while np.linalg.norm(_target_of(s, px + hi * field, target) - t0) < move_mm:
+    while move(hi) < move_mm:
         hi *= 2.0
     for _ in range(40):
         mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if np.linalg.norm(_target_of(s, px + mid * field, target) - t0) < move_mm else (lo, mid)
-    return 0.5 * (lo + hi) * field
+        lo, hi = (mid, hi) if move(mid) < move_mm else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 class _ShadedBalls:
@@ -158,6 +168,57 @@ def test_small_balls_are_checked_without_shadow_evidence_where_asked(scene, over
         assert all("the shading-corrected centres move the target" in e.reason for e in now[2:]), [e.reason for e in now]
     else:
         assert all(e.ok for e in now[2:]), [e.reason for e in now]
+
+
+def _unseen_push(s, px, target, move_mm) -> tuple[np.ndarray, float]:
+    """Per-ball directions (k, 2; unit) of the field that moves the refitted target most, and the
+    push m (px) along them, the same length on every ball, whose refitted pose lies ``move_mm``
+    from the first at the target (bisected here on m)."""
+    field = worst_layout_field(px, lambda shifts: _target_of(s, px + shifts, target))
+    unit = field / np.linalg.norm(field, axis=1, keepdims=True)
+    return unit, _scale_for_move(s, px, target, unit, move_mm)
+
+
+@pytest.mark.parametrize("case", ["off", "no shadow seen", "shadows seen", "a third seen, a quarter asked",
+                                  "a third seen, half asked"])
+def test_a_push_not_seen_is_taken_as_at_least_the_floor(scene, case):
+    """``TrackerConfig.shading_check_unseen_push_px`` (opt-in): where the shadows seen do not make
+    the check apply, each shaded ball's second reading lies at least the floor towards its lit
+    side. The balls' shading shifts here are 0.01 px long, along the field that moves the target
+    most; the floor is the push along those directions whose refitted pose lies 0.7 mm away at
+    the target. With no shadow seen, or shadows beside a third of the balls where
+    ``shading_check_push_min_share`` asks a quarter, the frames are then not trusted and the
+    reason's move is that refit's (within 10 %); with the floor off, with shadows seen beside
+    every ball (the check reads the shifts themselves, 0.01 px), or beside a third where
+    ``shading_check_push_min_share`` asks half (0.49), they are judged as without the check."""
+    s, target, px, minor = scene
+    unit, floor = _unseen_push(s, px, target, 0.7)
+    shifts = 0.01 * unit
+    k = len(px)
+    rays = {"shadows seen": 6, "a third seen, a quarter asked": (np.arange(k) < int(np.ceil(k / 3))) * 6,
+            "a third seen, half asked": (np.arange(k) < int(np.ceil(k / 3))) * 6}.get(case, 0)
+    min_share = {"a third seen, a quarter asked": 0.25, "a third seen, half asked": 0.49}.get(case, 0.0)
+    cfg = TrackerConfig(shading_check_unseen_push_px=0.0 if case == "off" else floor,
+                        shading_check_push_min_share=min_share)
+    now = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, -1), cfg)
+    if case in ("no shadow seen", "a third seen, a quarter asked"):
+        assert not any(e.ok for e in now), [e.predicted_tre_mm for e in now]
+        said = [re.search(r"the shading-corrected centres move the target ([0-9.]+) mm", e.reason) for e in now[2:]]
+        assert all(m and abs(float(m.group(1)) - 0.7) <= 0.07 for m in said), [e.reason for e in now]
+    else:
+        off = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, -1), TrackerConfig(shading_check_factor=0.0))
+        assert all(e.ok for e in now[2:]), [e.reason for e in now]
+        np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-6)
+
+
+def test_the_push_floor_keeps_a_ball_without_shading_at_its_edge_centre():
+    """:func:`shading_check.second_readings` with ``min_px``: a shift shorter than the floor is
+    lengthened to it along its own direction, a longer one is kept, a ball with no shift (no
+    visible shading) reads 0."""
+    feats = [{"shading_shift_vec_px": (0.06, -0.08)}, {"shading_shift_vec_px": (0.0, 0.5)},
+             {"shading_shift_vec_px": (0.0, 0.0)}]
+    got = shading_check.second_readings(feats, min_px=0.3)
+    np.testing.assert_allclose(got, [[0.18, -0.24], [0.0, 0.5], [0.0, 0.0]], atol=1e-12)
 
 
 def test_the_raised_covariance_predicts_factor_times_the_move_at_the_target(scene):
@@ -333,3 +394,9 @@ def test_outlines_of_the_spheres_size_are_trusted_whatever_the_shading_model_say
 def test_an_unknown_reading_is_refused_at_construction():
     with pytest.raises(ValueError, match="shading_check_reading must be one of excess, shift"):
         TrackerConfig(shading_check_reading="size")
+
+
+@pytest.mark.parametrize("push", [-0.1, float("nan")])
+def test_a_push_floor_that_is_not_a_length_is_refused_at_construction(push):
+    with pytest.raises(ValueError, match="shading_check_unseen_push_px must be a push in px >= 0"):
+        TrackerConfig(shading_check_unseen_push_px=push)

@@ -77,7 +77,7 @@ def shadowed_share(features: list) -> float:
 EXCESS_CAP_PX = 1.0
 
 
-def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_PX) -> np.ndarray:
+def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_PX, min_px: float = 0.0) -> np.ndarray:
     """(k, 2) px: where each matched ball's second centre reading lies from its edge centre.
 
     ``excess_px`` ((k,) px or None): each ball's fitted outline minor semi-axis minus the sphere's
@@ -90,14 +90,41 @@ def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_P
     (:mod:`.shading_shift`'s linear model, the default reading). Measured on the
     rendered 12-ball plan's tuning frames (995 matched balls): the scenes' mean centre error along
     the shift direction is -0.44 to -0.48 px where their mean excess is +0.33 to +0.60 px, and -0.1
-    to +0.1 px where it is -0.15 to +0.2, while the shift's own length is 0.12-0.39 px in both."""
+    to +0.1 px where it is -0.15 to +0.2, while the shift's own length is 0.12-0.39 px in both.
+
+    ``min_px`` > 0 (the shift reading only, where no shadow evidence made the check apply:
+    :func:`unseen_push_applies`): each shaded ball's reading lies at least that far (px) towards
+    its lit side; a ball with no shift (no visible shading) keeps 0."""
     shifts = np.asarray([f["shading_shift_vec_px"] for f in features], float).reshape(-1, 2)
-    if excess_px is None:
-        return shifts
     length = np.linalg.norm(shifts, axis=1)
     unit = shifts / np.maximum(length, 1e-12)[:, None]
+    if excess_px is None:
+        if min_px > 0:
+            return unit * np.where(length > 0, np.maximum(length, float(min_px)), 0.0)[:, None]
+        return shifts
     move = np.clip(np.asarray(excess_px, float).reshape(-1), 0.0, cap_px)
     return unit * np.where(length > 0, move, 0.0)[:, None]
+
+
+def readable(features: list) -> bool:
+    """Whether every matched ball (its detection features) has a second reading: a shading
+    shift (``shading_shift_vec_px``) and an edge centre the learned refiner did not move."""
+    return bool(features) and all(f.get("shading_shift_vec_px") is not None and "edge_centre_px" not in f
+                                  for f in features)
+
+
+def unseen_push_applies(features: list, push_px: float, still_shares: tuple = (), min_share: float = 0.0) -> bool:
+    """Whether the check applies without enough shadow evidence for :func:`applies`
+    (``TrackerConfig.shading_check_unseen_push_px``, where :func:`applies` said no): ``push_px`` >
+    0, every matched ball has a second reading (:func:`readable`), and at least ``min_share`` of
+    the balls show a contact shadow (:func:`shadowed_share`) in this frame or in one of
+    ``still_shares`` (a still head's last frames). A contact shadow not seen is not a shadow
+    absent: a small ball's few edge rays rarely show it (docs/vision.md "Other lenses"), and its
+    unlit limb's push, unmeasured, is taken as at least ``push_px`` towards each ball's unlit
+    side."""
+    if not (push_px > 0 and readable(features)):
+        return False
+    return min_share <= 0 or max([shadowed_share(features), *still_shares]) >= min_share
 
 
 def applies(features: list, min_share: float, still_shares: tuple = (), small_radius_px: float = 0.0) -> bool:
@@ -113,8 +140,7 @@ def applies(features: list, min_share: float, still_shares: tuple = (), small_ra
     also applies when the balls' median fitted radius (``edge_minor_px``) is under it, shadows
     seen or not: a small ball's few rays rarely show its shadow
     (``TrackerConfig.shading_check_small_radius_px``)."""
-    shifts = [f.get("shading_shift_vec_px") for f in features]
-    if not features or any(s is None for s in shifts) or any("edge_centre_px" in f for f in features):
+    if not readable(features):
         return False
     if small_radius_px > 0:
         radii = [f["edge_minor_px"] for f in features if f.get("edge_minor_px") is not None]
@@ -123,13 +149,13 @@ def applies(features: list, min_share: float, still_shares: tuple = (), small_ra
     return max([shadowed_share(features), *still_shares]) >= min_share
 
 
-def pose_disagreement(A: np.ndarray, features: list, excess_px=None) -> np.ndarray:
+def pose_disagreement(A: np.ndarray, features: list, excess_px=None, min_px: float = 0.0) -> np.ndarray:
     """The pose change (6,: rotation vector rad, translation mm) that moving each matched ball's
     centre to its second reading (:func:`second_readings`: by its outline's size excess
     ``excess_px`` towards its lit side, or by its shading shift where ``excess_px`` is None) gives
     through the fit's linearisation ``A`` ((6, 2k): image errors px, rows x0, y0, x1, y1, ... ->
-    pose), for a frame the check :func:`applies` to."""
-    return np.asarray(A, float) @ second_readings(features, excess_px).reshape(-1)
+    pose), for a frame the check :func:`applies` to (``min_px``: :func:`second_readings`)."""
+    return np.asarray(A, float) @ second_readings(features, excess_px, min_px=min_px).reshape(-1)
 
 
 def target_move_mm(d6: np.ndarray, T_cam_ct: np.ndarray, target_ct: np.ndarray) -> float:
