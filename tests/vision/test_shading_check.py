@@ -400,3 +400,9 @@ def test_an_unknown_reading_is_refused_at_construction():
 def test_a_push_floor_that_is_not_a_length_is_refused_at_construction(push):
     with pytest.raises(ValueError, match="shading_check_unseen_push_px must be a push in px >= 0"):
         TrackerConfig(shading_check_unseen_push_px=push)
+
+
+@pytest.mark.parametrize("share", [-0.1, 1.5, float("nan")])
+def test_a_push_floor_share_that_is_not_a_share_is_refused_at_construction(share):
+    with pytest.raises(ValueError, match="shading_check_push_min_share must be a share of the balls from 0 to 1"):
+        TrackerConfig(shading_check_push_min_share=share)

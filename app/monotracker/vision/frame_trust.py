@@ -206,7 +206,7 @@ class FrameTrust:
                 check_mm = shading_check.target_move_mm(disagree, T, target_ct)
             elif shading_check.unseen_push_applies(feats, cfg.shading_check_unseen_push_px, still,
                                                    cfg.shading_check_push_min_share):
-                # no shadow seen: each shaded ball's push taken as at least the floor
+                # too few shadows seen for the check: each shaded ball's push taken as at least the floor
                 disagree = shading_check.pose_disagreement(A, feats, min_px=cfg.shading_check_unseen_push_px)
                 check_mm = shading_check.target_move_mm(disagree, T, target_ct)
             self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))

@@ -311,6 +311,9 @@ class TrackerConfig:
         if not (float(self.shading_check_unseen_push_px) >= 0.0):
             raise ValueError("TrackerConfig: shading_check_unseen_push_px must be a push in px >= 0, "
                              f"not {self.shading_check_unseen_push_px!r}")
+        if not (0.0 <= float(self.shading_check_push_min_share) <= 1.0):
+            raise ValueError("TrackerConfig: shading_check_push_min_share must be a share of the balls from 0 to 1, "
+                             f"not {self.shading_check_push_min_share!r}")
         if self.shading_check_reading not in SHADING_READINGS:
             raise ValueError(f"TrackerConfig: shading_check_reading must be one of {', '.join(SHADING_READINGS)}, "
                              f"not {self.shading_check_reading!r}")
