@@ -195,8 +195,8 @@ def test_a_push_not_seen_is_taken_as_at_least_the_floor(scene, case):
     unit, floor = _unseen_push(s, px, target, 0.7)
     shifts = 0.01 * unit
     k = len(px)
-    rays = {"shadows seen": 6, "a third seen, a quarter asked": (np.arange(k) < int(np.ceil(k / 3))) * 6,
-            "a third seen, half asked": (np.arange(k) < int(np.ceil(k / 3))) * 6}.get(case, 0)
+    a_third = (np.arange(k) < int(np.ceil(k / 3))) * 6
+    rays = {"shadows seen": 6, "a third seen, a quarter asked": a_third, "a third seen, half asked": a_third}.get(case, 0)
     min_share = {"a third seen, a quarter asked": 0.25, "a third seen, half asked": 0.49}.get(case, 0.0)
     cfg = TrackerConfig(shading_check_unseen_push_px=0.0 if case == "off" else floor,
                         shading_check_push_min_share=min_share)
