@@ -207,10 +207,8 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge-r6", ClassicalDetector(rules)),
                 ("edge", ClassicalDetector(with_camera)),
                 ("edge+shade", ClassicalDetector(replace(with_camera, shading_shift=True))),
-                ("edge+avg", ClassicalDetector(with_camera)),
-                ("edge+small", ClassicalDetector(with_camera)),
-                ("edge+push", ClassicalDetector(with_camera)),
-                ("edge+push25", ClassicalDetector(with_camera))]
+                # the rows whose tracker is not the default's: the default detector, each its own
+                *[(name, ClassicalDetector(with_camera)) for name in ROW_CONFIGS]]
         dets.append(("edge+colour", ClassicalDetector(with_camera, colour=colour) if colour is not None else None))
         if REFINER_MODEL.is_file():     # the learned centre refiner (opt-in; issue 28)
             dets.append(("edge+ref", ClassicalDetector(with_camera, refiner=CentreRefiner(REFINER_MODEL))))

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .shading_check import shadowed_share
+from .shading_check import shadows_seen
 
 #: what the operator may say of the kit's balls (``TrackerConfig.ball_finish``): ``read`` (the
 #: default: each frame's highlight reading decides), ``matte`` (never the glossy frames' cover),
@@ -96,4 +96,4 @@ def wider_cover(features: list, threshold: float, min_shadow_share: float | None
         return False
     if min_shadow_share is None:
         return True
-    return max([shadowed_share(features), *still_shadow_shares]) >= min_shadow_share
+    return shadows_seen(features, still_shadow_shares, min_shadow_share)

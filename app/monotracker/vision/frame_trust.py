@@ -203,11 +203,11 @@ class FrameTrust:
                     # the outlines' excess over the spheres at this pose (px; only where the check applies)
                     read = excess if excess is not None else self.size_excess(T, fids, feats)
                 disagree = shading_check.pose_disagreement(A, feats, read)
-                check_mm = shading_check.target_move_mm(disagree, T, target_ct)
             elif shading_check.unseen_push_applies(feats, cfg.shading_check_unseen_push_px, still,
                                                    cfg.shading_check_push_min_share):
                 # too few shadows seen for the check: each shaded ball's push taken as at least the floor
                 disagree = shading_check.pose_disagreement(A, feats, min_px=cfg.shading_check_unseen_push_px)
+            if disagree is not None:
                 check_mm = shading_check.target_move_mm(disagree, T, target_ct)
             self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))
 

@@ -70,6 +70,15 @@ def shadowed_share(features: list) -> float:
     return float(np.mean([shadowed(f) for f in features])) if features else 0.0
 
 
+def shadows_seen(features: list, still_shares: tuple, min_share: float) -> bool:
+    """Whether at least ``min_share`` of a frame's matched balls (their detection features) show
+    a contact shadow (:func:`shadowed_share`) in this frame or in one of ``still_shares`` (the
+    shares of a still head's last frames: a contact shadow does not leave a still head). The
+    shading check, its unseen-push variant and the glossy frames' cover
+    (:func:`.ball_gloss.wider_cover`) all ask this."""
+    return max([shadowed_share(features), *still_shares]) >= min_share
+
+
 #: the most (px) a ball's second reading moves from its edge centre when read from its outline's
 #: size excess (:func:`second_readings`): an unlit limb and its contact shadow read as one edge
 #: push a rendered ball's outline out by well under this (tuning sets: the scenes' mean excess
@@ -124,7 +133,7 @@ def unseen_push_applies(features: list, push_px: float, still_shares: tuple = ()
     side."""
     if not (push_px > 0 and readable(features)):
         return False
-    return min_share <= 0 or max([shadowed_share(features), *still_shares]) >= min_share
+    return min_share <= 0 or shadows_seen(features, still_shares, min_share)
 
 
 def applies(features: list, min_share: float, still_shares: tuple = (), small_radius_px: float = 0.0) -> bool:
@@ -146,7 +155,7 @@ def applies(features: list, min_share: float, still_shares: tuple = (), small_ra
         radii = [f["edge_minor_px"] for f in features if f.get("edge_minor_px") is not None]
         if radii and float(np.median(radii)) < small_radius_px:
             return True
-    return max([shadowed_share(features), *still_shares]) >= min_share
+    return shadows_seen(features, still_shares, min_share)
 
 
 def pose_disagreement(A: np.ndarray, features: list, excess_px=None, min_px: float = 0.0) -> np.ndarray:
