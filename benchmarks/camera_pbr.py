@@ -32,7 +32,10 @@ Conditions: ``clean`` (clean scenes, sharp lens, a good uncompressed sensor), ``
 gloved fingers, steel and hair; 1.5 px defocus, Bayer, raw noise, JPEG 85), ``degraded`` (the
 clean scenes at 60 % light, 2.5 px defocus, noisier sensor, JPEG 70), ``clutter`` (OR + green
 strays, dense and loose hair). Detectors: ``edge`` (today's default, with the camera's ball
-outlines as the pose tracker sets them), ``chroma`` (the old soft-centroid baseline),
+outlines as the pose tracker sets them), ``no-band`` (``edge`` without the skin band reading,
+``vision/skin_band.py``: contact-shadow evidence for the shading check where a small ball's edge
+rays show none; the default since 2026-12-03, this is the detector before, the same-run baseline),
+``chroma`` (the old soft-centroid baseline),
 ``learned`` (the ONNX segmenter), ``refined`` (``edge`` with the learned centre refiner,
 ``vision/centre_refiner.py``; opt-in; ``--refiner PATH`` scores another network), ``first``
 (``edge`` without its second look at rejected blobs in the balls' own hue band,
@@ -145,6 +148,9 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
     if name == "shading":
         rules.shading_shift = True
         return ClassicalDetector(rules)
+    if name == "no-band":
+        rules.skin_band_ratio = 0.0
+        return ClassicalDetector(rules)
     if name == "outside-only":
         rules.shadow_in_px = float("inf")
         return ClassicalDetector(rules)
@@ -168,7 +174,7 @@ def make_detector(name: str, radius_mm: float, focal_px: float):
         from monotracker.vision.detect_learned import LearnedDetector
 
         return LearnedDetector(rules=rules)
-    raise InputError(f"unknown detector {name!r} (edge, shading, outside-only, long-shadow, trim, smoothS, first, narrow-lenient, refined, chroma, learned, "
+    raise InputError(f"unknown detector {name!r} (edge, no-band, shading, outside-only, long-shadow, trim, smoothS, first, narrow-lenient, refined, chroma, learned, "
                      "idealS)")
 
 
@@ -645,7 +651,7 @@ def main(argv=None) -> int:
     ap.add_argument("--renderer", choices=RENDERERS, default="mitsuba",
                     help="whose frames: mitsuba (default) or blender (<root>/blender/<split>)")
     ap.add_argument("--scenes", type=int, default=0, help="at most this many scenes per kind (0 = all)")
-    ap.add_argument("--detectors", default="edge,outside-only,chroma,learned")
+    ap.add_argument("--detectors", default="edge,no-band,outside-only,chroma,learned")
     ap.add_argument("--conditions", default=",".join(CONDITIONS))
     ap.add_argument("--refiner", type=Path, default=None,
                     help="the centre refiner's ONNX network for the 'refined' detector (default: the shipped one)")

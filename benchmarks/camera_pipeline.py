@@ -9,6 +9,8 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    (stronger blur, noisier sensor, JPEG 70, dim light), ``clutter`` (OR + green strays + dense
    hair). Detectors: ``chroma`` = the classical detector with today's soft-chromaticity
    centroid (baseline), ``edge`` = the classical detector with edge-fit centres (default),
+   ``edge-nb`` = ``edge`` without the skin band reading (``vision/skin_band.py``: contact-shadow
+   evidence for the shading check; the default since 2026-12-03, this row is the detector before),
    ``edge+colour`` = the same with the ball colour learned from one click on the first frame,
    ``edge+shade`` = ``edge`` with the opt-in shading shift (``vision/shading_shift.py``, issue 28),
    ``edge+ref`` = ``edge`` with the learned centre refiner (opt-in, issue 28; when its network is there),
@@ -206,6 +208,7 @@ def condition_table(seconds: float, n_frames: int, seed: int, with_learned: bool
                 ("edge-2px", EdgeSettings(ClassicalDetector(rules), **EDGE_2PX)),
                 ("edge-r5", EdgeSettings(ClassicalDetector(rules), **EDGE_R5)), ("edge-r6", ClassicalDetector(rules)),
                 ("edge", ClassicalDetector(with_camera)),
+                ("edge-nb", ClassicalDetector(replace(with_camera, skin_band_ratio=0.0))),
                 ("edge+shade", ClassicalDetector(replace(with_camera, shading_shift=True))),
                 # the rows whose tracker is not the default's: the default detector, each its own
                 *[(name, ClassicalDetector(with_camera)) for name in ROW_CONFIGS]]

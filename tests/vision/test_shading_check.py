@@ -71,19 +71,20 @@ class _ShadedBalls:
     """Hands over the balls at their true centres (plus 0.03 px noise) as a sharp frame's edge
     fit would (edge spread 0.08 px), each with a shading shift and a contact shadow report."""
 
-    def __init__(self, px, minor, shifts, shadow_rays, shadow_side):
+    def __init__(self, px, minor, shifts, shadow_rays, shadow_side, bands=False):
         self.px, self.minor, self.shifts = px, minor, shifts
         self.rays = np.broadcast_to(np.asarray(shadow_rays), (len(px),))
         self.side = shadow_side                  # -1: the shadow opposite the shift (unlit side)
+        self.bands = np.broadcast_to(np.asarray(bands, bool), (len(px),))   # a band beside the unlit limb
         self.rng = np.random.default_rng(5)
 
     def detect(self, image, hint=None) -> Detection:
         fids = []
-        for p, b, v, n in zip(self.px, self.minor, self.shifts, self.rays):
+        for p, b, v, n, band in zip(self.px, self.minor, self.shifts, self.rays, self.bands):
             unit = np.asarray(v, float) / max(float(np.linalg.norm(v)), 1e-12)
             feats = {"edge_rms_px": 0.08, "shading_shift_vec_px": (float(v[0]), float(v[1])),
                      "edge_shadow_rays": int(n), "edge_shadow_dir": tuple(0.8 * self.side * unit) if n else (0.0, 0.0),
-                     "edge_minor_px": float(b)}
+                     "edge_minor_px": float(b), "skin_band": bool(band)}
             fids.append(ImageFiducial(np.array(p, float) + self.rng.normal(scale=0.03, size=2), (float(b), float(b)),
                                       0.0, 1.0, float(np.pi * b * b), features=feats))
         return Detection(fids, [], 0.0, "shaded-double")
@@ -150,6 +151,31 @@ def test_without_contact_shadows_the_check_does_not_apply(scene, case):
     off = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, side), TrackerConfig(shading_check_factor=0.0))
     assert all(e.ok for e in now[2:]), [e.reason for e in now]
     np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-9)
+
+
+@pytest.mark.parametrize("case, checked", [("bands beside all", True), ("bands beside half", True),
+                                           ("bands and rays beside a third each", False)])
+def test_a_band_of_shadow_beside_the_limb_is_shadow_evidence(scene, case, checked):
+    """A ball whose skin band reads as a band of contact shadow (``features["skin_band"]``,
+    :mod:`monotracker.vision.skin_band`) counts as shadowed though its edge fit left no ray out:
+    with bands beside half the balls or more the 0.7 mm disagreement is not trusted. The share is
+    the larger of the two readings', not their union: bands beside one third of the balls and
+    shadow rays beside another third leave the frames judged as without the check."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.7)
+    k = len(px)
+    idx = np.arange(k)
+    rays, bands = {"bands beside all": (0, True), "bands beside half": (0, idx < (k + 1) // 2),
+                   "bands and rays beside a third each": ((idx >= k - k // 3) * 6, idx < k // 3)}[case]
+    if case.startswith("bands and rays"):
+        assert (k // 3) / k < 0.5 and 2 * (k // 3) / k >= 0.5     # the union would reach half
+    now = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, -1, bands))
+    if checked:
+        assert not any(e.ok for e in now), [e.predicted_tre_mm for e in now]
+    else:
+        off = _stream(s, target, _ShadedBalls(px, minor, shifts, rays, -1, bands), TrackerConfig(shading_check_factor=0.0))
+        assert all(e.ok for e in now[2:]), [e.reason for e in now]
+        np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-9)
 
 
 @pytest.mark.parametrize("over_radius_px, checked", [(None, False), (0.2, True), (-0.2, False)])

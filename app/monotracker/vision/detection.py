@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from . import edge_fit, edge_kernels
+from . import edge_fit, edge_kernels, skin_band
 from .ball_gloss import highlight_ratio
 from .edge_fit import fit_ball_edges, measure_edge_blur
 from .shading_shift import shaded_centre
@@ -200,6 +200,11 @@ class BlobRules:
     #: (:func:`trim_tail`; opt-in, ``benchmarks/camera_pbr.py``'s ``trim``: a mixed result,
     #: docs/vision.md "Ragged colour blobs scored again trimmed"); False: refused as it is
     trim_tails: bool = False
+    #: a ball whose skin band ratio (:mod:`.skin_band`: the skin just beyond its unlit limb against
+    #: the lit side's) is under this shows a band of contact shadow (``features["skin_band"]``,
+    #: which the pose tracker's shading check counts); 0: not read (``benchmarks/camera_pbr.py``'s
+    #: ``no-band``, the detector before 2026-12-03)
+    skin_band_ratio: float = skin_band.BAND_RATIO
 
     @property
     def radius_range_px(self) -> tuple[float, float]:
@@ -515,7 +520,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
     if info is not None:
         info["edge_blur_px"] = edge_blur_px
         info["stages_s"] = clock.stages
-    accepted = []
+    accepted, banded = [], []
     for i, c in enumerate(cands):
         contour_ellipse = c.features.pop("contour_ellipse")   # the colour blob's (cv2.fitEllipse)
         c.features["blob_centre_px"] = (float(contour_ellipse[0][0]), float(contour_ellipse[0][1]))
@@ -531,10 +536,11 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
             # the second reading of the centre and where a contact shadow lies (the pose
             # tracker's shading check, :mod:`.shading_check`)
             shaded, moved = shaded_centre(refine_image, fit.centre_px, c.features["blob_centre_px"], fit.axes_px[1])
-            c.features.update(shading_shift_vec_px=(float(shaded[0] - fit.centre_px[0]),
-                                                    float(shaded[1] - fit.centre_px[1])),
+            shift = (float(shaded[0] - fit.centre_px[0]), float(shaded[1] - fit.centre_px[1]))
+            c.features.update(shading_shift_vec_px=shift,
                               edge_shadow_rays=fit.shadow_rays, edge_shadow_dir=fit.shadow_dir,
                               highlight_ratio=highlight_ratio(refine_image, fit.centre_px, fit.axes_px[1]))
+            banded.append((c, fit.centre_px))
             if rules.shading_shift:
                 c.centre_px = shaded
                 c.features["shading_shift_px"] = moved
@@ -549,5 +555,12 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                         key=lambda kv: f.get(kv[0], 1.0))
             c.reason = f"score {c.score:.2f}: {worst[1]}"
             rejected.append(c)
+    if banded and rules.skin_band_ratio > 0:
+        # a band of shadow beside each edge-fitted ball's unlit limb (the shading check's evidence,
+        # :mod:`.skin_band`): from its colour blob's outline, read before any shading shift moved it
+        ratios = skin_band.band_ratios(refine_image, [p for _, p in banded], [float(np.mean(c.axes_px)) for c, _ in banded],
+                                       [c.features["shading_shift_vec_px"] for c, _ in banded], float(edge_blur_px))
+        for (c, _), r in zip(banded, ratios):
+            c.features.update(skin_band_ratio=float(r), skin_band=bool(r < rules.skin_band_ratio))
     accepted.sort(key=lambda c: (c.centre_px[1], c.centre_px[0]))
     return accepted, rejected

@@ -28,7 +28,9 @@ It applies only to a frame whose balls show contact shadows (:func:`shadowed_sha
 ``min_share`` of the matched balls must have had rays left out of their edge fit as a contact
 shadow's (``edge_shadow_rays``, the test of :func:`.edge_fit._without_shadow_rays`): at least
 :data:`MIN_SHADOW_RAYS`, or one on the ball's unlit side (the left-out rays' mean direction,
-``edge_shadow_dir``, against the shading shift, which points to the lit side). The shading shift
+``edge_shadow_dir``, against the shading shift, which points to the lit side), or, where more
+balls show it, a band of shadow beside their unlit limbs (``features["skin_band"]``,
+:mod:`.skin_band`: what a small ball's few edge rays miss; since 2026-12-03). The shading shift
 itself is also seen where nothing pushes the edge (our simulator's balls: shaded, no contact
 shadow, edge centres right to 0.02 px), and the check there would only refuse right poses: the
 shadow test flags a ray now and then there too (blur, a drape's edge), mostly one per ball and
@@ -65,9 +67,17 @@ def shadowed(features: dict) -> bool:
 
 
 def shadowed_share(features: list) -> float:
-    """Share (0-1) of the balls (their detection features) with a contact shadow beside them
-    (:func:`shadowed`: 2+ left-out rays anywhere, or 1 on the unlit side); 0 for none."""
-    return float(np.mean([shadowed(f) for f in features])) if features else 0.0
+    """Share (0-1) of the balls (their detection features) with a contact shadow beside them: the
+    larger of the share whose edge rays show one (:func:`shadowed`: 2+ left-out rays anywhere, or
+    1 on the unlit side) and the share with a band of shadow beside the unlit limb
+    (``features["skin_band"]``, :mod:`.skin_band`: what a small ball's few rays miss); 0 for none.
+    The larger, not the union: each reading is noisy on its own (our simulator's frames, which
+    have no contact shadow, show up to 0.29 of their balls flagged by either), and the union of
+    the two flagged half the balls of some of them (docs/vision.md "A band of shadow beside the
+    limb")."""
+    if not features:
+        return 0.0
+    return float(max(np.mean([shadowed(f) for f in features]), np.mean([bool(f.get("skin_band")) for f in features])))
 
 
 def shadows_seen(features: list, still_shares: tuple, min_share: float) -> bool:
