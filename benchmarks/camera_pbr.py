@@ -245,7 +245,10 @@ def trust_models() -> dict:
     or not (``shading_check_small_radius_px`` 10: opt-in, docs/vision.md "Other lenses");
     ``push-floor``: the default with the shading check applied where no contact shadow is seen,
     each shaded ball's push taken as at least 0.3 px (``shading_check_unseen_push_px`` 0.3:
-    opt-in, docs/vision.md "A push not seen")."""
+    opt-in, docs/vision.md "A push not seen"); ``band-floor``: the default with each ball that
+    shows a band of shadow beside its unlit limb read at least 0.4 px towards its lit side where
+    the shading check applies (``shading_check_band_floor_px`` 0.4: opt-in, docs/vision.md "A band
+    of shadow beside the limb")."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
@@ -257,7 +260,8 @@ def trust_models() -> dict:
             "averaged": TrackerConfig(average_still_frames=8),
             "no-disagreement": TrackerConfig(disagreement_quantile=0.0),
             "small-checked": TrackerConfig(shading_check_small_radius_px=10.0),
-            "push-floor": TrackerConfig(shading_check_unseen_push_px=0.3)}
+            "push-floor": TrackerConfig(shading_check_unseen_push_px=0.3),
+            "band-floor": TrackerConfig(shading_check_band_floor_px=0.4)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -348,7 +352,7 @@ GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory"
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte",
          "excess-reading": "arm-excess-reading", "averaged": "arm-averaged",
          "no-disagreement": "arm-no-disagreement", "small-checked": "arm-small-checked",
-         "push-floor": "arm-push-floor"}
+         "push-floor": "arm-push-floor", "band-floor": "arm-band-floor"}
 
 
 def session_gate():

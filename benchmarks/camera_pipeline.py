@@ -22,6 +22,9 @@ A. Per condition, per detector, against the simulator's truth (OR-layout camera:
    shadow is seen, each shaded ball's push taken as at least 0.3 px
    (``TrackerConfig.shading_check_unseen_push_px``, opt-in), ``edge+push25`` the same only where a
    quarter of the balls show a contact shadow (``shading_check_push_min_share`` 0.25, opt-in),
+   ``edge+bfloor`` = ``edge`` through a tracker whose shading check reads each ball with a band of
+   shadow beside its unlit limb at least 0.4 px towards its lit side
+   (``TrackerConfig.shading_check_band_floor_px``, opt-in),
    ``learned`` = the ONNX segmenter (opt-in). Columns: centre error vs the exact ellipse centre
    (what a detector must report; the registration corrects ellipse -> sphere centre), recall
    of fully visible balls, partly hidden balls accepted, and per frame through the pose
@@ -162,7 +165,8 @@ def condition_camera(name: str, seconds: float, seed: int) -> SimulatedCamera:
 ROW_CONFIGS = {"edge+avg": TrackerConfig(average_still_frames=8),
                "edge+small": TrackerConfig(shading_check_small_radius_px=10.0),
                "edge+push": TrackerConfig(shading_check_unseen_push_px=0.3),
-               "edge+push25": TrackerConfig(shading_check_unseen_push_px=0.3, shading_check_push_min_share=0.25)}
+               "edge+push25": TrackerConfig(shading_check_unseen_push_px=0.3, shading_check_push_min_share=0.25),
+               "edge+bfloor": TrackerConfig(shading_check_band_floor_px=0.4)}
 
 
 def _match_centres(centres, tr, tol=3.0):

@@ -178,6 +178,47 @@ def test_a_band_of_shadow_beside_the_limb_is_shadow_evidence(scene, case, checke
         np.testing.assert_allclose([e.predicted_tre_mm for e in now], [e.predicted_tre_mm for e in off], rtol=1e-9)
 
 
+def test_a_banded_balls_reading_is_at_least_the_band_floor(scene):
+    """``TrackerConfig.shading_check_band_floor_px`` (opt-in): where the check applies, a ball with
+    a band of shadow beside its unlit limb is read at least that far towards its lit side. Shifts
+    whose pose moves the target 0.05 mm are trusted; with every ball banded and the floor set to
+    the length at which readings of that length along the same directions move the refitted target
+    0.7 mm (bisected here), no frame is trusted and the reason says ~0.7 mm; unbanded balls are read
+    as without the floor."""
+    s, target, px, minor = scene
+    shifts = _gradient_shifts(s, px, target, 0.05)
+    units = shifts / np.linalg.norm(shifts, axis=1)[:, None]
+    floor = _scale_for_move(s, px, target, units, 0.7)
+    assert floor > np.linalg.norm(shifts, axis=1).max()
+    plain = _stream(s, target, _ShadedBalls(px, minor, shifts, 0, -1, True))
+    assert all(e.ok for e in plain[2:]), [e.reason for e in plain]
+    floored = _stream(s, target, _ShadedBalls(px, minor, shifts, 0, -1, True),
+                      TrackerConfig(shading_check_band_floor_px=floor))
+    assert not any(e.ok for e in floored), [e.predicted_tre_mm for e in floored]
+    said = [re.search(r"the shading-corrected centres move the target ([0-9.]+) mm", e.reason) for e in floored[2:]]
+    assert all(m and abs(float(m.group(1)) - 0.7) <= 0.07 for m in said), [e.reason for e in floored]
+    unbanded = _stream(s, target, _ShadedBalls(px, minor, shifts, 6, -1, False),
+                       TrackerConfig(shading_check_band_floor_px=floor))
+    assert all(e.ok for e in unbanded[2:]), [e.reason for e in unbanded]
+
+
+def test_the_band_floor_by_hand():
+    feats = [{"shading_shift_vec_px": (0.1, 0.0), "skin_band": True},
+             {"shading_shift_vec_px": (0.0, -0.6), "skin_band": True},
+             {"shading_shift_vec_px": (0.0, 0.1), "skin_band": False},
+             {"shading_shift_vec_px": (0.0, 0.0), "skin_band": True}]
+    np.testing.assert_allclose(shading_check.second_readings(feats, band_min_px=0.4),
+                               [[0.4, 0.0], [0.0, -0.6], [0.0, 0.1], [0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(shading_check.second_readings(feats, min_px=0.2, band_min_px=0.4),
+                               [[0.4, 0.0], [0.0, -0.6], [0.0, 0.2], [0.0, 0.0]], atol=1e-12)
+
+
+@pytest.mark.parametrize("floor", [-0.1, float("nan")])
+def test_a_band_floor_that_is_not_a_length_is_refused_at_construction(floor):
+    with pytest.raises(ValueError, match="shading_check_band_floor_px"):
+        TrackerConfig(shading_check_band_floor_px=floor)
+
+
 @pytest.mark.parametrize("over_radius_px, checked", [(None, False), (0.2, True), (-0.2, False)])
 def test_small_balls_are_checked_without_shadow_evidence_where_asked(scene, over_radius_px, checked):
     """``TrackerConfig.shading_check_small_radius_px`` (opt-in): balls whose median fitted radius

@@ -536,11 +536,12 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
             # the second reading of the centre and where a contact shadow lies (the pose
             # tracker's shading check, :mod:`.shading_check`)
             shaded, moved = shaded_centre(refine_image, fit.centre_px, c.features["blob_centre_px"], fit.axes_px[1])
-            shift = (float(shaded[0] - fit.centre_px[0]), float(shaded[1] - fit.centre_px[1]))
-            c.features.update(shading_shift_vec_px=shift,
+            c.features.update(shading_shift_vec_px=(float(shaded[0] - fit.centre_px[0]),
+                                                    float(shaded[1] - fit.centre_px[1])),
                               edge_shadow_rays=fit.shadow_rays, edge_shadow_dir=fit.shadow_dir,
                               highlight_ratio=highlight_ratio(refine_image, fit.centre_px, fit.axes_px[1]))
-            banded.append((c, fit.centre_px))
+            if c.score >= rules.min_score:
+                banded.append((c, fit.centre_px))
             if rules.shading_shift:
                 c.centre_px = shaded
                 c.features["shading_shift_px"] = moved

@@ -202,11 +202,12 @@ class FrameTrust:
                 if cfg.shading_check_reading == "excess":
                     # the outlines' excess over the spheres at this pose (px; only where the check applies)
                     read = excess if excess is not None else self.size_excess(T, fids, feats)
-                disagree = shading_check.pose_disagreement(A, feats, read)
+                disagree = shading_check.pose_disagreement(A, feats, read, band_min_px=cfg.shading_check_band_floor_px)
             elif shading_check.unseen_push_applies(feats, cfg.shading_check_unseen_push_px, still,
                                                    cfg.shading_check_push_min_share):
                 # too few shadows seen for the check: each shaded ball's push taken as at least the floor
-                disagree = shading_check.pose_disagreement(A, feats, min_px=cfg.shading_check_unseen_push_px)
+                disagree = shading_check.pose_disagreement(A, feats, min_px=cfg.shading_check_unseen_push_px,
+                                                           band_min_px=cfg.shading_check_band_floor_px)
             if disagree is not None:
                 check_mm = shading_check.target_move_mm(disagree, T, target_ct)
             self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))

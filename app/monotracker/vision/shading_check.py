@@ -96,7 +96,8 @@ def shadows_seen(features: list, still_shares: tuple, min_share: float) -> bool:
 EXCESS_CAP_PX = 1.0
 
 
-def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_PX, min_px: float = 0.0) -> np.ndarray:
+def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_PX, min_px: float = 0.0,
+                    band_min_px: float = 0.0) -> np.ndarray:
     """(k, 2) px: where each matched ball's second centre reading lies from its edge centre.
 
     ``excess_px`` ((k,) px or None): each ball's fitted outline minor semi-axis minus the sphere's
@@ -113,13 +114,19 @@ def second_readings(features: list, excess_px=None, cap_px: float = EXCESS_CAP_P
 
     ``min_px`` > 0 (the shift reading only, where no shadow evidence made the check apply:
     :func:`unseen_push_applies`): each shaded ball's reading lies at least that far (px) towards
-    its lit side; a ball with no shift (no visible shading) keeps 0."""
+    its lit side; a ball with no shift (no visible shading) keeps 0. ``band_min_px`` > 0 (the shift
+    reading only; ``TrackerConfig.shading_check_band_floor_px``): the same floor for the balls with
+    a band of shadow beside their unlit limb (``features["skin_band"]``, :mod:`.skin_band`) only."""
     shifts = np.asarray([f["shading_shift_vec_px"] for f in features], float).reshape(-1, 2)
     length = np.linalg.norm(shifts, axis=1)
     unit = shifts / np.maximum(length, 1e-12)[:, None]
     if excess_px is None:
-        if min_px > 0:
-            return unit * np.where(length > 0, np.maximum(length, float(min_px)), 0.0)[:, None]
+        floor = np.full(len(shifts), float(min_px))
+        if band_min_px > 0:
+            banded = np.array([bool(f.get("skin_band")) for f in features], bool)
+            floor = np.where(banded, np.maximum(floor, float(band_min_px)), floor)
+        if np.any(floor > 0):
+            return unit * np.where(length > 0, np.maximum(length, floor), 0.0)[:, None]
         return shifts
     move = np.clip(np.asarray(excess_px, float).reshape(-1), 0.0, cap_px)
     return unit * np.where(length > 0, move, 0.0)[:, None]
@@ -168,13 +175,15 @@ def applies(features: list, min_share: float, still_shares: tuple = (), small_ra
     return shadows_seen(features, still_shares, min_share)
 
 
-def pose_disagreement(A: np.ndarray, features: list, excess_px=None, min_px: float = 0.0) -> np.ndarray:
+def pose_disagreement(A: np.ndarray, features: list, excess_px=None, min_px: float = 0.0,
+                      band_min_px: float = 0.0) -> np.ndarray:
     """The pose change (6,: rotation vector rad, translation mm) that moving each matched ball's
     centre to its second reading (:func:`second_readings`: by its outline's size excess
     ``excess_px`` towards its lit side, or by its shading shift where ``excess_px`` is None) gives
     through the fit's linearisation ``A`` ((6, 2k): image errors px, rows x0, y0, x1, y1, ... ->
-    pose), for a frame the check :func:`applies` to (``min_px``: :func:`second_readings`)."""
-    return np.asarray(A, float) @ second_readings(features, excess_px, min_px=min_px).reshape(-1)
+    pose), for a frame the check :func:`applies` to (``min_px``, ``band_min_px``: :func:`second_readings`)."""
+    return np.asarray(A, float) @ second_readings(features, excess_px, min_px=min_px,
+                                                  band_min_px=band_min_px).reshape(-1)
 
 
 def target_move_mm(d6: np.ndarray, T_cam_ct: np.ndarray, target_ct: np.ndarray) -> float:

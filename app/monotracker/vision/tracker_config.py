@@ -242,6 +242,15 @@ class TrackerConfig:
     #: still head's last frames; fewer than ``shading_check_share``: the shadows are partly seen).
     #: 0 = wherever the check does not apply otherwise
     shading_check_push_min_share: float = 0.0
+    #: where the shading check applies, each ball with a band of shadow beside its unlit limb
+    #: (``features["skin_band"]``, :mod:`.skin_band`) has its second reading at least this far (px)
+    #: towards its lit side (:func:`.shading_check.second_readings`); 0 = its shading shift as it is.
+    #: Why: on a short lens near the head (balls ~8 px) the trusted poses 1-2 mm off left by the
+    #: skin band were frames whose shadows were seen (every ball banded, bands 0.24-0.7) while the
+    #: shift reading moved the target too little; a deep band pushes the edge further than the
+    #: shift's linear model says. Opt-in: docs/vision.md "A band of shadow beside the limb" for its
+    #: rule and figures (``camera_pbr.py`` row ``band-floor``)
+    shading_check_band_floor_px: float = 0.0
     #: balls the detector found in the last frames of a still head and misses in this one are
     #: given back to it for at most this many frames (:mod:`.ball_memory`: a ball's acceptance
     #: flickers from frame to frame on shaded balls; the head's stillness is tested against the
@@ -311,6 +320,9 @@ class TrackerConfig:
         if not (float(self.shading_check_unseen_push_px) >= 0.0):
             raise ValueError("TrackerConfig: shading_check_unseen_push_px must be a push in px >= 0, "
                              f"not {self.shading_check_unseen_push_px!r}")
+        if not (float(self.shading_check_band_floor_px) >= 0.0):
+            raise ValueError("TrackerConfig: shading_check_band_floor_px must be a push in px >= 0, "
+                             f"not {self.shading_check_band_floor_px!r}")
         if not (0.0 <= float(self.shading_check_push_min_share) <= 1.0):
             raise ValueError("TrackerConfig: shading_check_push_min_share must be a share of the balls from 0 to 1, "
                              f"not {self.shading_check_push_min_share!r}")
