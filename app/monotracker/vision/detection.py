@@ -520,7 +520,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
     if info is not None:
         info["edge_blur_px"] = edge_blur_px
         info["stages_s"] = clock.stages
-    accepted, banded = [], []
+    accepted, edge_fitted = [], []   # edge_fitted: (accepted ball, its edge-fit centre px)
     for i, c in enumerate(cands):
         contour_ellipse = c.features.pop("contour_ellipse")   # the colour blob's (cv2.fitEllipse)
         c.features["blob_centre_px"] = (float(contour_ellipse[0][0]), float(contour_ellipse[0][1]))
@@ -541,7 +541,7 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                               edge_shadow_rays=fit.shadow_rays, edge_shadow_dir=fit.shadow_dir,
                               highlight_ratio=highlight_ratio(refine_image, fit.centre_px, fit.axes_px[1]))
             if c.score >= rules.min_score:
-                banded.append((c, fit.centre_px))
+                edge_fitted.append((c, fit.centre_px))
             if rules.shading_shift:
                 c.centre_px = shaded
                 c.features["shading_shift_px"] = moved
@@ -556,12 +556,13 @@ def analyse_blobs(image: np.ndarray, mask: np.ndarray | None, rules: BlobRules, 
                         key=lambda kv: f.get(kv[0], 1.0))
             c.reason = f"score {c.score:.2f}: {worst[1]}"
             rejected.append(c)
-    if banded and rules.skin_band_ratio > 0:
+    if edge_fitted and rules.skin_band_ratio > 0:
         # a band of shadow beside each edge-fitted ball's unlit limb (the shading check's evidence,
         # :mod:`.skin_band`): from its colour blob's outline, read before any shading shift moved it
-        ratios = skin_band.band_ratios(refine_image, [p for _, p in banded], [float(np.mean(c.axes_px)) for c, _ in banded],
-                                       [c.features["shading_shift_vec_px"] for c, _ in banded], float(edge_blur_px))
-        for (c, _), r in zip(banded, ratios):
+        ratios = skin_band.band_ratios(refine_image, [p for _, p in edge_fitted],
+                                       [float(np.mean(c.axes_px)) for c, _ in edge_fitted],
+                                       [c.features["shading_shift_vec_px"] for c, _ in edge_fitted], float(edge_blur_px))
+        for (c, _), r in zip(edge_fitted, ratios):
             c.features.update(skin_band_ratio=float(r), skin_band=bool(r < rules.skin_band_ratio))
     accepted.sort(key=lambda c: (c.centre_px[1], c.centre_px[0]))
     return accepted, rejected

@@ -44,8 +44,6 @@ from .edge_fit import COLOUR_WEIGHTS, LINEAR_LUT
 NEAR_PX = (0.0, 0.5, 1.0, 1.5)
 #: where the skin further out is read, px beyond the colour-blob radius plus the edge blur
 FAR_PX = 4.5
-#: the edge blur's share added to the colour-blob radius before those offsets
-BLUR_SHARE = 1.0
 #: rays per side, spread over +- this many degrees about the unlit (and the lit) direction
 RAYS = 7
 HALF_ANGLE_DEG = 35.0
@@ -74,7 +72,7 @@ def band_ratios(image_bgr: np.ndarray, centres_px, radii_px, lit_dirs, blur_px: 
     ang = np.deg2rad(np.linspace(-HALF_ANGLE_DEG, HALF_ANGLE_DEG, RAYS))
     # per ball: rows the unlit side's rays then the lit side's; columns the near offsets then the far one
     phi = np.concatenate([base[:, None] + np.pi + ang[None, :], base[:, None] + ang[None, :]], axis=1)
-    s = rad[:, None] + BLUR_SHARE * max(float(blur_px), 0.0) + np.array([*NEAR_PX, FAR_PX])[None, :]
+    s = rad[:, None] + max(float(blur_px), 0.0) + np.array([*NEAR_PX, FAR_PX])[None, :]
     px = c[:, 0, None, None] + np.cos(phi)[:, :, None] * s[:, None, :]          # (n, 2 RAYS, offsets)
     py = c[:, 1, None, None] + np.sin(phi)[:, :, None] * s[:, None, :]
     h, w = image_bgr.shape[:2]
