@@ -117,7 +117,8 @@ def test_flags_live_in_the_rows():
     assert set(alarms.POSE_CODES) == {c for c, k in CATALOGUE.items() if k.holds_arm}
     assert set(alarms.FRESHNESS_CODES) == {"pose_stale", "camera_freeze", "camera_late", "camera_stalled",
                                            "pipeline_overloaded"}
-    assert set(alarms.CAMERA_SETUP_CODES) == {"camera_uncalibrated", "camera_compressed", "colour_clash"}
+    assert set(alarms.CAMERA_SETUP_CODES) == {"camera_uncalibrated", "camera_compressed", "camera_short_lens",
+                                              "colour_clash"}
     assert VERDICT_CODES == {"estimator": "pose_lost", "fre": "bad_pose", "jump": "pose_jump"}
     assert all(k.level in ("alarm", "warning", "info") for k in CATALOGUE.values())
 

@@ -193,11 +193,11 @@ def test_camera_start_failure_is_shown_until_a_start_succeeds(make_session):
     assert "camera_failed" not in [a.code for a in s.snapshot().alarms]
 
 
-def _folder_camera(make_session, folder, images: dict, links: int = 0):
+def _folder_camera(make_session, folder, images: dict, links: int = 0, calibration=None):
     """A real-clock session with the sample plan, its camera a folder of ``images`` (file name ->
     BGR uint8 array; ``links`` more files after them, symbolic links to those images in turn),
-    started without a calibration. Returns (session, codes()) where ``codes()`` lists the active
-    alarm codes."""
+    started with the calibration file ``calibration`` (None: without one). Returns (session,
+    codes()) where ``codes()`` lists the active alarm codes."""
     import cv2
 
     folder.mkdir()
@@ -209,7 +209,7 @@ def _folder_camera(make_session, folder, images: dict, links: int = 0):
     s = make_session(clock="real")
     s.start()
     plan_sample(s)
-    assert s.set_camera(f"folder:{folder}").ok
+    assert s.set_camera(f"folder:{folder}", calibration_path=None if calibration is None else str(calibration)).ok
     assert s.start_camera().ok
     return s, lambda: [a.code for a in s.snapshot().alarms]
 
@@ -251,6 +251,30 @@ def test_jpeg_frames_are_flagged_while_the_camera_runs(make_session, tmp_path, s
         assert "JPEG files" in alarms["camera_compressed"] and "uncompressed" in alarms["camera_compressed"]
     assert s.stop_camera().ok
     assert "camera_compressed" not in codes()
+
+
+@pytest.mark.parametrize("focal_px, flagged", [(800.0, True), (1100.0, False)])
+def test_a_short_lens_is_flagged_while_the_camera_runs(make_session, tmp_path, focal_px, flagged):
+    """A calibration whose lens images the sample kit's 4 mm balls at 8 px from the layout
+    planner's closest distance (f = 800 px) is a setup warning that says the size; the
+    generator's lens (f = 1100 px: 11 px) is not; the warning goes with the camera."""
+    import numpy as np
+
+    from monotracker.vision.camera_model import CameraModel, default_camera
+
+    cam = default_camera()
+    K = cam.K.copy()
+    K[0, 0] = K[1, 1] = focal_px
+    path = CameraModel(K, cam.dist, cam.image_size).save(tmp_path / "camera.yml")
+    s, codes = _folder_camera(make_session, tmp_path / "frames", {"f0.png": np.full((720, 1280, 3), 90, np.uint8)},
+                              calibration=path)
+    alarms = {a.code: a.message for a in s.snapshot().alarms}
+    assert ("camera_short_lens" in alarms) is flagged, alarms
+    assert "camera_uncalibrated" not in alarms
+    if flagged:
+        assert "8.0 px" in alarms["camera_short_lens"] and "longer lens" in alarms["camera_short_lens"]
+    assert s.stop_camera().ok
+    assert "camera_short_lens" not in codes()
 
 
 @pytest.mark.parametrize("drapes, flagged", [("green-blue", True), (None, False)])

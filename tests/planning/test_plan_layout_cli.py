@@ -50,6 +50,8 @@ def test_report_ends_with_a_json_object(report):
     got = np.array(d["ct_fiducials_lps_mm"])
     assert np.linalg.norm(got[:, None] - PH.fiducial_centres_lps[None], axis=2).min(axis=1).max() < 0.5
     assert d["existing_from_planned_camera"]["all_seen"] is not None
+    # the simulated camera's lens images the kit's balls at 11 px from 400 mm: inside the judged range
+    assert not any("short lens" in n for n in d["notes"]) and "short lens" not in out
     # the CT's balls the planned camera sees with little skin around them are named in a note,
     # the same ones the JSON's per-ball shares put under the planner's rule (none of the new ones)
     from monotracker.planning.visibility import PLACE_MIN_SKIN_AROUND
@@ -99,3 +101,21 @@ def test_missing_ct_gets_one_line(capsys, tmp_path):
     code = main(["plan-layout", str(tmp_path / "nope.nii.gz"), "--target", "0,0,0"])
     cap = capsys.readouterr()
     assert code == 2 and len(cap.err.strip().splitlines()) == 1 and cap.err.startswith("error: ")
+
+
+def test_a_short_lens_is_named_in_the_report(tmp_path, capsys):
+    """A calibration with f = 800 px (the rendered sets' short lens) images the balls at 8 px from
+    the planner's closest distance: the report's notes say so, in the text and in the JSON."""
+    from monotracker.vision.camera_model import CameraModel, default_camera
+
+    cam = default_camera()
+    K = cam.K.copy()
+    K[0, 0] = K[1, 1] = 800.0
+    path = CameraModel(K, cam.dist, cam.image_size).save(tmp_path / "wide.yml")
+    code = main(["plan-layout", str(sample_ct_path()), "--target", _xyz(PH.sample_target_lps), "--balls", "4",
+                 "--quick", "--camera", str(path)])
+    out = capsys.readouterr().out
+    assert code == 0
+    d = json.loads(out.strip().splitlines()[-1])
+    assert sum("short lens" in n and "8.0 px" in n for n in d["notes"]) == 1
+    assert any(ln.startswith("note: short lens") for ln in out.splitlines())

@@ -55,9 +55,11 @@ check it; the arm does not hold for it; shown until that has not held for 5 s); 
 ``robot_disconnected`` [alarm] /
 ``robot_connected`` [info]; real cameras: ``camera_ended`` [warning] the video/folder ended,
 ``frame_unreadable`` [warning] a corrupt frame (skipped), ``camera_disconnected`` [alarm],
-``camera_uncalibrated`` / ``camera_compressed`` / ``colour_clash`` [warning] nominal
-intrinsics / lossy frames (MJPEG, JPEG files, a lossy video codec) / a large area of the balls'
-colour (learn the colour), shown while that camera runs (the last while the area is seen),
+``camera_uncalibrated`` / ``camera_compressed`` / ``camera_short_lens`` / ``colour_clash``
+[warning] nominal intrinsics / lossy frames (MJPEG, JPEG files, a lossy video codec) / a lens
+that images the balls under 10 px from the layout planner's closest distance, outside the range
+trust was judged on (planning/lens_check.py) / a large area of the balls' colour (learn the
+colour), shown while that camera runs (the last while the area is seen),
 ``frame_size`` [alarm] frame size differs from the calibration, ``frame_grayscale`` [alarm] the
 frames are grayscale (a monochrome camera or grayscale files: no ball can be found), ``camera_moved``
 [alarm] the camera moved after the hand-eye (vision's CameraMotionMonitor); poses: ``tre_limit``
@@ -220,6 +222,8 @@ CATALOGUE: dict[str, AlarmKind] = {
     "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0, pulse=True),
     "camera_uncalibrated": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),
     "camera_compressed": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),  # frames through JPEG/lossy video
+    # a lens that images the balls under the judged size (planning/lens_check.py)
+    "camera_short_lens": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),
     "colour_clash": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True,
                               remedy="click a ball in the camera view to learn its colour, or cover that area"),  # a drape of the balls' hue
     "plan_unreadable": AlarmKind("alarm", 23, linger_s=0.0),
