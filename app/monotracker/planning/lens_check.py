@@ -16,10 +16,9 @@ distance, :class:`~.problem.CameraSpace` ``distance_mm[0]``, 400 mm from the poi
 So a calibration whose lens images the balls under :data:`MIN_BALL_PX` from that distance is
 outside the judged range: the layout planner says so in its notes (its report, the app's layout
 panel) and the camera rig as a setup warning while it runs (``camera_short_lens``). It refuses
-nothing: the per-frame trust still decides, and the layout
-planner, given the same camera, rates its placement (29 % of frames trusted for the short lens
-against 98 % for the generator's). 10 px lies between the judged 11 px and the short lens's
-8 px; nothing between them was measured.
+nothing: the per-frame trust still decides, and the layout planner, given the same camera, rates
+its placement (29 % of frames trusted for the short lens against 98 % for the generator's). 10 px
+lies between the judged 11 px and the short lens's 8 px; nothing between them was measured.
 """
 
 from __future__ import annotations
