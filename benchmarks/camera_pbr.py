@@ -248,7 +248,11 @@ def trust_models() -> dict:
     opt-in, docs/vision.md "A push not seen"); ``band-floor``: the default with each ball that
     shows a band of shadow beside its unlit limb read at least 0.4 px towards its lit side where
     the shading check applies (``shading_check_band_floor_px`` 0.4: opt-in, docs/vision.md "A band
-    of shadow beside the limb")."""
+    of shadow beside the limb"); ``lens-blind``: the default without its short-lens floor (the
+    band floor 0.4 px where the lens images the balls under 10 px from the planner's closest
+    distance, ``short_lens_band_floor_px`` 0: the default before 2026-12-03's fortieth session,
+    docs/vision.md "A lens outside the judged range"; through any other lens the same as
+    ``before``)."""
     return {"before": TrackerConfig(centre_bias=None), "size": TrackerConfig(edge_size_per_excess=1.0),
             "calibrated": TrackerConfig(centre_bias="detector"), "p95": TrackerConfig(max_not_right_probability=0.05),
             "no-check": TrackerConfig(shading_check_factor=0.0), "no-memory": TrackerConfig(remember_frames=0),
@@ -261,7 +265,8 @@ def trust_models() -> dict:
             "no-disagreement": TrackerConfig(disagreement_quantile=0.0),
             "small-checked": TrackerConfig(shading_check_small_radius_px=10.0),
             "push-floor": TrackerConfig(shading_check_unseen_push_px=0.3),
-            "band-floor": TrackerConfig(shading_check_band_floor_px=0.4)}
+            "band-floor": TrackerConfig(shading_check_band_floor_px=0.4),
+            "lens-blind": TrackerConfig(short_lens_band_floor_px=0.0)}
 
 
 def detection_stats(dets, truth, cam) -> dict:
@@ -352,7 +357,7 @@ GATED = {"before": ARM, "no-check": "arm-no-check", "no-memory": "arm-no-memory"
          "prior-widened": "arm-prior-widened", "few6x2": "arm-few6x2", "matte": "arm-matte",
          "excess-reading": "arm-excess-reading", "averaged": "arm-averaged",
          "no-disagreement": "arm-no-disagreement", "small-checked": "arm-small-checked",
-         "push-floor": "arm-push-floor", "band-floor": "arm-band-floor"}
+         "push-floor": "arm-push-floor", "band-floor": "arm-band-floor", "lens-blind": "arm-lens-blind"}
 
 
 def session_gate():

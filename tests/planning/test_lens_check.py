@@ -1,5 +1,5 @@
-"""The lens range check (planning/lens_check.py): a ball's image radius against the sphere's
-projected silhouette, and which calibrations it flags."""
+"""The lens range check (vision/lens_range.py, worded by planning/lens_check.py): a ball's image
+radius against the sphere's projected silhouette, and which calibrations it flags."""
 
 import numpy as np
 import pytest
@@ -31,8 +31,11 @@ def test_the_default_cameras_mild_distortion_changes_it_under_a_percent():
     assert lens_check.ball_radius_px(cam, 4.0, 400.0) == pytest.approx(_silhouette_radius_px(cam, 4.0, 400.0), rel=0.01)
 
 
-def test_the_closest_distance_is_the_planners():
-    assert lens_check.closest_distance_mm() == CameraSpace(axis=np.array([0.0, 0.0, 1.0])).distance_mm[0] == 400.0
+def test_the_closest_distance_is_the_planners_and_the_one_vision_judges_at():
+    from monotracker.vision.lens_range import JUDGED_DISTANCE_MM
+
+    assert lens_check.closest_distance_mm() == CameraSpace(axis=np.array([0.0, 0.0, 1.0])).distance_mm[0] \
+        == JUDGED_DISTANCE_MM == 400.0
 
 
 def _wide():

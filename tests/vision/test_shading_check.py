@@ -17,7 +17,7 @@ from layout_fields import worst_layout_field
 
 from monotracker.registration.pnp import refine_pose
 from monotracker.sim.scenes import _to_pixels, ellipse_centre_normalised, make_scene
-from monotracker.vision import shading_check
+from monotracker.vision import lens_range, shading_check
 from monotracker.vision.camera_model import CameraModel
 from monotracker.vision.detection import Detection, ImageFiducial
 from monotracker.vision.frames import Frame
@@ -473,3 +473,53 @@ def test_a_push_floor_that_is_not_a_length_is_refused_at_construction(push):
 def test_a_push_floor_share_that_is_not_a_share_is_refused_at_construction(share):
     with pytest.raises(ValueError, match="shading_check_push_min_share must be a share of the balls from 0 to 1"):
         TrackerConfig(shading_check_push_min_share=share)
+
+
+@pytest.fixture(scope="module")
+def short_scene():
+    """The scene's kind seen through a short lens (f = 800 px: the 4 mm balls image at 8 px from
+    400 mm, under vision.lens_range's 10 px), from 450-500 mm."""
+    s = make_scene(np.random.default_rng(11), noise_px=0.0, ellipse_bias=True, distance_mm=(450.0, 500.0), f=800.0)
+    Xc = s.fiducials_ct @ s.T_cam_ct[:3, :3].T + s.T_cam_ct[:3, 3]
+    px = _to_pixels(ellipse_centre_normalised(Xc, s.radius_mm), s.K, s.dist)
+    minor = s.K[0, 0] * s.radius_mm / np.sqrt(Xc[:, 2] ** 2 - s.radius_mm**2)
+    return s, s.targets_ct[8], px, minor
+
+
+def test_a_short_lens_gets_the_band_floor_by_default(short_scene):
+    """Through a short lens the default tracker reads each banded ball at least
+    ``short_lens_band_floor_px`` (0.4 px) towards its lit side: its predicted error is at least
+    twice (x 0.9, the linearisation) the refitted target move of 0.4 px readings along the balls'
+    shift directions, which the lens-blind rules (0) do not reach with shifts that move it 0.05 mm."""
+    s, target, px, minor = short_scene
+    assert lens_range.short_lens_radius_px(CameraModel(s.K, s.dist, (1280, 720)), s.radius_mm) is not None
+    shifts = _gradient_shifts(s, px, target, 0.05)
+    units = shifts / np.linalg.norm(shifts, axis=1)[:, None]
+    t0 = _target_of(s, px, target)
+    floor_mm = float(np.linalg.norm(_target_of(s, px + TrackerConfig().short_lens_band_floor_px * units, target) - t0))
+    aware = _stream(s, target, _ShadedBalls(px, minor, shifts, 0, -1, True))
+    blind = _stream(s, target, _ShadedBalls(px, minor, shifts, 0, -1, True), TrackerConfig(short_lens_band_floor_px=0.0))
+    assert all(e.predicted_tre_mm >= 0.9 * 2 * floor_mm for e in aware[2:]), ([e.predicted_tre_mm for e in aware], floor_mm)
+    assert all(e.predicted_tre_mm < 0.9 * 2 * floor_mm for e in blind[2:]), ([e.predicted_tre_mm for e in blind], floor_mm)
+    # the same lens with balls not banded: the floor does not apply
+    plain = _stream(s, target, _ShadedBalls(px, minor, shifts, 6, -1, False))
+    plain_blind = _stream(s, target, _ShadedBalls(px, minor, shifts, 6, -1, False), TrackerConfig(short_lens_band_floor_px=0.0))
+    np.testing.assert_allclose([e.predicted_tre_mm for e in plain], [e.predicted_tre_mm for e in plain_blind], rtol=1e-12)
+
+
+def test_the_generators_lens_keeps_the_rules_as_they_were(scene):
+    """Through the generator's lens (f = 1100 px: 11 px balls from 400 mm) the short-lens floor
+    never applies: every banded frame predicts as the lens-blind rules do, to the bit."""
+    s, target, px, minor = scene
+    assert lens_range.short_lens_radius_px(CameraModel(s.K, s.dist, (1280, 720)), s.radius_mm) is None
+    shifts = _gradient_shifts(s, px, target, 0.3)
+    now = _stream(s, target, _ShadedBalls(px, minor, shifts, 0, -1, True))
+    blind = _stream(s, target, _ShadedBalls(px, minor, shifts, 0, -1, True), TrackerConfig(short_lens_band_floor_px=0.0))
+    assert [e.predicted_tre_mm for e in now] == [e.predicted_tre_mm for e in blind]
+    assert [e.ok for e in now] == [e.ok for e in blind]
+
+
+@pytest.mark.parametrize("floor", [-0.1, float("nan")])
+def test_a_short_lens_floor_that_is_not_a_length_is_refused_at_construction(floor):
+    with pytest.raises(ValueError, match="short_lens_band_floor_px"):
+        TrackerConfig(short_lens_band_floor_px=floor)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import ball_gloss, shading_check
+from . import ball_gloss, lens_range, shading_check
 from .tracker_config import TrackerConfig, few_ball_factor, tail_problem
 
 #: the note each frame leaves in the ball memory: the share of its matched balls with a contact
@@ -71,8 +71,16 @@ class FrameTrust:
         self.radius_mm = float(radius_mm)
         self.memory = memory
         self.outlines = outlines
+        #: the camera's lens images the balls under the judged size (:mod:`.lens_range`)
+        self.short_lens = lens_range.short_lens_radius_px(camera, radius_mm) is not None
         self._rows = None                # (registration, its rows): fit_rows' last
         self._covers = None              # (registration, its covers): centre_covers' last
+
+    def band_floor_px(self) -> float:
+        """The shading check's floor (px) for a banded ball's second reading: the config's, or its
+        short-lens floor where the lens is short (the larger)."""
+        cfg = self.config
+        return max(float(cfg.shading_check_band_floor_px), float(cfg.short_lens_band_floor_px) if self.short_lens else 0.0)
 
     def judge(self, reg, det, noise, target_ct: np.ndarray, recheck: bool, ok: bool, code: str, reason: str,
               n_remembered: int) -> tuple[float, bool, str, str]:
@@ -202,12 +210,12 @@ class FrameTrust:
                 if cfg.shading_check_reading == "excess":
                     # the outlines' excess over the spheres at this pose (px; only where the check applies)
                     read = excess if excess is not None else self.size_excess(T, fids, feats)
-                disagree = shading_check.pose_disagreement(A, feats, read, band_min_px=cfg.shading_check_band_floor_px)
+                disagree = shading_check.pose_disagreement(A, feats, read, band_min_px=self.band_floor_px())
             elif shading_check.unseen_push_applies(feats, cfg.shading_check_unseen_push_px, still,
                                                    cfg.shading_check_push_min_share):
                 # too few shadows seen for the check: each shaded ball's push taken as at least the floor
                 disagree = shading_check.pose_disagreement(A, feats, min_px=cfg.shading_check_unseen_push_px,
-                                                           band_min_px=cfg.shading_check_band_floor_px)
+                                                           band_min_px=self.band_floor_px())
             if disagree is not None:
                 check_mm = shading_check.target_move_mm(disagree, T, target_ct)
             self.memory.note(SHADOWED_NOTE, shading_check.shadowed_share(feats))

@@ -251,6 +251,16 @@ class TrackerConfig:
     #: shift's linear model says. Opt-in: docs/vision.md "A band of shadow beside the limb" for its
     #: rule and figures (``camera_pbr.py`` row ``band-floor``)
     shading_check_band_floor_px: float = 0.0
+    #: the same floor (px) where the camera's lens is short for the balls
+    #: (:func:`.lens_range.short_lens_radius_px`: they image under 10 px from the layout planner's
+    #: closest distance; the larger of the two floors applies); 0 = lens-blind (the default before
+    #: 2026-12-03's fortieth session). Every other lens keeps ``shading_check_band_floor_px``. Why:
+    #: through a short lens near the head the trusted poses 1-2 mm off that reach the arm are
+    #: 2.6-7.3 % on unseen rendered sets, and 0.4 px took an unseen one from 4.5 to 1.1 % while
+    #: costing the generator's lens 18 % of its gate frames (so not for every lens); on the unseen
+    #: foreign6 it was 0.4 % (lens-blind 0.3 %) at 18 % fewer gate frames. docs/vision.md "A lens
+    #: outside the judged range" for its rule and figures (``camera_pbr.py`` row ``lens-blind``)
+    short_lens_band_floor_px: float = 0.4
     #: balls the detector found in the last frames of a still head and misses in this one are
     #: given back to it for at most this many frames (:mod:`.ball_memory`: a ball's acceptance
     #: flickers from frame to frame on shaded balls; the head's stillness is tested against the
@@ -323,6 +333,9 @@ class TrackerConfig:
         if not (float(self.shading_check_band_floor_px) >= 0.0):
             raise ValueError("TrackerConfig: shading_check_band_floor_px must be a push in px >= 0, "
                              f"not {self.shading_check_band_floor_px!r}")
+        if not (float(self.short_lens_band_floor_px) >= 0.0):
+            raise ValueError("TrackerConfig: short_lens_band_floor_px must be a push in px >= 0, "
+                             f"not {self.short_lens_band_floor_px!r}")
         if not (0.0 <= float(self.shading_check_push_min_share) <= 1.0):
             raise ValueError("TrackerConfig: shading_check_push_min_share must be a share of the balls from 0 to 1, "
                              f"not {self.shading_check_push_min_share!r}")
