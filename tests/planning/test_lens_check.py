@@ -61,3 +61,14 @@ def test_the_judged_lenses_pass_and_the_short_one_is_named():
 def test_nonsense_is_refused():
     with pytest.raises(ValueError):
         lens_check.ball_radius_px(default_camera(), 4.0, 3.0)
+
+
+@pytest.mark.parametrize("radius", [0.0, -1.0, float("nan"), 500.0])
+def test_a_radius_that_is_no_balls_is_not_judged_short(radius):
+    """The tracker asks :func:`is_short` at construction: a radius that is no ball's leaves the
+    tracker as it was (its own checks), never an exception from the lens rule."""
+    from monotracker.vision.lens_range import is_short
+
+    assert not is_short(_wide(), radius)
+    assert is_short(_wide(), 4.0) and not is_short(default_camera(), 4.0)
+    assert lens_check.short_lens(_wide(), radius) == ""

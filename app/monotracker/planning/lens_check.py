@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
+
 from monotracker.vision.lens_range import MIN_BALL_PX, ball_radius_px, short_lens_radius_px
 
 from .problem import CameraSpace
@@ -29,7 +31,10 @@ def short_lens(camera, radius_mm: float, distance_mm: float | None = None) -> st
     (mm): they image under ``MIN_BALL_PX`` from ``distance_mm`` (None: the planner's closest,
     :func:`closest_distance_mm`); "" when it is inside. One line, for the operator."""
     d = closest_distance_mm() if distance_mm is None else float(distance_mm)
-    r_px = short_lens_radius_px(camera, radius_mm, d)
+    r = float(radius_mm)
+    if not (np.isfinite(r) and 0.0 < r < d):
+        return ""                     # no ball's radius: the plan's own checks refuse it
+    r_px = short_lens_radius_px(camera, r, d)
     if r_px is None:
         return ""
     return (f"short lens for the fiducial balls: from {d:.0f} mm (the layout planner's closest camera "

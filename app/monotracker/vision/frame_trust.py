@@ -71,8 +71,9 @@ class FrameTrust:
         self.radius_mm = float(radius_mm)
         self.memory = memory
         self.outlines = outlines
-        #: the camera's lens images the balls under the judged size (:mod:`.lens_range`)
-        self.short_lens = lens_range.short_lens_radius_px(camera, radius_mm) is not None
+        #: the camera's lens images the balls under the judged size (:mod:`.lens_range`; a radius
+        #: that is no ball's is left to the tracker's own checks)
+        self.short_lens = lens_range.is_short(camera, radius_mm)
         self._rows = None                # (registration, its rows): fit_rows' last
         self._covers = None              # (registration, its covers): centre_covers' last
 

@@ -49,3 +49,13 @@ def short_lens_radius_px(camera, radius_mm: float, distance_mm: float = JUDGED_D
     :data:`MIN_BALL_PX` (a short lens for them), else None."""
     r_px = ball_radius_px(camera, radius_mm, distance_mm)
     return r_px if r_px < MIN_BALL_PX else None
+
+
+def is_short(camera, radius_mm: float) -> bool:
+    """Whether ``camera``'s lens is short for balls of ``radius_mm`` (mm) at
+    :data:`JUDGED_DISTANCE_MM` (:func:`short_lens_radius_px`); False for a radius that is no ball's
+    (not finite, <= 0 or beyond that distance), which the caller's own checks refuse."""
+    r = float(radius_mm)
+    if not (np.isfinite(r) and 0.0 < r < JUDGED_DISTANCE_MM):
+        return False
+    return short_lens_radius_px(camera, r) is not None
