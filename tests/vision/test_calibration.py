@@ -68,6 +68,9 @@ def test_cli_calibrate_camera(tmp_path, board_images):
     assert "RMS reprojection error" in r.stdout
     cam = CameraModel.load(out)
     assert abs(cam.K[0, 0] - 610) < 10
+    # f ~ 610 px images the kit's 4 mm balls at ~6.1 px from 400 mm: the lens is named as short
+    notes = [ln for ln in r.stdout.splitlines() if ln.startswith("note: short lens")]
+    assert len(notes) == 1 and " 6.1 px" in notes[0], r.stdout
     # wrong board size: a clear one-line error, exit code 2
     r = subprocess.run([sys.executable, "-m", "monotracker", "calibrate-camera", *paths[:4], "--chessboard", "7x4",
                         "--square-mm", "20"], capture_output=True, text=True, cwd=tmp_path,

@@ -1,8 +1,9 @@
 """``monotracker`` sub-commands of the vision area.
 
 * ``calibrate-camera IMAGES... --chessboard 9x6 --square-mm 25 [--out camera.yml]`` (or
-  ``--charuco 7x5 --square-mm 30 --marker-mm 22 [--dictionary DICT_5X5_100]``): prints the RMS
-  reprojection error and writes OpenCV YAML or JSON intrinsics.
+  ``--charuco 7x5 --square-mm 30 --marker-mm 22 [--dictionary DICT_5X5_100]``) ``[--ball-radius
+  4]``: prints the RMS reprojection error, a note where the lens is short for the balls
+  (:mod:`.lens_range`), and writes OpenCV YAML or JSON intrinsics.
 * ``check-camera IMAGES... --camera camera.yml --chessboard 9x6 --square-mm 25``: checks a
   calibration against views of a known board taken now (focal length and principal point with
   their uncertainty; :func:`.calibration_check.check_with_board`); exit 0 when it agrees.
@@ -20,6 +21,7 @@ import json
 import sys
 from pathlib import Path
 
+from monotracker.cli_args import finite_float
 from monotracker.errors import InputError
 
 
@@ -33,6 +35,9 @@ def register(subparsers) -> None:
     p.add_argument("--marker-mm", type=float, help="ChArUco marker side in mm")
     p.add_argument("--dictionary", default="DICT_5X5_100", help="ArUco dictionary (ChArUco only)")
     p.add_argument("--out", default="camera.yml", help="output .yml/.yaml/.xml (OpenCV) or .json")
+    p.add_argument("--ball-radius", type=finite_float(0.5, 20.0), default=4.0, metavar="MM",
+                   help="the fiducial balls' radius in mm, for the lens check (default 4, the kit's): a lens "
+                        "that images them under 10 px from 400 mm is named")
     p.set_defaults(func=_calibrate)
 
     c = subparsers.add_parser("check-camera", help="check a camera calibration against images of a known board")
@@ -64,6 +69,7 @@ def register(subparsers) -> None:
 
 def _calibrate(args) -> int:
     from .calibration import calibrate_charuco, calibrate_chessboard, parse_pattern
+    from .lens_range import short_lens_message
 
     if args.chessboard:
         res = calibrate_chessboard(args.images, parse_pattern(args.chessboard), args.square_mm)
@@ -76,6 +82,9 @@ def _calibrate(args) -> int:
         print(f"skipped {name}: {why}")
     print(res.summary())
     print(f"RMS reprojection error: {res.rms_px:.3f} px")
+    lens = short_lens_message(res.camera, args.ball_radius)
+    if lens:
+        print(f"note: {lens}")
     out = res.camera.save(args.out)
     print(f"wrote {out}")
     return 0

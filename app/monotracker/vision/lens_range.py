@@ -14,9 +14,10 @@ distance, :data:`JUDGED_DISTANCE_MM` from the point it aims at):
   the shading push. The same 8 px balls seen through the long lens from 536 mm were not.
 
 A lens that images the balls under :data:`MIN_BALL_PX` from that distance is *short*
-(:func:`short_lens_radius_px`): the layout planner names it in its notes
-(``planning.lens_check``), the camera rig raises the setup warning ``camera_short_lens``, and the
-pose tracker covers its balls' shading more strictly (``TrackerConfig.short_lens_band_floor_px``).
+(:func:`short_lens_radius_px`, :func:`is_short`): the layout planner names it in its notes
+(``planning.lens_check``), the camera rig raises the setup warning ``camera_short_lens``,
+``calibrate-camera`` prints it (:func:`short_lens_message`, the one wording), and the pose tracker
+covers its balls' shading more strictly (``TrackerConfig.short_lens_band_floor_px``).
 10 px lies between the judged 11 px and the short lens's 8 px; nothing between them was measured.
 """
 
@@ -59,3 +60,22 @@ def is_short(camera, radius_mm: float) -> bool:
     if not (np.isfinite(r) and 0.0 < r < JUDGED_DISTANCE_MM):
         return False
     return short_lens_radius_px(camera, r) is not None
+
+
+def short_lens_message(camera, radius_mm: float, distance_mm: float = JUDGED_DISTANCE_MM) -> str:
+    """Why ``camera`` (a CameraModel) is outside the judged range for balls of ``radius_mm`` (mm):
+    they image under :data:`MIN_BALL_PX` from ``distance_mm`` (mm); "" when they do not, or when
+    the radius is no ball's (not finite, <= 0, beyond that distance). One line, for the operator:
+    the layout planner's notes, the camera setup warning ``camera_short_lens``, ``calibrate-camera``."""
+    r, d = float(radius_mm), float(distance_mm)
+    if not (np.isfinite(r) and 0.0 < r < d):
+        return ""
+    r_px = short_lens_radius_px(camera, r, d)
+    if r_px is None:
+        return ""
+    return (f"short lens for the fiducial balls: from {d:.0f} mm (the layout planner's closest camera "
+            f"distance) this calibration images them at {r_px:.1f} px radius, under the {MIN_BALL_PX:g} px "
+            "the camera path was judged with; with balls of 8 px seen that close, 2.6-7.3 % of the poses "
+            "passed to the arm on rendered test frames were 1.0-1.3 mm off at the target (none over 2 mm), "
+            "and the pose tracker now reads their shading more cautiously (fewer poses trusted). "
+            "Use a longer lens or a sensor with more pixels, and check the layout planner's rating")
