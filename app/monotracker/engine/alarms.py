@@ -58,7 +58,7 @@ check it; the arm does not hold for it; shown until that has not held for 5 s); 
 ``camera_uncalibrated`` / ``camera_compressed`` / ``camera_short_lens`` / ``colour_clash``
 [warning] nominal intrinsics / lossy frames (MJPEG, JPEG files, a lossy video codec) / a lens
 that images the balls under 10 px from the layout planner's closest distance, outside the range
-trust was judged on (planning/lens_check.py) / a large area of the balls' colour (learn the
+trust was judged on (vision/lens_range.py) / a large area of the balls' colour (learn the
 colour), shown while that camera runs (the last while the area is seen),
 ``frame_size`` [alarm] frame size differs from the calibration, ``frame_grayscale`` [alarm] the
 frames are grayscale (a monochrome camera or grayscale files: no ball can be found), ``camera_moved``
@@ -222,7 +222,7 @@ CATALOGUE: dict[str, AlarmKind] = {
     "robot_warning": AlarmKind("warning", 21, technical=True, linger_s=10.0, pulse=True),
     "camera_uncalibrated": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),
     "camera_compressed": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),  # frames through JPEG/lossy video
-    # a lens that images the balls under the judged size (planning/lens_check.py)
+    # a lens that images the balls under the judged size (vision/lens_range.py)
     "camera_short_lens": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True),
     "colour_clash": AlarmKind("warning", 22, linger_s=0.0, camera_setup=True,
                               remedy="click a ball in the camera view to learn its colour, or cover that area"),  # a drape of the balls' hue

@@ -31,12 +31,12 @@ import numpy as np
 
 from monotracker.geometry import invert_transform
 from monotracker.registration.report import fiducial_information
+from monotracker.vision.lens_range import short_lens_message
 from monotracker.vision.tracker_config import TrackerConfig
 
 from .camera_poses import CameraPose, camera_pose, candidate_poses, cone_directions
 from .candidates import Candidates, sample_candidates
 from .detector_defaults import OUTLOOK_OBSERVED_RANGE_POINTS, PLANNED_LAYOUT_GATE_OFF, PLANNED_LAYOUT_TRACKER_OFF
-from .lens_check import short_lens
 from .prediction import Prediction, outlook_with_losses, predict
 from .problem import PlanningProblem
 from .search import PoseData, best_layout, objective, spread_seed, swap_map
@@ -367,7 +367,7 @@ def _expectations(problem, cands, pose, pd, S, keep_idx, quick, poses, cfg, min_
                      f"{PLANNED_LAYOUT_TRACKER_OFF[1]} frames 1-2 mm off at the target, and "
                      f"{PLANNED_LAYOUT_GATE_OFF[0]} of the {PLANNED_LAYOUT_GATE_OFF[1]} poses that would move the arm "
                      "(none over 2 mm)")
-    lens = short_lens(problem.camera, problem.radius_mm, lo)
+    lens = short_lens_message(problem.camera, problem.radius_mm, lo)   # at the planner's own closest distance
     if lens:
         notes.append(lens)
     outline_ids = ()

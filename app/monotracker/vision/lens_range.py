@@ -14,8 +14,8 @@ distance, :data:`JUDGED_DISTANCE_MM` from the point it aims at):
   the shading push. The same 8 px balls seen through the long lens from 536 mm were not.
 
 A lens that images the balls under :data:`MIN_BALL_PX` from that distance is *short*
-(:func:`short_lens_radius_px`, :func:`is_short`): the layout planner names it in its notes
-(``planning.lens_check``), the camera rig raises the setup warning ``camera_short_lens``,
+(:func:`short_lens_radius_px`, :func:`is_short`): the layout planner names it in its notes, the
+camera rig raises the setup warning ``camera_short_lens``,
 ``calibrate-camera`` prints it (:func:`short_lens_message`, the one wording), and the pose tracker
 covers its balls' shading more strictly (``TrackerConfig.short_lens_band_floor_px``).
 10 px lies between the judged 11 px and the short lens's 8 px; nothing between them was measured.
@@ -47,30 +47,29 @@ def ball_radius_px(camera, radius_mm: float, distance_mm: float) -> float:
 
 def short_lens_radius_px(camera, radius_mm: float, distance_mm: float = JUDGED_DISTANCE_MM) -> float | None:
     """The balls' image radius (px) from ``distance_mm`` (:func:`ball_radius_px`) where it is under
-    :data:`MIN_BALL_PX` (a short lens for them), else None."""
-    r_px = ball_radius_px(camera, radius_mm, distance_mm)
+    :data:`MIN_BALL_PX` (a short lens for them), else None; None too for a radius that is no
+    ball's (not finite, <= 0, beyond that distance), which the caller's own checks refuse."""
+    r, d = float(radius_mm), float(distance_mm)
+    if not (np.isfinite(r) and 0.0 < r < d):
+        return None
+    r_px = ball_radius_px(camera, r, d)
     return r_px if r_px < MIN_BALL_PX else None
 
 
 def is_short(camera, radius_mm: float) -> bool:
     """Whether ``camera``'s lens is short for balls of ``radius_mm`` (mm) at
-    :data:`JUDGED_DISTANCE_MM` (:func:`short_lens_radius_px`); False for a radius that is no ball's
-    (not finite, <= 0 or beyond that distance), which the caller's own checks refuse."""
-    r = float(radius_mm)
-    if not (np.isfinite(r) and 0.0 < r < JUDGED_DISTANCE_MM):
-        return False
-    return short_lens_radius_px(camera, r) is not None
+    :data:`JUDGED_DISTANCE_MM` (:func:`short_lens_radius_px`)."""
+    return short_lens_radius_px(camera, radius_mm) is not None
 
 
 def short_lens_message(camera, radius_mm: float, distance_mm: float = JUDGED_DISTANCE_MM) -> str:
     """Why ``camera`` (a CameraModel) is outside the judged range for balls of ``radius_mm`` (mm):
-    they image under :data:`MIN_BALL_PX` from ``distance_mm`` (mm); "" when they do not, or when
-    the radius is no ball's (not finite, <= 0, beyond that distance). One line, for the operator:
-    the layout planner's notes, the camera setup warning ``camera_short_lens``, ``calibrate-camera``."""
-    r, d = float(radius_mm), float(distance_mm)
-    if not (np.isfinite(r) and 0.0 < r < d):
-        return ""
-    r_px = short_lens_radius_px(camera, r, d)
+    they image under :data:`MIN_BALL_PX` from ``distance_mm`` (mm; the layout planner passes its
+    own closest); "" when they do not, or when the radius is no ball's. One line, for the
+    operator: the layout planner's notes, the camera setup warning ``camera_short_lens``,
+    ``calibrate-camera``."""
+    d = float(distance_mm)
+    r_px = short_lens_radius_px(camera, radius_mm, d)
     if r_px is None:
         return ""
     return (f"short lens for the fiducial balls: from {d:.0f} mm (the layout planner's closest camera "

@@ -66,9 +66,9 @@ class StreamRig(CameraRig):
         path (checked by the source table); ``rules``: the per-frame trust rules (vision's
         ``TrackerConfig``; None: vision's defaults)."""
         super().__init__()
-        from monotracker.planning.lens_check import short_lens
         from monotracker.vision.camera_model import CameraModel, default_camera
         from monotracker.vision.frames import open_source
+        from monotracker.vision.lens_range import short_lens_message
         from monotracker.vision.pose_stream import PoseStream, PoseTracker
 
         source = f"{kind}:{arg}"
@@ -87,7 +87,7 @@ class StreamRig(CameraRig):
         self.K, self.dist, self.image_size = model.K, model.dist, tuple(model.image_size)
         self.fiducial_ids = [f.id for f in plan.registration_fiducials()]
         radius = float(np.median([f.radius_mm for f in plan.registration_fiducials()]))
-        lens = short_lens(model, radius)
+        lens = short_lens_message(model, radius)
         if lens:
             session.alert("warning", "camera_short_lens", lens)
         self.validation = ValidationSet.from_plan(plan, radius)
